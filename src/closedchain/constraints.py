@@ -1,0 +1,337 @@
+r"""Loop-closure constraints: phi(q), J(q) and gamma(q, v) = Jdot(q, v) v.
+
+A loop joint cuts the mechanism between a frame c1 on the predecessor link and
+a frame c2 on the successor link (the ``*_origin`` placements of the
+``<loop>`` element). With world placements ``oMc1 = (R_p, p_p)`` and
+``oMc2 = (R_s, p_s)`` the declared rows of each loop type are
+
+======== =============================================== =========
+type     rows                                            count
+======== =============================================== =========
+revolute translation d = p_p - p_s (world x, y, z),      3 + 2
+         tilt of the axis (n1.a, n2.a)
+spherical translation d (world x, y, z)                   3
+fixed    translation d, tilt (n1.a, n2.a), twist n1.n2   3 + 3
+prismatic d across the axis (n1.d, n2.d), tilt, twist    2 + 3
+======== =============================================== =========
+
+where a is the loop axis and (n1, n2, a) a right-handed orthonormal basis, all
+given in c1 (predecessor side) and c2 (successor side) and carried to the world
+by R_p and R_s. Every row is one of three smooth scalar functions:
+
+.. math::
+
+    \phi_{d,k} = e_k^\top (p_p - p_s), \qquad
+    \phi_{t,i} = (R_p n_i)^\top (p_p - p_s), \qquad
+    \phi_{r} = (R_p u)^\top (R_s w),
+
+with exact first and second time derivatives (``u``, ``w`` constant unit
+vectors in c1 and c2). With frame velocities ``(v, omega)`` and bias
+accelerations ``(a_b, alpha_b)`` (classical, world-aligned, at zero joint
+acceleration):
+
+.. math::
+
+    \dot\phi_r = (\omega_s - \omega_p)^\top (w \times u), \qquad
+    \gamma_r = \ddot u^\top w + 2 \dot u^\top \dot w + u^\top \ddot w,
+    \quad \dot u = \omega_p \times u,\;
+    \ddot u = \alpha_{b,p} \times u + \omega_p \times (\omega_p \times u).
+
+So J is exactly the derivative of phi along ``pin.integrate`` and
+gamma = Jdot v exactly: finite differences check both (tests/test_constraints.py).
+The translation rows reproduce the textbook 4-bar closure
+``p_C(coupler) - p_C(rocker)`` of the seed text, Section 2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .exceptions import ValidationUnavailableError
+from .urdf import LoopSpec
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+#: Distance [m] between the two points on the axis that stand for a revolute
+#: loop in Pinocchio's CONTACT_3D constraint models (any nonzero value works:
+#: it only rescales the multipliers, not J^T lam).
+PIN_REVOLUTE_POINT_OFFSET = 0.1
+
+
+def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return unit vectors (n1, n2) with (n1, n2, axis) right-handed orthonormal.
+
+    Args:
+        axis: unit vector, shape (3,).
+    """
+    e = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    n1 = np.cross(axis, e)
+    n1 /= np.linalg.norm(n1)
+    n2 = np.cross(axis, n1)
+    return n1, n2
+
+
+@dataclass(frozen=True)
+class RowInfo:
+    """One declared constraint row.
+
+    Attributes:
+        loop: name of its loop.
+        kind: ``"x" | "y" | "z"`` (world translation), ``"t1" | "t2"``
+            (translation across a prismatic axis), ``"r1" | "r2" | "r3"`` (rotation).
+        unit: ``"m"`` or ``"1"`` (dimensionless).
+    """
+
+    loop: str
+    kind: str
+    unit: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.loop}.{self.kind}"
+
+
+class _LoopBlock:
+    """Active rows of one loop and the constant vectors they use."""
+
+    def __init__(self, spec: LoopSpec, fid_p: int, fid_s: int, keep: list[int] | None) -> None:
+        self.spec = spec
+        self.fid_p = fid_p
+        self.fid_s = fid_s
+        a = spec.axis
+        n1, n2 = axis_basis(a)
+        world: list[int] = []
+        perp: list[np.ndarray] = []
+        rot_u: list[np.ndarray] = []
+        rot_w: list[np.ndarray] = []
+        rows: list[RowInfo] = []
+        # Declared rows in a fixed order: translation, then rotation.
+        declared: list[tuple[str, object]] = []
+        if spec.type in ("revolute", "spherical", "fixed"):
+            declared += [("world", 0), ("world", 1), ("world", 2)]
+        if spec.type == "prismatic":
+            declared += [("perp", n1), ("perp", n2)]
+        if spec.type in ("revolute", "fixed", "prismatic"):
+            declared += [("rot", (n1, a)), ("rot", (n2, a))]
+        if spec.type in ("fixed", "prismatic"):
+            declared += [("rot", (n1, n2))]
+        self.n_declared = len(declared)
+        names = {"world": "xyz", "perp": ("t1", "t2"), "rot": ("r1", "r2", "r3")}
+        counters = {"world": 0, "perp": 0, "rot": 0}
+        infos = []
+        for kind, payload in declared:
+            if kind == "world":
+                label = names["world"][payload]
+            else:
+                label = names[kind][counters[kind]]
+            counters[kind] += 1
+            infos.append(RowInfo(spec.name, label, "1" if kind == "rot" else "m"))
+        self.declared_rows = tuple(infos)
+        keep = list(range(len(declared))) if keep is None else keep
+        for i in keep:
+            kind, payload = declared[i]
+            if kind == "world":
+                world.append(payload)
+            elif kind == "perp":
+                perp.append(payload)
+            else:
+                rot_u.append(payload[0])
+                rot_w.append(payload[1])
+        # Active rows are evaluated grouped by kind; record their order.
+        order = (
+            [i for i in keep if declared[i][0] == "world"]
+            + [i for i in keep if declared[i][0] == "perp"]
+            + [i for i in keep if declared[i][0] == "rot"]
+        )
+        self.rows = tuple(infos[i] for i in order)
+        self.world = np.array(world, dtype=int)
+        self.perp = np.array(perp).reshape(-1, 3)
+        self.rot_u = np.array(rot_u).reshape(-1, 3)
+        self.rot_w = np.array(rot_w).reshape(-1, 3)
+        self.n = len(keep)
+
+
+class ConstraintLayer:
+    """phi, J and gamma of a set of loops, evaluated from filled Pinocchio data.
+
+    Build it with the loop frames already added to the model; restrict it to
+    independent rows with :meth:`restricted`. The ``evaluate`` method reads
+    ``data`` and never calls a kinematics algorithm itself, so the caller runs
+    each Pinocchio routine once per evaluation:
+
+    * phi needs ``forwardKinematics(q)``,
+    * J needs ``computeJointJacobians(q)`` (or ``computeAllTerms``),
+    * gamma needs ``forwardKinematics(q, v, 0)`` (or ``computeAllTerms``).
+    """
+
+    def __init__(
+        self,
+        loops: tuple[LoopSpec, ...],
+        frame_ids: tuple[tuple[int, int], ...],
+        keep: tuple[tuple[int, ...], ...] | None = None,
+    ) -> None:
+        self.loops = loops
+        self.frame_ids = frame_ids
+        self.keep = keep
+        self._blocks = [
+            _LoopBlock(spec, fp, fs, None if keep is None else list(keep[i]))
+            for i, (spec, (fp, fs)) in enumerate(zip(loops, frame_ids, strict=True))
+        ]
+        self.rows: tuple[RowInfo, ...] = tuple(r for b in self._blocks for r in b.rows)
+        self.declared_rows: tuple[RowInfo, ...] = tuple(
+            r for b in self._blocks for r in b.declared_rows
+        )
+        self.nc = len(self.rows)
+        self._slices = []
+        start = 0
+        for b in self._blocks:
+            self._slices.append(slice(start, start + b.n))
+            start += b.n
+
+    def restricted(self, rows: list[int]) -> ConstraintLayer:
+        """Return a layer that evaluates only the given declared rows.
+
+        Args:
+            rows: indices into :attr:`declared_rows`.
+        """
+        per_loop: list[list[int]] = [[] for _ in self._blocks]
+        offset = 0
+        for i, b in enumerate(self._blocks):
+            for r in rows:
+                if offset <= r < offset + b.n_declared:
+                    per_loop[i].append(r - offset)
+            offset += b.n_declared
+        return ConstraintLayer(self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop))
+
+    def evaluate(
+        self,
+        model: pin.Model,
+        data: pin.Data,
+        *,
+        phi: np.ndarray | None = None,
+        J: np.ndarray | None = None,
+        gamma: np.ndarray | None = None,
+    ) -> None:
+        """Fill the requested outputs from ``data``.
+
+        Args:
+            model: the mechanism's Pinocchio model (with the loop frames).
+            data: its data, filled by the kinematics routines listed in the class doc.
+            phi: output, shape (nc,), [m] or [-] per row.
+            J: output, shape (nc, nv), d phi / d v along ``pin.integrate``.
+            gamma: output, shape (nc,), Jdot v.
+        """
+        for blk, sl in zip(self._blocks, self._slices, strict=True):
+            if blk.n == 0:
+                continue
+            oMp = pin.updateFramePlacement(model, data, blk.fid_p)
+            oMs = pin.updateFramePlacement(model, data, blk.fid_s)
+            Rp, Rs = oMp.rotation, oMs.rotation
+            d = oMp.translation - oMs.translation
+            nw, nt = len(blk.world), len(blk.perp)
+            U_t = blk.perp @ Rp.T  # rows: R_p n_i in world
+            U = blk.rot_u @ Rp.T
+            W = blk.rot_w @ Rs.T
+            if phi is not None:
+                out = phi[sl]
+                out[:nw] = d[blk.world]
+                out[nw : nw + nt] = U_t @ d
+                out[nw + nt :] = np.einsum("ij,ij->i", U, W)
+            if J is not None:
+                Jp = pin.getFrameJacobian(model, data, blk.fid_p, _LWA)
+                Js = pin.getFrameJacobian(model, data, blk.fid_s, _LWA)
+                out = J[sl]
+                dJ_lin = Jp[:3] - Js[:3]
+                out[:nw] = dJ_lin[blk.world]
+                out[nw : nw + nt] = U_t @ dJ_lin + np.cross(U_t, d) @ Jp[3:]
+                out[nw + nt :] = np.cross(W, U) @ (Js[3:] - Jp[3:])
+            if gamma is not None:
+                vp = pin.getFrameVelocity(model, data, blk.fid_p, _LWA)
+                vs = pin.getFrameVelocity(model, data, blk.fid_s, _LWA)
+                ap = pin.getFrameClassicalAcceleration(model, data, blk.fid_p, _LWA)
+                as_ = pin.getFrameClassicalAcceleration(model, data, blk.fid_s, _LWA)
+                out = gamma[sl]
+                dd = ap.linear - as_.linear
+                out[:nw] = dd[blk.world]
+                if nt:
+                    wp = vp.angular
+                    Ud = np.cross(wp, U_t)
+                    Udd = np.cross(ap.angular, U_t) + np.cross(wp, Ud)
+                    ddot = vp.linear - vs.linear
+                    out[nw : nw + nt] = Udd @ d + 2.0 * Ud @ ddot + U_t @ dd
+                if len(U):
+                    wp, ws = vp.angular, vs.angular
+                    Ud = np.cross(wp, U)
+                    Wd = np.cross(ws, W)
+                    Udd = np.cross(ap.angular, U) + np.cross(wp, Ud)
+                    Wdd = np.cross(as_.angular, W) + np.cross(ws, Wd)
+                    out[nw + nt :] = (
+                        np.einsum("ij,ij->i", Udd, W)
+                        + 2.0 * np.einsum("ij,ij->i", Ud, Wd)
+                        + np.einsum("ij,ij->i", U, Wdd)
+                    )
+
+    def loop_residuals(self, model: pin.Model, data: pin.Data) -> dict[str, float]:
+        """Return max |phi| per loop over its active rows (placements must be current)."""
+        phi = np.zeros(self.nc)
+        self.evaluate(model, data, phi=phi)
+        return {
+            b.spec.name: float(np.max(np.abs(phi[sl]), initial=0.0))
+            for b, sl in zip(self._blocks, self._slices, strict=True)
+        }
+
+
+def build_pinocchio_constraints(
+    model: pin.Model, layer: ConstraintLayer
+) -> tuple[pin.StdVec_RigidConstraintModel, list[str]]:
+    """Express every loop as Pinocchio rigid constraint models.
+
+    revolute: two CONTACT_3D points on the axis (6 rows, rank 5, Pinocchio
+    upstream issue #2729 has no 5-D cut); spherical: one CONTACT_3D; fixed:
+    CONTACT_6D.
+
+    Args:
+        model: model holding the loop frames.
+        layer: the constraint layer (its loops and frame ids).
+
+    Returns:
+        The constraint models and, per model, the loop it stands for.
+
+    Raises:
+        ValidationUnavailableError: a prismatic loop (Pinocchio has no
+            prismatic constraint model).
+    """
+    cms = pin.StdVec_RigidConstraintModel()
+    owners: list[str] = []
+    for spec, (fp, fs) in zip(layer.loops, layer.frame_ids, strict=True):
+        frame_p, frame_s = model.frames[fp], model.frames[fs]
+        j1, M1 = frame_p.parentJoint, frame_p.placement
+        j2, M2 = frame_s.parentJoint, frame_s.placement
+        if spec.type == "prismatic":
+            raise ValidationUnavailableError(
+                f"loop {spec.name!r} is prismatic: Pinocchio has no prismatic rigid "
+                "constraint model, so it cannot serve as the reference; valid loop types "
+                "for validation: revolute, spherical, fixed"
+            )
+        if spec.type == "fixed":
+            cms.append(_rcm(pin.ContactType.CONTACT_6D, model, j1, M1, j2, M2, spec.name))
+            owners.append(spec.name)
+            continue
+        cms.append(_rcm(pin.ContactType.CONTACT_3D, model, j1, M1, j2, M2, spec.name))
+        owners.append(spec.name)
+        if spec.type == "revolute":
+            shift = pin.SE3(np.eye(3), PIN_REVOLUTE_POINT_OFFSET * spec.axis)
+            cms.append(
+                _rcm(pin.ContactType.CONTACT_3D, model, j1, M1 * shift, j2, M2 * shift, spec.name)
+            )
+            owners.append(spec.name)
+    return cms, owners
+
+
+def _rcm(ctype, model, j1, M1, j2, M2, name):
+    cm = pin.RigidConstraintModel(ctype, model, j1, M1, j2, M2, pin.ReferenceFrame.LOCAL)
+    cm.name = name
+    return cm

@@ -1,0 +1,61 @@
+"""Exceptions raised by closedchain.
+
+Every error derives from :class:`ClosedChainError`, names the offending value
+(file, element, argument, configuration) and, where there is a finite set of
+valid choices, lists them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+
+class ClosedChainError(Exception):
+    """Base class of every error raised by closedchain."""
+
+
+class URDFError(ClosedChainError):
+    """A URDF file, or one of its URDF+ extension elements, is invalid."""
+
+
+class LoopClosureError(ClosedChainError):
+    """The frames of a loop joint cannot be brought together."""
+
+
+class AssemblyError(ClosedChainError):
+    """Newton / Levenberg-Marquardt assembly did not reach phi(q) = 0."""
+
+    def __init__(self, message: str, residual: float, q) -> None:
+        super().__init__(message)
+        self.residual = residual
+        self.q = q
+
+
+class SingularConfigurationError(ClosedChainError):
+    """A matrix a method must invert is singular or too ill-conditioned.
+
+    Attributes:
+        q: configuration at which it happened, shape (nq,).
+        condition_number: estimated 2-norm or 1-norm condition number.
+        t: simulation time [s] when raised during a simulation, else None.
+    """
+
+    def __init__(self, message: str, *, q=None, condition_number: float = float("inf"), t=None):
+        super().__init__(message)
+        self.q = q
+        self.condition_number = condition_number
+        self.t = t
+
+
+class UnknownChoiceError(ClosedChainError, ValueError):
+    """An argument is not one of a fixed set of valid choices."""
+
+    def __init__(self, what: str, value: object, choices: Iterable[str]) -> None:
+        choices = sorted(choices)
+        super().__init__(f"unknown {what} {value!r}; valid choices: {', '.join(choices)}")
+        self.value = value
+        self.choices = choices
+
+
+class ValidationUnavailableError(ClosedChainError):
+    """No equivalent Pinocchio constraint model exists for a loop type."""

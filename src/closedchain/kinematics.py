@@ -1,0 +1,236 @@
+r"""Assembly onto phi(q) = 0, velocity projection and singularity measures.
+
+Assembly is Gauss-Newton with a backtracking line search on the Lie group of
+configurations:
+
+.. math::
+
+    \delta v_F = -J_F(q_k)^{+} \phi(q_k), \qquad
+    q_{k+1} = q_k \oplus \alpha\, \delta v,
+
+where F are the free (not held) velocity coordinates, ``+`` the minimum-norm
+least-squares pseudo-inverse (so redundant rows do no harm) and
+:math:`\oplus` is ``pin.integrate``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+
+from .constraints import ConstraintLayer
+from .exceptions import AssemblyError
+
+if TYPE_CHECKING:
+    from .mechanism import Mechanism
+
+
+@dataclass(frozen=True)
+class AssemblySettings:
+    """Settings of :func:`assemble`.
+
+    Attributes:
+        tol: convergence threshold on max |phi| [m or -].
+        max_iter: Gauss-Newton iterations before giving up.
+        max_halvings: line-search step halvings per iteration.
+    """
+
+    tol: float = 1e-12
+    max_iter: int = 60
+    max_halvings: int = 12
+
+
+def _phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
+    pin.forwardKinematics(model, data, q)
+    out = np.zeros(layer.nc)
+    layer.evaluate(model, data, phi=out)
+    return out
+
+
+def _jacobian(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
+    pin.computeJointJacobians(model, data, q)
+    out = np.zeros((layer.nc, model.nv))
+    layer.evaluate(model, data, J=out)
+    return out
+
+
+def solve_closure(
+    model: pin.Model,
+    data: pin.Data,
+    layer: ConstraintLayer,
+    q_guess: np.ndarray,
+    free: np.ndarray,
+    settings: AssemblySettings,
+) -> np.ndarray:
+    """Gauss-Newton onto phi(q) = 0 moving only the ``free`` velocity coordinates.
+
+    Args:
+        model: Pinocchio model with the loop frames.
+        data: its data (overwritten).
+        layer: rows to zero (redundant rows allowed).
+        q_guess: start configuration, shape (nq,).
+        free: velocity indices allowed to move.
+        settings: tolerances.
+
+    Returns:
+        The assembled configuration, shape (nq,).
+
+    Raises:
+        AssemblyError: max |phi| stays above ``settings.tol``; carries the
+            residual reached and the configuration.
+    """
+    q = np.array(q_guess, dtype=float)
+    if layer.nc == 0:
+        return q
+    phi = _phi(model, data, layer, q)
+    res = float(np.max(np.abs(phi)))
+    dv = np.zeros(model.nv)
+    for _ in range(settings.max_iter):
+        if res <= settings.tol:
+            return q
+        J = _jacobian(model, data, layer, q)
+        step = np.linalg.lstsq(J[:, free], -phi, rcond=None)[0]
+        dv[:] = 0.0
+        dv[free] = step
+        alpha = 1.0
+        for _ in range(settings.max_halvings):
+            q_try = pin.integrate(model, q, alpha * dv)
+            phi_try = _phi(model, data, layer, q_try)
+            res_try = float(np.max(np.abs(phi_try)))
+            if res_try < res or res_try <= settings.tol:
+                break
+            alpha *= 0.5
+        else:
+            break
+        q, phi, res = q_try, phi_try, res_try
+    if res <= settings.tol:
+        return q
+    raise AssemblyError(
+        f"assembly did not converge: max |phi| = {res:.3e} > tol {settings.tol:.1e}",
+        residual=res,
+        q=q,
+    )
+
+
+def assemble(
+    mech: Mechanism,
+    q_guess: np.ndarray,
+    *,
+    fixed: Iterable[str | int] | str = (),
+    settings: AssemblySettings | None = None,
+) -> np.ndarray:
+    """Bring a configuration onto the constraint manifold phi(q) = 0.
+
+    Args:
+        mech: the mechanism.
+        q_guess: start configuration, shape (nq,); the assembly mode (branch)
+            reached is the one Newton finds from here.
+        fixed: coordinates held at their value in ``q_guess``: joint names,
+            velocity indices, or ``"actuated"`` / ``"independent"``.
+        settings: tolerances (defaults: :class:`AssemblySettings`).
+
+    Returns:
+        q with max |phi(q)| <= settings.tol, shape (nq,).
+
+    Raises:
+        AssemblyError: Newton did not converge (message gives the residual).
+    """
+    settings = settings or AssemblySettings()
+    q_guess = mech.check_q(q_guess, "q_guess")
+    held = mech.coordinate_indices(fixed)
+    free = np.setdiff1d(np.arange(mech.nv), held)
+    try:
+        return solve_closure(mech.model, mech.data, mech.constraints, q_guess, free, settings)
+    except AssemblyError as exc:
+        raise AssemblyError(
+            f"{mech.name}: {exc} (holding {len(held)} coordinates: "
+            f"{', '.join(mech.coordinate_names[i] for i in held) or 'none'})",
+            residual=exc.residual,
+            q=exc.q,
+        ) from None
+
+
+def compute_phi(mech: Mechanism, q: np.ndarray) -> np.ndarray:
+    """Return the loop-closure residual phi(q), shape (nc,), [m] or [-] per row."""
+    return _phi(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+
+
+def compute_jacobian(mech: Mechanism, q: np.ndarray) -> np.ndarray:
+    """Return the constraint Jacobian J(q), shape (nc, nv)."""
+    return _jacobian(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+
+
+def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Return gamma(q, v) = Jdot(q, v) v, shape (nc,), [m/s^2] or [1/s^2] per row."""
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
+    out = np.zeros(mech.nc)
+    mech.constraints.evaluate(mech.model, mech.data, gamma=out)
+    return out
+
+
+def project_velocity(
+    mech: Mechanism, q: np.ndarray, v: np.ndarray, *, fixed: Iterable[str | int] | str = ()
+) -> np.ndarray:
+    """Project a velocity onto the constraint tangent space J(q) v = 0.
+
+    Without ``fixed`` this is the Euclidean orthogonal projection
+    :math:`v - J^+ J v`; with ``fixed`` those coordinates keep their value and
+    the others take the minimum-norm correction.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        v: velocity, shape (nv,).
+        fixed: coordinates to keep (as in :func:`assemble`).
+
+    Returns:
+        The projected velocity, shape (nv,).
+    """
+    q = mech.check_q(q, "q")
+    v = np.array(mech.check_v(v, "v"), dtype=float)
+    if mech.nc == 0:
+        return v
+    J = compute_jacobian(mech, q)
+    held = mech.coordinate_indices(fixed)
+    free = np.setdiff1d(np.arange(mech.nv), held)
+    v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=None)[0]
+    return v
+
+
+@dataclass(frozen=True)
+class SingularityMeasures:
+    """How close a configuration is to a singularity.
+
+    Attributes:
+        sigma_min: smallest singular value of J (independent rows).
+        cond_J: 2-norm condition number of J.
+        cond_JD: 2-norm condition number of J_D, the columns of the dependent
+            coordinates (inf when J_D is singular).
+    """
+
+    sigma_min: float
+    cond_J: float
+    cond_JD: float
+
+
+def singularity_measures(mech: Mechanism, q: np.ndarray) -> SingularityMeasures:
+    """Return the singular-value measures of J(q) and J_D(q).
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+    """
+    if mech.nc == 0:
+        return SingularityMeasures(float("inf"), 1.0, 1.0)
+    J = compute_jacobian(mech, q)
+    s = np.linalg.svd(J, compute_uv=False)
+    sd = np.linalg.svd(J[:, mech.dependent_idx_v], compute_uv=False)
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    cond_d = float(sd[0] / sd[-1]) if sd[-1] > 0 else float("inf")
+    return SingularityMeasures(float(s[-1]), cond, cond_d)

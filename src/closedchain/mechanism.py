@@ -1,0 +1,473 @@
+"""The Mechanism: Pinocchio tree, loops, row selection, coordinates; :func:`load`.
+
+Everything that depends only on the mechanism is done here, once: loop frames
+are added to the model, the independent constraint rows are selected over
+several random assembled configurations, independent coordinates are chosen,
+and Pinocchio constraint models are built for validation.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import scipy.linalg
+
+from .constraints import ConstraintLayer, RowInfo
+from .exceptions import (
+    AssemblyError,
+    ClosedChainError,
+    LoopClosureError,
+    URDFError,
+    ValidationUnavailableError,
+)
+from .kinematics import AssemblySettings, solve_closure
+from .urdf import URDFPlus, parse_urdf
+
+logger = logging.getLogger(__name__)
+
+#: Standard gravity along world -z [m/s^2].
+DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
+
+
+@dataclass(frozen=True)
+class LoadSettings:
+    """Settings of the work :func:`load` does once per mechanism.
+
+    Attributes:
+        n_samples: random assembled configurations used for row selection.
+        max_attempts: random starts tried to get them.
+        rank_tol: a row set is independent when its smallest singular value
+            exceeds ``rank_tol`` times the largest singular value of all rows.
+        cond_JD_max: largest acceptable condition number of J_D when choosing
+            independent coordinates.
+        prismatic_range: sampling range [m] for unbounded prismatic coordinates.
+        seed: seed of the sampling.
+    """
+
+    n_samples: int = 6
+    max_attempts: int = 60
+    rank_tol: float = 1e-8
+    cond_JD_max: float = 1e6
+    prismatic_range: float = 1.0
+    seed: int = 0
+
+
+class Mechanism:
+    """A closed-chain mechanism: a Pinocchio tree plus independent loop constraints.
+
+    Do not build it directly: use :func:`load`.
+
+    Attributes:
+        name: robot name from the URDF.
+        path: the URDF file.
+        model: Pinocchio model (with one frame per loop side added).
+        data: Pinocchio data for single-threaded use by closedchain.
+        urdf: the parsed URDF+ extensions.
+        constraints: the independent rows, the ones every method uses.
+        declared: all declared rows (redundant ones included).
+        selected_rows: indices of the independent rows in ``declared.declared_rows``.
+        nq, nv: configuration and velocity sizes.
+        nc: number of independent constraint rows.
+        mobility: nv - nc, degrees of freedom of the closed mechanism.
+        actuated_joints: joints named by ``<transmission>`` elements.
+        actuated_idx_v: their velocity indices, shape (na,).
+        independent_idx_v: velocity indices of the independent coordinates, shape (mobility,).
+        dependent_idx_v: the others, shape (nc,).
+        independent_source: ``"urdf"``, ``"actuated"`` or ``"automatic"``.
+        q_ref: an assembled configuration, shape (nq,).
+        coordinate_names: one name per velocity coordinate.
+    """
+
+    def __init__(
+        self,
+        urdf: URDFPlus,
+        model: pin.Model,
+        declared: ConstraintLayer,
+        gravity: np.ndarray,
+    ) -> None:
+        self.urdf = urdf
+        self.name = urdf.robot_name
+        self.path = urdf.path
+        self.model = model
+        self.data = model.createData()
+        self.declared = declared
+        self.constraints = declared
+        self.selected_rows: tuple[int, ...] = tuple(range(declared.nc))
+        self.gravity = np.array(gravity, dtype=float)
+        self.nq, self.nv = model.nq, model.nv
+        names = []
+        for j in range(1, model.njoints):
+            jn = model.names[j]
+            nvj = model.joints[j].nv
+            names += [jn] if nvj == 1 else [f"{jn}[{k}]" for k in range(nvj)]
+        self.coordinate_names: tuple[str, ...] = tuple(names)
+        self.actuated_joints = urdf.actuated
+        self.actuated_idx_v = self.coordinate_indices(urdf.actuated)
+        self.independent_idx_v = np.arange(0)
+        self.dependent_idx_v = np.arange(self.nv)
+        self.independent_source = "automatic"
+        self.q_ref = pin.neutral(model)
+        self._pin_constraints: tuple | None = None
+
+    # -- sizes and coordinates -------------------------------------------------
+    @property
+    def nc(self) -> int:
+        return self.constraints.nc
+
+    @property
+    def mobility(self) -> int:
+        return self.nv - self.nc
+
+    @property
+    def rows(self) -> tuple[RowInfo, ...]:
+        """The independent rows, in evaluation order."""
+        return self.constraints.rows
+
+    def joint_indices_v(self, joint: str) -> np.ndarray:
+        """Return the velocity indices of a joint.
+
+        Raises:
+            ClosedChainError: unknown joint name (lists the valid ones).
+        """
+        if not self.model.existJointName(joint):
+            raise ClosedChainError(
+                f"{self.path}: unknown joint {joint!r}; joints: "
+                f"{', '.join(self.model.names[1:])}"
+            )
+        j = self.model.joints[self.model.getJointId(joint)]
+        return np.arange(j.idx_v, j.idx_v + j.nv)
+
+    def coordinate_indices(self, spec: Iterable[str | int] | str) -> np.ndarray:
+        """Resolve joint names, velocity indices or a keyword to velocity indices.
+
+        Args:
+            spec: ``"actuated"``, ``"independent"``, ``"dependent"``, or an
+                iterable of joint names and integer velocity indices.
+
+        Returns:
+            Sorted unique velocity indices.
+        """
+        if isinstance(spec, str):
+            keywords = {
+                "actuated": lambda: self.actuated_idx_v,
+                "independent": lambda: self.independent_idx_v,
+                "dependent": lambda: self.dependent_idx_v,
+            }
+            if spec in keywords:
+                return np.array(keywords[spec](), dtype=int)
+            spec = [spec]
+        out: list[int] = []
+        for item in spec:
+            if isinstance(item, str):
+                out += list(self.joint_indices_v(item))
+            else:
+                i = int(item)
+                if not 0 <= i < self.nv:
+                    raise ClosedChainError(f"velocity index {i} out of range 0..{self.nv - 1}")
+                out.append(i)
+        return np.unique(np.array(out, dtype=int))
+
+    def check_q(self, q, name: str = "q") -> np.ndarray:
+        """Return q as a float array of shape (nq,), or raise naming the argument."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.nq,):
+            raise ClosedChainError(f"{name} has shape {q.shape}, expected ({self.nq},)")
+        if not np.all(np.isfinite(q)):
+            raise ClosedChainError(f"{name} contains non-finite values: {q}")
+        return q
+
+    def check_v(self, v, name: str = "v") -> np.ndarray:
+        """Return v as a float array of shape (nv,), or raise naming the argument."""
+        v = np.asarray(v, dtype=float)
+        if v.shape != (self.nv,):
+            raise ClosedChainError(f"{name} has shape {v.shape}, expected ({self.nv},)")
+        if not np.all(np.isfinite(v)):
+            raise ClosedChainError(f"{name} contains non-finite values: {v}")
+        return v
+
+    def random_configuration(self, rng: np.random.Generator, *, prismatic_range: float = 1.0):
+        """Draw a configuration uniformly within joint limits clipped to one turn.
+
+        Args:
+            rng: random generator.
+            prismatic_range: bound [m] used where a translation is unbounded.
+
+        Returns:
+            q, shape (nq,) (not assembled).
+        """
+        lo = np.array(self.model.lowerPositionLimit, dtype=float)
+        hi = np.array(self.model.upperPositionLimit, dtype=float)
+        for j in range(1, self.model.njoints):
+            jm = self.model.joints[j]
+            sl = slice(jm.idx_q, jm.idx_q + jm.nq)
+            bound = np.pi if "R" in jm.shortname()[-2:] else prismatic_range
+            if jm.nq != jm.nv:  # continuous, spherical, free flyer: normalize below
+                bound = max(bound, 1.0)
+            lo[sl] = np.maximum(np.nan_to_num(lo[sl], neginf=-bound), -bound)
+            hi[sl] = np.minimum(np.nan_to_num(hi[sl], posinf=bound), bound)
+        q = rng.uniform(lo, hi)
+        return pin.normalize(self.model, q)
+
+    # -- Pinocchio constraint models (validation reference, "pinocchio" method)
+    def pinocchio_constraints(self):
+        """Return ``(models, datas, owners)`` of Pinocchio rigid constraints for the loops.
+
+        Built once per mechanism. Raises ValidationUnavailableError for
+        prismatic loops.
+        """
+        if self._pin_constraints is None:
+            from .constraints import build_pinocchio_constraints
+
+            cms, owners = build_pinocchio_constraints(self.model, self.declared)
+            cds = pin.StdVec_RigidConstraintData()
+            for cm in cms:
+                cds.append(cm.createData())
+            self._pin_constraints = (cms, cds, owners)
+        return self._pin_constraints
+
+    def summary(self) -> dict:
+        """Return a JSON-serialisable description (what ``closedchain info`` shows)."""
+        loops = []
+        for spec in self.urdf.loops:
+            declared = [r.kind for r in self.declared.declared_rows if r.loop == spec.name]
+            kept = [r.kind for r in self.rows if r.loop == spec.name]
+            loops.append(
+                {
+                    "name": spec.name,
+                    "type": spec.type,
+                    "predecessor": spec.predecessor,
+                    "successor": spec.successor,
+                    "declared_rows": declared,
+                    "independent_rows": kept,
+                }
+            )
+        tree = []
+        for j in range(1, self.model.njoints):
+            jm = self.model.joints[j]
+            tree.append(
+                {
+                    "joint": self.model.names[j],
+                    "type": jm.shortname(),
+                    "parent": self.model.names[self.model.parents[j]],
+                    "idx_q": jm.idx_q,
+                    "idx_v": jm.idx_v,
+                }
+            )
+        try:
+            self.pinocchio_constraints()
+            pin_ok = True
+        except ValidationUnavailableError:
+            pin_ok = False
+        return {
+            "name": self.name,
+            "path": str(self.path),
+            "nq": self.nq,
+            "nv": self.nv,
+            "gravity": self.gravity.tolist(),
+            "tree": tree,
+            "loops": loops,
+            "declared_rows": self.declared.nc,
+            "independent_rows": self.nc,
+            "mobility": self.mobility,
+            "actuated": [self.coordinate_names[i] for i in self.actuated_idx_v],
+            "independent": [self.coordinate_names[i] for i in self.independent_idx_v],
+            "independent_source": self.independent_source,
+            "dependent": [self.coordinate_names[i] for i in self.dependent_idx_v],
+            "q_ref": self.q_ref.tolist(),
+            "pinocchio_reference": pin_ok,
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"Mechanism({self.name!r}, nq={self.nq}, nv={self.nv}, loops={len(self.urdf.loops)}, "
+            f"nc={self.nc}/{self.declared.nc}, mobility={self.mobility})"
+        )
+
+
+def load(
+    path: str | Path,
+    *,
+    gravity: Sequence[float] = DEFAULT_GRAVITY,
+    settings: LoadSettings | None = None,
+) -> Mechanism:
+    """Load a URDF+ mechanism.
+
+    Args:
+        path: URDF file with optional ``<loop>`` / ``<transmission>`` elements.
+        gravity: gravity vector in the world frame [m/s^2], shape (3,).
+        settings: row-selection settings (defaults: :class:`LoadSettings`).
+
+    Returns:
+        The mechanism, with independent rows selected and an assembled ``q_ref``.
+
+    Raises:
+        URDFError: invalid file or extension element.
+        LoopClosureError: a loop's frames cannot be brought together.
+    """
+    settings = settings or LoadSettings()
+    urdf = parse_urdf(path)
+    gravity = np.asarray(gravity, dtype=float)
+    if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+        raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
+    try:
+        model = pin.buildModelFromXML(urdf.xml)
+    except (RuntimeError, ValueError) as exc:
+        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
+    model.gravity.linear = gravity
+
+    frame_ids = []
+    for spec in urdf.loops:
+        pair = []
+        for side, link, origin in (
+            ("predecessor", spec.predecessor, spec.predecessor_origin),
+            ("successor", spec.successor, spec.successor_origin),
+        ):
+            if not model.existFrame(link, pin.FrameType.BODY):
+                raise URDFError(
+                    f"{urdf.path}: line {spec.line}: <loop name={spec.name!r}>: link {link!r} "
+                    "is not part of the kinematic tree"
+                )
+            parent = model.getFrameId(link, pin.FrameType.BODY)
+            lf = model.frames[parent]
+            frame = pin.Frame(
+                f"{spec.name}::{side}",
+                lf.parentJoint,
+                parent,
+                lf.placement * origin,
+                pin.FrameType.OP_FRAME,
+            )
+            pair.append(model.addFrame(frame, False))
+        if model.frames[pair[0]].parentJoint == model.frames[pair[1]].parentJoint:
+            raise URDFError(
+                f"{urdf.path}: line {spec.line}: <loop name={spec.name!r}>: predecessor "
+                f"{spec.predecessor!r} and successor {spec.successor!r} move with the same "
+                "joint, so the loop closes nothing"
+            )
+        frame_ids.append(tuple(pair))
+
+    declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
+    mech = Mechanism(urdf, model, declared, gravity)
+    _select_rows_and_coordinates(mech, settings)
+    logger.info("loaded %r", mech)
+    return mech
+
+
+def _sample_assembled(mech: Mechanism, settings: LoadSettings) -> list[np.ndarray]:
+    rng = np.random.default_rng(settings.seed)
+    free = np.arange(mech.nv)
+    asm = AssemblySettings()
+    samples: list[np.ndarray] = []
+    best: AssemblyError | None = None
+    starts = [pin.neutral(mech.model)]
+    for attempt in range(settings.max_attempts):
+        if len(samples) >= settings.n_samples:
+            break
+        q0 = starts[attempt] if attempt < len(starts) else mech.random_configuration(
+            rng, prismatic_range=settings.prismatic_range
+        )
+        try:
+            samples.append(solve_closure(mech.model, mech.data, mech.declared, q0, free, asm))
+        except AssemblyError as exc:
+            if best is None or exc.residual < best.residual:
+                best = exc
+    if not samples:
+        assert best is not None
+        pin.forwardKinematics(mech.model, mech.data, best.q)
+        per_loop = mech.declared.loop_residuals(mech.model, mech.data)
+        worst = ", ".join(f"{k}: {v:.3g}" for k, v in per_loop.items())
+        raise LoopClosureError(
+            f"{mech.path}: the loop frames cannot be brought together from "
+            f"{settings.max_attempts} random starts; smallest max |phi| reached "
+            f"{best.residual:.3g} (per loop: {worst}). Check the <loop> origins and link lengths."
+        )
+    return samples
+
+
+def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> None:
+    model, data, layer = mech.model, mech.data, mech.declared
+    if layer.nc == 0:
+        mech.independent_idx_v = np.arange(mech.nv)
+        mech.dependent_idx_v = np.arange(0)
+        mech.independent_source = "automatic"
+        return
+    samples = _sample_assembled(mech, settings)
+    Js = []
+    for q in samples:
+        pin.computeJointJacobians(model, data, q)
+        J = np.zeros((layer.nc, mech.nv))
+        layer.evaluate(model, data, J=J)
+        Js.append(J)
+    scale = max(np.linalg.norm(J, 2) for J in Js)
+    tol = settings.rank_tol * max(scale, 1.0)
+    ranks = [int(np.sum(np.linalg.svd(J, compute_uv=False) > tol)) for J in Js]
+    rank = max(ranks)
+    regular = [J for J, r in zip(Js, ranks, strict=True) if r == rank]
+    # Greedy, in declared order: keep a row when it stays independent of the
+    # kept ones at every regular sample (rank-revealing by SVD).
+    keep: list[int] = []
+    for row in range(layer.nc):
+        trial = keep + [row]
+        if all(np.linalg.svd(J[trial], compute_uv=False)[-1] > tol for J in regular):
+            keep.append(row)
+        if len(keep) == rank:
+            break
+    if len(keep) < rank:
+        # Declared order could not reach the rank: fall back to pivoted QR.
+        _, _, piv = scipy.linalg.qr(regular[0].T, pivoting=True)
+        keep = sorted(piv[:rank].tolist())
+    mech.constraints = layer.restricted(keep)
+    mech.selected_rows = tuple(keep)
+    # Kept rows are re-ordered per loop by kind; index the samples the same way.
+    order = [layer.declared_rows.index(r) for r in mech.constraints.rows]
+    regular = [J[order] for J in regular]
+
+    try:
+        mech.q_ref = solve_closure(
+            model, data, mech.constraints, pin.neutral(model), np.arange(mech.nv),
+            AssemblySettings(),
+        )
+    except AssemblyError:
+        mech.q_ref = samples[0]
+
+    def cond_ok(dep: np.ndarray) -> bool:
+        return len(dep) == rank and all(
+            np.linalg.cond(J[:, dep]) < settings.cond_JD_max for J in regular
+        )
+
+    all_idx = np.arange(mech.nv)
+    if mech.urdf.independent:
+        ind = mech.coordinate_indices(mech.urdf.independent)
+        dep = np.setdiff1d(all_idx, ind)
+        if len(ind) != mech.mobility:
+            raise URDFError(
+                f"{mech.path}: {len(ind)} coordinates are marked independent="
+                f"\"true\" ({', '.join(mech.urdf.independent)}) but the mobility is "
+                f"{mech.mobility}"
+            )
+        if not cond_ok(dep):
+            raise URDFError(
+                f"{mech.path}: the joints marked independent=\"true\" "
+                f"({', '.join(mech.urdf.independent)}) leave a singular J_D "
+                f"(condition number >= {settings.cond_JD_max:.0e} at a sampled configuration)"
+            )
+        source = "urdf"
+    else:
+        ind = mech.actuated_idx_v
+        dep = np.setdiff1d(all_idx, ind)
+        source = "actuated"
+        if len(ind) != mech.mobility or not cond_ok(dep):
+            pin.computeJointJacobians(model, data, mech.q_ref)
+            J = np.zeros((mech.nc, mech.nv))
+            mech.constraints.evaluate(model, data, J=J)
+            _, _, piv = scipy.linalg.qr(J, pivoting=True)
+            dep = np.sort(piv[:rank])
+            ind = np.setdiff1d(all_idx, dep)
+            source = "automatic"
+    mech.independent_idx_v = np.asarray(ind, dtype=int)
+    mech.dependent_idx_v = np.asarray(dep, dtype=int)
+    mech.independent_source = source

@@ -1,0 +1,268 @@
+"""Read the URDF+ extension elements: ``<loop>``, ``<transmission>``, ``independent``.
+
+The open tree is read by Pinocchio; this module reads, with a hardened lxml
+parser, what Pinocchio ignores (URDF+, Chignoli et al. 2024):
+
+.. code-block:: xml
+
+    <loop name="C" type="revolute">
+      <predecessor link="coupler"/>
+      <successor link="rocker"/>
+      <predecessor_origin xyz="0.4 0 0" rpy="0 0 0"/>
+      <successor_origin xyz="0.3 0 0" rpy="0 0 0"/>
+      <axis xyz="0 0 1"/>
+    </loop>
+
+Parsing is safe: no DTD is accepted (so no entity expansion and no external
+entities), no network access, no huge trees.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+from lxml import etree
+
+from .exceptions import URDFError
+
+#: Loop-joint types and the relative motion each allows.
+LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
+
+#: Norm below which an ``<axis>`` is rejected as zero.
+AXIS_NORM_MIN = 1e-9
+
+
+@dataclass(frozen=True)
+class LoopSpec:
+    """One loop-closure joint as written in the URDF.
+
+    Attributes:
+        name: loop name (the ``name`` attribute).
+        type: one of :data:`LOOP_TYPES`.
+        predecessor: name of the predecessor link.
+        successor: name of the successor link.
+        predecessor_origin: placement of the cut-joint frame c1 in the predecessor link frame.
+        successor_origin: placement of the cut-joint frame c2 in the successor link frame.
+        axis: unit joint axis, shape (3,), in frame c1 (unused for spherical and fixed).
+        line: source line of the ``<loop>`` element, for error messages.
+    """
+
+    name: str
+    type: str
+    predecessor: str
+    successor: str
+    predecessor_origin: pin.SE3
+    successor_origin: pin.SE3
+    axis: np.ndarray
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class URDFPlus:
+    """What a URDF+ file adds to the tree.
+
+    Attributes:
+        path: the file read.
+        xml: the file's text, checked safe, to hand to Pinocchio's reader.
+        robot_name: the ``<robot name>``.
+        links: names of all ``<link>`` elements.
+        joints: joint name -> joint type for all ``<joint>`` elements.
+        loops: the ``<loop>`` elements.
+        actuated: joints named by ``<transmission>`` elements, in file order.
+        independent: joints marked ``independent="true"``, in file order.
+    """
+
+    path: Path
+    xml: str
+    robot_name: str
+    links: tuple[str, ...]
+    joints: dict[str, str] = field(default_factory=dict)
+    loops: tuple[LoopSpec, ...] = ()
+    actuated: tuple[str, ...] = ()
+    independent: tuple[str, ...] = ()
+
+
+def _safe_parser() -> etree.XMLParser:
+    return etree.XMLParser(
+        resolve_entities=False,
+        no_network=True,
+        load_dtd=False,
+        dtd_validation=False,
+        huge_tree=False,
+        remove_comments=False,
+    )
+
+
+def _where(path: Path, element) -> str:
+    name = element.get("name")
+    tag = f'<{element.tag} name="{name}">' if name is not None else f"<{element.tag}>"
+    return f"{path}: line {element.sourceline}: {tag}"
+
+
+def _floats(path: Path, element, attribute: str, default: str) -> np.ndarray:
+    text = element.get(attribute, default)
+    try:
+        values = np.array([float(x) for x in text.split()])
+    except ValueError:
+        values = np.array([])
+    if values.shape != (3,) or not np.all(np.isfinite(values)):
+        raise URDFError(
+            f"{_where(path, element)}: attribute {attribute}={text!r} must be three finite numbers"
+        )
+    return values
+
+
+def _origin(path: Path, element) -> pin.SE3:
+    xyz = _floats(path, element, "xyz", "0 0 0")
+    rpy = _floats(path, element, "rpy", "0 0 0")
+    return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
+
+
+def parse_urdf(path: str | Path) -> URDFPlus:
+    """Read a URDF file and its URDF+ extension elements.
+
+    Args:
+        path: URDF file.
+
+    Returns:
+        The parsed extensions, with the checked XML text.
+
+    Raises:
+        URDFError: the file is missing, is not well-formed XML, declares a DTD,
+            or an extension element is invalid (unknown loop type, unknown
+            link, zero axis, transmission naming a missing joint, ...). The
+            message names the file, line and element and the valid choices.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise URDFError(f"{path}: cannot read URDF file: {exc.strerror}") from exc
+    try:
+        root = etree.fromstring(raw, _safe_parser(), base_url=str(path))
+    except etree.XMLSyntaxError as exc:
+        raise URDFError(f"{path}: malformed XML: {exc}") from exc
+    docinfo = root.getroottree().docinfo
+    if docinfo.internalDTD is not None or docinfo.doctype:
+        raise URDFError(
+            f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"
+        )
+    if root.tag != "robot":
+        raise URDFError(f"{path}: root element is <{root.tag}>, expected <robot>")
+
+    links = tuple(e.get("name") for e in root.findall("link"))
+    if not links:
+        raise URDFError(f"{path}: <robot> has no <link> elements")
+    joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
+
+    loops = tuple(_parse_loop(path, e, links) for e in root.findall("loop"))
+    names = [lp.name for lp in loops]
+    for name in set(names):
+        if names.count(name) > 1:
+            raise URDFError(f'{path}: loop name "{name}" is used more than once')
+
+    actuated: list[str] = []
+    for trans in root.findall("transmission"):
+        joint_elements = trans.findall("joint")
+        if not joint_elements:
+            raise URDFError(f"{_where(path, trans)}: has no <joint> child")
+        for je in joint_elements:
+            jname = je.get("name")
+            if jname not in joints:
+                raise URDFError(
+                    f"{_where(path, trans)}: names joint {jname!r}, which is not a <joint> "
+                    f"of this file; joints: {', '.join(sorted(joints))}"
+                )
+            if joints[jname] == "fixed":
+                raise URDFError(
+                    f"{_where(path, trans)}: joint {jname!r} is fixed and cannot be actuated"
+                )
+            if jname not in actuated:
+                actuated.append(jname)
+
+    independent: list[str] = []
+    for je in root.findall("joint"):
+        flag = je.get("independent")
+        if flag is None:
+            continue
+        if flag not in ("true", "false"):
+            raise URDFError(
+                f'{_where(path, je)}: independent="{flag}" must be "true" or "false"'
+            )
+        if flag == "true":
+            if je.get("type") == "fixed":
+                raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
+            independent.append(je.get("name"))
+
+    xml = etree.tostring(root, encoding="unicode")
+    return URDFPlus(
+        path=path,
+        xml=xml,
+        robot_name=root.get("name", path.stem),
+        links=links,
+        joints=joints,
+        loops=loops,
+        actuated=tuple(actuated),
+        independent=tuple(independent),
+    )
+
+
+def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
+    where = _where(path, element)
+    name = element.get("name")
+    if not name:
+        raise URDFError(f"{where}: <loop> needs a name attribute")
+    ltype = element.get("type")
+    if ltype not in LOOP_TYPES:
+        raise URDFError(
+            f"{where}: unknown loop type {ltype!r}; valid choices: {', '.join(LOOP_TYPES)}"
+        )
+
+    def child(tag: str, required: bool = True):
+        found = element.findall(tag)
+        if len(found) > 1:
+            raise URDFError(f"{where}: more than one <{tag}>")
+        if not found and required:
+            raise URDFError(f"{where}: missing <{tag}>")
+        return found[0] if found else None
+
+    ends = {}
+    for tag in ("predecessor", "successor"):
+        link = child(tag).get("link")
+        if link not in links:
+            raise URDFError(
+                f"{where}: <{tag} link={link!r}> names an unknown link; links: "
+                f"{', '.join(sorted(links))}"
+            )
+        ends[tag] = link
+    if ends["predecessor"] == ends["successor"]:
+        raise URDFError(f"{where}: predecessor and successor are the same link")
+
+    origins = {}
+    for tag in ("predecessor_origin", "successor_origin"):
+        e = child(tag, required=False)
+        origins[tag] = _origin(path, e) if e is not None else pin.SE3.Identity()
+
+    axis_el = child("axis", required=ltype in ("revolute", "prismatic"))
+    axis = np.array([1.0, 0.0, 0.0])
+    if axis_el is not None:
+        axis = _floats(path, axis_el, "xyz", "1 0 0")
+        norm = float(np.linalg.norm(axis))
+        if not norm > AXIS_NORM_MIN or not math.isfinite(norm):
+            raise URDFError(f"{where}: <axis xyz={axis_el.get('xyz')!r}> is zero")
+        axis = axis / norm
+
+    return LoopSpec(
+        name=name,
+        type=ltype,
+        predecessor=ends["predecessor"],
+        successor=ends["successor"],
+        predecessor_origin=origins["predecessor_origin"],
+        successor_origin=origins["successor_origin"],
+        axis=axis,
+        line=element.sourceline or 0,
+    )
