@@ -7,7 +7,10 @@ intermediate axes are w_i = u_{i+1} and the platform axes v_i = u_{i+2}, so the
 platform axes are mutually orthogonal and the wrist is isotropic.
 
 Tree (the seed's parameterization, Section 5): the platform orientation is
-R = Rz(q0) Ry(q1) Rx(q2) (Z-Y-X Euler angles) through two massless links;
+R = Rz(yaw) Ry(pitch) Rx(roll) (Z-Y-X Euler angles) through two massless
+links; the pitch is limited to +-1.2 rad, a workspace that keeps 21 degrees
+away from the gimbal lock of this parameterization (pitch = +-90 deg, where
+the massless-link tree's mass matrix is singular);
 each leg i is an actuated proximal joint about u_i and a passive distal joint
 about w_i; the leg is closed onto the platform by a revolute <loop> about v_i.
 
@@ -29,15 +32,21 @@ import numpy as np
 R_PROX, M_PROX = 0.10, 0.15  # [m], [kg]
 R_DIST, M_DIST = 0.12, 0.10
 M_PLAT, SIDE_PLAT, D_PLAT = 0.3, 0.06, 0.05
+PITCH_LIMIT = 1.2  # [rad], workspace bound 21 deg short of the Euler gimbal lock
 E = np.eye(3)
 
 
 def arc_inertial(radius: float, mass: float, e1: np.ndarray, e2: np.ndarray):
     """Return (com, inertia about com) of a thin uniform arc R(cos s e1 + sin s e2), s in [0, pi/2]."""
     # Second moment int r r^T dm = m R^2 [1/2 e1e1^T + 1/2 e2e2^T + 1/pi (e1e2^T + e2e1^T)].
-    S = mass * radius**2 * (
-        0.5 * np.outer(e1, e1) + 0.5 * np.outer(e2, e2)
-        + (np.outer(e1, e2) + np.outer(e2, e1)) / np.pi
+    S = (
+        mass
+        * radius**2
+        * (
+            0.5 * np.outer(e1, e1)
+            + 0.5 * np.outer(e2, e2)
+            + (np.outer(e1, e2) + np.outer(e2, e1)) / np.pi
+        )
     )
     I_O = np.trace(S) * np.eye(3) - S
     com = 2.0 * radius / np.pi * (e1 + e2)
@@ -114,9 +123,12 @@ def build() -> str:
     out = ['<?xml version="1.0"?>\n<!--\n' + __doc__.replace("--", "- -") + "-->\n"]
     out.append('<robot name="agile_eye">\n')
     colors = {
-        "base": "0.35 0.35 0.38 1", "proximal": "0.85 0.33 0.10 1",
-        "distal": "0.00 0.45 0.74 1", "platform": "0.47 0.67 0.19 1",
-        "actuator": "0.15 0.15 0.15 1", "loop": "0.93 0.69 0.13 1",
+        "base": "0.35 0.35 0.38 1",
+        "proximal": "0.85 0.33 0.10 1",
+        "distal": "0.00 0.45 0.74 1",
+        "platform": "0.47 0.67 0.19 1",
+        "actuator": "0.15 0.15 0.15 1",
+        "loop": "0.93 0.69 0.13 1",
     }
     for name, rgba in colors.items():
         out.append(f'  <material name="{name}"><color rgba="{rgba}"/></material>\n')
@@ -144,16 +156,20 @@ def build() -> str:
         v = E[(i + 2) % 3]
         out.append(chord_visual(R_DIST, v, np.ones(3) / np.sqrt(3), "platform", 0.01))
     out.append("  </link>\n")
-    for axis, (name, parent, child) in zip(
+    for axis, limit, (name, parent, child) in zip(
         ("0 0 1", "0 1 0", "1 0 0"),
-        (("platform_yaw", "base", "euler_link_z"), ("platform_pitch", "euler_link_z",
-          "euler_link_y"), ("platform_roll", "euler_link_y", "platform")),
+        (np.pi, PITCH_LIMIT, np.pi),
+        (
+            ("platform_yaw", "base", "euler_link_z"),
+            ("platform_pitch", "euler_link_z", "euler_link_y"),
+            ("platform_roll", "euler_link_y", "platform"),
+        ),
     ):
         out.append(
             f'  <joint name="{name}" type="revolute">\n    <parent link="{parent}"/>\n'
             f'    <child link="{child}"/>\n    <origin xyz="0 0 0" rpy="0 0 0"/>\n'
             f'    <axis xyz="{axis}"/>\n'
-            '    <limit lower="-3.141592653589793" upper="3.141592653589793" effort="0" '
+            f'    <limit lower="{-limit:.12g}" upper="{limit:.12g}" effort="0" '
             'velocity="20"/>\n  </joint>\n'
         )
     for i in range(3):
@@ -184,7 +200,7 @@ def build() -> str:
             'velocity="20"/>\n  </joint>\n'
         )
         out.append(
-            f'  <!-- leg {leg} closed onto the platform: revolute about v_{leg} through O -->\n'
+            f"  <!-- leg {leg} closed onto the platform: revolute about v_{leg} through O -->\n"
             f'  <loop name="leg{leg}_platform" type="revolute">\n'
             f'    <predecessor link="distal_{leg}"/>\n    <successor link="platform"/>\n'
             '    <predecessor_origin xyz="0 0 0" rpy="0 0 0"/>\n'

@@ -86,6 +86,21 @@ def solve_closure(
     q = np.array(q_guess, dtype=float)
     if layer.nc == 0:
         return q
+    q = _newton(model, data, layer, q, free, settings)
+    pin.forwardKinematics(model, data, q)
+    flipped = layer.misaligned_loops(model, data)
+    if flipped:
+        raise AssemblyError(
+            f"assembly reached phi = 0 on a spurious closure of loop(s) {', '.join(flipped)}: "
+            "the cut-joint frames are turned by 180 degrees against each other; start "
+            "from a guess closer to the intended assembly",
+            residual=float("inf"),
+            q=q,
+        )
+    return q
+
+
+def _newton(model, data, layer, q, free, settings) -> np.ndarray:
     phi = _phi(model, data, layer, q)
     res = float(np.max(np.abs(phi)))
     dv = np.zeros(model.nv)
@@ -234,3 +249,49 @@ def singularity_measures(mech: Mechanism, q: np.ndarray) -> SingularityMeasures:
     cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     cond_d = float(sd[0] / sd[-1]) if sd[-1] > 0 else float("inf")
     return SingularityMeasures(float(s[-1]), cond, cond_d)
+
+
+def random_consistent_state(
+    mech: Mechanism,
+    rng: np.random.Generator,
+    *,
+    velocity_scale: float = 1.0,
+    min_sigma: float = 1e-3,
+    max_attempts: int = 1000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw an assembled configuration within joint limits and a velocity with J v = 0.
+
+    Args:
+        mech: the mechanism.
+        rng: random generator.
+        velocity_scale: standard deviation of the velocity before projection [rad/s or m/s].
+        min_sigma: reject configurations where the smallest singular value of J
+            is below this (draws away from singularities).
+        max_attempts: random starts before giving up.
+
+    Returns:
+        (q, v), shapes (nq,) and (nv,).
+
+    Raises:
+        AssemblyError: no start assembled within ``max_attempts``.
+    """
+    last: AssemblyError | None = None
+    for _ in range(max_attempts):
+        q0 = mech.random_configuration(rng)
+        try:
+            q = assemble(mech, q0)
+        except AssemblyError as exc:
+            last = exc
+            continue
+        q = mech.wrap_angles(q)
+        if not mech.within_limits(q):
+            continue
+        if mech.nc and singularity_measures(mech, q).sigma_min < min_sigma:
+            continue
+        v = project_velocity(mech, q, velocity_scale * rng.standard_normal(mech.nv))
+        return q, v
+    raise AssemblyError(
+        f"{mech.name}: no random consistent state in {max_attempts} attempts",
+        residual=last.residual if last else float("nan"),
+        q=last.q if last else None,
+    )

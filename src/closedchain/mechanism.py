@@ -113,6 +113,16 @@ class Mechanism:
         self.independent_source = "automatic"
         self.q_ref = pin.neutral(model)
         self._pin_constraints: tuple | None = None
+        self._workspace = None  # dynamics.base.Workspace, made on first use
+        self._revolute_idx_q = np.array(
+            [
+                model.joints[j].idx_q
+                for j in range(1, model.njoints)
+                if model.joints[j].shortname().startswith("JointModelR")
+                and "Unbounded" not in model.joints[j].shortname()
+            ],
+            dtype=int,
+        )
 
     # -- sizes and coordinates -------------------------------------------------
     @property
@@ -136,8 +146,7 @@ class Mechanism:
         """
         if not self.model.existJointName(joint):
             raise ClosedChainError(
-                f"{self.path}: unknown joint {joint!r}; joints: "
-                f"{', '.join(self.model.names[1:])}"
+                f"{self.path}: unknown joint {joint!r}; joints: {', '.join(self.model.names[1:])}"
             )
         j = self.model.joints[self.model.getJointId(joint)]
         return np.arange(j.idx_v, j.idx_v + j.nv)
@@ -190,6 +199,23 @@ class Mechanism:
             raise ClosedChainError(f"{name} contains non-finite values: {v}")
         return v
 
+    def wrap_angles(self, q: np.ndarray) -> np.ndarray:
+        """Return q with every revolute angle wrapped into [-pi, pi) (same physical pose)."""
+        q = np.array(q, dtype=float)
+        idx = self._revolute_idx_q
+        q[idx] = (q[idx] + np.pi) % (2.0 * np.pi) - np.pi
+        return q
+
+    def within_limits(self, q: np.ndarray) -> bool:
+        """Return whether every 1-dof coordinate of q is within its URDF position limits."""
+        lo, hi = self.model.lowerPositionLimit, self.model.upperPositionLimit
+        return bool(np.all((q >= lo) | ~np.isfinite(lo)) and np.all((q <= hi) | ~np.isfinite(hi)))
+
+    def gravity_torque_scale(self) -> float:
+        """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale."""
+        g = pin.computeGeneralizedGravity(self.model, self.data, self.q_ref)
+        return float(np.sqrt(np.mean(g**2))) if self.nv else 0.0
+
     def random_configuration(self, rng: np.random.Generator, *, prismatic_range: float = 1.0):
         """Draw a configuration uniformly within joint limits clipped to one turn.
 
@@ -215,10 +241,11 @@ class Mechanism:
 
     # -- Pinocchio constraint models (validation reference, "pinocchio" method)
     def pinocchio_constraints(self):
-        """Return ``(models, datas, owners)`` of Pinocchio rigid constraints for the loops.
+        """Return ``(models, datas, owners, data)`` of Pinocchio rigid constraints for the loops.
 
-        Built once per mechanism. Raises ValidationUnavailableError for
-        prismatic loops.
+        Built and initialized (``initConstraintDynamics``) once per mechanism,
+        with a Pinocchio data of their own. Raises ValidationUnavailableError
+        for prismatic loops.
         """
         if self._pin_constraints is None:
             from .constraints import build_pinocchio_constraints
@@ -227,7 +254,9 @@ class Mechanism:
             cds = pin.StdVec_RigidConstraintData()
             for cm in cms:
                 cds.append(cm.createData())
-            self._pin_constraints = (cms, cds, owners)
+            pdata = self.model.createData()
+            pin.initConstraintDynamics(self.model, pdata, cms, cds)
+            self._pin_constraints = (cms, cds, owners, pdata)
         return self._pin_constraints
 
     def summary(self) -> dict:
@@ -367,8 +396,10 @@ def _sample_assembled(mech: Mechanism, settings: LoadSettings) -> list[np.ndarra
     for attempt in range(settings.max_attempts):
         if len(samples) >= settings.n_samples:
             break
-        q0 = starts[attempt] if attempt < len(starts) else mech.random_configuration(
-            rng, prismatic_range=settings.prismatic_range
+        q0 = (
+            starts[attempt]
+            if attempt < len(starts)
+            else mech.random_configuration(rng, prismatic_range=settings.prismatic_range)
         )
         try:
             samples.append(solve_closure(mech.model, mech.data, mech.declared, q0, free, asm))
@@ -428,7 +459,11 @@ def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> Non
 
     try:
         mech.q_ref = solve_closure(
-            model, data, mech.constraints, pin.neutral(model), np.arange(mech.nv),
+            model,
+            data,
+            mech.constraints,
+            pin.neutral(model),
+            np.arange(mech.nv),
             AssemblySettings(),
         )
     except AssemblyError:
@@ -446,12 +481,12 @@ def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> Non
         if len(ind) != mech.mobility:
             raise URDFError(
                 f"{mech.path}: {len(ind)} coordinates are marked independent="
-                f"\"true\" ({', '.join(mech.urdf.independent)}) but the mobility is "
+                f'"true" ({", ".join(mech.urdf.independent)}) but the mobility is '
                 f"{mech.mobility}"
             )
         if not cond_ok(dep):
             raise URDFError(
-                f"{mech.path}: the joints marked independent=\"true\" "
+                f'{mech.path}: the joints marked independent="true" '
                 f"({', '.join(mech.urdf.independent)}) leave a singular J_D "
                 f"(condition number >= {settings.cond_JD_max:.0e} at a sampled configuration)"
             )

@@ -190,9 +190,7 @@ def parse_urdf(path: str | Path) -> URDFPlus:
         if flag is None:
             continue
         if flag not in ("true", "false"):
-            raise URDFError(
-                f'{_where(path, je)}: independent="{flag}" must be "true" or "false"'
-            )
+            raise URDFError(f'{_where(path, je)}: independent="{flag}" must be "true" or "false"')
         if flag == "true":
             if je.get("type") == "fixed":
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")

@@ -1,0 +1,63 @@
+"""Forward dynamics of closed chains: one module per method, registered by name.
+
+Use :func:`forward_dynamics`; :data:`METHODS` lists the registered names.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from . import kkt as _kkt  # noqa: F401  (registers "kkt")
+from .base import (
+    DEFAULT_SETTINGS,
+    METHODS,
+    ForwardDynamicsResult,
+    SolverSettings,
+    get_method,
+    workspace,
+)
+
+if TYPE_CHECKING:
+    from ..mechanism import Mechanism
+
+__all__ = ["METHODS", "ForwardDynamicsResult", "SolverSettings", "forward_dynamics"]
+
+
+def forward_dynamics(
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    tau: np.ndarray | None = None,
+    *,
+    method: str = "kkt",
+    settings: SolverSettings = DEFAULT_SETTINGS,
+) -> ForwardDynamicsResult:
+    """Compute the constrained accelerations and multipliers.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), on the constraint manifold.
+        v: velocity, shape (nv,), with J v = 0.
+        tau: generalized forces, shape (nv,) [N m or N]; zeros when None.
+        method: a name in :data:`METHODS`.
+        settings: numerical settings.
+
+    Returns:
+        The result, with accelerations, multipliers and the J, gamma used.
+
+    Raises:
+        UnknownChoiceError: unknown method (lists the valid ones).
+        SingularConfigurationError: the method cannot solve at q (names q and
+            the condition number).
+    """
+    func = get_method(method)
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
+    a, lam = func(mech, q, v, tau, settings)
+    ws = workspace(mech)
+    return ForwardDynamicsResult(
+        a=np.array(a), lam=np.array(lam), method=method, J=ws.J.copy(), gamma=ws.gamma.copy()
+    )

@@ -1,0 +1,154 @@
+"""Shared pieces of the forward-dynamics methods: settings, result, registry, terms.
+
+Every method solves the constrained equations of motion of the seed text
+(Section 3),
+
+.. math::
+
+    M(q)\\,a + h(q, v) + J(q)^\\top \\lambda = \\tau, \\qquad J(q)\\,a + \\gamma(q, v) = 0,
+
+with ``M`` from CRBA, ``h`` from the nonlinear effects (Coriolis, centrifugal,
+gravity), ``J`` and ``gamma = Jdot v`` from the constraint layer's
+independent rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+
+from ..exceptions import UnknownChoiceError
+
+if TYPE_CHECKING:
+    from ..mechanism import Mechanism
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Numerical settings shared by the forward-dynamics methods.
+
+    Attributes:
+        cond_max: largest acceptable condition number of the matrix a method
+            factorizes (KKT matrix, Delassus matrix, J_D, reduced mass
+            matrix); above it the method raises SingularConfigurationError.
+        pinocchio_mu: proximal regularization of pinocchio.constraintDynamics
+            (mu = 0 returns NaN with redundant rows, see PINOCCHIO.md).
+        pinocchio_accuracy: absolute accuracy of its proximal iterations.
+        pinocchio_max_iter: its iteration cap.
+    """
+
+    cond_max: float = 1e12
+    pinocchio_mu: float = 1e-8
+    pinocchio_accuracy: float = 1e-13
+    pinocchio_max_iter: int = 50
+
+
+DEFAULT_SETTINGS = SolverSettings()
+
+
+@dataclass(frozen=True)
+class ForwardDynamicsResult:
+    """Accelerations and multipliers of one forward-dynamics evaluation.
+
+    Attributes:
+        a: joint accelerations, shape (nv,) [rad/s^2 or m/s^2].
+        lam: multipliers of the independent constraint rows, shape (nc,), in
+            the convention ``M a + h + J^T lam = tau``.
+        method: name of the method that produced them.
+        J: constraint Jacobian used, shape (nc, nv).
+        gamma: Jdot v used, shape (nc,).
+    """
+
+    a: np.ndarray
+    lam: np.ndarray
+    method: str
+    J: np.ndarray
+    gamma: np.ndarray
+
+    def constraint_residual(self) -> float:
+        """Return max |J a + gamma|, the acceleration-level constraint violation."""
+        if self.lam.size == 0:
+            return 0.0
+        return float(np.max(np.abs(self.J @ self.a + self.gamma)))
+
+    def generalized_constraint_force(self) -> np.ndarray:
+        """Return J^T lam, shape (nv,): the generalized force the loops exert (seed Problem 3)."""
+        return self.J.T @ self.lam
+
+
+MethodFunction = Callable[
+    ["Mechanism", np.ndarray, np.ndarray, np.ndarray, SolverSettings],
+    tuple[np.ndarray, np.ndarray],
+]
+
+#: name -> method function ``f(mech, q, v, tau, settings) -> (a, lam)``.
+METHODS: dict[str, MethodFunction] = {}
+
+
+def register(name: str) -> Callable[[MethodFunction], MethodFunction]:
+    """Register a forward-dynamics method under ``name``."""
+
+    def decorator(func: MethodFunction) -> MethodFunction:
+        METHODS[name] = func
+        return func
+
+    return decorator
+
+
+def get_method(name: str) -> MethodFunction:
+    """Return the method registered as ``name``, or raise listing the valid names."""
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise UnknownChoiceError("forward-dynamics method", name, METHODS) from None
+
+
+class Workspace:
+    """Preallocated buffers of one mechanism (made once, reused every call)."""
+
+    def __init__(self, mech: Mechanism) -> None:
+        nv, nc = mech.nv, mech.nc
+        self.M = np.zeros((nv, nv))
+        self.h = np.zeros(nv)
+        self.J = np.zeros((nc, nv))
+        self.gamma = np.zeros(nc)
+        self.K = np.zeros((nv + nc, nv + nc))
+        self.rhs = np.zeros(nv + nc)
+
+
+def workspace(mech: Mechanism) -> Workspace:
+    """Return the mechanism's workspace, creating it on first use."""
+    ws = mech._workspace
+    if ws is None:
+        ws = mech._workspace = Workspace(mech)
+    return ws
+
+
+def compute_terms(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> Workspace:
+    """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        v: velocity, shape (nv,).
+
+    Returns:
+        The workspace, whose ``M`` (symmetric, full), ``h``, ``J`` and ``gamma`` are current.
+    """
+    ws = workspace(mech)
+    model, data = mech.model, mech.data
+    # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians
+    # and forward kinematics with zero acceleration (the bias terms gamma needs).
+    pin.computeAllTerms(model, data, q, v)
+    M = ws.M
+    M[:] = data.M
+    iu = np.tril_indices(mech.nv, -1)
+    M[iu] = M.T[iu]
+    ws.h[:] = data.nle
+    if mech.nc:
+        mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
+    return ws

@@ -1,0 +1,60 @@
+"""The seed's dense KKT (saddle-point) system, Section 3.
+
+.. math::
+
+    \\begin{bmatrix} M & J^\\top \\\\ J & 0 \\end{bmatrix}
+    \\begin{bmatrix} a \\\\ \\lambda \\end{bmatrix}
+    = \\begin{bmatrix} \\tau - h \\\\ -\\gamma \\end{bmatrix}
+
+solved by LU with partial pivoting (LAPACK ``dgesv``); the 1-norm condition
+number is estimated from the factors (``dgecon``) and a singular or
+ill-conditioned matrix raises :class:`SingularConfigurationError`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import lapack
+
+from ..exceptions import SingularConfigurationError
+from .base import SolverSettings, compute_terms, register
+
+
+def check_condition(mech, q, what: str, rcond: float, info: int, settings: SolverSettings):
+    """Raise SingularConfigurationError when ``rcond`` says the factorized matrix is singular.
+
+    Args:
+        mech: the mechanism (for the message).
+        q: configuration, shape (nq,).
+        what: name of the matrix.
+        rcond: LAPACK reciprocal condition estimate.
+        info: LAPACK info of the factorization (> 0: exactly singular).
+        settings: ``cond_max``.
+    """
+    cond = float("inf") if info > 0 or rcond <= 0 else 1.0 / rcond
+    if cond > settings.cond_max:
+        raise SingularConfigurationError(
+            f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
+            f"(condition number {cond:.3e} > cond_max {settings.cond_max:.1e}); "
+            "the constraint Jacobian has lost rank or the configuration is a singularity",
+            q=np.array(q),
+            condition_number=cond,
+        )
+
+
+@register("kkt")
+def kkt(mech, q, v, tau, settings: SolverSettings):
+    """Solve the dense KKT system; return (a, lam)."""
+    ws = compute_terms(mech, q, v)
+    nv, nc = mech.nv, mech.nc
+    K, rhs = ws.K, ws.rhs
+    K[:nv, :nv] = ws.M
+    K[:nv, nv:] = ws.J.T
+    K[nv:, :nv] = ws.J
+    rhs[:nv] = tau - ws.h
+    rhs[nv:] = -ws.gamma
+    anorm = np.abs(K).sum(axis=0).max()
+    lu, _, x, info = lapack.dgesv(K, rhs)
+    rcond = lapack.dgecon(lu, anorm)[0] if info == 0 else 0.0
+    check_condition(mech, q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, info, settings)
+    return x[:nv], x[nv:]

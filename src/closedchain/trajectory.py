@@ -1,0 +1,106 @@
+"""The Trajectory result of a simulation: arrays over time, saved as npz or CSV."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .exceptions import ClosedChainError
+
+_ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A simulated motion.
+
+    Attributes:
+        t: times [s], shape (N,).
+        q: configurations, shape (N, nq).
+        v: velocities, shape (N, nv).
+        a: accelerations, shape (N, nv).
+        lam: multipliers of the independent rows, shape (N, nc).
+        constraint_residual: max |phi(q)| at each time, shape (N,).
+        velocity_residual: max |J(q) v| at each time, shape (N,).
+        energy: total mechanical energy (kinetic + potential) [J], shape (N,).
+        info: run metadata (mechanism, method, integrator, stabilization,
+            steps, CPU time [s], ...), JSON-serialisable.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    lam: np.ndarray
+    constraint_residual: np.ndarray
+    velocity_residual: np.ndarray
+    energy: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    @property
+    def energy_drift(self) -> float:
+        """max |E(t) - E(0)| / max(|E(0)|, kinetic scale), the relative energy drift."""
+        e0 = float(self.energy[0])
+        scale = max(abs(e0), float(np.max(np.abs(self.energy - self.energy.min()))), 1e-300)
+        return float(np.max(np.abs(self.energy - e0)) / scale)
+
+    @property
+    def max_constraint_residual(self) -> float:
+        """max over time of max |phi(q)|."""
+        return float(np.max(self.constraint_residual, initial=0.0))
+
+    def save(self, path: str | Path) -> Path:
+        """Write the trajectory as ``.npz`` (all arrays + info) or ``.csv`` (t, q, v, residuals, energy).
+
+        Raises:
+            ClosedChainError: the suffix is neither .npz nor .csv.
+        """
+        path = Path(path)
+        if path.suffix == ".npz":
+            np.savez_compressed(
+                path, **{k: getattr(self, k) for k in _ARRAYS}, info=json.dumps(self.info)
+            )
+        elif path.suffix == ".csv":
+            names = self.info.get("coordinate_names") or [f"q{i}" for i in range(self.q.shape[1])]
+            vnames = self.info.get("velocity_names") or [f"v{i}" for i in range(self.v.shape[1])]
+            header = (
+                ["t"]
+                + [f"q:{n}" for n in names]
+                + [f"v:{n}" for n in vnames]
+                + ["constraint_residual", "velocity_residual", "energy"]
+            )
+            table = np.column_stack(
+                [
+                    self.t,
+                    self.q,
+                    self.v,
+                    self.constraint_residual,
+                    self.velocity_residual,
+                    self.energy,
+                ]
+            )
+            np.savetxt(
+                path, table, delimiter=",", header=",".join(header), comments="", fmt="%.17g"
+            )
+        else:
+            raise ClosedChainError(
+                f"cannot save a trajectory as {path.name!r}; valid suffixes: .npz, .csv"
+            )
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Trajectory:
+        """Read a trajectory written by :meth:`save` as ``.npz``."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ClosedChainError(f"{path}: only .npz trajectories can be loaded")
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                arrays = {k: f[k] for k in _ARRAYS}
+                info = json.loads(str(f["info"]))
+        except (OSError, KeyError, ValueError) as exc:
+            raise ClosedChainError(f"{path}: not a closedchain trajectory: {exc}") from exc
+        return cls(**arrays, info=info)
