@@ -33,6 +33,7 @@ R_PROX, M_PROX = 0.10, 0.15  # [m], [kg]
 R_DIST, M_DIST = 0.12, 0.10
 M_PLAT, SIDE_PLAT, D_PLAT = 0.3, 0.06, 0.05
 PITCH_LIMIT = 1.2  # [rad], workspace bound 21 deg short of the Euler gimbal lock
+ARC_SEGMENTS = 4  # boxes drawing each quarter-circle link (visual only)
 E = np.eye(3)
 
 
@@ -99,9 +100,8 @@ def inertial_xml(com, I, mass) -> str:
     )
 
 
-def chord_visual(radius, e1, e2, material, thickness=0.012) -> str:
-    """A box along the chord of the arc, standing for the curved link."""
-    p1, p2 = radius * e1, radius * e2
+def box_between(p1, p2, material, thickness) -> str:
+    """A square-section box from point p1 to point p2 [m]."""
     mid = 0.5 * (p1 + p2)
     length = np.linalg.norm(p2 - p1)
     return (
@@ -109,6 +109,28 @@ def chord_visual(radius, e1, e2, material, thickness=0.012) -> str:
         f'      <geometry><box size="{length:.6g} {thickness} {thickness}"/></geometry>\n'
         f'      <material name="{material}"/>\n    </visual>\n'
     )
+
+
+def arc_visual(radius, e1, e2, material, thickness=0.012, segments=ARC_SEGMENTS) -> str:
+    """Boxes along the great-circle arc of the given radius from unit e1 to unit e2.
+
+    A polyline, not the single chord: a 90-degree chord cuts 0.3 R inside the
+    arc and ran through the platform. Each box is lengthened by the thickness
+    so that neighbours close the polyline's corners.
+    """
+    angle = np.arccos(np.clip(e1 @ e2, -1.0, 1.0))
+    ortho = e2 - (e1 @ e2) * e1
+    ortho /= np.linalg.norm(ortho)
+    pts = [
+        radius * (np.cos(s) * e1 + np.sin(s) * ortho) for s in np.linspace(0, angle, segments + 1)
+    ]
+    out = []
+    for p1, p2 in zip(pts[:-1], pts[1:], strict=True):
+        d = (p2 - p1) / np.linalg.norm(p2 - p1)
+        out.append(
+            box_between(p1 - 0.5 * thickness * d, p2 + 0.5 * thickness * d, material, thickness)
+        )
+    return "".join(out)
 
 
 def pin_visual(point, axis, material, radius=0.011, length=0.035) -> str:
@@ -152,9 +174,13 @@ def build() -> str:
         f'      <geometry><box size="{SIDE_PLAT} {SIDE_PLAT} {SIDE_PLAT}"/></geometry>\n'
         '      <material name="platform"/>\n    </visual>\n'
     )
+    # Platform frame: arcs from the three loop pins (R_DIST v_i) to a hub on the
+    # diagonal, and a stem from the hub to the cube.
+    diagonal = np.ones(3) / np.sqrt(3)
     for i in range(3):
         v = E[(i + 2) % 3]
-        out.append(chord_visual(R_DIST, v, np.ones(3) / np.sqrt(3), "platform", 0.01))
+        out.append(arc_visual(R_DIST, v, diagonal, "platform", 0.01, segments=3))
+    out.append(box_between(com, R_DIST * diagonal, "platform", 0.012))
     out.append("  </link>\n")
     for axis, limit, (name, parent, child) in zip(
         ("0 0 1", "0 1 0", "1 0 0"),
@@ -177,12 +203,12 @@ def build() -> str:
         leg = i + 1
         c, I = arc_inertial(R_PROX, M_PROX, u, w)
         out.append(f'  <link name="proximal_{leg}">\n' + inertial_xml(c, I, M_PROX))
-        out.append(chord_visual(R_PROX, u, w, "proximal"))
+        out.append(arc_visual(R_PROX, u, w, "proximal"))
         out.append(pin_visual(R_PROX * w, w, "distal"))
         out.append("  </link>\n")
         c, I = arc_inertial(R_DIST, M_DIST, w, v)
         out.append(f'  <link name="distal_{leg}">\n' + inertial_xml(c, I, M_DIST))
-        out.append(chord_visual(R_DIST, w, v, "distal"))
+        out.append(arc_visual(R_DIST, w, v, "distal"))
         out.append(pin_visual(R_DIST * v, v, "loop", radius=0.013, length=0.03))
         out.append("  </link>\n")
         out.append(

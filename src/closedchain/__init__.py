@@ -23,6 +23,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
+from .inverse import InverseDynamicsResult, LoopReaction, inverse_dynamics, joint_reactions
 from .kinematics import (
     AssemblySettings,
     assemble,
@@ -34,19 +35,37 @@ from .kinematics import (
     singularity_measures,
 )
 from .mechanism import LoadSettings, Mechanism, load
+from .plotting import plot_trajectory
+from .simulate import (
+    INTEGRATORS,
+    STABILIZATIONS,
+    SimulationError,
+    SimulationSettings,
+    seed_settings,
+    simulate,
+)
 from .trajectory import Trajectory
 from .validation import ValidationReport, validate
+from .visualize import write_html
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "INTEGRATORS",
+    "STABILIZATIONS",
+    "SimulationError",
+    "SimulationSettings",
+    "seed_settings",
+    "simulate",
     "METHODS",
     "AssemblyError",
     "AssemblySettings",
     "ClosedChainError",
     "ForwardDynamicsResult",
+    "InverseDynamicsResult",
     "LoadSettings",
     "LoopClosureError",
+    "LoopReaction",
     "Mechanism",
     "SingularConfigurationError",
     "SolverSettings",
@@ -60,9 +79,13 @@ __all__ = [
     "compute_jacobian",
     "compute_phi",
     "forward_dynamics",
+    "inverse_dynamics",
+    "joint_reactions",
     "load",
+    "plot_trajectory",
     "project_velocity",
     "random_consistent_state",
     "singularity_measures",
     "validate",
+    "write_html",
 ]

@@ -123,6 +123,139 @@ def _cmd_validate(args) -> int:
     return 0 if rep.passed else 1
 
 
+def _cmd_animate(args) -> int:
+    from .visualize import write_html
+
+    mech = _load(args)
+    traj = simulate_from_args(args, mech)
+    out = write_html(mech, traj, args.output, fps=args.fps)
+    print(
+        f"wrote {out.path} ({out.size / 1e6:.2f} MB; {out.duration:.3g} s at {out.fps:g} fps, "
+        f"{out.n_keyframes} keyframes x {out.n_tracks} tracks)"
+    )
+    return 0
+
+
+def _cmd_plot(args) -> int:
+    from pathlib import Path
+
+    from .plotting import plot_trajectory
+    from .trajectory import Trajectory
+
+    if Path(args.file).suffix == ".npz":
+        mech, traj = None, Trajectory.load(args.file)
+    else:
+        mech = _load(args)
+        traj = simulate_from_args(args, mech)
+    fig = plot_trajectory(traj, mech=mech, coordinates=args.coordinates)
+    fig.savefig(args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the options of ``closedchain simulate`` (shared by ``animate`` and ``plot``)."""
+    from .simulate import INTEGRATORS, STABILIZATIONS
+    from .dynamics import METHODS
+
+    p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
+    p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="dynamics method")
+    p.add_argument(
+        "--integrator", default="DOP853", choices=sorted(INTEGRATORS), help="time integrator"
+    )
+    step = p.add_mutually_exclusive_group()
+    step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
+    step.add_argument("--rtol", type=float, help="relative tolerance (adaptive integrators)")
+    p.add_argument("--atol", type=float, help="absolute tolerance (adaptive integrators)")
+    p.add_argument(
+        "--stabilization", default=None, choices=sorted(STABILIZATIONS),
+        help="drift control (default: projection for fixed-step, none for adaptive)",
+    )
+    p.add_argument(
+        "--q0", type=float, nargs="+", metavar="Q",
+        help="initial configuration (nq numbers, assembled before the run; default: q_ref)",
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
+
+
+def simulate_from_args(args, mech):
+    """Run the simulation the shared options describe; return the Trajectory."""
+    from .kinematics import assemble
+    from .simulate import simulate
+
+    q0 = mech.q_ref if args.q0 is None else assemble(mech, np.array(args.q0), fixed="independent")
+    v0 = np.zeros(mech.nv)
+    n = int(round(args.t_final * args.fps)) + 1
+    bar = None
+    if not getattr(args, "json", False) and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=args.t_final, unit="s sim", leave=False, file=sys.stderr,
+                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]")
+
+    def progress(t: float) -> None:
+        bar.update(t - bar.n)
+
+    try:
+        return simulate(
+            mech, q0, v0, args.t_final, method=args.method, integrator=args.integrator,
+            dt=args.dt, rtol=args.rtol, atol=args.atol, stabilization=args.stabilization,
+            t_eval=np.linspace(0.0, args.t_final, n), progress=progress if bar else None,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _cmd_simulate(args) -> int:
+    mech = _load(args)
+    traj = simulate_from_args(args, mech)
+    info = traj.info
+    summary = {
+        "mechanism": mech.name,
+        "method": info["method"],
+        "integrator": info["integrator"],
+        "stabilization": info["stabilization"],
+        "t_final": info["t_final"],
+        "steps": info["steps"],
+        "evaluations": info["evaluations"],
+        "cpu_time_s": info["cpu_time"],
+        "max_constraint_residual": traj.max_constraint_residual,
+        "max_velocity_residual": float(np.max(traj.velocity_residual)),
+        "energy_drift": traj.energy_drift,
+        "repartitions": len(info["repartitions"]),
+        "final_independent": {
+            mech.coordinate_names[i]: float(traj.q[-1][mech.model.joints[
+                mech.model.getJointId(mech.coordinate_names[i])].idx_q])
+            for i in mech.independent_idx_v if mech.coordinate_names[i] in mech.model.names
+        },
+    }
+    if args.out:
+        summary["out"] = str(traj.save(args.out))
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(
+        f"{mech.name}: {summary['t_final']:g} s with method {summary['method']!r}, "
+        f"integrator {summary['integrator']!r}, stabilization {summary['stabilization']!r}"
+    )
+    _print_table(
+        [
+            ("steps", str(summary["steps"])),
+            ("dynamics evaluations", str(summary["evaluations"])),
+            ("CPU time", f"{summary['cpu_time_s']:.3f} s"),
+            ("max constraint residual |phi|", _fmt(summary["max_constraint_residual"])),
+            ("max velocity residual |J v|", _fmt(summary["max_velocity_residual"])),
+            ("relative energy drift", _fmt(summary["energy_drift"])),
+            ("re-partitions", str(summary["repartitions"])),
+        ],
+        ("quantity", "value"),
+    )
+    if args.out:
+        print(f"trajectory written to {summary['out']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -155,6 +288,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="method to check")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+    p = add(
+        "simulate", "integrate the constrained dynamics and report accuracy and cost", _cmd_simulate
+    )
+    add_simulation_arguments(p)
+    p.add_argument("--out", help="write the trajectory (.npz or .csv)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    p = add("animate", "simulate and write a self-contained HTML animation (meshcat)", _cmd_animate)
+    add_simulation_arguments(p)
+    p.add_argument("-o", "--output", required=True, help="HTML file to write")
+
+    help_ = "plot coordinates, constraint residual and energy drift against time (PNG, PDF, SVG)"
+    p = sub.add_parser("plot", help=help_, description=help_)
+    p.add_argument("file", help="trajectory (.npz from Trajectory.save) or URDF file to simulate")
+    p.add_argument(
+        "--gravity",
+        type=float,
+        nargs=3,
+        metavar=("GX", "GY", "GZ"),
+        help="gravity in the world frame [m/s^2] (URDF input; default 0 0 -9.81)",
+    )
+    add_simulation_arguments(p)
+    p.add_argument(
+        "--coordinates", nargs="+", metavar="JOINT", help="joints to plot (default: independent)"
+    )
+    p.add_argument("-o", "--output", required=True, help="image file to write")
+    p.set_defaults(handler=_cmd_plot)
     return parser
 
 

@@ -35,7 +35,10 @@ acceleration):
     \dot\phi_r = (\omega_s - \omega_p)^\top (w \times u), \qquad
     \gamma_r = \ddot u^\top w + 2 \dot u^\top \dot w + u^\top \ddot w,
     \quad \dot u = \omega_p \times u,\;
-    \ddot u = \alpha_{b,p} \times u + \omega_p \times (\omega_p \times u).
+    \ddot u = \alpha_{b,p} \times u + \omega_p \times (\omega_p \times u),
+
+expanded in :meth:`ConstraintLayer.evaluate` into dot products
+(one cross product per loop).
 
 So J is exactly the derivative of phi along ``pin.integrate`` and
 gamma = Jdot v exactly: finite differences check both (tests/test_constraints.py).
@@ -67,11 +70,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     numpy.cross spends ~30 us on axis handling; this is the same formula
     without it, for the small arrays of the per-evaluation path.
     """
-    a = np.asarray(a)
-    b = np.asarray(b)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
 
 
 def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,6 +170,8 @@ class _LoopBlock:
         self.rot_u = np.array(rot_u).reshape(-1, 3)
         self.rot_w = np.array(rot_w).reshape(-1, 3)
         self.n = len(keep)
+        self.nw, self.nt, self.nr = len(world), len(perp), len(rot_u)
+        self.start = 0  # first row of this block in the layer, set by ConstraintLayer
 
 
 class ConstraintLayer:
@@ -201,8 +208,10 @@ class ConstraintLayer:
         self._slices = []
         start = 0
         for b in self._blocks:
+            b.start = start
             self._slices.append(slice(start, start + b.n))
             start += b.n
+        self._active = [b for b in self._blocks if b.n]
 
     def restricted(self, rows: list[int]) -> ConstraintLayer:
         """Return a layer that evaluates only the given declared rows.
@@ -237,54 +246,60 @@ class ConstraintLayer:
             J: output, shape (nc, nv), d phi / d v along ``pin.integrate``.
             gamma: output, shape (nc,), Jdot v.
         """
-        for blk, sl in zip(self._blocks, self._slices, strict=True):
-            if blk.n == 0:
-                continue
+        # Hot path (every dynamics evaluation): skip empty row groups, no
+        # temporaries beyond what each formula needs.
+        for blk in self._active:
+            a0 = blk.start
+            a1, a2, a3 = a0 + blk.nw, a0 + blk.nw + blk.nt, a0 + blk.n
             oMp = pin.updateFramePlacement(model, data, blk.fid_p)
             oMs = pin.updateFramePlacement(model, data, blk.fid_s)
-            Rp, Rs = oMp.rotation, oMs.rotation
             d = oMp.translation - oMs.translation
-            nw, nt = len(blk.world), len(blk.perp)
-            U_t = blk.perp @ Rp.T  # rows: R_p n_i in world
-            U = blk.rot_u @ Rp.T
-            W = blk.rot_w @ Rs.T
+            if blk.nt:
+                Ut = blk.perp @ oMp.rotation.T  # rows: R_p n_i in world
+            if blk.nr:
+                U = blk.rot_u @ oMp.rotation.T
+                W = blk.rot_w @ oMs.rotation.T
             if phi is not None:
-                out = phi[sl]
-                out[:nw] = d[blk.world]
-                out[nw : nw + nt] = U_t @ d
-                out[nw + nt :] = np.einsum("ij,ij->i", U, W)
+                if blk.nw:
+                    phi[a0:a1] = d[blk.world]
+                if blk.nt:
+                    phi[a1:a2] = Ut @ d
+                if blk.nr:
+                    phi[a2:a3] = (U * W).sum(axis=1)
             if J is not None:
                 Jp = pin.getFrameJacobian(model, data, blk.fid_p, _LWA)
                 Js = pin.getFrameJacobian(model, data, blk.fid_s, _LWA)
-                out = J[sl]
-                dJ_lin = Jp[:3] - Js[:3]
-                out[:nw] = dJ_lin[blk.world]
-                out[nw : nw + nt] = U_t @ dJ_lin + _cross(U_t, d) @ Jp[3:]
-                out[nw + nt :] = _cross(W, U) @ (Js[3:] - Jp[3:])
+                if blk.nw:
+                    J[a0:a1] = Jp[blk.world] - Js[blk.world]
+                if blk.nt:
+                    J[a1:a2] = Ut @ (Jp[:3] - Js[:3]) + _cross(Ut, d) @ Jp[3:]
+                if blk.nr:
+                    J[a2:a3] = _cross(W, U) @ (Js[3:] - Jp[3:])
             if gamma is not None:
-                vp = pin.getFrameVelocity(model, data, blk.fid_p, _LWA)
-                vs = pin.getFrameVelocity(model, data, blk.fid_s, _LWA)
                 ap = pin.getFrameClassicalAcceleration(model, data, blk.fid_p, _LWA)
                 as_ = pin.getFrameClassicalAcceleration(model, data, blk.fid_s, _LWA)
-                out = gamma[sl]
                 dd = ap.linear - as_.linear
-                out[:nw] = dd[blk.world]
-                if nt:
-                    wp = vp.angular
-                    Ud = _cross(wp, U_t)
-                    Udd = _cross(ap.angular, U_t) + _cross(wp, Ud)
-                    ddot = vp.linear - vs.linear
-                    out[nw : nw + nt] = Udd @ d + 2.0 * Ud @ ddot + U_t @ dd
-                if len(U):
-                    wp, ws = vp.angular, vs.angular
-                    Ud = _cross(wp, U)
-                    Wd = _cross(ws, W)
-                    Udd = _cross(ap.angular, U) + _cross(wp, Ud)
-                    Wdd = _cross(as_.angular, W) + _cross(ws, Wd)
-                    out[nw + nt :] = (
-                        np.einsum("ij,ij->i", Udd, W)
-                        + 2.0 * np.einsum("ij,ij->i", Ud, Wd)
-                        + np.einsum("ij,ij->i", U, Wdd)
+                if blk.nw:
+                    gamma[a0:a1] = dd[blk.world]
+                if blk.nt or blk.nr:
+                    vp = pin.getFrameVelocity(model, data, blk.fid_p, _LWA)
+                    wp, alp = vp.angular, ap.angular
+                if blk.nt:
+                    Ud = _cross(wp, Ut)
+                    Udd = _cross(alp, Ut) + _cross(wp, Ud)
+                    ddot = vp.linear - pin.getFrameVelocity(model, data, blk.fid_s, _LWA).linear
+                    gamma[a1:a2] = Udd @ d + 2.0 * (Ud @ ddot) + Ut @ dd
+                if blk.nr:
+                    # Triple products expanded (one cross product per block):
+                    # gamma_r = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
+                    #           - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w)
+                    ws = pin.getFrameVelocity(model, data, blk.fid_s, _LWA).angular
+                    pu, pw, su, sw = U @ wp, W @ wp, U @ ws, W @ ws
+                    dw = wp - ws
+                    gamma[a2:a3] = (
+                        _cross(W, U) @ (as_.angular - alp)
+                        + pu * pw + su * sw - 2.0 * pw * su
+                        - (dw @ dw) * (U * W).sum(axis=1)
                     )
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:

@@ -231,7 +231,9 @@ class Mechanism:
         for j in range(1, self.model.njoints):
             jm = self.model.joints[j]
             sl = slice(jm.idx_q, jm.idx_q + jm.nq)
-            bound = np.pi if "R" in jm.shortname()[-2:] else prismatic_range
+            # Every revolute joint model (RX/RY/RZ, RevoluteUnaligned, RUB*, ...)
+            # and only those start with "JointModelR".
+            bound = np.pi if jm.shortname().startswith("JointModelR") else prismatic_range
             if jm.nq != jm.nv:  # continuous, spherical, free flyer: normalize below
                 bound = max(bound, 1.0)
             lo[sl] = np.maximum(np.nan_to_num(lo[sl], neginf=-bound), -bound)

@@ -20,6 +20,7 @@ entities), no network access, no huge trees.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -86,6 +87,24 @@ class URDFPlus:
     independent: tuple[str, ...] = ()
 
 
+#: One item of an XML prolog before a DOCTYPE: the XML declaration, a
+#: processing instruction or a comment, with surrounding white space.
+_PROLOG_ITEM = re.compile(rb"\s*(?:<\?.*?\?>|<!--.*?-->)", re.DOTALL)
+
+
+def _declares_doctype(raw: bytes) -> bool:
+    """Return whether the document's prolog holds a ``<!DOCTYPE``, before any parsing.
+
+    libxml2 substitutes internal entities referenced in attribute values even
+    with ``resolve_entities=False`` (bounded only by its amplification limit),
+    so a DTD must be refused before the parser sees it.
+    """
+    pos = 3 if raw.startswith(b"\xef\xbb\xbf") else 0  # UTF-8 byte order mark
+    while (m := _PROLOG_ITEM.match(raw, pos)) is not None:
+        pos = m.end()
+    return raw[pos:].lstrip().startswith(b"<!DOCTYPE")
+
+
 def _safe_parser() -> etree.XMLParser:
     return etree.XMLParser(
         resolve_entities=False,
@@ -142,6 +161,10 @@ def parse_urdf(path: str | Path) -> URDFPlus:
         raw = path.read_bytes()
     except OSError as exc:
         raise URDFError(f"{path}: cannot read URDF file: {exc.strerror}") from exc
+    if _declares_doctype(raw):
+        raise URDFError(
+            f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"
+        )
     try:
         root = etree.fromstring(raw, _safe_parser(), base_url=str(path))
     except etree.XMLSyntaxError as exc:

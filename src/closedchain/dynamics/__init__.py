@@ -10,6 +10,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
+from . import nullspace as _nullspace  # noqa: F401  (registers "nullspace")
+from . import pinocchio_method as _pinocchio_method  # noqa: F401  (registers "pinocchio")
+from . import reduced as _reduced  # noqa: F401  (registers "reduced")
+from . import schur as _schur  # noqa: F401  (registers "schur")
 from .base import (
     DEFAULT_SETTINGS,
     METHODS,

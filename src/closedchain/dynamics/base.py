@@ -118,6 +118,15 @@ class Workspace:
         self.gamma = np.zeros(nc)
         self.K = np.zeros((nv + nc, nv + nc))
         self.rhs = np.zeros(nv + nc)
+        self.phi = np.zeros(nc)
+        self.lower = np.tril_indices(nv, -1)  # CRBA fills the upper triangle only
+        #: Baumgarte gains (alpha, beta) [1/s] set by the simulator while it
+        #: runs with Baumgarte stabilization; None otherwise. compute_terms then
+        #: returns gamma + 2 alpha J v + beta^2 phi (Baumgarte 1972).
+        self.baumgarte: tuple[float, float] | None = None
+        #: Per-method buffers, keyed by method name, made on a method's first
+        #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
+        self.method_buffers: dict[str, object] = {}
 
 
 def workspace(mech: Mechanism) -> Workspace:
@@ -146,9 +155,13 @@ def compute_terms(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> Workspace:
     pin.computeAllTerms(model, data, q, v)
     M = ws.M
     M[:] = data.M
-    iu = np.tril_indices(mech.nv, -1)
-    M[iu] = M.T[iu]
+    M[ws.lower] = M.T[ws.lower]
     ws.h[:] = data.nle
     if mech.nc:
-        mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
+        if ws.baumgarte is None:
+            mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
+        else:
+            alpha, beta = ws.baumgarte
+            mech.constraints.evaluate(model, data, phi=ws.phi, J=ws.J, gamma=ws.gamma)
+            ws.gamma += 2.0 * alpha * (ws.J @ v) + beta * beta * ws.phi
     return ws

@@ -1,0 +1,106 @@
+r"""Range-space (Schur complement) method: multipliers first, then accelerations.
+
+Eliminating the accelerations from the seed's KKT system (Section 3) with the
+Cholesky factor of the mass matrix, :math:`M = R^\top R`, leaves the
+Delassus (operational-space inverse inertia) matrix of the loops:
+
+.. math::
+
+    D = J M^{-1} J^\top, \qquad
+    D\,\lambda = J M^{-1} (\tau - h) + \gamma, \qquad
+    a = M^{-1} (\tau - h - J^\top \lambda).
+
+With :math:`Y = M^{-1} [\,J^\top \;|\; \tau - h\,]` from one triangular
+solve pair, :math:`D` and the right-hand side come from one product
+:math:`J Y`, and :math:`a = y - X \lambda` with :math:`X = M^{-1} J^\top`.
+``D`` is symmetric positive definite while J has full row rank; both Cholesky
+factorizations (LAPACK ``dpotrf``) are followed by a 1-norm condition estimate
+(``dpocon``), and a condition number above ``settings.cond_max`` raises
+:class:`SingularConfigurationError`. Since :math:`\mathrm{cond}(D)` grows like
+:math:`\mathrm{cond}(J)^2`, this method refuses a configuration closer to a
+singularity than the null-space method does.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.linalg import lapack
+
+from .base import SolverSettings, compute_terms, register
+from .kkt import check_condition
+
+if TYPE_CHECKING:
+    from ..mechanism import Mechanism
+
+_NAME = "schur"
+
+
+class _SchurBuffers:
+    """Preallocated arrays of one mechanism (Fortran order where LAPACK writes them)."""
+
+    def __init__(self, nv: int, nc: int) -> None:
+        #: [J^T | tau - h], overwritten by M^-1 [J^T | tau - h], shape (nv, nc + 1).
+        self.Y = np.zeros((nv, nc + 1), order="F")
+        #: J Y = [D | J M^-1 (tau - h)], shape (nc, nc + 1).
+        self.JY = np.zeros((nc, nc + 1))
+        self.a = np.zeros(nv)
+
+
+def _buffers(ws, nv: int, nc: int) -> _SchurBuffers:
+    buf = ws.method_buffers.get(_NAME)
+    if buf is None:
+        buf = ws.method_buffers[_NAME] = _SchurBuffers(nv, nc)
+    return buf
+
+
+@register(_NAME)
+def schur(
+    mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the constrained dynamics by the range-space (Delassus) method.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), on the constraint manifold.
+        v: velocity, shape (nv,), with J v = 0.
+        tau: generalized forces, shape (nv,) [N m or N].
+        settings: ``cond_max`` bounds the condition numbers of M and D.
+
+    Returns:
+        ``(a, lam)``: accelerations, shape (nv,) [rad/s^2 or m/s^2], and
+        multipliers of the independent rows, shape (nc,), with
+        ``M a + h + J^T lam = tau``.
+
+    Raises:
+        SingularConfigurationError: M or D is singular or ill-conditioned at q.
+    """
+    ws = compute_terms(mech, q, v)
+    nv, nc = mech.nv, mech.nc
+    buf = _buffers(ws, nv, nc)
+    M = ws.M
+    # M is symmetric: its transpose is a Fortran-ordered view LAPACK reads without a copy.
+    R, info = lapack.dpotrf(M.T, lower=0, clean=0)
+    rcond = lapack.dpocon(R, lapack.dlange("1", M.T))[0] if info == 0 else 0.0
+    check_condition(mech, q, "the mass matrix M", rcond, info, settings)
+    Y = buf.Y
+    np.subtract(tau, ws.h, out=Y[:, nc])
+    if nc == 0:
+        lapack.dpotrs(R, Y, overwrite_b=1)
+        buf.a[:] = Y[:, 0]
+        return buf.a.copy(), np.zeros(0)
+    Y[:, :nc] = ws.J.T
+    lapack.dpotrs(R, Y, overwrite_b=1)  # Y <- M^-1 [J^T | tau - h]
+    JY = np.dot(ws.J, Y, out=buf.JY)
+    D = JY[:, :nc]
+    b = JY[:, nc] + ws.gamma
+    # D is symmetric (up to round-off in its lower triangle, which dpotrf with
+    # lower=0 never reads): factor its upper triangle.
+    Rd, info = lapack.dpotrf(D, lower=0, clean=0)
+    rcond = lapack.dpocon(Rd, lapack.dlange("1", D))[0] if info == 0 else 0.0
+    check_condition(mech, q, "the Delassus matrix J M^-1 J^T", rcond, info, settings)
+    lam = lapack.dpotrs(Rd, b)[0]
+    a = np.dot(Y[:, :nc], lam, out=buf.a)
+    np.subtract(Y[:, nc], a, out=a)
+    return a.copy(), lam

@@ -1,0 +1,370 @@
+r"""Closed-chain inverse dynamics and the reaction wrenches of the loop joints.
+
+Inverse dynamics (seed text, Sections 3 and 6): given the state ``(q, v)`` and
+the accelerations of ``mobility`` prescribed coordinates P (by default the
+independent ones), the other accelerations follow from the acceleration
+constraint, and the actuator torques and multipliers from the equations of
+motion:
+
+.. math::
+
+    J_F\, a_F = -\gamma - J_P\, a_P, \qquad
+    \begin{bmatrix} B & -J^\top \end{bmatrix}
+    \begin{bmatrix} \tau_A \\ \lambda \end{bmatrix} = M a + h,
+
+where B (nv x na) selects the actuated coordinates. Projected onto an
+orthonormal basis N of the null space of J (:math:`N^\top J^\top = 0`) the
+second system splits into
+
+.. math::
+
+    (N^\top B)\, \tau_A = N^\top (M a + h), \qquad
+    J^\top \lambda = B \tau_A - (M a + h),
+
+so a square, nonsingular :math:`N^\top B` (as many actuators as degrees of
+freedom, away from actuation singularities) gives the unique torques; with
+more actuators than degrees of freedom (redundant actuation) the
+minimum-norm torques are returned.
+
+Reactions (seed Problem 3): the multipliers of a loop's rows are the
+components of the wrench its cut joint transmits. With the row formulas of
+:mod:`closedchain.constraints` the virtual work :math:`-\lambda^\top \delta\phi`
+of the constraint forces gives, on the successor link, the force (applied at
+the origin of frame c2) and couple
+
+.. math::
+
+    f = \sum_{k \in \text{world}} \lambda_k e_k + \sum_{t} \lambda_t R_p n_t,
+    \qquad
+    \tau = \sum_{r} \lambda_r\, (R_p u_r) \times (R_s w_r),
+
+in world coordinates, and the opposite wrench on the predecessor. Rows that the
+row selection dropped as redundant carry no force: where a closure is
+statically indeterminate (a planar loop's out-of-plane components, a spherical
+wrist's forces along the legs) the reported wrench is the one carried by the
+independent rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg import lapack
+
+from .dynamics.base import DEFAULT_SETTINGS, SolverSettings, compute_terms
+from .exceptions import ClosedChainError, SingularConfigurationError
+
+if TYPE_CHECKING:
+    from .mechanism import Mechanism
+
+__all__ = ["InverseDynamicsResult", "LoopReaction", "inverse_dynamics", "joint_reactions"]
+
+
+@dataclass(frozen=True)
+class InverseDynamicsResult:
+    """Torques, accelerations and multipliers of one inverse-dynamics evaluation.
+
+    Attributes:
+        tau: generalized forces, shape (nv,) [N m or N]; nonzero only at the
+            actuated coordinates.
+        a: accelerations of every coordinate, shape (nv,) [rad/s^2 or m/s^2].
+        lam: multipliers of the independent constraint rows, shape (nc,), in
+            the convention ``M a + h + J^T lam = tau``.
+        actuated_idx_v: velocity indices where tau acts, shape (na,).
+        prescribed_idx_v: velocity indices whose accelerations were given, shape (mobility,).
+        J: constraint Jacobian used, shape (nc, nv).
+        gamma: Jdot v used, shape (nc,).
+        dynamics_residual: max |M a + h + J^T lam - tau| [N m or N].
+        constraint_residual: max |J a + gamma|.
+    """
+
+    tau: np.ndarray
+    a: np.ndarray
+    lam: np.ndarray
+    actuated_idx_v: np.ndarray
+    prescribed_idx_v: np.ndarray
+    J: np.ndarray
+    gamma: np.ndarray
+    dynamics_residual: float
+    constraint_residual: float
+
+    def generalized_constraint_force(self) -> np.ndarray:
+        """Return J^T lam, shape (nv,) [N m or N]: the generalized force the loops exert."""
+        return self.J.T @ self.lam
+
+
+@dataclass(frozen=True)
+class LoopReaction:
+    """The wrench a loop joint transmits, acting on its successor link.
+
+    The predecessor link receives the opposite wrench (same point of application).
+
+    Attributes:
+        loop: loop name (the ``<loop name=...>``).
+        type: loop type (``revolute``, ``spherical``, ``fixed``, ``prismatic``).
+        frame: name of the model frame c1 (predecessor side) the components are given in.
+        force: force on the successor, applied at the origin of c2, shape (3,) [N], in c1.
+        torque: couple on the successor, shape (3,) [N m], in c1.
+        force_world: the same force in world coordinates, shape (3,) [N].
+        torque_world: the same couple in world coordinates, shape (3,) [N m].
+    """
+
+    loop: str
+    type: str
+    frame: str
+    force: np.ndarray
+    torque: np.ndarray
+    force_world: np.ndarray
+    torque_world: np.ndarray
+
+
+def _resolve_ordered(mech: Mechanism, spec: Iterable[str | int] | str, what: str) -> np.ndarray:
+    """Resolve coordinates to velocity indices, keeping the caller's order."""
+    if isinstance(spec, str):
+        if spec in ("actuated", "independent", "dependent"):
+            return mech.coordinate_indices(spec)
+        spec = [spec]
+    out: list[int] = []
+    for item in spec:
+        out += [int(i) for i in mech.coordinate_indices([item])]
+    if len(set(out)) != len(out):
+        names = [mech.coordinate_names[i] for i in out]
+        raise ClosedChainError(f"{what} names a coordinate twice: {names}")
+    return np.array(out, dtype=int)
+
+
+def _cond_error(mech, q, what: str, cond: float, settings: SolverSettings, hint: str):
+    return SingularConfigurationError(
+        f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
+        f"(condition number {cond:.3e} > cond_max {settings.cond_max:.1e}); {hint}",
+        q=np.array(q),
+        condition_number=cond,
+    )
+
+
+def _svd(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    U, s, Vt, info = lapack.dgesdd(A)
+    if info != 0:  # pragma: no cover - LAPACK convergence failure
+        raise ClosedChainError(f"SVD did not converge (LAPACK info {info})")
+    return U, s, Vt
+
+
+def _condition(s: np.ndarray) -> float:
+    if s.size == 0:
+        return 1.0
+    return float(s[0] / s[-1]) if s[-1] > 0.0 else float("inf")
+
+
+def inverse_dynamics(
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    a_independent: Sequence[float] | np.ndarray,
+    *,
+    tau_mask: Iterable[str | int] | str = "actuated",
+    coordinates: Iterable[str | int] | str = "independent",
+    settings: SolverSettings = DEFAULT_SETTINGS,
+) -> InverseDynamicsResult:
+    """Compute the actuator torques that produce prescribed accelerations.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), on the constraint manifold.
+        v: velocity, shape (nv,), with J v = 0.
+        a_independent: accelerations of ``coordinates``, shape (mobility,)
+            [rad/s^2 or m/s^2], in the order of ``coordinates``.
+        tau_mask: coordinates where torques may act: ``"actuated"`` (the
+            ``<transmission>`` joints), or joint names / velocity indices.
+        coordinates: the prescribed coordinates: ``"independent"``
+            (``mech.independent_idx_v``) or ``mobility`` joint names / velocity
+            indices, e.g. a platform's orientation joints.
+        settings: ``cond_max`` bounds cond(J_F) (the other coordinates' block
+            of J), cond(J) and cond(N^T B).
+
+    Returns:
+        The torques (zero off the actuated coordinates), full accelerations,
+        multipliers and residuals.
+
+    Raises:
+        ClosedChainError: wrong number of prescribed coordinates or
+            accelerations, or fewer actuators than degrees of freedom (names both).
+        SingularConfigurationError: the prescribed coordinates do not determine
+            the motion (J_F singular), J has lost rank, or the actuators cannot
+            produce every motion at q (N^T B singular, an actuation singularity).
+    """
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    nv, nc, mob = mech.nv, mech.nc, mech.mobility
+    P = _resolve_ordered(mech, coordinates, "coordinates")
+    if len(P) != mob:
+        raise ClosedChainError(
+            f"{mech.name}: coordinates names {len(P)} coordinates "
+            f"({', '.join(mech.coordinate_names[i] for i in P)}) but the mobility is {mob}: "
+            f"give the accelerations of exactly {mob} coordinates"
+        )
+    a_P = np.asarray(a_independent, dtype=float).reshape(-1)
+    if a_P.shape != (mob,) or not np.all(np.isfinite(a_P)):
+        raise ClosedChainError(
+            f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
+            f"got {np.asarray(a_independent)}"
+        )
+    A = mech.coordinate_indices(tau_mask)
+    if len(A) < mob:
+        raise ClosedChainError(
+            f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
+            f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
+            f"the accelerations of {mob} degrees of freedom; tau_mask must name at least {mob}"
+        )
+
+    ws = compute_terms(mech, q, v)
+    M, h = ws.M.copy(), ws.h.copy()
+    J, gamma = ws.J.copy(), ws.gamma.copy()
+
+    # Accelerations of the other coordinates F from J_F a_F = -gamma - J_P a_P.
+    a = np.zeros(nv)
+    a[P] = a_P
+    if nc:
+        F = np.setdiff1d(np.arange(nv), P)
+        JF = J[:, F]
+        lu, piv, info = lapack.dgetrf(JF)
+        rcond = lapack.dgecon(lu, lapack.dlange("1", JF))[0] if info == 0 else 0.0
+        cond = 1.0 / rcond if rcond > 0.0 else float("inf")
+        if cond > settings.cond_max:
+            raise _cond_error(
+                mech,
+                q,
+                "J_F (constraint-Jacobian columns of the coordinates not prescribed: "
+                + ", ".join(mech.coordinate_names[i] for i in F)
+                + ")",
+                cond,
+                settings,
+                "the prescribed coordinates "
+                + ", ".join(mech.coordinate_names[i] for i in P)
+                + " do not determine the motion here; prescribe other coordinates",
+            )
+        a[F] = lapack.dgetrs(lu, piv, -gamma - J[:, P] @ a_P)[0]
+
+    b = M @ a + h  # = B tau_A - J^T lam
+    if nc:
+        U, s, Vt = _svd(J)
+        cond = _condition(s)
+        if cond > settings.cond_max:
+            raise _cond_error(
+                mech,
+                q,
+                "the constraint Jacobian J",
+                cond,
+                settings,
+                "the loops have lost rank, so their multipliers are not unique",
+            )
+        N = Vt[nc:].T
+    else:
+        N = np.eye(nv)
+    # (N^T B) tau_A = N^T b: unique when square, minimum-norm when over-actuated.
+    # The singular values of N^T B are the cosines of the principal angles
+    # between the actuated directions and the motion space (N orthonormal, B a
+    # selection), so 1 / sigma_min is its condition relative to the ideal 1;
+    # a plain sigma_max / sigma_min would call a 1 x 1 zero well-conditioned.
+    G = N[A, :].T
+    Ug, sg, Vgt = _svd(G)
+    cond = 1.0 / sg[-1] if sg[-1] > 0.0 else float("inf")
+    if cond > settings.cond_max:
+        raise _cond_error(
+            mech,
+            q,
+            "N^T B (the actuators' reach into the motion space)",
+            cond,
+            settings,
+            "the actuated coordinates "
+            + ", ".join(mech.coordinate_names[i] for i in A)
+            + " cannot produce every motion here (an actuation singularity)",
+        )
+    tau_A = Vgt[:mob].T @ ((Ug.T @ (N.T @ b)) / sg)
+    tau = np.zeros(nv)
+    tau[A] = tau_A
+    f = tau - b  # = J^T lam
+    lam = U @ ((Vt[:nc] @ f) / s) if nc else np.zeros(0)
+    dyn = float(np.max(np.abs(b + J.T @ lam - tau)))
+    con = float(np.max(np.abs(J @ a + gamma), initial=0.0))
+    return InverseDynamicsResult(
+        tau=tau,
+        a=a,
+        lam=lam,
+        actuated_idx_v=A,
+        prescribed_idx_v=P,
+        J=J,
+        gamma=gamma,
+        dynamics_residual=dyn,
+        constraint_residual=con,
+    )
+
+
+def _loop_blocks(mech: Mechanism):
+    """Yield ``(block, slice)`` per loop of the independent rows.
+
+    Reads the constraint layer's per-loop row data (its ``_blocks`` and
+    ``_slices``): the reaction formula needs exactly the vectors the rows are
+    built from.
+    """
+    layer = mech.constraints
+    return zip(layer._blocks, layer._slices, strict=True)
+
+
+def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> list[LoopReaction]:
+    """Return the wrench each loop joint transmits, from the multipliers.
+
+    Convention: the wrench acts on the loop's successor link, the force
+    applied at the origin of the successor-side frame c2 (which coincides with
+    the predecessor-side frame c1's origin when the loop is closed, except
+    along a prismatic axis); components in c1. The predecessor receives the
+    opposite wrench. See the module docstring for the formula.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), the one the multipliers belong to.
+        v: velocity, shape (nv,); the reactions follow from q and lam alone,
+            it is only checked, so that calls mirror the dynamics functions.
+        result: a :class:`InverseDynamicsResult` or
+            :class:`~closedchain.dynamics.ForwardDynamicsResult` (its ``lam``),
+            or the multipliers themselves, shape (nc,).
+
+    Returns:
+        One :class:`LoopReaction` per loop, in the URDF's order.
+    """
+    q = mech.check_q(q, "q")
+    mech.check_v(v, "v")
+    lam = np.asarray(getattr(result, "lam", result), dtype=float)
+    if lam.shape != (mech.nc,):
+        raise ClosedChainError(f"lam has shape {lam.shape}, expected ({mech.nc},)")
+    model, data = mech.model, mech.data
+    pin.forwardKinematics(model, data, q)
+    out = []
+    for blk, sl in _loop_blocks(mech):
+        oMp = pin.updateFramePlacement(model, data, blk.fid_p)
+        oMs = pin.updateFramePlacement(model, data, blk.fid_s)
+        Rp, Rs = oMp.rotation, oMs.rotation
+        lam_l = lam[sl]
+        nw, nt = len(blk.world), len(blk.perp)
+        force = np.zeros(3)
+        force[blk.world] += lam_l[:nw]
+        if nt:
+            force += Rp @ (blk.perp.T @ lam_l[nw : nw + nt])
+        torque = np.zeros(3)
+        for u, w, lr in zip(blk.rot_u, blk.rot_w, lam_l[nw + nt :], strict=True):
+            torque += lr * np.cross(Rp @ u, Rs @ w)
+        out.append(
+            LoopReaction(
+                loop=blk.spec.name,
+                type=blk.spec.type,
+                frame=model.frames[blk.fid_p].name,
+                force=Rp.T @ force,
+                torque=Rp.T @ torque,
+                force_world=force,
+                torque_world=torque,
+            )
+        )
+    return out

@@ -1,0 +1,291 @@
+"""Shared fixtures: mechanisms loaded once per session, a seeded generator, the 4-bar
+closed forms, and kinematic trajectories (no simulator needed).
+
+The 4-bar closed forms are the *independent* reference of the constraint
+layer: they are written from the seed text (Chapter 15, Lesson 3, Section 2
+and Problem 2) and Freudenstein's equation, with the link lengths stated in
+the header of ``models/fourbar.urdf``, and share no code with ``closedchain``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import closedchain as cc
+
+ROOT = Path(__file__).resolve().parent.parent
+MODELS = ROOT / "models"
+DATA_DIR = Path(__file__).resolve().parent / "data"
+ARTIFACTS = ROOT / "test-artifacts"
+
+#: Every mechanism the tests load, by name: the two models and the small
+#: test mechanisms of tests/data/ (one per loop type).
+MECHANISM_FILES = {
+    "fourbar": MODELS / "fourbar.urdf",
+    "agile_eye": MODELS / "agile_eye.urdf",
+    "spherical_chain": DATA_DIR / "spherical_chain.urdf",
+    "slider_crank": DATA_DIR / "slider_crank.urdf",
+    "slider_crank_planar": DATA_DIR / "slider_crank_planar.urdf",
+    "fixed_branches": DATA_DIR / "fixed_branches.urdf",
+}
+
+#: Seed of the ``rng`` fixture (every test gets a fresh generator with it).
+RNG_SEED = 20251121
+
+
+# -- mechanisms and randomness ----------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def mechanism_files() -> dict[str, Path]:
+    """Return name -> URDF path of every test mechanism."""
+    return dict(MECHANISM_FILES)
+
+
+@pytest.fixture(scope="session")
+def load_mechanism():
+    """Return ``get(name) -> Mechanism``, loading each mechanism once per session."""
+    cache: dict[str, cc.Mechanism] = {}
+
+    def get(name: str) -> cc.Mechanism:
+        if name not in cache:
+            cache[name] = cc.load(MECHANISM_FILES[name])
+        return cache[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def fourbar(load_mechanism) -> cc.Mechanism:
+    return load_mechanism("fourbar")
+
+
+@pytest.fixture(scope="session")
+def agile_eye(load_mechanism) -> cc.Mechanism:
+    return load_mechanism("agile_eye")
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A generator seeded with :data:`RNG_SEED`, fresh for every test."""
+    return np.random.default_rng(RNG_SEED)
+
+
+@pytest.fixture(scope="session")
+def artifacts_dir() -> Path:
+    ARTIFACTS.mkdir(exist_ok=True)
+    return ARTIFACTS
+
+
+# -- the seed's planar 4-bar in closed form ---------------------------------------------
+
+
+@dataclass(frozen=True)
+class FourBarClosedForms:
+    r"""The seed's planar 4-bar (Section 2, Problem 2) and Freudenstein's equation.
+
+    Absolute angles ``theta = [theta2, theta3, theta4]`` [rad] are measured from
+    the ground line AD; ``models/fourbar.urdf`` maps them to its joint
+    coordinates by ``theta = T q`` (its header): q = [theta2, theta3 - theta2,
+    theta4]. The seed's planar (x, y) are world (x, z).
+
+    Attributes:
+        a, b, c, d: crank, coupler, rocker and ground lengths [m] (the URDF header).
+    """
+
+    a: float = 0.2
+    b: float = 0.4
+    c: float = 0.3
+    d: float = 0.5
+
+    #: d theta / d q, shape (3, 3).
+    T = np.array([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+    def theta(self, q: np.ndarray) -> np.ndarray:
+        """Return the absolute angles of joint coordinates q, shape (3,)."""
+        return self.T @ np.asarray(q, dtype=float)
+
+    def q_from_theta(self, theta: np.ndarray) -> np.ndarray:
+        """Return joint coordinates q of absolute angles, shape (3,)."""
+        th2, th3, th4 = theta
+        return np.array([th2, th3 - th2, th4])
+
+    def phi(self, theta: np.ndarray) -> np.ndarray:
+        """Seed Section 2: phi = p_C(coupler) - p_C(rocker), shape (2,) [m]."""
+        a, b, c, d = self.a, self.b, self.c, self.d
+        th2, th3, th4 = theta
+        return np.array(
+            [
+                a * math.cos(th2) + b * math.cos(th3) - d - c * math.cos(th4),
+                a * math.sin(th2) + b * math.sin(th3) - c * math.sin(th4),
+            ]
+        )
+
+    def jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """Seed Section 2: J_c = d phi / d theta, shape (2, 3) [m]."""
+        a, b, c = self.a, self.b, self.c
+        th2, th3, th4 = theta
+        return np.array(
+            [
+                [-a * math.sin(th2), -b * math.sin(th3), c * math.sin(th4)],
+                [a * math.cos(th2), b * math.cos(th3), -c * math.cos(th4)],
+            ]
+        )
+
+    def jacobian_dot(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
+        """Seed Problem 2: dJ_c/dt, shape (2, 3) [m/s], with the seed's sign error corrected.
+
+        The seed prints entry (2, 3) as ``-c sin(theta4) theta4_dot`` (and so
+        the term ``-c sin(theta4) theta4_dot^2`` of its second acceleration
+        equation, and ``Jcdot(2,3)`` of its MATLAB function in Section 10); the
+        time derivative of J_c(2, 3) = -c cos(theta4) is ``+c sin(theta4)
+        theta4_dot``. tests/test_constraints.py checks this matrix against a
+        finite difference of :meth:`jacobian`.
+        """
+        a, b, c = self.a, self.b, self.c
+        th2, th3, th4 = theta
+        w2, w3, w4 = theta_dot
+        return np.array(
+            [
+                [-a * math.cos(th2) * w2, -b * math.cos(th3) * w3, c * math.cos(th4) * w4],
+                [-a * math.sin(th2) * w2, -b * math.sin(th3) * w3, c * math.sin(th4) * w4],
+            ]
+        )
+
+    def jacobian_dot_as_printed(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
+        """Seed Problem 2 exactly as printed (entry (2, 3) with the wrong sign)."""
+        Jd = self.jacobian_dot(theta, theta_dot)
+        Jd[1, 2] = -Jd[1, 2]
+        return Jd
+
+    def freudenstein(self, theta2: float) -> list[np.ndarray]:
+        r"""Return both assembly branches ``theta = [theta2, theta3, theta4]`` at a crank angle.
+
+        Freudenstein's equation (Norton, Design of Machinery, Sec. 4.5),
+
+        .. math::
+
+            K_1 \cos\theta_4 - K_2 \cos\theta_2 + K_3 = \cos(\theta_2 - \theta_4),
+            \quad K_1 = d/a,\; K_2 = d/c,\; K_3 = (a^2 - b^2 + c^2 + d^2) / (2 a c),
+
+        with t = tan(theta4 / 2) becomes A t^2 + B t + C = 0, A = cos th2 - K1 -
+        K2 cos th2 + K3, B = -2 sin th2, C = K1 - (K2 + 1) cos th2 + K3, so
+        theta4 = 2 atan2(-B -+ sqrt(B^2 - 4 A C), 2 A) (open, crossed); theta3
+        follows from the closure b e(theta3) = D + c e(theta4) - a e(theta2).
+        """
+        a, b, c, d = self.a, self.b, self.c, self.d
+        K1, K2, K3 = d / a, d / c, (a * a - b * b + c * c + d * d) / (2.0 * a * c)
+        c2, s2 = math.cos(theta2), math.sin(theta2)
+        A = c2 - K1 - K2 * c2 + K3
+        B = -2.0 * s2
+        C = K1 - (K2 + 1.0) * c2 + K3
+        disc = B * B - 4.0 * A * C
+        if disc < 0.0:
+            raise ValueError(f"no assembly at theta2 = {theta2} (discriminant {disc})")
+        out = []
+        for sign in (-1.0, 1.0):
+            th4 = 2.0 * math.atan2(-B + sign * math.sqrt(disc), 2.0 * A)
+            th3 = math.atan2(c * math.sin(th4) - a * s2, d + c * math.cos(th4) - a * c2)
+            out.append(np.array([theta2, th3, th4]))
+        return out
+
+
+@pytest.fixture(scope="session")
+def fourbar_closed_forms() -> FourBarClosedForms:
+    return FourBarClosedForms()
+
+
+@pytest.fixture(scope="session")
+def angle_difference():
+    """Return ``f(x, y)``: x - y wrapped into [-pi, pi), elementwise [rad]."""
+    return lambda x, y: (np.asarray(x) - np.asarray(y) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# -- kinematic trajectories (drive some joints, assemble the rest) ----------------------
+
+
+def sweep_trajectory(
+    mech: cc.Mechanism,
+    drives: dict[str, Callable[[float], float]],
+    t: np.ndarray,
+    *,
+    q_start: np.ndarray | None = None,
+) -> cc.Trajectory:
+    """Return a kinematic trajectory: drive some joints, assemble the rest.
+
+    Each driven joint (a 1-dof joint) follows its function of time; at every
+    sample the others are assembled onto phi = 0 holding the driven ones,
+    warm-started from the previous sample (so the assembly mode is kept).
+    v, a, lam, residuals and energy are zeros of the right shapes.
+
+    Args:
+        mech: the mechanism.
+        drives: joint name -> angle [rad] (or position [m]) as a function of time [s].
+        t: sample times [s], shape (N,).
+        q_start: first guess, shape (nq,); default ``mech.q_ref``.
+    """
+    model = mech.model
+    idx_q = {name: model.joints[model.getJointId(name)].idx_q for name in drives}
+    q = np.array(mech.q_ref if q_start is None else q_start, dtype=float)
+    qs = np.empty((len(t), mech.nq))
+    for k, tk in enumerate(t):
+        for name, f in drives.items():
+            q[idx_q[name]] = f(float(tk))
+        q = cc.assemble(mech, q, fixed=list(drives))
+        qs[k] = q
+    n = len(t)
+    return cc.Trajectory(
+        t=np.asarray(t, dtype=float),
+        q=qs,
+        v=np.zeros((n, mech.nv)),
+        a=np.zeros((n, mech.nv)),
+        lam=np.zeros((n, mech.nc)),
+        constraint_residual=np.zeros(n),
+        velocity_residual=np.zeros(n),
+        energy=np.zeros(n),
+        info={"mechanism": mech.name, "method": "kinematic sweep"},
+    )
+
+
+#: Crank swing of the 4-bar about q_ref [rad]: keeps clear of its change point
+#: at theta2 = 180 deg (a + d = b + c).
+FOURBAR_SWING = 0.8
+#: Actuator swing of the Agile Eye about its home configuration [rad].
+AGILE_EYE_SWING = 0.35
+#: Period of the sweeps [s].
+SWEEP_PERIOD = 2.0
+
+
+def fourbar_sweep(mech: cc.Mechanism, t: np.ndarray) -> cc.Trajectory:
+    """Swing the 4-bar's crank sinusoidally about its reference angle."""
+    q0 = float(mech.q_ref[0])
+    w = 2 * np.pi / SWEEP_PERIOD
+    return sweep_trajectory(mech, {"crank_joint": lambda s: q0 + FOURBAR_SWING * np.sin(w * s)}, t)
+
+
+def agile_eye_sweep(mech: cc.Mechanism, t: np.ndarray) -> cc.Trajectory:
+    """Swing the Agile Eye's three actuators by phase-shifted sinusoids about 0."""
+    w = 2 * np.pi / SWEEP_PERIOD
+    drives = {
+        f"actuator_{i + 1}": (lambda s, i=i: AGILE_EYE_SWING * np.sin(w * s + 2 * np.pi * i / 3))
+        for i in range(3)
+    }
+    return sweep_trajectory(mech, drives, t)
+
+
+@pytest.fixture(scope="session")
+def fourbar_traj(fourbar) -> cc.Trajectory:
+    """4 s of crank swing sampled at 100 Hz (not the display rate)."""
+    return fourbar_sweep(fourbar, np.linspace(0.0, 4.0, 401))
+
+
+@pytest.fixture(scope="session")
+def agile_eye_traj(agile_eye) -> cc.Trajectory:
+    """4 s of actuator swing sampled at 100 Hz (not the display rate)."""
+    return agile_eye_sweep(agile_eye, np.linspace(0.0, 4.0, 401))

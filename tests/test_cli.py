@@ -1,0 +1,160 @@
+"""Tests of the ``closedchain info`` and ``closedchain validate`` subcommands."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from closedchain import cli
+from closedchain.dynamics import base as dynamics_base
+
+#: Samples for the CLI validation runs (the library test uses 100).
+CLI_SAMPLES = "20"
+
+
+def run(capsys, *argv):
+    """Return (exit status, stdout, stderr) of ``closedchain argv``."""
+    status = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+# -- info -----------------------------------------------------------------------------------
+
+
+def test_info_fourbar(capsys, mechanism_files):
+    status, out, err = run(capsys, "info", mechanism_files["fourbar"])
+    assert status == 0
+    assert err == ""
+    assert "constraint rows: 5 declared, 2 independent; mobility 1" in out
+    assert re.search(r"independent coordinates: crank_joint \(actuated\)", out)
+    assert re.search(r"dependent coordinates: +coupler_joint, rocker_joint", out)
+    assert re.search(r"actuated coordinates: +crank_joint", out)
+    assert re.search(r"^C +revolute +coupler +rocker +5 \(x y z r1 r2\) +2 \(x z\)", out, re.M)
+
+
+def test_info_agile_eye(capsys, mechanism_files):
+    status, out, _ = run(capsys, "info", mechanism_files["agile_eye"])
+    assert status == 0
+    assert "constraint rows: 15 declared, 6 independent; mobility 3" in out
+    assert "independent coordinates: actuator_1, actuator_2, actuator_3 (actuated)" in out
+    for leg in (1, 2, 3):
+        assert re.search(rf"^leg{leg}_platform +revolute .* 2 \(r1 r2\)", out, re.M)
+
+
+def test_info_json(capsys, mechanism_files):
+    status, out, _ = run(capsys, "info", mechanism_files["fourbar"], "--json")
+    assert status == 0
+    s = json.loads(out)
+    assert (s["nq"], s["nv"]) == (3, 3)
+    assert (s["declared_rows"], s["independent_rows"], s["mobility"]) == (5, 2, 1)
+    assert s["independent"] == ["crank_joint"]
+    assert s["dependent"] == ["coupler_joint", "rocker_joint"]
+    assert s["gravity"] == [0.0, 0.0, -9.81]
+    assert s["loops"][0]["independent_rows"] == ["x", "z"]
+    assert [t["joint"] for t in s["tree"]] == ["crank_joint", "coupler_joint", "rocker_joint"]
+
+
+def test_info_gravity_override(capsys, mechanism_files):
+    status, out, _ = run(
+        capsys, "info", mechanism_files["fourbar"], "--json", "--gravity", "0", "0", "-1.62"
+    )
+    assert status == 0
+    assert json.loads(out)["gravity"] == [0.0, 0.0, -1.62]
+
+
+def test_info_notes_a_missing_pinocchio_reference(capsys, mechanism_files):
+    status, out, _ = run(capsys, "info", mechanism_files["slider_crank"])
+    assert status == 0
+    assert "constraint rows: 5 declared, 5 independent; mobility 1" in out
+    assert "no Pinocchio reference" in out
+
+
+# -- validate -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+def test_validate_json_passes(capsys, mechanism_files, name):
+    path = mechanism_files[name]
+    status, out, err = run(capsys, "validate", path, "--samples", CLI_SAMPLES, "--json")
+    assert status == 0, err
+    rep = json.loads(out)
+    assert rep["passed"] is True
+    assert rep["mechanism"] == name
+    assert rep["method"] == "kkt"
+    assert rep["n_samples"] == int(CLI_SAMPLES)
+    assert rep["max_da"] <= rep["tol_a"] == 1e-9
+    assert rep["max_dforce"] <= rep["tol_force"] == 1e-8
+
+
+def test_validate_text(capsys, mechanism_files):
+    status, out, _ = run(capsys, "validate", mechanism_files["fourbar"], "--samples", "5")
+    assert status == 0
+    assert "fourbar: method 'kkt' vs pinocchio.constraintDynamics at 5 random" in out
+    assert re.search(r"^max \|a - a_pin\| +\S+ +1\.000e-09 +ok", out, re.M)
+    assert out.rstrip().endswith("PASSED")
+
+
+@pytest.fixture
+def biased_method(monkeypatch):
+    """Register "kkt_biased": the KKT accelerations plus 1e-6 (deliberately wrong)."""
+    kkt = dynamics_base.METHODS["kkt"]
+
+    def method(mech, q, v, tau, settings):
+        a, lam = kkt(mech, q, v, tau, settings)
+        return a + 1e-6, lam
+
+    # The parser builds --method choices from METHODS when main() runs.
+    monkeypatch.setitem(dynamics_base.METHODS, "kkt_biased", method)
+    return "kkt_biased"
+
+
+def test_validate_exit_status_1_above_tolerance(capsys, mechanism_files, biased_method):
+    path = mechanism_files["fourbar"]
+    status, out, _ = run(capsys, "validate", path, "--samples", "5", "--method", biased_method)
+    assert status == 1
+    assert re.search(r"^max \|a - a_pin\| +1\.000e-06 +1\.000e-09 +FAIL", out, re.M)
+    assert out.rstrip().endswith("FAILED")
+    status, out, _ = run(
+        capsys, "validate", path, "--samples", "5", "--method", biased_method, "--json"
+    )
+    assert status == 1
+    rep = json.loads(out)
+    assert rep["passed"] is False
+    assert rep["method"] == biased_method
+
+
+def test_validate_unknown_method_is_a_usage_error(capsys, mechanism_files):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["validate", str(mechanism_files["fourbar"]), "--method", "nope"])
+    assert info.value.code == 2
+    assert "invalid choice: 'nope'" in capsys.readouterr().err
+
+
+def test_validate_prismatic_loops_exit_2(capsys, mechanism_files):
+    status, out, err = run(capsys, "validate", mechanism_files["slider_crank"], "--samples", "1")
+    assert status == 2
+    assert out == ""
+    assert "closedchain: error: loop 'P' is prismatic" in err
+
+
+# -- bad files ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["info", "validate"])
+def test_bad_file_exit_2_with_message_on_stderr(capsys, tmp_path, mechanism_files, command):
+    path = tmp_path / "broken.urdf"
+    path.write_text(mechanism_files["fourbar"].read_text()[:500])
+    status, out, err = run(capsys, command, path)
+    assert status == 2
+    assert out == ""
+    assert err.startswith(f"closedchain: error: {path}: malformed XML")
+
+
+def test_missing_file_exit_2(capsys, tmp_path):
+    path = tmp_path / "missing.urdf"
+    status, out, err = run(capsys, "info", path)
+    assert status == 2
+    assert f"closedchain: error: {path}: cannot read URDF file" in err

@@ -1,0 +1,362 @@
+"""Forward-dynamics methods: agreement with "kkt", near-singular behaviour, error paths.
+
+Every method solves ``M a + h + J^T lam = tau, J a + gamma = 0``. At regular
+random consistent states they must agree with the dense KKT solve; near the
+4-bar's change point (crank angle 180 deg, where J loses rank) each method
+either stays accurate against a 40-digit mpmath KKT solve of the same
+double-precision M, h, J, gamma, or raises SingularConfigurationError naming q
+and a condition number, never returning NaN. Which of the two happens is
+pinned per method below.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mpmath
+import numpy as np
+import pytest
+
+import closedchain as cc
+from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
+from closedchain.dynamics.base import compute_terms
+from closedchain.dynamics.nullspace import check_rank
+from closedchain.dynamics.reduced import choose_partition, partition_condition, reduced_dynamics
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+MODEL_NAMES = ("fourbar", "agile_eye")
+#: Methods compared with the reference "kkt".
+METHODS_UNDER_TEST = ("schur", "nullspace", "reduced", "pinocchio")
+ALL_METHODS = ("kkt", *METHODS_UNDER_TEST)
+
+SEED = 20251121
+N_STATES = 60
+#: Agreement with "kkt": |a - a_kkt|_2 <= TOL_A max(1, |a_kkt|_2) [rad/s^2].
+TOL_A = 1e-9
+#: The same for the generalized constraint force J^T lam [N m].
+TOL_FORCE = 1e-9
+#: Acceleration-constraint residual max |J a + gamma|, relative above 1.
+TOL_RESIDUAL = 1e-10
+#: Near the singularity "accurate" means a relative error (of the 2-norm,
+#: relative to max(1, |reference|)) below this; the errors seen are <= 5e-10.
+TOL_NEAR_SINGULAR = 1e-8
+#: choose_partition: cond(J_D) <= QR_PICK_FACTOR cond(J) (pivoted QR is a greedy
+#: rank-revealing choice, not the exhaustive optimum).
+QR_PICK_FACTOR = 10.0
+#: Digits of the mpmath reference solve.
+MP_DIGITS = 40
+
+
+@pytest.fixture(scope="module")
+def mechs() -> dict[str, cc.Mechanism]:
+    """The two models, loaded once for this module."""
+    return {name: cc.load(MODELS_DIR / f"{name}.urdf") for name in MODEL_NAMES}
+
+
+@pytest.fixture(scope="module")
+def states(mechs) -> dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """Per model: N_STATES regular consistent states (q, v, tau), tau at the gravity scale."""
+    out = {}
+    for name, mech in mechs.items():
+        rng = np.random.default_rng(SEED)
+        scale = mech.gravity_torque_scale()
+        out[name] = []
+        for _ in range(N_STATES):
+            q, v = cc.random_consistent_state(mech, rng)
+            out[name].append((q, v, scale * rng.standard_normal(mech.nv)))
+    return out
+
+
+def rel_err(x: np.ndarray, ref: np.ndarray) -> float:
+    """Return |x - ref|_2 / max(1, |ref|_2)."""
+    return float(np.linalg.norm(x - ref) / max(1.0, np.linalg.norm(ref)))
+
+
+# -- registry ---------------------------------------------------------------------------
+
+
+def test_methods_registered():
+    assert set(ALL_METHODS) <= set(METHODS)
+
+
+def test_unknown_method_lists_valid_names(mechs):
+    mech = mechs["fourbar"]
+    with pytest.raises(
+        cc.UnknownChoiceError,
+        match=r"unknown forward-dynamics method 'featherstone'; valid choices: .*kkt.*"
+        r"nullspace.*pinocchio.*reduced.*schur",
+    ):
+        forward_dynamics(mech, mech.q_ref, np.zeros(mech.nv), method="featherstone")
+
+
+# -- agreement at regular states --------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", METHODS_UNDER_TEST)
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_agrees_with_kkt(mechs, states, model, method):
+    mech = mechs[model]
+    worst_a = worst_f = worst_res = 0.0
+    for q, v, tau in states[model]:
+        ref = forward_dynamics(mech, q, v, tau, method="kkt")
+        res = forward_dynamics(mech, q, v, tau, method=method)
+        assert res.method == method
+        assert np.all(np.isfinite(res.a)) and np.all(np.isfinite(res.lam))
+        assert res.lam.shape == (mech.nc,)
+        worst_a = max(worst_a, rel_err(res.a, ref.a))
+        worst_f = max(
+            worst_f,
+            rel_err(res.generalized_constraint_force(), ref.generalized_constraint_force()),
+        )
+        scale = max(1.0, float(np.max(np.abs(res.gamma))))
+        worst_res = max(worst_res, res.constraint_residual() / scale)
+    assert worst_a <= TOL_A, f"{method}: |a - a_kkt| up to {worst_a:.2e}"
+    assert worst_f <= TOL_FORCE, f"{method}: |J^T lam - (J^T lam)_kkt| up to {worst_f:.2e}"
+    assert worst_res <= TOL_RESIDUAL
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_result_carries_current_terms(mechs, states, model, method):
+    """The result's J and gamma are the ones at (q, v), for every method."""
+    mech = mechs[model]
+    q, v, tau = states[model][0]
+    res = forward_dynamics(mech, q, v, tau, method=method)
+    np.testing.assert_allclose(res.J, cc.compute_jacobian(mech, q), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(res.gamma, cc.compute_gamma(mech, q, v), rtol=0, atol=1e-12)
+    # lam solves the dynamics equations (least squares for "pinocchio").
+    ws = compute_terms(mech, q, v)
+    lhs = ws.M @ res.a + ws.h + res.J.T @ res.lam
+    assert rel_err(lhs, tau) <= TOL_FORCE
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_repeated_calls_do_not_alias_buffers(mechs, states, method):
+    """A returned array is not overwritten by the next call (buffers are internal)."""
+    mech = mechs["agile_eye"]
+    (q1, v1, t1), (q2, v2, t2) = states["agile_eye"][:2]
+    func = METHODS[method]
+    a1, lam1 = func(mech, q1, v1, t1, SolverSettings())
+    a1_copy, lam1_copy = a1.copy(), lam1.copy()
+    func(mech, q2, v2, t2, SolverSettings())
+    np.testing.assert_array_equal(a1, a1_copy)
+    np.testing.assert_array_equal(lam1, lam1_copy)
+
+
+# -- reduced coordinates: partitions ----------------------------------------------------
+
+
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_reduced_with_chosen_partition(mechs, states, model):
+    mech = mechs[model]
+    for q, v, tau in states[model][:10]:
+        ind, dep = choose_partition(mech, q)
+        assert len(ind) == mech.mobility and len(dep) == mech.nc
+        assert sorted([*ind, *dep]) == list(range(mech.nv))
+        a, lam = reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=ind)
+        ref = forward_dynamics(mech, q, v, tau, method="kkt")
+        assert rel_err(a, ref.a) <= TOL_A
+        assert rel_err(ref.J.T @ lam, ref.generalized_constraint_force()) <= TOL_FORCE
+        # pivoted QR (rank-revealing, greedy) keeps J_D about as well conditioned as J
+        assert np.linalg.cond(ref.J[:, dep]) <= QR_PICK_FACTOR * np.linalg.cond(ref.J)
+        assert np.isfinite(partition_condition(mech, ind))
+
+
+def fourbar_rocker_dead_centre() -> np.ndarray:
+    """Return q with crank and coupler aligned (|AC| = a + b = 0.6 m), from the URDF lengths.
+
+    There J is regular but the rocker cannot drive the linkage: J_D of the
+    partition I = {rocker} (D = {crank, coupler}) is singular.
+    """
+    a, b, c, d = 0.2, 0.4, 0.3, 0.5
+    # |D + c e(theta4)| = a + b  ->  d^2 + c^2 + 2 d c cos(theta4) = (a + b)^2
+    theta4 = np.arccos(((a + b) ** 2 - d * d - c * c) / (2 * d * c))
+    cx, cz = d + c * np.cos(theta4), c * np.sin(theta4)
+    theta2 = np.arctan2(cz, cx)
+    return np.array([theta2, 0.0, theta4])  # theta3 = theta2
+
+
+def test_reduced_raises_for_singular_partition_and_repartitions(mechs):
+    mech = mechs["fourbar"]
+    q = fourbar_rocker_dead_centre()
+    assert np.max(np.abs(cc.compute_phi(mech, q))) < 1e-15
+    v, tau = np.zeros(mech.nv), np.zeros(mech.nv)
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"(?s)J_D .*crank_joint, coupler_joint.* is singular at q = \[.*\] \(condition "
+        r"number .* > .*choose_partition",
+    ) as info:
+        reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=[2])
+    assert info.value.condition_number > SolverSettings().cond_max
+    np.testing.assert_array_equal(info.value.q, q)
+    ind, dep = choose_partition(mech, q)
+    assert 2 not in ind
+    a, _ = reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=ind)
+    assert rel_err(a, forward_dynamics(mech, q, v, tau).a) <= TOL_A
+
+
+def test_reduced_separate_JD_bound(mechs, states):
+    """cond_JD_max is a re-partition trigger independent of settings.cond_max."""
+    mech = mechs["fourbar"]
+    q, v, tau = states["fourbar"][0]
+    reduced_dynamics(mech, q, v, tau, SolverSettings())
+    cond = partition_condition(mech)
+    assert 1.0 <= cond < 1e6
+    with pytest.raises(cc.SingularConfigurationError, match=r"(?s)J_D .*condition number"):
+        reduced_dynamics(mech, q, v, tau, SolverSettings(), cond_JD_max=cond / 2)
+
+
+@pytest.mark.parametrize("bad", [[0, 1], [3], [1, 1]])
+def test_reduced_rejects_bad_partition(mechs, bad):
+    mech = mechs["fourbar"]
+    with pytest.raises(cc.ClosedChainError, match=r"independent_idx_v = .* must be 1 distinct"):
+        reduced_dynamics(
+            mech, mech.q_ref, np.zeros(3), np.zeros(3), SolverSettings(), independent_idx_v=bad
+        )
+
+
+def test_nullspace_rank_threshold_message(mechs):
+    mech = mechs["fourbar"]
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"(?s)J has lost rank at q = \[.*sigma_min = 1\.000e-13.*"
+        r"condition number 1\.000e\+13",
+    ):
+        check_rank(mech, mech.q_ref, np.array([1.0, 1e-13]), SolverSettings())
+    check_rank(mech, mech.q_ref, np.array([1.0, 1e-11]), SolverSettings())
+
+
+# -- near the 4-bar's change point ------------------------------------------------------
+
+#: Crank offsets from 180 deg [rad]; 0 is the singular configuration itself.
+EPSILONS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 0.0)
+
+#: Pinned outcome per method and crank offset: "ok" (accurate), "raise", or
+#: "either" where the method's condition number lies within a factor 10 of
+#: cond_max = 1e12 (LAPACK's estimate may land on either side). Condition
+#: numbers at eps = 1e-1 .. 1e-8 (this platform): KKT 1.4e2 .. 2.3e12 (1-norm),
+#: Delassus 5e2 .. 1.6e13, J 25 .. 4.5e6 and J_D 27 .. 5.5e6: sigma_min(J)
+#: follows 2.2 eps down to eps = 1e-5 and then levels off near 1e-7, where the
+#: assembly (|phi| <= 1e-12) cannot get closer to the bifurcation.
+#: "pinocchio" (mu = 1e-8, 50 proximal iterations) stops converging once the
+#: smallest Delassus eigenvalue (~ sigma_min^2 ~ 1e-11) is far below mu: its
+#: answer is off by ~14 rad/s^2 at eps = 1e-5, and the residual check raises.
+EXPECTED = {
+    "kkt": ("ok",) * 6 + ("either", "either", "raise"),
+    "schur": ("ok",) * 5 + ("either", "either", "raise", "raise"),
+    "nullspace": ("ok",) * 8 + ("raise",),
+    "reduced": ("ok",) * 8 + ("raise",),
+    "pinocchio": ("ok",) * 4 + ("raise",) * 5,
+}
+
+
+def mp_kkt(M, h, J, gamma, tau) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the KKT system of the given doubles with MP_DIGITS digits; return (a, J^T lam)."""
+    nv, nc = M.shape[0], J.shape[0]
+    with mpmath.workdps(MP_DIGITS):
+        K = mpmath.matrix(nv + nc, nv + nc)
+        rhs = mpmath.matrix(nv + nc, 1)
+        for i in range(nv):
+            for j in range(nv):
+                K[i, j] = mpmath.mpf(float(M[i, j]))
+            for k in range(nc):
+                K[i, nv + k] = K[nv + k, i] = mpmath.mpf(float(J[k, i]))
+            rhs[i] = mpmath.mpf(float(tau[i])) - mpmath.mpf(float(h[i]))
+        for k in range(nc):
+            rhs[nv + k] = -mpmath.mpf(float(gamma[k]))
+        x = mpmath.lu_solve(K, rhs)
+        a = np.array([float(x[i]) for i in range(nv)])
+        f = np.array(
+            [
+                float(mpmath.fsum(mpmath.mpf(float(J[k, i])) * x[nv + k] for k in range(nc)))
+                for i in range(nv)
+            ]
+        )
+    return a, f
+
+
+@pytest.fixture(scope="module")
+def near_singular(mechs):
+    """Per crank offset: (q, [(v, tau, a_ref, f_ref), ...]) for v = 0 and a tangent v.
+
+    Configurations are assembled with the crank held at pi - eps, each from the
+    previous one (continuation keeps one assembly branch); eps = 0 is the
+    exactly singular, exactly closed q = [pi, -pi, pi] (all joints on the ground line).
+    """
+    mech = mechs["fourbar"]
+    out = {}
+    q = np.array([np.pi - 0.1, -np.pi + 0.1, np.pi])
+    for eps in EPSILONS:
+        if eps == 0.0:
+            q = np.array([np.pi, -np.pi, np.pi])
+        else:
+            q = q.copy()
+            q[0] = np.pi - eps
+            q = cc.assemble(mech, q, fixed=["crank_joint"])
+        v_crank = cc.project_velocity(mech, q, np.array([1.0, 0.0, 0.0]), fixed=["crank_joint"])
+        cases = []
+        for v in (np.zeros(3), v_crank):
+            tau = np.array([0.5, 0.0, 0.0])
+            ws = compute_terms(mech, q, v)
+            ref = mp_kkt(ws.M, ws.h, ws.J, ws.gamma, tau) if eps > 0.0 else None
+            cases.append((v, tau, ref))
+        out[eps] = (q, cases)
+    return out
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_near_singular_behaviour(mechs, near_singular, method):
+    mech = mechs["fourbar"]
+    seen = []
+    for eps, expected in zip(EPSILONS, EXPECTED[method], strict=True):
+        q, cases = near_singular[eps]
+        for v, tau, ref in cases:
+            try:
+                res = forward_dynamics(mech, q, v, tau, method=method)
+            except cc.SingularConfigurationError as exc:
+                assert expected in ("raise", "either"), f"{method} raised at eps={eps}: {exc}"
+                msg = str(exc)
+                assert "q = [" in msg and "condition number" in msg
+                assert exc.q is not None and np.array_equal(exc.q, q)
+                assert exc.condition_number > 0
+                seen.append((eps, "raise"))
+                continue
+            assert expected in ("ok", "either"), f"{method} returned at eps={eps}"
+            assert np.all(np.isfinite(res.a)) and np.all(np.isfinite(res.lam))
+            a_ref, f_ref = ref
+            err_a = rel_err(res.a, a_ref)
+            err_f = rel_err(res.generalized_constraint_force(), f_ref)
+            assert err_a <= TOL_NEAR_SINGULAR, f"{method} eps={eps}: a error {err_a:.2e}"
+            assert err_f <= TOL_NEAR_SINGULAR, f"{method} eps={eps}: J^T lam error {err_f:.2e}"
+            seen.append((eps, "ok"))
+    assert seen  # the table was exercised
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_singular_agile_eye_gimbal_lock_raises(mechs, method):
+    """At pitch = 90 deg the Euler-angle tree's M is singular (massless gimbal links)."""
+    mech = mechs["agile_eye"]
+    rng = np.random.default_rng(SEED)
+    for _ in range(100):
+        guess = rng.uniform(-np.pi, np.pi, mech.nq)
+        guess[6:] = [0.3, np.pi / 2, 0.2]
+        try:
+            q = cc.assemble(mech, guess, fixed=["platform_yaw", "platform_pitch", "platform_roll"])
+            break
+        except cc.AssemblyError:
+            continue
+    else:  # pragma: no cover
+        pytest.fail("no assembly at pitch = 90 deg")
+    with pytest.raises(cc.SingularConfigurationError, match=r"(?s)q = \[.*condition number"):
+        forward_dynamics(mech, q, np.zeros(mech.nv), method=method)
+
+
+def test_pinocchio_never_returns_nan(mechs):
+    """With mu = 0 and redundant rows Pinocchio returns NaN: the method raises instead."""
+    mech = mechs["fourbar"]
+    settings = SolverSettings(pinocchio_mu=0.0)
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"(?s)pinocchio.constraintDynamics failed at q = \[.*non-finite.*condition number",
+    ):
+        forward_dynamics(mech, mech.q_ref, np.zeros(3), method="pinocchio", settings=settings)

@@ -1,0 +1,406 @@
+"""Inverse dynamics and loop-joint reactions.
+
+The 4-bar's static equilibrium is computed by hand here (free-body diagrams of
+the rocker and the coupler, link data from the header of models/fourbar.urdf)
+and compared with the crank torque from :func:`inverse_dynamics` and the pin
+force at C from :func:`joint_reactions`; the reaction is also compared with
+Pinocchio's own contact forces. Round trips forward(inverse(...)) recover the
+motion on both models.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import closedchain as cc
+from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
+from closedchain.inverse import (
+    InverseDynamicsResult,
+    LoopReaction,
+    inverse_dynamics,
+    joint_reactions,
+)
+from closedchain.validation import pinocchio_forward_dynamics
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+MODEL_NAMES = ("fourbar", "agile_eye")
+SEED = 20251121
+N_STATES = 30
+#: Round trip: |a_forward - a_inverse|_2 <= TOL_ROUND_TRIP max(1, |a|) [rad/s^2].
+TOL_ROUND_TRIP = 1e-9
+#: Hand computation vs code, statics of the 4-bar [N, N m].
+TOL_STATICS = 1e-10
+#: Our reaction vs Pinocchio's contact forces (its proximal solve, mu = 1e-8) [N].
+TOL_PINOCCHIO_FORCE = 1e-8
+#: Residuals reported by inverse_dynamics.
+TOL_RESIDUAL = 1e-10
+#: Agile Eye states for platform tracking must keep the legs' block of J
+#: (the coordinates not prescribed) at most this ill-conditioned: random
+#: assembly also lands on the branch where every leg is folded onto its
+#: actuator axis (distal joints at +-90 deg), where the platform angles do not
+#: determine the legs.
+COND_JF_MAX = 1e6
+
+PLATFORM = ("platform_yaw", "platform_pitch", "platform_roll")
+
+# 4-bar data (models/fourbar.urdf header): lengths [m], 1 kg uniform rods, g [m/s^2].
+A_LEN, B_LEN, C_LEN, D_LEN = 0.2, 0.4, 0.3, 0.5
+MASS = 1.0
+G = 9.81
+
+
+@pytest.fixture(scope="module")
+def mechs() -> dict[str, cc.Mechanism]:
+    """The two models, loaded once for this module."""
+    return {name: cc.load(MODELS_DIR / f"{name}.urdf") for name in MODEL_NAMES}
+
+
+def rel_err(x: np.ndarray, ref: np.ndarray) -> float:
+    """Return |x - ref|_2 / max(1, |ref|_2)."""
+    return float(np.linalg.norm(x - ref) / max(1.0, np.linalg.norm(ref)))
+
+
+# -- the 4-bar's statics by hand -----------------------------------------------------------
+
+
+def cross2(r: np.ndarray, f: np.ndarray) -> float:
+    """Moment [N m] of force f at lever r, both in the (x, z) plane, about the joints' axis.
+
+    The joint axes are -y, so a positive angle turns x towards z and the
+    moment about -y is r_x f_z - r_z f_x.
+    """
+    return float(r[0] * f[1] - r[1] * f[0])
+
+
+def fourbar_statics_by_hand(q: np.ndarray) -> tuple[float, np.ndarray]:
+    """Return (crank torque [N m], force of the coupler on the rocker at C [N], (x, z)).
+
+    Free bodies, weights m g at the rod midpoints, pins frictionless:
+
+    * rocker (pivot D): moment about D of the pin force f_C and its weight is zero;
+    * coupler (pins B, C): the rocker pushes back with -f_C at C; moment about B zero;
+      force balance gives the crank's pin force on it, f_B = f_C - m g;
+    * crank (pivot A): tau - moment about A of f_B (the coupler pushes back with
+      -f_B at B) plus its weight moment is zero.
+    """
+    th2, th3, th4 = q[0], q[0] + q[1], q[2]  # absolute angles (URDF header map)
+    e = lambda th: np.array([np.cos(th), np.sin(th)])  # noqa: E731
+    A = np.zeros(2)
+    D = np.array([D_LEN, 0.0])
+    B = A + A_LEN * e(th2)
+    C = D + C_LEN * e(th4)
+    np.testing.assert_allclose(B + B_LEN * e(th3), C, atol=1e-12)  # assembled
+    w = np.array([0.0, -MASS * G])
+    G_crank, G_coupler, G_rocker = (A + B) / 2, (B + C) / 2, (D + C) / 2
+    # Unknown f_C = (fx, fz):  cross2(r, f) = r_x f_z - r_z f_x = [-r_z, r_x] . f
+    row = lambda r: np.array([-r[1], r[0]])  # noqa: E731
+    K = np.array([row(C - D), -row(C - B)])
+    rhs = -np.array([cross2(G_rocker - D, w), cross2(G_coupler - B, w)])
+    f_C = np.linalg.solve(K, rhs)
+    f_B = f_C - w
+    tau = cross2(B - A, f_B) - cross2(G_crank - A, w)
+    return tau, f_C
+
+
+CRANK_ANGLES = (0.3, 1.2, 2.0, 4.0, 5.5)
+
+
+@pytest.mark.parametrize("theta2", CRANK_ANGLES)
+def test_fourbar_static_equilibrium_by_hand(mechs, theta2):
+    mech = mechs["fourbar"]
+    q = cc.assemble(mech, np.array([theta2, 0.6, 1.6]), fixed=["crank_joint"])
+    v = np.zeros(mech.nv)
+    res = inverse_dynamics(mech, q, v, [0.0])
+    tau_hand, f_C_hand = fourbar_statics_by_hand(q)
+    assert res.tau[0] == pytest.approx(tau_hand, abs=TOL_STATICS)
+    np.testing.assert_array_equal(res.tau[1:], 0.0)
+    np.testing.assert_allclose(res.a, 0.0, atol=TOL_STATICS)
+    # The torque holds the linkage still: forward dynamics gives a = 0.
+    np.testing.assert_allclose(forward_dynamics(mech, q, v, res.tau).a, 0.0, atol=1e-9)
+
+    (rx,) = joint_reactions(mech, q, v, res)
+    assert isinstance(rx, LoopReaction)
+    assert (rx.loop, rx.type, rx.frame) == ("C", "revolute", "C::predecessor")
+    # force on the rocker (successor) in the world x-z plane
+    assert np.linalg.norm(rx.force_world[[0, 2]] - f_C_hand) <= TOL_STATICS
+    assert abs(rx.force_world[1]) <= TOL_STATICS
+    # a revolute pin about the axis transmits no couple (and the planar loop none at all)
+    assert np.linalg.norm(rx.torque) <= TOL_STATICS
+    # components in c1 are the world ones rotated by the coupler's orientation
+    oMc1 = pin.updateFramePlacement(mech.model, mech.data, mech.model.getFrameId("C::predecessor"))
+    np.testing.assert_allclose(oMc1.rotation @ rx.force, rx.force_world, atol=1e-14)
+    # in c1 (coupler frame, x along the coupler) the force is rotated by -theta3
+    th3 = q[0] + q[1]
+    c, s = np.cos(th3), np.sin(th3)
+    fx, fz = f_C_hand
+    np.testing.assert_allclose(
+        rx.force[[0, 2]], [c * fx + s * fz, -s * fx + c * fz], atol=TOL_STATICS
+    )
+
+
+@pytest.mark.parametrize("theta2", CRANK_ANGLES)
+def test_fourbar_reaction_matches_pinocchio(mechs, theta2):
+    """Pinocchio's contact forces at C (two CONTACT_3D points on the axis) sum to our pin force."""
+    mech = mechs["fourbar"]
+    q = cc.assemble(mech, np.array([theta2, 0.6, 1.6]), fixed=["crank_joint"])
+    v = np.zeros(mech.nv)
+    res = inverse_dynamics(mech, q, v, [0.0])
+    (rx,) = joint_reactions(mech, q, v, res)
+
+    # (1) Pinocchio's lambda_c: the force on the predecessor (joint1 side), in c1.
+    cms, cds, owners, data = mech.pinocchio_constraints()
+    prox = pin.ProximalSettings(1e-13, 0.0, SolverSettings().pinocchio_mu, 50)
+    a_pin = pin.constraintDynamics(mech.model, data, q, v, res.tau, cms, cds, prox)
+    np.testing.assert_allclose(a_pin, 0.0, atol=1e-9)
+    assert owners == ["C", "C"]
+    f_pred = data.lambda_c.reshape(-1, 3).sum(axis=0)
+    assert np.linalg.norm(rx.force + f_pred) <= TOL_PINOCCHIO_FORCE
+
+    # (2) Pinocchio's generalized constraint force J^T lam -> our multipliers -> wrench.
+    _, f_gen = pinocchio_forward_dynamics(mech, q, v, res.tau, SolverSettings())
+    lam = np.linalg.lstsq(res.J.T, f_gen, rcond=None)[0]
+    (rx_pin,) = joint_reactions(mech, q, v, lam)
+    assert np.linalg.norm(rx_pin.force - rx.force) <= TOL_PINOCCHIO_FORCE
+    assert np.linalg.norm(rx_pin.torque - rx.torque) <= TOL_PINOCCHIO_FORCE
+
+
+# -- round trips -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def states(mechs):
+    """Per model: N_STATES (q, v, a_independent), regular consistent states."""
+    out = {}
+    for name, mech in mechs.items():
+        rng = np.random.default_rng(SEED)
+        out[name] = []
+        for _ in range(N_STATES):
+            q, v = cc.random_consistent_state(mech, rng)
+            out[name].append((q, v, 5.0 * rng.standard_normal(mech.mobility)))
+    return out
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_round_trip(mechs, states, model, method):
+    mech = mechs[model]
+    worst_a = worst_lam = 0.0
+    for q, v, a_ind in states[model]:
+        inv = inverse_dynamics(mech, q, v, a_ind)
+        assert isinstance(inv, InverseDynamicsResult)
+        assert inv.dynamics_residual <= TOL_RESIDUAL * max(1.0, np.abs(inv.tau).max())
+        assert inv.constraint_residual <= TOL_RESIDUAL * max(1.0, np.abs(inv.gamma).max())
+        off = np.setdiff1d(np.arange(mech.nv), mech.actuated_idx_v)
+        np.testing.assert_array_equal(inv.tau[off], 0.0)
+        np.testing.assert_array_equal(inv.a[mech.independent_idx_v], a_ind)
+        fwd = forward_dynamics(mech, q, v, inv.tau, method=method)
+        worst_a = max(worst_a, rel_err(fwd.a, inv.a))
+        worst_lam = max(
+            worst_lam,
+            rel_err(fwd.generalized_constraint_force(), inv.generalized_constraint_force()),
+        )
+    assert worst_a <= TOL_ROUND_TRIP, f"{method}: round trip a error {worst_a:.2e}"
+    assert worst_lam <= TOL_ROUND_TRIP, f"{method}: round trip J^T lam error {worst_lam:.2e}"
+
+
+def well_posed_platform_states(mech, rng, n):
+    """Draw n consistent states where the platform angles determine the legs."""
+    P = mech.coordinate_indices(list(PLATFORM))
+    F = np.setdiff1d(np.arange(mech.nv), P)
+    out = []
+    while len(out) < n:
+        q, v = cc.random_consistent_state(mech, rng)
+        if np.linalg.cond(cc.compute_jacobian(mech, q)[:, F]) < COND_JF_MAX:
+            out.append((q, v))
+    return out
+
+
+def test_agile_eye_platform_tracking_round_trip(mechs):
+    """Prescribe the platform's Euler-angle accelerations; forward dynamics reproduces them."""
+    mech = mechs["agile_eye"]
+    rng = np.random.default_rng(SEED)
+    P = mech.coordinate_indices(list(PLATFORM))
+    for q, v in well_posed_platform_states(mech, rng, 20):
+        a_P = 5.0 * rng.standard_normal(3)
+        inv = inverse_dynamics(mech, q, v, a_P, coordinates=list(PLATFORM))
+        np.testing.assert_array_equal(inv.prescribed_idx_v, P)
+        np.testing.assert_array_equal(inv.a[P], a_P)
+        assert inv.constraint_residual <= TOL_RESIDUAL * max(1.0, np.abs(inv.gamma).max())
+        fwd = forward_dynamics(mech, q, v, inv.tau)
+        assert rel_err(fwd.a, inv.a) <= TOL_ROUND_TRIP
+        assert rel_err(fwd.a[P], a_P) <= TOL_ROUND_TRIP
+        # the actuators alone do it
+        assert set(np.flatnonzero(inv.tau)) <= set(mech.actuated_idx_v)
+
+
+def test_coordinates_keep_the_callers_order(mechs):
+    mech = mechs["agile_eye"]
+    ((q, v),) = well_posed_platform_states(mech, np.random.default_rng(SEED), 1)
+    a_P = np.array([1.0, -2.0, 3.0])
+    fwd_order = inverse_dynamics(mech, q, v, a_P, coordinates=list(PLATFORM))
+    rev_order = inverse_dynamics(mech, q, v, a_P[::-1], coordinates=list(PLATFORM[::-1]))
+    np.testing.assert_allclose(rev_order.tau, fwd_order.tau, rtol=0, atol=1e-12)
+    # velocity indices work too
+    by_index = inverse_dynamics(
+        mech, q, v, a_P, coordinates=[int(i) for i in fwd_order.prescribed_idx_v]
+    )
+    np.testing.assert_allclose(by_index.tau, fwd_order.tau, rtol=0, atol=1e-12)
+
+
+def test_over_actuated_fourbar_minimum_norm_torques(mechs, states):
+    """Two actuators on a 1-dof linkage: the torques are the minimum-norm ones."""
+    mech = mechs["fourbar"]
+    for q, v, a_ind in states["fourbar"][:10]:
+        inv = inverse_dynamics(mech, q, v, a_ind, tau_mask=["crank_joint", "rocker_joint"])
+        assert inv.tau[1] == 0.0
+        fwd = forward_dynamics(mech, q, v, inv.tau)
+        assert rel_err(fwd.a, inv.a) <= TOL_ROUND_TRIP
+        # minimum norm: tau_A is parallel to N^T B (the 1-dof motion direction at A)
+        J = inv.J
+        n = np.linalg.svd(J)[2][-1]  # null-space direction of J
+        t = inv.tau[[0, 2]]
+        assert abs(t[0] * n[2] - t[1] * n[0]) <= 1e-12 * max(1.0, np.linalg.norm(t))
+        single = inverse_dynamics(mech, q, v, a_ind)
+        assert np.linalg.norm(t) <= abs(single.tau[0]) * (1 + 1e-12)
+
+
+def test_joint_reactions_from_forward_result_and_array(mechs, states):
+    mech = mechs["agile_eye"]
+    q, v, a_ind = states["agile_eye"][0]
+    inv = inverse_dynamics(mech, q, v, a_ind)
+    fwd = forward_dynamics(mech, q, v, inv.tau)
+    r_inv = joint_reactions(mech, q, v, inv)
+    r_fwd = joint_reactions(mech, q, v, fwd)
+    r_arr = joint_reactions(mech, q, v, inv.lam)
+    assert [r.loop for r in r_inv] == ["leg1_platform", "leg2_platform", "leg3_platform"]
+    for x, y, z in zip(r_inv, r_fwd, r_arr, strict=True):
+        np.testing.assert_allclose(x.torque, y.torque, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(x.torque, z.torque)
+        # the spherical wrist's legs carry couples only in the independent rows kept
+        # (rotation rows): their forces along the legs are statically indeterminate
+        np.testing.assert_array_equal(x.force, 0.0)
+        # a revolute loop transmits no couple about its own axis (in c1)
+        oMc1 = pin.updateFramePlacement(mech.model, mech.data, mech.model.getFrameId(x.frame))
+        axis = next(lp.axis for lp in mech.urdf.loops if lp.name == x.loop)
+        assert abs(x.torque @ axis) <= 1e-12 * max(1.0, np.linalg.norm(x.torque))
+        np.testing.assert_allclose(oMc1.rotation @ x.torque, x.torque_world, atol=1e-14)
+
+
+def test_reactions_balance_the_generalized_constraint_force(mechs, states):
+    """Virtual work: the loop wrenches, mapped through the frame Jacobians, give -J^T lam."""
+    for name, mech in mechs.items():
+        q, v, a_ind = states[name][0]
+        inv = inverse_dynamics(mech, q, v, a_ind)
+        model, data = mech.model, mech.data
+        pin.computeJointJacobians(model, data, q)
+        pin.updateFramePlacements(model, data)
+        gen = np.zeros(mech.nv)
+        for rx in joint_reactions(mech, q, v, inv):
+            w = np.concatenate([rx.force_world, rx.torque_world])
+            lwa = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+            Js = pin.getFrameJacobian(model, data, model.getFrameId(f"{rx.loop}::successor"), lwa)
+            Jp = pin.getFrameJacobian(model, data, model.getFrameId(rx.frame), lwa)
+            # the predecessor gets -w applied at the successor frame's origin
+            oMp = data.oMf[model.getFrameId(rx.frame)]
+            oMs = data.oMf[model.getFrameId(f"{rx.loop}::successor")]
+            r = oMs.translation - oMp.translation
+            w_p = -np.concatenate([rx.force_world, rx.torque_world + np.cross(r, rx.force_world)])
+            gen += Js.T @ w + Jp.T @ w_p
+        # constraint forces enter as M a + h = tau - J^T lam
+        np.testing.assert_allclose(gen, -inv.generalized_constraint_force(), atol=1e-10)
+
+
+# -- error paths ------------------------------------------------------------------------------
+
+
+def test_wrong_number_of_coordinates(mechs):
+    mech = mechs["agile_eye"]
+    with pytest.raises(
+        cc.ClosedChainError, match=r"coordinates names 2 coordinates .* mobility is 3"
+    ):
+        inverse_dynamics(
+            mech, mech.q_ref, np.zeros(mech.nv), [0.0, 0.0], coordinates=list(PLATFORM[:2])
+        )
+
+
+def test_wrong_number_of_accelerations(mechs):
+    mech = mechs["agile_eye"]
+    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
+        inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), [0.0, 0.0])
+    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
+        inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), [0.0, np.nan, 0.0])
+
+
+def test_duplicate_coordinate(mechs):
+    mech = mechs["agile_eye"]
+    with pytest.raises(cc.ClosedChainError, match=r"names a coordinate twice"):
+        inverse_dynamics(
+            mech,
+            mech.q_ref,
+            np.zeros(mech.nv),
+            [0.0] * 3,
+            coordinates=["platform_yaw", "platform_yaw", "platform_roll"],
+        )
+
+
+def test_unknown_joint_name(mechs):
+    mech = mechs["fourbar"]
+    with pytest.raises(cc.ClosedChainError, match=r"unknown joint 'elbow'; joints: crank_joint"):
+        inverse_dynamics(mech, mech.q_ref, np.zeros(3), [0.0], tau_mask=["elbow"])
+
+
+def test_under_actuated(mechs):
+    mech = mechs["agile_eye"]
+    with pytest.raises(cc.ClosedChainError, match=r"under-actuated: 2 actuated coordinates"):
+        inverse_dynamics(
+            mech, mech.q_ref, np.zeros(mech.nv), [0.0] * 3, tau_mask=["actuator_1", "actuator_2"]
+        )
+
+
+def fourbar_rocker_dead_centre() -> np.ndarray:
+    """Return q with crank and coupler aligned (|AC| = a + b): the rocker is at its extreme."""
+    theta4 = np.arccos(((A_LEN + B_LEN) ** 2 - D_LEN**2 - C_LEN**2) / (2 * D_LEN * C_LEN))
+    theta2 = np.arctan2(C_LEN * np.sin(theta4), D_LEN + C_LEN * np.cos(theta4))
+    return np.array([theta2, 0.0, theta4])
+
+
+def test_actuation_singularity(mechs):
+    """At the rocker's extreme, a rocker motor cannot move the linkage."""
+    mech = mechs["fourbar"]
+    q = fourbar_rocker_dead_centre()
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"(?s)N\^T B .* is singular at q = \[.*condition number .*actuated coordinates "
+        r"rocker_joint cannot produce every motion",
+    ):
+        inverse_dynamics(mech, q, np.zeros(3), [0.0], tau_mask=["rocker_joint"])
+    # the crank motor can
+    inverse_dynamics(mech, q, np.zeros(3), [0.0])
+
+
+def test_prescribed_coordinates_do_not_determine_motion(mechs):
+    """At the rocker's extreme, the rocker's acceleration does not determine the others."""
+    mech = mechs["fourbar"]
+    q = fourbar_rocker_dead_centre()
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"(?s)J_F .*crank_joint, coupler_joint.* is singular at q = \[.*condition number"
+        r".*rocker_joint do not determine the motion",
+    ) as info:
+        inverse_dynamics(mech, q, np.zeros(3), [0.0], coordinates=["rocker_joint"])
+    np.testing.assert_array_equal(info.value.q, q)
+
+
+def test_joint_reactions_rejects_wrong_lam(mechs):
+    mech = mechs["fourbar"]
+    with pytest.raises(cc.ClosedChainError, match=r"lam has shape \(3,\), expected \(2,\)"):
+        joint_reactions(mech, mech.q_ref, np.zeros(3), np.zeros(3))
+
+
+def test_exported_from_package():
+    for name in ("inverse_dynamics", "joint_reactions", "InverseDynamicsResult", "LoopReaction"):
+        assert hasattr(cc, name), name

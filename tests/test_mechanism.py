@@ -1,0 +1,295 @@
+"""Tests of closedchain.mechanism: row selection, coordinates, gravity, loading.
+
+Expected row counts come from first principles (the number of relative
+motions a closure forbids in the space the mechanism moves in), checked
+against the numerical rank of the declared rows; the gravity test uses the
+4-bar's closed-form centre-of-mass positions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yourdfpy
+
+import closedchain as cc
+
+#: Rank threshold for the declared Jacobian (relative to its largest singular value).
+RANK_RTOL = 1e-9
+#: Generalized gravity against the closed form [N m].
+TOL_GRAVITY = 1e-12
+
+# name: (declared rows, independent rows, mobility, why)
+ROW_COUNTS = {
+    # Planar: a revolute cut leaves 2 in-plane translations to close; the
+    # out-of-plane translation and both tilts vanish identically.
+    "fourbar": (5, 2, 1),
+    # Spherical wrist: every axis meets the centre, so the 3 translations of
+    # each revolute cut vanish identically; each cut closes 2 tilts.
+    "agile_eye": (15, 6, 3),
+    # Spatial spherical cut: 3 translations.
+    "spherical_chain": (3, 3, 1),
+    # Spatial prismatic cut: 2 translations across the axis + 3 rotations.
+    "slider_crank": (5, 5, 1),
+    # Planar prismatic cut: the in-plane offset across the axis + the in-plane rotation.
+    "slider_crank_planar": (5, 2, 1),
+    # Spatial fixed cut: 3 translations + 3 rotations.
+    "fixed_branches": (6, 6, 1),
+}
+
+EXPECTED_INDEPENDENT = {
+    "fourbar": ["crank_joint"],
+    "agile_eye": ["actuator_1", "actuator_2", "actuator_3"],
+    "spherical_chain": ["j1"],
+    "slider_crank": ["crank_joint"],
+    "slider_crank_planar": ["crank_joint"],
+    "fixed_branches": ["a_j1"],
+}
+
+
+def declared_jacobian(mech, q):
+    pin.computeJointJacobians(mech.model, mech.data, q)
+    J = np.zeros((mech.declared.nc, mech.nv))
+    mech.declared.evaluate(mech.model, mech.data, J=J)
+    return J
+
+
+def numerical_rank(J):
+    s = np.linalg.svd(J, compute_uv=False)
+    return int(np.sum(s > RANK_RTOL * max(s[0], 1.0)))
+
+
+@pytest.mark.parametrize("name", list(ROW_COUNTS))
+def test_row_selection_counts(load_mechanism, rng, name):
+    mech = load_mechanism(name)
+    declared, independent, mobility = ROW_COUNTS[name]
+    assert mech.declared.nc == declared
+    assert mech.nc == independent
+    assert len(mech.rows) == independent
+    assert len(mech.selected_rows) == independent
+    assert mech.mobility == mobility == mech.nv - independent
+    # The count is the rank of all declared rows at assembled states, and the
+    # selected rows keep full rank there.
+    for _ in range(3):
+        q, _ = cc.random_consistent_state(mech, rng)
+        assert numerical_rank(declared_jacobian(mech, q)) == independent
+        s = np.linalg.svd(cc.compute_jacobian(mech, q), compute_uv=False)
+        assert s[-1] > 1e-6
+
+
+def test_fourbar_keeps_the_in_plane_translation_rows(fourbar):
+    assert [r.kind for r in fourbar.rows] == ["x", "z"]
+    assert [r.label for r in fourbar.rows] == ["C.x", "C.z"]
+    assert [r.kind for r in fourbar.declared.declared_rows] == ["x", "y", "z", "r1", "r2"]
+
+
+def test_agile_eye_keeps_two_tilt_rows_per_leg(agile_eye):
+    per_loop = {}
+    for r in agile_eye.rows:
+        per_loop.setdefault(r.loop, []).append((r.kind, r.unit))
+    assert per_loop == {f"leg{i}_platform": [("r1", "1"), ("r2", "1")] for i in (1, 2, 3)}
+
+
+def test_planar_prismatic_keeps_one_translation_and_one_rotation(load_mechanism):
+    mech = load_mechanism("slider_crank_planar")
+    assert sorted(r.unit for r in mech.rows) == ["1", "m"]
+
+
+@pytest.mark.parametrize("name", list(EXPECTED_INDEPENDENT))
+def test_independent_coordinates_are_the_actuated_joints(load_mechanism, name):
+    mech = load_mechanism(name)
+    names = EXPECTED_INDEPENDENT[name]
+    expected = np.concatenate([mech.joint_indices_v(j) for j in names])
+    assert np.array_equal(mech.independent_idx_v, expected)
+    assert np.array_equal(mech.actuated_idx_v, expected)
+    assert mech.independent_source == "actuated"
+    assert sorted(np.r_[mech.independent_idx_v, mech.dependent_idx_v]) == list(range(mech.nv))
+    assert [mech.coordinate_names[i] for i in mech.independent_idx_v] == names
+
+
+def _mark_independent(text: str, *joints: str) -> str:
+    for joint in joints:
+        old = f'<joint name="{joint}" type="revolute">'
+        assert text.count(old) == 1
+        text = text.replace(old, f'<joint name="{joint}" type="revolute" independent="true">')
+    return text
+
+
+def test_urdf_independent_attribute_overrides(fourbar, mechanism_files, tmp_path):
+    path = tmp_path / "fourbar_rocker_independent.urdf"
+    path.write_text(_mark_independent(mechanism_files["fourbar"].read_text(), "rocker_joint"))
+    mech = cc.load(path)
+    assert mech.independent_source == "urdf"
+    assert [mech.coordinate_names[i] for i in mech.independent_idx_v] == ["rocker_joint"]
+    assert [mech.coordinate_names[i] for i in mech.dependent_idx_v] == [
+        "crank_joint",
+        "coupler_joint",
+    ]
+    # The actuator is still the crank: independent and actuated are different notions.
+    assert [mech.coordinate_names[i] for i in mech.actuated_idx_v] == ["crank_joint"]
+
+
+def test_urdf_independent_attribute_overrides_spatial(mechanism_files, tmp_path):
+    text = mechanism_files["fixed_branches"].read_text()
+    path = tmp_path / "fixed_branches_b_independent.urdf"
+    path.write_text(_mark_independent(text, "b_j1"))
+    mech = cc.load(path)
+    assert mech.independent_source == "urdf"
+    assert [mech.coordinate_names[i] for i in mech.independent_idx_v] == ["b_j1"]
+    assert [mech.coordinate_names[i] for i in mech.actuated_idx_v] == ["a_j1"]
+
+
+def test_wrong_number_of_independent_joints_is_a_urdf_error(mechanism_files, tmp_path):
+    path = tmp_path / "fourbar_two_independent.urdf"
+    text = _mark_independent(mechanism_files["fourbar"].read_text(), "crank_joint", "rocker_joint")
+    path.write_text(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=r"fourbar_two_independent\.urdf: 2 coordinates are marked "
+        r'independent="true" \(crank_joint, rocker_joint\) but the mobility is 1',
+    ):
+        cc.load(path)
+
+
+# -- gravity -------------------------------------------------------------------------------
+
+
+def fourbar_generalized_gravity(cf, q, g):
+    """Closed-form generalized gravity g(q) = -sum_i m_i (d p_i / d q)^T g [N m].
+
+    Centres of mass of the unit-mass rods (models/fourbar.urdf header) in the
+    seed's plane (x, y) = world (x, z): crank a/2 e(th2), coupler a e(th2) +
+    b/2 e(th3), rocker D + c/2 e(th4).
+    """
+    th2, th3, th4 = cf.theta(q)
+    a, b, c = cf.a, cf.b, cf.c
+
+    def de(th):  # d e(th) / d th in world (x, y, z)
+        return np.array([-math.sin(th), 0.0, math.cos(th)])
+
+    dp_dtheta = [  # per body: columns d p / d theta_k, shape (3, 3)
+        np.column_stack([a / 2 * de(th2), np.zeros(3), np.zeros(3)]),
+        np.column_stack([a * de(th2), b / 2 * de(th3), np.zeros(3)]),
+        np.column_stack([np.zeros(3), np.zeros(3), c / 2 * de(th4)]),
+    ]
+    masses = [1.0, 1.0, 1.0]
+    return -sum(m * (Jp @ cf.T).T @ g for m, Jp in zip(masses, dp_dtheta, strict=True))
+
+
+def test_gravity_default(fourbar, fourbar_closed_forms, rng):
+    g = np.array([0.0, 0.0, -9.81])
+    assert np.array_equal(fourbar.gravity, g)
+    assert np.array_equal(fourbar.model.gravity.linear, g)
+    for _ in range(20):
+        q = rng.uniform(-np.pi, np.pi, 3)
+        tau_g = pin.computeGeneralizedGravity(fourbar.model, fourbar.data, q)
+        err = np.linalg.norm(tau_g - fourbar_generalized_gravity(fourbar_closed_forms, q, g))
+        assert err <= TOL_GRAVITY
+
+
+@pytest.mark.parametrize("g", [(0.0, 0.0, -1.62), (2.0, -3.0, 0.5), (0.0, 0.0, 0.0)])
+def test_gravity_override(mechanism_files, fourbar_closed_forms, rng, g):
+    mech = cc.load(mechanism_files["fourbar"], gravity=g)
+    assert np.array_equal(mech.gravity, g)
+    assert np.array_equal(mech.model.gravity.linear, g)
+    for _ in range(20):
+        q = rng.uniform(-np.pi, np.pi, 3)
+        tau_g = pin.computeGeneralizedGravity(mech.model, mech.data, q)
+        expected = fourbar_generalized_gravity(fourbar_closed_forms, q, np.array(g))
+        assert np.linalg.norm(tau_g - expected) <= TOL_GRAVITY
+
+
+@pytest.mark.parametrize("g", [(0.0, -9.81), (0.0, float("nan"), -9.81)])
+def test_gravity_must_be_three_finite_numbers(mechanism_files, g):
+    with pytest.raises(cc.ClosedChainError, match=r"gravity must be 3 finite numbers \[m/s\^2\]"):
+        cc.load(mechanism_files["fourbar"], gravity=g)
+
+
+# -- the files stay plain URDF for other tools ----------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+def test_model_files_load_in_other_urdf_readers(load_mechanism, mechanism_files, name):
+    path = mechanism_files[name]
+    mech = load_mechanism(name)
+    robot = yourdfpy.URDF.load(str(path))
+    assert robot.validate()
+    assert sorted(robot.joint_map) == sorted(mech.model.names[1:])
+    assert sorted(robot.actuated_joint_names) == sorted(mech.model.names[1:])
+    model = pin.buildModelFromUrdf(str(path))
+    assert (model.nq, model.nv) == (mech.nq, mech.nv)
+    assert list(model.names) == list(mech.model.names)
+
+
+# -- coordinates, q_ref and sampling -------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(ROW_COUNTS))
+def test_q_ref_is_assembled(load_mechanism, name):
+    mech = load_mechanism(name)
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= cc.AssemblySettings().tol
+
+
+@pytest.mark.parametrize("name", list(ROW_COUNTS))
+def test_random_configuration_spans_one_turn_within_limits(load_mechanism, rng, name):
+    """Revolute coordinates are drawn over [-pi, pi] clipped to their limits."""
+    mech = load_mechanism(name)
+    Q = np.array([mech.random_configuration(rng) for _ in range(400)])
+    lo, hi = mech.model.lowerPositionLimit, mech.model.upperPositionLimit
+    assert np.all(Q >= lo) and np.all(Q <= hi)
+    margin = 0.1
+    for j in range(1, mech.model.njoints):
+        jm = mech.model.joints[j]
+        if jm.nq != 1 or not jm.shortname().startswith("JointModelR"):
+            continue
+        i = jm.idx_q
+        expected_lo, expected_hi = max(lo[i], -np.pi), min(hi[i], np.pi)
+        name_j = mech.model.names[j]
+        assert Q[:, i].min() < expected_lo + margin, (name_j, Q[:, i].min())
+        assert Q[:, i].max() > expected_hi - margin, (name_j, Q[:, i].max())
+        assert Q[:, i].min() >= expected_lo and Q[:, i].max() <= expected_hi
+
+
+def test_coordinate_indices(fourbar):
+    assert list(fourbar.coordinate_indices(["rocker_joint", 0])) == [0, 2]
+    assert list(fourbar.coordinate_indices("actuated")) == [0]
+    assert list(fourbar.coordinate_indices("dependent")) == [1, 2]
+    assert list(fourbar.coordinate_indices("coupler_joint")) == [1]
+
+
+def test_unknown_joint_lists_the_joints(fourbar):
+    with pytest.raises(
+        cc.ClosedChainError,
+        match=r"unknown joint 'crank'; joints: crank_joint, coupler_joint, rocker_joint",
+    ):
+        fourbar.coordinate_indices(["crank"])
+
+
+def test_velocity_index_out_of_range(fourbar):
+    with pytest.raises(cc.ClosedChainError, match=r"velocity index 3 out of range 0\.\.2"):
+        fourbar.coordinate_indices([3])
+
+
+def test_continuous_joint_takes_two_configuration_entries(load_mechanism):
+    mech = load_mechanism("slider_crank")
+    assert (mech.nq, mech.nv) == (7, 6)
+    assert list(mech.joint_indices_v("crank_joint")) == [0]
+    assert mech.coordinate_names[0] == "crank_joint"
+
+
+def test_summary_is_json_serialisable_and_consistent(agile_eye):
+    import json
+
+    s = json.loads(json.dumps(agile_eye.summary()))
+    assert (s["declared_rows"], s["independent_rows"], s["mobility"]) == (15, 6, 3)
+    assert s["independent"] == ["actuator_1", "actuator_2", "actuator_3"]
+    assert s["pinocchio_reference"] is True
+    assert [lp["name"] for lp in s["loops"]] == [f"leg{i}_platform" for i in (1, 2, 3)]
+    assert all(len(lp["declared_rows"]) == 5 for lp in s["loops"])
+
+
+def test_summary_reports_no_pinocchio_reference_for_prismatic_loops(load_mechanism):
+    assert load_mechanism("slider_crank").summary()["pinocchio_reference"] is False

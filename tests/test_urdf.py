@@ -1,0 +1,499 @@
+"""Tests of the URDF+ reader (closedchain.urdf) and its error paths.
+
+Every bad file is the real 4-bar model with one thing broken (string
+replacement, written to tmp_path); every message must name the file, the
+element and, where there is a finite set, the valid choices.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import closedchain as cc
+from closedchain.urdf import LOOP_TYPES, parse_urdf
+
+#: The 4-bar's loop element, as written in models/fourbar.urdf.
+FOURBAR_LOOP = """  <loop name="C" type="revolute">
+    <predecessor link="coupler"/>
+    <successor link="rocker"/>
+    <predecessor_origin xyz="0.4 0 0" rpy="0 0 0"/>
+    <successor_origin xyz="0.3 0 0" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/>
+  </loop>"""
+
+
+@pytest.fixture(scope="module")
+def fourbar_text(mechanism_files) -> str:
+    text = mechanism_files["fourbar"].read_text()
+    assert text.count(FOURBAR_LOOP) == 1
+    return text
+
+
+@pytest.fixture
+def write(tmp_path):
+    """Return ``write(text, name="bad.urdf") -> Path``."""
+
+    def _write(text: str, name: str = "bad.urdf") -> Path:
+        path = tmp_path / name
+        path.write_text(text)
+        return path
+
+    return _write
+
+
+def replaced(text: str, old: str, new: str) -> str:
+    assert text.count(old) == 1, old
+    return text.replace(old, new)
+
+
+def with_loop(text: str, loop: str) -> str:
+    """Return the 4-bar text with its loop element replaced by ``loop``."""
+    return replaced(text, FOURBAR_LOOP, loop)
+
+
+def where(path: Path, element: str) -> str:
+    """Regex for the location prefix of a message: file, line, element."""
+    return re.escape(str(path)) + r": line \d+: " + re.escape(element)
+
+
+# -- what a valid file yields ------------------------------------------------------------
+
+
+def test_fourbar_extensions(mechanism_files):
+    urdf = parse_urdf(mechanism_files["fourbar"])
+    assert urdf.robot_name == "fourbar"
+    assert urdf.links == ("ground", "crank", "coupler", "rocker")
+    assert urdf.joints == {
+        "crank_joint": "revolute",
+        "coupler_joint": "revolute",
+        "rocker_joint": "revolute",
+    }
+    assert urdf.actuated == ("crank_joint",)
+    assert urdf.independent == ()
+    (loop,) = urdf.loops
+    assert (loop.name, loop.type, loop.predecessor, loop.successor) == (
+        "C",
+        "revolute",
+        "coupler",
+        "rocker",
+    )
+    assert np.array_equal(loop.predecessor_origin.translation, [0.4, 0.0, 0.0])
+    assert np.array_equal(loop.successor_origin.translation, [0.3, 0.0, 0.0])
+    assert np.array_equal(loop.predecessor_origin.rotation, np.eye(3))
+    assert np.array_equal(loop.axis, [0.0, -1.0, 0.0])
+
+
+def test_axis_is_normalized_and_origins_default_to_identity(fourbar_text, write):
+    loop = """  <loop name="C" type="revolute">
+    <predecessor link="coupler"/>
+    <successor link="rocker"/>
+    <axis xyz="0 -2.5 0"/>
+  </loop>"""
+    (spec,) = parse_urdf(write(with_loop(fourbar_text, loop))).loops
+    assert np.array_equal(spec.axis, [0.0, -1.0, 0.0])
+    assert np.array_equal(spec.predecessor_origin.homogeneous, np.eye(4))
+    assert np.array_equal(spec.successor_origin.homogeneous, np.eye(4))
+
+
+def test_origin_rpy_is_the_urdf_convention(fourbar_text, write):
+    """URDF rpy: R = Rz(yaw) Ry(pitch) Rx(roll), fixed axes."""
+    r, p, y = 0.3, -0.4, 1.1
+    loop = FOURBAR_LOOP.replace(
+        '<predecessor_origin xyz="0.4 0 0" rpy="0 0 0"/>',
+        f'<predecessor_origin xyz="0.4 0 0" rpy="{r} {p} {y}"/>',
+    )
+    (spec,) = parse_urdf(write(with_loop(fourbar_text, loop))).loops
+
+    def Rx(t):
+        return np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+
+    def Ry(t):
+        return np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]])
+
+    def Rz(t):
+        return np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
+
+    expected = Rz(y) @ Ry(p) @ Rx(r)
+    assert np.linalg.norm(spec.predecessor_origin.rotation - expected) <= 1e-15
+
+
+def test_spherical_loop_needs_no_axis(fourbar_text, write):
+    loop = FOURBAR_LOOP.replace('type="revolute"', 'type="spherical"').replace(
+        '    <axis xyz="0 -1 0"/>\n', ""
+    )
+    (spec,) = parse_urdf(write(with_loop(fourbar_text, loop))).loops
+    assert spec.type == "spherical"
+
+
+# -- XML level ----------------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nowhere.urdf"
+    with pytest.raises(cc.URDFError, match=re.escape(str(path)) + ": cannot read URDF file"):
+        cc.load(path)
+
+
+def test_malformed_xml(fourbar_text, write):
+    path = write(fourbar_text[: len(fourbar_text) // 2])
+    with pytest.raises(cc.URDFError, match=re.escape(str(path)) + ": malformed XML"):
+        cc.load(path)
+
+
+def test_root_must_be_robot(fourbar_text, write):
+    path = write(fourbar_text.replace("<robot ", "<sdf ").replace("</robot>", "</sdf>"))
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + r": root element is <sdf>, expected <robot>"
+    ):
+        cc.load(path)
+
+
+BILLION_LAUGHS = """<!DOCTYPE robot [
+  <!ENTITY lol "lol">
+  <!ENTITY lol1 "&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;">
+  <!ENTITY lol2 "&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;&lol1;">
+  <!ENTITY lol3 "&lol2;&lol2;&lol2;&lol2;&lol2;&lol2;&lol2;&lol2;&lol2;&lol2;">
+  <!ENTITY lol4 "&lol3;&lol3;&lol3;&lol3;&lol3;&lol3;&lol3;&lol3;&lol3;&lol3;">
+  <!ENTITY lol5 "&lol4;&lol4;&lol4;&lol4;&lol4;&lol4;&lol4;&lol4;&lol4;&lol4;">
+  <!ENTITY lol6 "&lol5;&lol5;&lol5;&lol5;&lol5;&lol5;&lol5;&lol5;&lol5;&lol5;">
+  <!ENTITY lol7 "&lol6;&lol6;&lol6;&lol6;&lol6;&lol6;&lol6;&lol6;&lol6;&lol6;">
+  <!ENTITY lol8 "&lol7;&lol7;&lol7;&lol7;&lol7;&lol7;&lol7;&lol7;&lol7;&lol7;">
+  <!ENTITY lol9 "&lol8;&lol8;&lol8;&lol8;&lol8;&lol8;&lol8;&lol8;&lol8;&lol8;">
+]>
+"""
+
+
+def _with_doctype(text: str, doctype: str, entity: str | None, where: str = "attribute") -> str:
+    """Insert a DOCTYPE before the header comment; reference ``entity`` in an attribute or text."""
+    head, body = text.split("\n", 1)  # keep the XML declaration first
+    assert head.startswith("<?xml")
+    if entity is not None and where == "attribute":
+        body = replaced(body, '<robot name="fourbar">', f'<robot name="&{entity};">')
+    elif entity is not None:
+        body = replaced(
+            body, "<type>transmission_interface", f"<type>&{entity};transmission_interface"
+        )
+    return f"{head}\n{doctype}{body}"
+
+
+@pytest.mark.parametrize("where_ref", ["attribute", "text"])
+def test_billion_laughs_is_refused(fourbar_text, write, where_ref):
+    path = write(_with_doctype(fourbar_text, BILLION_LAUGHS, "lol9", where_ref))
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + r": a DOCTYPE/DTD is not allowed"
+    ):
+        cc.load(path)
+
+
+def test_doctype_after_the_header_comment_is_refused(fourbar_text, write):
+    text = replaced(
+        fourbar_text, '<robot name="fourbar">', BILLION_LAUGHS + '<robot name="&lol9;">'
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + r": a DOCTYPE/DTD is not allowed"
+    ):
+        cc.load(path)
+
+
+@pytest.fixture
+def listener():
+    """A local TCP socket: a parser that fetches an external entity would connect to it."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(4)
+    sock.setblocking(False)
+    yield sock
+    sock.close()
+
+
+def _assert_no_connection(sock):
+    with pytest.raises(BlockingIOError):
+        conn, _ = sock.accept()
+        conn.close()
+
+
+@pytest.mark.parametrize("kind", ["file", "http", "parameter", "external_dtd"])
+def test_external_entities_are_refused_never_expanded_or_fetched(
+    fourbar_text, write, tmp_path, listener, kind
+):
+    secret = tmp_path / "secret.txt"
+    marker = "TOP-SECRET-MARKER-1234"
+    secret.write_text(marker)
+    url = f"http://127.0.0.1:{listener.getsockname()[1]}/x"
+    doctypes = {
+        "file": (f'<!DOCTYPE robot [<!ENTITY xxe SYSTEM "file://{secret}">]>\n', "xxe"),
+        "http": (f'<!DOCTYPE robot [<!ENTITY xxe SYSTEM "{url}">]>\n', "xxe"),
+        "parameter": (f'<!DOCTYPE robot [<!ENTITY % p SYSTEM "{url}"> %p;]>\n', None),
+        "external_dtd": (f'<!DOCTYPE robot SYSTEM "{url}.dtd">\n', None),
+    }
+    doctype, entity = doctypes[kind]
+    path = write(_with_doctype(fourbar_text, doctype, entity))
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + r": a DOCTYPE/DTD is not allowed"
+    ) as info:
+        cc.load(path)
+    assert marker not in str(info.value)
+    _assert_no_connection(listener)
+
+
+def test_robot_without_links(write):
+    path = write('<?xml version="1.0"?>\n<robot name="empty"></robot>\n')
+    with pytest.raises(cc.URDFError, match=re.escape(str(path)) + r": <robot> has no <link>"):
+        cc.load(path)
+
+
+# -- <loop> ---------------------------------------------------------------------------------
+
+
+def test_unknown_loop_type_lists_the_valid_types(fourbar_text, write):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"revolute"', '"ball"')))
+    assert LOOP_TYPES == ("revolute", "prismatic", "spherical", "fixed")
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<loop name="C">')
+        + r": unknown loop type 'ball'; valid choices: revolute, prismatic, spherical, fixed",
+    ):
+        cc.load(path)
+
+
+def test_unknown_link_lists_the_links(fourbar_text, write):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"rocker"', '"roker"')))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<loop name="C">') + r": <successor link='roker'> names an unknown link; "
+        r"links: coupler, crank, ground, rocker",
+    ):
+        cc.load(path)
+
+
+@pytest.mark.parametrize("axis", ["0 0 0", "0 1e-12 0"])
+def test_zero_axis(fourbar_text, write, axis):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"0 -1 0"', f'"{axis}"')))
+    with pytest.raises(
+        cc.URDFError, match=where(path, '<loop name="C">') + rf": <axis xyz='{axis}'> is zero"
+    ):
+        cc.load(path)
+
+
+@pytest.mark.parametrize(
+    "xyz", ["0.4 0", "0.4 0 0 0", "a b c", "0.4 nan 0", "0.4 inf 0", "0.4,0,0", ""]
+)
+def test_bad_xyz_attribute(fourbar_text, write, xyz):
+    loop = FOURBAR_LOOP.replace(
+        'predecessor_origin xyz="0.4 0 0"', f'predecessor_origin xyz="{xyz}"'
+    )
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, "<predecessor_origin>")
+        + re.escape(f": attribute xyz={xyz!r} must be three finite numbers"),
+    ):
+        cc.load(path)
+
+
+def test_bad_rpy_attribute(fourbar_text, write):
+    loop = FOURBAR_LOOP.replace(
+        'successor_origin xyz="0.3 0 0" rpy="0 0 0"', 'successor_origin xyz="0.3 0 0" rpy="0 0"'
+    )
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, "<successor_origin>") + re.escape(": attribute rpy='0 0' must be"),
+    ):
+        cc.load(path)
+
+
+def test_duplicate_loop_names(fourbar_text, write):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP + "\n" + FOURBAR_LOOP))
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + r': loop name "C" is used more than once'
+    ):
+        cc.load(path)
+
+
+def test_loop_needs_a_name(fourbar_text, write):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace(' name="C"', "")))
+    with pytest.raises(cc.URDFError, match=where(path, "<loop>") + r": <loop> needs a name"):
+        cc.load(path)
+
+
+@pytest.mark.parametrize("tag", ["predecessor", "successor"])
+def test_loop_needs_both_links(fourbar_text, write, tag):
+    loop = "\n".join(ln for ln in FOURBAR_LOOP.split("\n") if f"<{tag} " not in ln)
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(cc.URDFError, match=where(path, '<loop name="C">') + f": missing <{tag}>"):
+        cc.load(path)
+
+
+@pytest.mark.parametrize("loop_type", ["revolute", "prismatic"])
+def test_revolute_and_prismatic_loops_need_an_axis(fourbar_text, write, loop_type):
+    loop = FOURBAR_LOOP.replace('"revolute"', f'"{loop_type}"').replace(
+        '    <axis xyz="0 -1 0"/>\n', ""
+    )
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(cc.URDFError, match=where(path, '<loop name="C">') + ": missing <axis>"):
+        cc.load(path)
+
+
+def test_loop_with_two_axes(fourbar_text, write):
+    loop = FOURBAR_LOOP.replace('<axis xyz="0 -1 0"/>', '<axis xyz="0 -1 0"/><axis xyz="1 0 0"/>')
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(
+        cc.URDFError, match=where(path, '<loop name="C">') + ": more than one <axis>"
+    ):
+        cc.load(path)
+
+
+def test_loop_between_a_link_and_itself(fourbar_text, write):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"rocker"', '"coupler"')))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<loop name="C">') + ": predecessor and successor are the same link",
+    ):
+        cc.load(path)
+
+
+#: A link welded to the crank by a fixed joint (so it moves with crank_joint).
+CRANK_TIP = """  <link name="crank_tip"/>
+  <joint name="crank_tip_joint" type="fixed">
+    <parent link="crank"/>
+    <child link="crank_tip"/>
+    <origin xyz="0.2 0 0" rpy="0 0 0"/>
+  </joint>
+"""
+
+
+def test_loop_between_links_moved_by_the_same_joint(fourbar_text, write):
+    loop = FOURBAR_LOOP.replace('"coupler"', '"crank"').replace('"rocker"', '"crank_tip"')
+    text = with_loop(fourbar_text, CRANK_TIP + loop)
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(str(path))
+        + r": line \d+: <loop name='C'>: predecessor 'crank' and successor 'crank_tip' "
+        r"move with the same joint, so the loop closes nothing",
+    ):
+        cc.load(path)
+
+
+def test_loop_whose_frames_cannot_be_brought_together(fourbar_text, write):
+    """A 2 m coupler cannot close a loop whose other links span at most 1 m."""
+    loop = FOURBAR_LOOP.replace(
+        'predecessor_origin xyz="0.4 0 0"', 'predecessor_origin xyz="2.0 0 0"'
+    )
+    path = write(with_loop(fourbar_text, loop))
+    with pytest.raises(
+        cc.LoopClosureError,
+        match=re.escape(str(path)) + r": the loop frames cannot be brought together .*"
+        r"\(per loop: C: \d",
+    ) as info:
+        cc.load(path)
+    # The smallest reachable gap: the coupler end stays >= 1.8 m from A, the
+    # rocker end <= 0.8 m from A, so some |phi| component is >= 1.0 / sqrt(2).
+    best = float(re.search(r"smallest max \|phi\| reached ([0-9.e+-]+)", str(info.value))[1])
+    assert best >= 1.0 / np.sqrt(2) - 1e-3
+
+
+def test_tree_that_pinocchio_cannot_build(fourbar_text, write):
+    path = write(
+        replaced(
+            fourbar_text, '<link name="crank">', '<link name="orphan"/>\n  <link name="crank">'
+        )
+    )
+    with pytest.raises(
+        cc.URDFError, match=re.escape(str(path)) + ": Pinocchio cannot build the tree"
+    ):
+        cc.load(path)
+
+
+# -- <transmission> and independent ----------------------------------------------------------
+
+
+def test_transmission_naming_a_missing_joint(fourbar_text, write):
+    path = write(
+        replaced(
+            fourbar_text,
+            '<joint name="crank_joint">\n      <hardware',
+            '<joint name="crank_jont">\n      <hardware',
+        )
+    )
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<transmission name="crank_transmission">')
+        + r": names joint 'crank_jont', which is not a <joint> of this file; "
+        r"joints: coupler_joint, crank_joint, rocker_joint",
+    ):
+        cc.load(path)
+
+
+def test_transmission_without_joint(fourbar_text, write):
+    text = replaced(
+        fourbar_text,
+        '<transmission name="crank_transmission">',
+        '<transmission name="empty"><type>x</type></transmission>\n'
+        '  <transmission name="crank_transmission">',
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError, match=where(path, '<transmission name="empty">') + ": has no <joint> child"
+    ):
+        cc.load(path)
+
+
+def test_transmission_on_a_fixed_joint(fourbar_text, write):
+    text = replaced(fourbar_text, FOURBAR_LOOP, CRANK_TIP + FOURBAR_LOOP)
+    text = replaced(
+        text,
+        '<joint name="crank_joint">\n      <hardware',
+        '<joint name="crank_tip_joint">\n      <hardware',
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<transmission name="crank_transmission">')
+        + ": joint 'crank_tip_joint' is fixed and cannot be actuated",
+    ):
+        cc.load(path)
+
+
+def test_independent_must_be_true_or_false(fourbar_text, write):
+    text = replaced(
+        fourbar_text,
+        '<joint name="rocker_joint" type="revolute">',
+        '<joint name="rocker_joint" type="revolute" independent="yes">',
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<joint name="rocker_joint">')
+        + ': independent="yes" must be "true" or "false"',
+    ):
+        cc.load(path)
+
+
+def test_fixed_joint_cannot_be_independent(fourbar_text, write):
+    tip = CRANK_TIP.replace('type="fixed"', 'type="fixed" independent="true"')
+    path = write(replaced(fourbar_text, FOURBAR_LOOP, tip + FOURBAR_LOOP))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, '<joint name="crank_tip_joint">')
+        + ": a fixed joint cannot be independent",
+    ):
+        cc.load(path)
+
+
+def test_independent_false_is_the_default(fourbar_text, write):
+    text = replaced(
+        fourbar_text,
+        '<joint name="rocker_joint" type="revolute">',
+        '<joint name="rocker_joint" type="revolute" independent="false">',
+    )
+    mech = cc.load(write(text))
+    assert mech.urdf.independent == ()
+    assert mech.independent_source == "actuated"

@@ -1,0 +1,513 @@
+"""Tests of closedchain.visualize: scene, keyframes, HTML file (no browser; see test_browser)."""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import hashlib
+import json
+import logging
+import re
+import struct
+import uuid
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import umsgpack
+from conftest import MODELS, fourbar_sweep
+
+import closedchain as cc
+from closedchain import visualize as vz
+from closedchain.exceptions import ClosedChainError
+
+#: Keyframes are stored in single precision (three.js keeps Float32Array):
+#: absolute error on positions of ~1 m [m] and on unit quaternions [-].
+FLOAT32_TOL = 1e-6
+#: Geometry computed in double precision [m].
+EXACT_TOL = 1e-12
+#: Size budget of a 10 s 4-bar animation at 30 fps [bytes].
+SIZE_BUDGET = 2_000_000
+#: A link name that tries to close the script element.
+EVIL_LINK = "</script><script>alert(1)</script>"
+EVIL_ROBOT = "<img src=x onerror=alert(2)>"
+
+
+def decode(scene: vz.MeshcatScene) -> list[dict]:
+    return [umsgpack.unpackb(c) for c in scene.commands]
+
+
+def animation_of(scene: vz.MeshcatScene) -> list[dict]:
+    anims = [c for c in decode(scene) if c["type"] == "set_animation"]
+    assert len(anims) == 1
+    return anims[0]["animations"]
+
+
+def track(entry: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(frames, values) of one track of an animation entry."""
+    (tr,) = [t for t in entry["clip"]["tracks"] if t["name"] == "." + name]
+    frames = np.array([k["time"] for k in tr["keys"]], dtype=float)
+    values = np.array([k["value"] for k in tr["keys"]], dtype=float)
+    return frames, values
+
+
+def fk(mech: cc.Mechanism, q: np.ndarray, link: str) -> pin.SE3:
+    data = mech.model.createData()
+    pin.framesForwardKinematics(mech.model, data, q)
+    return data.oMf[mech.model.getFrameId(link, pin.FrameType.BODY)]
+
+
+@pytest.fixture(scope="module")
+def fourbar_scene(fourbar, fourbar_traj) -> vz.MeshcatScene:
+    return vz.build_scene(fourbar, fourbar_traj, fps=30.0)
+
+
+@pytest.fixture(scope="module")
+def agile_eye_scene(agile_eye, agile_eye_traj) -> vz.MeshcatScene:
+    return vz.build_scene(agile_eye, agile_eye_traj, fps=30.0)
+
+
+@pytest.fixture(params=["fourbar", "agile_eye"])
+def case(request):
+    """(mechanism, trajectory, scene) for each model."""
+    name = request.param
+    return (
+        request.getfixturevalue(name),
+        request.getfixturevalue(f"{name}_traj"),
+        request.getfixturevalue(f"{name}_scene"),
+    )
+
+
+# -- URDF visuals and joint markers ----------------------------------------------
+
+
+def test_read_visuals_fourbar(fourbar):
+    visuals = vz.read_visuals(fourbar)
+    assert [v.link for v in visuals] == ["ground"] * 3 + ["crank", "coupler", "coupler"] + [
+        "rocker"
+    ] * 2
+    assert [v.kind for v in visuals] == ["box", "cylinder", "cylinder", "box"] + [
+        "box",
+        "cylinder",
+        "box",
+        "cylinder",
+    ]
+    crank = visuals[3]
+    assert crank.dims == pytest.approx((0.2, 0.012, 0.02))
+    assert crank.rgba == pytest.approx((0.85, 0.33, 0.10, 1.0))  # material named, defined on top
+    assert np.linalg.norm(crank.origin[:3, 3] - [0.1, 0.0, 0.0]) <= EXACT_TOL
+
+
+def test_read_visuals_agile_eye(agile_eye):
+    visuals = vz.read_visuals(agile_eye)
+    links = {v.link for v in visuals}
+    assert links == {"base", "platform"} | {
+        f"{p}_{i}" for p in ("proximal", "distal") for i in (1, 2, 3)
+    }
+    assert {v.kind for v in visuals} == {"box", "cylinder", "sphere"}
+
+
+@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+def test_markers_sit_on_the_joint_axes(request, name):
+    """Every marker's z axis is its joint's axis, and its origin lies on the axis line."""
+    mech = request.getfixturevalue(name)
+    markers = vz.joint_markers(mech, vz.read_visuals(mech))
+    assert {m.name for m in markers if m.kind == "actuated"} == set(mech.actuated_joints)
+    assert {m.name for m in markers if m.kind == "loop"} == {lp.name for lp in mech.urdf.loops}
+    model, data = mech.model, mech.model.createData()
+    q = mech.q_ref
+    pin.framesForwardKinematics(model, data, q)
+    for m in markers:
+        oMm = fk(mech, q, m.link).homogeneous @ m.origin
+        if m.kind == "loop":
+            oMc = data.oMf[model.getFrameId(f"{m.name}::predecessor")]
+            spec = next(lp for lp in mech.urdf.loops if lp.name == m.name)
+            axis, point = oMc.rotation @ spec.axis, oMc.translation
+        else:
+            jid = model.getJointId(m.name)
+            axis_j, _ = vz._joint_axis(model.joints[jid], pin.neutral(model))
+            axis, point = data.oMi[jid].rotation @ axis_j, data.oMi[jid].translation
+        assert np.linalg.norm(np.cross(oMm[:3, 2], axis)) <= EXACT_TOL
+        d = oMm[:3, 3] - point
+        assert np.linalg.norm(d - (d @ axis) * axis) <= EXACT_TOL
+        assert m.pin_radius > 0.0  # both models draw a pin at every marked joint
+
+
+def test_fourbar_markers_ring_the_pins(fourbar):
+    markers = {m.kind: m for m in vz.joint_markers(fourbar, vz.read_visuals(fourbar))}
+    assert markers["actuated"].pin_radius == pytest.approx(0.014)  # ground pin at A
+    assert markers["loop"].pin_radius == pytest.approx(0.016)  # loop pin at C, on the rocker
+    assert markers["loop"].link == "coupler"  # carried by the predecessor
+
+
+# -- scene structure ---------------------------------------------------------------
+
+
+def test_one_node_and_one_track_per_body(case):
+    mech, _, scene = case
+    moving = [b for b in scene.bodies if b.moving]
+    root = mech.model.frames[1].name  # the URDF root link, fixed to the world
+    assert {b.link for b in moving} == {b.link for b in scene.bodies} - {root}
+    entries = animation_of(scene)
+    assert sorted(e["path"] for e in entries) == sorted(b.path for b in moving)
+    for e in entries:
+        assert sorted(t["name"] for t in e["clip"]["tracks"]) == [".position", ".quaternion"]
+    # Visuals and markers hang under their link's node and are never animated.
+    objects = [c["path"] for c in decode(scene) if c["type"] == "set_object"]
+    for path in objects:
+        assert any(path.startswith(b.path + "/") for b in scene.bodies), path
+    assert scene.n_tracks == len(moving)
+
+
+def test_links_without_visuals_get_no_node(agile_eye, agile_eye_scene):
+    drawn = {b.link for b in agile_eye_scene.bodies}
+    assert "euler_link_z" not in drawn and "euler_link_y" not in drawn
+    assert {"base", "platform"} <= drawn
+
+
+def test_keyframes_at_display_rate_match_forward_kinematics(case):
+    """Trajectory at 100 Hz, display at 30 fps: keys at k/30 s; on samples, equal to FK."""
+    mech, traj, scene = case
+    fps = scene.fps
+    n_keys = int(round(traj.t[-1] * fps)) + 1
+    assert len(scene.times) == n_keys
+    assert np.linalg.norm(scene.times - np.arange(n_keys) / fps) <= EXACT_TOL
+    index = {b.path: b for b in scene.bodies}
+    for entry in animation_of(scene):
+        body = index[entry["path"]]
+        frames, pos = track(entry, "position")
+        _, quat = track(entry, "quaternion")
+        assert entry["clip"]["fps"] == pytest.approx(fps)
+        assert np.array_equal(frames, np.arange(n_keys))
+        for k in range(0, n_keys, 3):  # k / 30 s = sample 10 k / 3 of the 100 Hz trajectory
+            oMf = fk(mech, traj.q[10 * k // 3], body.link)
+            assert np.linalg.norm(pos[k] - oMf.translation) <= FLOAT32_TOL
+            q_ref = pin.Quaternion(oMf.rotation).coeffs()
+            assert min(np.linalg.norm(quat[k] - q_ref), np.linalg.norm(quat[k] + q_ref)) <= (
+                FLOAT32_TOL
+            )
+        # Consecutive quaternions in one hemisphere: interpolation takes the short way.
+        assert np.all(np.sum(quat[1:] * quat[:-1], axis=1) > 0)
+
+
+def test_keyframes_do_not_depend_on_the_simulation_step(fourbar):
+    """The same motion sampled at 100 Hz, 250 Hz and on an uneven grid gives the same keys.
+
+    Keys fall at k / fps whatever the samples, and match the motion evaluated
+    exactly at those times up to the interpolation error between samples.
+    """
+    fps = 24.0
+    rng = np.random.default_rng(0)
+    uneven = np.linspace(0.0, 2.0, 201)
+    uneven[1:-1] += rng.uniform(-3e-3, 3e-3, 199)  # steps of 4 to 16 ms
+    grids = [np.linspace(0.0, 2.0, 201), np.linspace(0.0, 2.0, 501), uneven]
+    exact = vz.build_scene(fourbar, fourbar_sweep(fourbar, np.arange(49) / fps), fps=fps)
+    #: Interpolation error between samples at most 16 ms apart (crank swing
+    #: 0.8 rad at 0.5 Hz: |q''| h^2 / 8 < 3e-4 rad, times a lever < 1 m) [m].
+    interp_tol = 3e-4
+    for t in grids:
+        scene = vz.build_scene(fourbar, fourbar_sweep(fourbar, t), fps=fps)
+        assert len(scene.times) == 49 and scene.duration == pytest.approx(2.0)
+        assert np.linalg.norm(scene.times - exact.times) <= EXACT_TOL
+        err = np.linalg.norm(scene.placements - exact.placements, axis=(2, 3))  # (K, nb)
+        assert np.max(err) <= interp_tol
+
+
+def test_duration_is_the_trajectory_duration(fourbar):
+    """A trajectory whose length is not a whole number of frames ends on an extra key."""
+    traj = fourbar_sweep(fourbar, np.linspace(0.5, 1.51, 102))  # starts at 0.5 s, lasts 1.01 s
+    scene = vz.build_scene(fourbar, traj, fps=30.0)
+    assert scene.duration == pytest.approx(1.01)
+    assert len(scene.times) == 32  # 0 .. 30/30 s, then 1.01 s
+    frames, pos = track(animation_of(scene)[0], "position")
+    assert frames[-1] == pytest.approx(1.01 * 30.0)
+    body = next(b for b in scene.bodies if b.path == animation_of(scene)[0]["path"])
+    assert np.linalg.norm(pos[-1] - fk(fourbar, traj.q[-1], body.link).translation) <= (FLOAT32_TOL)
+
+
+def test_single_configuration_is_a_still_scene(fourbar, fourbar_traj):
+    arrays = {
+        f.name: getattr(fourbar_traj, f.name)[:1]
+        for f in dataclasses.fields(cc.Trajectory)
+        if f.name != "info"
+    }
+    traj = cc.Trajectory(**{**arrays, "info": {}})
+    scene = vz.build_scene(fourbar, traj)
+    assert scene.duration == 0.0
+    assert scene.n_tracks == 0
+    assert not [c for c in decode(scene) if c["type"] == "set_animation"]
+
+
+def test_animation_loops_and_plays(fourbar_scene):
+    (anim,) = [c for c in decode(fourbar_scene) if c["type"] == "set_animation"]
+    assert anim["options"]["play"] is True
+    assert anim["options"]["repetitions"] == float("inf")
+
+
+def test_uuids_are_deterministic(fourbar_scene):
+    """No time-based (version 1) UUID: every object UUID is a uuid5 of its scene path."""
+    found = []
+    for c in decode(fourbar_scene):
+        if c["type"] == "set_object":
+            obj = c["object"]
+            found += [obj["object"]["uuid"]] + [g["uuid"] for g in obj["geometries"]]
+            found += [m["uuid"] for m in obj["materials"]]
+    assert found and all(uuid.UUID(u).version == 5 for u in found)
+    assert len(set(found)) == len(found)
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "fourbar",
+        "agile_eye",
+        "spherical_chain",
+        "slider_crank",
+        "slider_crank_planar",
+        "fixed_branches",
+    ],
+)
+def test_every_test_mechanism_animates(load_mechanism, name, tmp_path):
+    """Every loop type (revolute, prismatic, spherical, fixed) gets its markers and tracks."""
+    mech = load_mechanism(name)
+    rng = np.random.default_rng(0)
+    qs = np.array([cc.random_consistent_state(mech, rng)[0] for _ in range(3)])
+    n = len(qs)
+    zeros = {k: np.zeros(n) for k in ("constraint_residual", "velocity_residual", "energy")}
+    traj = cc.Trajectory(
+        t=np.array([0.0, 0.5, 1.0]),
+        q=qs,
+        v=np.zeros((n, mech.nv)),
+        a=np.zeros((n, mech.nv)),
+        lam=np.zeros((n, mech.nc)),
+        **zeros,
+    )
+    out = cc.write_html(mech, traj, tmp_path / f"{name}.html", fps=10.0)
+    scene = vz.build_scene(mech, traj, fps=10.0)
+    kinds = sorted(m.kind for m in scene.markers)
+    assert kinds == sorted(
+        ["actuated"] * len(mech.actuated_joints) + ["loop"] * len(mech.urdf.loops)
+    )
+    assert out.n_tracks == sum(b.moving for b in scene.bodies) > 0
+    assert out.n_keyframes == 11 and out.size < SIZE_BUDGET
+
+
+# -- camera ------------------------------------------------------------------------
+
+
+def test_camera_frames_the_swept_volume(case):
+    mech, _, scene = case
+    settings = vz.DEFAULT_SETTINGS
+    points = vz._swept_points(
+        scene.bodies,
+        scene.visuals,
+        (),
+        scene.placements,
+        {},
+        settings,
+    )
+    view = scene.camera_target - scene.camera_position
+    distance = np.linalg.norm(view)
+    rel = points - scene.camera_position
+    cos = rel @ view / (np.linalg.norm(rel, axis=1) * distance)
+    half_fov = np.radians(settings.camera_fov) / 2
+    assert np.all(cos >= np.cos(half_fov))  # every visual corner inside the view cone
+    assert np.linalg.norm(scene.center - scene.camera_target) <= EXACT_TOL
+    assert scene.radius < distance < 10 * scene.radius  # close enough to fill the view
+
+
+def test_planar_linkage_is_seen_face_on(fourbar_scene):
+    view = fourbar_scene.camera_target - fourbar_scene.camera_position
+    view /= np.linalg.norm(view)
+    assert abs(view[1]) > 0.95  # the 4-bar moves in the world x-z plane
+
+
+def test_camera_and_grid_commands(fourbar_scene):
+    cmds = decode(fourbar_scene)
+    cam = {
+        c["property"]: c["value"]
+        for c in cmds
+        if c["type"] == "set_property" and c["path"] == "/Cameras/default/rotated/<object>"
+    }
+    # meshcat's scene is z-up, three.js's camera frame y-up: (x, y, z) -> (x, z, -y).
+    x, y, z = fourbar_scene.camera_position
+    assert np.linalg.norm(np.array(cam["position"]) - [x, z, -y]) <= EXACT_TOL
+    assert cam["fov"] == vz.DEFAULT_SETTINGS.camera_fov
+    axes = [c for c in cmds if c["type"] == "set_property" and c["path"] == "/Axes"]
+    assert axes and axes[0]["value"] is False
+
+
+# -- the HTML file -------------------------------------------------------------------
+
+
+def test_fourbar_10s_at_30fps_stays_under_2MB(fourbar, tmp_path):
+    traj = fourbar_sweep(fourbar, np.linspace(0.0, 10.0, 1001))
+    out = cc.write_html(fourbar, traj, tmp_path / "fourbar.html", fps=30.0)
+    assert out.size == (tmp_path / "fourbar.html").stat().st_size
+    assert out.size < SIZE_BUDGET
+    assert out.n_keyframes == 301 and out.n_tracks == 3 and out.duration == pytest.approx(10.0)
+    logging.getLogger(__name__).info("10 s 4-bar at 30 fps: %d bytes", out.size)
+
+
+def test_same_trajectory_gives_identical_bytes(agile_eye, agile_eye_traj, tmp_path):
+    a = cc.write_html(agile_eye, agile_eye_traj, tmp_path / "a.html")
+    b = cc.write_html(agile_eye, agile_eye_traj, tmp_path / "b.html")
+    assert a.path.read_bytes() == b.path.read_bytes()
+
+
+def scripts_of(text: str) -> list[tuple[str, str]]:
+    """(attributes, body) of every <script> element."""
+    return re.findall(r"<script([^>]*)>(.*?)</script>", text, flags=re.DOTALL)
+
+
+def test_page_is_self_contained_and_offline(fourbar, fourbar_traj, tmp_path):
+    text = cc.write_html(fourbar, fourbar_traj, tmp_path / "f.html").path.read_text()
+    meshcat_js = (Path(vz._meshcat().viewer_assets_path()) / "dist" / "main.min.js").read_text()
+    scripts = scripts_of(text)
+    assert [attrs for attrs, _ in scripts] == [
+        ' type="application/json" id="closedchain-scene"',
+        "",
+        "",
+    ]
+    assert scripts[1][1] == meshcat_js  # meshcat's viewer, inlined verbatim
+    # No external resource: no src/href attributes, no stylesheet links.
+    outside_js = text.replace(meshcat_js, "")
+    assert not re.search(r"\b(src|href)\s*=", outside_js)
+    assert not re.search(r"<link\b|https?://|\bimport\(|\bfetch\(", outside_js)
+    # The Content-Security-Policy forbids the network and admits exactly these two scripts.
+    csp = re.search(r'http-equiv="Content-Security-Policy" content="([^"]*)"', text).group(1)
+    assert "default-src 'none'" in csp
+    for _, body in scripts[1:]:
+        digest = base64.b64encode(hashlib.sha256(body.encode()).digest()).decode()
+        assert f"'sha256-{digest}'" in csp
+    assert (
+        csp.count("'sha256-") == 2
+        and "unsafe-inline" not in csp.split("script-src")[1].split(";")[0]
+    )
+
+
+def test_urdf_names_cannot_inject_markup(fourbar, tmp_path):
+    """A link named </script><script>... and a robot named <img ...> stay inert text."""
+    urdf = (MODELS / "fourbar.urdf").read_text()
+    urdf = urdf.replace('"rocker"', quoteattr(EVIL_LINK))
+    urdf = urdf.replace('<robot name="fourbar">', f"<robot name={quoteattr(EVIL_ROBOT)}>")
+    path = tmp_path / "evil.urdf"
+    path.write_text(urdf)
+    mech = cc.load(path)
+    assert EVIL_LINK in mech.urdf.links
+    traj = fourbar_sweep(mech, np.linspace(0.0, 1.0, 31))
+    text = cc.write_html(mech, traj, tmp_path / "evil.html").path.read_text()
+    assert EVIL_LINK not in text and EVIL_ROBOT not in text
+    assert "<script>alert" not in text and "<img" not in text
+    assert len(scripts_of(text)) == 3 and text.count("<script") == 3
+    data = json.loads(scripts_of(text)[0][1])
+    assert data["meta"]["name"] == EVIL_ROBOT
+    path = data["meta"]["bodies"][EVIL_LINK]
+    assert path == vz.scene_path(EVIL_ROBOT, EVIL_LINK)
+    assert len(path.split("/")) == 4  # "", meshcat, robot, link: the "/" in names is encoded
+
+
+def test_scene_path_escapes_names():
+    assert vz.scene_path("fourbar", "crank") == "/meshcat/fourbar/crank"
+    assert vz.scene_path("a/b", "<c>") == "/meshcat/a%2Fb/%3Cc%3E"
+
+
+# -- meshes --------------------------------------------------------------------------
+
+
+def write_binary_stl(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    with path.open("wb") as f:
+        f.write(b"\0" * 80 + struct.pack("<I", len(faces)))
+        for tri in faces:
+            f.write(struct.pack("<3f", 0.0, 0.0, 0.0))
+            for v in vertices[tri]:
+                f.write(struct.pack("<3f", *v))
+            f.write(b"\0\0")
+
+
+def test_mesh_visuals_are_embedded_or_skipped(tmp_path, caplog):
+    mesh_dir = tmp_path / "meshes"
+    mesh_dir.mkdir()
+    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
+    write_binary_stl(
+        mesh_dir / "tetra.stl", tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    )
+    urdf = (MODELS / "fourbar.urdf").read_text()
+    urdf = urdf.replace(
+        '<geometry><box size="0.4 0.012 0.02"/></geometry>',
+        '<geometry><mesh filename="meshes/tetra.stl" scale="2 1 1"/></geometry>',
+    ).replace(
+        '<geometry><box size="0.3 0.012 0.02"/></geometry>',
+        '<geometry><mesh filename="package://missing/rocker.stl"/></geometry>',
+    )
+    (tmp_path / "mesh.urdf").write_text(urdf)
+    mech = cc.load(tmp_path / "mesh.urdf")
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        visuals = vz.read_visuals(mech)
+    assert "package://missing/rocker.stl" in caplog.text and "not found" in caplog.text
+    (mesh,) = [v for v in visuals if v.kind == "mesh"]
+    assert mesh.link == "coupler" and mesh.dims == (2.0, 1.0, 1.0)
+    assert mesh.mesh == (mesh_dir / "tetra.stl").resolve()
+    scene = vz.build_scene(mech, fourbar_sweep(mech, np.linspace(0.0, 1.0, 11)))
+    meshes = [
+        (c["path"], c["object"]["geometries"][0])
+        for c in decode(scene)
+        if c["type"] == "set_object" and c["object"]["geometries"][0]["type"] == "_meshfile"
+    ]
+    assert len(meshes) == 1 and meshes[0][1]["format"] == "stl"
+    assert meshes[0][0].startswith(vz.scene_path("fourbar", "coupler") + "/")
+    assert bytes(meshes[0][1]["data"].data) == (mesh_dir / "tetra.stl").read_bytes()
+    # The scale is in the visual's node transform.
+    transforms = {c["path"]: c["matrix"] for c in decode(scene) if c["type"] == "set_transform"}
+    M = np.array(transforms[meshes[0][0]]).reshape(4, 4).T
+    assert np.linalg.norm(np.linalg.norm(M[:3, :3], axis=0) - [2.0, 1.0, 1.0]) <= EXACT_TOL
+
+
+# -- errors --------------------------------------------------------------------------
+
+
+def test_trajectory_of_another_mechanism_is_refused(fourbar, agile_eye_traj):
+    with pytest.raises(ClosedChainError, match=r"trajectory.q has shape \(401, 9\), expected"):
+        vz.build_scene(fourbar, agile_eye_traj)
+
+
+def test_times_must_increase(fourbar, fourbar_traj):
+    t = fourbar_traj.t.copy()
+    t[5] = t[4]
+    bad = dataclasses.replace(fourbar_traj, t=t)
+    with pytest.raises(ClosedChainError, match=r"times must increase: t\[4\]"):
+        vz.build_scene(fourbar, bad)
+
+
+@pytest.mark.parametrize("fps", [0.0, -30.0, float("nan")])
+def test_fps_must_be_positive(fourbar, fourbar_traj, fps):
+    with pytest.raises(ClosedChainError, match="fps must be a positive number"):
+        vz.build_scene(fourbar, fourbar_traj, fps=fps)
+
+
+# -- command line ----------------------------------------------------------------------
+
+
+def test_cli_animate_writes_html_and_reports_size(tmp_path, capsys):
+    from closedchain.cli import main
+
+    out = tmp_path / "fourbar.html"
+    rc = main(
+        ["animate", str(MODELS / "fourbar.urdf"), "--t-final", "1", "--fps", "20", "-o", str(out)]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert str(out) in text and "MB" in text
+    assert out.stat().st_size < SIZE_BUDGET
+    data = json.loads(scripts_of(out.read_text())[0][1])
+    assert data["meta"]["duration"] == pytest.approx(1.0) and data["meta"]["fps"] == 20.0
+
+
+def test_cli_needs_an_output(capsys):
+    from closedchain.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["animate", str(MODELS / "fourbar.urdf")])
+    assert "-o/--output" in capsys.readouterr().err
