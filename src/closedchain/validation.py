@@ -14,9 +14,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import pinocchio as pin
 
 from .dynamics import SolverSettings, forward_dynamics
+from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
 from .exceptions import SingularConfigurationError
 from .kinematics import random_consistent_state
 from .mechanism import Mechanism
@@ -71,30 +71,9 @@ class ValidationReport:
         return {**asdict(self), "passed": self.passed}
 
 
-def pinocchio_forward_dynamics(
-    mech: Mechanism,
-    q: np.ndarray,
-    v: np.ndarray,
-    tau: np.ndarray,
-    settings: SolverSettings,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Return (a, J^T lam) from ``pinocchio.constraintDynamics``, in our sign convention.
-
-    Args:
-        mech: the mechanism (its Pinocchio constraint models are built once).
-        q, v, tau: state and generalized forces, shapes (nq,), (nv,), (nv,).
-        settings: proximal settings (mu, accuracy, max_iter).
-    """
-    cms, cds, _, data = mech.pinocchio_constraints()
-    model = mech.model
-    prox = pin.ProximalSettings(
-        settings.pinocchio_accuracy, 0.0, settings.pinocchio_mu, settings.pinocchio_max_iter
-    )
-    a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
-    Jc = pin.getConstraintsJacobian(model, data, cms, cds)
-    # Pinocchio: M a + h = tau + J_c^T lambda_c  ->  ours: J^T lam = -J_c^T lambda_c.
-    force = -Jc.T @ data.lambda_c
-    return a, force
+#: ``(a, J^T lam)`` from ``pinocchio.constraintDynamics`` in our sign convention
+#: (one implementation, shared with the "pinocchio" method).
+pinocchio_forward_dynamics = pinocchio_constrained_dynamics
 
 
 def validate(
