@@ -104,6 +104,19 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
     phi = _phi(model, data, layer, q)
     res = float(np.max(np.abs(phi)))
     dv = np.zeros(model.nv)
+    # Configuration entries of joints held entirely: pin.integrate with zero
+    # velocity may renormalize them (continuous joints' cos, sin); keep them exact.
+    moving = np.zeros(model.nv, dtype=bool)
+    moving[free] = True
+    held_q = np.concatenate(
+        [
+            np.arange(model.joints[j].idx_q, model.joints[j].idx_q + model.joints[j].nq)
+            for j in range(1, model.njoints)
+            if not moving[model.joints[j].idx_v : model.joints[j].idx_v + model.joints[j].nv].any()
+        ]
+        or [np.zeros(0, dtype=int)]
+    )
+    q_held = q[held_q].copy()
     for _ in range(settings.max_iter):
         if res <= settings.tol:
             return q
@@ -114,6 +127,7 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
         alpha = 1.0
         for _ in range(settings.max_halvings):
             q_try = pin.integrate(model, q, alpha * dv)
+            q_try[held_q] = q_held
             phi_try = _phi(model, data, layer, q_try)
             res_try = float(np.max(np.abs(phi_try)))
             if res_try < res or res_try <= settings.tol:
