@@ -13,6 +13,7 @@ close kinematic loops and ``<transmission>`` elements for actuators::
 
 from __future__ import annotations
 
+from .control import computed_torque_controller
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
     AssemblyError,
@@ -76,6 +77,7 @@ __all__ = [
     "ValidationUnavailableError",
     "assemble",
     "compute_gamma",
+    "computed_torque_controller",
     "compute_jacobian",
     "compute_phi",
     "forward_dynamics",
