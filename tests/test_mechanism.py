@@ -293,3 +293,13 @@ def test_summary_is_json_serialisable_and_consistent(agile_eye):
 
 def test_summary_reports_no_pinocchio_reference_for_prismatic_loops(load_mechanism):
     assert load_mechanism("slider_crank").summary()["pinocchio_reference"] is False
+
+
+def test_configuration_off_the_unit_circle_is_refused(load_mechanism):
+    """A continuous joint's (cos, sin) of norm 3 would give Pinocchio a scaled rotation."""
+    mech = load_mechanism("slider_crank")
+    q = mech.q_ref.copy()
+    jm = mech.model.joints[mech.model.getJointId("crank_joint")]
+    q[jm.idx_q : jm.idx_q + 2] *= 3.0
+    with pytest.raises(cc.ClosedChainError, match=r"joint 'crank_joint'.*has norm 3"):
+        cc.forward_dynamics(mech, q, np.zeros(mech.nv))

@@ -719,3 +719,25 @@ def test_cli_simulate_json(tmp_path, capsys):
     assert report["max_constraint_residual"] <= PROJECTION_RESIDUAL_TOL
     traj = cc.Trajectory.load(out)
     assert traj.t[-1] == pytest.approx(0.5, abs=TIME_TOL)
+
+
+def test_energy_drift_is_relative_to_the_energy_exchanged():
+    """Constant energy gives zero drift whatever the potential's zero; the scale is
+    max(|E(0)|, max T), so a 1e-12 J wobble on 1 J of kinetic energy is 1e-12."""
+    n = 4
+    zeros = np.zeros(n)
+    base = dict(
+        t=np.arange(n, dtype=float),
+        q=np.zeros((n, 1)),
+        v=np.zeros((n, 1)),
+        a=np.zeros((n, 1)),
+        lam=np.zeros((n, 0)),
+        constraint_residual=zeros,
+        velocity_residual=zeros,
+    )
+    constant = cc.Trajectory(**base, energy=np.zeros(n), kinetic_energy=np.ones(n))
+    assert constant.energy_drift == 0.0
+    wobble = cc.Trajectory(
+        **base, energy=np.array([0.0, 1e-12, -1e-12, 0.0]), kinetic_energy=np.ones(n)
+    )
+    assert abs(wobble.energy_drift - 1e-12) <= 1e-24

@@ -254,3 +254,21 @@ def test_kkt_agrees_with_a_40_digit_solve(load_mechanism, rng, name):
     worst = np.max(np.array(errors), axis=0)
     assert worst[0] <= TOL_HIGH_PRECISION, worst
     assert worst[1] <= TOL_HIGH_PRECISION, worst
+
+
+def test_validate_fails_when_the_reference_returns_nan(fourbar, monkeypatch):
+    """A NaN from Pinocchio is a failed comparison, not a skipped one."""
+    from closedchain import validation
+
+    def nan_reference(mech, q, v, tau, settings):
+        return np.full(mech.nv, np.nan), np.full(mech.nv, np.nan)
+
+    monkeypatch.setattr(validation, "pinocchio_forward_dynamics", nan_reference)
+    report = cc.validate(fourbar, n_samples=3, seed=0)
+    assert not report.passed
+    assert report.max_da == np.inf
+
+
+def test_validate_refuses_to_compare_pinocchio_with_itself(fourbar):
+    with pytest.raises(cc.UnknownChoiceError, match=r"'pinocchio'.*valid choices: kkt"):
+        cc.validate(fourbar, n_samples=1, method="pinocchio")

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
+import scipy.linalg
 
 from .constraints import ConstraintLayer
 from .exceptions import AssemblyError
@@ -230,6 +231,28 @@ def project_velocity(
     free = np.setdiff1d(np.arange(mech.nv), held)
     v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=None)[0]
     return v
+
+
+def partition_coordinates(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r"""Split the velocity coordinates into independent and dependent ones for J.
+
+    Column-pivoted QR of J (Businger-Golub) picks, greedily, the ``nc``
+    columns farthest from linearly dependent: they become the dependent
+    coordinates, so :math:`\sigma_{\min}(J_D)` stays within a modest factor of
+    :math:`\sigma_{\min}(J)` (not an exhaustive search of all partitions).
+
+    Args:
+        J: constraint Jacobian, shape (nc, nv), independent rows.
+
+    Returns:
+        ``(independent_idx_v, dependent_idx_v)``, sorted, shapes (nv - nc,) and (nc,).
+    """
+    nc, nv = J.shape
+    if nc == 0:
+        return np.arange(nv), np.arange(0)
+    _, piv = scipy.linalg.qr(J, mode="r", pivoting=True)
+    dep = np.sort(piv[:nc])
+    return np.setdiff1d(np.arange(nv), dep), dep
 
 
 @dataclass(frozen=True)

@@ -25,10 +25,14 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
-from .kinematics import AssemblySettings, solve_closure
+from .kinematics import AssemblySettings, partition_coordinates, solve_closure
 from .urdf import URDFPlus, parse_urdf
 
 logger = logging.getLogger(__name__)
+
+#: Largest accepted deviation from 1 of the norm of a continuous joint's
+#: (cos, sin) or a quaternion in a configuration passed to closedchain.
+NORMALIZATION_TOL = 1e-9
 
 #: Standard gravity along world -z [m/s^2].
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
@@ -119,7 +123,7 @@ class Mechanism:
                 model.joints[j].idx_q
                 for j in range(1, model.njoints)
                 if model.joints[j].shortname().startswith("JointModelR")
-                and "Unbounded" not in model.joints[j].shortname()
+                and model.joints[j].nq == model.joints[j].nv == 1
             ],
             dtype=int,
         )
@@ -188,6 +192,20 @@ class Mechanism:
             raise ClosedChainError(f"{name} has shape {q.shape}, expected ({self.nq},)")
         if not np.all(np.isfinite(q)):
             raise ClosedChainError(f"{name} contains non-finite values: {q}")
+        if not pin.isNormalized(self.model, q, NORMALIZATION_TOL):
+            # A continuous joint's (cos, sin) or a quaternion off the unit
+            # sphere gives Pinocchio a scaled rotation: wrong numbers, silently.
+            for j in range(1, self.model.njoints):
+                jm = self.model.joints[j]
+                if jm.nq != jm.nv:
+                    seg = q[jm.idx_q : jm.idx_q + jm.nq]
+                    norm = float(np.linalg.norm(seg[-4:] if jm.nq > 4 else seg))
+                    if abs(norm - 1.0) > NORMALIZATION_TOL:
+                        raise ClosedChainError(
+                            f"{name}: the configuration of joint {self.model.names[j]!r} "
+                            f"(q[{jm.idx_q}:{jm.idx_q + jm.nq}] = {seg}) has norm {norm:.12g}, "
+                            "expected 1 (use pinocchio.normalize)"
+                        )
         return q
 
     def check_v(self, v, name: str = "v") -> np.ndarray:
@@ -501,9 +519,7 @@ def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> Non
             pin.computeJointJacobians(model, data, mech.q_ref)
             J = np.zeros((mech.nc, mech.nv))
             mech.constraints.evaluate(model, data, J=J)
-            _, _, piv = scipy.linalg.qr(J, pivoting=True)
-            dep = np.sort(piv[:rank])
-            ind = np.setdiff1d(all_idx, dep)
+            ind, dep = partition_coordinates(J)
             source = "automatic"
     mech.independent_idx_v = np.asarray(ind, dtype=int)
     mech.dependent_idx_v = np.asarray(dep, dtype=int)

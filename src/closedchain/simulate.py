@@ -49,7 +49,7 @@ from .dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from .dynamics import SolverSettings
 from .dynamics.base import METHODS, get_method, workspace
 from .exceptions import ClosedChainError, SingularConfigurationError, UnknownChoiceError
-from .kinematics import AssemblySettings, solve_closure
+from .kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
 from .trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -202,7 +202,7 @@ class _Problem:
             raise SimulationError(
                 f"at t = {t:.9g} s the dependent coordinates could not be solved: {exc}", t
             ) from None
-        J = _jacobian(mech, q)
+        J = compute_jacobian(mech, q)
         JD, JI = J[:, self.dep], J[:, self.ind]
         v = np.zeros(mech.nv)
         v[self.ind] = v_ind
@@ -210,7 +210,7 @@ class _Problem:
         return q, v
 
     def cond_JD(self, q: np.ndarray) -> float:
-        J = _jacobian(self.mech, q)
+        J = compute_jacobian(self.mech, q)
         return float(np.linalg.cond(J[:, self.dep]))
 
     def repartition(self, q: np.ndarray, t: float) -> bool:
@@ -224,9 +224,8 @@ class _Problem:
             SingularConfigurationError: even the chosen J_D has a condition
                 number above ``settings.partition_singular_cond``.
         """
-        J = _jacobian(self.mech, q)
-        _, _, piv = scipy.linalg.qr(J, pivoting=True)
-        dep = np.sort(piv[: self.mech.nc])
+        J = compute_jacobian(self.mech, q)
+        _, dep = partition_coordinates(J)
         cond = float(np.linalg.cond(J[:, dep]))
         if cond > self.settings.partition_singular_cond:
             raise SingularConfigurationError(
@@ -252,13 +251,13 @@ class _Problem:
 
     def det_sign_JD(self, q: np.ndarray) -> float:
         """Return the sign of det(J_D) at q (0 when singular)."""
-        return float(np.linalg.slogdet(_jacobian(self.mech, q)[:, self.dep])[0])
+        return float(np.linalg.slogdet(compute_jacobian(self.mech, q)[:, self.dep])[0])
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``."""
         if self.mech.nc == 0:
             return
-        s = np.linalg.svd(_jacobian(self.mech, q), compute_uv=False)
+        s = np.linalg.svd(compute_jacobian(self.mech, q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
         if cond > self.settings.singular_cond:
             raise SingularConfigurationError(
@@ -273,13 +272,6 @@ class _Problem:
             )
 
 
-def _jacobian(mech, q):
-    pin.computeJointJacobians(mech.model, mech.data, q)
-    J = np.zeros((mech.nc, mech.nv))
-    mech.constraints.evaluate(mech.model, mech.data, J=J)
-    return J
-
-
 def _project(problem: _Problem, q: np.ndarray, v: np.ndarray, t: float):
     """Seed-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0."""
     mech, s = problem.mech, problem.settings
@@ -290,10 +282,10 @@ def _project(problem: _Problem, q: np.ndarray, v: np.ndarray, t: float):
         layer.evaluate(model, data, phi=phi)
         if np.max(np.abs(phi), initial=0.0) <= s.projection_tol:
             break
-        J = _jacobian(mech, q)
+        J = compute_jacobian(mech, q)
         q = pin.integrate(model, q, np.linalg.lstsq(J, -phi, rcond=None)[0])
     if s.project_velocities:
-        J = _jacobian(mech, q)
+        J = compute_jacobian(mech, q)
         v = v - np.linalg.lstsq(J, J @ v, rcond=None)[0]
     return q, v
 
@@ -305,7 +297,7 @@ class _Recorder:
         self.mech = mech
         self.drift_limit = drift_limit
         self.rows: dict[str, list] = {
-            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e")
+            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
         }
         self._phi = np.zeros(mech.nc)
 
@@ -322,11 +314,10 @@ class _Recorder:
                 "stabilization or a smaller step",
                 t,
             )
-        J = _jacobian(mech, q)
+        J = compute_jacobian(mech, q)
         vres = float(np.max(np.abs(J @ v), initial=0.0))
-        energy = pin.computeKineticEnergy(model, data, q, v) + pin.computePotentialEnergy(
-            model, data, q
-        )
+        kinetic = pin.computeKineticEnergy(model, data, q, v)
+        energy = kinetic + pin.computePotentialEnergy(model, data, q)
         r = self.rows
         r["t"].append(t)
         r["q"].append(np.array(q))
@@ -336,6 +327,7 @@ class _Recorder:
         r["res"].append(res)
         r["vres"].append(vres)
         r["e"].append(energy)
+        r["ke"].append(kinetic)
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows
@@ -349,6 +341,7 @@ class _Recorder:
             constraint_residual=np.array(r["res"]),
             velocity_residual=np.array(r["vres"]),
             energy=np.array(r["e"]),
+            kinetic_energy=np.array(r["ke"]),
             info=info,
         )
 

@@ -26,6 +26,8 @@ class Trajectory:
         constraint_residual: max |phi(q)| at each time, shape (N,).
         velocity_residual: max |J(q) v| at each time, shape (N,).
         energy: total mechanical energy (kinetic + potential) [J], shape (N,).
+        kinetic_energy: kinetic energy [J], shape (N,), or None when not recorded;
+            it sets the scale of :attr:`energy_drift`.
         info: run metadata (mechanism, method, integrator, stabilization,
             steps, CPU time [s], ...), JSON-serialisable.
     """
@@ -38,14 +40,27 @@ class Trajectory:
     constraint_residual: np.ndarray
     velocity_residual: np.ndarray
     energy: np.ndarray
+    kinetic_energy: np.ndarray | None = None
     info: dict = field(default_factory=dict)
 
     @property
+    def energy_scale(self) -> float:
+        """max(|E(0)|, max_t T(t)) [J]: the energy the motion holds or exchanges."""
+        kinetic = 0.0 if self.kinetic_energy is None else float(np.max(self.kinetic_energy))
+        return max(abs(float(self.energy[0])), kinetic)
+
+    @property
     def energy_drift(self) -> float:
-        """max |E(t) - E(0)| / max(|E(0)|, kinetic scale), the relative energy drift."""
-        e0 = float(self.energy[0])
-        scale = max(abs(e0), float(np.max(np.abs(self.energy - self.energy.min()))), 1e-300)
-        return float(np.max(np.abs(self.energy - e0)) / scale)
+        r"""Relative energy drift :math:`\max_t |E(t) - E(0)| / E_s`, E_s = :attr:`energy_scale`.
+
+        The kinetic energy enters the scale so that the measure does not hinge
+        on where the potential energy's zero is; 0 when E_s = 0 and E is constant.
+        """
+        deviation = float(np.max(np.abs(self.energy - self.energy[0])))
+        scale = self.energy_scale
+        if scale == 0.0:
+            return 0.0 if deviation == 0.0 else float("inf")
+        return deviation / scale
 
     @property
     def max_constraint_residual(self) -> float:
@@ -53,15 +68,16 @@ class Trajectory:
         return float(np.max(self.constraint_residual, initial=0.0))
 
     def save(self, path: str | Path) -> Path:
-        """Write the trajectory as ``.npz`` (all arrays + info) or ``.csv`` (t, q, v, residuals, energy).
+        """Write the trajectory as ``.npz`` (all arrays, info) or ``.csv`` (t, q, v, residuals, E).
 
         Raises:
             ClosedChainError: the suffix is neither .npz nor .csv.
         """
         path = Path(path)
         if path.suffix == ".npz":
+            extra = {} if self.kinetic_energy is None else {"kinetic_energy": self.kinetic_energy}
             np.savez_compressed(
-                path, **{k: getattr(self, k) for k in _ARRAYS}, info=json.dumps(self.info)
+                path, **{k: getattr(self, k) for k in _ARRAYS}, **extra, info=json.dumps(self.info)
             )
         elif path.suffix == ".csv":
             names = self.info.get("coordinate_names") or [f"q{i}" for i in range(self.q.shape[1])]
@@ -100,6 +116,8 @@ class Trajectory:
         try:
             with np.load(path, allow_pickle=False) as f:
                 arrays = {k: f[k] for k in _ARRAYS}
+                if "kinetic_energy" in f.files:
+                    arrays["kinetic_energy"] = f["kinetic_energy"]
                 info = json.loads(str(f["info"]))
         except (OSError, KeyError, ValueError) as exc:
             raise ClosedChainError(f"{path}: not a closedchain trajectory: {exc}") from exc

@@ -46,7 +46,7 @@ def check_condition(mech, q, what: str, rcond: float, info: int, settings: Solve
 def kkt(mech, q, v, tau, settings: SolverSettings):
     """Solve the dense KKT system; return (a, lam)."""
     ws = compute_terms(mech, q, v)
-    nv, nc = mech.nv, mech.nc
+    nv = mech.nv
     K, rhs = ws.K, ws.rhs
     K[:nv, :nv] = ws.M
     K[:nv, nv:] = ws.J.T

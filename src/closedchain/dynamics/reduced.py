@@ -38,7 +38,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.linalg
 from scipy.linalg import lapack
 
 from ..exceptions import ClosedChainError, SingularConfigurationError
@@ -129,14 +128,9 @@ def choose_partition(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.nda
     Returns:
         ``(independent_idx_v, dependent_idx_v)``, sorted, shapes (mobility,) and (nc,).
     """
-    from ..kinematics import compute_jacobian
+    from ..kinematics import compute_jacobian, partition_coordinates
 
-    J = compute_jacobian(mech, q)
-    if mech.nc == 0:
-        return np.arange(mech.nv), np.arange(0)
-    _, piv = scipy.linalg.qr(J, mode="r", pivoting=True)
-    dep = np.sort(piv[: mech.nc])
-    return np.setdiff1d(np.arange(mech.nv), dep), dep
+    return partition_coordinates(compute_jacobian(mech, q))
 
 
 def partition_condition(mech: Mechanism, independent_idx_v=None) -> float:
