@@ -360,3 +360,20 @@ def test_pinocchio_never_returns_nan(mechs):
         match=r"(?s)pinocchio.constraintDynamics failed at q = \[.*non-finite.*condition number",
     ):
         forward_dynamics(mech, mech.q_ref, np.zeros(3), method="pinocchio", settings=settings)
+
+
+def test_solve_kkt_reproduces_the_seed_cpp_example():
+    """The seed's C++ main (Section 8): M = I, J = [[1,0,0],[0,1,1]], tau - h = [1,0,0],
+    gamma = 0. By hand: J a = 0 gives a1 = 0 and a2 = -a3; M a + J^T lam = tau - h gives
+    a = [1 - lam1, -lam2, -lam2], so lam1 = 1, lam2 = 0 and a = 0."""
+    from closedchain.dynamics.kkt import solve_kkt
+
+    a, lam, rcond, info = solve_kkt(
+        np.eye(3),
+        np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]]),
+        np.array([1.0, 0.0, 0.0]),
+        np.zeros(2),
+    )
+    assert info == 0 and rcond > 0.1
+    assert np.linalg.norm(a) <= 1e-15
+    assert np.linalg.norm(lam - np.array([1.0, 0.0])) <= 1e-15
