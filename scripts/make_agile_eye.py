@@ -38,7 +38,7 @@ E = np.eye(3)
 
 
 def arc_inertial(radius: float, mass: float, e1: np.ndarray, e2: np.ndarray):
-    """Return (com, inertia about com) of a thin uniform arc R(cos s e1 + sin s e2), s in [0, pi/2]."""
+    """Return (com, inertia about com) of a thin uniform arc R (cos s e1 + sin s e2), 0..pi/2."""
     # Second moment int r r^T dm = m R^2 [1/2 e1e1^T + 1/2 e2e2^T + 1/pi (e1e2^T + e2e1^T)].
     S = (
         mass
@@ -190,6 +190,7 @@ def build() -> str:
             ("platform_pitch", "euler_link_z", "euler_link_y"),
             ("platform_roll", "euler_link_y", "platform"),
         ),
+        strict=True,
     ):
         out.append(
             f'  <joint name="{name}" type="revolute">\n    <parent link="{parent}"/>\n'

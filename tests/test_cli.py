@@ -1,10 +1,12 @@
-"""Tests of the ``closedchain info`` and ``closedchain validate`` subcommands."""
+"""Tests of the ``closedchain`` subcommands and of its handling of bad input."""
 
 from __future__ import annotations
 
 import json
+import math
 import re
 
+import numpy as np
 import pytest
 
 from closedchain import cli
@@ -12,6 +14,9 @@ from closedchain.dynamics import base as dynamics_base
 
 #: Samples for the CLI validation runs (the library test uses 100).
 CLI_SAMPLES = "20"
+
+#: The CLI reports numbers computed from the trajectory it writes.
+EXACT_TOL = 1e-12
 
 
 def run(capsys, *argv):
@@ -158,3 +163,99 @@ def test_missing_file_exit_2(capsys, tmp_path):
     status, out, err = run(capsys, "info", path)
     assert status == 2
     assert f"closedchain: error: {path}: cannot read URDF file" in err
+
+
+def test_validate_offers_no_pinocchio_self_comparison(capsys, mechanism_files):
+    """Pinocchio is the reference of ``validate``: checking it against itself proves nothing."""
+    with pytest.raises(SystemExit) as info:
+        cli.main(["validate", str(mechanism_files["fourbar"]), "--method", "pinocchio"])
+    assert info.value.code == 2
+    assert "invalid choice: 'pinocchio'" in capsys.readouterr().err
+
+
+# -- simulate -------------------------------------------------------------------------------
+
+#: A short fixed-step run of the slider-crank (nq = 7 != nv = 6: a continuous crank).
+SLIDER_CRANK_RUN = ("--t-final", "0.2", "--integrator", "rk4", "--dt", "0.005")
+
+
+def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mechanism_files):
+    out = tmp_path / "run.npz"
+    argv = ["simulate", mechanism_files["slider_crank"], *SLIDER_CRANK_RUN, "--json"]
+    status, text, err = run(capsys, *argv, "--out", out)
+    assert status == 0, err
+    final = json.loads(text)["final_independent"]
+    # The crank is the first joint of the URDF: q[0:2] = (cos theta, sin theta).
+    q_final = np.load(out)["q"][-1]
+    theta = math.atan2(q_final[1], q_final[0])
+    assert list(final) == ["crank_joint"]
+    assert abs(final["crank_joint"] - theta) <= EXACT_TOL
+    assert abs(theta - q_final[0]) > 0.1  # the crank has moved away from cos(theta) = theta
+
+
+# -- bad arguments --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["simulate", "{fourbar}", "--t-final", "-1"],
+            "--t-final must be a positive number, got -1",
+        ),
+        (["simulate", "{fourbar}", "--t-final", "nan"], "--t-final must be a positive number"),
+        (["animate", "{fourbar}", "--fps", "0", "-o", "{tmp}/a.html"], "--fps must be a positive"),
+        (["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "0"], "--dt must be a positive"),
+        (["simulate", "{fourbar}", "--rtol=-1e-9"], "--rtol must be a positive number"),
+        (["validate", "{fourbar}", "--samples", "0"], "--samples must be at least 1, got 0"),
+        (
+            ["simulate", "{fourbar}", "--out", "{tmp}/t.txt"],
+            "cannot save a trajectory as 't.txt'; valid suffixes: .npz, .csv",
+        ),
+        (
+            ["simulate", "{fourbar}", "--out", "{tmp}/nodir/t.npz"],
+            "{tmp}/nodir/t.npz: directory {tmp}/nodir does not exist",
+        ),
+        (
+            ["animate", "{fourbar}", "-o", "{tmp}/nodir/a.html"],
+            "{tmp}/nodir/a.html: directory {tmp}/nodir does not exist",
+        ),
+        (
+            ["plot", "{fourbar}", "-o", "{tmp}/x.xyz"],
+            "cannot write an image as 'x.xyz'; supported suffixes: .",
+        ),
+        (["plot", "{fourbar}", "-o", "{tmp}/noext"], "cannot write an image as 'noext'"),
+        (
+            ["plot", "{fourbar}", "--urdf", "{fourbar}", "-o", "{tmp}/x.png"],
+            "--urdf is for a .npz trajectory",
+        ),
+    ],
+)
+def test_bad_arguments_exit_2_with_one_line(capsys, tmp_path, mechanism_files, argv, message):
+    fmt = {"fourbar": mechanism_files["fourbar"], "tmp": tmp_path}
+    status, out, err = run(capsys, *(a.format(**fmt) for a in argv))
+    assert status == 2
+    assert out == ""
+    assert err.startswith("closedchain: error: " + message.format(**fmt))
+    assert err.count("\n") == 1
+    assert not list(tmp_path.iterdir())  # refused before any work
+
+
+def test_plot_lists_the_supported_image_suffixes(capsys, tmp_path, mechanism_files):
+    status, _, err = run(capsys, "plot", mechanism_files["fourbar"], "-o", tmp_path / "x.xyz")
+    assert status == 2
+    for suffix in (".png", ".pdf", ".svg"):
+        assert suffix in err
+
+
+@pytest.mark.parametrize("command", ["simulate", "plot"])
+def test_unwritable_output_exits_2(capsys, tmp_path, mechanism_files, command):
+    """An OSError while writing (here: the output is a directory) is a one-line error."""
+    target = tmp_path / ("t.npz" if command == "simulate" else "x.png")
+    target.mkdir()
+    flag = "--out" if command == "simulate" else "-o"
+    argv = [command, mechanism_files["fourbar"], "--t-final", "0.05", flag, target]
+    status, out, err = run(capsys, *argv)
+    assert status == 2
+    assert str(target) in err and err.startswith("closedchain: error: ")
+    assert err.count("\n") == 1

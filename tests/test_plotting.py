@@ -7,15 +7,18 @@ import subprocess
 import sys
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from conftest import MODELS
 
 import closedchain as cc
 from closedchain.exceptions import ClosedChainError
-from closedchain.plotting import RESIDUAL_FLOOR, plot_trajectory
+from closedchain.plotting import RESIDUAL_FLOOR, coordinate_series, plot_trajectory
 
 #: Plotted data are the trajectory's own numbers.
 EXACT_TOL = 1e-12
+#: Angles recovered from (cos, sin) pairs and quaternions [rad].
+ANGLE_TOL = 1e-10
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -133,3 +136,112 @@ def test_cli_plot_of_a_missing_file(tmp_path, capsys):
 
     assert main(["plot", str(tmp_path / "none.npz"), "-o", str(tmp_path / "x.png")]) == 2
     assert "none.npz" in capsys.readouterr().err
+
+
+# -- coordinates of joints with nq != nv ---------------------------------------------------
+
+
+def test_coordinate_series_against_known_angles(rng):
+    """Each joint type's scalar positions, against the angles the configurations are built from."""
+    model = pin.Model()
+    parent = 0
+    for k, joint in enumerate(
+        [
+            pin.JointModelRUBZ(),
+            pin.JointModelPlanar(),
+            pin.JointModelSpherical(),
+            pin.JointModelFreeFlyer(),
+            pin.JointModelPX(),
+        ]
+    ):
+        parent = model.addJoint(parent, joint, pin.SE3.Identity(), f"j{k}")
+    n = 50
+    theta = rng.uniform(-3.0, 3.0, n)  # continuous joint [rad]
+    xy, phi = rng.uniform(-1.0, 1.0, (n, 2)), rng.uniform(-3.0, 3.0, n)  # planar [m], [rad]
+    rotvec = rng.uniform(-1.5, 1.5, (n, 2, 3))  # spherical, free-flyer rotation vectors [rad]
+    p, s = rng.uniform(-1.0, 1.0, (n, 3)), rng.uniform(-1.0, 1.0, n)  # [m]
+    quat = [[pin.Quaternion(pin.exp3(rotvec[i, j])).coeffs() for j in range(2)] for i in range(n)]
+    quat = np.array(quat)  # (x, y, z, w), Pinocchio's storage order
+    q = np.column_stack(
+        [np.cos(theta), np.sin(theta), xy, np.cos(phi), np.sin(phi), quat[:, 0], p, quat[:, 1], s]
+    )
+    assert q.shape == (n, model.nq) and model.nv == 1 + 3 + 3 + 6 + 1
+    expected = np.column_stack([theta, xy, phi, rotvec[:, 0], p, rotvec[:, 1], s])
+    got = np.column_stack([coordinate_series(model, q, i) for i in range(model.nv)])
+    assert np.linalg.norm(got - expected) <= ANGLE_TOL
+    # One configuration gives a scalar; the neutral one (identity quaternions) zeros.
+    assert abs(float(coordinate_series(model, q[0], 0)) - theta[0]) <= ANGLE_TOL
+    neutral = [coordinate_series(model, pin.neutral(model), i) for i in range(model.nv)]
+    assert np.linalg.norm(neutral) == 0.0
+    with pytest.raises(ClosedChainError, match="q has 3 columns, expected nq = 18"):
+        coordinate_series(model, q[:, :3], 0)
+    with pytest.raises(ClosedChainError, match=r"velocity index 14 out of range 0\.\.13"):
+        coordinate_series(model, q, 14)
+
+
+@pytest.fixture(scope="module")
+def slider_crank_turns(load_mechanism) -> tuple[cc.Mechanism, cc.Trajectory, np.ndarray]:
+    """A slider-crank trajectory whose continuous crank turns past pi (the other joints fixed)."""
+    mech = load_mechanism("slider_crank")
+    n = 41
+    theta = np.linspace(0.0, 5.0, n)  # crank angle [rad], beyond atan2's range
+    q = np.tile(mech.q_ref, (n, 1))
+    q[:, 0], q[:, 1] = np.cos(theta), np.sin(theta)  # the crank is the first joint
+    traj = cc.Trajectory(
+        t=np.linspace(0.0, 1.0, n),
+        q=q,
+        v=np.zeros((n, mech.nv)),
+        a=np.zeros((n, mech.nv)),
+        lam=np.zeros((n, mech.nc)),
+        constraint_residual=np.zeros(n),
+        velocity_residual=np.zeros(n),
+        energy=np.zeros(n),
+        info={
+            "mechanism": mech.name,
+            "coordinate_names": None,  # as simulate() writes when nq != nv
+            "velocity_names": list(mech.coordinate_names),
+            "independent": ["crank_joint"],
+        },
+    )
+    return mech, traj, theta
+
+
+def test_continuous_crank_is_plotted_as_its_angle(slider_crank_turns):
+    mech, traj, theta = slider_crank_turns
+    (line,) = plot_trajectory(traj, mech=mech).axes[0].get_lines()
+    assert line.get_label() == "crank_joint [rad]"
+    assert np.linalg.norm(line.get_ydata() - theta) <= ANGLE_TOL  # unwrapped
+
+
+def test_nq_neq_nv_needs_the_mechanism(slider_crank_turns, fourbar_run):
+    mech, traj, _ = slider_crank_turns
+    with pytest.raises(ClosedChainError, match=r"nq = 7 != nv = 6: plotting it needs the mech"):
+        plot_trajectory(traj)
+    with pytest.raises(ClosedChainError, match="trajectory has nq = 3, nv = 3 but mechanism"):
+        plot_trajectory(fourbar_run, mech=mech)
+
+
+def test_integer_coordinates_are_velocity_indices(fourbar, fourbar_run):
+    (line,) = plot_trajectory(fourbar_run, coordinates=[2]).axes[0].get_lines()
+    assert line.get_label() == "rocker_joint"
+    assert np.linalg.norm(line.get_ydata() - fourbar_run.q[:, 2]) <= EXACT_TOL
+    (line,) = plot_trajectory(fourbar_run, mech=fourbar, coordinates=[2]).axes[0].get_lines()
+    assert line.get_label() == "rocker_joint [rad]"
+    with pytest.raises(ClosedChainError, match=r"velocity index 3 out of range 0\.\.2"):
+        plot_trajectory(fourbar_run, coordinates=[3])
+
+
+def test_cli_plot_of_a_continuous_joint_needs_the_urdf(slider_crank_turns, tmp_path, capsys):
+    from closedchain.cli import build_parser, main
+
+    mech, traj, _ = slider_crank_turns
+    npz = traj.save(tmp_path / "run.npz")
+    out = tmp_path / "run.png"
+    assert main(["plot", str(npz), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("closedchain: error: the trajectory of 'slider_crank' has nq = 7")
+    assert "--urdf" in err and not out.exists()
+    assert main(["plot", str(npz), "--urdf", str(mech.path), "-o", str(out)]) == 0
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    args = build_parser().parse_args(["plot", "t.npz", "-o", "x.png", "--coordinates", "2", "j"])
+    assert args.coordinates == [2, "j"]

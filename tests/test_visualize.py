@@ -231,7 +231,7 @@ def test_single_configuration_is_a_still_scene(fourbar, fourbar_traj):
     arrays = {
         f.name: getattr(fourbar_traj, f.name)[:1]
         for f in dataclasses.fields(cc.Trajectory)
-        if f.name != "info"
+        if f.name != "info" and getattr(fourbar_traj, f.name) is not None
     }
     traj = cc.Trajectory(**{**arrays, "info": {}})
     scene = vz.build_scene(fourbar, traj)
@@ -463,6 +463,49 @@ def test_mesh_visuals_are_embedded_or_skipped(tmp_path, caplog):
     transforms = {c["path"]: c["matrix"] for c in decode(scene) if c["type"] == "set_transform"}
     M = np.array(transforms[meshes[0][0]]).reshape(4, 4).T
     assert np.linalg.norm(np.linalg.norm(M[:3, :3], axis=0) - [2.0, 1.0, 1.0]) <= EXACT_TOL
+
+
+@pytest.mark.parametrize(
+    "filename",
+    [
+        "{outside}",
+        "file://{outside}",
+        "../outside/secret.stl",
+        "meshes/../../outside/secret.stl",
+        "package://robot/../outside/secret.stl",
+        "package://robot/outside/secret.stl",  # found in a parent directory
+        "meshes/link.stl",  # a symbolic link inside pointing outside
+    ],
+)
+def test_mesh_files_outside_the_urdf_directory_are_refused(tmp_path, caplog, filename):
+    """A URDF cannot embed local files from outside its own directory in the page."""
+    (tmp_path / "outside").mkdir()
+    secret = tmp_path / "outside" / "secret.stl"
+    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
+    write_binary_stl(secret, tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    robot = tmp_path / "robot"
+    (robot / "meshes").mkdir(parents=True)
+    (robot / "meshes" / "link.stl").symlink_to(secret)
+    filename = filename.format(outside=secret)
+    urdf = (
+        (MODELS / "fourbar.urdf")
+        .read_text()
+        .replace(
+            '<geometry><box size="0.4 0.012 0.02"/></geometry>',
+            f'<geometry><mesh filename="{filename}"/></geometry>',
+        )
+    )
+    (robot / "mesh.urdf").write_text(urdf)
+    mech = cc.load(robot / "mesh.urdf")
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        visuals = vz.read_visuals(mech)
+        scene = vz.build_scene(mech, fourbar_sweep(mech, np.linspace(0.0, 1.0, 3)))
+    assert [v for v in visuals if v.kind == "mesh"] == []
+    assert f"link 'coupler' visual 0: mesh file {filename!r} ({secret}) is outside" in caplog.text
+    geometries = [
+        c["object"]["geometries"][0]["type"] for c in decode(scene) if c["type"] == "set_object"
+    ]
+    assert "_meshfile" not in geometries
 
 
 # -- errors --------------------------------------------------------------------------

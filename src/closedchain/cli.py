@@ -11,10 +11,23 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 from .exceptions import ClosedChainError
+
+#: Options that must be finite and positive, by argparse attribute.
+POSITIVE_OPTIONS = {
+    "t_final": "--t-final",
+    "fps": "--fps",
+    "dt": "--dt",
+    "rtol": "--rtol",
+    "atol": "--atol",
+}
+
+#: Suffixes ``simulate --out`` can write (Trajectory.save).
+TRAJECTORY_SUFFIXES = (".npz", ".csv")
 
 
 def _fmt(x: float) -> str:
@@ -30,11 +43,56 @@ def _print_table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> None:
         print("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)))
 
 
-def _load(args):
+def _load(args, path=None):
     from .mechanism import load
 
+    path = args.file if path is None else path
     gravity = getattr(args, "gravity", None)
-    return load(args.file) if gravity is None else load(args.file, gravity=gravity)
+    return load(path) if gravity is None else load(path, gravity=gravity)
+
+
+def _coordinate(token: str) -> str | int:
+    """A ``--coordinates`` token: an integer is a velocity index, anything else a name."""
+    try:
+        return int(token)
+    except ValueError:
+        return token
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Check the values argparse cannot (ranges, output files) before any work is done.
+
+    Raises:
+        ClosedChainError: an option is out of range, an output file has an
+            unsupported suffix, or its directory does not exist.
+    """
+    for attr, flag in POSITIVE_OPTIONS.items():
+        value = getattr(args, attr, None)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ClosedChainError(f"{flag} must be a positive number, got {value:g}")
+    samples = getattr(args, "samples", None)
+    if samples is not None and samples < 1:
+        raise ClosedChainError(f"--samples must be at least 1, got {samples}")
+    out = getattr(args, "out", None)
+    if out is not None and Path(out).suffix not in TRAJECTORY_SUFFIXES:
+        raise ClosedChainError(
+            f"cannot save a trajectory as {Path(out).name!r}; valid suffixes: "
+            + ", ".join(TRAJECTORY_SUFFIXES)
+        )
+    for path in (out, getattr(args, "output", None)):
+        if path is not None and not Path(path).parent.is_dir():
+            raise ClosedChainError(f"{path}: directory {Path(path).parent} does not exist")
+    if args.command == "plot":
+        from .plotting import image_formats
+
+        suffix = Path(args.output).suffix.lower().removeprefix(".")
+        if suffix not in image_formats():
+            raise ClosedChainError(
+                f"cannot write an image as {Path(args.output).name!r}; supported suffixes: "
+                + ", ".join("." + f for f in image_formats())
+            )
+        if args.urdf is not None and Path(args.file).suffix != ".npz":
+            raise ClosedChainError("--urdf is for a .npz trajectory; FILE is already a URDF")
 
 
 def _cmd_info(args) -> int:
@@ -137,13 +195,12 @@ def _cmd_animate(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from pathlib import Path
-
     from .plotting import plot_trajectory
     from .trajectory import Trajectory
 
     if Path(args.file).suffix == ".npz":
-        mech, traj = None, Trajectory.load(args.file)
+        traj = Trajectory.load(args.file)
+        mech = None if args.urdf is None else _load(args, args.urdf)
     else:
         mech = _load(args)
         traj = simulate_from_args(args, mech)
@@ -155,8 +212,8 @@ def _cmd_plot(args) -> int:
 
 def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of ``closedchain simulate`` (shared by ``animate`` and ``plot``)."""
-    from .simulate import INTEGRATORS, STABILIZATIONS
     from .dynamics import METHODS
+    from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
     p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="dynamics method")
@@ -168,11 +225,16 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     step.add_argument("--rtol", type=float, help="relative tolerance (adaptive integrators)")
     p.add_argument("--atol", type=float, help="absolute tolerance (adaptive integrators)")
     p.add_argument(
-        "--stabilization", default=None, choices=sorted(STABILIZATIONS),
+        "--stabilization",
+        default=None,
+        choices=sorted(STABILIZATIONS),
         help="drift control (default: projection for fixed-step, none for adaptive)",
     )
     p.add_argument(
-        "--q0", type=float, nargs="+", metavar="Q",
+        "--q0",
+        type=float,
+        nargs="+",
+        metavar="Q",
         help="initial configuration (nq numbers, assembled before the run; default: q_ref)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
@@ -190,17 +252,31 @@ def simulate_from_args(args, mech):
     if not getattr(args, "json", False) and sys.stderr.isatty():
         from tqdm import tqdm
 
-        bar = tqdm(total=args.t_final, unit="s sim", leave=False, file=sys.stderr,
-                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]")
+        bar = tqdm(
+            total=args.t_final,
+            unit="s sim",
+            leave=False,
+            file=sys.stderr,
+            bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]",
+        )
 
     def progress(t: float) -> None:
         bar.update(t - bar.n)
 
     try:
         return simulate(
-            mech, q0, v0, args.t_final, method=args.method, integrator=args.integrator,
-            dt=args.dt, rtol=args.rtol, atol=args.atol, stabilization=args.stabilization,
-            t_eval=np.linspace(0.0, args.t_final, n), progress=progress if bar else None,
+            mech,
+            q0,
+            v0,
+            args.t_final,
+            method=args.method,
+            integrator=args.integrator,
+            dt=args.dt,
+            rtol=args.rtol,
+            atol=args.atol,
+            stabilization=args.stabilization,
+            t_eval=np.linspace(0.0, args.t_final, n),
+            progress=progress if bar else None,
         )
     finally:
         if bar is not None:
@@ -208,6 +284,8 @@ def simulate_from_args(args, mech):
 
 
 def _cmd_simulate(args) -> int:
+    from .plotting import coordinate_series
+
     mech = _load(args)
     traj = simulate_from_args(args, mech)
     info = traj.info
@@ -225,9 +303,8 @@ def _cmd_simulate(args) -> int:
         "energy_drift": traj.energy_drift,
         "repartitions": len(info["repartitions"]),
         "final_independent": {
-            mech.coordinate_names[i]: float(traj.q[-1][mech.model.joints[
-                mech.model.getJointId(mech.coordinate_names[i])].idx_q])
-            for i in mech.independent_idx_v if mech.coordinate_names[i] in mech.model.names
+            mech.coordinate_names[i]: float(coordinate_series(mech, traj.q[-1], i))
+            for i in mech.independent_idx_v
         },
     }
     if args.out:
@@ -286,7 +363,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("validate", "compare forward dynamics with pinocchio.constraintDynamics", _cmd_validate)
     p.add_argument("--samples", type=int, default=100, help="random consistent states")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="method to check")
+    # "pinocchio" is the reference itself: comparing it with itself checks nothing.
+    p.add_argument(
+        "--method",
+        default="kkt",
+        choices=sorted(set(METHODS) - {"pinocchio"}),
+        help="method to check",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
     p = add(
@@ -304,6 +387,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("plot", help=help_, description=help_)
     p.add_argument("file", help="trajectory (.npz from Trajectory.save) or URDF file to simulate")
     p.add_argument(
+        "--urdf",
+        metavar="URDF",
+        help="the mechanism of a .npz trajectory: gives joint types and units; needed"
+        " when nq != nv (continuous joints)",
+    )
+    p.add_argument(
         "--gravity",
         type=float,
         nargs=3,
@@ -312,9 +401,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_simulation_arguments(p)
     p.add_argument(
-        "--coordinates", nargs="+", metavar="JOINT", help="joints to plot (default: independent)"
+        "--coordinates",
+        nargs="+",
+        type=_coordinate,
+        metavar="COORD",
+        help="joint names or velocity indices (0..nv-1) to plot (default: independent)",
     )
-    p.add_argument("-o", "--output", required=True, help="image file to write")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="image file to write; its suffix gives the format (.png, .pdf, .svg, ...)",
+    )
     p.set_defaults(handler=_cmd_plot)
     return parser
 
@@ -325,8 +423,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
     try:
+        check_args(args)
         return int(args.handler(args))
-    except ClosedChainError as exc:
+    except (ClosedChainError, OSError) as exc:
+        # OSError: a file the command writes cannot be (no such directory, no permission).
         print(f"closedchain: error: {exc}", file=sys.stderr)
         return 2
 

@@ -319,11 +319,42 @@ def scene_path(*names: str) -> str:
     return SCENE_ROOT + "".join("/" + urllib.parse.quote(n, safe="") for n in names)
 
 
-def _resolve_mesh(filename: str, urdf_dir: Path) -> Path | None:
-    import yourdfpy
+def _mesh_candidates(filename: str, urdf_dir: Path) -> list[Path]:
+    """Return the paths a URDF mesh ``filename`` may refer to, in lookup order.
 
-    candidate = Path(yourdfpy.filename_handler_magic(filename, dir=str(urdf_dir)))
-    return candidate if candidate.is_file() else None
+    A plain name is relative to ``urdf_dir`` (or absolute); ``file://`` gives
+    a path the same way; ``package://pkg/sub`` is looked up as ``sub`` in
+    ``urdf_dir``, then in its parent directories (where ROS packages keep
+    their meshes, so that :func:`_resolve_mesh` can name a file it refuses);
+    other schemes give nothing.
+    """
+    scheme, sep, rest = filename.partition("://")
+    if not sep:
+        return [urdf_dir / filename]
+    if scheme == "file":
+        return [urdf_dir / urllib.parse.unquote(rest)]
+    if scheme == "package":
+        sub = rest.partition("/")[2]
+        return [d / sub for d in (urdf_dir, *urdf_dir.parents)] if sub else []
+    return []
+
+
+def _resolve_mesh(filename: str, urdf_dir: Path) -> tuple[Path | None, Path | None]:
+    """Return (the mesh file, None), or (None, a file found outside ``urdf_dir``).
+
+    Only files under the URDF's directory (after resolving ``..`` and symbolic
+    links) are drawn, so a URDF cannot embed arbitrary local files in the page.
+    ``urdf_dir`` must be resolved. (None, None): no file found.
+    """
+    outside = None
+    for candidate in _mesh_candidates(filename, urdf_dir):
+        if not candidate.is_file():
+            continue
+        found = candidate.resolve()
+        if found.is_relative_to(urdf_dir):
+            return found, None
+        outside = outside or found
+    return None, outside
 
 
 def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS):
@@ -331,8 +362,10 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
 
     Materials are resolved by name against the robot's top-level
     ``<material>`` elements. Mesh files are looked up relative to the URDF
-    (``package://`` and ``file://`` prefixes are handled by yourdfpy's
-    resolver); a mesh whose file is not found is skipped with a warning.
+    (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub``); only files
+    under the URDF's directory are drawn (the page embeds them, so a URDF must
+    not reach other local files): a mesh outside it, or whose file is not
+    found, is skipped with a warning naming the file and the link.
 
     Args:
         mech: the mechanism.
@@ -370,7 +403,19 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
                     VisualShape(link.name, "sphere", (float(g.sphere.radius),), origin, rgba)
                 )
             elif g.mesh is not None:
-                found = _resolve_mesh(g.mesh.filename, urdf_dir)
+                found, outside = _resolve_mesh(g.mesh.filename, urdf_dir)
+                if outside is not None:
+                    logger.warning(
+                        "%s: link %r visual %d: mesh file %r (%s) is outside the URDF's"
+                        " directory %s; not drawn",
+                        mech.path,
+                        link.name,
+                        i,
+                        g.mesh.filename,
+                        outside,
+                        urdf_dir,
+                    )
+                    continue
                 if found is None:
                     logger.warning(
                         "%s: link %r visual %d: mesh file %r not found; not drawn",
