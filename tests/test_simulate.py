@@ -741,3 +741,26 @@ def test_energy_drift_is_relative_to_the_energy_exchanged():
         **base, energy=np.array([0.0, 1e-12, -1e-12, 0.0]), kinetic_energy=np.ones(n)
     )
     assert abs(wobble.energy_drift - 1e-12) <= 1e-24
+
+
+def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
+    """A controller calling the dynamics inside a Baumgarte run sees the exact gamma."""
+    q0 = cc.assemble(fourbar, np.array([np.radians(10.0), -1.13, -1.81]), fixed=["crank_joint"])
+    seen = []
+
+    def tau(t, q, v):
+        res = cc.forward_dynamics(fourbar, q, v)
+        seen.append(float(np.max(np.abs(res.gamma - cc.compute_gamma(fourbar, q, v)))))
+        return np.zeros(fourbar.nv)
+
+    simulate(
+        fourbar,
+        q0,
+        np.zeros(fourbar.nv),
+        0.05,
+        integrator="rk4",
+        dt=1e-2,
+        stabilization="baumgarte",
+        tau=tau,
+    )
+    assert seen and max(seen) <= 1e-15

@@ -47,7 +47,7 @@ import scipy.linalg
 
 from .dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from .dynamics import SolverSettings
-from .dynamics.base import METHODS, get_method, workspace
+from .dynamics.base import METHODS, get_method
 from .exceptions import ClosedChainError, SingularConfigurationError, UnknownChoiceError
 from .kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
 from .trajectory import Trajectory
@@ -442,9 +442,11 @@ def simulate(
         rtol = settings.rtol if rtol is None else float(rtol)
         atol = settings.atol if atol is None else float(atol)
 
+    if stabilization == "baumgarte":
+        gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
+        solver_settings = replace(solver_settings, baumgarte=gains)
     problem = _Problem(mech, method, tau, solver_settings, settings)
     recorder = _Recorder(mech, settings.drift_limit)
-    ws = workspace(mech)
     info = {
         "mechanism": mech.name,
         "method": method,
@@ -460,41 +462,37 @@ def simulate(
         "repartitions": [],
     }
     if stabilization == "baumgarte":
-        info["baumgarte"] = [settings.baumgarte_alpha, settings.baumgarte_beta]
-        ws.baumgarte = (settings.baumgarte_alpha, settings.baumgarte_beta)
+        info["baumgarte"] = list(solver_settings.baumgarte)
     cpu0 = time.process_time()
-    try:
-        if fixed:
-            steps = _run_fixed(
-                problem,
-                recorder,
-                q0,
-                v0,
-                t_final,
-                dt,
-                integrator,
-                stabilization,
-                t_eval,
-                progress,
-                info,
-            )
-        else:
-            steps = _run_adaptive(
-                problem,
-                recorder,
-                q0,
-                v0,
-                t_final,
-                rtol,
-                atol,
-                integrator,
-                stabilization,
-                t_eval,
-                progress,
-                info,
-            )
-    finally:
-        ws.baumgarte = None
+    if fixed:
+        steps = _run_fixed(
+            problem,
+            recorder,
+            q0,
+            v0,
+            t_final,
+            dt,
+            integrator,
+            stabilization,
+            t_eval,
+            progress,
+            info,
+        )
+    else:
+        steps = _run_adaptive(
+            problem,
+            recorder,
+            q0,
+            v0,
+            t_final,
+            rtol,
+            atol,
+            integrator,
+            stabilization,
+            t_eval,
+            progress,
+            info,
+        )
     info["cpu_time"] = time.process_time() - cpu0
     info["steps"] = steps
     info["evaluations"] = problem.n_evals

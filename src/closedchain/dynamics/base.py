@@ -35,6 +35,10 @@ class SolverSettings:
         cond_max: largest acceptable condition number of the matrix a method
             factorizes (KKT matrix, Delassus matrix, J_D, reduced mass
             matrix); above it the method raises SingularConfigurationError.
+        baumgarte: gains (alpha, beta) [1/s] of Baumgarte stabilization
+            (Baumgarte 1972): the acceleration constraint becomes
+            J a + gamma + 2 alpha J v + beta^2 phi = 0. None (default): exact
+            J a + gamma = 0. The simulator sets it for ``stabilization="baumgarte"``.
         pinocchio_mu: proximal regularization of pinocchio.constraintDynamics
             (mu = 0 returns NaN with redundant rows, see PINOCCHIO.md).
         pinocchio_accuracy: absolute accuracy of its proximal iterations.
@@ -42,6 +46,7 @@ class SolverSettings:
     """
 
     cond_max: float = 1e12
+    baumgarte: tuple[float, float] | None = None
     pinocchio_mu: float = 1e-8
     pinocchio_accuracy: float = 1e-13
     pinocchio_max_iter: int = 50
@@ -120,10 +125,6 @@ class Workspace:
         self.rhs = np.zeros(nv + nc)
         self.phi = np.zeros(nc)
         self.lower = np.tril_indices(nv, -1)  # CRBA fills the upper triangle only
-        #: Baumgarte gains (alpha, beta) [1/s] set by the simulator while it
-        #: runs with Baumgarte stabilization; None otherwise. compute_terms then
-        #: returns gamma + 2 alpha J v + beta^2 phi (Baumgarte 1972).
-        self.baumgarte: tuple[float, float] | None = None
         #: Per-method buffers, keyed by method name, made on a method's first
         #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
         self.method_buffers: dict[str, object] = {}
@@ -137,13 +138,20 @@ def workspace(mech: Mechanism) -> Workspace:
     return ws
 
 
-def compute_terms(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> Workspace:
+def compute_terms(
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    baumgarte: tuple[float, float] | None = None,
+) -> Workspace:
     """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
 
     Args:
         mech: the mechanism.
         q: configuration, shape (nq,).
         v: velocity, shape (nv,).
+        baumgarte: gains (alpha, beta) [1/s]; when given, ``gamma`` holds
+            gamma + 2 alpha J v + beta^2 phi (see :class:`SolverSettings`).
 
     Returns:
         The workspace, whose ``M`` (symmetric, full), ``h``, ``J`` and ``gamma`` are current.
@@ -158,10 +166,10 @@ def compute_terms(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> Workspace:
     M[ws.lower] = M.T[ws.lower]
     ws.h[:] = data.nle
     if mech.nc:
-        if ws.baumgarte is None:
+        if baumgarte is None:
             mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
         else:
-            alpha, beta = ws.baumgarte
+            alpha, beta = baumgarte
             mech.constraints.evaluate(model, data, phi=ws.phi, J=ws.J, gamma=ws.gamma)
             ws.gamma += 2.0 * alpha * (ws.J @ v) + beta * beta * ws.phi
     return ws

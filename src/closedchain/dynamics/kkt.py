@@ -84,7 +84,7 @@ def solve_kkt(
 @register("kkt")
 def kkt(mech, q, v, tau, settings: SolverSettings):
     """Solve the dense KKT system; return (a, lam)."""
-    ws = compute_terms(mech, q, v)
+    ws = compute_terms(mech, q, v, settings.baumgarte)
     a, lam, rcond, info = solve_kkt(ws.M, ws.J, tau - ws.h, ws.gamma, K=ws.K, rhs=ws.rhs)
     check_condition(mech, q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, info, settings)
     return a, lam

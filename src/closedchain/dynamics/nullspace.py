@@ -113,7 +113,7 @@ def nullspace(
     Raises:
         SingularConfigurationError: J has lost rank, or N^T M N is singular, at q.
     """
-    ws = compute_terms(mech, q, v)
+    ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
     buf = _buffers(ws, nv, nc)
     M, f = ws.M, buf.f

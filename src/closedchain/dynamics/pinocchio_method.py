@@ -46,7 +46,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
-from ..exceptions import SingularConfigurationError
+from ..exceptions import ClosedChainError, SingularConfigurationError
 from .base import SolverSettings, compute_terms, register, workspace
 
 if TYPE_CHECKING:
@@ -147,6 +147,11 @@ def pinocchio_method(
             satisfy the acceleration constraint, or J has lost rank, at q.
         ValidationUnavailableError: a prismatic loop.
     """
+    if settings.baumgarte is not None:
+        raise ClosedChainError(
+            "method 'pinocchio' cannot apply Baumgarte gains (pinocchio.constraintDynamics "
+            "solves J a + gamma = 0); use kkt, schur, nullspace or reduced"
+        )
     a, force = pinocchio_constrained_dynamics(mech, q, v, tau, settings)
     ws = compute_terms(mech, q, v)  # our J and gamma, for lam and the residuals
     nc = mech.nc

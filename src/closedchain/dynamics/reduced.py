@@ -181,7 +181,7 @@ def reduced_dynamics(
         ClosedChainError: ``independent_idx_v`` is not ``mobility`` distinct indices.
     """
     part = _partition(mech, independent_idx_v)
-    ws = compute_terms(mech, q, v)
+    ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
     m = nv - nc
     M, S, c, f = ws.M, part.S, part.c, part.f

@@ -76,7 +76,7 @@ def schur(
     Raises:
         SingularConfigurationError: M or D is singular or ill-conditioned at q.
     """
-    ws = compute_terms(mech, q, v)
+    ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
     buf = _buffers(ws, nv, nc)
     M = ws.M
