@@ -153,7 +153,7 @@ def test_reduced_with_chosen_partition(mechs, states, model):
         ind, dep = choose_partition(mech, q)
         assert len(ind) == mech.mobility and len(dep) == mech.nc
         assert sorted([*ind, *dep]) == list(range(mech.nv))
-        a, lam = reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=ind)
+        a, lam = reduced_dynamics(mech, q, v, tau, settings=SolverSettings(), independent_idx_v=ind)
         ref = forward_dynamics(mech, q, v, tau, method="kkt")
         assert rel_err(a, ref.a) <= TOL_A
         assert rel_err(ref.J.T @ lam, ref.generalized_constraint_force()) <= TOL_FORCE
@@ -186,12 +186,12 @@ def test_reduced_raises_for_singular_partition_and_repartitions(mechs):
         match=r"(?s)J_D .*crank_joint, coupler_joint.* is singular at q = \[.*\] \(condition "
         r"number .* > .*choose_partition",
     ) as info:
-        reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=[2])
+        reduced_dynamics(mech, q, v, tau, settings=SolverSettings(), independent_idx_v=[2])
     assert info.value.condition_number > SolverSettings().cond_max
     np.testing.assert_array_equal(info.value.q, q)
     ind, dep = choose_partition(mech, q)
     assert 2 not in ind
-    a, _ = reduced_dynamics(mech, q, v, tau, SolverSettings(), independent_idx_v=ind)
+    a, _ = reduced_dynamics(mech, q, v, tau, settings=SolverSettings(), independent_idx_v=ind)
     assert rel_err(a, forward_dynamics(mech, q, v, tau).a) <= TOL_A
 
 
@@ -199,11 +199,11 @@ def test_reduced_separate_JD_bound(mechs, states):
     """cond_JD_max is a re-partition trigger independent of settings.cond_max."""
     mech = mechs["fourbar"]
     q, v, tau = states["fourbar"][0]
-    reduced_dynamics(mech, q, v, tau, SolverSettings())
+    reduced_dynamics(mech, q, v, tau, settings=SolverSettings())
     cond = partition_condition(mech)
     assert 1.0 <= cond < 1e6
     with pytest.raises(cc.SingularConfigurationError, match=r"(?s)J_D .*condition number"):
-        reduced_dynamics(mech, q, v, tau, SolverSettings(), cond_JD_max=cond / 2)
+        reduced_dynamics(mech, q, v, tau, settings=SolverSettings(), cond_JD_max=cond / 2)
 
 
 @pytest.mark.parametrize("bad", [[0, 1], [3], [1, 1]])
@@ -211,7 +211,12 @@ def test_reduced_rejects_bad_partition(mechs, bad):
     mech = mechs["fourbar"]
     with pytest.raises(cc.ClosedChainError, match=r"independent_idx_v = .* must be 1 distinct"):
         reduced_dynamics(
-            mech, mech.q_ref, np.zeros(3), np.zeros(3), SolverSettings(), independent_idx_v=bad
+            mech,
+            mech.q_ref,
+            np.zeros(3),
+            np.zeros(3),
+            settings=SolverSettings(),
+            independent_idx_v=bad,
         )
 
 

@@ -255,7 +255,7 @@ def test_over_actuated_fourbar_minimum_norm_torques(mechs, states):
     """Two actuators on a 1-dof linkage: the torques are the minimum-norm ones."""
     mech = mechs["fourbar"]
     for q, v, a_ind in states["fourbar"][:10]:
-        inv = inverse_dynamics(mech, q, v, a_ind, tau_mask=["crank_joint", "rocker_joint"])
+        inv = inverse_dynamics(mech, q, v, a_ind, actuated=["crank_joint", "rocker_joint"])
         assert inv.tau[1] == 0.0
         fwd = forward_dynamics(mech, q, v, inv.tau)
         assert rel_err(fwd.a, inv.a) <= TOL_ROUND_TRIP
@@ -350,14 +350,14 @@ def test_duplicate_coordinate(mechs):
 def test_unknown_joint_name(mechs):
     mech = mechs["fourbar"]
     with pytest.raises(cc.ClosedChainError, match=r"unknown joint 'elbow'; joints: crank_joint"):
-        inverse_dynamics(mech, mech.q_ref, np.zeros(3), [0.0], tau_mask=["elbow"])
+        inverse_dynamics(mech, mech.q_ref, np.zeros(3), [0.0], actuated=["elbow"])
 
 
 def test_under_actuated(mechs):
     mech = mechs["agile_eye"]
     with pytest.raises(cc.ClosedChainError, match=r"under-actuated: 2 actuated coordinates"):
         inverse_dynamics(
-            mech, mech.q_ref, np.zeros(mech.nv), [0.0] * 3, tau_mask=["actuator_1", "actuator_2"]
+            mech, mech.q_ref, np.zeros(mech.nv), [0.0] * 3, actuated=["actuator_1", "actuator_2"]
         )
 
 
@@ -377,7 +377,7 @@ def test_actuation_singularity(mechs):
         match=r"(?s)N\^T B .* is singular at q = \[.*condition number .*actuated coordinates "
         r"rocker_joint cannot produce every motion",
     ):
-        inverse_dynamics(mech, q, np.zeros(3), [0.0], tau_mask=["rocker_joint"])
+        inverse_dynamics(mech, q, np.zeros(3), [0.0], actuated=["rocker_joint"])
     # the crank motor can
     inverse_dynamics(mech, q, np.zeros(3), [0.0])
 

@@ -165,7 +165,7 @@ def inverse_dynamics(
     v: np.ndarray,
     a_independent: Sequence[float] | np.ndarray,
     *,
-    tau_mask: Iterable[str | int] | str = "actuated",
+    actuated: Iterable[str | int] | str = "actuated",
     coordinates: Iterable[str | int] | str = "independent",
     settings: SolverSettings = DEFAULT_SETTINGS,
 ) -> InverseDynamicsResult:
@@ -177,7 +177,7 @@ def inverse_dynamics(
         v: velocity, shape (nv,), with J v = 0.
         a_independent: accelerations of ``coordinates``, shape (mobility,)
             [rad/s^2 or m/s^2], in the order of ``coordinates``.
-        tau_mask: coordinates where torques may act: ``"actuated"`` (the
+        actuated: coordinates where torques may act: ``"actuated"`` (the
             ``<transmission>`` joints), or joint names / velocity indices.
         coordinates: the prescribed coordinates: ``"independent"``
             (``mech.independent_idx_v``) or ``mobility`` joint names / velocity
@@ -212,12 +212,12 @@ def inverse_dynamics(
             f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
             f"got {np.asarray(a_independent)}"
         )
-    A = mech.coordinate_indices(tau_mask)
+    A = mech.coordinate_indices(actuated)
     if len(A) < mob:
         raise ClosedChainError(
             f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
             f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
-            f"the accelerations of {mob} degrees of freedom; tau_mask must name at least {mob}"
+            f"the accelerations of {mob} degrees of freedom; actuated must name at least {mob}"
         )
 
     ws = compute_terms(mech, q, v)

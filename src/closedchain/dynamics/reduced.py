@@ -151,9 +151,9 @@ def reduced_dynamics(
     q: np.ndarray,
     v: np.ndarray,
     tau: np.ndarray,
+    *,
     settings: SolverSettings = DEFAULT_SETTINGS,
     independent_idx_v: np.ndarray | None = None,
-    *,
     cond_JD_max: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Solve the constrained dynamics in reduced coordinates for a given partition.
@@ -255,4 +255,4 @@ def reduced(
     Returns:
         ``(a, lam)`` as :func:`reduced_dynamics`.
     """
-    return reduced_dynamics(mech, q, v, tau, settings)
+    return reduced_dynamics(mech, q, v, tau, settings=settings)
