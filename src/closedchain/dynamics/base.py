@@ -121,7 +121,7 @@ class Workspace:
         self.h = np.zeros(nv)
         self.J = np.zeros((nc, nv))
         self.gamma = np.zeros(nc)
-        self.K = np.zeros((nv + nc, nv + nc))
+        self.K = np.zeros((nv + nc, nv + nc), order="F")  # LAPACK's layout
         self.rhs = np.zeros(nv + nc)
         self.phi = np.zeros(nc)
         self.lower = np.tril_indices(nv, -1)  # CRBA fills the upper triangle only

@@ -58,7 +58,8 @@ def solve_kkt(
         J: constraint Jacobian, shape (nc, nv).
         tau_minus_h: tau - h, shape (nv,).
         gamma: Jdot v, shape (nc,).
-        K: optional preallocated buffer, shape (nv + nc, nv + nc).
+        K: optional preallocated buffer, shape (nv + nc, nv + nc), Fortran order
+            (C order works, at the cost of a copy inside LAPACK's wrapper).
         rhs: optional preallocated buffer, shape (nv + nc,).
 
     Returns:
@@ -67,7 +68,7 @@ def solve_kkt(
         (> 0: K exactly singular). Callers decide what condition is acceptable.
     """
     nv, nc = M.shape[0], J.shape[0]
-    K = np.empty((nv + nc, nv + nc)) if K is None else K
+    K = np.empty((nv + nc, nv + nc), order="F") if K is None else K
     rhs = np.empty(nv + nc) if rhs is None else rhs
     K[:nv, :nv] = M
     K[:nv, nv:] = J.T
@@ -75,7 +76,7 @@ def solve_kkt(
     K[nv:, nv:] = 0.0
     rhs[:nv] = tau_minus_h
     rhs[nv:] = -gamma
-    anorm = np.abs(K).sum(axis=0).max()
+    anorm = lapack.dlange("1", K)  # K in Fortran order: no copy
     lu, _, x, info = lapack.dgesv(K, rhs)
     rcond = lapack.dgecon(lu, anorm)[0] if info == 0 else 0.0
     return x[:nv], x[nv:], float(rcond), int(info)
