@@ -764,3 +764,12 @@ def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
         tau=tau,
     )
     assert seen and max(seen) <= 1e-15
+
+
+def test_csv_names_configuration_entries_when_nq_differs_from_nv(load_mechanism, tmp_path):
+    """A continuous joint's two configuration entries get their own CSV column names."""
+    mech = load_mechanism("slider_crank")
+    traj = simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.01, integrator="rk4", dt=1e-3)
+    header = traj.save(tmp_path / "t.csv").read_text().splitlines()[0].split(",")
+    assert header[1:3] == ["q:crank_joint[0]", "q:crank_joint[1]"]
+    assert len([h for h in header if h.startswith("q:")]) == mech.nq

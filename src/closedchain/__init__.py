@@ -36,7 +36,7 @@ from .kinematics import (
     singularity_measures,
 )
 from .mechanism import LoadSettings, Mechanism, load
-from .plotting import plot_trajectory
+from .plotting import coordinate_series, plot_trajectory
 from .simulate import (
     INTEGRATORS,
     STABILIZATIONS,
@@ -84,6 +84,7 @@ __all__ = [
     "inverse_dynamics",
     "joint_reactions",
     "load",
+    "coordinate_series",
     "plot_trajectory",
     "project_velocity",
     "random_consistent_state",

@@ -85,6 +85,8 @@ class Mechanism:
         independent_source: ``"urdf"``, ``"actuated"`` or ``"automatic"``.
         q_ref: an assembled configuration, shape (nq,).
         coordinate_names: one name per velocity coordinate.
+        configuration_names: one name per configuration entry (``joint[k]`` for
+            joints with several entries, e.g. a continuous joint's cos, sin).
     """
 
     def __init__(
@@ -110,6 +112,12 @@ class Mechanism:
             nvj = model.joints[j].nv
             names += [jn] if nvj == 1 else [f"{jn}[{k}]" for k in range(nvj)]
         self.coordinate_names: tuple[str, ...] = tuple(names)
+        qnames = []
+        for j in range(1, model.njoints):
+            jn, nqj = model.names[j], model.joints[j].nq
+            qnames += [jn] if nqj == 1 else [f"{jn}[{k}]" for k in range(nqj)]
+        #: One name per configuration entry (differs from coordinate_names when nq != nv).
+        self.configuration_names: tuple[str, ...] = tuple(qnames)
         self.actuated_joints = urdf.actuated
         self.actuated_idx_v = self.coordinate_indices(urdf.actuated)
         self.independent_idx_v = np.arange(0)

@@ -457,6 +457,7 @@ def simulate(
         "atol": atol,
         "t_final": float(t_final),
         "coordinate_names": list(mech.coordinate_names) if mech.nq == mech.nv else None,
+        "configuration_names": list(mech.configuration_names),
         "velocity_names": list(mech.coordinate_names),
         "independent": [mech.coordinate_names[i] for i in mech.independent_idx_v],
         "repartitions": [],

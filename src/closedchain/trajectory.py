@@ -80,7 +80,11 @@ class Trajectory:
                 path, **{k: getattr(self, k) for k in _ARRAYS}, **extra, info=json.dumps(self.info)
             )
         elif path.suffix == ".csv":
-            names = self.info.get("coordinate_names") or [f"q{i}" for i in range(self.q.shape[1])]
+            names = (
+                self.info.get("configuration_names")
+                or self.info.get("coordinate_names")
+                or [f"q{i}" for i in range(self.q.shape[1])]
+            )
             vnames = self.info.get("velocity_names") or [f"v{i}" for i in range(self.v.shape[1])]
             header = (
                 ["t"]
