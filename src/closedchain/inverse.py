@@ -55,7 +55,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
-from .dynamics.base import DEFAULT_SETTINGS, SolverSettings, compute_terms
+from .dynamics.base import DEFAULT_SETTINGS, SolverSettings, compute_terms, workspace
 from .exceptions import ClosedChainError, SingularConfigurationError
 
 if TYPE_CHECKING:
@@ -137,6 +137,25 @@ def _resolve_ordered(mech: Mechanism, spec: Iterable[str | int] | str, what: str
     return np.array(out, dtype=int)
 
 
+def _cached_indices(mech: Mechanism, coordinates, actuated) -> tuple:
+    """Return (P, F, A) for these specs, resolved once per mechanism (controllers call
+    inverse_dynamics every evaluation with the same specs)."""
+    try:
+        key = tuple(x if isinstance(x, str) else tuple(x) for x in (coordinates, actuated))
+        hash(key)
+    except TypeError:
+        key = None
+    cache = workspace(mech).method_buffers.setdefault("inverse_indices", {})
+    if key is not None and key in cache:
+        return cache[key]
+    P = _resolve_ordered(mech, coordinates, "coordinates")
+    F = np.setdiff1d(np.arange(mech.nv), P)
+    A = mech.coordinate_indices(actuated)
+    if key is not None:
+        cache[key] = (P, F, A)
+    return P, F, A
+
+
 def _cond_error(mech, q, what: str, cond: float, settings: SolverSettings, hint: str):
     return SingularConfigurationError(
         f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
@@ -199,7 +218,7 @@ def inverse_dynamics(
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     nv, nc, mob = mech.nv, mech.nc, mech.mobility
-    P = _resolve_ordered(mech, coordinates, "coordinates")
+    P, F, A = _cached_indices(mech, coordinates, actuated)
     if len(P) != mob:
         raise ClosedChainError(
             f"{mech.name}: coordinates names {len(P)} coordinates "
@@ -212,7 +231,6 @@ def inverse_dynamics(
             f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
             f"got {np.asarray(a_independent)}"
         )
-    A = mech.coordinate_indices(actuated)
     if len(A) < mob:
         raise ClosedChainError(
             f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
@@ -228,7 +246,6 @@ def inverse_dynamics(
     a = np.zeros(nv)
     a[P] = a_P
     if nc:
-        F = np.setdiff1d(np.arange(nv), P)
         JF = J[:, F]
         lu, piv, info = lapack.dgetrf(JF)
         rcond = lapack.dgecon(lu, lapack.dlange("1", JF))[0] if info == 0 else 0.0
