@@ -24,7 +24,7 @@ import numpy as np
 
 from .dynamics.base import DEFAULT_SETTINGS, SolverSettings
 from .exceptions import ClosedChainError
-from .inverse import inverse_dynamics
+from .inverse import _resolve_ordered, inverse_dynamics
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -33,13 +33,6 @@ __all__ = ["computed_torque_controller"]
 
 #: A reference: t [s] -> (q_P, v_P, a_P), each of shape (mobility,) [rad, rad/s, rad/s^2].
 Reference = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
-
-
-def _ordered_indices(mech: Mechanism, coordinates: Iterable[str | int] | str) -> np.ndarray:
-    """Return the velocity indices of ``coordinates`` in the caller's order."""
-    if isinstance(coordinates, str):
-        return mech.coordinate_indices(coordinates)
-    return np.array([int(mech.coordinate_indices([c])[0]) for c in coordinates], dtype=int)
 
 
 def computed_torque_controller(
@@ -74,7 +67,7 @@ def computed_torque_controller(
         ClosedChainError: a controlled coordinate is not a 1-dof joint, or
             the number of coordinates is not the mobility.
     """
-    idx_v = _ordered_indices(mech, coordinates)
+    idx_v = _resolve_ordered(mech, coordinates, "coordinates")
     if len(idx_v) != mech.mobility:
         raise ClosedChainError(
             f"{mech.name}: computed-torque control needs exactly {mech.mobility} coordinates "

@@ -653,10 +653,7 @@ def _run_adaptive(
         )
         restart = False
         while solver.status == "running":
-            try:
-                message = solver.step()
-            except (SingularConfigurationError, SimulationError):
-                raise
+            message = solver.step()
             if solver.status == "failed":
                 raise SimulationError(
                     f"{mech.name}: integrator {integrator} failed at t = {solver.t:.9g} s: "
@@ -718,8 +715,3 @@ def _run_adaptive(
         if not restart:
             break
     return steps
-
-
-def replace_settings(settings: SimulationSettings, **changes) -> SimulationSettings:
-    """Return a copy of ``settings`` with fields changed (dataclasses.replace)."""
-    return replace(settings, **changes)
