@@ -110,8 +110,19 @@ class RowInfo:
         return f"{self.loop}.{self.kind}"
 
 
-class _LoopBlock:
-    """Active rows of one loop and the constant vectors they use."""
+class LoopRows:
+    """The active rows of one loop and the constant vectors they are built from.
+
+    Attributes:
+        spec: the loop as written in the URDF.
+        fid_p, fid_s: model frame ids of the cut-joint frames c1 and c2.
+        world: world axes (0, 1, 2) of the translation rows, in row order.
+        perp: unit vectors n_i in c1 of the prismatic cross-axis rows, shape (nt, 3).
+        rot_u, rot_w: the vectors u (in c1) and w (in c2) of the rotation rows
+            (R_p u).(R_s w), shapes (nr, 3).
+        rows: the active rows' RowInfo, in evaluation order (world, perp, rot).
+        start: first row of this loop in the layer's output.
+    """
 
     def __init__(self, spec: LoopSpec, fid_p: int, fid_s: int, keep: list[int] | None) -> None:
         self.spec = spec
@@ -207,7 +218,7 @@ class ConstraintLayer:
         self.frame_ids = frame_ids
         self.keep = keep
         self._blocks = [
-            _LoopBlock(spec, fp, fs, None if keep is None else list(keep[i]))
+            LoopRows(spec, fp, fs, None if keep is None else list(keep[i]))
             for i, (spec, (fp, fs)) in enumerate(zip(loops, frame_ids, strict=True))
         ]
         self.rows: tuple[RowInfo, ...] = tuple(r for b in self._blocks for r in b.rows)
@@ -223,6 +234,10 @@ class ConstraintLayer:
             start += b.n
         self._active = [b for b in self._blocks if b.n]
         self._build_tables()
+
+    def per_loop(self) -> list[tuple[LoopRows, slice]]:
+        """Return each loop's rows and their slice of phi, J, gamma and lam, in URDF order."""
+        return list(zip(self._blocks, self._slices, strict=True))
 
     def restricted(self, rows: list[int]) -> ConstraintLayer:
         """Return a layer that evaluates only the given declared rows.

@@ -320,17 +320,6 @@ def inverse_dynamics(
     )
 
 
-def _loop_blocks(mech: Mechanism):
-    """Yield ``(block, slice)`` per loop of the independent rows.
-
-    Reads the constraint layer's per-loop row data (its ``_blocks`` and
-    ``_slices``): the reaction formula needs exactly the vectors the rows are
-    built from.
-    """
-    layer = mech.constraints
-    return zip(layer._blocks, layer._slices, strict=True)
-
-
 def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> list[LoopReaction]:
     """Return the wrench each loop joint transmits, from the multipliers.
 
@@ -360,7 +349,7 @@ def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> li
     model, data = mech.model, mech.data
     pin.forwardKinematics(model, data, q)
     out = []
-    for blk, sl in _loop_blocks(mech):
+    for blk, sl in mech.constraints.per_loop():
         oMp = pin.updateFramePlacement(model, data, blk.fid_p)
         oMs = pin.updateFramePlacement(model, data, blk.fid_s)
         Rp, Rs = oMp.rotation, oMs.rotation
