@@ -55,8 +55,14 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
-from .dynamics.base import DEFAULT_SETTINGS, SolverSettings, compute_terms, workspace
-from .exceptions import ClosedChainError, SingularConfigurationError
+from .dynamics.base import (
+    DEFAULT_SETTINGS,
+    SolverSettings,
+    compute_terms,
+    singular_error,
+    workspace,
+)
+from .exceptions import ClosedChainError
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -156,15 +162,6 @@ def _cached_indices(mech: Mechanism, coordinates, actuated) -> tuple:
     return P, F, A
 
 
-def _cond_error(mech, q, what: str, cond: float, settings: SolverSettings, hint: str):
-    return SingularConfigurationError(
-        f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
-        f"(condition number {cond:.3e} > cond_max {settings.cond_max:.1e}); {hint}",
-        q=np.array(q),
-        condition_number=cond,
-    )
-
-
 def _svd(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     U, s, Vt, info = lapack.dgesdd(A)
     if info != 0:  # pragma: no cover - LAPACK convergence failure
@@ -251,14 +248,14 @@ def inverse_dynamics(
         rcond = lapack.dgecon(lu, lapack.dlange("1", JF))[0] if info == 0 else 0.0
         cond = 1.0 / rcond if rcond > 0.0 else float("inf")
         if cond > settings.cond_max:
-            raise _cond_error(
+            raise singular_error(
                 mech,
                 q,
                 "J_F (constraint-Jacobian columns of the coordinates not prescribed: "
                 + ", ".join(mech.coordinate_names[i] for i in F)
                 + ")",
                 cond,
-                settings,
+                settings.cond_max,
                 "the prescribed coordinates "
                 + ", ".join(mech.coordinate_names[i] for i in P)
                 + " do not determine the motion here; prescribe other coordinates",
@@ -270,12 +267,12 @@ def inverse_dynamics(
         U, s, Vt = _svd(J)
         cond = _condition(s)
         if cond > settings.cond_max:
-            raise _cond_error(
+            raise singular_error(
                 mech,
                 q,
                 "the constraint Jacobian J",
                 cond,
-                settings,
+                settings.cond_max,
                 "the loops have lost rank, so their multipliers are not unique",
             )
         N = Vt[nc:].T
@@ -290,12 +287,12 @@ def inverse_dynamics(
     Ug, sg, Vgt = _svd(G)
     cond = 1.0 / sg[-1] if sg[-1] > 0.0 else float("inf")
     if cond > settings.cond_max:
-        raise _cond_error(
+        raise singular_error(
             mech,
             q,
             "N^T B (the actuators' reach into the motion space)",
             cond,
-            settings,
+            settings.cond_max,
             "the actuated coordinates "
             + ", ".join(mech.coordinate_names[i] for i in A)
             + " cannot produce every motion here (an actuation singularity)",

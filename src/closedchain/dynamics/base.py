@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from ..exceptions import UnknownChoiceError
+from ..exceptions import SingularConfigurationError, UnknownChoiceError
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -128,6 +128,56 @@ class Workspace:
         #: Per-method buffers, keyed by method name, made on a method's first
         #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
         self.method_buffers: dict[str, object] = {}
+
+
+def method_buffers(ws: Workspace, name: str, factory: Callable[[], object]):
+    """Return the buffers method ``name`` keeps in ``ws``, made by ``factory()`` on first use."""
+    buf = ws.method_buffers.get(name)
+    if buf is None:
+        buf = ws.method_buffers[name] = factory()
+    return buf
+
+
+def singular_error(
+    mech: Mechanism,
+    q: np.ndarray,
+    what: str,
+    cond: float,
+    bound: float,
+    hint: str,
+    *,
+    bound_name: str = "cond_max",
+) -> SingularConfigurationError:
+    """Return the error for a matrix ``what`` whose condition number exceeds ``bound`` at q."""
+    return SingularConfigurationError(
+        f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
+        f"(condition number {cond:.3e} > {bound_name} {bound:.1e}); {hint}",
+        q=np.array(q),
+        condition_number=cond,
+    )
+
+
+def check_condition(mech, q, what: str, rcond: float, info: int, settings: SolverSettings):
+    """Raise SingularConfigurationError when ``rcond`` says the factorized matrix is singular.
+
+    Args:
+        mech: the mechanism (for the message).
+        q: configuration, shape (nq,).
+        what: name of the matrix.
+        rcond: LAPACK reciprocal condition estimate.
+        info: LAPACK info of the factorization (> 0: exactly singular).
+        settings: ``cond_max``.
+    """
+    cond = float("inf") if info > 0 or rcond <= 0 else 1.0 / rcond
+    if cond > settings.cond_max:
+        raise singular_error(
+            mech,
+            q,
+            what,
+            cond,
+            settings.cond_max,
+            "the constraint Jacobian has lost rank or the configuration is a singularity",
+        )
 
 
 def workspace(mech: Mechanism) -> Workspace:

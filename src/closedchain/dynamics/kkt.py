@@ -16,30 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import lapack
 
-from ..exceptions import SingularConfigurationError
-from .base import SolverSettings, compute_terms, register
-
-
-def check_condition(mech, q, what: str, rcond: float, info: int, settings: SolverSettings):
-    """Raise SingularConfigurationError when ``rcond`` says the factorized matrix is singular.
-
-    Args:
-        mech: the mechanism (for the message).
-        q: configuration, shape (nq,).
-        what: name of the matrix.
-        rcond: LAPACK reciprocal condition estimate.
-        info: LAPACK info of the factorization (> 0: exactly singular).
-        settings: ``cond_max``.
-    """
-    cond = float("inf") if info > 0 or rcond <= 0 else 1.0 / rcond
-    if cond > settings.cond_max:
-        raise SingularConfigurationError(
-            f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
-            f"(condition number {cond:.3e} > cond_max {settings.cond_max:.1e}); "
-            "the constraint Jacobian has lost rank or the configuration is a singularity",
-            q=np.array(q),
-            condition_number=cond,
-        )
+from .base import SolverSettings, check_condition, compute_terms, register
 
 
 def solve_kkt(

@@ -43,8 +43,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from ..exceptions import SingularConfigurationError
-from .base import SolverSettings, compute_terms, register
-from .kkt import check_condition
+from .base import SolverSettings, check_condition, compute_terms, method_buffers, register
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -61,13 +60,6 @@ class _NullspaceBuffers:
         self.Mr = np.zeros((m, m))  # N^T M N
         self.f = np.zeros(nv)  # tau - h - M a_p, then tau - h - M a
         self.rc = np.zeros(nc)
-
-
-def _buffers(ws, nv: int, nc: int) -> _NullspaceBuffers:
-    buf = ws.method_buffers.get(_NAME)
-    if buf is None:
-        buf = ws.method_buffers[_NAME] = _NullspaceBuffers(nv, nc)
-    return buf
 
 
 def check_rank(mech: Mechanism, q: np.ndarray, s: np.ndarray, settings: SolverSettings) -> None:
@@ -115,7 +107,7 @@ def nullspace(
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
-    buf = _buffers(ws, nv, nc)
+    buf = method_buffers(ws, _NAME, lambda: _NullspaceBuffers(nv, nc))
     M, f = ws.M, buf.f
     np.subtract(tau, ws.h, out=f)
     if nc == 0:

@@ -47,7 +47,7 @@ import pinocchio as pin
 from scipy.linalg import lapack
 
 from ..exceptions import ClosedChainError, SingularConfigurationError
-from .base import SolverSettings, compute_terms, register, workspace
+from .base import SolverSettings, compute_terms, method_buffers, register, workspace
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -111,9 +111,7 @@ def pinocchio_constrained_dynamics(
     """
     cms, cds, _, data = mech.pinocchio_constraints()
     ws = workspace(mech)
-    buf = ws.method_buffers.get(_NAME)
-    if buf is None:
-        buf = ws.method_buffers[_NAME] = _PinocchioBuffers()
+    buf = method_buffers(ws, _NAME, _PinocchioBuffers)
     prox = buf.proximal(settings)
     model = mech.model
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()

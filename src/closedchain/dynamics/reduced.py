@@ -40,9 +40,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.linalg import lapack
 
-from ..exceptions import ClosedChainError, SingularConfigurationError
-from .base import DEFAULT_SETTINGS, SolverSettings, compute_terms, register, workspace
-from .kkt import check_condition
+from ..exceptions import ClosedChainError
+from .base import (
+    DEFAULT_SETTINGS,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    register,
+    singular_error,
+    workspace,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -199,7 +206,17 @@ def reduced_dynamics(
         part.cond_JD = cond = 1.0 / rcond if rcond > 0.0 else float("inf")
         bound = settings.cond_max if cond_JD_max is None else cond_JD_max
         if cond > bound:
-            _raise_singular_JD(mech, q, part, cond, bound)
+            raise singular_error(
+                mech,
+                q,
+                part.what,
+                cond,
+                bound,
+                "this partition cannot describe the motion here (seed Problem 4): "
+                "re-partition with choose_partition(mech, q), or the configuration is a "
+                "singularity of the mechanism",
+                bound_name="cond_max" if cond_JD_max is None else "cond_JD_max",
+            )
         # The explicit inverse (dgetri) and one product instead of dgetrs with
         # several right-hand sides: OpenBLAS threads dgetrs over the right-hand
         # sides, which costs milliseconds per call on a loaded machine.
@@ -223,17 +240,6 @@ def reduced_dynamics(
     else:
         a = c.copy()
     return a, f[part.dep] @ JD_inv  # lam = J_D^-T (tau - h - M a)_D
-
-
-def _raise_singular_JD(mech: Mechanism, q: np.ndarray, part: _Partition, cond, bound) -> None:
-    raise SingularConfigurationError(
-        f"{mech.name}: {part.what} is singular at q = {np.array2string(q, precision=6)} "
-        f"(condition number {cond:.3e} > {bound:.1e}); this partition cannot describe the "
-        "motion here (seed Problem 4): re-partition with choose_partition(mech, q), or the "
-        "configuration is a singularity of the mechanism",
-        q=np.array(q),
-        condition_number=cond,
-    )
 
 
 @register(_NAME)

@@ -28,8 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.linalg import lapack
 
-from .base import SolverSettings, compute_terms, register
-from .kkt import check_condition
+from .base import SolverSettings, check_condition, compute_terms, method_buffers, register
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -46,13 +45,6 @@ class _SchurBuffers:
         #: J Y = [D | J M^-1 (tau - h)], shape (nc, nc + 1).
         self.JY = np.zeros((nc, nc + 1))
         self.a = np.zeros(nv)
-
-
-def _buffers(ws, nv: int, nc: int) -> _SchurBuffers:
-    buf = ws.method_buffers.get(_NAME)
-    if buf is None:
-        buf = ws.method_buffers[_NAME] = _SchurBuffers(nv, nc)
-    return buf
 
 
 @register(_NAME)
@@ -78,7 +70,7 @@ def schur(
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
-    buf = _buffers(ws, nv, nc)
+    buf = method_buffers(ws, _NAME, lambda: _SchurBuffers(nv, nc))
     M = ws.M
     # M is symmetric: its transpose is a Fortran-ordered view LAPACK reads without a copy.
     R, info = lapack.dpotrf(M.T, lower=0, clean=0)
