@@ -239,17 +239,27 @@ def sweep_trajectory(
             q[idx_q[name]] = f(float(tk))
         q = cc.assemble(mech, q, fixed=list(drives))
         qs[k] = q
+    return kinematic_trajectory(
+        mech, t, qs, info={"mechanism": mech.name, "method": "kinematic sweep"}
+    )
+
+
+def kinematic_trajectory(
+    mech: cc.Mechanism, t: np.ndarray, q: np.ndarray, *, info: dict | None = None
+) -> cc.Trajectory:
+    """Return a Trajectory of the configurations q, shape (N, nq), at times t [s];
+    v, a, lam, residuals and energy are zeros of the right shapes."""
     n = len(t)
     return cc.Trajectory(
         t=np.asarray(t, dtype=float),
-        q=qs,
+        q=np.asarray(q, dtype=float),
         v=np.zeros((n, mech.nv)),
         a=np.zeros((n, mech.nv)),
         lam=np.zeros((n, mech.nc)),
         constraint_residual=np.zeros(n),
         velocity_residual=np.zeros(n),
         energy=np.zeros(n),
-        info={"mechanism": mech.name, "method": "kinematic sweep"},
+        info={} if info is None else info,
     )
 
 

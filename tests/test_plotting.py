@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import MODELS
+from conftest import MODELS, kinematic_trajectory
 
 import closedchain as cc
 from closedchain.exceptions import ClosedChainError
@@ -187,15 +187,10 @@ def slider_crank_turns(load_mechanism) -> tuple[cc.Mechanism, cc.Trajectory, np.
     theta = np.linspace(0.0, 5.0, n)  # crank angle [rad], beyond atan2's range
     q = np.tile(mech.q_ref, (n, 1))
     q[:, 0], q[:, 1] = np.cos(theta), np.sin(theta)  # the crank is the first joint
-    traj = cc.Trajectory(
-        t=np.linspace(0.0, 1.0, n),
-        q=q,
-        v=np.zeros((n, mech.nv)),
-        a=np.zeros((n, mech.nv)),
-        lam=np.zeros((n, mech.nc)),
-        constraint_residual=np.zeros(n),
-        velocity_residual=np.zeros(n),
-        energy=np.zeros(n),
+    traj = kinematic_trajectory(
+        mech,
+        np.linspace(0.0, 1.0, n),
+        q,
         info={
             "mechanism": mech.name,
             "coordinate_names": None,  # as simulate() writes when nq != nv

@@ -17,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import umsgpack
-from conftest import MODELS, fourbar_sweep
+from conftest import MODELS, fourbar_sweep, kinematic_trajectory
 
 import closedchain as cc
 from closedchain import visualize as vz
@@ -274,16 +274,7 @@ def test_every_test_mechanism_animates(load_mechanism, name, tmp_path):
     mech = load_mechanism(name)
     rng = np.random.default_rng(0)
     qs = np.array([cc.random_consistent_state(mech, rng)[0] for _ in range(3)])
-    n = len(qs)
-    zeros = {k: np.zeros(n) for k in ("constraint_residual", "velocity_residual", "energy")}
-    traj = cc.Trajectory(
-        t=np.array([0.0, 0.5, 1.0]),
-        q=qs,
-        v=np.zeros((n, mech.nv)),
-        a=np.zeros((n, mech.nv)),
-        lam=np.zeros((n, mech.nc)),
-        **zeros,
-    )
+    traj = kinematic_trajectory(mech, np.array([0.0, 0.5, 1.0]), qs)
     out = cc.write_html(mech, traj, tmp_path / f"{name}.html", fps=10.0)
     scene = vz.build_scene(mech, traj, fps=10.0)
     kinds = sorted(m.kind for m in scene.markers)
