@@ -171,6 +171,16 @@ class _Problem:
         self.ind = np.array(mech.independent_idx_v)
         self.dep = np.array(mech.dependent_idx_v)
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
+        self._J_at: np.ndarray | None = None
+        self._J: np.ndarray | None = None
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """Return J(q), reusing the last one when q is the same (each step asks several
+        times at one q: dependent solve, J_D checks, regularity check, projection)."""
+        if self._J_at is None or not np.array_equal(q, self._J_at):
+            self._J = compute_jacobian(self.mech, q)
+            self._J_at = np.array(q)
+        return self._J
 
     def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         tau = np.asarray(self.tau(t, q, v), dtype=float)
@@ -202,7 +212,7 @@ class _Problem:
             raise SimulationError(
                 f"at t = {t:.9g} s the dependent coordinates could not be solved: {exc}", t
             ) from None
-        J = compute_jacobian(mech, q)
+        J = self.jacobian(q)
         JD, JI = J[:, self.dep], J[:, self.ind]
         v = np.zeros(mech.nv)
         v[self.ind] = v_ind
@@ -210,8 +220,7 @@ class _Problem:
         return q, v
 
     def cond_JD(self, q: np.ndarray) -> float:
-        J = compute_jacobian(self.mech, q)
-        return float(np.linalg.cond(J[:, self.dep]))
+        return float(np.linalg.cond(self.jacobian(q)[:, self.dep]))
 
     def repartition(self, q: np.ndarray, t: float) -> bool:
         """Choose the best-conditioned J_D at q by pivoted QR of J (Wehage-Haug).
@@ -224,7 +233,7 @@ class _Problem:
             SingularConfigurationError: even the chosen J_D has a condition
                 number above ``settings.partition_singular_cond``.
         """
-        J = compute_jacobian(self.mech, q)
+        J = self.jacobian(q)
         _, dep = partition_coordinates(J)
         cond = float(np.linalg.cond(J[:, dep]))
         if cond > self.settings.partition_singular_cond:
@@ -251,13 +260,13 @@ class _Problem:
 
     def det_sign_JD(self, q: np.ndarray) -> float:
         """Return the sign of det(J_D) at q (0 when singular)."""
-        return float(np.linalg.slogdet(compute_jacobian(self.mech, q)[:, self.dep])[0])
+        return float(np.linalg.slogdet(self.jacobian(q)[:, self.dep])[0])
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``."""
         if self.mech.nc == 0:
             return
-        s = np.linalg.svd(compute_jacobian(self.mech, q), compute_uv=False)
+        s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
         if cond > self.settings.singular_cond:
             raise SingularConfigurationError(
@@ -282,10 +291,10 @@ def _project(problem: _Problem, q: np.ndarray, v: np.ndarray, t: float):
         layer.evaluate(model, data, phi=phi)
         if np.max(np.abs(phi), initial=0.0) <= s.projection_tol:
             break
-        J = compute_jacobian(mech, q)
+        J = problem.jacobian(q)
         q = pin.integrate(model, q, np.linalg.lstsq(J, -phi, rcond=None)[0])
     if s.project_velocities:
-        J = compute_jacobian(mech, q)
+        J = problem.jacobian(q)
         v = v - np.linalg.lstsq(J, J @ v, rcond=None)[0]
     return q, v
 
@@ -293,9 +302,10 @@ def _project(problem: _Problem, q: np.ndarray, v: np.ndarray, t: float):
 class _Recorder:
     """Collects output samples and their residuals and energy."""
 
-    def __init__(self, mech: Mechanism, drift_limit: float) -> None:
+    def __init__(self, mech: Mechanism, drift_limit: float, jacobian) -> None:
         self.mech = mech
         self.drift_limit = drift_limit
+        self.jacobian = jacobian  # J(q), shared with the problem's memo
         self.rows: dict[str, list] = {
             k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
         }
@@ -314,7 +324,7 @@ class _Recorder:
                 "stabilization or a smaller step",
                 t,
             )
-        J = compute_jacobian(mech, q)
+        J = self.jacobian(q)
         vres = float(np.max(np.abs(J @ v), initial=0.0))
         kinetic = pin.computeKineticEnergy(model, data, q, v)
         energy = kinetic + pin.computePotentialEnergy(model, data, q)
@@ -446,7 +456,7 @@ def simulate(
         gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
         solver_settings = replace(solver_settings, baumgarte=gains)
     problem = _Problem(mech, method, tau, solver_settings, settings)
-    recorder = _Recorder(mech, settings.drift_limit)
+    recorder = _Recorder(mech, settings.drift_limit, problem.jacobian)
     info = {
         "mechanism": mech.name,
         "method": method,
