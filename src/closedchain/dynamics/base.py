@@ -94,11 +94,30 @@ MethodFunction = Callable[
 METHODS: dict[str, MethodFunction] = {}
 
 
-def register(name: str) -> Callable[[MethodFunction], MethodFunction]:
-    """Register a forward-dynamics method under ``name``."""
+@dataclass(frozen=True)
+class MethodCapabilities:
+    """What a registered method can do (read by the simulator, never its name).
+
+    Attributes:
+        baumgarte: the method solves ``J a + gamma' = 0`` with the gamma of
+            :func:`compute_terms`, so it applies Baumgarte terms.
+    """
+
+    baumgarte: bool = True
+
+
+#: name -> capabilities of the method registered under that name.
+METHOD_CAPABILITIES: dict[str, MethodCapabilities] = {}
+
+
+def register(
+    name: str, capabilities: MethodCapabilities = MethodCapabilities()
+) -> Callable[[MethodFunction], MethodFunction]:
+    """Register a forward-dynamics method under ``name`` with its capabilities."""
 
     def decorator(func: MethodFunction) -> MethodFunction:
         METHODS[name] = func
+        METHOD_CAPABILITIES[name] = capabilities
         return func
 
     return decorator

@@ -47,7 +47,14 @@ import pinocchio as pin
 from scipy.linalg import lapack
 
 from ..exceptions import ClosedChainError, SingularConfigurationError
-from .base import SolverSettings, compute_terms, method_buffers, register, workspace
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    compute_terms,
+    method_buffers,
+    register,
+    workspace,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -122,7 +129,8 @@ def pinocchio_constrained_dynamics(
     return a, force
 
 
-@register(_NAME)
+# pinocchio.constraintDynamics solves its own constraint equations: no Baumgarte terms.
+@register(_NAME, MethodCapabilities(baumgarte=False))
 def pinocchio_method(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
 ) -> tuple[np.ndarray, np.ndarray]:

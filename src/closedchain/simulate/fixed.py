@@ -1,0 +1,102 @@
+"""Fixed-step integrators on the configuration manifold (through ``pin.integrate``).
+
+Each stepper advances (q, v) by one step ``dt`` given the acceleration ``a`` at
+the start of the step and ``deriv(t, q, v) -> (v, a)`` for further stages.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+
+from .problem import Problem, project
+from .settings import SimulationError
+
+
+def step_euler(model, deriv, t, q, v, a, dt):
+    """Explicit Euler: q+ = q (+) dt v, v+ = v + dt a (order 1)."""
+    return pin.integrate(model, q, dt * v), v + dt * a
+
+
+def step_semi_implicit(model, deriv, t, q, v, a, dt):
+    """Semi-implicit (symplectic) Euler: v+ = v + dt a, q+ = q (+) dt v+ (order 1)."""
+    v_new = v + dt * a
+    return pin.integrate(model, q, dt * v_new), v_new
+
+
+def step_rk4(model, deriv, t, q, v, a, dt):
+    """Classical Runge-Kutta 4, stages on the manifold through pin.integrate (order 4)."""
+    k1v, k1a = v, a
+    k2v, k2a = deriv(t + dt / 2, pin.integrate(model, q, dt / 2 * k1v), v + dt / 2 * k1a)
+    k3v, k3a = deriv(t + dt / 2, pin.integrate(model, q, dt / 2 * k2v), v + dt / 2 * k2a)
+    k4v, k4a = deriv(t + dt, pin.integrate(model, q, dt * k3v), v + dt * k3a)
+    q_new = pin.integrate(model, q, dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+    return q_new, v + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
+
+
+def output_grid(t_final: float, dt: float, t_eval: np.ndarray | None):
+    """Return (dt, n_steps, output step indices) with every output time on the step grid.
+
+    ``dt`` is shortened so that each output interval is a whole number of steps.
+    """
+    if t_eval is None:
+        n_steps = int(math.ceil(t_final / dt - 1e-9))
+        return t_final / n_steps, n_steps, set(range(n_steps + 1))
+    gaps = np.diff(np.concatenate([[0.0], t_eval]))
+    per = [max(1, int(math.ceil(g / dt - 1e-9))) if g > 0 else 0 for g in gaps]
+    # Uniform grid when outputs are uniform (the common case).
+    h = min((g / p for g, p in zip(gaps, per, strict=True) if p), default=dt)
+    n_steps = int(round(t_eval[-1] / h))
+    dt = t_eval[-1] / n_steps
+    return dt, n_steps, {int(round(te / dt)) for te in t_eval}
+
+
+def run_fixed(
+    problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
+) -> int:
+    """Integrate with the fixed-step ``spec.step`` and stabilization ``stab``; return steps.
+
+    Args:
+        control: the step control; ``control.dt`` is the step [s].
+    """
+    mech = problem.mech
+    model = mech.model
+    dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
+    info["dt"] = dt
+    partition = stab.partitions
+    if partition:
+        q, v = problem.complete(q, v[problem.ind], 0.0)
+    t = 0.0
+    a = problem.accel(t, q, v)
+    if 0 in out_steps:
+        recorder.add(t, q, v, a, problem.lam)
+
+    def deriv(t, q, v):
+        if partition:
+            q, v = problem.complete(q, v[problem.ind], t)
+        return v, problem.accel(t, q, v)
+
+    for k in range(1, n_steps + 1):
+        q_new, v_new = spec.step(model, deriv, t, q, v, a, dt)
+        t = k * dt
+        if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
+            raise SimulationError(f"{mech.name}: non-finite state at t = {t:.9g} s", t)
+        if stab.projects:
+            q_new, v_new = project(problem, q_new, v_new, t)
+        elif partition:
+            q_new, v_new = problem.complete(q_new, v_new[problem.ind], t)
+            if problem.cond_JD(q_new) > problem.settings.repartition_cond and problem.repartition(
+                q_new, t
+            ):
+                info["repartitions"].append([t, [mech.coordinate_names[i] for i in problem.ind]])
+        if not partition:
+            problem.check_regular(q_new, t)
+        q, v = q_new, v_new
+        a = problem.accel(t, q, v)
+        if k in out_steps:
+            recorder.add(t, q, v, a, problem.lam)
+        if progress is not None:
+            progress(t)
+    return n_steps

@@ -1,0 +1,164 @@
+"""The integrator and stabilization registries.
+
+Each entry declares what it can do, so :func:`closedchain.simulate` never
+special-cases an integrator or stabilization by name: a new integrator (a
+compiled one, an implicit scheme) is one :func:`register_integrator` call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ..exceptions import UnknownChoiceError
+from . import adaptive, fixed
+
+
+@dataclass(frozen=True)
+class StepControl:
+    """How the step is chosen: ``dt`` [s] for fixed-step, ``rtol``/``atol`` for adaptive."""
+
+    dt: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+
+
+@dataclass(frozen=True)
+class IntegratorSpec:
+    """A registered time integrator.
+
+    Attributes:
+        name: registry key.
+        kind: ``"fixed"`` (takes ``dt``) or ``"adaptive"`` (takes ``rtol``/``atol``).
+        run: ``run(problem, recorder, q0, v0, t_final, control, spec, stab, t_eval,
+            progress, info) -> steps``.
+        order: order of accuracy.
+        backend: ``"numpy"`` (Python loop) or ``"compiled"``.
+        stabilizations: names of the stabilizations it supports.
+        vector_state: integrates q as a vector (needs nq == nv).
+        default_stabilization: used when the caller gives none.
+        step: the one-step map of a fixed-step integrator,
+            ``step(model, deriv, t, q, v, a, dt) -> (q, v)``.
+        description: one line for ``--help`` and the README.
+    """
+
+    name: str
+    kind: str
+    run: Callable
+    order: int
+    backend: str = "numpy"
+    stabilizations: tuple[str, ...] = ("none", "baumgarte", "projection", "partitioning")
+    vector_state: bool = False
+    default_stabilization: str = "none"
+    step: Callable | None = None
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class StabilizationSpec:
+    """A registered drift control.
+
+    Attributes:
+        name: registry key.
+        accel_terms: adds Baumgarte terms to the acceleration constraint (the
+            method must declare ``MethodCapabilities.baumgarte``).
+        projects: projects (q, v) onto the manifold after each step.
+        partitions: integrates the independent coordinates only (needs nq == nv).
+        description: one line.
+    """
+
+    name: str
+    accel_terms: bool = False
+    projects: bool = False
+    partitions: bool = False
+    description: str = ""
+
+
+#: name -> integrator, in registration order.
+INTEGRATORS: dict[str, IntegratorSpec] = {}
+#: name -> stabilization, in registration order.
+STABILIZATIONS: dict[str, StabilizationSpec] = {}
+
+
+def register_integrator(spec: IntegratorSpec) -> IntegratorSpec:
+    """Add ``spec`` to :data:`INTEGRATORS` (replacing an entry of the same name)."""
+    INTEGRATORS[spec.name] = spec
+    return spec
+
+
+def register_stabilization(spec: StabilizationSpec) -> StabilizationSpec:
+    """Add ``spec`` to :data:`STABILIZATIONS`."""
+    STABILIZATIONS[spec.name] = spec
+    return spec
+
+
+def get_integrator(name: str) -> IntegratorSpec:
+    """Return the integrator registered as ``name``, or raise listing the valid names."""
+    try:
+        return INTEGRATORS[name]
+    except KeyError:
+        raise UnknownChoiceError("integrator", name, INTEGRATORS) from None
+
+
+def get_stabilization(name: str) -> StabilizationSpec:
+    """Return the stabilization registered as ``name``, or raise listing the valid names."""
+    try:
+        return STABILIZATIONS[name]
+    except KeyError:
+        raise UnknownChoiceError("stabilization", name, STABILIZATIONS) from None
+
+
+for _spec in (
+    StabilizationSpec("none", description="acceleration-level constraint only; phi drifts"),
+    StabilizationSpec(
+        "baumgarte",
+        accel_terms=True,
+        description="J a + gamma + 2 alpha J v + beta^2 phi = 0 (Baumgarte 1972)",
+    ),
+    StabilizationSpec(
+        "projection",
+        projects=True,
+        description="Gauss-Newton projection of q onto phi = 0 and of v onto J v = 0 after a step",
+    ),
+    StabilizationSpec(
+        "partitioning",
+        partitions=True,
+        description="coordinate partitioning with re-partitioning (Wehage & Haug 1982)",
+    ),
+):
+    register_stabilization(_spec)
+
+for _name, _step, _order, _what in (
+    ("euler", fixed.step_euler, 1, "explicit Euler"),
+    ("semi-implicit", fixed.step_semi_implicit, 1, "semi-implicit (symplectic) Euler"),
+    ("rk4", fixed.step_rk4, 4, "classical Runge-Kutta 4"),
+):
+    register_integrator(
+        IntegratorSpec(
+            _name,
+            "fixed",
+            fixed.run_fixed,
+            _order,
+            step=_step,
+            default_stabilization="projection",
+            description=f"{_what}, fixed step, on the manifold through pin.integrate",
+        )
+    )
+
+for _name, _order, _what in (
+    ("RK45", 5, "Dormand-Prince 5(4)"),
+    ("DOP853", 8, "Dormand-Prince 8(5,3)"),
+    ("Radau", 5, "implicit Radau IIA (stiff)"),
+    ("BDF", 5, "backward differentiation formulas (stiff)"),
+    ("LSODA", 12, "LSODA, switching Adams/BDF"),
+):
+    register_integrator(
+        IntegratorSpec(
+            _name,
+            "adaptive",
+            adaptive.run_adaptive,
+            _order,
+            vector_state=True,
+            description=f"scipy.integrate.{_name}: {_what}, adaptive, dense output",
+        )
+    )
