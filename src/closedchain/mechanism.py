@@ -22,17 +22,21 @@ from .exceptions import (
     AssemblyError,
     ClosedChainError,
     LoopClosureError,
+    UnknownChoiceError,
     URDFError,
     ValidationUnavailableError,
 )
 from .kinematics import AssemblySettings, partition_coordinates, solve_closure
-from .urdf import URDFPlus, parse_urdf
+from .urdf import WORLD_LINK, URDFPlus, parse_urdf
 
 logger = logging.getLogger(__name__)
 
 #: Largest accepted deviation from 1 of the norm of a continuous joint's
 #: (cos, sin) or a quaternion in a configuration passed to closedchain.
 NORMALIZATION_TOL = 1e-9
+
+#: Root joints :func:`load` can put between the world and the URDF's root link.
+ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointModelPlanar}
 
 #: Standard gravity along world -z [m/s^2].
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
@@ -82,6 +86,7 @@ class Mechanism:
         actuated_idx_v: their velocity indices, shape (na,).
         independent_idx_v: velocity indices of the independent coordinates, shape (mobility,).
         dependent_idx_v: the others, shape (nc,).
+        root_joint: the root joint :func:`load` added (None, ``"free"``, ``"planar"``).
         independent_source: ``"urdf"``, ``"actuated"`` or ``"automatic"``.
         q_ref: an assembled configuration, shape (nq,).
         coordinate_names: one name per velocity coordinate.
@@ -124,6 +129,7 @@ class Mechanism:
         self.dependent_idx_v = np.arange(self.nv)
         self.independent_source = "automatic"
         self.q_ref = pin.neutral(model)
+        self.root_joint: str | None = None
         self._pin_constraints: tuple | None = None
         self._workspace = None  # dynamics.base.Workspace, made on first use
         self._revolute_idx_q = np.array(
@@ -325,6 +331,7 @@ class Mechanism:
             "path": str(self.path),
             "nq": self.nq,
             "nv": self.nv,
+            "root_joint": self.root_joint,
             "gravity": self.gravity.tolist(),
             "tree": tree,
             "loops": loops,
@@ -349,13 +356,23 @@ class Mechanism:
 def load(
     path: str | Path,
     *,
+    root_joint: str | None = None,
+    loops: str | Path | None = None,
     gravity: Sequence[float] = DEFAULT_GRAVITY,
     settings: LoadSettings | None = None,
 ) -> Mechanism:
     """Load a URDF+ mechanism.
 
     Args:
-        path: URDF file with optional ``<loop>`` / ``<transmission>`` elements.
+        path: URDF file with optional ``<loop>`` / ``<transmission>`` elements,
+            or ``erd:<name>``, a model of the installed example-robot-data
+            (:data:`closedchain.robots.ERD_MODELS`; drawn with primitive geometry).
+        root_joint: joint between the world and the URDF's root link: None
+            (fixed), ``"free"`` (free flyer, 7 entries of q: x, y, z [m] and a
+            unit quaternion x, y, z, w; 6 of v in the root link frame) or
+            ``"planar"`` (x, y [m], cos, sin of the angle about world z).
+        loops: overlay file in URDF+ syntax whose links, joints, loops and
+            transmissions are merged into the tree (see :mod:`closedchain.robots`).
         gravity: gravity vector in the world frame [m/s^2], shape (3,).
         settings: row-selection settings (defaults: :class:`LoadSettings`).
 
@@ -366,13 +383,24 @@ def load(
         URDFError: invalid file or extension element.
         LoopClosureError: a loop's frames cannot be brought together.
     """
+    from .robots import merge_overlay, reference_configuration, resolve_model
+
     settings = settings or LoadSettings()
-    urdf = parse_urdf(path)
+    if root_joint not in ROOT_JOINTS:
+        raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
+    base, entry = resolve_model(path)
+    if loops is None and entry is None:
+        urdf = parse_urdf(base)
+    else:
+        urdf = merge_overlay(base, loops, primitive=entry is not None)
     gravity = np.asarray(gravity, dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
     try:
-        model = pin.buildModelFromXML(urdf.xml)
+        root = ROOT_JOINTS[root_joint]
+        model = pin.buildModelFromXML(urdf.xml) if root is None else pin.buildModelFromXML(
+            urdf.xml, root()
+        )
     except (RuntimeError, ValueError) as exc:
         raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
     model.gravity.linear = gravity
@@ -384,12 +412,15 @@ def load(
             ("predecessor", spec.predecessor, spec.predecessor_origin),
             ("successor", spec.successor, spec.successor_origin),
         ):
-            if not model.existFrame(link, pin.FrameType.BODY):
+            if link == WORLD_LINK and not model.existFrame(link, pin.FrameType.BODY):
+                parent = 0  # Pinocchio's universe frame: fixed whatever the root joint
+            elif not model.existFrame(link, pin.FrameType.BODY):
                 raise URDFError(
                     f"{urdf.path}: line {spec.line}: <loop name={spec.name!r}>: link {link!r} "
                     "is not part of the kinematic tree"
                 )
-            parent = model.getFrameId(link, pin.FrameType.BODY)
+            else:
+                parent = model.getFrameId(link, pin.FrameType.BODY)
             lf = model.frames[parent]
             frame = pin.Frame(
                 f"{spec.name}::{side}",
@@ -409,18 +440,22 @@ def load(
 
     declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
     mech = Mechanism(urdf, model, declared, gravity)
-    _select_rows_and_coordinates(mech, settings)
+    mech.root_joint = root_joint
+    q_guess = reference_configuration(model, entry)
+    _select_rows_and_coordinates(mech, settings, q_guess=q_guess)
     logger.info("loaded %r", mech)
     return mech
 
 
-def _sample_assembled(mech: Mechanism, settings: LoadSettings) -> list[np.ndarray]:
+def _sample_assembled(
+    mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
+) -> list[np.ndarray]:
     rng = np.random.default_rng(settings.seed)
     free = np.arange(mech.nv)
     asm = AssemblySettings()
     samples: list[np.ndarray] = []
     best: AssemblyError | None = None
-    starts = [pin.neutral(mech.model)]
+    starts = [pin.neutral(mech.model) if q_guess is None else q_guess]
     for attempt in range(settings.max_attempts):
         if len(samples) >= settings.n_samples:
             break
@@ -447,14 +482,16 @@ def _sample_assembled(mech: Mechanism, settings: LoadSettings) -> list[np.ndarra
     return samples
 
 
-def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> None:
+def _select_rows_and_coordinates(
+    mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
+) -> None:
     model, data, layer = mech.model, mech.data, mech.declared
     if layer.nc == 0:
         mech.independent_idx_v = np.arange(mech.nv)
         mech.dependent_idx_v = np.arange(0)
         mech.independent_source = "automatic"
         return
-    samples = _sample_assembled(mech, settings)
+    samples = _sample_assembled(mech, settings, q_guess=q_guess)
     Js = []
     for q in samples:
         pin.computeJointJacobians(model, data, q)
@@ -490,7 +527,7 @@ def _select_rows_and_coordinates(mech: Mechanism, settings: LoadSettings) -> Non
             model,
             data,
             mech.constraints,
-            pin.neutral(model),
+            pin.neutral(model) if q_guess is None else q_guess,
             np.arange(mech.nv),
             AssemblySettings(),
         )

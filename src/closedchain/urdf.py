@@ -33,6 +33,11 @@ from .exceptions import URDFError
 #: Loop-joint types and the relative motion each allows.
 LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
 
+#: Reserved link name a ``<loop>`` may use for the fixed world (Pinocchio's
+#: universe) when the tree has no link of that name: with a free-flyer or
+#: planar root the URDF's root link moves, and this is what stays put.
+WORLD_LINK = "world"
+
 #: Norm below which an ``<axis>`` is rejected as zero.
 AXIS_NORM_MIN = 1e-9
 
@@ -141,22 +146,12 @@ def _origin(path: Path, element) -> pin.SE3:
     return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
 
 
-def parse_urdf(path: str | Path) -> URDFPlus:
-    """Read a URDF file and its URDF+ extension elements.
-
-    Args:
-        path: URDF file.
-
-    Returns:
-        The parsed extensions, with the checked XML text.
+def read_xml(path: Path):
+    """Parse an XML file safely and return its root element.
 
     Raises:
-        URDFError: the file is missing, is not well-formed XML, declares a DTD,
-            or an extension element is invalid (unknown loop type, unknown
-            link, zero axis, transmission naming a missing joint, ...). The
-            message names the file, line and element and the valid choices.
+        URDFError: the file is missing, is not well-formed XML or declares a DTD.
     """
-    path = Path(path)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -174,6 +169,29 @@ def parse_urdf(path: str | Path) -> URDFPlus:
         raise URDFError(
             f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"
         )
+    return root
+
+
+def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
+    """Read a URDF file and its URDF+ extension elements.
+
+    Args:
+        path: URDF file.
+        element: an already parsed ``<robot>`` element to read instead of the
+            file (used by :func:`closedchain.robots.merge_overlay`); ``path``
+            then only names it in messages.
+
+    Returns:
+        The parsed extensions, with the checked XML text.
+
+    Raises:
+        URDFError: the file is missing, is not well-formed XML, declares a DTD,
+            or an extension element is invalid (unknown loop type, unknown
+            link, zero axis, transmission naming a missing joint, ...). The
+            message names the file, line and element and the valid choices.
+    """
+    path = Path(path)
+    root = read_xml(path) if element is None else element
     if root.tag != "robot":
         raise URDFError(f"{path}: root element is <{root.tag}>, expected <robot>")
 
@@ -182,7 +200,9 @@ def parse_urdf(path: str | Path) -> URDFPlus:
         raise URDFError(f"{path}: <robot> has no <link> elements")
     joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
 
-    loops = tuple(_parse_loop(path, e, links) for e in root.findall("loop"))
+    # A loop may name the world (WORLD_LINK) even when no link has that name.
+    loop_links = links if WORLD_LINK in links else (*links, WORLD_LINK)
+    loops = tuple(_parse_loop(path, e, loop_links) for e in root.findall("loop"))
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:

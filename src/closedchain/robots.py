@@ -1,0 +1,289 @@
+"""Real robots: models found by name, loop overlays merged into any URDF.
+
+Models of the installed ``example-robot-data`` package (the optional
+``robots`` extra) are named ``erd:<name>``; :data:`ERD_MODELS` maps each name
+to its URDF and SRDF inside the package (nothing is copied into closedchain).
+
+An *overlay* is a file in URDF+ syntax whose ``<link>``, ``<joint>``,
+``<material>``, ``<loop>`` and ``<transmission>`` elements are merged into the
+base URDF's tree (so it can add the crank a robot turns, or weld a foot to
+the ground)::
+
+    <robot name="solo12_pinned">
+      <loop name="FL_pin" type="spherical">
+        <predecessor link="world"/>
+        <successor link="FL_FOOT"/>
+        <predecessor_origin xyz="0.19 0.15 0"/>
+      </loop>
+    </robot>
+
+The link name ``world`` (:data:`closedchain.urdf.WORLD_LINK`) is reserved:
+when the tree has no link of that name it is Pinocchio's universe, fixed
+whatever the root joint. An overlay joint whose parent is ``world`` hangs its
+child from the universe.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+from lxml import etree
+
+from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
+from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
+
+logger = logging.getLogger(__name__)
+
+#: Prefix of a model name looked up in example-robot-data.
+ERD_PREFIX = "erd:"
+
+#: Distribution name of example-robot-data and where it keeps its robots.
+ERD_DISTRIBUTION = "example-robot-data"
+ERD_ROBOTS_DIR = "cmeel.prefix/share/example-robot-data/robots"
+
+#: How to install the robots.
+INSTALL_HINT = "pip install closedchain[robots]"
+
+#: Overlay elements merged into the base tree.
+OVERLAY_ELEMENTS = ("link", "joint", "material", "loop", "transmission")
+
+#: Radius [m] of the cylinders and spheres that stand for a link whose visuals
+#: are meshes (see :func:`primitive_visuals`).
+STICK_RADIUS = 0.02
+
+#: Segments shorter than this [m] get no cylinder.
+STICK_MIN_LENGTH = 1e-3
+
+
+@dataclass(frozen=True)
+class RobotEntry:
+    """One model of example-robot-data.
+
+    Attributes:
+        urdf: URDF path relative to the package's robots directory.
+        srdf: SRDF path (reference configurations), or None.
+        reference: name of the SRDF ``<group_state>`` used as the assembly
+            start of ``q_ref``, or None (then Pinocchio's neutral configuration).
+    """
+
+    urdf: str
+    srdf: str | None = None
+    reference: str | None = None
+
+
+#: Models found by ``erd:<name>``.
+ERD_MODELS: dict[str, RobotEntry] = {
+    "talos_reduced": RobotEntry(
+        "talos_data/robots/talos_reduced.urdf", "talos_data/srdf/talos.srdf", "half_sitting"
+    ),
+    "solo12": RobotEntry(
+        "solo_description/robots/solo12.urdf", "solo_description/srdf/solo.srdf", "standing"
+    ),
+    "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
+}
+
+
+def erd_robots_dir() -> Path:
+    """Return the robots directory of the installed example-robot-data.
+
+    Raises:
+        ClosedChainError: the package is not installed (says how to install it).
+    """
+    try:
+        dist = metadata.distribution(ERD_DISTRIBUTION)
+    except metadata.PackageNotFoundError as exc:
+        raise ClosedChainError(
+            f"the {ERD_PREFIX} models need the {ERD_DISTRIBUTION} package, which is not "
+            f"installed: {INSTALL_HINT}"
+        ) from exc
+    path = Path(str(dist.locate_file(ERD_ROBOTS_DIR)))
+    if not path.is_dir():
+        raise ClosedChainError(
+            f"{ERD_DISTRIBUTION} {dist.version} has no robots directory {ERD_ROBOTS_DIR}; "
+            f"reinstall it: {INSTALL_HINT}"
+        )
+    return path
+
+
+def resolve_model(name: str | Path) -> tuple[Path, RobotEntry | None]:
+    """Return the URDF file a model name stands for, and its registry entry.
+
+    Args:
+        name: a URDF path, or ``erd:<name>`` with a name of :data:`ERD_MODELS`.
+
+    Raises:
+        UnknownChoiceError: unknown ``erd:`` name (lists the valid ones).
+        ClosedChainError: example-robot-data is not installed.
+    """
+    text = str(name)
+    if not text.startswith(ERD_PREFIX):
+        return Path(name), None
+    key = text[len(ERD_PREFIX) :]
+    if key not in ERD_MODELS:
+        raise UnknownChoiceError(
+            "example-robot-data model", text, [ERD_PREFIX + k for k in ERD_MODELS]
+        )
+    entry = ERD_MODELS[key]
+    return erd_robots_dir() / entry.urdf, entry
+
+
+def reference_configuration(model, entry: RobotEntry | None, robots_dir: Path | None = None):
+    """Return the registry entry's SRDF reference configuration, or None.
+
+    Args:
+        model: the Pinocchio model (joints are matched by name; joints the
+            SRDF does not mention keep their neutral value).
+        entry: registry entry, or None.
+        robots_dir: example-robot-data's robots directory (default: installed one).
+
+    Returns:
+        q, shape (nq,), or None when the entry names no reference.
+    """
+    import pinocchio as pin
+
+    if entry is None or entry.srdf is None or entry.reference is None:
+        return None
+    robots_dir = robots_dir or erd_robots_dir()
+    probe = model.copy()
+    pin.loadReferenceConfigurations(probe, str(robots_dir / entry.srdf), False)
+    if entry.reference not in probe.referenceConfigurations:
+        raise ClosedChainError(
+            f"{entry.srdf}: no <group_state name={entry.reference!r}>; states: "
+            + ", ".join(sorted(probe.referenceConfigurations.keys()))
+        )
+    return np.array(probe.referenceConfigurations[entry.reference], dtype=float)
+
+
+def merge_overlay(base: Path, overlay: str | Path, *, primitive: bool = False) -> URDFPlus:
+    """Merge an overlay's elements into a base URDF and parse the result.
+
+    Args:
+        base: the base URDF file.
+        overlay: the overlay file (URDF+ syntax, root ``<robot>``), or None.
+        primitive: replace mesh visuals by primitive geometry (see
+            :func:`primitive_visuals`).
+
+    Returns:
+        The parsed, merged model. Its ``path`` is the overlay (messages about
+        overlay elements give the overlay's line numbers); its ``robot_name``
+        is the overlay's ``<robot name>``.
+
+    Raises:
+        URDFError: unsafe or malformed XML, an element an overlay cannot hold
+            (lists the valid ones), or a link or joint name the base already uses.
+    """
+    root = read_xml(base)
+    path = base
+    if overlay is not None:
+        path = Path(overlay)
+        extra = read_xml(path)
+        if extra.tag != "robot":
+            raise URDFError(f"{path}: root element is <{extra.tag}>, expected <robot>")
+        taken = {
+            tag: {e.get("name") for e in root.findall(tag)} for tag in ("link", "joint", "loop")
+        }
+        for element in extra:
+            if not isinstance(element.tag, str):  # comments, processing instructions
+                continue
+            if element.tag not in OVERLAY_ELEMENTS:
+                raise URDFError(
+                    f"{path}: line {element.sourceline}: <{element.tag}> cannot be merged; "
+                    f"valid overlay elements: {', '.join(OVERLAY_ELEMENTS)}"
+                )
+            name = element.get("name")
+            if name in taken.get(element.tag, ()):
+                raise URDFError(
+                    f"{path}: line {element.sourceline}: <{element.tag} name={name!r}> "
+                    f"already exists in {base}"
+                )
+            root.append(copy.deepcopy(element))
+        root.set("name", extra.get("name", root.get("name", path.stem)))
+        _check_world_joints(path, root)
+    if primitive:
+        primitive_visuals(root)
+    return parse_urdf(path, element=root)
+
+
+def _check_world_joints(path: Path, root) -> None:
+    """Refuse overlay joints whose parent is ``world`` when the tree has no such link.
+
+    Pinocchio's URDF reader needs a single root link, so a part can hang from
+    the world through a ``<joint>`` only when the tree has a ``world`` link
+    (e.g. ur5_robot.urdf); otherwise a ``<loop>`` to ``world`` fixes it.
+    """
+    links = {e.get("name") for e in root.findall("link")}
+    if WORLD_LINK in links:
+        return
+    for joint in root.findall("joint"):
+        parent = joint.find("parent")
+        if parent is not None and parent.get("link") == WORLD_LINK:
+            raise URDFError(
+                f"{path}: line {joint.sourceline}: <joint name={joint.get('name')!r}> has "
+                f"parent {WORLD_LINK!r}, but the tree has no {WORLD_LINK!r} link: attach the "
+                f"part to the robot, or fix it to the world with a <loop> whose predecessor "
+                f"is {WORLD_LINK!r}"
+            )
+
+
+def primitive_visuals(root) -> None:
+    """Replace every mesh visual by primitive geometry, in place.
+
+    A link whose visuals are meshes is drawn as a sphere at its origin and a
+    cylinder from its origin to the origin of each child joint: a stick
+    figure with the robot's exact kinematics, and a page of kilobytes instead
+    of the package's meshes (which live outside the URDF's directory).
+
+    Args:
+        root: the ``<robot>`` element.
+    """
+    children: dict[str, list[np.ndarray]] = {}
+    for joint in root.findall("joint"):
+        parent, origin = joint.find("parent"), joint.find("origin")
+        if parent is None:
+            continue
+        xyz = np.zeros(3)
+        if origin is not None:
+            xyz = np.array([float(x) for x in origin.get("xyz", "0 0 0").split()])
+        children.setdefault(parent.get("link"), []).append(xyz)
+    for link in root.findall("link"):
+        visuals = link.findall("visual")
+        meshes = [v for v in visuals if v.find("geometry/mesh") is not None]
+        if not meshes:
+            continue
+        for v in meshes:
+            link.remove(v)
+        link.append(_visual("sphere", {"radius": f"{1.5 * STICK_RADIUS:g}"}, np.zeros(3), None))
+        for xyz in children.get(link.get("name"), []):
+            length = float(np.linalg.norm(xyz))
+            if length < STICK_MIN_LENGTH:
+                continue
+            # A URDF cylinder runs along its z axis: turn z onto xyz.
+            z = xyz / length
+            pitch = float(np.arccos(np.clip(z[2], -1.0, 1.0)))
+            yaw = float(np.arctan2(z[1], z[0]))
+            link.append(
+                _visual(
+                    "cylinder",
+                    {"radius": f"{STICK_RADIUS:g}", "length": f"{length:.6g}"},
+                    xyz / 2.0,
+                    (0.0, pitch, yaw),
+                )
+            )
+
+
+def _visual(kind: str, attributes: dict, xyz: np.ndarray, rpy) -> etree._Element:
+    visual = etree.Element("visual")
+    origin = etree.SubElement(visual, "origin")
+    origin.set("xyz", " ".join(f"{x:.6g}" for x in xyz))
+    if rpy is not None:
+        origin.set("rpy", " ".join(f"{x:.6g}" for x in rpy))
+    geometry = etree.SubElement(visual, "geometry")
+    shape = etree.SubElement(geometry, kind)
+    for key, value in attributes.items():
+        shape.set(key, value)
+    return visual
