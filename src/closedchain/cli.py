@@ -47,8 +47,26 @@ def _load(args, path=None):
     from .mechanism import load
 
     path = args.file if path is None else path
+    options = {"root_joint": getattr(args, "root", None), "loops": getattr(args, "loops", None)}
     gravity = getattr(args, "gravity", None)
-    return load(path) if gravity is None else load(path, gravity=gravity)
+    if gravity is not None:
+        options["gravity"] = gravity
+    return load(path, **options)
+
+
+def add_model_arguments(p: argparse.ArgumentParser) -> None:
+    """Add ``--root`` and ``--loops``, the options of :func:`closedchain.load`."""
+    p.add_argument(
+        "--root",
+        choices=("free", "planar"),
+        help="joint between the world and the URDF's root link (default: fixed)",
+    )
+    p.add_argument(
+        "--loops",
+        metavar="OVERLAY",
+        help="URDF+ overlay whose links, joints, <loop> and <transmission> elements are"
+        " merged into the tree",
+    )
 
 
 def _coordinate(token: str) -> str | int:
@@ -346,7 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add(name: str, help_: str, handler) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_, description=help_)
-        p.add_argument("file", help="URDF file with <loop> elements")
+        p.add_argument("file", help="URDF file with <loop> elements, or erd:<name>")
+        add_model_arguments(p)
         p.add_argument(
             "--gravity",
             type=float,
@@ -392,6 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the mechanism of a .npz trajectory: gives joint types and units; needed"
         " when nq != nv (continuous joints)",
     )
+    add_model_arguments(p)
     p.add_argument(
         "--gravity",
         type=float,

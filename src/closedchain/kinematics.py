@@ -295,8 +295,17 @@ def random_consistent_state(
     velocity_scale: float = 1.0,
     min_sigma: float = 1e-3,
     max_attempts: int = 1000,
+    uniform_attempts: int = 20,
+    local_scale: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw an assembled configuration within joint limits and a velocity with J v = 0.
+
+    Starts are drawn uniformly within the joint limits. After
+    ``uniform_attempts`` failed uniform starts, every other start is drawn
+    near the assembled ``mech.q_ref`` instead (``q_ref`` moved along a random
+    tangent vector, clipped to the limits): a legged robot welded to the
+    ground almost never assembles from a uniformly random base orientation
+    and leg configuration.
 
     Args:
         mech: the mechanism.
@@ -305,6 +314,9 @@ def random_consistent_state(
         min_sigma: reject configurations where the smallest singular value of J
             is below this (draws away from singularities).
         max_attempts: random starts before giving up.
+        uniform_attempts: uniform starts before starts near ``q_ref`` are mixed in.
+        local_scale: standard deviation of the tangent vector moving ``q_ref``
+            for those starts [rad or m].
 
     Returns:
         (q, v), shapes (nq,) and (nv,).
@@ -313,8 +325,15 @@ def random_consistent_state(
         AssemblyError: no start assembled within ``max_attempts``.
     """
     last: AssemblyError | None = None
-    for _ in range(max_attempts):
-        q0 = mech.random_configuration(rng)
+    lo, hi = mech.model.lowerPositionLimit, mech.model.upperPositionLimit
+    for attempt in range(max_attempts):
+        if attempt < uniform_attempts or attempt % 2 == 0:
+            q0 = mech.random_configuration(rng)
+        else:
+            dv = local_scale * rng.standard_normal(mech.nv)
+            q0 = pin.normalize(
+                mech.model, np.clip(pin.integrate(mech.model, mech.q_ref, dv), lo, hi)
+            )
         try:
             q = assemble(mech, q0)
         except AssemblyError as exc:
