@@ -13,7 +13,7 @@ close kinematic loops and ``<transmission>`` elements for actuators::
 
 from __future__ import annotations
 
-from .control import computed_torque_controller
+from .control import computed_torque_controller, gravity_torque
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
     AssemblyError,
@@ -78,6 +78,7 @@ __all__ = [
     "assemble",
     "compute_gamma",
     "computed_torque_controller",
+    "gravity_torque",
     "compute_jacobian",
     "compute_phi",
     "forward_dynamics",

@@ -26,6 +26,9 @@ POSITIVE_OPTIONS = {
     "atol": "--atol",
 }
 
+#: Choices of ``--torque``.
+TORQUES = ("zero", "gravity")
+
 #: Suffixes ``simulate --out`` can write (Trajectory.save).
 TRAJECTORY_SUFFIXES = (".npz", ".csv")
 
@@ -255,6 +258,13 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         metavar="Q",
         help="initial configuration (nq numbers, assembled before the run; default: q_ref)",
     )
+    p.add_argument(
+        "--torque",
+        choices=TORQUES,
+        default="zero",
+        help="actuator torque: zero, or the constant torque that holds q0 at rest against"
+        " gravity (closed-chain inverse dynamics; needs actuators for every degree of freedom)",
+    )
     p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
 
 
@@ -265,6 +275,11 @@ def simulate_from_args(args, mech):
 
     q0 = mech.q_ref if args.q0 is None else assemble(mech, np.array(args.q0), fixed="independent")
     v0 = np.zeros(mech.nv)
+    tau = None
+    if getattr(args, "torque", "zero") == "gravity":
+        from .control import gravity_torque
+
+        tau = gravity_torque(mech, q0)
     n = int(round(args.t_final * args.fps)) + 1
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
@@ -293,6 +308,7 @@ def simulate_from_args(args, mech):
             rtol=args.rtol,
             atol=args.atol,
             stabilization=args.stabilization,
+            tau=tau,
             t_eval=np.linspace(0.0, args.t_final, n),
             progress=progress if bar else None,
         )

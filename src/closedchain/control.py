@@ -29,7 +29,7 @@ from .inverse import _resolve_ordered, inverse_dynamics
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 
-__all__ = ["computed_torque_controller"]
+__all__ = ["computed_torque_controller", "gravity_torque"]
 
 #: A reference: t [s] -> (q_P, v_P, a_P), each of shape (mobility,) [rad, rad/s, rad/s^2].
 Reference = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -92,3 +92,24 @@ def computed_torque_controller(
         return inverse_dynamics(mech, q, v, a_cmd, coordinates=names, settings=settings).tau
 
     return tau
+
+
+def gravity_torque(
+    mech: Mechanism, q: np.ndarray, *, settings: SolverSettings = DEFAULT_SETTINGS
+) -> np.ndarray:
+    """Return the actuator torques that hold the mechanism at rest at q against gravity.
+
+    Closed-chain inverse dynamics (:func:`closedchain.inverse_dynamics`) with
+    v = 0 and zero accelerations: a constant ``tau`` for :func:`simulate`
+    under which q is an equilibrium (not necessarily a stable one).
+
+    Args:
+        mech: the mechanism (its actuators must control every degree of freedom).
+        q: assembled configuration, shape (nq,).
+        settings: settings of the inverse dynamics.
+
+    Returns:
+        tau, shape (nv,) [N m or N], zero off the actuated coordinates.
+    """
+    zero_v = np.zeros(mech.nv)
+    return inverse_dynamics(mech, q, zero_v, np.zeros(mech.mobility), settings=settings).tau

@@ -398,8 +398,10 @@ def load(
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
     try:
         root = ROOT_JOINTS[root_joint]
-        model = pin.buildModelFromXML(urdf.xml) if root is None else pin.buildModelFromXML(
-            urdf.xml, root()
+        model = (
+            pin.buildModelFromXML(urdf.xml)
+            if root is None
+            else pin.buildModelFromXML(urdf.xml, root())
         )
     except (RuntimeError, ValueError) as exc:
         raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
