@@ -120,11 +120,15 @@ class RowCheckSettings:
             the declared rows still have their generic rank, with a condition
             number (of their r largest singular values) below it, means the
             kept rows degenerate where the mechanism does not.
+        open_tol: when no re-selection can take in an open dropped row, a
+            residual above this [m or -] is an error (below it, the residual
+            is only reported: every output's residual covers all declared rows).
     """
 
     dropped_tol: float = 1e-9
     dropped_ratio: float = 100.0
     cond_max: float = 1e3
+    open_tol: float = 1e-6
 
 
 def declared_jacobian(model: pin.Model, data: pin.Data, layer: ConstraintLayer, q) -> np.ndarray:
@@ -348,21 +352,24 @@ class LoopClosure:
         q: np.ndarray,
         *,
         t: float | None = None,
-        settings: RowCheckSettings = RowCheckSettings(),  # noqa: B008 (frozen)
+        kept_cond: float | None = None,
+        settings: RowCheckSettings | None = None,
     ) -> bool:
         """Check that the kept rows still describe every loop at q; re-select if not.
 
         The kept rows stop describing the loops when a dropped row is open while
         the kept ones are not (``settings.dropped_tol``, ``dropped_ratio``), or
-        when the kept rows' Jacobian degenerates while the declared rows keep
-        their generic rank. Then the rows are re-selected with q added to the
-        samples (logged, recorded in :attr:`history`).
+        when the kept rows' Jacobian degenerates (``kept_cond``, computed by the
+        caller, above ``settings.cond_max``) while the declared rows keep their
+        generic rank. Then the rows are re-selected with q added to the samples
+        (logged, recorded in :attr:`history`).
 
         Args:
             model, data: the mechanism's model and data (data is overwritten).
             q: configuration, shape (nq,).
             t: simulation time [s] for messages, if any.
-            settings: tolerances.
+            kept_cond: condition number of the kept rows' J at q, if known.
+            settings: tolerances (default :class:`RowCheckSettings`).
 
         Returns:
             True when the rows were re-selected.
@@ -370,10 +377,11 @@ class LoopClosure:
         Raises:
             SingularConfigurationError: the declared rows themselves lost rank
                 (a singular configuration of the mechanism).
-            LoopClosureError: a declared row is open and no selection of rows
-                of the generic rank can describe it (names loop, row, time,
-                residual).
+            LoopClosureError: a declared row is open by more than
+                ``settings.open_tol`` and no selection of rows of the generic rank
+                takes it in (names loop, row, time and residual).
         """
+        settings = settings or RowCheckSettings()
         if self.declared.nc == self.active.nc:
             return False
         when = f" at t = {t:.9g} s" if t is not None else ""
@@ -383,14 +391,12 @@ class LoopClosure:
         kept_res = float(np.max(np.abs(phi[sel]), initial=0.0))
         dropped = np.where(sel, 0.0, np.abs(phi))
         drop_res = float(np.max(dropped))
-        J = declared_jacobian(model, data, self.declared, q)
-        s_all = np.linalg.svd(J, compute_uv=False)
-        s_kept = np.linalg.svd(J[sel], compute_uv=False)
-        cond_kept = s_kept[0] / s_kept[-1] if s_kept[-1] > 0 else np.inf
         open_row = drop_res > max(settings.dropped_tol, settings.dropped_ratio * kept_res)
-        degenerate = cond_kept > settings.cond_max
+        degenerate = kept_cond is not None and kept_cond > settings.cond_max
         if not (open_row or degenerate):
             return False
+        J = declared_jacobian(model, data, self.declared, q)
+        s_all = np.linalg.svd(J, compute_uv=False)
         r = self.rank
         cond_all = s_all[0] / s_all[r - 1] if s_all[r - 1] > self._tol else np.inf
         if cond_all > settings.cond_max:
@@ -406,18 +412,22 @@ class LoopClosure:
         reason = (
             f"dropped row {worst} open by {drop_res:.3e} (kept rows {kept_res:.3e}){when}"
             if open_row
-            else f"kept rows degenerate (condition number {cond_kept:.3e}){when}"
+            else f"kept rows degenerate (condition number {kept_cond:.3e}){when}"
         )
+        # The previous rows describe the loops no more: choose afresh (max-min over the
+        # load-time samples and this configuration).
         previous = self.selected_rows
-        self._select(self._Js + [J], reason=reason, margin_min=0.0, prefer=list(self.selected_rows))
-        if self.selected_rows == previous:
+        if tuple(self._greedy(self._Js + [J], r, ())) != previous:
+            self._select(self._Js + [J], reason=reason, margin_min=0.0)
+            return True
+        if open_row and drop_res > settings.open_tol:
             label, res = self.worst_row(phi)
             raise LoopClosureError(
                 f"{self.name}{when}: loop row {label} is open by {res:.3e} while the kept rows "
                 f"({', '.join(self.selection.kept)}) are closed to {kept_res:.3e}, and no other "
                 "choice of independent rows describes the loop here"
             )
-        return True
+        return False
 
     # -- coordinate partition --------------------------------------------------------
     def choose_partition(
