@@ -29,6 +29,7 @@ ARTIFACTS = ROOT / "test-artifacts"
 MECHANISM_FILES = {
     "fourbar": MODELS / "fourbar.urdf",
     "agile_eye": MODELS / "agile_eye.urdf",
+    "turntable_fourbar": MODELS / "turntable_fourbar.urdf",
     "spherical_chain": DATA_DIR / "spherical_chain.urdf",
     "slider_crank": DATA_DIR / "slider_crank.urdf",
     "slider_crank_planar": DATA_DIR / "slider_crank_planar.urdf",
