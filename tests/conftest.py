@@ -29,6 +29,7 @@ ARTIFACTS = ROOT / "test-artifacts"
 MECHANISM_FILES = {
     "fourbar": MODELS / "fourbar.urdf",
     "agile_eye": MODELS / "agile_eye.urdf",
+    "turntable_fourbar": MODELS / "turntable_fourbar.urdf",
     "spherical_chain": DATA_DIR / "spherical_chain.urdf",
     "slider_crank": DATA_DIR / "slider_crank.urdf",
     "slider_crank_planar": DATA_DIR / "slider_crank_planar.urdf",
@@ -163,6 +164,44 @@ class FourBarClosedForms:
         Jd = self.jacobian_dot(theta, theta_dot)
         Jd[1, 2] = -Jd[1, 2]
         return Jd
+
+    # -- the closure in the coupler's cut frame (the rows closedchain writes) --------------
+    #: Unit vectors n1, n2 of the cut frame across the loop axis (0, -1, 0), in the
+    #: coupler frame: (n1, n2, axis) right-handed orthonormal.
+    N1 = np.array([0.0, 0.0, 1.0])
+    N2 = np.array([-1.0, 0.0, 0.0])
+
+    @staticmethod
+    def cut_basis(theta3: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return Q, dQ/dtheta3, d2Q/dtheta3^2, shapes (2, 2): columns R_p n1, R_p n2 in the
+        seed's planar axes (world x, z); the coupler is turned by theta3 about (0, -1, 0)."""
+        c, s = math.cos(theta3), math.sin(theta3)
+        Q = np.array([[-s, -c], [c, -s]])
+        dQ = np.array([[-c, s], [-s, -c]])
+        return Q, dQ, -Q
+
+    def phi_cut(self, theta: np.ndarray) -> np.ndarray:
+        """The seed's closure in the coupler's cut frame, Q(theta3)^T phi, shape (2,) [m]."""
+        Q, _, _ = self.cut_basis(theta[1])
+        return Q.T @ self.phi(theta)
+
+    def jacobian_cut(self, theta: np.ndarray) -> np.ndarray:
+        """d phi_cut / d theta = Q^T J_c + (dQ^T phi) e3^T, shape (2, 3) [m]."""
+        Q, dQ, _ = self.cut_basis(theta[1])
+        J = Q.T @ self.jacobian(theta)
+        J[:, 1] += dQ.T @ self.phi(theta)
+        return J
+
+    def gamma_cut(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
+        """d^2/dt^2 phi_cut at zero angular acceleration, shape (2,) [m/s^2]:
+        Q''^T phi w3^2 + 2 w3 Q'^T J_c theta_dot + Q^T Jdot_c theta_dot."""
+        Q, dQ, ddQ = self.cut_basis(theta[1])
+        w3 = theta_dot[1]
+        return (
+            ddQ.T @ self.phi(theta) * w3**2
+            + 2.0 * w3 * dQ.T @ (self.jacobian(theta) @ theta_dot)
+            + Q.T @ (self.jacobian_dot(theta, theta_dot) @ theta_dot)
+        )
 
     def freudenstein(self, theta2: float) -> list[np.ndarray]:
         r"""Return both assembly branches ``theta = [theta2, theta3, theta4]`` at a crank angle.

@@ -37,7 +37,12 @@ def test_info_fourbar(capsys, mechanism_files):
     assert re.search(r"independent coordinates: crank_joint \(actuated\)", out)
     assert re.search(r"dependent coordinates: +coupler_joint, rocker_joint", out)
     assert re.search(r"actuated coordinates: +crank_joint", out)
-    assert re.search(r"^C +revolute +coupler +rocker +5 \(x y z r1 r2\) +2 \(x z\)", out, re.M)
+    assert re.search(r"^C +revolute +coupler +rocker +5 \(t1 t2 ta r1 r2\) +2 \(t1 t2\)", out, re.M)
+    assert re.search(
+        r"row selection: rank 2 of J over \d+ configurations along the motion .*"
+        r"dropped: C\.ta C\.r1 C\.r2",
+        out,
+    )
 
 
 def test_info_agile_eye(capsys, mechanism_files):
@@ -58,7 +63,8 @@ def test_info_json(capsys, mechanism_files):
     assert s["independent"] == ["crank_joint"]
     assert s["dependent"] == ["coupler_joint", "rocker_joint"]
     assert s["gravity"] == [0.0, 0.0, -9.81]
-    assert s["loops"][0]["independent_rows"] == ["x", "z"]
+    assert s["loops"][0]["independent_rows"] == ["t1", "t2"]
+    assert s["row_selection"]["rank"] == 2
     assert [t["joint"] for t in s["tree"]] == ["crank_joint", "coupler_joint", "rocker_joint"]
 
 

@@ -148,6 +148,12 @@ def _cmd_info(args) -> int:
         f"\nconstraint rows: {s['declared_rows']} declared, {s['independent_rows']} independent;"
         f" mobility {s['mobility']}"
     )
+    rs = s["row_selection"]
+    print(
+        f"row selection: rank {rs['rank']} of J over {rs['n_samples']} configurations along the "
+        f"motion ({rs['n_singular']} singular, set aside); worst sigma_min(J_kept)/|J| "
+        f"{rs['margin']:.3g}; dropped: {' '.join(rs['dropped']) or 'none'}"
+    )
     print(f"actuated coordinates:    {', '.join(s['actuated']) or 'none'}")
     print(f"independent coordinates: {', '.join(s['independent'])} ({s['independent_source']})")
     print(f"dependent coordinates:   {', '.join(s['dependent'])}")

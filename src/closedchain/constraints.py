@@ -3,47 +3,56 @@ r"""Loop-closure constraints: phi(q), J(q) and gamma(q, v) = Jdot(q, v) v.
 A loop joint cuts the mechanism between a frame c1 on the predecessor link and
 a frame c2 on the successor link (the ``*_origin`` placements of the
 ``<loop>`` element). With world placements ``oMc1 = (R_p, p_p)`` and
-``oMc2 = (R_s, p_s)`` the declared rows of each loop type are
+``oMc2 = (R_s, p_s)``, every row is written in frames that move with the
+loop, so that a row that is structurally redundant for a planar or spherical
+mechanism is the same row in every pose and on every base (turntable, free
+flyer). The declared rows of each loop type are
 
-======== =============================================== =========
-type     rows                                            count
-======== =============================================== =========
-revolute translation d = p_p - p_s (world x, y, z),      3 + 2
-         tilt of the axis (n1.a, n2.a)
-spherical translation d (world x, y, z)                   3
-fixed    translation d, tilt (n1.a, n2.a), twist n1.n2   3 + 3
-prismatic d across the axis (n1.d, n2.d), tilt, twist    2 + 3
-======== =============================================== =========
+========= ============================================== =========
+type      rows                                           count
+========= ============================================== =========
+revolute  translation in c1 (t1, t2, ta), tilt (r1, r2)  3 + 2
+spherical translation in c1 (t1, t2, ta)                 3
+fixed     translation (t1, t2, ta), tilt, twist (r3)     3 + 3
+prismatic translation across the axis (t1, t2), tilt,    2 + 3
+          twist
+========= ============================================== =========
 
-where a is the loop axis and (n1, n2, a) a right-handed orthonormal basis, all
-given in c1 (predecessor side) and c2 (successor side) and carried to the world
-by R_p and R_s. Every row is one of three smooth scalar functions:
-
-.. math::
-
-    \phi_{d,k} = e_k^\top (p_p - p_s), \qquad
-    \phi_{t,i} = (R_p n_i)^\top (p_p - p_s), \qquad
-    \phi_{r} = (R_p u)^\top (R_s w),
-
-with exact first and second time derivatives (``u``, ``w`` constant unit
-vectors in c1 and c2). With frame velocities ``(v, omega)`` and bias
-accelerations ``(a_b, alpha_b)`` (classical, world-aligned, at zero joint
-acceleration):
+where a is the loop axis and (n1, n2, a) a right-handed orthonormal basis of
+c1 (:func:`axis_basis`; for a spherical loop, the basis of its ``axis``,
+default x); the translation rows are the components of d = p_p - p_s along
+n1, n2 and a carried by R_p, the rotation rows the components of the carried
+axis R_s a across R_p a (tilt, r1 = (R_p n1).(R_s a), r2 = (R_p n2).(R_s a))
+and the twist r3 = (R_p n1).(R_s n2). Every row is one of **two** smooth
+scalar functions, with constant unit vectors n, u in c1 and w in c2:
 
 .. math::
 
-    \dot\phi_r = (\omega_s - \omega_p)^\top (w \times u), \qquad
-    \gamma_r = \ddot u^\top w + 2 \dot u^\top \dot w + u^\top \ddot w,
-    \quad \dot u = \omega_p \times u,\;
-    \ddot u = \alpha_{b,p} \times u + \omega_p \times (\omega_p \times u),
+    \phi_{t} = (R_p n)^\top (p_p - p_s), \qquad
+    \phi_{r} = (R_p u)^\top (R_s w).
 
-expanded in :meth:`ConstraintLayer.evaluate` into dot products
-(one cross product per loop).
+:meth:`ConstraintLayer.row_table` lists them per row (function, frames,
+vectors): the table a compiled evaluator reads. With frame velocities
+``(v, omega)`` and bias accelerations ``(a_b, alpha_b)`` (classical,
+world-aligned, at zero joint acceleration), writing ``U = R_p n`` or ``R_p u``
+and ``W = R_s w``:
+
+.. math::
+
+    \dot\phi_t = (R_p n)^\top (v_p - v_s) + (U \times d)^\top \omega_p, \qquad
+    \gamma_t = \ddot U^\top d + 2 \dot U^\top \dot d + U^\top (a_{b,p} - a_{b,s}),
+
+    \dot\phi_r = (\omega_s - \omega_p)^\top (W \times U), \qquad
+    \gamma_r = \ddot U^\top W + 2 \dot U^\top \dot W + U^\top \ddot W,
+
+with :math:`\dot U = \omega_p \times U`, :math:`\ddot U = \alpha_{b,p} \times
+U + \omega_p \times (\omega_p \times U)` (and the same for W with the
+successor's), expanded in :meth:`ConstraintLayer.evaluate` into dot products.
 
 So J is exactly the derivative of phi along ``pin.integrate`` and
 gamma = Jdot v exactly: finite differences check both (tests/test_constraints.py).
-The translation rows reproduce the textbook 4-bar closure
-``p_C(coupler) - p_C(rocker)`` of the seed text, Section 2.
+For the planar 4-bar the two kept rows are the seed's closure
+``p_C(coupler) - p_C(rocker)`` (Section 2) expressed in the coupler's cut frame.
 """
 
 from __future__ import annotations
@@ -62,6 +71,11 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 #: loop in Pinocchio's CONTACT_3D constraint models (any nonzero value works:
 #: it only rescales the multipliers, not J^T lam).
 PIN_REVOLUTE_POINT_OFFSET = 0.1
+
+#: Row function codes of :class:`RowTable`: translation (R_p n).(p_p - p_s).
+ROW_TRANSLATION = 0
+#: Rotation (R_p u).(R_s w).
+ROW_ROTATION = 1
 
 
 _I1 = np.array([1, 2, 0])
@@ -96,8 +110,8 @@ class RowInfo:
 
     Attributes:
         loop: name of its loop.
-        kind: ``"x" | "y" | "z"`` (world translation), ``"t1" | "t2"``
-            (translation across a prismatic axis), ``"r1" | "r2" | "r3"`` (rotation).
+        kind: ``"t1" | "t2" | "ta"`` (translation along n1, n2, a of c1),
+            ``"r1" | "r2"`` (tilt of the axis), ``"r3"`` (twist about it).
         unit: ``"m"`` or ``"1"`` (dimensionless).
     """
 
@@ -109,6 +123,32 @@ class RowInfo:
     def label(self) -> str:
         return f"{self.loop}.{self.kind}"
 
+    @property
+    def function(self) -> int:
+        """:data:`ROW_TRANSLATION` or :data:`ROW_ROTATION`."""
+        return ROW_TRANSLATION if self.unit == "m" else ROW_ROTATION
+
+
+def declared_row_vectors(spec: LoopSpec) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
+    """Return the declared rows of a loop, in order: (kind, function, u or n in c1, w in c2).
+
+    Translation rows carry w = 0. See the module docstring for the table.
+    """
+    a = np.asarray(spec.axis, dtype=float)
+    n1, n2 = axis_basis(a)
+    zero = np.zeros(3)
+    rows: list[tuple[str, int, np.ndarray, np.ndarray]] = []
+    if spec.type in ("revolute", "spherical", "fixed"):
+        rows += [("t1", ROW_TRANSLATION, n1, zero), ("t2", ROW_TRANSLATION, n2, zero)]
+        rows += [("ta", ROW_TRANSLATION, a, zero)]
+    if spec.type == "prismatic":
+        rows += [("t1", ROW_TRANSLATION, n1, zero), ("t2", ROW_TRANSLATION, n2, zero)]
+    if spec.type in ("revolute", "fixed", "prismatic"):
+        rows += [("r1", ROW_ROTATION, n1, a), ("r2", ROW_ROTATION, n2, a)]
+    if spec.type in ("fixed", "prismatic"):
+        rows += [("r3", ROW_ROTATION, n1, n2)]
+    return rows
+
 
 class LoopRows:
     """The active rows of one loop and the constant vectors they are built from.
@@ -116,11 +156,13 @@ class LoopRows:
     Attributes:
         spec: the loop as written in the URDF.
         fid_p, fid_s: model frame ids of the cut-joint frames c1 and c2.
-        world: world axes (0, 1, 2) of the translation rows, in row order.
-        perp: unit vectors n_i in c1 of the prismatic cross-axis rows, shape (nt, 3).
-        rot_u, rot_w: the vectors u (in c1) and w (in c2) of the rotation rows
-            (R_p u).(R_s w), shapes (nr, 3).
-        rows: the active rows' RowInfo, in evaluation order (world, perp, rot).
+        declared_rows: every declared row's RowInfo, in declared order.
+        keep: indices of the active rows among the declared ones, increasing.
+        trans: unit vectors n in c1 of the active translation rows, shape (nt, 3).
+        rot_u, rot_w: the vectors u (in c1) and w (in c2) of the active rotation
+            rows (R_p u).(R_s w), shapes (nr, 3).
+        rows: the active rows' RowInfo, in evaluation order (= declared order:
+            translation, then rotation).
         start: first row of this loop in the layer's output.
     """
 
@@ -128,58 +170,48 @@ class LoopRows:
         self.spec = spec
         self.fid_p = fid_p
         self.fid_s = fid_s
-        a = spec.axis
-        n1, n2 = axis_basis(a)
-        world: list[int] = []
-        perp: list[np.ndarray] = []
-        rot_u: list[np.ndarray] = []
-        rot_w: list[np.ndarray] = []
-        # Declared rows in a fixed order: translation, then rotation.
-        declared: list[tuple[str, object]] = []
-        if spec.type in ("revolute", "spherical", "fixed"):
-            declared += [("world", 0), ("world", 1), ("world", 2)]
-        if spec.type == "prismatic":
-            declared += [("perp", n1), ("perp", n2)]
-        if spec.type in ("revolute", "fixed", "prismatic"):
-            declared += [("rot", (n1, a)), ("rot", (n2, a))]
-        if spec.type in ("fixed", "prismatic"):
-            declared += [("rot", (n1, n2))]
+        declared = declared_row_vectors(spec)
         self.n_declared = len(declared)
-        names = {"world": "xyz", "perp": ("t1", "t2"), "rot": ("r1", "r2", "r3")}
-        counters = {"world": 0, "perp": 0, "rot": 0}
-        infos = []
-        for kind, payload in declared:
-            if kind == "world":
-                label = names["world"][payload]
-            else:
-                label = names[kind][counters[kind]]
-            counters[kind] += 1
-            infos.append(RowInfo(spec.name, label, "1" if kind == "rot" else "m"))
-        self.declared_rows = tuple(infos)
-        keep = list(range(len(declared))) if keep is None else keep
-        for i in keep:
-            kind, payload = declared[i]
-            if kind == "world":
-                world.append(payload)
-            elif kind == "perp":
-                perp.append(payload)
-            else:
-                rot_u.append(payload[0])
-                rot_w.append(payload[1])
-        # Active rows are evaluated grouped by kind; record their order.
-        order = (
-            [i for i in keep if declared[i][0] == "world"]
-            + [i for i in keep if declared[i][0] == "perp"]
-            + [i for i in keep if declared[i][0] == "rot"]
+        self.declared_rows = tuple(
+            RowInfo(spec.name, kind, "m" if f == ROW_TRANSLATION else "1")
+            for kind, f, _, _ in declared
         )
-        self.rows = tuple(infos[i] for i in order)
-        self.world = np.array(world, dtype=int)
-        self.perp = np.array(perp).reshape(-1, 3)
-        self.rot_u = np.array(rot_u).reshape(-1, 3)
-        self.rot_w = np.array(rot_w).reshape(-1, 3)
-        self.n = len(keep)
-        self.nw, self.nt, self.nr = len(world), len(perp), len(rot_u)
+        self.keep = tuple(range(len(declared))) if keep is None else tuple(sorted(keep))
+        active = [declared[i] for i in self.keep]
+        self.rows = tuple(self.declared_rows[i] for i in self.keep)
+        self.trans = np.array([u for _, f, u, _ in active if f == ROW_TRANSLATION]).reshape(-1, 3)
+        self.rot_u = np.array([u for _, f, u, _ in active if f == ROW_ROTATION]).reshape(-1, 3)
+        self.rot_w = np.array([w for _, f, _, w in active if f == ROW_ROTATION]).reshape(-1, 3)
+        self.n = len(self.keep)
+        self.nt, self.nr = len(self.trans), len(self.rot_u)
         self.start = 0  # first row of this block in the layer, set by ConstraintLayer
+
+
+@dataclass(frozen=True)
+class RowTable:
+    """The active rows of a layer as flat per-row arrays (the input of a compiled evaluator).
+
+    Row i is ``(R_p u_i).(p_p - p_s)`` when ``function[i] == ROW_TRANSLATION``
+    and ``(R_p u_i).(R_s w_i)`` when ``function[i] == ROW_ROTATION``, with
+    ``(R_p, p_p)`` the world placement of model frame ``frame_p[i]`` and
+    ``(R_s, p_s)`` that of ``frame_s[i]``.
+
+    Attributes:
+        function: row function code, shape (nc,), int.
+        frame_p, frame_s: model frame ids of c1 and c2, shape (nc,), int.
+        u: n or u in c1, shape (nc, 3), unit vectors.
+        w: w in c2, shape (nc, 3) (zeros for translation rows).
+        loop: index of the row's loop in the URDF order, shape (nc,), int.
+        labels: ``loop.kind`` of every row.
+    """
+
+    function: np.ndarray
+    frame_p: np.ndarray
+    frame_s: np.ndarray
+    u: np.ndarray
+    w: np.ndarray
+    loop: np.ndarray
+    labels: tuple[str, ...]
 
 
 class _Table:
@@ -216,14 +248,19 @@ class ConstraintLayer:
     ) -> None:
         self.loops = loops
         self.frame_ids = frame_ids
-        self.keep = keep
         self._blocks = [
             LoopRows(spec, fp, fs, None if keep is None else list(keep[i]))
             for i, (spec, (fp, fs)) in enumerate(zip(loops, frame_ids, strict=True))
         ]
+        self.keep = tuple(b.keep for b in self._blocks)
         self.rows: tuple[RowInfo, ...] = tuple(r for b in self._blocks for r in b.rows)
         self.declared_rows: tuple[RowInfo, ...] = tuple(
             r for b in self._blocks for r in b.declared_rows
+        )
+        #: Indices of the active rows in :attr:`declared_rows`, increasing.
+        offsets = np.cumsum([0] + [b.n_declared for b in self._blocks])
+        self.selected: tuple[int, ...] = tuple(
+            int(off) + i for off, b in zip(offsets, self._blocks, strict=False) for i in b.keep
         )
         self.nc = len(self.rows)
         self._slices = []
@@ -239,7 +276,7 @@ class ConstraintLayer:
         """Return each loop's rows and their slice of phi, J, gamma and lam, in URDF order."""
         return list(zip(self._blocks, self._slices, strict=True))
 
-    def restricted(self, rows: list[int]) -> ConstraintLayer:
+    def restricted(self, rows: list[int] | tuple[int, ...]) -> ConstraintLayer:
         """Return a layer that evaluates only the given declared rows.
 
         Args:
@@ -253,6 +290,29 @@ class ConstraintLayer:
                     per_loop[i].append(r - offset)
             offset += b.n_declared
         return ConstraintLayer(self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop))
+
+    def row_table(self) -> RowTable:
+        """Return the active rows as flat per-row arrays (see :class:`RowTable`)."""
+        function, fp, fs, us, ws, loop = [], [], [], [], [], []
+        for i, b in enumerate(self._blocks):
+            vectors = declared_row_vectors(b.spec)
+            for k in b.keep:
+                _, f, u, w = vectors[k]
+                function.append(f)
+                fp.append(b.fid_p)
+                fs.append(b.fid_s)
+                us.append(u)
+                ws.append(w)
+                loop.append(i)
+        return RowTable(
+            function=np.array(function, dtype=int),
+            frame_p=np.array(fp, dtype=int),
+            frame_s=np.array(fs, dtype=int),
+            u=np.array(us, dtype=float).reshape(-1, 3),
+            w=np.array(ws, dtype=float).reshape(-1, 3),
+            loop=np.array(loop, dtype=int),
+            labels=tuple(r.label for r in self.rows),
+        )
 
     def evaluate(
         self,
@@ -275,19 +335,6 @@ class ConstraintLayer:
         # Hot path (every dynamics evaluation): all loops at once, a fixed
         # number of batched numpy calls whatever the number of loops (numpy's
         # per-call overhead, not arithmetic, dominates arrays this small).
-        # World translation rows: per loop, contiguous, straight from the
-        # frame getters (stacking would cost more than it saves here).
-        for r0, r1, fp, fs, axes in self._world:
-            if phi is not None:
-                pp = pin.updateFramePlacement(model, data, fp).translation
-                phi[r0:r1] = (pp - pin.updateFramePlacement(model, data, fs).translation)[axes]
-            if J is not None:
-                Jp = pin.getFrameJacobian(model, data, fp, _LWA)
-                J[r0:r1] = (Jp[:3] - pin.getFrameJacobian(model, data, fs, _LWA)[:3])[axes]
-            if gamma is not None:
-                ap = pin.getFrameClassicalAcceleration(model, data, fp, _LWA).linear
-                as_ = pin.getFrameClassicalAcceleration(model, data, fs, _LWA).linear
-                gamma[r0:r1] = (ap - as_)[axes]
         tt, tr = self._tt, self._tr
         if tt is None and tr is None:
             return
@@ -352,21 +399,17 @@ class ConstraintLayer:
                 )
 
     def _build_tables(self) -> None:
-        """Index tables of the active rows, grouped by kind, over all loops."""
+        """Index tables of the active rows, grouped by function, over all loops."""
         self._fids: list[int] = []
-        self._world: list[tuple[int, int, int, int, np.ndarray]] = []
-        perp: dict[str, list] = {"rows": [], "loop": [], "n": []}
+        trans: dict[str, list] = {"rows": [], "loop": [], "n": []}
         rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
         for i, blk in enumerate(self._active):
             self._fids += [blk.fid_p, blk.fid_s]
             r = blk.start
-            if blk.nw:
-                self._world.append((r, r + blk.nw, blk.fid_p, blk.fid_s, blk.world))
-                r += blk.nw
-            for n in blk.perp:
-                perp["rows"].append(r)
-                perp["loop"].append(i)
-                perp["n"].append(n)
+            for n in blk.trans:
+                trans["rows"].append(r)
+                trans["loop"].append(i)
+                trans["n"].append(n)
                 r += 1
             for u, w in zip(blk.rot_u, blk.rot_w, strict=True):
                 rot["rows"].append(r)
@@ -374,7 +417,7 @@ class ConstraintLayer:
                 rot["u"].append(u)
                 rot["w"].append(w)
                 r += 1
-        self._tt = _Table(perp) if perp["rows"] else None
+        self._tt = _Table(trans) if trans["rows"] else None
         self._tr = _Table(rot) if rot["rows"] else None
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:

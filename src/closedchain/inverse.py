@@ -34,7 +34,7 @@ the origin of frame c2) and couple
 
 .. math::
 
-    f = \sum_{k \in \text{world}} \lambda_k e_k + \sum_{t} \lambda_t R_p n_t,
+    f = \sum_{t} \lambda_t R_p n_t,
     \qquad
     \tau = \sum_{r} \lambda_r\, (R_p u_r) \times (R_s w_r),
 
@@ -351,13 +351,10 @@ def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> li
         oMs = pin.updateFramePlacement(model, data, blk.fid_s)
         Rp, Rs = oMp.rotation, oMs.rotation
         lam_l = lam[sl]
-        nw, nt = len(blk.world), len(blk.perp)
-        force = np.zeros(3)
-        force[blk.world] += lam_l[:nw]
-        if nt:
-            force += Rp @ (blk.perp.T @ lam_l[nw : nw + nt])
+        nt = blk.nt
+        force = Rp @ (blk.trans.T @ lam_l[:nt])
         torque = np.zeros(3)
-        for u, w, lr in zip(blk.rot_u, blk.rot_w, lam_l[nw + nt :], strict=True):
+        for u, w, lr in zip(blk.rot_u, blk.rot_w, lam_l[nt:], strict=True):
             torque += lr * np.cross(Rp @ u, Rs @ w)
         out.append(
             LoopReaction(

@@ -24,10 +24,14 @@ import pinocchio as pin
 import scipy.linalg
 
 from .constraints import ConstraintLayer
-from .exceptions import AssemblyError
+from .exceptions import AssemblyError, ClosedChainError
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
+
+
+#: Largest relative |J v| (against |J| |v|) a projected velocity may keep.
+VELOCITY_TOL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -126,12 +130,15 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
         dv[:] = 0.0
         dv[free] = step
         alpha = 1.0
+        # Accept on the sum of squares, the merit function the Gauss-Newton step
+        # descends (the max norm need not decrease along it).
+        sq = float(phi @ phi)
         for _ in range(settings.max_halvings):
             q_try = pin.integrate(model, q, alpha * dv)
             q_try[held_q] = q_held
             phi_try = _phi(model, data, layer, q_try)
             res_try = float(np.max(np.abs(phi_try)))
-            if res_try < res or res_try <= settings.tol:
+            if float(phi_try @ phi_try) < sq or res_try <= settings.tol:
                 break
             alpha *= 0.5
         else:
@@ -164,17 +171,23 @@ def assemble(
         settings: tolerances (defaults: :class:`AssemblySettings`).
 
     Returns:
-        q with max |phi(q)| <= settings.tol, shape (nq,).
+        q with max |phi(q)| <= settings.tol over every declared row (the
+        independent ones and those dropped as redundant), shape (nq,).
 
     Raises:
-        AssemblyError: Newton did not converge (message gives the residual).
+        AssemblyError: Newton did not converge (message gives the residual),
+            or converged onto a flipped (180 degree) closure.
     """
     settings = settings or AssemblySettings()
     q_guess = mech.check_q(q_guess, "q_guess")
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)
     try:
-        return solve_closure(mech.model, mech.data, mech.constraints, q_guess, free, settings)
+        # Every declared row, not only the independent ones: a configuration on
+        # another solution branch of the kept rows with a dropped row open is
+        # never returned as closed (redundant rows do no harm to the
+        # minimum-norm Gauss-Newton step).
+        return solve_closure(mech.model, mech.data, mech.declared, q_guess, free, settings)
     except AssemblyError as exc:
         raise AssemblyError(
             f"{mech.name}: {exc} (holding {len(held)} coordinates: "
@@ -220,16 +233,30 @@ def project_velocity(
         fixed: coordinates to keep (as in :func:`assemble`).
 
     Returns:
-        The projected velocity, shape (nv,).
+        The projected velocity, shape (nv,), with J v = 0 for every declared row.
+
+    Raises:
+        ClosedChainError: the held coordinates admit no velocity with J v = 0.
     """
     q = mech.check_q(q, "q")
     v = np.array(mech.check_v(v, "v"), dtype=float)
     if mech.nc == 0:
         return v
-    J = compute_jacobian(mech, q)
+    # Every declared row: the same tangent space as the independent rows
+    # wherever they describe the loops, and the right one where they do not.
+    J = _jacobian(mech.model, mech.data, mech.declared, q)
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)
     v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=None)[0]
+    residual = float(np.max(np.abs(J @ v), initial=0.0))
+    scale = max(1.0, float(np.linalg.norm(J, 2) * np.linalg.norm(v)))
+    if residual > VELOCITY_TOL * scale:
+        row = mech.declared.declared_rows[int(np.argmax(np.abs(J @ v)))].label
+        raise ClosedChainError(
+            f"{mech.name}: no velocity with J v = 0 keeps the held coordinates "
+            f"({', '.join(mech.coordinate_names[i] for i in held)}): row {row} keeps "
+            f"|J v| = {residual:.3e}"
+        )
     return v
 
 

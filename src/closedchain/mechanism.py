@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
 
+from .closure import LoopClosure, RowSelection, SelectionSettings, sample_configurations
 from .constraints import ConstraintLayer, RowInfo
 from .exceptions import (
     AssemblyError,
@@ -26,7 +26,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
-from .kinematics import AssemblySettings, partition_coordinates, solve_closure
+from .kinematics import AssemblySettings, solve_closure
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf
 
 logger = logging.getLogger(__name__)
@@ -47,22 +47,40 @@ class LoadSettings:
     """Settings of the work :func:`load` does once per mechanism.
 
     Attributes:
-        n_samples: random assembled configurations used for row selection.
+        n_samples: random assembled configurations used for row selection
+            (every joint random: base joints take random poses).
         max_attempts: random starts tried to get them.
-        rank_tol: a row set is independent when its smallest singular value
-            exceeds ``rank_tol`` times the largest singular value of all rows.
+        walk_steps: from each, steps along the motion (null space of J),
+            each assembled and added to the samples.
+        walk_step: length of one such step [rad or m].
+        rank_tol: a singular value counts towards the rank of J when it
+            exceeds ``rank_tol`` times max(1, the largest singular value).
         cond_JD_max: largest acceptable condition number of J_D when choosing
             independent coordinates.
         prismatic_range: sampling range [m] for unbounded prismatic coordinates.
         seed: seed of the sampling.
     """
 
-    n_samples: int = 6
+    n_samples: int = 8
     max_attempts: int = 60
+    walk_steps: int = 3
+    walk_step: float = 0.3
     rank_tol: float = 1e-8
     cond_JD_max: float = 1e6
     prismatic_range: float = 1.0
     seed: int = 0
+
+    def selection(self) -> SelectionSettings:
+        """The row-selection part of these settings."""
+        return SelectionSettings(
+            n_samples=self.n_samples,
+            max_attempts=self.max_attempts,
+            walk_steps=self.walk_steps,
+            walk_step=self.walk_step,
+            rank_tol=self.rank_tol,
+            prismatic_range=self.prismatic_range,
+            seed=self.seed,
+        )
 
 
 class Mechanism:
@@ -76,6 +94,8 @@ class Mechanism:
         model: Pinocchio model (with one frame per loop side added).
         data: Pinocchio data for single-threaded use by closedchain.
         urdf: the parsed URDF+ extensions.
+        closure: the loop rows, their independent subset and the coordinate
+            partition (:class:`~closedchain.closure.LoopClosure`).
         constraints: the independent rows, the ones every method uses.
         declared: all declared rows (redundant ones included).
         selected_rows: indices of the independent rows in ``declared.declared_rows``.
@@ -98,7 +118,7 @@ class Mechanism:
         self,
         urdf: URDFPlus,
         model: pin.Model,
-        declared: ConstraintLayer,
+        closure: LoopClosure,
         gravity: np.ndarray,
     ) -> None:
         self.urdf = urdf
@@ -106,9 +126,7 @@ class Mechanism:
         self.path = urdf.path
         self.model = model
         self.data = model.createData()
-        self.declared = declared
-        self.constraints = declared
-        self.selected_rows: tuple[int, ...] = tuple(range(declared.nc))
+        self.closure = closure
         self.gravity = np.array(gravity, dtype=float)
         self.nq, self.nv = model.nq, model.nv
         names = []
@@ -125,9 +143,6 @@ class Mechanism:
         self.configuration_names: tuple[str, ...] = tuple(qnames)
         self.actuated_joints = urdf.actuated
         self.actuated_idx_v = self.coordinate_indices(urdf.actuated)
-        self.independent_idx_v = np.arange(0)
-        self.dependent_idx_v = np.arange(self.nv)
-        self.independent_source = "automatic"
         self.q_ref = pin.neutral(model)
         self.root_joint: str | None = None
         self._pin_constraints: tuple | None = None
@@ -141,6 +156,39 @@ class Mechanism:
             ],
             dtype=int,
         )
+
+    # -- rows and partition, owned by the closure ------------------------------
+    @property
+    def declared(self) -> ConstraintLayer:
+        """Every declared row (redundant ones included)."""
+        return self.closure.declared
+
+    @property
+    def constraints(self) -> ConstraintLayer:
+        """The independent rows, the ones every method uses."""
+        return self.closure.active
+
+    @property
+    def selected_rows(self) -> tuple[int, ...]:
+        """Indices of the independent rows in ``declared.declared_rows``."""
+        return self.closure.selected_rows
+
+    @property
+    def row_selection(self) -> RowSelection:
+        """How the independent rows were chosen."""
+        return self.closure.selection
+
+    @property
+    def independent_idx_v(self) -> np.ndarray:
+        return self.closure.independent_idx_v
+
+    @property
+    def dependent_idx_v(self) -> np.ndarray:
+        return self.closure.dependent_idx_v
+
+    @property
+    def independent_source(self) -> str:
+        return self.closure.independent_source
 
     # -- sizes and coordinates -------------------------------------------------
     @property
@@ -337,6 +385,7 @@ class Mechanism:
             "loops": loops,
             "declared_rows": self.declared.nc,
             "independent_rows": self.nc,
+            "row_selection": self.row_selection.as_dict(),
             "mobility": self.mobility,
             "actuated": [self.coordinate_names[i] for i in self.actuated_idx_v],
             "independent": [self.coordinate_names[i] for i in self.independent_idx_v],
@@ -441,133 +490,61 @@ def load(
         frame_ids.append(tuple(pair))
 
     declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
-    mech = Mechanism(urdf, model, declared, gravity)
+    closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
+    mech = Mechanism(urdf, model, closure, gravity)
     mech.root_joint = root_joint
-    q_guess = reference_configuration(model, entry)
-    _select_rows_and_coordinates(mech, settings, q_guess=q_guess)
+    _select_rows_and_coordinates(mech, settings, q_guess=reference_configuration(model, entry))
     logger.info("loaded %r", mech)
     return mech
 
 
-def _sample_assembled(
+def _select_rows_and_coordinates(
     mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
-) -> list[np.ndarray]:
-    rng = np.random.default_rng(settings.seed)
-    free = np.arange(mech.nv)
-    asm = AssemblySettings()
-    samples: list[np.ndarray] = []
-    best: AssemblyError | None = None
-    starts = [pin.neutral(mech.model) if q_guess is None else q_guess]
-    for attempt in range(settings.max_attempts):
-        if len(samples) >= settings.n_samples:
-            break
-        q0 = (
-            starts[attempt]
-            if attempt < len(starts)
-            else mech.random_configuration(rng, prismatic_range=settings.prismatic_range)
-        )
-        try:
-            samples.append(solve_closure(mech.model, mech.data, mech.declared, q0, free, asm))
-        except AssemblyError as exc:
-            if best is None or exc.residual < best.residual:
-                best = exc
+) -> None:
+    """Sample configurations along the motion, select rows, assemble q_ref, partition."""
+    model, data, closure = mech.model, mech.data, mech.closure
+    if closure.declared.nc == 0:
+        return
+    sel = settings.selection()
+    samples, best = sample_configurations(
+        model,
+        data,
+        closure.declared,
+        lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
+        sel,
+        first=[pin.neutral(model) if q_guess is None else q_guess],
+    )
     if not samples:
         assert best is not None
-        pin.forwardKinematics(mech.model, mech.data, best.q)
-        per_loop = mech.declared.loop_residuals(mech.model, mech.data)
+        pin.forwardKinematics(model, data, best.q)
+        per_loop = closure.declared.loop_residuals(model, data)
         worst = ", ".join(f"{k}: {v:.3g}" for k, v in per_loop.items())
         raise LoopClosureError(
             f"{mech.path}: the loop frames cannot be brought together from "
             f"{settings.max_attempts} random starts; smallest max |phi| reached "
             f"{best.residual:.3g} (per loop: {worst}). Check the <loop> origins and link lengths."
         )
-    return samples
-
-
-def _select_rows_and_coordinates(
-    mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
-) -> None:
-    model, data, layer = mech.model, mech.data, mech.declared
-    if layer.nc == 0:
-        mech.independent_idx_v = np.arange(mech.nv)
-        mech.dependent_idx_v = np.arange(0)
-        mech.independent_source = "automatic"
-        return
-    samples = _sample_assembled(mech, settings, q_guess=q_guess)
-    Js = []
-    for q in samples:
-        pin.computeJointJacobians(model, data, q)
-        J = np.zeros((layer.nc, mech.nv))
-        layer.evaluate(model, data, J=J)
-        Js.append(J)
-    scale = max(np.linalg.norm(J, 2) for J in Js)
-    tol = settings.rank_tol * max(scale, 1.0)
-    ranks = [int(np.sum(np.linalg.svd(J, compute_uv=False) > tol)) for J in Js]
-    rank = max(ranks)
-    regular = [J for J, r in zip(Js, ranks, strict=True) if r == rank]
-    # Greedy, in declared order: keep a row when it stays independent of the
-    # kept ones at every regular sample (rank-revealing by SVD).
-    keep: list[int] = []
-    for row in range(layer.nc):
-        trial = keep + [row]
-        if all(np.linalg.svd(J[trial], compute_uv=False)[-1] > tol for J in regular):
-            keep.append(row)
-        if len(keep) == rank:
-            break
-    if len(keep) < rank:
-        # Declared order could not reach the rank: fall back to pivoted QR.
-        _, _, piv = scipy.linalg.qr(regular[0].T, pivoting=True)
-        keep = sorted(piv[:rank].tolist())
-    mech.constraints = layer.restricted(keep)
-    mech.selected_rows = tuple(keep)
-    # Kept rows are re-ordered per loop by kind; index the samples the same way.
-    order = [layer.declared_rows.index(r) for r in mech.constraints.rows]
-    regular = [J[order] for J in regular]
-
+    closure.select_rows(model, data, samples, rank_tol=settings.rank_tol)
     try:
         mech.q_ref = solve_closure(
             model,
             data,
-            mech.constraints,
+            closure.declared,
             pin.neutral(model) if q_guess is None else q_guess,
             np.arange(mech.nv),
             AssemblySettings(),
         )
     except AssemblyError:
         mech.q_ref = samples[0]
-
-    def cond_ok(dep: np.ndarray) -> bool:
-        return len(dep) == rank and all(
-            np.linalg.cond(J[:, dep]) < settings.cond_JD_max for J in regular
-        )
-
-    all_idx = np.arange(mech.nv)
-    if mech.urdf.independent:
-        ind = mech.coordinate_indices(mech.urdf.independent)
-        dep = np.setdiff1d(all_idx, ind)
-        if len(ind) != mech.mobility:
-            raise URDFError(
-                f"{mech.path}: {len(ind)} coordinates are marked independent="
-                f'"true" ({", ".join(mech.urdf.independent)}) but the mobility is '
-                f"{mech.mobility}"
-            )
-        if not cond_ok(dep):
-            raise URDFError(
-                f'{mech.path}: the joints marked independent="true" '
-                f"({', '.join(mech.urdf.independent)}) leave a singular J_D "
-                f"(condition number >= {settings.cond_JD_max:.0e} at a sampled configuration)"
-            )
-        source = "urdf"
-    else:
-        ind = mech.actuated_idx_v
-        dep = np.setdiff1d(all_idx, ind)
-        source = "actuated"
-        if len(ind) != mech.mobility or not cond_ok(dep):
-            pin.computeJointJacobians(model, data, mech.q_ref)
-            J = np.zeros((mech.nc, mech.nv))
-            mech.constraints.evaluate(model, data, J=J)
-            ind, dep = partition_coordinates(J)
-            source = "automatic"
-    mech.independent_idx_v = np.asarray(ind, dtype=int)
-    mech.dependent_idx_v = np.asarray(dep, dtype=int)
-    mech.independent_source = source
+    pin.computeJointJacobians(model, data, mech.q_ref)
+    J_ref = np.zeros((mech.nc, mech.nv))
+    mech.constraints.evaluate(model, data, J=J_ref)
+    marked = mech.coordinate_indices(mech.urdf.independent) if mech.urdf.independent else None
+    closure.choose_partition(
+        independent=marked,
+        actuated=mech.actuated_idx_v,
+        J_ref=J_ref,
+        cond_max=settings.cond_JD_max,
+        where=str(mech.path),
+        marked_names=mech.urdf.independent,
+    )

@@ -213,6 +213,7 @@ def simulate(
         problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
     )
     info["cpu_time"] = time.process_time() - cpu0
+    info["row_reselections"] = problem.reselections
     info["steps"] = steps
     info["evaluations"] = problem.n_evals
     traj = recorder.trajectory(info)

@@ -92,7 +92,9 @@ def run_fixed(
             ):
                 info["repartitions"].append([t, [mech.coordinate_names[i] for i in problem.ind]])
         if not partition:
-            problem.check_regular(q_new, t)
+            problem.check_regular(q_new, t)  # checks every declared row too
+        else:
+            problem.check_rows(q_new, t)
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
         if k in out_steps:

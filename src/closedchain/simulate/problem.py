@@ -15,6 +15,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
+from ..closure import RowCheckSettings
 from ..dynamics.base import get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
@@ -50,6 +51,14 @@ class Problem:
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
         self._J_at: np.ndarray | None = None
         self._J: np.ndarray | None = None
+        #: Row re-selections made during the run: [t, kept row labels, reason].
+        self.reselections: list[list] = []
+        self.row_check = RowCheckSettings(
+            dropped_tol=settings.dropped_row_tol,
+            dropped_ratio=settings.dropped_row_ratio,
+            cond_max=settings.singular_cond,
+            open_tol=settings.open_row_tol,
+        )
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Return J(q), reusing the last one when q is the same (each step asks several
@@ -139,12 +148,35 @@ class Problem:
         """Return the sign of det(J_D) at q (0 when singular)."""
         return float(np.linalg.slogdet(self.jacobian(q)[:, self.dep])[0])
 
+    def check_rows(self, q: np.ndarray, t: float, kept_cond: float | None = None) -> bool:
+        """Check every declared row at q; re-select the kept rows when they stop describing
+        the loops (:meth:`LoopClosure.check_rows`). Returns True when re-selected."""
+        mech = self.mech
+        if not mech.closure.check_rows(
+            mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
+        ):
+            return False
+        self._J_at = None  # the memo holds the old rows
+        self.reselections.append(
+            [t, list(mech.closure.selection.kept), mech.closure.selection.reason]
+        )
+        if self.dep.size and self.cond_JD(q) > self.settings.repartition_cond:
+            self.repartition(q, t)
+        return True
+
     def check_regular(self, q: np.ndarray, t: float) -> None:
-        """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``."""
+        """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
+
+        Every declared row is checked first (:meth:`check_rows`): a kept set that
+        degenerates where the mechanism does not is re-selected, not reported singular.
+        """
         if self.mech.nc == 0:
             return
         s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+        if self.check_rows(q, t, kept_cond=cond):
+            s = np.linalg.svd(self.jacobian(q), compute_uv=False)
+            cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
         if cond > self.settings.singular_cond:
             raise SingularConfigurationError(
                 f"{self.mech.name}: at t = {t:.9g} s the constraint Jacobian is close to losing "
@@ -186,19 +218,22 @@ class Recorder:
         self.rows: dict[str, list] = {
             k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
         }
-        self._phi = np.zeros(mech.nc)
+        self._phi = np.zeros(mech.declared.nc)
 
     def add(self, t, q, v, a, lam) -> None:
         mech = self.mech
         model, data = mech.model, mech.data
+        # The residual covers every declared row, dropped ones included: a loop is
+        # never reported closed while one of its rows is open.
         pin.forwardKinematics(model, data, q)
-        mech.constraints.evaluate(model, data, phi=self._phi)
+        mech.declared.evaluate(model, data, phi=self._phi)
         res = float(np.max(np.abs(self._phi), initial=0.0))
         if not math.isfinite(res) or res > self.drift_limit:
+            label, _ = mech.closure.worst_row(np.nan_to_num(self._phi, nan=np.inf))
             raise SimulationError(
                 f"{mech.name}: the state left the constraint manifold at t = {t:.9g} s "
-                f"(max |phi| = {res:.3e} > drift_limit {self.drift_limit:.1e}); use a "
-                "stabilization or a smaller step",
+                f"(max |phi| = {res:.3e} > drift_limit {self.drift_limit:.1e}, row {label}); "
+                "use a stabilization or a smaller step",
                 t,
             )
         J = self.jacobian(q)

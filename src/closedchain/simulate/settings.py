@@ -57,8 +57,16 @@ class SimulationSettings:
             partitioning steps across the 4-bar's change point (the continuation
             is the one Newton finds from the previous state; energy drift 2e-7
             with rk4 at dt 1e-3).
-        drift_limit: raise SimulationError when max |phi| exceeds this [m or -]:
-            a trajectory never leaves the manifold unreported.
+        drift_limit: raise SimulationError when max |phi| over every declared
+            row exceeds this [m or -]: a trajectory never leaves the manifold
+            unreported.
+        dropped_row_tol: a row dropped as redundant open by more than this
+            [m or -] (and by ``dropped_row_ratio`` times the kept rows'
+            residual) at a step means the kept rows no longer describe the
+            loop: they are re-selected (``info["row_reselections"]``).
+        dropped_row_ratio: see ``dropped_row_tol``.
+        open_row_tol: an open dropped row that no re-selection takes in stops
+            the run with LoopClosureError above this [m or -].
     """
 
     dt: float = 1e-3
@@ -74,6 +82,9 @@ class SimulationSettings:
     singular_cond: float = 1e3
     partition_singular_cond: float = 1e4
     drift_limit: float = 1e-2
+    dropped_row_tol: float = 1e-9
+    dropped_row_ratio: float = 100.0
+    open_row_tol: float = 1e-6
 
 
 def seed_settings() -> SimulationSettings:

@@ -1,0 +1,522 @@
+r"""The loop rows of a mechanism and its coordinate partition: one object, built at load.
+
+:class:`LoopClosure` owns the declared rows of every loop, the subset kept as
+independent (the rows every dynamics method uses) and the partition of the
+velocity coordinates into independent and dependent ones. It is built once by
+:func:`closedchain.load`; the simulator asks it for a new partition
+(:meth:`LoopClosure.partition_at`) and, when the kept rows stop describing the
+loops, for a new row selection (:meth:`LoopClosure.check_rows`).
+
+Row selection (:meth:`LoopClosure.select_rows`) works on the declared
+Jacobian at many configurations spread along the motion: random assembled
+configurations (every joint drawn at random, so base joints such as a
+turntable or a free flyer take random poses) and short walks from each of
+them along the null space of J. The generic rank r is the largest numerical
+rank met; samples of lower rank are singular configurations and are set
+aside. The kept rows are chosen greedily, each time the declared row that
+maximizes the worst case, over the regular samples, of the smallest singular
+value of the kept rows' Jacobian:
+
+.. math::
+
+    k_{j+1} = \arg\max_{i \notin K_j} \min_s \sigma_{\min}(J_s[K_j \cup \{i\}]),
+
+until r rows are kept (a rank-revealing selection over all samples at once,
+not at one pose).
+
+Module dependencies: :mod:`constraints` (rows) and :mod:`kinematics` (Newton
+on phi = 0); :mod:`mechanism` builds the object, nothing here imports it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+import scipy.linalg
+
+from .constraints import ConstraintLayer, RowInfo
+from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
+from .kinematics import AssemblySettings, partition_coordinates, solve_closure
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SelectionSettings:
+    """Settings of the row selection and of the run-time row checks.
+
+    Attributes:
+        n_samples: random assembled configurations (random base poses included).
+        max_attempts: random starts tried to get them.
+        walk_steps: steps of the walk along the motion from each sample.
+        walk_step: length of one walk step in velocity space [rad or m].
+        rank_tol: a singular value counts towards the rank when it exceeds
+            ``rank_tol`` times max(1, the largest singular value of J).
+        margin_min: smallest acceptable worst-case ratio sigma_min(J_kept) /
+            sigma_max(J_declared) over the samples; below it the selection is
+            logged as weak.
+        prismatic_range: sampling range [m] of unbounded prismatic coordinates.
+        seed: seed of the sampling.
+    """
+
+    n_samples: int = 8
+    max_attempts: int = 60
+    walk_steps: int = 3
+    walk_step: float = 0.3
+    rank_tol: float = 1e-8
+    margin_min: float = 1e-4
+    prismatic_range: float = 1.0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RowSelection:
+    """How the independent rows were chosen (what ``closedchain info`` reports).
+
+    Attributes:
+        kept: labels of the kept rows.
+        dropped: labels of the declared rows left out.
+        rank: generic rank of the declared Jacobian.
+        n_samples: configurations examined.
+        n_singular: samples whose declared Jacobian had a lower rank (set aside).
+        margin: worst case over the regular samples of sigma_min(J_kept) /
+            sigma_max(J_declared) (0 < margin <= 1; larger is better).
+        reason: ``"load"`` or the re-selection's cause.
+    """
+
+    kept: tuple[str, ...]
+    dropped: tuple[str, ...]
+    rank: int
+    n_samples: int
+    n_singular: int
+    margin: float
+    reason: str = "load"
+
+    def as_dict(self) -> dict:
+        return {
+            "kept": list(self.kept),
+            "dropped": list(self.dropped),
+            "rank": self.rank,
+            "n_samples": self.n_samples,
+            "n_singular": self.n_singular,
+            "margin": self.margin,
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True)
+class RowCheckSettings:
+    """Tolerances of :meth:`LoopClosure.check_rows`.
+
+    Attributes:
+        dropped_tol: a dropped row open by more than this [m or -] ...
+        dropped_ratio: ... and by more than ``dropped_ratio`` times the largest
+            kept-row residual means the kept rows no longer describe the loop.
+        cond_max: a kept Jacobian whose condition number exceeds this while
+            the declared rows still have their generic rank, with a condition
+            number (of their r largest singular values) below it, means the
+            kept rows degenerate where the mechanism does not.
+        open_tol: when no re-selection can take in an open dropped row, a
+            residual above this [m or -] is an error (below it, the residual
+            is only reported: every output's residual covers all declared rows).
+    """
+
+    dropped_tol: float = 1e-9
+    dropped_ratio: float = 100.0
+    cond_max: float = 1e3
+    open_tol: float = 1e-6
+
+
+def declared_jacobian(model: pin.Model, data: pin.Data, layer: ConstraintLayer, q) -> np.ndarray:
+    """Return J(q) of every row of ``layer``, shape (layer.nc, nv)."""
+    pin.computeJointJacobians(model, data, q)
+    J = np.zeros((layer.nc, model.nv))
+    layer.evaluate(model, data, J=J)
+    return J
+
+
+def _phi(model, data, layer: ConstraintLayer, q) -> np.ndarray:
+    pin.forwardKinematics(model, data, q)
+    out = np.zeros(layer.nc)
+    layer.evaluate(model, data, phi=out)
+    return out
+
+
+def _null_space(J: np.ndarray, tol: float) -> np.ndarray:
+    """Orthonormal basis of the null space of J, shape (nv, nv - rank)."""
+    _, s, Vt = np.linalg.svd(J)
+    rank = int(np.sum(s > tol))
+    return Vt[rank:].T
+
+
+def sample_configurations(
+    model: pin.Model,
+    data: pin.Data,
+    declared: ConstraintLayer,
+    draw: Callable[[np.random.Generator], np.ndarray],
+    settings: SelectionSettings,
+    *,
+    first: Sequence[np.ndarray] = (),
+) -> tuple[list[np.ndarray], AssemblyError | None]:
+    """Return assembled configurations spread along the motion.
+
+    Random starts (``first``, then ``draw(rng)``) are assembled onto all
+    declared rows; from each, ``walk_steps`` steps of length ``walk_step``
+    along a random direction of the null space of J are taken and assembled
+    again (a short stretch of the motion).
+
+    Returns:
+        The configurations (shape (nq,) each) and the best failed assembly
+        (None when every start assembled), for error messages.
+    """
+    rng = np.random.default_rng(settings.seed)
+    free = np.arange(model.nv)
+    asm = AssemblySettings()
+    samples: list[np.ndarray] = []
+    best: AssemblyError | None = None
+    starts = list(first)
+    roots = 0
+    for attempt in range(settings.max_attempts):
+        if roots >= settings.n_samples:
+            break
+        q0 = starts[attempt] if attempt < len(starts) else draw(rng)
+        try:
+            q = solve_closure(model, data, declared, q0, free, asm)
+        except AssemblyError as exc:
+            if best is None or exc.residual < best.residual:
+                best = exc
+            continue
+        roots += 1
+        samples.append(q)
+        for _ in range(settings.walk_steps):
+            J = declared_jacobian(model, data, declared, q)
+            N = _null_space(J, settings.rank_tol * max(1.0, float(np.linalg.norm(J, 2))))
+            if N.shape[1] == 0:
+                break
+            step = N @ rng.standard_normal(N.shape[1])
+            step *= settings.walk_step / max(float(np.linalg.norm(step)), np.finfo(float).tiny)
+            try:
+                q = solve_closure(model, data, declared, pin.integrate(model, q, step), free, asm)
+            except AssemblyError:
+                break
+            samples.append(q)
+    return samples, best
+
+
+class LoopClosure:
+    """A mechanism's loop rows, their independent subset and its coordinate partition.
+
+    Attributes:
+        declared: every declared row.
+        active: the kept (independent) rows, the ones every method uses.
+        selection: how ``active`` was chosen (:class:`RowSelection`).
+        history: every selection made, the load-time one first.
+        independent_idx_v: velocity indices of the independent coordinates, shape (mobility,).
+        dependent_idx_v: the others, shape (nc,).
+        independent_source: ``"urdf"``, ``"actuated"`` or ``"automatic"``.
+    """
+
+    def __init__(self, declared: ConstraintLayer, nv: int, *, name: str = "") -> None:
+        self.declared = declared
+        self.active = declared
+        self.nv = nv
+        self.name = name
+        self.rank = declared.nc
+        self.selection = RowSelection(
+            tuple(r.label for r in declared.rows), (), declared.nc, 0, 0, 1.0
+        )
+        self.history: list[RowSelection] = []
+        self.independent_idx_v = np.arange(nv)
+        self.dependent_idx_v = np.arange(0)
+        self.independent_source = "automatic"
+        self._Js: list[np.ndarray] = []  # declared J at the regular samples
+        self._tol = 0.0
+        self._n_singular = 0
+
+    # -- row selection ---------------------------------------------------------------
+    @property
+    def selected_rows(self) -> tuple[int, ...]:
+        """Indices of the kept rows in ``declared.declared_rows``."""
+        return self.active.selected
+
+    @property
+    def rows(self) -> tuple[RowInfo, ...]:
+        return self.active.rows
+
+    def select_rows(
+        self,
+        model: pin.Model,
+        data: pin.Data,
+        samples: Sequence[np.ndarray],
+        *,
+        rank_tol: float,
+        margin_min: float = SelectionSettings.margin_min,
+    ) -> RowSelection:
+        """Choose the independent rows from the declared Jacobian at ``samples``.
+
+        Args:
+            model, data: the mechanism's Pinocchio model (with loop frames) and data.
+            samples: assembled configurations, shape (nq,) each.
+            rank_tol: relative rank threshold (see :class:`SelectionSettings`).
+            margin_min: below this worst-case margin the choice is logged as weak.
+
+        Returns:
+            The selection (also stored in :attr:`selection`).
+        """
+        Js = [declared_jacobian(model, data, self.declared, q) for q in samples]
+        self._tol = rank_tol * max([1.0] + [float(np.linalg.norm(J, 2)) for J in Js])
+        return self._select(Js, reason="load", margin_min=margin_min)
+
+    def _select(
+        self, Js: list[np.ndarray], *, reason: str, margin_min: float, prefer=()
+    ) -> RowSelection:
+        tol = self._tol
+        ranks = [int(np.sum(np.linalg.svd(J, compute_uv=False) > tol)) for J in Js]
+        rank = max(ranks, default=0)
+        regular = [J for J, r in zip(Js, ranks, strict=True) if r == rank]
+        n_singular = len(Js) - len(regular)
+        self._Js = regular
+        self._n_singular = n_singular
+        keep = self._greedy(regular, rank, prefer)
+        scale = [max(float(np.linalg.norm(J, 2)), np.finfo(float).tiny) for J in regular]
+        margin = (
+            min((_sigma_min(J[keep]) / s for J, s in zip(regular, scale, strict=True)), default=1.0)
+            if keep
+            else 1.0
+        )
+        self.rank = rank
+        self.active = self.declared.restricted(keep)
+        labels = [r.label for r in self.declared.declared_rows]
+        self.selection = RowSelection(
+            kept=tuple(labels[i] for i in keep),
+            dropped=tuple(lb for i, lb in enumerate(labels) if i not in keep),
+            rank=rank,
+            n_samples=len(Js),
+            n_singular=n_singular,
+            margin=float(margin),
+            reason=reason,
+        )
+        self.history.append(self.selection)
+        log = logger.warning if margin < margin_min else logger.info
+        log(
+            "%s: kept rows %s of %d declared "
+            "(rank %d over %d samples, %d singular; margin %.3g; %s)",
+            self.name,
+            ", ".join(self.selection.kept),
+            self.declared.nc,
+            rank,
+            len(Js),
+            n_singular,
+            margin,
+            reason,
+        )
+        return self.selection
+
+    def _greedy(self, Js: list[np.ndarray], rank: int, prefer) -> list[int]:
+        """Max-min greedy choice of ``rank`` rows over all ``Js`` (module docstring)."""
+        keep: list[int] = []
+        # Rows of the previous selection that still have full rank together come first,
+        # so a re-selection changes as few rows as it can.
+        for i in prefer:
+            if len(keep) < rank and all(_sigma_min(J[keep + [i]]) > self._tol for J in Js):
+                keep.append(i)
+        while len(keep) < rank:
+            best, best_val = -1, -1.0
+            for i in range(self.declared.nc):
+                if i in keep:
+                    continue
+                val = min(_sigma_min(J[keep + [i]]) for J in Js)
+                if val > best_val * (1.0 + 1e-9):
+                    best, best_val = i, val
+            keep.append(best)
+        return sorted(keep)
+
+    # -- run-time checks -------------------------------------------------------------
+    def declared_residuals(self, model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
+        """Return phi(q) of every declared row, shape (n_declared,) [m or -]."""
+        return _phi(model, data, self.declared, q)
+
+    def worst_row(self, phi_declared: np.ndarray) -> tuple[str, float]:
+        """Return the label and |phi| of the most open declared row."""
+        i = int(np.argmax(np.abs(phi_declared)))
+        return self.declared.declared_rows[i].label, float(abs(phi_declared[i]))
+
+    def check_rows(
+        self,
+        model: pin.Model,
+        data: pin.Data,
+        q: np.ndarray,
+        *,
+        t: float | None = None,
+        kept_cond: float | None = None,
+        settings: RowCheckSettings | None = None,
+    ) -> bool:
+        """Check that the kept rows still describe every loop at q; re-select if not.
+
+        The kept rows stop describing the loops when a dropped row is open while
+        the kept ones are not (``settings.dropped_tol``, ``dropped_ratio``), or
+        when the kept rows' Jacobian degenerates (``kept_cond``, computed by the
+        caller, above ``settings.cond_max``) while the declared rows keep their
+        generic rank. Then the rows are re-selected with q added to the samples
+        (logged, recorded in :attr:`history`).
+
+        Args:
+            model, data: the mechanism's model and data (data is overwritten).
+            q: configuration, shape (nq,).
+            t: simulation time [s] for messages, if any.
+            kept_cond: condition number of the kept rows' J at q, if known.
+            settings: tolerances (default :class:`RowCheckSettings`).
+
+        Returns:
+            True when the rows were re-selected.
+
+        Raises:
+            SingularConfigurationError: the declared rows themselves lost rank
+                (a singular configuration of the mechanism).
+            LoopClosureError: a declared row is open by more than
+                ``settings.open_tol`` and no selection of rows of the generic rank
+                takes it in (names loop, row, time and residual).
+        """
+        settings = settings or RowCheckSettings()
+        if self.declared.nc == self.active.nc:
+            return False
+        when = f" at t = {t:.9g} s" if t is not None else ""
+        phi = self.declared_residuals(model, data, q)
+        sel = np.zeros(self.declared.nc, dtype=bool)
+        sel[list(self.selected_rows)] = True
+        kept_res = float(np.max(np.abs(phi[sel]), initial=0.0))
+        dropped = np.where(sel, 0.0, np.abs(phi))
+        drop_res = float(np.max(dropped))
+        open_row = drop_res > max(settings.dropped_tol, settings.dropped_ratio * kept_res)
+        degenerate = kept_cond is not None and kept_cond > settings.cond_max
+        if not (open_row or degenerate):
+            return False
+        J = declared_jacobian(model, data, self.declared, q)
+        s_all = np.linalg.svd(J, compute_uv=False)
+        r = self.rank
+        cond_all = s_all[0] / s_all[r - 1] if s_all[r - 1] > self._tol else np.inf
+        if cond_all > settings.cond_max:
+            raise SingularConfigurationError(
+                f"{self.name}{when}: the declared loop rows lose rank (condition number of "
+                f"their {r} largest singular values {cond_all:.3e} > {settings.cond_max:.1e}): "
+                "a singular configuration of the mechanism",
+                q=np.array(q),
+                condition_number=float(cond_all),
+                t=t,
+            )
+        worst = self.declared.declared_rows[int(np.argmax(dropped))].label
+        reason = (
+            f"dropped row {worst} open by {drop_res:.3e} (kept rows {kept_res:.3e}){when}"
+            if open_row
+            else f"kept rows degenerate (condition number {kept_cond:.3e}){when}"
+        )
+        # The previous rows describe the loops no more: choose afresh (max-min over the
+        # load-time samples and this configuration).
+        previous = self.selected_rows
+        if tuple(self._greedy(self._Js + [J], r, ())) != previous:
+            self._select(self._Js + [J], reason=reason, margin_min=0.0)
+            return True
+        if open_row and drop_res > settings.open_tol:
+            label, res = self.worst_row(phi)
+            raise LoopClosureError(
+                f"{self.name}{when}: loop row {label} is open by {res:.3e} while the kept rows "
+                f"({', '.join(self.selection.kept)}) are closed to {kept_res:.3e}, and no other "
+                "choice of independent rows describes the loop here"
+            )
+        return False
+
+    # -- coordinate partition --------------------------------------------------------
+    def choose_partition(
+        self,
+        *,
+        independent: np.ndarray | None,
+        actuated: np.ndarray,
+        J_ref: np.ndarray,
+        cond_max: float,
+        where: str = "",
+        marked_names: Sequence[str] = (),
+    ) -> None:
+        """Choose the independent coordinates at load.
+
+        The URDF's ``independent="true"`` joints when given, else the actuated
+        joints when they fit (count = mobility, J_D regular at every regular
+        sample), else column-pivoted QR of ``J_ref``.
+
+        Args:
+            independent: velocity indices marked ``independent="true"`` in the
+                URDF, or None.
+            actuated: velocity indices of the actuated joints.
+            J_ref: kept-row Jacobian at the reference configuration, shape (nc, nv).
+            cond_max: largest acceptable cond(J_D) at the regular samples.
+            where: the file, for error messages.
+            marked_names: the joints marked independent, for error messages.
+
+        Raises:
+            URDFError: the marked coordinates do not match the mobility or
+                leave a singular J_D.
+        """
+        all_idx = np.arange(self.nv)
+        kept = list(self.selected_rows)
+        samples = [J[kept] for J in self._Js]
+        mobility = self.nv - self.active.nc
+
+        def cond_ok(dep: np.ndarray) -> bool:
+            return len(dep) == self.active.nc and all(
+                np.linalg.cond(J[:, dep]) < cond_max for J in samples
+            )
+
+        if independent is not None:
+            dep = np.setdiff1d(all_idx, independent)
+            if len(independent) != mobility:
+                raise URDFError(
+                    f"{where}: {len(independent)} coordinates are marked independent="
+                    f'"true" ({", ".join(marked_names)}) but the mobility is {mobility}'
+                )
+            if not cond_ok(dep):
+                raise URDFError(
+                    f'{where}: the joints marked independent="true" '
+                    f"({', '.join(marked_names)}) leave a singular J_D "
+                    f"(condition number >= {cond_max:.0e} at a sampled configuration)"
+                )
+            ind, source = independent, "urdf"
+        else:
+            ind, source = actuated, "actuated"
+            dep = np.setdiff1d(all_idx, ind)
+            if len(ind) != mobility or not cond_ok(dep):
+                ind, dep = partition_coordinates(J_ref)
+                source = "automatic"
+        self.independent_idx_v = np.asarray(ind, dtype=int)
+        self.dependent_idx_v = np.asarray(dep, dtype=int)
+        self.independent_source = source
+
+    @staticmethod
+    def partition_at(J: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Return the best-conditioned partition for the kept-row Jacobian J.
+
+        Column-pivoted QR (Wehage & Haug), see :func:`kinematics.partition_coordinates`.
+
+        Returns:
+            ``(independent_idx_v, dependent_idx_v, cond(J_D))``.
+        """
+        ind, dep = partition_coordinates(J)
+        return ind, dep, float(np.linalg.cond(J[:, dep])) if len(dep) else 1.0
+
+
+def _sigma_min(A: np.ndarray) -> float:
+    if A.shape[0] == 0:
+        return np.inf
+    return float(scipy.linalg.svdvals(A)[-1]) if A.shape[0] <= A.shape[1] else 0.0
+
+
+__all__ = [
+    "LoopClosure",
+    "RowCheckSettings",
+    "RowSelection",
+    "SelectionSettings",
+    "declared_jacobian",
+    "sample_configurations",
+]

@@ -1,0 +1,329 @@
+"""Moving bases (``root_joint``), loop overlays, and real robots of example-robot-data.
+
+References, none computed by the code under test:
+
+* pinocchio.constraintDynamics on the same tree and loops (``validate``), at
+  random assembled states and, in the property test, at base placements and
+  velocities drawn by hypothesis;
+* the fixed-base mechanism itself: a free-flying 4-bar whose ground link an
+  overlay welds to the world moves exactly like the fixed 4-bar (same joint
+  accelerations, base at rest);
+* the overlay files' own numbers (pinned feet, welded soles) for the loops
+  holding after 2 s of simulation.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import metadata
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import MODELS
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from lxml import etree
+
+import closedchain as cc
+from closedchain import robots
+from closedchain.cli import main
+from closedchain.dynamics import SolverSettings
+from closedchain.validation import pinocchio_forward_dynamics
+
+#: Accelerations agree with pinocchio.constraintDynamics to this [rad/s^2, m/s^2].
+TOL_A = 1e-9
+#: Generalized constraint forces agree to this (absolute below 1, relative above).
+TOL_FORCE = 1e-8
+#: Every declared loop row stays below this during a run [m or -].
+TOL_ROWS = 1e-9
+#: Round-off level of rows that do not depend on the base pose [m or -].
+TOL_PHI = 1e-12
+#: Validation states per mechanism and root.
+N_STATES = 20
+#: Fixed step [s] and duration [s] of the robot runs (rk4 + projection: nq != nv).
+DT = 1e-3
+T_RUN = 2.0
+#: Largest size of a robot animation [bytes] (primitive geometry, 2 s at 30 fps).
+MAX_HTML_BYTES = 2_000_000
+
+ROOTS = (None, "free", "planar")
+ROOT_SIZES = {None: (0, 0), "free": (7, 6), "planar": (4, 3)}
+ROOT_MODELS = {"free": "JointModelFreeFlyer", "planar": "JointModelPlanar"}
+
+
+@pytest.fixture(scope="module")
+def by_root():
+    cache: dict = {}
+
+    def get(name: str, root: str | None) -> cc.Mechanism:
+        if (name, root) not in cache:
+            cache[name, root] = cc.load(MODELS / f"{name}.urdf", root_joint=root)
+        return cache[name, root]
+
+    return get
+
+
+# -- root joints -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("root", ["free", "planar"])
+def test_root_joint_is_added_under_the_universe(by_root, root):
+    fixed, moving = by_root("fourbar", None), by_root("fourbar", root)
+    dq, dv = ROOT_SIZES[root]
+    assert (moving.nq, moving.nv) == (fixed.nq + dq, fixed.nv + dv)
+    assert moving.model.joints[1].shortname() == ROOT_MODELS[root]
+    assert moving.model.parents[1] == 0
+    assert moving.summary()["root_joint"] == root
+    assert moving.mobility == fixed.mobility + dv
+
+
+def test_unknown_root_joint_lists_the_choices():
+    with pytest.raises(cc.UnknownChoiceError, match=r"root_joint 'floating'.*free, planar"):
+        cc.load(MODELS / "fourbar.urdf", root_joint="floating")
+
+
+#: (model, root joint): fixed, turntable, planar and free-flyer bases. The
+#: turntable model's root link is massless, so a free or planar root on it
+#: would duplicate the turntable's rotation (singular mass matrix).
+BASES = [(name, root) for name in ("fourbar", "agile_eye") for root in ROOTS] + [
+    ("turntable_fourbar", None)
+]
+
+
+@pytest.mark.parametrize(("name", "root"), BASES)
+def test_validate_agrees_with_pinocchio_on_every_base(by_root, name, root):
+    """Fixed, turntable, planar and free-flyer bases: a and J^T lam to 1e-9 / 1e-8.
+
+    The random torques have the size of the *fixed* mechanism's gravity load
+    (on a free flyer the default scale is the whole weight on the base, which
+    would throw the light links at 1e3 rad/s^2).
+    """
+    mech = by_root(name, root)
+    tau_scale = by_root(name, None).gravity_torque_scale()
+    rep = cc.validate(mech, n_samples=N_STATES, seed=3, tau_scale=tau_scale)
+    assert rep.n_singular == 0
+    assert rep.max_da <= TOL_A, rep
+    assert rep.max_dforce <= TOL_FORCE, rep
+
+
+def _base_placement(root: str, xyz, rot, yaw) -> np.ndarray:
+    """Root-joint configuration from hypothesis draws."""
+    if root == "free":
+        quat = np.array(rot, dtype=float)
+        quat /= np.linalg.norm(quat)
+        return np.concatenate([xyz, quat])  # x, y, z, qx, qy, qz, qw
+    return np.array([xyz[0], xyz[1], np.cos(yaw), np.sin(yaw)])
+
+
+finite = st.floats(-2.0, 2.0, allow_nan=False, allow_infinity=False)
+
+
+@pytest.mark.parametrize("root", ["free", "planar"])
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    xyz=st.tuples(finite, finite, finite),
+    rot=st.tuples(finite, finite, finite, finite).filter(lambda r: np.linalg.norm(r) > 0.1),
+    yaw=st.floats(-np.pi, np.pi),
+    base_v=st.tuples(finite, finite, finite, finite, finite, finite),
+    seed=st.integers(0, 2**16),
+)
+def test_any_base_pose_and_velocity_matches_pinocchio(by_root, root, xyz, rot, yaw, base_v, seed):
+    """Property: at any base placement and velocity the 4-bar's loop stays closed and
+    the accelerations agree with pinocchio.constraintDynamics."""
+    mech, fixed = by_root("fourbar", root), by_root("fourbar", None)
+    rng = np.random.default_rng(seed)
+    q_in, v_in = cc.random_consistent_state(fixed, rng)
+    dq, dv = ROOT_SIZES[root]
+    q = np.concatenate([_base_placement(root, np.array(xyz), rot, yaw), q_in])
+    phi = cc.compute_phi(mech, q)
+    assert np.max(np.abs(phi)) <= TOL_PHI  # rows independent of the base pose
+    v = cc.project_velocity(mech, q, np.concatenate([np.array(base_v)[:dv], v_in]))
+    tau = fixed.gravity_torque_scale() * rng.standard_normal(mech.nv)
+    ours = cc.forward_dynamics(mech, q, v, tau, method="kkt")
+    a_pin, f_pin = pinocchio_forward_dynamics(mech, q, v, tau, SolverSettings())
+    assert np.max(np.abs(ours.a - a_pin)) <= TOL_A
+    scale = max(1.0, float(np.max(np.abs(f_pin))))
+    assert np.max(np.abs(ours.generalized_constraint_force() - f_pin)) / scale <= TOL_FORCE
+
+
+# -- overlays ----------------------------------------------------------------------
+
+
+WELD_GROUND = """<?xml version="1.0"?>
+<robot name="welded_fourbar">
+  <loop name="weld" type="fixed">
+    <predecessor link="world"/>
+    <successor link="ground"/>
+  </loop>
+</robot>
+"""
+
+
+def test_overlay_weld_to_world_makes_the_free_fourbar_the_fixed_one(by_root, tmp_path, rng):
+    """An overlay welds the floating 4-bar's ground to the world: its joint
+    accelerations are the fixed 4-bar's and the base does not move."""
+    overlay = tmp_path / "weld.urdf"
+    overlay.write_text(WELD_GROUND)
+    welded = cc.load(MODELS / "fourbar.urdf", root_joint="free", loops=overlay)
+    fixed = by_root("fourbar", None)
+    assert welded.name == "welded_fourbar"
+    assert welded.mobility == fixed.mobility
+    base_rest = pin.neutral(welded.model)[:7]
+    for _ in range(5):
+        q, v = cc.random_consistent_state(fixed, rng)
+        tau = fixed.gravity_torque_scale() * rng.standard_normal(fixed.nv)
+        a_fixed = cc.forward_dynamics(fixed, q, v, tau, method="kkt").a
+        res = cc.forward_dynamics(
+            welded,
+            np.concatenate([base_rest, q]),
+            np.concatenate([np.zeros(6), v]),
+            np.concatenate([np.zeros(6), tau]),
+            method="kkt",
+        )
+        assert np.linalg.norm(res.a[6:] - a_fixed) <= TOL_A
+        assert np.linalg.norm(res.a[:6]) <= TOL_A
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ('<robot name="o"><gazebo/></robot>', r"<gazebo> cannot be merged; valid overlay elements"),
+        ('<robot name="o"><link name="crank"/></robot>', r"<link name='crank'> already exists"),
+        (
+            '<robot name="o"><link name="x"/><joint name="j" type="fixed">'
+            '<parent link="world"/><child link="x"/></joint></robot>',
+            r"parent 'world', but the tree has no 'world' link",
+        ),
+        (
+            '<!DOCTYPE r [<!ENTITY a "b">]><robot name="o"/>',
+            r"DOCTYPE/DTD is not allowed",
+        ),
+        ('<overlay name="o"/>', r"root element is <overlay>, expected <robot>"),
+        (
+            '<robot name="o"><loop name="L" type="spherical"><predecessor link="world"/>'
+            '<successor link="nope"/></loop></robot>',
+            r"<successor link='nope'> names an unknown link",
+        ),
+    ],
+)
+def test_bad_overlay_is_refused_naming_file_and_element(tmp_path, text, match):
+    overlay = tmp_path / "bad_overlay.urdf"
+    overlay.write_text(text)
+    with pytest.raises(cc.URDFError, match=match) as info:
+        cc.load(MODELS / "fourbar.urdf", loops=overlay)
+    assert "bad_overlay.urdf" in str(info.value)
+
+
+# -- example-robot-data --------------------------------------------------------------
+
+
+def test_erd_unknown_name_lists_the_models():
+    with pytest.raises(cc.UnknownChoiceError, match=r"'erd:nao'.*erd:solo12.*erd:ur5"):
+        cc.load("erd:nao")
+
+
+def test_erd_missing_package_says_how_to_install(monkeypatch):
+    def missing(name):
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(robots.metadata, "distribution", missing)
+    with pytest.raises(cc.ClosedChainError, match=r"pip install closedchain\[robots\]"):
+        cc.load("erd:solo12")
+
+
+#: name -> (model, root, overlay, nv, declared rows, torque).
+ROBOTS = {
+    "solo12": ("erd:solo12", "free", "solo12_pinned.urdf", 18, 12, "zero"),
+    "ur5_crank": ("erd:ur5", None, "ur5_crank.urdf", 7, 5, "zero"),
+    "talos": ("erd:talos_reduced", "free", "talos_standing.urdf", 38, 12, "gravity"),
+}
+
+
+@pytest.fixture(scope="module")
+def robot():
+    cache: dict = {}
+
+    def get(key: str) -> cc.Mechanism:
+        if key not in cache:
+            name, root, overlay, *_ = ROBOTS[key]
+            cache[key] = cc.load(name, root_joint=root, loops=MODELS / overlay)
+        return cache[key]
+
+    return get
+
+
+@pytest.mark.parametrize("key", list(ROBOTS))
+def test_robot_loads_with_every_row_independent(robot, key):
+    mech = robot(key)
+    _, _, _, nv, rows, _ = ROBOTS[key]
+    assert mech.nv == nv
+    assert mech.declared.nc == rows
+    assert mech.nc == rows  # no redundant row in these loops
+    assert mech.mobility == nv - rows
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= TOL_PHI
+    # Primitive visuals only: nothing drawn points into the package's meshes.
+    visuals = etree.fromstring(mech.urdf.xml.encode()).findall("link/visual/geometry/*")
+    assert visuals
+    assert {v.tag for v in visuals} <= {"box", "cylinder", "sphere"}
+
+
+@pytest.mark.parametrize("key", list(ROBOTS))
+def test_robot_validates_against_pinocchio(robot, key):
+    rep = cc.validate(robot(key), n_samples=10, seed=1)
+    assert rep.n_singular == 0
+    assert rep.max_da <= TOL_A, rep
+    assert rep.max_dforce <= TOL_FORCE, rep
+
+
+@pytest.mark.parametrize("key", list(ROBOTS))
+def test_robot_runs_two_seconds_with_the_loops_holding(robot, key):
+    mech = robot(key)
+    tau = cc.gravity_torque(mech, mech.q_ref) if ROBOTS[key][5] == "gravity" else None
+    traj = cc.simulate(
+        mech,
+        mech.q_ref,
+        np.zeros(mech.nv),
+        T_RUN,
+        tau=tau,
+        integrator="rk4",
+        dt=DT,
+        t_eval=np.linspace(0.0, T_RUN, 21),
+    )
+    assert traj.t[-1] == pytest.approx(T_RUN)
+    assert traj.max_constraint_residual <= TOL_ROWS  # every declared row, every sample
+    assert np.all(np.isfinite(traj.q))
+
+
+def test_gravity_torque_holds_talos_at_rest(robot):
+    """Talos standing: the holding torque gives zero acceleration at half-sitting."""
+    mech = robot("talos")
+    tau = cc.gravity_torque(mech, mech.q_ref)
+    res = cc.forward_dynamics(mech, mech.q_ref, np.zeros(mech.nv), tau, method="kkt")
+    assert np.linalg.norm(res.a) <= TOL_A
+    # and without it the robot falls: the knees fold.
+    res0 = cc.forward_dynamics(mech, mech.q_ref, np.zeros(mech.nv), np.zeros(mech.nv))
+    assert np.linalg.norm(res0.a) > 1.0
+
+
+def test_solo12_feet_are_pinned_where_the_overlay_says(robot):
+    mech = robot("solo12")
+    data = mech.model.createData()
+    pin.framesForwardKinematics(mech.model, data, mech.q_ref)
+    for spec in mech.urdf.loops:
+        foot = data.oMf[mech.model.getFrameId(spec.successor)].translation
+        assert np.linalg.norm(foot - spec.predecessor_origin.translation) <= TOL_PHI
+
+
+def test_cli_info_and_animate_a_robot(tmp_path, capsys):
+    overlay = str(MODELS / "ur5_crank.urdf")
+    assert main(["info", "erd:ur5", "--loops", overlay, "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["nv"], info["mobility"], info["root_joint"]) == (7, 2, None)
+    out = tmp_path / "ur5.html"
+    argv = ["animate", "erd:ur5", "--loops", overlay, "--t-final", "0.5", "--integrator", "rk4"]
+    assert main([*argv, "--dt", "1e-3", "-o", str(out)]) == 0
+    assert 0 < out.stat().st_size <= MAX_HTML_BYTES
+    assert b"package://" not in out.read_bytes()
