@@ -18,9 +18,11 @@ the ground)::
     </robot>
 
 The link name ``world`` (:data:`closedchain.urdf.WORLD_LINK`) is reserved:
-when the tree has no link of that name it is Pinocchio's universe, fixed
-whatever the root joint. An overlay joint whose parent is ``world`` hangs its
-child from the universe.
+when the tree has no link of that name, a ``<loop>`` naming it is attached to
+Pinocchio's universe, fixed whatever the root joint. An overlay ``<joint>``
+may have ``world`` as parent only when the tree has such a link (as
+ur5_robot.urdf does; Pinocchio's URDF reader needs one root link); if that
+link is the tree's root and a root joint is added, it moves with the root.
 """
 
 from __future__ import annotations
@@ -132,7 +134,7 @@ def resolve_model(name: str | Path) -> tuple[Path, RobotEntry | None]:
     return erd_robots_dir() / entry.urdf, entry
 
 
-def reference_configuration(model, entry: RobotEntry | None, robots_dir: Path | None = None):
+def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path | None = None):
     """Return the registry entry's SRDF reference configuration, or None.
 
     Args:
@@ -159,12 +161,13 @@ def reference_configuration(model, entry: RobotEntry | None, robots_dir: Path | 
     return np.array(probe.referenceConfigurations[entry.reference], dtype=float)
 
 
-def merge_overlay(base: Path, overlay: str | Path, *, primitive: bool = False) -> URDFPlus:
+def merge_overlay(base: Path, overlay: str | Path | None, *, primitive: bool = False) -> URDFPlus:
     """Merge an overlay's elements into a base URDF and parse the result.
 
     Args:
         base: the base URDF file.
-        overlay: the overlay file (URDF+ syntax, root ``<robot>``), or None.
+        overlay: the overlay file (URDF+ syntax, root ``<robot>``), or None
+            (only ``primitive`` applies).
         primitive: replace mesh visuals by primitive geometry (see
             :func:`primitive_visuals`).
 
