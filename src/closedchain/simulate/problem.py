@@ -164,6 +164,13 @@ class Problem:
             self.repartition(q, t)
         return True
 
+    def check_start(self, q0: np.ndarray) -> None:
+        """Check every declared row at the initial configuration (re-select if needed)."""
+        if self.mech.nc == 0:
+            return
+        s = np.linalg.svd(self.jacobian(q0), compute_uv=False)
+        self.check_rows(q0, 0.0, kept_cond=float(s[0] / s[-1]) if s[-1] > 0 else math.inf)
+
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
 
