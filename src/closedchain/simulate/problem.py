@@ -18,7 +18,7 @@ import scipy.linalg
 from ..closure import RowCheckSettings
 from ..dynamics.base import get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
-from ..kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
+from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory
 from .settings import SimulationError
 
@@ -120,8 +120,7 @@ class Problem:
                 number above ``settings.partition_singular_cond``.
         """
         J = self.jacobian(q)
-        _, dep = partition_coordinates(J)
-        cond = float(np.linalg.cond(J[:, dep]))
+        _, dep, cond = self.mech.closure.partition_at(J)
         if cond > self.settings.partition_singular_cond:
             raise SingularConfigurationError(
                 f"{self.mech.name}: at t = {t:.9g} s no partition of the coordinates has a "
