@@ -46,10 +46,15 @@ from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationEr
 
 logger = logging.getLogger(__name__)
 
+#: Relative margin by which a later candidate row must beat an earlier one in the
+#: max-min greedy choice: near ties keep the declared order (deterministic choice).
+_TIE_RTOL = 1e-9
+
 
 @dataclass(frozen=True)
 class SelectionSettings:
-    """Settings of the row selection and of the run-time row checks.
+    """Settings of the load-time row selection (:func:`sample_configurations`,
+    :meth:`LoopClosure.select_rows`).
 
     Attributes:
         n_samples: random assembled configurations (random base poses included).
@@ -460,7 +465,7 @@ class LoopClosure:
                 if i in keep:
                     continue
                 val = min(_sigma_min(J[keep + [i]]) for J in Js)
-                if val > best_val * (1.0 + 1e-9):
+                if val > best_val * (1.0 + _TIE_RTOL):
                     best, best_val = i, val
             keep.append(best)
         return sorted(keep)
