@@ -30,6 +30,7 @@ MECHANISM_FILES = {
     "fourbar": MODELS / "fourbar.urdf",
     "agile_eye": MODELS / "agile_eye.urdf",
     "turntable_fourbar": MODELS / "turntable_fourbar.urdf",
+    "bricard": MODELS / "bricard.urdf",
     "spherical_chain": DATA_DIR / "spherical_chain.urdf",
     "slider_crank": DATA_DIR / "slider_crank.urdf",
     "slider_crank_planar": DATA_DIR / "slider_crank_planar.urdf",

@@ -27,6 +27,7 @@ ALL_MECHANISMS = [
     "fourbar",
     "agile_eye",
     "turntable_fourbar",
+    "bricard",
     "spherical_chain",
     "slider_crank",
     "slider_crank_planar",
@@ -327,7 +328,7 @@ def test_cut_frames_coincide_after_assembly(load_mechanism, mechanism_files, rng
                 assert np.linalg.norm(np.cross(d, R1 @ lp["axis"])) <= TOL_CUT_FRAMES
 
 
-@pytest.mark.parametrize("name", ALL_MECHANISMS[3:])
+@pytest.mark.parametrize("name", ALL_MECHANISMS[4:])
 def test_test_mechanisms_close_at_their_stated_configuration(mechanism_files, load_mechanism, name):
     """Each tests/data/ file states a configuration q_star at which its loop is closed."""
     mech = load_mechanism(name)

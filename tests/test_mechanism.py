@@ -38,6 +38,10 @@ ROW_COUNTS = {
     "slider_crank_planar": (5, 2, 1),
     # Spatial fixed cut: 3 translations + 3 rotations.
     "fixed_branches": (6, 6, 1),
+    # The planar 4-bar on a turntable: the same 2 rows in every turntable angle.
+    "turntable_fourbar": (5, 2, 2),
+    # Bricard's 6R: Gruebler 0, but one of the 5 cut rows is dependent everywhere.
+    "bricard": (5, 4, 1),
 }
 
 EXPECTED_INDEPENDENT = {

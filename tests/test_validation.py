@@ -21,7 +21,14 @@ import closedchain as cc
 from closedchain.dynamics import base as dynamics_base
 
 #: Mechanisms with a Pinocchio reference (no prismatic loops).
-VALIDATABLE = ["fourbar", "agile_eye", "turntable_fourbar", "spherical_chain", "fixed_branches"]
+VALIDATABLE = [
+    "fourbar",
+    "agile_eye",
+    "turntable_fourbar",
+    "bricard",
+    "spherical_chain",
+    "fixed_branches",
+]
 
 #: Random consistent states compared with pinocchio.constraintDynamics per model.
 N_VALIDATION_STATES = 100
@@ -57,7 +64,7 @@ TOL_ACCELERATION_RELATIVE = 1e-11
 # -- closedchain.validate -------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye", "turntable_fourbar"])
+@pytest.mark.parametrize("name", ["fourbar", "agile_eye", "turntable_fourbar", "bricard"])
 def test_validate_agrees_with_pinocchio_on_the_models(load_mechanism, name):
     rep = cc.validate(load_mechanism(name), n_samples=N_VALIDATION_STATES, seed=VALIDATION_SEED)
     assert rep.n_samples == N_VALIDATION_STATES

@@ -24,8 +24,11 @@ value of the kept rows' Jacobian:
 until r rows are kept (a rank-revealing selection over all samples at once,
 not at one pose).
 
-Module dependencies: :mod:`constraints` (rows) and :mod:`kinematics` (Newton
-on phi = 0); :mod:`mechanism` builds the object, nothing here imports it.
+It also holds the model-level tools both it and :mod:`kinematics` need: the
+Gauss-Newton solve onto phi = 0 (:func:`solve_closure`) and the pivoted-QR
+partition (:func:`partition_coordinates`). Module dependencies:
+:mod:`constraints` only; :mod:`mechanism` builds the object and
+:mod:`kinematics` (the Mechanism-level functions) builds on it: no cycle.
 """
 
 from __future__ import annotations
@@ -40,14 +43,18 @@ import scipy.linalg
 
 from .constraints import ConstraintLayer, RowInfo
 from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
-from .kinematics import AssemblySettings, partition_coordinates, solve_closure
 
 logger = logging.getLogger(__name__)
+
+#: Relative margin by which a later candidate row must beat an earlier one in the
+#: max-min greedy choice: near ties keep the declared order (deterministic choice).
+_TIE_RTOL = 1e-9
 
 
 @dataclass(frozen=True)
 class SelectionSettings:
-    """Settings of the row selection and of the run-time row checks.
+    """Settings of the load-time row selection (:func:`sample_configurations`,
+    :meth:`LoopClosure.select_rows`).
 
     Attributes:
         n_samples: random assembled configurations (random base poses included).
@@ -131,19 +138,147 @@ class RowCheckSettings:
     open_tol: float = 1e-6
 
 
-def declared_jacobian(model: pin.Model, data: pin.Data, layer: ConstraintLayer, q) -> np.ndarray:
-    """Return J(q) of every row of ``layer``, shape (layer.nc, nv)."""
-    pin.computeJointJacobians(model, data, q)
-    J = np.zeros((layer.nc, model.nv))
-    layer.evaluate(model, data, J=J)
-    return J
+@dataclass(frozen=True)
+class AssemblySettings:
+    """Settings of :func:`assemble`.
+
+    Attributes:
+        tol: convergence threshold on max |phi| [m or -].
+        max_iter: Gauss-Newton iterations before giving up.
+        max_halvings: line-search step halvings per iteration.
+    """
+
+    tol: float = 1e-12
+    max_iter: int = 60
+    max_halvings: int = 12
 
 
-def _phi(model, data, layer: ConstraintLayer, q) -> np.ndarray:
+def layer_phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
+    """Return phi(q) of every row of ``layer``, shape (layer.nc,) [m or -]."""
     pin.forwardKinematics(model, data, q)
     out = np.zeros(layer.nc)
     layer.evaluate(model, data, phi=out)
     return out
+
+
+def layer_jacobian(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
+    """Return J(q) of every row of ``layer``, shape (layer.nc, nv)."""
+    pin.computeJointJacobians(model, data, q)
+    out = np.zeros((layer.nc, model.nv))
+    layer.evaluate(model, data, J=out)
+    return out
+
+
+def solve_closure(
+    model: pin.Model,
+    data: pin.Data,
+    layer: ConstraintLayer,
+    q_guess: np.ndarray,
+    free: np.ndarray,
+    settings: AssemblySettings,
+) -> np.ndarray:
+    """Gauss-Newton onto phi(q) = 0 moving only the ``free`` velocity coordinates.
+
+    Args:
+        model: Pinocchio model with the loop frames.
+        data: its data (overwritten).
+        layer: rows to zero (redundant rows allowed).
+        q_guess: start configuration, shape (nq,).
+        free: velocity indices allowed to move.
+        settings: tolerances.
+
+    Returns:
+        The assembled configuration, shape (nq,).
+
+    Raises:
+        AssemblyError: max |phi| stays above ``settings.tol``; carries the
+            residual reached and the configuration.
+    """
+    q = np.array(q_guess, dtype=float)
+    if layer.nc == 0:
+        return q
+    q = _newton(model, data, layer, q, free, settings)
+    pin.forwardKinematics(model, data, q)
+    flipped = layer.misaligned_loops(model, data)
+    if flipped:
+        raise AssemblyError(
+            f"assembly reached phi = 0 on a spurious closure of loop(s) {', '.join(flipped)}: "
+            "the cut-joint frames are turned by 180 degrees against each other; start "
+            "from a guess closer to the intended assembly",
+            residual=float("inf"),
+            q=q,
+        )
+    return q
+
+
+def _newton(model, data, layer, q, free, settings) -> np.ndarray:
+    phi = layer_phi(model, data, layer, q)
+    res = float(np.max(np.abs(phi)))
+    dv = np.zeros(model.nv)
+    # Configuration entries of joints held entirely: pin.integrate with zero
+    # velocity may renormalize them (continuous joints' cos, sin); keep them exact.
+    moving = np.zeros(model.nv, dtype=bool)
+    moving[free] = True
+    held_q = np.concatenate(
+        [
+            np.arange(model.joints[j].idx_q, model.joints[j].idx_q + model.joints[j].nq)
+            for j in range(1, model.njoints)
+            if not moving[model.joints[j].idx_v : model.joints[j].idx_v + model.joints[j].nv].any()
+        ]
+        or [np.zeros(0, dtype=int)]
+    )
+    q_held = q[held_q].copy()
+    for _ in range(settings.max_iter):
+        if res <= settings.tol:
+            return q
+        J = layer_jacobian(model, data, layer, q)
+        step = np.linalg.lstsq(J[:, free], -phi, rcond=None)[0]
+        dv[:] = 0.0
+        dv[free] = step
+        alpha = 1.0
+        # Accept on the sum of squares, the merit function the Gauss-Newton step
+        # descends (the max norm need not decrease along it).
+        sq = float(phi @ phi)
+        for _ in range(settings.max_halvings):
+            q_try = pin.integrate(model, q, alpha * dv)
+            q_try[held_q] = q_held
+            phi_try = layer_phi(model, data, layer, q_try)
+            res_try = float(np.max(np.abs(phi_try)))
+            if float(phi_try @ phi_try) < sq or res_try <= settings.tol:
+                break
+            alpha *= 0.5
+        else:
+            break
+        q, phi, res = q_try, phi_try, res_try
+    if res <= settings.tol:
+        return q
+    raise AssemblyError(
+        f"assembly did not converge: max |phi| = {res:.3e} > tol {settings.tol:.1e}",
+        residual=res,
+        q=q,
+    )
+
+
+def partition_coordinates(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r"""Split the velocity coordinates into independent and dependent ones for J.
+
+    Column-pivoted QR of J (Businger-Golub) picks, greedily, the ``nc``
+    columns farthest from linearly dependent: they become the dependent
+    coordinates, so :math:`\sigma_{\min}(J_D)` stays within a modest factor of
+    :math:`\sigma_{\min}(J)` (not an exhaustive search of all partitions).
+
+    Args:
+        J: constraint Jacobian, shape (nc, nv), independent rows.
+
+    Returns:
+        ``(independent_idx_v, dependent_idx_v)``, sorted, shapes (nv - nc,) and (nc,).
+    """
+    nc, nv = J.shape
+    if nc == 0:
+        return np.arange(nv), np.arange(0)
+    _, piv = scipy.linalg.qr(J, mode="r", pivoting=True)
+    dep = np.sort(piv[:nc])
+    return np.setdiff1d(np.arange(nv), dep), dep
 
 
 def _null_space(J: np.ndarray, tol: float) -> np.ndarray:
@@ -193,7 +328,7 @@ def sample_configurations(
         roots += 1
         samples.append(q)
         for _ in range(settings.walk_steps):
-            J = declared_jacobian(model, data, declared, q)
+            J = layer_jacobian(model, data, declared, q)
             N = _null_space(J, settings.rank_tol * max(1.0, float(np.linalg.norm(J, 2))))
             if N.shape[1] == 0:
                 break
@@ -267,7 +402,7 @@ class LoopClosure:
         Returns:
             The selection (also stored in :attr:`selection`).
         """
-        Js = [declared_jacobian(model, data, self.declared, q) for q in samples]
+        Js = [layer_jacobian(model, data, self.declared, q) for q in samples]
         self._tol = rank_tol * max([1.0] + [float(np.linalg.norm(J, 2)) for J in Js])
         return self._select(Js, reason="load", margin_min=margin_min)
 
@@ -330,7 +465,7 @@ class LoopClosure:
                 if i in keep:
                     continue
                 val = min(_sigma_min(J[keep + [i]]) for J in Js)
-                if val > best_val * (1.0 + 1e-9):
+                if val > best_val * (1.0 + _TIE_RTOL):
                     best, best_val = i, val
             keep.append(best)
         return sorted(keep)
@@ -338,7 +473,7 @@ class LoopClosure:
     # -- run-time checks -------------------------------------------------------------
     def declared_residuals(self, model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
         """Return phi(q) of every declared row, shape (n_declared,) [m or -]."""
-        return _phi(model, data, self.declared, q)
+        return layer_phi(model, data, self.declared, q)
 
     def worst_row(self, phi_declared: np.ndarray) -> tuple[str, float]:
         """Return the label and |phi| of the most open declared row."""
@@ -395,7 +530,7 @@ class LoopClosure:
         degenerate = kept_cond is not None and kept_cond > settings.cond_max
         if not (open_row or degenerate):
             return False
-        J = declared_jacobian(model, data, self.declared, q)
+        J = layer_jacobian(model, data, self.declared, q)
         s_all = np.linalg.svd(J, compute_uv=False)
         r = self.rank
         cond_all = s_all[0] / s_all[r - 1] if s_all[r - 1] > self._tol else np.inf
@@ -517,6 +652,10 @@ __all__ = [
     "RowCheckSettings",
     "RowSelection",
     "SelectionSettings",
-    "declared_jacobian",
+    "layer_jacobian",
+    "layer_phi",
+    "partition_coordinates",
+    "solve_closure",
+    "AssemblySettings",
     "sample_configurations",
 ]

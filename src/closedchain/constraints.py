@@ -104,6 +104,55 @@ def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n1, n2
 
 
+def _cross3(a: list, b: list) -> list:
+    """Cross product of two 3-vectors given as lists of floats (plain Python arithmetic:
+    numpy's per-call overhead exceeds the six products)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma) -> None:
+    r"""Fill the translation rows ``(R_p n_i).(p_p - p_s)`` of one loop.
+
+    With d = p_p - p_s, (N R_p^T) the rows (R_p n_i)^T, and frame quantities
+    world-aligned (LOCAL_WORLD_ALIGNED):
+
+    .. math::
+
+        \phi = N R_p^\top d, \qquad
+        J = N R_p^\top \bigl(J_{v,p} - J_{v,s} + [d]_\times J_{\omega,p}\bigr),
+
+        \gamma = N R_p^\top \bigl(a_{b,p} - a_{b,s} + d \times \alpha_{b,p}
+        + 2\, \dot d \times \omega_p + (d \times \omega_p) \times \omega_p\bigr),
+
+    the last from :math:`\ddot U^\top d + 2 \dot U^\top \dot d + U^\top \ddot d`
+    with :math:`\dot U = \omega_p \times U` (module docstring) and the triple
+    product rule :math:`(\omega \times U)^\top x = U^\top (x \times \omega)`.
+    """
+    oMp = pin.updateFramePlacement(model, data, fp)
+    d_arr = oMp.translation - pin.updateFramePlacement(model, data, fs).translation
+    NR = N @ oMp.rotation.T  # rows (R_p n_i)^T, world
+    if phi is not None:
+        phi[sl] = NR @ d_arr
+    if J is None and gamma is None:
+        return
+    d = d_arr.tolist()
+    if J is not None:
+        Jp = pin.getFrameJacobian(model, data, fp, _LWA)
+        Js = pin.getFrameJacobian(model, data, fs, _LWA)
+        S = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])  # d x .
+        J[sl] = NR @ (Jp[:3] - Js[:3] + S @ Jp[3:])
+    if gamma is not None:
+        ap = pin.getFrameClassicalAcceleration(model, data, fp, _LWA).vector.tolist()
+        as_ = pin.getFrameClassicalAcceleration(model, data, fs, _LWA).linear.tolist()
+        vp = pin.getFrameVelocity(model, data, fp, _LWA).vector.tolist()
+        vs = pin.getFrameVelocity(model, data, fs, _LWA).linear.tolist()
+        w, alpha = vp[3:], ap[3:]
+        dd = [vp[0] - vs[0], vp[1] - vs[1], vp[2] - vs[2]]
+        c1, c2, c3 = _cross3(d, alpha), _cross3(dd, w), _cross3(_cross3(d, w), w)
+        x = [ap[k] - as_[k] + c1[k] + 2.0 * c2[k] + c3[k] for k in range(3)]
+        gamma[sl] = NR @ np.array(x)
+
+
 @dataclass(frozen=True)
 class RowInfo:
     """One declared constraint row.
@@ -332,92 +381,67 @@ class ConstraintLayer:
             J: output, shape (nc, nv), d phi / d v along ``pin.integrate``.
             gamma: output, shape (nc,), Jdot v.
         """
-        # Hot path (every dynamics evaluation): all loops at once, a fixed
-        # number of batched numpy calls whatever the number of loops (numpy's
-        # per-call overhead, not arithmetic, dominates arrays this small).
-        tt, tr = self._tt, self._tr
-        if tt is None and tr is None:
+        # Hot path (every dynamics evaluation). Translation rows: per loop, a few
+        # 3 x 3 / k x 3 products (see _translation_rows). Rotation rows: all loops at
+        # once, a fixed number of batched numpy calls (numpy's per-call overhead,
+        # not arithmetic, dominates arrays this small).
+        for sl, fp, fs, N in self._trans:
+            _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma)
+        tr = self._tr
+        if tr is None:
             return
         frames = [pin.updateFramePlacement(model, data, f) for f in self._fids]
-        p = np.array([M.translation for M in frames])
-        d = p[0::2] - p[1::2]  # (L, 3) p_p - p_s, world
         R = np.array([M.rotation for M in frames])  # (2L, 3, 3): c1, c2 of each loop
-        if tt is not None:
-            Ut = (R[tt.pred] @ tt.n[:, :, None])[:, :, 0]  # R_p n_i, world
-            dt = d[tt.loop]
-        if tr is not None:
-            U = (R[tr.pred] @ tr.u[:, :, None])[:, :, 0]  # R_p u, world
-            W = (R[tr.succ] @ tr.w[:, :, None])[:, :, 0]  # R_s w, world
-            UW = np.einsum("ri,ri->r", U, W)
+        U = (R[tr.pred] @ tr.u[:, :, None])[:, :, 0]  # R_p u, world
+        W = (R[tr.succ] @ tr.w[:, :, None])[:, :, 0]  # R_s w, world
+        UW = np.einsum("ri,ri->r", U, W)
         if phi is not None:
-            if tt is not None:
-                phi[tt.rows] = np.einsum("ri,ri->r", Ut, dt)
-            if tr is not None:
-                phi[tr.rows] = UW
+            phi[tr.rows] = UW
         if J is not None:
             Jf = np.array([pin.getFrameJacobian(model, data, f, _LWA) for f in self._fids])
-            if tt is not None:
-                J[tt.rows] = np.einsum(
-                    "ri,rin->rn", Ut, Jf[tt.pred, :3] - Jf[tt.succ, :3]
-                ) + np.einsum("ri,rin->rn", _cross(Ut, dt), Jf[tt.pred, 3:])
-            if tr is not None:
-                J[tr.rows] = np.einsum(
-                    "ri,rin->rn", _cross(W, U), Jf[tr.succ, 3:] - Jf[tr.pred, 3:]
-                )
+            J[tr.rows] = np.einsum("ri,rin->rn", _cross(W, U), Jf[tr.succ, 3:] - Jf[tr.pred, 3:])
         if gamma is not None:
             A = np.array(
                 [pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in self._fids]
             )  # (2L, 6): classical linear, angular; bias (zero joint acceleration)
             V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in self._fids])
-            if tt is not None:
-                wp, alp = V[tt.pred, 3:], A[tt.pred, 3:]
-                Ud = _cross(wp, Ut)
-                Udd = _cross(alp, Ut) + _cross(wp, Ud)
-                ddot = V[tt.pred, :3] - V[tt.succ, :3]
-                dd = A[tt.pred, :3] - A[tt.succ, :3]
-                gamma[tt.rows] = (
-                    np.einsum("ri,ri->r", Udd, dt)
-                    + np.einsum("ri,ri->r", 2.0 * Ud, ddot)
-                    + np.einsum("ri,ri->r", Ut, dd)
-                )
-            if tr is not None:
-                # Triple products expanded (one cross product):
-                # gamma_r = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
-                #           - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w)
-                wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
-                pu = np.einsum("ri,ri->r", wp, U)
-                pw = np.einsum("ri,ri->r", wp, W)
-                su = np.einsum("ri,ri->r", ws, U)
-                sw = np.einsum("ri,ri->r", ws, W)
-                dw = wp - ws
-                gamma[tr.rows] = (
-                    np.einsum("ri,ri->r", _cross(W, U), A[tr.succ, 3:] - A[tr.pred, 3:])
-                    + pu * pw
-                    + su * sw
-                    - 2.0 * pw * su
-                    - np.einsum("ri,ri->r", dw, dw) * UW
-                )
+            # Triple products expanded (one cross product):
+            # gamma_r = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
+            #           - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w)
+            wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
+            pu = np.einsum("ri,ri->r", wp, U)
+            pw = np.einsum("ri,ri->r", wp, W)
+            su = np.einsum("ri,ri->r", ws, U)
+            sw = np.einsum("ri,ri->r", ws, W)
+            dw = wp - ws
+            gamma[tr.rows] = (
+                np.einsum("ri,ri->r", _cross(W, U), A[tr.succ, 3:] - A[tr.pred, 3:])
+                + pu * pw
+                + su * sw
+                - 2.0 * pw * su
+                - np.einsum("ri,ri->r", dw, dw) * UW
+            )
 
     def _build_tables(self) -> None:
-        """Index tables of the active rows, grouped by function, over all loops."""
+        """Index tables of the active rows over all loops: per-loop translation blocks,
+        one batched table of rotation rows."""
         self._fids: list[int] = []
-        trans: dict[str, list] = {"rows": [], "loop": [], "n": []}
+        self._trans: list[tuple[slice, int, int, np.ndarray]] = []
         rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
-        for i, blk in enumerate(self._active):
+        active = [b for b in self._active if b.nr]
+        for i, blk in enumerate(active):
             self._fids += [blk.fid_p, blk.fid_s]
-            r = blk.start
-            for n in blk.trans:
-                trans["rows"].append(r)
-                trans["loop"].append(i)
-                trans["n"].append(n)
-                r += 1
+            r = blk.start + blk.nt  # rotation rows follow the translation rows
             for u, w in zip(blk.rot_u, blk.rot_w, strict=True):
                 rot["rows"].append(r)
                 rot["loop"].append(i)
                 rot["u"].append(u)
                 rot["w"].append(w)
                 r += 1
-        self._tt = _Table(trans) if trans["rows"] else None
+        for blk in self._active:
+            if blk.nt:
+                sl = slice(blk.start, blk.start + blk.nt)
+                self._trans.append((sl, blk.fid_p, blk.fid_s, np.array(blk.trans)))
         self._tr = _Table(rot) if rot["rows"] else None
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:

@@ -21,9 +21,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
 
-from .constraints import ConstraintLayer
+from .closure import AssemblySettings as AssemblySettings  # re-exported
+from .closure import layer_jacobian, layer_phi
+from .closure import partition_coordinates as partition_coordinates  # re-exported
+from .closure import solve_closure as solve_closure  # re-exported
 from .exceptions import AssemblyError, ClosedChainError
 
 if TYPE_CHECKING:
@@ -32,125 +34,6 @@ if TYPE_CHECKING:
 
 #: Largest relative |J v| (against |J| |v|) a projected velocity may keep.
 VELOCITY_TOL = 1e-12
-
-
-@dataclass(frozen=True)
-class AssemblySettings:
-    """Settings of :func:`assemble`.
-
-    Attributes:
-        tol: convergence threshold on max |phi| [m or -].
-        max_iter: Gauss-Newton iterations before giving up.
-        max_halvings: line-search step halvings per iteration.
-    """
-
-    tol: float = 1e-12
-    max_iter: int = 60
-    max_halvings: int = 12
-
-
-def _phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
-    pin.forwardKinematics(model, data, q)
-    out = np.zeros(layer.nc)
-    layer.evaluate(model, data, phi=out)
-    return out
-
-
-def _jacobian(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
-    pin.computeJointJacobians(model, data, q)
-    out = np.zeros((layer.nc, model.nv))
-    layer.evaluate(model, data, J=out)
-    return out
-
-
-def solve_closure(
-    model: pin.Model,
-    data: pin.Data,
-    layer: ConstraintLayer,
-    q_guess: np.ndarray,
-    free: np.ndarray,
-    settings: AssemblySettings,
-) -> np.ndarray:
-    """Gauss-Newton onto phi(q) = 0 moving only the ``free`` velocity coordinates.
-
-    Args:
-        model: Pinocchio model with the loop frames.
-        data: its data (overwritten).
-        layer: rows to zero (redundant rows allowed).
-        q_guess: start configuration, shape (nq,).
-        free: velocity indices allowed to move.
-        settings: tolerances.
-
-    Returns:
-        The assembled configuration, shape (nq,).
-
-    Raises:
-        AssemblyError: max |phi| stays above ``settings.tol``; carries the
-            residual reached and the configuration.
-    """
-    q = np.array(q_guess, dtype=float)
-    if layer.nc == 0:
-        return q
-    q = _newton(model, data, layer, q, free, settings)
-    pin.forwardKinematics(model, data, q)
-    flipped = layer.misaligned_loops(model, data)
-    if flipped:
-        raise AssemblyError(
-            f"assembly reached phi = 0 on a spurious closure of loop(s) {', '.join(flipped)}: "
-            "the cut-joint frames are turned by 180 degrees against each other; start "
-            "from a guess closer to the intended assembly",
-            residual=float("inf"),
-            q=q,
-        )
-    return q
-
-
-def _newton(model, data, layer, q, free, settings) -> np.ndarray:
-    phi = _phi(model, data, layer, q)
-    res = float(np.max(np.abs(phi)))
-    dv = np.zeros(model.nv)
-    # Configuration entries of joints held entirely: pin.integrate with zero
-    # velocity may renormalize them (continuous joints' cos, sin); keep them exact.
-    moving = np.zeros(model.nv, dtype=bool)
-    moving[free] = True
-    held_q = np.concatenate(
-        [
-            np.arange(model.joints[j].idx_q, model.joints[j].idx_q + model.joints[j].nq)
-            for j in range(1, model.njoints)
-            if not moving[model.joints[j].idx_v : model.joints[j].idx_v + model.joints[j].nv].any()
-        ]
-        or [np.zeros(0, dtype=int)]
-    )
-    q_held = q[held_q].copy()
-    for _ in range(settings.max_iter):
-        if res <= settings.tol:
-            return q
-        J = _jacobian(model, data, layer, q)
-        step = np.linalg.lstsq(J[:, free], -phi, rcond=None)[0]
-        dv[:] = 0.0
-        dv[free] = step
-        alpha = 1.0
-        # Accept on the sum of squares, the merit function the Gauss-Newton step
-        # descends (the max norm need not decrease along it).
-        sq = float(phi @ phi)
-        for _ in range(settings.max_halvings):
-            q_try = pin.integrate(model, q, alpha * dv)
-            q_try[held_q] = q_held
-            phi_try = _phi(model, data, layer, q_try)
-            res_try = float(np.max(np.abs(phi_try)))
-            if float(phi_try @ phi_try) < sq or res_try <= settings.tol:
-                break
-            alpha *= 0.5
-        else:
-            break
-        q, phi, res = q_try, phi_try, res_try
-    if res <= settings.tol:
-        return q
-    raise AssemblyError(
-        f"assembly did not converge: max |phi| = {res:.3e} > tol {settings.tol:.1e}",
-        residual=res,
-        q=q,
-    )
 
 
 def assemble(
@@ -199,12 +82,12 @@ def assemble(
 
 def compute_phi(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     """Return the loop-closure residual phi(q), shape (nc,), [m] or [-] per row."""
-    return _phi(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+    return layer_phi(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
 
 
 def compute_jacobian(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     """Return the constraint Jacobian J(q), shape (nc, nv)."""
-    return _jacobian(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+    return layer_jacobian(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
 
 
 def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -244,7 +127,7 @@ def project_velocity(
         return v
     # Every declared row: the same tangent space as the independent rows
     # wherever they describe the loops, and the right one where they do not.
-    J = _jacobian(mech.model, mech.data, mech.declared, q)
+    J = layer_jacobian(mech.model, mech.data, mech.declared, q)
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)
     v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=None)[0]
@@ -258,28 +141,6 @@ def project_velocity(
             f"|J v| = {residual:.3e}"
         )
     return v
-
-
-def partition_coordinates(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    r"""Split the velocity coordinates into independent and dependent ones for J.
-
-    Column-pivoted QR of J (Businger-Golub) picks, greedily, the ``nc``
-    columns farthest from linearly dependent: they become the dependent
-    coordinates, so :math:`\sigma_{\min}(J_D)` stays within a modest factor of
-    :math:`\sigma_{\min}(J)` (not an exhaustive search of all partitions).
-
-    Args:
-        J: constraint Jacobian, shape (nc, nv), independent rows.
-
-    Returns:
-        ``(independent_idx_v, dependent_idx_v)``, sorted, shapes (nv - nc,) and (nc,).
-    """
-    nc, nv = J.shape
-    if nc == 0:
-        return np.arange(nv), np.arange(0)
-    _, piv = scipy.linalg.qr(J, mode="r", pivoting=True)
-    dep = np.sort(piv[:nc])
-    return np.setdiff1d(np.arange(nv), dep), dep
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,14 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .closure import LoopClosure, RowSelection, SelectionSettings, sample_configurations
+from .closure import (
+    AssemblySettings,
+    LoopClosure,
+    RowSelection,
+    SelectionSettings,
+    sample_configurations,
+    solve_closure,
+)
 from .constraints import ConstraintLayer, RowInfo
 from .exceptions import (
     AssemblyError,
@@ -26,7 +33,6 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
-from .kinematics import AssemblySettings, solve_closure
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf
 
 logger = logging.getLogger(__name__)

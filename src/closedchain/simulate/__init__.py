@@ -190,6 +190,7 @@ def simulate(
         solver_settings = replace(solver_settings, baumgarte=gains)
     problem = Problem(mech, method, tau, solver_settings, settings)
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
+    problem.check_start(q0)
     info = {
         "mechanism": mech.name,
         "method": method,

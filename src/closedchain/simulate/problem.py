@@ -18,7 +18,7 @@ import scipy.linalg
 from ..closure import RowCheckSettings
 from ..dynamics.base import get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
-from ..kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
+from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory
 from .settings import SimulationError
 
@@ -120,8 +120,7 @@ class Problem:
                 number above ``settings.partition_singular_cond``.
         """
         J = self.jacobian(q)
-        _, dep = partition_coordinates(J)
-        cond = float(np.linalg.cond(J[:, dep]))
+        _, dep, cond = self.mech.closure.partition_at(J)
         if cond > self.settings.partition_singular_cond:
             raise SingularConfigurationError(
                 f"{self.mech.name}: at t = {t:.9g} s no partition of the coordinates has a "
@@ -163,6 +162,13 @@ class Problem:
         if self.dep.size and self.cond_JD(q) > self.settings.repartition_cond:
             self.repartition(q, t)
         return True
+
+    def check_start(self, q0: np.ndarray) -> None:
+        """Check every declared row at the initial configuration (re-select if needed)."""
+        if self.mech.nc == 0:
+            return
+        s = np.linalg.svd(self.jacobian(q0), compute_uv=False)
+        self.check_rows(q0, 0.0, kept_cond=float(s[0] / s[-1]) if s[-1] > 0 else math.inf)
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
