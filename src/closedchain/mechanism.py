@@ -298,9 +298,17 @@ class Mechanism:
         return bool(np.all((q >= lo) | ~np.isfinite(lo)) and np.all((q <= hi) | ~np.isfinite(hi)))
 
     def gravity_torque_scale(self) -> float:
-        """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale."""
+        """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale.
+
+        The coordinates of a root joint added by :func:`load` are left out:
+        they carry the whole weight of the mechanism, which no actuator of
+        its joints applies (on a free-flying 4-bar it would set the scale
+        six times the joints' own loads).
+        """
         g = pin.computeGeneralizedGravity(self.model, self.data, self.q_ref)
-        return float(np.sqrt(np.mean(g**2))) if self.nv else 0.0
+        if self.root_joint is not None:
+            g = g[self.model.joints[1].nv :]
+        return float(np.sqrt(np.mean(g**2))) if g.size else 0.0
 
     def random_configuration(self, rng: np.random.Generator, *, prismatic_range: float = 1.0):
         """Draw a configuration uniformly within joint limits clipped to one turn.
