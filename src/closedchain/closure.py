@@ -22,7 +22,8 @@ value of the kept rows' Jacobian:
     k_{j+1} = \arg\max_{i \notin K_j} \min_s \sigma_{\min}(J_s[K_j \cup \{i\}]),
 
 until r rows are kept (a rank-revealing selection over all samples at once,
-not at one pose).
+not at one pose); when there are few subsets of r rows (at most
+:data:`MAX_EXHAUSTIVE_SUBSETS`, e.g. one loop) the max-min is taken over all of them.
 
 It also holds the model-level tools both it and :mod:`kinematics` need: the
 Gauss-Newton solve onto phi = 0 (:func:`solve_closure`) and the pivoted-QR
@@ -33,7 +34,9 @@ partition (:func:`partition_coordinates`). Module dependencies:
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -49,6 +52,8 @@ logger = logging.getLogger(__name__)
 #: Relative margin by which a later candidate row must beat an earlier one in the
 #: max-min greedy choice: near ties keep the declared order (deterministic choice).
 _TIE_RTOL = 1e-9
+#: Up to this many row subsets of the generic rank, the max-min choice is exhaustive.
+MAX_EXHAUSTIVE_SUBSETS = 500
 
 
 @dataclass(frozen=True)
@@ -452,7 +457,20 @@ class LoopClosure:
         return self.selection
 
     def _greedy(self, Js: list[np.ndarray], rank: int, prefer) -> list[int]:
-        """Max-min greedy choice of ``rank`` rows over all ``Js`` (module docstring)."""
+        """Max-min choice of ``rank`` rows over all ``Js`` (module docstring).
+
+        Exhaustive over every row subset of size ``rank`` when there are at most
+        :data:`MAX_EXHAUSTIVE_SUBSETS` of them (a planar or single spatial loop),
+        greedy otherwise.
+        """
+        n = self.declared.nc
+        if not prefer and 0 < rank and math.comb(n, rank) <= MAX_EXHAUSTIVE_SUBSETS:
+            best_set, best_val = [], -1.0
+            for subset in itertools.combinations(range(n), rank):
+                val = min(_sigma_min(J[list(subset)]) for J in Js)
+                if val > best_val * (1.0 + _TIE_RTOL):
+                    best_set, best_val = list(subset), val
+            return best_set
         keep: list[int] = []
         # Rows of the previous selection that still have full rank together come first,
         # so a re-selection changes as few rows as it can.
