@@ -36,6 +36,14 @@ LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
 #: Norm below which an ``<axis>`` is rejected as zero.
 AXIS_NORM_MIN = 1e-9
 
+#: Relative tolerance of the positive-definiteness check of an ``<inertia>``:
+#: its smallest eigenvalue must exceed ``-INERTIA_REL_TOL * max |eigenvalue|``
+#: (zero eigenvalues are point masses and thin rods, which URDF allows).
+INERTIA_REL_TOL = 1e-12
+
+#: ``<limit>`` attributes and whether each must be non-negative.
+LIMIT_ATTRIBUTES = {"lower": False, "upper": False, "effort": True, "velocity": True}
+
 
 @dataclass(frozen=True)
 class LoopSpec:
@@ -122,17 +130,110 @@ def _where(path: Path, element) -> str:
     return f"{path}: line {element.sourceline}: {tag}"
 
 
-def _floats(path: Path, element, attribute: str, default: str) -> np.ndarray:
+def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
     text = element.get(attribute, default)
     try:
         values = np.array([float(x) for x in text.split()])
     except ValueError:
         values = np.array([])
     if values.shape != (3,) or not np.all(np.isfinite(values)):
-        raise URDFError(
-            f"{_where(path, element)}: attribute {attribute}={text!r} must be three finite numbers"
-        )
+        prefix = f"{where} <{element.tag}>" if where else _where(path, element)
+        raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
     return values
+
+
+def _number(where: str, element, attribute: str, *, minimum: float | None = None) -> float | None:
+    """Return a finite float attribute (None when absent), or raise naming where and attribute.
+
+    Args:
+        where: location prefix of the message (file, line, enclosing element).
+        element: the element holding the attribute.
+        attribute: attribute name.
+        minimum: smallest valid value, or None.
+    """
+    text = element.get(attribute)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or (minimum is not None and value < minimum):
+        valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
+        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be {valid}")
+    return value
+
+
+def _check_inertial(path: Path, link) -> None:
+    """Refuse an ``<inertial>`` whose mass or inertia is not a physical one.
+
+    urdfdom only warns about these and Pinocchio then builds a massless or
+    wrong link, so every dynamics result would be wrong without a word.
+    """
+    inertial = link.find("inertial")
+    if inertial is None:
+        return
+    where = f'{path}: line {inertial.sourceline}: <link name="{link.get("name")}"> <inertial>'
+    origin = inertial.find("origin")
+    if origin is not None:
+        _floats(path, origin, "xyz", "0 0 0", where)
+        _floats(path, origin, "rpy", "0 0 0", where)
+    mass = inertial.find("mass")
+    if mass is None or mass.get("value") is None:
+        raise URDFError(f"{where}: missing <mass value=...>")
+    _number(where, mass, "value", minimum=0.0)
+    inertia = inertial.find("inertia")
+    if inertia is None:
+        raise URDFError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
+    names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+    values = {n: _number(where, inertia, n) or 0.0 for n in names}
+    inertia_matrix = np.array(
+        [
+            [values["ixx"], values["ixy"], values["ixz"]],
+            [values["ixy"], values["iyy"], values["iyz"]],
+            [values["ixz"], values["iyz"], values["izz"]],
+        ]
+    )
+    eig = np.linalg.eigvalsh(inertia_matrix)
+    if eig[0] < -INERTIA_REL_TOL * max(1.0, float(np.max(np.abs(eig)))):
+        raise URDFError(
+            f"{where}: <inertia> is not positive semi-definite (eigenvalues "
+            f"{np.array2string(eig, precision=6)} kg m^2); a rigid body's rotational "
+            "inertia has non-negative eigenvalues"
+        )
+    # Triangle inequality of principal moments (a real mass distribution).
+    tol = INERTIA_REL_TOL * max(1.0, float(eig[-1]))
+    if eig[0] + eig[1] < eig[2] - tol:
+        raise URDFError(
+            f"{where}: <inertia> principal moments {np.array2string(eig, precision=6)} kg m^2 "
+            "violate the triangle inequality I1 + I2 >= I3 (no mass distribution has them)"
+        )
+
+
+def _check_joint(path: Path, joint) -> None:
+    """Refuse a ``<joint>`` with a non-finite origin, a zero or non-finite axis or NaN limits."""
+    where = _where(path, joint)
+    origin = joint.find("origin")
+    if origin is not None:
+        _floats(path, origin, "xyz", "0 0 0", where)
+        _floats(path, origin, "rpy", "0 0 0", where)
+    axis = joint.find("axis")
+    if axis is not None:
+        xyz = _floats(path, axis, "xyz", "1 0 0", where)
+        if not float(np.linalg.norm(xyz)) > AXIS_NORM_MIN:
+            raise URDFError(
+                f"{where} <axis xyz={axis.get('xyz')!r}>: has zero length "
+                f"(norm must exceed {AXIS_NORM_MIN:g})"
+            )
+    limit = joint.find("limit")
+    if limit is not None:
+        bounds = {
+            a: _number(where, limit, a, minimum=0.0 if nonneg else None)
+            for a, nonneg in LIMIT_ATTRIBUTES.items()
+        }
+        lower, upper = bounds["lower"], bounds["upper"]
+        if lower is not None and upper is not None and lower > upper:
+            raise URDFError(f"{where} <limit>: lower={lower:g} exceeds upper={upper:g}")
 
 
 def _origin(path: Path, element) -> pin.SE3:
@@ -181,6 +282,10 @@ def parse_urdf(path: str | Path) -> URDFPlus:
     if not links:
         raise URDFError(f"{path}: <robot> has no <link> elements")
     joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
+    for link in root.findall("link"):
+        _check_inertial(path, link)
+    for joint in root.findall("joint"):
+        _check_joint(path, joint)
 
     loops = tuple(_parse_loop(path, e, links) for e in root.findall("loop"))
     names = [lp.name for lp in loops]
