@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.linalg
 
 import closedchain as cc
 from closedchain import cli
@@ -610,18 +612,113 @@ def test_choices_are_listed():
     assert tuple(STABILIZATIONS) == ("none", "baumgarte", "projection", "partitioning")
 
 
+#: Tail of every t_eval message: the valid range (t_final = 0.2 s in these tests).
+T_EVAL_VALID = re.escape(
+    "valid: 1 to 10000000 finite, strictly increasing times within [0, t_final = 0.2] s"
+)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "pattern"),
     [
-        (dict(t_eval=[0.0, 0.2, 0.1]), "t_eval must be increasing"),
-        (dict(t_eval=[0.0, 0.5]), "t_eval must be increasing times within"),
-        (dict(t_eval=[-0.1, 0.1]), "t_eval must be increasing times within"),
-        (dict(integrator="rk4", dt=0.0), "dt must be positive"),
+        (
+            dict(t_eval=[0.0, 0.2, 0.1]),
+            r"t_eval is not strictly increasing \(t_eval\[1\] = 0.2, t_eval\[2\] = 0.1\); "
+            + T_EVAL_VALID,
+        ),
+        (dict(t_eval=[0.0, 0.5]), r"t_eval spans \[0, 0.5\] s, outside \[0, t_final\]; "),
+        (dict(t_eval=[-0.1, 0.1]), r"t_eval spans \[-0.1, 0.1\] s, outside"),
+        (dict(t_eval=[]), r"t_eval has shape \(0,\); " + T_EVAL_VALID),
+        (dict(t_eval=[[0.0, 0.1]]), r"t_eval has shape \(1, 2\); "),
+        (dict(t_eval=[0.0, np.nan, 0.1]), "t_eval contains non-finite times; " + T_EVAL_VALID),
+        (dict(integrator="rk4", t_eval=[0.0, np.nan]), "t_eval contains non-finite times"),
+        (
+            dict(integrator="rk4", dt=0.0),
+            r"dt \(the fixed step \[s\]\) must be a finite number > 0, got 0.0; "
+            r"valid range: \(0, inf\)",
+        ),
+        (dict(integrator="rk4", dt=np.inf), r"dt \(the fixed step \[s\]\) must be a finite .*inf"),
+        (dict(integrator="rk4", dt=np.nan), r"dt \(the fixed step \[s\]\) must be a finite"),
+        (dict(integrator="rk4", dt="abc"), r"dt \(the fixed step \[s\]\) must be .*'abc'"),
+        (
+            dict(integrator="rk4", dt=1e-12),
+            r"dt = 1e-12 s over t_final = 0.2 s is 2e\+11 steps, more than "
+            r"SimulationSettings.max_steps = 1e\+08; use a larger dt \(>= 2e-09 s\)",
+        ),
+        (dict(rtol=-1e-9), r"rtol \(the relative tolerance\) must be a finite number > 0"),
+        (dict(atol=np.nan), r"atol \(the absolute tolerance\) must be a finite number > 0"),
+        (dict(tau=np.array([np.nan, 0, 0])), r"tau contains non-finite values"),
+        (dict(tau=np.zeros(2)), r"tau has shape \(2,\), expected \(3,\)"),
     ],
 )
 def test_bad_arguments(fourbar, q_crossed, kwargs, pattern):
     with pytest.raises(cc.ClosedChainError, match=pattern):
         simulate(fourbar, q_crossed, np.zeros(3), 0.2, **kwargs)
+
+
+@pytest.mark.parametrize("t_final", [0.0, -1.0, np.inf, np.nan])
+def test_bad_t_final(fourbar, q_crossed, t_final):
+    with pytest.raises(
+        ValueError, match=r"t_final \(the duration \[s\]\) must be a finite number > 0"
+    ):
+        simulate(fourbar, q_crossed, np.zeros(3), t_final)
+
+
+def test_bad_arguments_are_value_errors(fourbar, q_crossed):
+    """Argument errors are ValueErrors too (and ClosedChainErrors)."""
+    with pytest.raises(ValueError, match="t_eval has shape"):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.2, t_eval=[])
+
+
+def test_every_step_beyond_max_outputs_is_refused(fourbar, q_crossed):
+    settings = cc.SimulationSettings(max_outputs=100)
+    with pytest.raises(cc.InvalidArgumentError, match=r"recording every one of 200 steps .*t_eval"):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.2, integrator="rk4", settings=settings)
+
+
+@pytest.mark.parametrize(("v_scale", "tau_scale"), [(1e200, 0.0), (0.0, 1e308), (1e160, 0.0)])
+@pytest.mark.parametrize("integrator", ["DOP853", "rk4"])
+def test_huge_velocity_or_torque_is_an_error_never_nan(
+    fourbar, q_crossed, v_scale, tau_scale, integrator
+):
+    J = cc.compute_jacobian(fourbar, q_crossed)
+    v0 = v_scale * scipy.linalg.null_space(J)[:, 0]
+    tau = np.full(3, tau_scale)
+    with pytest.raises(
+        (SimulationError, cc.NonFiniteError), match=r"non-finite|failed at t|left the"
+    ):
+        simulate(fourbar, q_crossed, v0, 0.2, integrator=integrator, tau=tau)
+
+
+def test_fixed_step_output_memory_is_proportional_to_outputs(fourbar, q_crossed):
+    """Output indices are an array of the outputs, not a set of every step (issue 12)."""
+    from closedchain.simulate.fixed import output_grid
+
+    dt, n_steps, out = output_grid(10.0, 1e-9, np.array([0.0, 5.0, 10.0]))
+    assert n_steps == 10_000_000_000 and dt == pytest.approx(1e-9)
+    np.testing.assert_array_equal(out, [0, 5_000_000_000, 10_000_000_000])
+    assert output_grid(1.0, 1e-3, None)[2] is None  # every step: no index array at all
+    _, n_steps, out = output_grid(1.0, 1e-3, np.array([0.0]))
+    assert n_steps == 0
+    np.testing.assert_array_equal(out, [0])
+
+
+@pytest.mark.parametrize(
+    ("integrator", "registered"),
+    [("dop853", "DOP853"), ("RK4", "rk4"), ("Euler", "euler"), ("radau", "Radau")],
+)
+def test_names_are_case_insensitive(fourbar, q_crossed, integrator, registered):
+    traj = simulate(
+        fourbar,
+        q_crossed,
+        np.zeros(3),
+        0.02,
+        integrator=integrator,
+        method="KKT",
+        stabilization="NONE" if integrator.lower() != "rk4" else "Projection",
+    )
+    assert traj.info["integrator"] == registered
+    assert traj.info["method"] == "kkt"
 
 
 def test_adaptive_needs_nq_equal_nv(load_mechanism):

@@ -59,6 +59,10 @@ class SimulationSettings:
             with rk4 at dt 1e-3).
         drift_limit: raise SimulationError when max |phi| exceeds this [m or -]:
             a trajectory never leaves the manifold unreported.
+        max_steps: largest number of fixed steps a run may take; more is
+            refused before any work (dt far too small for t_final).
+        max_outputs: largest number of output samples (``t_eval`` times) a
+            run may keep; memory grows with them, not with the steps.
     """
 
     dt: float = 1e-3
@@ -74,6 +78,8 @@ class SimulationSettings:
     singular_cond: float = 1e3
     partition_singular_cond: float = 1e4
     drift_limit: float = 1e-2
+    max_steps: int = 100_000_000
+    max_outputs: int = 10_000_000
 
 
 def seed_settings() -> SimulationSettings:
