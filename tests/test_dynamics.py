@@ -16,6 +16,7 @@ from pathlib import Path
 import mpmath
 import numpy as np
 import pytest
+import scipy.linalg
 
 import closedchain as cc
 from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
@@ -382,3 +383,40 @@ def test_solve_kkt_reproduces_the_seed_cpp_example():
     assert info == 0 and rcond > 0.1
     assert np.linalg.norm(a) <= 1e-15
     assert np.linalg.norm(lam - np.array([1.0, 0.0])) <= 1e-15
+
+
+@pytest.mark.parametrize("method", sorted(cc.METHODS))
+@pytest.mark.parametrize(("v_scale", "tau_scale"), [(1e200, 0.0), (0.0, 1e308), (1e160, 0.0)])
+def test_overflow_is_an_error_never_nan(mechs, method, v_scale, tau_scale):
+    """Velocities or torques too large for double precision raise (the README: never NaN)."""
+    mech = mechs["fourbar"]
+    q = mech.q_ref
+    v = v_scale * scipy.linalg.null_space(cc.compute_jacobian(mech, q))[:, 0]
+    with pytest.raises(
+        (cc.NonFiniteError, cc.SingularConfigurationError), match=r"overflowed|non-finite"
+    ):
+        cc.forward_dynamics(mech, q, v, np.full(mech.nv, tau_scale), method=method)
+
+
+def test_inverse_dynamics_overflow_is_an_error(mechs):
+    mech = mechs["fourbar"]
+    q = mech.q_ref
+    v = 1e200 * scipy.linalg.null_space(cc.compute_jacobian(mech, q))[:, 0]
+    with pytest.raises(
+        cc.NonFiniteError, match=r"inverse dynamics overflowed .*max\|v\| = [0-9.]+e\+(199|200)"
+    ):
+        cc.inverse_dynamics(mech, q, v, np.zeros(1))
+
+
+@pytest.mark.parametrize("method", ["KKT", "Schur", "NULLSPACE"])
+def test_method_names_are_case_insensitive(mechs, method):
+    mech = mechs["fourbar"]
+    res = cc.forward_dynamics(mech, mech.q_ref, np.zeros(3), method=method)
+    assert res.method == method.lower()
+    ref = cc.forward_dynamics(mech, mech.q_ref, np.zeros(3), method=method.lower())
+    np.testing.assert_array_equal(res.a, ref.a)
+
+
+def test_unknown_method_lists_the_choices(mechs):
+    with pytest.raises(cc.UnknownChoiceError, match=r"unknown .* 'kt'; valid choices: kkt, "):
+        cc.forward_dynamics(mechs["fourbar"], mechs["fourbar"].q_ref, np.zeros(3), method="kt")

@@ -47,6 +47,14 @@ class SingularConfigurationError(ClosedChainError):
         self.t = t
 
 
+class InvalidArgumentError(ClosedChainError, ValueError):
+    """An argument is out of its valid range (the message names it and the range)."""
+
+
+class NonFiniteError(ClosedChainError, ValueError):
+    """A computation overflowed to inf or NaN (inputs too large for double precision)."""
+
+
 class UnknownChoiceError(ClosedChainError, ValueError):
     """An argument is not one of a fixed set of valid choices."""
 
@@ -59,3 +67,25 @@ class UnknownChoiceError(ClosedChainError, ValueError):
 
 class ValidationUnavailableError(ClosedChainError):
     """No equivalent Pinocchio constraint model exists for a loop type."""
+
+
+def resolve_choice(what: str, value: object, choices: Iterable[str]) -> str:
+    """Return the choice that ``value`` names, ignoring case, or raise listing the choices.
+
+    Args:
+        what: what is chosen, for the message (``"integrator"``).
+        value: the name given.
+        choices: the registered names (their own spelling is returned).
+
+    Raises:
+        UnknownChoiceError: no choice matches ``value`` case-insensitively.
+    """
+    choices = list(choices)
+    if isinstance(value, str):
+        if value in choices:
+            return value
+        folded = {c.casefold(): c for c in choices}
+        match = folded.get(value.casefold())
+        if match is not None:
+            return match
+    raise UnknownChoiceError(what, value, choices)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from ..exceptions import SingularConfigurationError, UnknownChoiceError
+from ..exceptions import SingularConfigurationError, resolve_choice
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -123,12 +123,14 @@ def register(
     return decorator
 
 
+def method_name(name: str) -> str:
+    """Return the registered spelling of method ``name`` (any case), or raise listing them."""
+    return resolve_choice("forward-dynamics method", name, METHODS)
+
+
 def get_method(name: str) -> MethodFunction:
-    """Return the method registered as ``name``, or raise listing the valid names."""
-    try:
-        return METHODS[name]
-    except KeyError:
-        raise UnknownChoiceError("forward-dynamics method", name, METHODS) from None
+    """Return the method registered as ``name`` (any case), or raise listing the valid names."""
+    return METHODS[method_name(name)]
 
 
 class Workspace:
