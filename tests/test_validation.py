@@ -272,3 +272,14 @@ def test_validate_fails_when_the_reference_returns_nan(fourbar, monkeypatch):
 def test_validate_refuses_to_compare_pinocchio_with_itself(fourbar):
     with pytest.raises(cc.UnknownChoiceError, match=r"'pinocchio'.*valid choices: kkt"):
         cc.validate(fourbar, n_samples=1, method="pinocchio")
+
+
+@pytest.mark.parametrize("n_samples", [0, -5, 2.5, True, "10"])
+def test_validate_refuses_no_samples(fourbar, n_samples):
+    """A check on no states would report PASSED having compared nothing."""
+    with pytest.raises(cc.InvalidArgumentError, match=r"n_samples must be an integer >= 1 .*got"):
+        cc.validate(fourbar, n_samples=n_samples)
+
+
+def test_validate_method_in_any_case(fourbar):
+    assert cc.validate(fourbar, n_samples=2, method="Schur").method == "schur"

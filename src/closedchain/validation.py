@@ -16,8 +16,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .dynamics import METHODS, SolverSettings, forward_dynamics
+from .dynamics.base import method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
-from .exceptions import SingularConfigurationError, UnknownChoiceError
+from .exceptions import InvalidArgumentError, SingularConfigurationError, UnknownChoiceError
 from .kinematics import random_consistent_state
 from .mechanism import Mechanism
 
@@ -105,8 +106,18 @@ def validate(
 
     Returns:
         The report; ``report.passed`` says whether both tolerances hold.
+
+    Raises:
+        InvalidArgumentError: ``n_samples`` is not an integer >= 1.
+        UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
     """
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int | np.integer) or n_samples < 1:
+        raise InvalidArgumentError(
+            f"n_samples must be an integer >= 1 (a check on no states proves nothing), "
+            f"got {n_samples!r}"
+        )
     settings = settings or SolverSettings()
+    method = method_name(method)
     if method == "pinocchio":
         raise UnknownChoiceError(
             "method to validate against pinocchio.constraintDynamics (it is the reference)",
