@@ -9,13 +9,40 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from .exceptions import ClosedChainError
+from .exceptions import (
+    ClosedChainError,
+    NonFiniteError,
+    SingularConfigurationError,
+    UnknownChoiceError,
+    resolve_choice,
+)
+
+#: Exit statuses of the ``closedchain`` command (documented in ``--help`` and the README).
+EXIT_OK = 0
+#: A check ran and FAILED (``validate`` beyond its tolerances).
+EXIT_FAILED = 1
+#: Bad input: an option, a file or a value refused before or during the work.
+EXIT_BAD_INPUT = 2
+#: A simulation stopped at a singular configuration or a non-finite or drifting state.
+EXIT_STOPPED = 3
+#: An internal error (a bug): the traceback is printed with ``--debug``.
+EXIT_INTERNAL = 4
+
+EXIT_STATUS_HELP = f"""exit status:
+  {EXIT_OK}  success
+  {EXIT_FAILED}  a check ran and FAILED (validate beyond its tolerances)
+  {EXIT_BAD_INPUT}  bad input (options, files, values); one-line message
+  {EXIT_STOPPED}  a simulation stopped: singular configuration, non-finite state or
+     drift beyond the limit (animate still writes the animation up to the stop)
+  {EXIT_INTERNAL}  internal error (a bug; add --debug for the traceback)"""
 
 #: Options that must be finite and positive, by argparse attribute.
 POSITIVE_OPTIONS = {
@@ -51,6 +78,22 @@ def _load(args, path=None):
     return load(path) if gravity is None else load(path, gravity=gravity)
 
 
+def _choice(choices):
+    """Return an argparse ``type`` that maps a name in any case to its registered spelling.
+
+    An unknown name is passed through unchanged, so that argparse's ``choices``
+    check refuses it with the list of valid choices (exit status 2).
+    """
+
+    def convert(value: str) -> str:
+        try:
+            return resolve_choice("choice", value, choices)
+        except UnknownChoiceError:
+            return value
+
+    return convert
+
+
 def _coordinate(token: str) -> str | int:
     """A ``--coordinates`` token: an integer is a velocity index, anything else a name."""
     try:
@@ -70,6 +113,8 @@ def check_args(args: argparse.Namespace) -> None:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ClosedChainError(f"{flag} must be a positive number, got {value:g}")
+    if getattr(args, "fps", None) is not None and getattr(args, "t_final", None) is not None:
+        output_times(args.t_final, args.fps)  # checks the sample count before any work
     samples = getattr(args, "samples", None)
     if samples is not None and samples < 1:
         raise ClosedChainError(f"--samples must be at least 1, got {samples}")
@@ -216,9 +261,19 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
-    p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="dynamics method")
     p.add_argument(
-        "--integrator", default="DOP853", choices=sorted(INTEGRATORS), help="time integrator"
+        "--method",
+        default="kkt",
+        type=_choice(METHODS),
+        choices=sorted(METHODS),
+        help="dynamics method (any case)",
+    )
+    p.add_argument(
+        "--integrator",
+        default="DOP853",
+        type=_choice(INTEGRATORS),
+        choices=sorted(INTEGRATORS),
+        help="time integrator (any case)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
@@ -227,8 +282,9 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--stabilization",
         default=None,
+        type=_choice(STABILIZATIONS),
         choices=sorted(STABILIZATIONS),
-        help="drift control (default: projection for fixed-step, none for adaptive)",
+        help="drift control, any case (default: projection for fixed-step, none for adaptive)",
     )
     p.add_argument(
         "--q0",
@@ -240,6 +296,29 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
 
 
+def output_times(t_final: float, fps: float) -> np.ndarray:
+    """Return the output times of a run of ``t_final`` seconds at ``fps`` samples per second.
+
+    At least the start and the end are kept (``--fps`` below 1 / t_final keeps
+    those two); the count is checked against ``SimulationSettings.max_outputs``
+    before the array is made.
+
+    Raises:
+        ClosedChainError: more samples than ``SimulationSettings.max_outputs``.
+    """
+    from .simulate import SimulationSettings
+
+    limit = SimulationSettings().max_outputs
+    n = math.ceil(t_final * fps - 1e-9) + 1
+    if n > limit:
+        raise ClosedChainError(
+            f"--fps {fps:g} over --t-final {t_final:g} s is {n:.3g} output samples, more than "
+            f"the limit {limit:.3g} (SimulationSettings.max_outputs); valid --fps: "
+            f"(0, {(limit - 1) / t_final:.6g}]"
+        )
+    return np.linspace(0.0, t_final, max(n, 2))
+
+
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
     from .kinematics import assemble
@@ -247,7 +326,7 @@ def simulate_from_args(args, mech):
 
     q0 = mech.q_ref if args.q0 is None else assemble(mech, np.array(args.q0), fixed="independent")
     v0 = np.zeros(mech.nv)
-    n = int(round(args.t_final * args.fps)) + 1
+    t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
         from tqdm import tqdm
@@ -275,7 +354,7 @@ def simulate_from_args(args, mech):
             rtol=args.rtol,
             atol=args.atol,
             stabilization=args.stabilization,
-            t_eval=np.linspace(0.0, args.t_final, n),
+            t_eval=t_eval,
             progress=progress if bar else None,
         )
     finally:
@@ -333,6 +412,13 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _add_debug(p: argparse.ArgumentParser) -> None:
+    """Accept ``--debug`` after the subcommand too (it never resets a ``--debug`` before it)."""
+    p.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -340,8 +426,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="closedchain",
         description="Dynamics of closed-chain mechanisms (URDF + <loop>) on top of Pinocchio.",
+        epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="print the traceback of an internal error (exit status 4)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, help_: str, handler) -> argparse.ArgumentParser:
@@ -354,6 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
             metavar=("GX", "GY", "GZ"),
             help="gravity in the world frame [m/s^2] (default 0 0 -9.81)",
         )
+        _add_debug(p)
         p.set_defaults(handler=handler)
         return p
 
@@ -367,8 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="kkt",
+        type=_choice(METHODS),
         choices=sorted(set(METHODS) - {"pinocchio"}),
-        help="method to check",
+        help="method to check (any case)",
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
@@ -413,22 +508,52 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="image file to write; its suffix gives the format (.png, .pdf, .svg, ...)",
     )
+    _add_debug(p)
     p.set_defaults(handler=_cmd_plot)
     return parser
 
 
+def exit_status(exc: BaseException) -> int:
+    """Return the exit status for an exception that ended a command.
+
+    A simulation stopped by a singular configuration or a non-finite or
+    drifting state is :data:`EXIT_STOPPED`; any other closedchain error and a
+    file that cannot be written (OSError) is bad input, :data:`EXIT_BAD_INPUT`;
+    anything else is a bug, :data:`EXIT_INTERNAL`.
+    """
+    from .simulate import SimulationError
+
+    if isinstance(exc, SingularConfigurationError | SimulationError | NonFiniteError):
+        return EXIT_STOPPED
+    if isinstance(exc, ClosedChainError | OSError):
+        return EXIT_BAD_INPUT
+    return EXIT_INTERNAL
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; return the exit status."""
+    """Run the command line; return the exit status (see :data:`EXIT_STATUS_HELP`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
     try:
         check_args(args)
         return int(args.handler(args))
-    except (ClosedChainError, OSError) as exc:
-        # OSError: a file the command writes cannot be (no such directory, no permission).
-        print(f"closedchain: error: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print("closedchain: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        status = exit_status(exc)
+        if status == EXIT_INTERNAL:
+            if args.debug:
+                traceback.print_exc()
+            print(
+                f"closedchain: internal error: {type(exc).__name__}: {exc}"
+                + ("" if args.debug else " (run with --debug for the traceback)"),
+                file=sys.stderr,
+            )
+        else:
+            print(f"closedchain: error: {exc}", file=sys.stderr)
+        return status
 
 
 if __name__ == "__main__":  # pragma: no cover
