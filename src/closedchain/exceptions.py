@@ -18,6 +18,20 @@ class URDFError(ClosedChainError):
     """A URDF file, or one of its URDF+ extension elements, is invalid."""
 
 
+class ModelTooLargeError(URDFError):
+    """A tree has more degrees of freedom than closedchain supports (refused before any work).
+
+    Attributes:
+        nv: degrees of freedom of the tree.
+        max_nv: the largest supported nv.
+    """
+
+    def __init__(self, message: str, *, nv: int, max_nv: int) -> None:
+        super().__init__(message)
+        self.nv = nv
+        self.max_nv = max_nv
+
+
 class LoopClosureError(ClosedChainError):
     """The frames of a loop joint cannot be brought together."""
 

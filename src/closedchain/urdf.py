@@ -28,7 +28,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from .exceptions import URDFError
+from .exceptions import ModelTooLargeError, URDFError
 
 #: Loop-joint types and the relative motion each allows.
 LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
@@ -133,13 +133,13 @@ def _where(path: Path, element) -> str:
 def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
     text = element.get(attribute, default)
     try:
-        values = np.array([float(x) for x in text.split()])
+        values = [float(x) for x in text.split()]
     except ValueError:
-        values = np.array([])
-    if values.shape != (3,) or not np.all(np.isfinite(values)):
+        values = []
+    if len(values) != 3 or not all(math.isfinite(x) for x in values):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
         raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
-    return values
+    return np.array(values)
 
 
 def _number(where: str, element, attribute: str, *, minimum: float | None = None) -> float | None:
@@ -242,11 +242,25 @@ def _origin(path: Path, element) -> pin.SE3:
     return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
 
 
-def parse_urdf(path: str | Path) -> URDFPlus:
+#: Velocity-space dimension of each URDF joint type (unknown types: Pinocchio refuses them).
+URDF_JOINT_NV = {
+    "revolute": 1,
+    "continuous": 1,
+    "prismatic": 1,
+    "fixed": 0,
+    "planar": 3,
+    "floating": 6,
+}
+
+
+def parse_urdf(path: str | Path, *, max_nv: int | None = None) -> URDFPlus:
     """Read a URDF file and its URDF+ extension elements.
 
     Args:
         path: URDF file.
+        max_nv: largest supported number of degrees of freedom of the tree
+            (sum over joints of :data:`URDF_JOINT_NV`); a larger tree is
+            refused right after the XML is read, before any per-element work.
 
     Returns:
         The parsed extensions, with the checked XML text.
@@ -282,6 +296,14 @@ def parse_urdf(path: str | Path) -> URDFPlus:
     if not links:
         raise URDFError(f"{path}: <robot> has no <link> elements")
     joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
+    nv = sum(URDF_JOINT_NV.get(t, 0) for t in joints.values())
+    if max_nv is not None and nv > max_nv:
+        raise ModelTooLargeError(
+            f"{path}: {len(joints)} joints with nv = {nv} degrees of freedom are beyond the "
+            f"supported size; valid: nv <= {max_nv}",
+            nv=nv,
+            max_nv=max_nv,
+        )
     for link in root.findall("link"):
         _check_inertial(path, link)
     for joint in root.findall("joint"):
