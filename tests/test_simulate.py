@@ -569,31 +569,6 @@ def test_controller_rejects_wrong_coordinates(agile_eye):
 # -- 6. trajectories, stabilization, error paths ----------------------------------------
 
 
-@pytest.fixture(scope="module")
-def short_traj(fourbar, q_crossed) -> cc.Trajectory:
-    return simulate(fourbar, q_crossed, np.zeros(3), 0.2, integrator="rk4", dt=1e-2)
-
-
-def test_npz_round_trip_is_exact(short_traj, tmp_path):
-    path = short_traj.save(tmp_path / "t.npz")
-    back = cc.Trajectory.load(path)
-    for name in ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy"):
-        assert np.array_equal(getattr(back, name), getattr(short_traj, name)), name
-    assert back.info == json.loads(json.dumps(short_traj.info))
-
-
-def test_csv_is_readable(short_traj, fourbar, tmp_path):
-    path = short_traj.save(tmp_path / "t.csv")
-    table = np.genfromtxt(path, delimiter=",", names=True)
-    header = path.read_text().splitlines()[0].split(",")
-    assert header[0] == "t" and header[-1] == "energy"
-    assert [f"q:{n}" for n in fourbar.coordinate_names] == header[1:4]
-    assert np.array_equal(table["t"], short_traj.t)
-    assert np.array_equal(table["energy"], short_traj.energy)
-    with pytest.raises(cc.ClosedChainError, match="valid suffixes"):
-        short_traj.save(tmp_path / "t.txt")
-
-
 @pytest.mark.parametrize(
     ("kwargs", "pattern"),
     [
@@ -861,12 +836,3 @@ def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
         tau=tau,
     )
     assert seen and max(seen) <= 1e-15
-
-
-def test_csv_names_configuration_entries_when_nq_differs_from_nv(load_mechanism, tmp_path):
-    """A continuous joint's two configuration entries get their own CSV column names."""
-    mech = load_mechanism("slider_crank")
-    traj = simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.01, integrator="rk4", dt=1e-3)
-    header = traj.save(tmp_path / "t.csv").read_text().splitlines()[0].split(",")
-    assert header[1:3] == ["q:crank_joint[0]", "q:crank_joint[1]"]
-    assert len([h for h in header if h.startswith("q:")]) == mech.nq
