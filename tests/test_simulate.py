@@ -24,7 +24,6 @@ import scipy.linalg
 
 import closedchain as cc
 from closedchain import cli
-from closedchain.control import computed_torque_controller
 from closedchain.simulate import (
     INTEGRATORS,
     STABILIZATIONS,
@@ -487,83 +486,6 @@ def test_non_finite_tau_raises(fourbar, q_crossed):
     with pytest.raises(SimulationError, match=r"tau\(t, q, v\) returned .* at t = ") as exc:
         simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="rk4", tau=bad)
     assert exc.value.t > 0.01
-
-
-# -- 5. computed-torque tracking --------------------------------------------------------
-
-#: Reference of the 4-bar crank: theta2 = 10 deg + A sin(2 pi f t).
-CRANK_AMPLITUDE = 0.3
-CRANK_FREQUENCY = 0.5
-#: Small sinusoids of the Agile Eye platform's yaw, pitch, roll around home [rad], [Hz].
-PLATFORM_AMPLITUDES = (0.1, 0.08, 0.06)
-PLATFORM_FREQUENCIES = (0.5, 0.7, 0.9)
-PLATFORM_COORDINATES = ["platform_yaw", "platform_pitch", "platform_roll"]
-KP, KD = 100.0, 20.0
-T_TRACK = 3.0
-TRACK_CONFIG = dict(integrator="DOP853", rtol=1e-10, atol=1e-10)
-
-
-def _sinusoids(offsets, amplitudes, frequencies):
-    offsets, amp = np.asarray(offsets, float), np.asarray(amplitudes, float)
-    w = 2 * np.pi * np.asarray(frequencies, float)
-
-    def reference(t):
-        return offsets + amp * np.sin(w * t), amp * w * np.cos(w * t), -amp * w**2 * np.sin(w * t)
-
-    return reference
-
-
-def _start_on_reference(mech, reference, names, q_guess):
-    q_idx = [mech.model.joints[mech.model.getJointId(n)].idx_q for n in names]
-    v_idx = [mech.model.joints[mech.model.getJointId(n)].idx_v for n in names]
-    q_ref0, v_ref0, _ = reference(0.0)
-    q = np.array(q_guess, dtype=float)
-    q[q_idx] = q_ref0
-    q = cc.assemble(mech, q, fixed=names)
-    v = np.zeros(mech.nv)
-    v[v_idx] = v_ref0
-    return q, cc.project_velocity(mech, q, v, fixed=names), q_idx
-
-
-def _tracking_error(mech, names, offsets, amplitudes, frequencies, q_guess):
-    reference = _sinusoids(offsets, amplitudes, frequencies)
-    coordinates = names if names else "independent"
-    ctrl = computed_torque_controller(mech, reference, kp=KP, kd=KD, coordinates=coordinates)
-    names = names or [mech.coordinate_names[i] for i in mech.independent_idx_v]
-    q0, v0, q_idx = _start_on_reference(mech, reference, names, q_guess)
-    t_eval = np.linspace(0.0, T_TRACK, 301)
-    traj = simulate(mech, q0, v0, T_TRACK, tau=ctrl, t_eval=t_eval, **TRACK_CONFIG)
-    want = np.array([reference(t)[0] for t in traj.t])
-    return np.max(np.linalg.norm(traj.q[:, q_idx] - want, axis=1)), traj
-
-
-def test_fourbar_crank_tracking(fourbar, q_crossed):
-    err, traj = _tracking_error(
-        fourbar, None, [THETA2_START], [CRANK_AMPLITUDE], [CRANK_FREQUENCY], q_crossed
-    )
-    assert err <= TRACKING_TOL
-    assert np.max(np.abs(traj.q[:, 0] - THETA2_START)) > 0.9 * CRANK_AMPLITUDE
-
-
-def test_agile_eye_platform_tracking(agile_eye):
-    err, traj = _tracking_error(
-        agile_eye,
-        PLATFORM_COORDINATES,
-        np.zeros(3),
-        PLATFORM_AMPLITUDES,
-        PLATFORM_FREQUENCIES,
-        agile_eye.q_ref,
-    )
-    assert err <= TRACKING_TOL
-    assert traj.max_constraint_residual <= RESIDUAL_TOL
-
-
-def test_controller_rejects_wrong_coordinates(agile_eye):
-    ref = _sinusoids(np.zeros(2), [0.1, 0.1], [1.0, 1.0])
-    with pytest.raises(cc.ClosedChainError, match="exactly 3 coordinates"):
-        computed_torque_controller(
-            agile_eye, ref, kp=KP, kd=KD, coordinates=["platform_yaw", "platform_pitch"]
-        )
 
 
 # -- 6. trajectories, stabilization, error paths ----------------------------------------

@@ -600,3 +600,47 @@ def test_joint_origin_axis_and_limits_are_checked(fourbar_text, write, old, new,
     path = write(replaced(fourbar_text, CRANK_JOINT_AXIS, CRANK_JOINT_AXIS.replace(old, new)))
     with pytest.raises(cc.URDFError, match=joint_where(path, "crank_joint") + message):
         cc.load(path)
+
+
+# -- the <scene> element --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("scene", "message"),
+    [
+        (
+            '<scene><initial joint="nope" value="1"/></scene>',
+            r"<initial>: joint='nope' is not a revolute or prismatic joint of this file; "
+            r"valid: coupler_joint, crank_joint, rocker_joint",
+        ),
+        (
+            '<scene><initial joint="crank_joint" value="nan"/></scene>',
+            r"<initial> <initial value='nan'>: must be a finite number",
+        ),
+        ('<scene><initial joint="crank_joint"/></scene>', r"<initial>: missing value="),
+        (
+            '<scene><track kp="1"><sinusoid joint="crank_joint"/></track></scene>',
+            r"<track>: missing kd= \(a gain >= 0\)",
+        ),
+        (
+            '<scene><track kp="-1" kd="1"><sinusoid joint="crank_joint"/></track></scene>',
+            r"<track kp='-1'>: must be a finite number >= 0",
+        ),
+        (
+            '<scene><track kp="1" kd="1"></track></scene>',
+            r"<track>: has no <sinusoid joint=...> child",
+        ),
+        (
+            '<scene><track kp="1" kd="1"><sinusoid joint="crank_joint" frequency="-2"/>'
+            "</track></scene>",
+            r"<sinusoid frequency='-2'>: must be a finite number >= 0",
+        ),
+        ("<scene/><scene/>", r"<scene>: more than one <scene> \(at most one\)"),
+    ],
+)
+def test_bad_scene(fourbar_text, write, scene, message):
+    start = fourbar_text.index("  <scene>")
+    end = fourbar_text.index("</scene>") + len("</scene>")
+    path = write(fourbar_text[:start] + scene + fourbar_text[end:])
+    with pytest.raises(cc.URDFError, match=re.escape(str(path)) + r": line \d+: .*" + message):
+        cc.load(path)

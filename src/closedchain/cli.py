@@ -227,16 +227,28 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_animate(args) -> int:
+    from .simulate import SimulationError
     from .visualize import write_html
 
     mech = _load(args)
-    traj = simulate_from_args(args, mech)
-    out = write_html(mech, traj, args.output, fps=args.fps)
+    stopped = None
+    try:
+        traj = simulate_from_args(args, mech)
+    except (SingularConfigurationError, SimulationError) as exc:
+        # Nothing is lost: animate the motion up to the stop, marked in the page.
+        if exc.trajectory is None or len(exc.trajectory.t) < 2:
+            raise
+        traj, stopped = exc.trajectory, exc
+    stop = None if stopped is None else f"Simulation stopped at t = {stopped.t:.6g} s: {stopped}"
+    out = write_html(mech, traj, args.output, fps=args.fps, stop=stop)
     print(
         f"wrote {out.path} ({out.size / 1e6:.2f} MB; {out.duration:.3g} s at {out.fps:g} fps, "
         f"{out.n_keyframes} keyframes x {out.n_tracks} tracks)"
     )
-    return 0
+    if stopped is not None:
+        print(f"closedchain: error: {stopped} (animation written up to the stop)", file=sys.stderr)
+        return EXIT_STOPPED
+    return EXIT_OK
 
 
 def _cmd_plot(args) -> int:
@@ -291,7 +303,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         nargs="+",
         metavar="Q",
-        help="initial configuration (nq numbers, assembled before the run; default: q_ref)",
+        help="initial configuration (nq numbers, assembled before the run, released from rest;"
+        " default: the URDF's <scene>, else rest at q_ref)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
 
@@ -321,11 +334,17 @@ def output_times(t_final: float, fps: float) -> np.ndarray:
 
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
+    from .control import default_scene
     from .kinematics import assemble
     from .simulate import simulate
 
-    q0 = mech.q_ref if args.q0 is None else assemble(mech, np.array(args.q0), fixed="independent")
-    v0 = np.zeros(mech.nv)
+    if args.q0 is None:
+        scene = default_scene(mech)  # the <scene> element of the URDF, or rest at q_ref
+        q0, v0, tau = scene.q0, scene.v0, scene.tau
+        logging.getLogger(__name__).info("%s: default scene: %s", mech.name, scene.description)
+    else:
+        q0 = assemble(mech, np.array(args.q0), fixed="independent")
+        v0, tau = np.zeros(mech.nv), None
     t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
@@ -355,6 +374,7 @@ def simulate_from_args(args, mech):
             atol=args.atol,
             stabilization=args.stabilization,
             t_eval=t_eval,
+            tau=tau,
             progress=progress if bar else None,
         )
     finally:

@@ -52,6 +52,8 @@ class SingularConfigurationError(ClosedChainError):
         q: configuration at which it happened, shape (nq,).
         condition_number: estimated 2-norm or 1-norm condition number.
         t: simulation time [s] when raised during a simulation, else None.
+        trajectory: when it stopped a simulation, the Trajectory recorded up to
+            the stop (output samples before ``t``), else None.
     """
 
     def __init__(self, message: str, *, q=None, condition_number: float = float("inf"), t=None):
@@ -59,6 +61,7 @@ class SingularConfigurationError(ClosedChainError):
         self.q = q
         self.condition_number = condition_number
         self.t = t
+        self.trajectory = None
 
 
 class InvalidArgumentError(ClosedChainError, ValueError):

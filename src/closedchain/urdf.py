@@ -71,6 +71,56 @@ class LoopSpec:
 
 
 @dataclass(frozen=True)
+class SinusoidSpec:
+    """A reference ``offset + amplitude sin(2 pi frequency t)`` for one joint of a scene.
+
+    Attributes:
+        joint: a 1-dof joint name.
+        offset: [rad or m].
+        amplitude: [rad or m].
+        frequency: [Hz].
+    """
+
+    joint: str
+    offset: float
+    amplitude: float
+    frequency: float
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """The default scene of a mechanism (closedchain's ``<scene>`` element).
+
+    What ``closedchain simulate/animate/plot`` run when no ``--q0`` is given:
+    the initial configuration guess, and optionally computed-torque tracking
+    of sinusoidal references (see :mod:`closedchain.control`).
+
+    .. code-block:: xml
+
+        <scene>
+          <initial joint="crank_joint" value="0.1745"/>
+          <track kp="100" kd="20">
+            <sinusoid joint="platform_yaw" offset="0" amplitude="0.8" frequency="0.1"/>
+          </track>
+        </scene>
+
+    Attributes:
+        initial: joint name -> initial value guess [rad or m] (assembled onto
+            phi = 0 holding the tracked joints, else the independent ones).
+        track: the tracked joints' references (empty: a passive motion).
+        kp: position gain [1/s^2] of the tracking controller.
+        kd: velocity gain [1/s] of the tracking controller.
+        line: source line of the ``<scene>`` element.
+    """
+
+    initial: dict[str, float] = field(default_factory=dict)
+    track: tuple[SinusoidSpec, ...] = ()
+    kp: float = 0.0
+    kd: float = 0.0
+    line: int = 0
+
+
+@dataclass(frozen=True)
 class URDFPlus:
     """What a URDF+ file adds to the tree.
 
@@ -83,6 +133,7 @@ class URDFPlus:
         loops: the ``<loop>`` elements.
         actuated: joints named by ``<transmission>`` elements, in file order.
         independent: joints marked ``independent="true"``, in file order.
+        scene: the ``<scene>`` element (default scene), or None.
     """
 
     path: Path
@@ -93,6 +144,7 @@ class URDFPlus:
     loops: tuple[LoopSpec, ...] = ()
     actuated: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
+    scene: SceneSpec | None = None
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -346,6 +398,11 @@ def parse_urdf(path: str | Path, *, max_nv: int | None = None) -> URDFPlus:
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
             independent.append(je.get("name"))
 
+    scenes = root.findall("scene")
+    if len(scenes) > 1:
+        raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
+    scene = _parse_scene(path, scenes[0], joints) if scenes else None
+
     xml = etree.tostring(root, encoding="unicode")
     return URDFPlus(
         path=path,
@@ -356,6 +413,7 @@ def parse_urdf(path: str | Path, *, max_nv: int | None = None) -> URDFPlus:
         loops=loops,
         actuated=tuple(actuated),
         independent=tuple(independent),
+        scene=scene,
     )
 
 
@@ -414,3 +472,56 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         axis=axis,
         line=element.sourceline or 0,
     )
+
+
+#: Joint types a ``<scene>`` may set or track (one coordinate each).
+SCENE_JOINT_TYPES = ("revolute", "prismatic")
+
+
+def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
+    name = element.get("joint")
+    if joints.get(name) not in SCENE_JOINT_TYPES:
+        valid = sorted(j for j, t in joints.items() if t in SCENE_JOINT_TYPES)
+        raise URDFError(
+            f"{_where(path, element)}: joint={name!r} is not a revolute or prismatic joint "
+            f"of this file; valid: {', '.join(valid)}"
+        )
+    return name
+
+
+def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
+    """Read the ``<scene>`` element (see :class:`SceneSpec`)."""
+    where = _where(path, element)
+    initial: dict[str, float] = {}
+    for e in element.findall("initial"):
+        name = _scene_joint(path, e, joints)
+        value = _number(_where(path, e), e, "value")
+        if value is None:
+            raise URDFError(f"{_where(path, e)}: missing value=")
+        initial[name] = value
+    tracks = element.findall("track")
+    if len(tracks) > 1:
+        raise URDFError(f"{where}: more than one <track>")
+    if not tracks:
+        return SceneSpec(initial=initial, line=element.sourceline or 0)
+    track = tracks[0]
+    gains = {}
+    for gain in ("kp", "kd"):
+        value = _number(_where(path, track), track, gain, minimum=0.0)
+        if value is None:
+            raise URDFError(f"{_where(path, track)}: missing {gain}= (a gain >= 0)")
+        gains[gain] = value
+    refs = []
+    for e in track.findall("sinusoid"):
+        w = _where(path, e)
+        refs.append(
+            SinusoidSpec(
+                joint=_scene_joint(path, e, joints),
+                offset=_number(w, e, "offset") or 0.0,
+                amplitude=_number(w, e, "amplitude") or 0.0,
+                frequency=_number(w, e, "frequency", minimum=0.0) or 0.0,
+            )
+        )
+    if not refs:
+        raise URDFError(f"{_where(path, track)}: has no <sinusoid joint=...> child")
+    return SceneSpec(initial=initial, track=tuple(refs), line=element.sourceline or 0, **gains)

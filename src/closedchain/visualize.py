@@ -1074,6 +1074,10 @@ body { margin: 0; font-family: sans-serif; }
   position: absolute; left: 8px; bottom: 8px; padding: 4px 8px; font-size: 12px;
   color: #fff; background: rgba(0, 0, 0, 0.45); border-radius: 4px; pointer-events: none;
 }
+#closedchain-stop {
+  position: absolute; left: 8px; top: 8px; max-width: 60vw; padding: 6px 10px;
+  font-size: 13px; color: #fff; background: rgba(180, 20, 20, 0.85); border-radius: 4px;
+}
 #closedchain-legend .swatch {
   display: inline-block; width: 10px; height: 10px; border-radius: 50%; margin: 0 3px 0 8px;
 }
@@ -1114,8 +1118,16 @@ def scene_meta(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTIN
     }
 
 
-def scene_html(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTINGS) -> str:
+def scene_html(
+    scene: MeshcatScene,
+    settings: AnimationSettings = DEFAULT_SETTINGS,
+    *,
+    stop: str | None = None,
+) -> str:
     """Return the self-contained HTML page of a recorded scene.
+
+    ``stop``, when given, is shown (escaped) in a banner at the top of the page
+    and in ``meta["stop"]``: the simulation stopped there (e.g. a singularity).
 
     The page inlines meshcat's ``main.min.js`` and replays the recorded
     commands; nothing is loaded from the network (the Content-Security-Policy
@@ -1124,6 +1136,7 @@ def scene_html(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTIN
     from . import __version__
 
     meta = scene_meta(scene, settings)
+    meta["stop"] = stop
     data = {
         "meta": meta,
         "commands": [base64.b64encode(c).decode("ascii") for c in scene.commands],
@@ -1136,6 +1149,11 @@ def scene_html(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTIN
         "base-uri 'none'; form-action 'none'"
     )
     name = html.escape(scene.name)
+    banner = (
+        ""
+        if stop is None
+        else f'<div id="closedchain-stop" role="alert">{html.escape(stop)}</div>\n'
+    )
     legend = (
         f"<b>{name}</b> &middot; {scene.duration:.3g} s"
         f'<span class="swatch" style="background:{meta["actuated_color"]}"></span>actuated joint'
@@ -1150,7 +1168,8 @@ def scene_html(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTIN
         f"<title>{name} - closedchain</title>\n"
         f"<style>{_STYLE}</style>\n</head>\n<body>\n"
         '<div id="meshcat-pane"></div>\n'
-        f'<div id="closedchain-legend">{legend}</div>\n'
+        + banner
+        + f'<div id="closedchain-legend">{legend}</div>\n'
         f'<script type="application/json" id="closedchain-scene">{_json_for_script(data)}'
         "</script>\n"
         f"<script>{js}</script>\n"
@@ -1166,6 +1185,7 @@ def write_html(
     *,
     fps: float = DEFAULT_FPS,
     settings: AnimationSettings = DEFAULT_SETTINGS,
+    stop: str | None = None,
 ) -> HTMLAnimation:
     """Write the motion as one self-contained HTML file that plays it in meshcat's viewer.
 
@@ -1181,6 +1201,8 @@ def write_html(
         fps: display rate [frames/s]; keyframes are resampled to it whatever
             the simulation step.
         settings: scene, camera and marker settings.
+        stop: why the motion ends early (e.g. the singularity message of a
+            stopped simulation), shown in a red banner; None: no banner.
 
     Returns:
         What was written: path, size [bytes], duration [s], keyframes, tracks.
@@ -1190,7 +1212,7 @@ def write_html(
             do not increase, or fps is not positive.
     """
     scene = build_scene(mech, trajectory, fps=fps, settings=settings)
-    text = scene_html(scene, settings)
+    text = scene_html(scene, settings, stop=stop)
     path = Path(path)
     path.write_bytes(text.encode("utf-8"))
     size = path.stat().st_size

@@ -45,7 +45,7 @@ import numpy as np
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
-from ..exceptions import InvalidArgumentError
+from ..exceptions import InvalidArgumentError, SingularConfigurationError
 from ..trajectory import Trajectory
 from .problem import Problem, Recorder
 from .registry import (
@@ -187,9 +187,10 @@ def simulate(
     Raises:
         UnknownChoiceError: unknown integrator, stabilization or method.
         SingularConfigurationError: the method met a singular configuration
-            (message and attributes give the time and condition number).
+            (message and attributes give the time and condition number;
+            ``exc.trajectory`` holds the motion up to the stop).
         SimulationError: non-finite state, integrator failure, or drift
-            beyond ``settings.drift_limit``.
+            beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
     settings = settings or SimulationSettings()
     spec = get_integrator(integrator)
@@ -273,9 +274,17 @@ def simulate(
         info["baumgarte"] = list(solver_settings.baumgarte)
     cpu0 = time.process_time()
     control = StepControl(dt=dt, rtol=rtol, atol=atol)
-    steps = spec.run(
-        problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
-    )
+    try:
+        steps = spec.run(
+            problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
+        )
+    except (SingularConfigurationError, SimulationError) as exc:
+        # Nothing is lost: the caller gets the motion up to the stop (e.g. to animate it).
+        info["stopped"] = {"t": exc.t, "reason": str(exc)}
+        info["cpu_time"] = time.process_time() - cpu0
+        info["evaluations"] = problem.n_evals
+        exc.trajectory = recorder.trajectory(info) if recorder.rows["t"] else None
+        raise
     info["cpu_time"] = time.process_time() - cpu0
     info["steps"] = steps
     info["evaluations"] = problem.n_evals

@@ -18,11 +18,14 @@ class SimulationError(ClosedChainError):
 
     Attributes:
         t: simulation time [s] at which it happened.
+        trajectory: the Trajectory recorded up to the stop (output samples
+            before ``t``), or None.
     """
 
     def __init__(self, message: str, t: float) -> None:
         super().__init__(message)
         self.t = t
+        self.trajectory = None
 
 
 @dataclass(frozen=True)
