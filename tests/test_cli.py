@@ -391,3 +391,29 @@ def test_fps_below_one_sample_keeps_start_and_end(capsys, tmp_path, mechanism_fi
     from closedchain import Trajectory
 
     np.testing.assert_array_equal(Trajectory.load(out_file).t, [0.0, 1.0])
+
+
+def test_animate_writes_the_motion_up_to_a_singular_stop_and_exits_3(
+    capsys, tmp_path, mechanism_files
+):
+    out_file = tmp_path / "stop.html"
+    argv = ["animate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN]
+    status, out, err = run(capsys, *argv, "-o", out_file)
+    assert status == 3
+    assert out.startswith(f"wrote {out_file} (")
+    assert re.search(r"closedchain: error: fourbar: at t = 0\.39\d+ s .*animation written", err)
+    page = out_file.read_text()
+    banner = re.search(r'<div id="closedchain-stop" role="alert">([^<]*)</div>', page)
+    assert banner and banner.group(1).startswith("Simulation stopped at t = 0.39")
+    meta = json.loads(re.search(r'id="closedchain-scene">(.*?)</script>', page).group(1))["meta"]
+    assert meta["stop"].startswith("Simulation stopped at t = 0.39")
+    assert 0.36 <= meta["duration"] <= 0.393  # up to the last output sample before the stop
+
+
+def test_animate_default_scene_has_no_stop_banner(capsys, tmp_path, mechanism_files):
+    out_file = tmp_path / "fourbar.html"
+    status, _, err = run(
+        capsys, "animate", mechanism_files["fourbar"], "--t-final", "0.2", "-o", out_file
+    )
+    assert status == 0, err
+    assert 'id="closedchain-stop"' not in out_file.read_text()
