@@ -8,6 +8,7 @@ import re
 
 import numpy as np
 import pytest
+from conftest import SHIPPED_MECHANISMS
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -80,7 +81,7 @@ def test_info_notes_a_missing_pinocchio_reference(capsys, mechanism_files):
 # -- validate -------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_validate_json_passes(capsys, mechanism_files, name):
     path = mechanism_files[name]
     status, out, err = run(capsys, "validate", path, "--samples", CLI_SAMPLES, "--json")

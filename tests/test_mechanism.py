@@ -14,6 +14,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yourdfpy
+from conftest import SHIPPED_MECHANISMS
 
 import closedchain as cc
 
@@ -211,7 +212,7 @@ def test_gravity_must_be_three_finite_numbers(mechanism_files, g):
 # -- the files stay plain URDF for other tools ----------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_model_files_load_in_other_urdf_readers(load_mechanism, mechanism_files, name):
     path = mechanism_files[name]
     mech = load_mechanism(name)
@@ -308,7 +309,7 @@ def test_configuration_off_the_unit_circle_is_refused(load_mechanism):
 # -- size limits (a tree too large is refused before any work) -----------------------------
 
 
-@pytest.mark.parametrize("n", [1000, 50_000])
+@pytest.mark.parametrize("n", [1000, pytest.param(50_000, marks=pytest.mark.slow)])
 def test_tree_beyond_the_supported_size_is_refused_before_work(tmp_path, n):
     from chain_urdf import chain_urdf
 

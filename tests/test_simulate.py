@@ -21,6 +21,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import scipy.linalg
+from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS
 
 import closedchain as cc
 from closedchain import cli
@@ -505,7 +506,10 @@ def test_unknown_choices(fourbar, q_crossed, kwargs, pattern):
 
 
 def test_choices_are_listed():
-    assert set(INTEGRATORS) >= {"euler", "semi-implicit", "rk4", "DOP853", "Radau"}
+    assert set(INTEGRATORS) >= set(ALL_INTEGRATORS)
+    for name in ALL_INTEGRATORS:
+        kind = "fixed" if name in FIXED_STEP_INTEGRATORS else "adaptive"
+        assert INTEGRATORS[name].kind == kind, name
     assert tuple(STABILIZATIONS) == ("none", "baumgarte", "projection", "partitioning")
 
 

@@ -16,12 +16,13 @@ import mpmath
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import SHIPPED_MECHANISMS, VALIDATABLE_MECHANISMS
 
 import closedchain as cc
 from closedchain.dynamics import base as dynamics_base
 
 #: Mechanisms with a Pinocchio reference (no prismatic loops).
-VALIDATABLE = ["fourbar", "agile_eye", "spherical_chain", "fixed_branches"]
+VALIDATABLE = list(VALIDATABLE_MECHANISMS)
 
 #: Random consistent states compared with pinocchio.constraintDynamics per model.
 N_VALIDATION_STATES = 100
@@ -57,7 +58,7 @@ TOL_ACCELERATION_RELATIVE = 1e-11
 # -- closedchain.validate -------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_validate_agrees_with_pinocchio_on_the_models(load_mechanism, name):
     rep = cc.validate(load_mechanism(name), n_samples=N_VALIDATION_STATES, seed=VALIDATION_SEED)
     assert rep.n_samples == N_VALIDATION_STATES
@@ -226,7 +227,7 @@ def mp_solve_kkt(M, h, J, gamma, tau):
         )
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_kkt_agrees_with_a_40_digit_solve(load_mechanism, rng, name):
     mech = load_mechanism(name)
     model = mech.model

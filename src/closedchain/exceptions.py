@@ -63,6 +63,61 @@ class SingularConfigurationError(ClosedChainError):
         self.t = t
         self.trajectory = None
 
+    @classmethod
+    def build(
+        cls,
+        name: str,
+        what: str,
+        *,
+        q,
+        cond: float,
+        bound: float | None = None,
+        bound_name: str = "cond_max",
+        state: str = "is singular",
+        detail: str = "",
+        hint: str = "",
+        t: float | None = None,
+    ) -> SingularConfigurationError:
+        """Return the error in the one message format every site uses.
+
+        ``"{name}: [at t = {t} s ]{what} {state} at q = [...] (condition number
+        {cond} > {bound_name} {bound}{detail}); {hint}"``; the comparison is
+        written only when ``cond`` exceeds ``bound``.
+
+        Args:
+            name: mechanism name.
+            what: the matrix or solver (``"the KKT matrix [[M, J^T], [J, 0]]"``).
+            q: configuration, shape (nq,).
+            cond: its condition number (inf when exactly singular).
+            bound: the bound it was checked against, or None.
+            bound_name: the setting holding ``bound``.
+            state: what happened (``"is singular"``, ``"has lost rank"``).
+            detail: appended inside the parentheses (start it with ``"; "``).
+            hint: what to do, or what it means.
+            t: simulation time [s], or None.
+        """
+        import numpy as np
+
+        q = np.array(q, dtype=float)
+        when = "" if t is None else f"at t = {t:.9g} s "
+        if bound is None:
+            versus = ""
+        elif cond > bound:
+            versus = f" > {bound_name} {bound:.1e}"
+        else:
+            versus = f", {bound_name} {bound:.1e}"
+        message = (
+            f"{name}: {when}{what} {state} at q = {np.array2string(q, precision=6)} "
+            f"(condition number {cond:.3e}{versus}{detail})" + (f"; {hint}" if hint else "")
+        )
+        return cls(message, q=q, condition_number=cond, t=t)
+
+    def at_time(self, t: float) -> SingularConfigurationError:
+        """Return this error with the simulation time ``t`` [s] prefixed and set."""
+        return type(self)(
+            f"at t = {t:.9g} s: {self}", q=self.q, condition_number=self.condition_number, t=t
+        )
+
 
 class InvalidArgumentError(ClosedChainError, ValueError):
     """An argument is out of its valid range (the message names it and the range)."""

@@ -169,12 +169,12 @@ def singular_error(
     *,
     bound_name: str = "cond_max",
 ) -> SingularConfigurationError:
-    """Return the error for a matrix ``what`` whose condition number exceeds ``bound`` at q."""
-    return SingularConfigurationError(
-        f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
-        f"(condition number {cond:.3e} > {bound_name} {bound:.1e}); {hint}",
-        q=np.array(q),
-        condition_number=cond,
+    """Return the error for a matrix ``what`` whose condition number exceeds ``bound`` at q.
+
+    A shorthand of :meth:`SingularConfigurationError.build`, the one builder.
+    """
+    return SingularConfigurationError.build(
+        mech.name, what, q=q, cond=cond, bound=bound, bound_name=bound_name, hint=hint
     )
 
 
