@@ -103,12 +103,26 @@ ACCURATE = {
 T_ACCURACY = 10.0
 
 
+#: Horizon of the fast accuracy check [s] (the 10 s runs cost about 20 s CPU: slow).
+T_ACCURACY_FAST = 1.0
+
+
 @pytest.fixture(scope="module")
 def fourbar_accurate(fourbar, q_crossed) -> dict[str, cc.Trajectory]:
     v0 = np.zeros(fourbar.nv)
     return {k: simulate(fourbar, q_crossed, v0, T_ACCURACY, **cfg) for k, cfg in ACCURATE.items()}
 
 
+@pytest.mark.parametrize("config", sorted(ACCURATE))
+def test_fourbar_accuracy_fast(fourbar, q_crossed, config):
+    """The same configurations and tolerances over 1 s (the fast set's accuracy check)."""
+    traj = simulate(fourbar, q_crossed, np.zeros(3), T_ACCURACY_FAST, **ACCURATE[config])
+    assert traj.t[-1] == pytest.approx(T_ACCURACY_FAST, abs=TIME_TOL)
+    assert traj.energy_drift <= ENERGY_DRIFT_TOL
+    assert traj.max_constraint_residual <= RESIDUAL_TOL
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("config", sorted(ACCURATE))
 def test_fourbar_accuracy(fourbar_accurate, config):
     """Passive 4-bar, crossed branch, 10 s: energy and closure kept at every accepted step."""
@@ -119,6 +133,7 @@ def test_fourbar_accuracy(fourbar_accurate, config):
     assert np.all(np.isfinite(traj.q)) and np.all(np.isfinite(traj.v))
 
 
+@pytest.mark.slow
 def test_fourbar_accurate_configurations_agree(fourbar, fourbar_accurate):
     """The two configurations agree on the independent coordinates at t = 10 s."""
     ind = fourbar.independent_idx_v
@@ -185,6 +200,7 @@ def test_agile_eye_accurate_configurations_agree(agile_eye_zero_g, agile_eye_acc
 T_AGILE_EYE_FALL = 0.5
 
 
+@pytest.mark.slow
 def test_agile_eye_falling_from_home(agile_eye):
     """Under gravity from rest at home: accurate while the motion stays regular."""
     v0 = np.zeros(agile_eye.nv)
@@ -250,7 +266,9 @@ def _singular_cases():
         for config, outcome in SINGULAR_TABLE.items():
             if method == "pinocchio" and config == "rk4_baumgarte":
                 continue  # refused up front: test_baumgarte_refused_by_pinocchio_method
-            yield pytest.param(method, config, outcome, id=f"{method}-{config}")
+            # 1 s of rk4 partitioning (1000 steps, Newton each) is the slow case.
+            marks = (pytest.mark.slow,) if config == "rk4_partitioning" else ()
+            yield pytest.param(method, config, outcome, id=f"{method}-{config}", marks=marks)
 
 
 @pytest.mark.parametrize(("method", "config", "outcome"), list(_singular_cases()))

@@ -319,9 +319,9 @@ def output_times(t_final: float, fps: float) -> np.ndarray:
     Raises:
         ClosedChainError: more samples than ``SimulationSettings.max_outputs``.
     """
-    from .simulate import SimulationSettings
+    from .simulate.settings import DEFAULT_SIMULATION_SETTINGS
 
-    limit = SimulationSettings().max_outputs
+    limit = DEFAULT_SIMULATION_SETTINGS.max_outputs
     n = math.ceil(t_final * fps - 1e-9) + 1
     if n > limit:
         raise ClosedChainError(

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .dynamics import METHODS, SolverSettings, forward_dynamics
+from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamics
 from .dynamics.base import method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
 from .exceptions import InvalidArgumentError, SingularConfigurationError, UnknownChoiceError
@@ -84,7 +84,7 @@ def validate(
     method: str = "kkt",
     tol_a: float = TOL_ACCELERATION,
     tol_force: float = TOL_FORCE,
-    settings: SolverSettings | None = None,
+    settings: SolverSettings = DEFAULT_SETTINGS,
     velocity_scale: float = 1.0,
     tau_scale: float | None = None,
 ) -> ValidationReport:
@@ -116,7 +116,6 @@ def validate(
             f"n_samples must be an integer >= 1 (a check on no states proves nothing), "
             f"got {n_samples!r}"
         )
-    settings = settings or SolverSettings()
     method = method_name(method)
     if method == "pinocchio":
         raise UnknownChoiceError(

@@ -59,7 +59,13 @@ from .registry import (
     register_integrator,
     register_stabilization,
 )
-from .settings import SimulationError, SimulationSettings, TorqueInput, seed_settings
+from .settings import (
+    DEFAULT_SIMULATION_SETTINGS,
+    SimulationError,
+    SimulationSettings,
+    TorqueInput,
+    seed_settings,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -102,7 +108,9 @@ def check_positive(name: str, value, what: str) -> None:
         )
 
 
-def check_t_eval(t_eval, t_final: float, settings: SimulationSettings) -> np.ndarray | None:
+def check_t_eval(
+    t_eval, t_final: float, settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS
+) -> np.ndarray | None:
     """Return ``t_eval`` as a float array, or raise naming what is wrong with it.
 
     Valid: None, or a 1-D array of 1 to ``settings.max_outputs`` finite,
@@ -150,7 +158,7 @@ def simulate(
     stabilization: str | None = None,
     tau: TorqueInput = None,
     t_eval: np.ndarray | None = None,
-    settings: SimulationSettings | None = None,
+    settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS,
     solver_settings: SolverSettings = DEFAULT_SOLVER_SETTINGS,
     progress: Callable[[float], None] | None = None,
 ) -> Trajectory:
@@ -192,7 +200,6 @@ def simulate(
         SimulationError: non-finite state, integrator failure, or drift
             beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
-    settings = settings or SimulationSettings()
     spec = get_integrator(integrator)
     integrator = spec.name
     fixed = spec.kind == "fixed"

@@ -85,6 +85,10 @@ class SimulationSettings:
     max_outputs: int = 10_000_000
 
 
+#: The default settings of :func:`simulate`, shared (settings are frozen).
+DEFAULT_SIMULATION_SETTINGS = SimulationSettings()
+
+
 def seed_settings() -> SimulationSettings:
     """Settings reproducing the seed's Python program (two Newton steps, no velocity projection).
 
