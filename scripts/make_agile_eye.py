@@ -141,6 +141,22 @@ def pin_visual(point, axis, material, radius=0.011, length=0.035) -> str:
     )
 
 
+#: The default scene (closedchain's <scene> element): the platform driven along a
+#: smooth orientation path by the computed-torque controller. Passive under
+#: gravity the wrist falls into a leg singularity within about 1 s; along this
+#: path cond(J) stays below 2.4 for 10 s (measured, tests/test_control.py).
+SCENE = """  <!-- default scene of closedchain simulate/animate/plot (no -q0 given): the platform
+       follows yaw/pitch/roll sinusoids under computed-torque control -->
+  <scene>
+    <track kp="100" kd="20">
+      <sinusoid joint="platform_yaw" offset="0" amplitude="0.8" frequency="0.1"/>
+      <sinusoid joint="platform_pitch" offset="0" amplitude="0.5" frequency="0.15"/>
+      <sinusoid joint="platform_roll" offset="0" amplitude="0.5" frequency="0.2"/>
+    </track>
+  </scene>
+"""
+
+
 def build() -> str:
     out = ['<?xml version="1.0"?>\n<!--\n' + __doc__.replace("--", "- -") + "-->\n"]
     out.append('<robot name="agile_eye">\n')
@@ -243,6 +259,7 @@ def build() -> str:
             "      <mechanicalReduction>1</mechanicalReduction>\n    </actuator>\n"
             "  </transmission>\n"
         )
+    out.append(SCENE)
     out.append("</robot>\n")
     return "".join(out)
 

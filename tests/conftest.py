@@ -37,6 +37,27 @@ MECHANISM_FILES = {
     "fixed_branches": DATA_DIR / "fixed_branches.urdf",
 }
 
+#: The lists tests parametrize over (one place, so that a new model, method or
+#: integrator is tested everywhere it belongs).
+ALL_MECHANISMS = tuple(MECHANISM_FILES)
+#: The models shipped in models/.
+SHIPPED_MECHANISMS = ("fourbar", "agile_eye", "turntable_fourbar", "bricard")
+#: Mechanisms Pinocchio has a constrained-dynamics reference for (no prismatic loops).
+VALIDATABLE_MECHANISMS = (
+    "fourbar",
+    "agile_eye",
+    "turntable_fourbar",
+    "bricard",
+    "spherical_chain",
+    "fixed_branches",
+)
+#: Forward-dynamics methods; "kkt" is the reference the others are compared with.
+ALL_METHODS = ("kkt", "schur", "nullspace", "reduced", "pinocchio")
+#: Fixed-step and adaptive integrators.
+FIXED_STEP_INTEGRATORS = ("euler", "semi-implicit", "rk4")
+ADAPTIVE_INTEGRATORS = ("RK45", "DOP853", "Radau", "BDF", "LSODA")
+ALL_INTEGRATORS = FIXED_STEP_INTEGRATORS + ADAPTIVE_INTEGRATORS
+
 #: Seed of the ``rng`` fixture (every test gets a fresh generator with it).
 RNG_SEED = 20251121
 

@@ -8,6 +8,7 @@ import re
 
 import numpy as np
 import pytest
+from conftest import SHIPPED_MECHANISMS
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -86,7 +87,7 @@ def test_info_notes_a_missing_pinocchio_reference(capsys, mechanism_files):
 # -- validate -------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_validate_json_passes(capsys, mechanism_files, name):
     path = mechanism_files[name]
     status, out, err = run(capsys, "validate", path, "--samples", CLI_SAMPLES, "--json")
@@ -215,6 +216,24 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
         (["simulate", "{fourbar}", "--rtol=-1e-9"], "--rtol must be a positive number"),
         (["validate", "{fourbar}", "--samples", "0"], "--samples must be at least 1, got 0"),
         (
+            ["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "inf"],
+            "--dt must be a positive",
+        ),
+        (
+            ["simulate", "{fourbar}", "--fps", "1e9"],
+            "--fps 1e+09 over --t-final 5 s is 5e+09 output samples, more than the limit 1e+07"
+            " (SimulationSettings.max_outputs); valid --fps: (0, 2e+06]",
+        ),
+        (
+            ["animate", "{fourbar}", "--fps", "1e9", "-o", "{tmp}/a.html"],
+            "--fps 1e+09 over --t-final 5 s is 5e+09 output samples",
+        ),
+        (
+            ["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "1e-12"],
+            "dt = 1e-12 s over t_final = 5 s is 5e+12 steps, more than "
+            "SimulationSettings.max_steps = 1e+08; use a larger dt (>= 5e-08 s)",
+        ),
+        (
             ["simulate", "{fourbar}", "--out", "{tmp}/t.txt"],
             "cannot save a trajectory as 't.txt'; valid suffixes: .npz, .csv",
         ),
@@ -265,3 +284,143 @@ def test_unwritable_output_exits_2(capsys, tmp_path, mechanism_files, command):
     assert status == 2
     assert str(target) in err and err.startswith("closedchain: error: ")
     assert err.count("\n") == 1
+
+
+# -- exit statuses, --debug, names in any case ---------------------------------------------
+
+#: The 4-bar's open branch at theta2 = 10 deg (a guess the CLI assembles, crank held); from
+#: rest it reaches its change point at t = 0.393 s (tests/test_simulate.py).
+Q0_OPEN = ("0.17453292519943295", "0.8726646259971648", "0.5235987755982988")
+
+
+def test_help_documents_every_exit_status(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for status in range(5):
+        assert re.search(rf"^  {status}  \S", out, re.M), status
+    assert "--debug" in out
+
+
+def test_simulation_stopped_at_a_singularity_exits_3(capsys, mechanism_files):
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN]
+    status, out, err = run(capsys, *argv)
+    assert status == cli.EXIT_STOPPED == 3
+    assert out == ""
+    assert re.match(r"closedchain: error: fourbar: at t = 0\.39\d+ s .*singular", err)
+
+
+@pytest.fixture
+def crashing_info(monkeypatch):
+    """Make ``info`` fail with an unexpected exception (a stand-in for a bug)."""
+
+    def crash(args):
+        raise RuntimeError("boom")
+
+    parser = cli.build_parser
+
+    def build():
+        p = parser()
+        sub = next(a for a in p._actions if isinstance(a, cli.argparse._SubParsersAction))
+        sub.choices["info"].set_defaults(handler=crash)
+        return p
+
+    monkeypatch.setattr(cli, "build_parser", build)
+
+
+def test_internal_error_exits_4_without_traceback(capsys, mechanism_files, crashing_info):
+    status, out, err = run(capsys, "info", mechanism_files["fourbar"])
+    assert status == cli.EXIT_INTERNAL == 4
+    assert err == (
+        "closedchain: internal error: RuntimeError: boom (run with --debug for the traceback)\n"
+    )
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_debug_prints_the_traceback(capsys, mechanism_files, crashing_info, where):
+    argv = ["info", mechanism_files["fourbar"]]
+    argv = ["--debug", *argv] if where == "before" else [*argv, "--debug"]
+    status, _, err = run(capsys, *argv)
+    assert status == 4
+    assert err.startswith("Traceback (most recent call last):")
+    assert 'raise RuntimeError("boom")' in err
+
+
+def test_bad_input_exit_2_and_failed_check_exit_1_are_distinct():
+    from closedchain.simulate import SimulationError
+
+    assert cli.exit_status(cli.ClosedChainError("x")) == 2
+    assert cli.exit_status(OSError("x")) == 2
+    assert cli.exit_status(cli.SingularConfigurationError("x")) == 3
+    assert cli.exit_status(SimulationError("x", 0.0)) == 3
+    assert cli.exit_status(cli.NonFiniteError("x")) == 3
+    assert cli.exit_status(ZeroDivisionError()) == 4
+    assert len({cli.EXIT_OK, cli.EXIT_FAILED, cli.EXIT_BAD_INPUT, 3, 4}) == 5
+
+
+def test_names_are_case_insensitive(capsys, mechanism_files):
+    argv = [
+        "simulate",
+        mechanism_files["fourbar"],
+        "--t-final",
+        "0.05",
+        "--method",
+        "KKT",
+        "--integrator",
+        "dop853",
+        "--stabilization",
+        "Projection",
+        "--json",
+    ]
+    status, out, err = run(capsys, *argv)
+    assert status == 0, err
+    s = json.loads(out)
+    assert (s["method"], s["integrator"], s["stabilization"]) == ("kkt", "DOP853", "projection")
+
+
+def test_unknown_integrator_lists_the_choices(capsys, mechanism_files):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["simulate", str(mechanism_files["fourbar"]), "--integrator", "leapfrog"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'leapfrog'" in err
+    for name in ("DOP853", "Radau", "rk4", "euler"):
+        assert name in err
+
+
+def test_fps_below_one_sample_keeps_start_and_end(capsys, tmp_path, mechanism_files):
+    out_file = tmp_path / "t.npz"
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "1", "--fps", "0.05"]
+    status, _, err = run(capsys, *argv, "--out", out_file)
+    assert status == 0, err
+    from closedchain import Trajectory
+
+    np.testing.assert_array_equal(Trajectory.load(out_file).t, [0.0, 1.0])
+
+
+def test_animate_writes_the_motion_up_to_a_singular_stop_and_exits_3(
+    capsys, tmp_path, mechanism_files
+):
+    out_file = tmp_path / "stop.html"
+    argv = ["animate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN]
+    status, out, err = run(capsys, *argv, "-o", out_file)
+    assert status == 3
+    assert out.startswith(f"wrote {out_file} (")
+    assert re.search(r"closedchain: error: fourbar: at t = 0\.39\d+ s .*animation written", err)
+    page = out_file.read_text()
+    banner = re.search(r'<div id="closedchain-stop" role="alert">([^<]*)</div>', page)
+    assert banner and banner.group(1).startswith("Simulation stopped at t = 0.39")
+    meta = json.loads(re.search(r'id="closedchain-scene">(.*?)</script>', page).group(1))["meta"]
+    assert meta["stop"].startswith("Simulation stopped at t = 0.39")
+    assert 0.36 <= meta["duration"] <= 0.393  # up to the last output sample before the stop
+
+
+def test_animate_default_scene_has_no_stop_banner(capsys, tmp_path, mechanism_files):
+    out_file = tmp_path / "fourbar.html"
+    status, _, err = run(
+        capsys, "animate", mechanism_files["fourbar"], "--t-final", "0.2", "-o", out_file
+    )
+    assert status == 0, err
+    assert 'id="closedchain-stop"' not in out_file.read_text()

@@ -18,21 +18,11 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ALL_MECHANISMS
 
 import closedchain as cc
 from closedchain.constraints import axis_basis
 from closedchain.kinematics import AssemblySettings
-
-ALL_MECHANISMS = [
-    "fourbar",
-    "agile_eye",
-    "turntable_fourbar",
-    "bricard",
-    "spherical_chain",
-    "slider_crank",
-    "slider_crank_planar",
-    "fixed_branches",
-]
 
 #: Agreement of the layer with the seed's closed forms [m, m/s^2] (round-off only).
 TOL_CLOSED_FORM = 1e-12

@@ -10,17 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ALL_MECHANISMS
 
 import closedchain as cc
-
-ALL_MECHANISMS = [
-    "fourbar",
-    "agile_eye",
-    "spherical_chain",
-    "slider_crank",
-    "slider_crank_planar",
-    "fixed_branches",
-]
 
 #: Default assembly tolerance on max |phi| [m or -].
 TOL_ASSEMBLY = cc.AssemblySettings().tol

@@ -14,6 +14,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yourdfpy
+from conftest import SHIPPED_MECHANISMS
 
 import closedchain as cc
 
@@ -217,7 +218,7 @@ def test_gravity_must_be_three_finite_numbers(mechanism_files, g):
 # -- the files stay plain URDF for other tools ----------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_model_files_load_in_other_urdf_readers(load_mechanism, mechanism_files, name):
     path = mechanism_files[name]
     mech = load_mechanism(name)
@@ -309,3 +310,39 @@ def test_configuration_off_the_unit_circle_is_refused(load_mechanism):
     q[jm.idx_q : jm.idx_q + 2] *= 3.0
     with pytest.raises(cc.ClosedChainError, match=r"joint 'crank_joint'.*has norm 3"):
         cc.forward_dynamics(mech, q, np.zeros(mech.nv))
+
+
+# -- size limits (a tree too large is refused before any work) -----------------------------
+
+
+@pytest.mark.parametrize("n", [1000, pytest.param(50_000, marks=pytest.mark.slow)])
+def test_tree_beyond_the_supported_size_is_refused_before_work(tmp_path, n):
+    from chain_urdf import chain_urdf
+
+    path = tmp_path / f"chain{n}.urdf"
+    path.write_text(chain_urdf(n))
+    with pytest.raises(cc.ModelTooLargeError) as exc:
+        cc.load(path)
+    msg = str(exc.value)
+    assert msg.startswith(f"{path}: {n} joints with nv = {n} degrees of freedom are beyond")
+    assert "valid: nv <= 314" in msg
+    assert f"{64 * float(n) ** 3:.3g} here, over LoadSettings.max_data_bytes = 2e+09" in msg
+    assert (exc.value.nv, exc.value.max_nv) == (n, 314)
+
+
+def test_size_limit_is_a_setting(tmp_path):
+    from chain_urdf import chain_urdf
+
+    from closedchain.mechanism import PINOCCHIO_DATA_BYTES_PER_NV3, max_nv
+
+    # Independent reference: the largest nv with 64 nv^3 <= budget.
+    budget = 2e9
+    assert max_nv(cc.LoadSettings(max_data_bytes=budget)) == max(
+        n for n in range(1, 1000) if PINOCCHIO_DATA_BYTES_PER_NV3 * n**3 <= budget
+    )
+    path = tmp_path / "chain12.urdf"
+    path.write_text(chain_urdf(12))
+    with pytest.raises(cc.ModelTooLargeError, match=r"nv = 12 .*valid: nv <= 11"):
+        cc.load(path, settings=cc.LoadSettings(max_data_bytes=64 * 11.5**3))
+    mech = cc.load(path)
+    assert (mech.nv, mech.nc, mech.mobility) == (12, 2, 10)

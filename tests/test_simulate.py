@@ -15,14 +15,16 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.linalg
+from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS
 
 import closedchain as cc
 from closedchain import cli
-from closedchain.control import computed_torque_controller
 from closedchain.simulate import (
     INTEGRATORS,
     STABILIZATIONS,
@@ -103,12 +105,26 @@ ACCURATE = {
 T_ACCURACY = 10.0
 
 
+#: Horizon of the fast accuracy check [s] (the 10 s runs cost about 20 s CPU: slow).
+T_ACCURACY_FAST = 1.0
+
+
 @pytest.fixture(scope="module")
 def fourbar_accurate(fourbar, q_crossed) -> dict[str, cc.Trajectory]:
     v0 = np.zeros(fourbar.nv)
     return {k: simulate(fourbar, q_crossed, v0, T_ACCURACY, **cfg) for k, cfg in ACCURATE.items()}
 
 
+@pytest.mark.parametrize("config", sorted(ACCURATE))
+def test_fourbar_accuracy_fast(fourbar, q_crossed, config):
+    """The same configurations and tolerances over 1 s (the fast set's accuracy check)."""
+    traj = simulate(fourbar, q_crossed, np.zeros(3), T_ACCURACY_FAST, **ACCURATE[config])
+    assert traj.t[-1] == pytest.approx(T_ACCURACY_FAST, abs=TIME_TOL)
+    assert traj.energy_drift <= ENERGY_DRIFT_TOL
+    assert traj.max_constraint_residual <= RESIDUAL_TOL
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("config", sorted(ACCURATE))
 def test_fourbar_accuracy(fourbar_accurate, config):
     """Passive 4-bar, crossed branch, 10 s: energy and closure kept at every accepted step."""
@@ -119,6 +135,7 @@ def test_fourbar_accuracy(fourbar_accurate, config):
     assert np.all(np.isfinite(traj.q)) and np.all(np.isfinite(traj.v))
 
 
+@pytest.mark.slow
 def test_fourbar_accurate_configurations_agree(fourbar, fourbar_accurate):
     """The two configurations agree on the independent coordinates at t = 10 s."""
     ind = fourbar.independent_idx_v
@@ -185,6 +202,7 @@ def test_agile_eye_accurate_configurations_agree(agile_eye_zero_g, agile_eye_acc
 T_AGILE_EYE_FALL = 0.5
 
 
+@pytest.mark.slow
 def test_agile_eye_falling_from_home(agile_eye):
     """Under gravity from rest at home: accurate while the motion stays regular."""
     v0 = np.zeros(agile_eye.nv)
@@ -250,7 +268,9 @@ def _singular_cases():
         for config, outcome in SINGULAR_TABLE.items():
             if method == "pinocchio" and config == "rk4_baumgarte":
                 continue  # refused up front: test_baumgarte_refused_by_pinocchio_method
-            yield pytest.param(method, config, outcome, id=f"{method}-{config}")
+            # 1 s of rk4 partitioning (1000 steps, Newton each) is the slow case.
+            marks = (pytest.mark.slow,) if config == "rk4_partitioning" else ()
+            yield pytest.param(method, config, outcome, id=f"{method}-{config}", marks=marks)
 
 
 @pytest.mark.parametrize(("method", "config", "outcome"), list(_singular_cases()))
@@ -494,109 +514,7 @@ def test_non_finite_tau_raises(fourbar, q_crossed):
     assert exc.value.t > 0.01
 
 
-# -- 5. computed-torque tracking --------------------------------------------------------
-
-#: Reference of the 4-bar crank: theta2 = 10 deg + A sin(2 pi f t).
-CRANK_AMPLITUDE = 0.3
-CRANK_FREQUENCY = 0.5
-#: Small sinusoids of the Agile Eye platform's yaw, pitch, roll around home [rad], [Hz].
-PLATFORM_AMPLITUDES = (0.1, 0.08, 0.06)
-PLATFORM_FREQUENCIES = (0.5, 0.7, 0.9)
-PLATFORM_COORDINATES = ["platform_yaw", "platform_pitch", "platform_roll"]
-KP, KD = 100.0, 20.0
-T_TRACK = 3.0
-TRACK_CONFIG = dict(integrator="DOP853", rtol=1e-10, atol=1e-10)
-
-
-def _sinusoids(offsets, amplitudes, frequencies):
-    offsets, amp = np.asarray(offsets, float), np.asarray(amplitudes, float)
-    w = 2 * np.pi * np.asarray(frequencies, float)
-
-    def reference(t):
-        return offsets + amp * np.sin(w * t), amp * w * np.cos(w * t), -amp * w**2 * np.sin(w * t)
-
-    return reference
-
-
-def _start_on_reference(mech, reference, names, q_guess):
-    q_idx = [mech.model.joints[mech.model.getJointId(n)].idx_q for n in names]
-    v_idx = [mech.model.joints[mech.model.getJointId(n)].idx_v for n in names]
-    q_ref0, v_ref0, _ = reference(0.0)
-    q = np.array(q_guess, dtype=float)
-    q[q_idx] = q_ref0
-    q = cc.assemble(mech, q, fixed=names)
-    v = np.zeros(mech.nv)
-    v[v_idx] = v_ref0
-    return q, cc.project_velocity(mech, q, v, fixed=names), q_idx
-
-
-def _tracking_error(mech, names, offsets, amplitudes, frequencies, q_guess):
-    reference = _sinusoids(offsets, amplitudes, frequencies)
-    coordinates = names if names else "independent"
-    ctrl = computed_torque_controller(mech, reference, kp=KP, kd=KD, coordinates=coordinates)
-    names = names or [mech.coordinate_names[i] for i in mech.independent_idx_v]
-    q0, v0, q_idx = _start_on_reference(mech, reference, names, q_guess)
-    t_eval = np.linspace(0.0, T_TRACK, 301)
-    traj = simulate(mech, q0, v0, T_TRACK, tau=ctrl, t_eval=t_eval, **TRACK_CONFIG)
-    want = np.array([reference(t)[0] for t in traj.t])
-    return np.max(np.linalg.norm(traj.q[:, q_idx] - want, axis=1)), traj
-
-
-def test_fourbar_crank_tracking(fourbar, q_crossed):
-    err, traj = _tracking_error(
-        fourbar, None, [THETA2_START], [CRANK_AMPLITUDE], [CRANK_FREQUENCY], q_crossed
-    )
-    assert err <= TRACKING_TOL
-    assert np.max(np.abs(traj.q[:, 0] - THETA2_START)) > 0.9 * CRANK_AMPLITUDE
-
-
-def test_agile_eye_platform_tracking(agile_eye):
-    err, traj = _tracking_error(
-        agile_eye,
-        PLATFORM_COORDINATES,
-        np.zeros(3),
-        PLATFORM_AMPLITUDES,
-        PLATFORM_FREQUENCIES,
-        agile_eye.q_ref,
-    )
-    assert err <= TRACKING_TOL
-    assert traj.max_constraint_residual <= RESIDUAL_TOL
-
-
-def test_controller_rejects_wrong_coordinates(agile_eye):
-    ref = _sinusoids(np.zeros(2), [0.1, 0.1], [1.0, 1.0])
-    with pytest.raises(cc.ClosedChainError, match="exactly 3 coordinates"):
-        computed_torque_controller(
-            agile_eye, ref, kp=KP, kd=KD, coordinates=["platform_yaw", "platform_pitch"]
-        )
-
-
 # -- 6. trajectories, stabilization, error paths ----------------------------------------
-
-
-@pytest.fixture(scope="module")
-def short_traj(fourbar, q_crossed) -> cc.Trajectory:
-    return simulate(fourbar, q_crossed, np.zeros(3), 0.2, integrator="rk4", dt=1e-2)
-
-
-def test_npz_round_trip_is_exact(short_traj, tmp_path):
-    path = short_traj.save(tmp_path / "t.npz")
-    back = cc.Trajectory.load(path)
-    for name in ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy"):
-        assert np.array_equal(getattr(back, name), getattr(short_traj, name)), name
-    assert back.info == json.loads(json.dumps(short_traj.info))
-
-
-def test_csv_is_readable(short_traj, fourbar, tmp_path):
-    path = short_traj.save(tmp_path / "t.csv")
-    table = np.genfromtxt(path, delimiter=",", names=True)
-    header = path.read_text().splitlines()[0].split(",")
-    assert header[0] == "t" and header[-1] == "energy"
-    assert [f"q:{n}" for n in fourbar.coordinate_names] == header[1:4]
-    assert np.array_equal(table["t"], short_traj.t)
-    assert np.array_equal(table["energy"], short_traj.energy)
-    with pytest.raises(cc.ClosedChainError, match="valid suffixes"):
-        short_traj.save(tmp_path / "t.txt")
 
 
 @pytest.mark.parametrize(
@@ -613,22 +531,120 @@ def test_unknown_choices(fourbar, q_crossed, kwargs, pattern):
 
 
 def test_choices_are_listed():
-    assert set(INTEGRATORS) >= {"euler", "semi-implicit", "rk4", "DOP853", "Radau"}
+    assert set(INTEGRATORS) >= set(ALL_INTEGRATORS)
+    for name in ALL_INTEGRATORS:
+        kind = "fixed" if name in FIXED_STEP_INTEGRATORS else "adaptive"
+        assert INTEGRATORS[name].kind == kind, name
     assert tuple(STABILIZATIONS) == ("none", "baumgarte", "projection", "partitioning")
+
+
+#: Tail of every t_eval message: the valid range (t_final = 0.2 s in these tests).
+T_EVAL_VALID = re.escape(
+    "valid: 1 to 10000000 finite, strictly increasing times within [0, t_final = 0.2] s"
+)
 
 
 @pytest.mark.parametrize(
     ("kwargs", "pattern"),
     [
-        (dict(t_eval=[0.0, 0.2, 0.1]), "t_eval must be increasing"),
-        (dict(t_eval=[0.0, 0.5]), "t_eval must be increasing times within"),
-        (dict(t_eval=[-0.1, 0.1]), "t_eval must be increasing times within"),
-        (dict(integrator="rk4", dt=0.0), "dt must be positive"),
+        (
+            dict(t_eval=[0.0, 0.2, 0.1]),
+            r"t_eval is not strictly increasing \(t_eval\[1\] = 0.2, t_eval\[2\] = 0.1\); "
+            + T_EVAL_VALID,
+        ),
+        (dict(t_eval=[0.0, 0.5]), r"t_eval spans \[0, 0.5\] s, outside \[0, t_final\]; "),
+        (dict(t_eval=[-0.1, 0.1]), r"t_eval spans \[-0.1, 0.1\] s, outside"),
+        (dict(t_eval=[]), r"t_eval has shape \(0,\); " + T_EVAL_VALID),
+        (dict(t_eval=[[0.0, 0.1]]), r"t_eval has shape \(1, 2\); "),
+        (dict(t_eval=[0.0, np.nan, 0.1]), "t_eval contains non-finite times; " + T_EVAL_VALID),
+        (dict(integrator="rk4", t_eval=[0.0, np.nan]), "t_eval contains non-finite times"),
+        (
+            dict(integrator="rk4", dt=0.0),
+            r"dt \(the fixed step \[s\]\) must be a finite number > 0, got 0.0; "
+            r"valid range: \(0, inf\)",
+        ),
+        (dict(integrator="rk4", dt=np.inf), r"dt \(the fixed step \[s\]\) must be a finite .*inf"),
+        (dict(integrator="rk4", dt=np.nan), r"dt \(the fixed step \[s\]\) must be a finite"),
+        (dict(integrator="rk4", dt="abc"), r"dt \(the fixed step \[s\]\) must be .*'abc'"),
+        (
+            dict(integrator="rk4", dt=1e-12),
+            r"dt = 1e-12 s over t_final = 0.2 s is 2e\+11 steps, more than "
+            r"SimulationSettings.max_steps = 1e\+08; use a larger dt \(>= 2e-09 s\)",
+        ),
+        (dict(rtol=-1e-9), r"rtol \(the relative tolerance\) must be a finite number > 0"),
+        (dict(atol=np.nan), r"atol \(the absolute tolerance\) must be a finite number > 0"),
+        (dict(tau=np.array([np.nan, 0, 0])), r"tau contains non-finite values"),
+        (dict(tau=np.zeros(2)), r"tau has shape \(2,\), expected \(3,\)"),
     ],
 )
 def test_bad_arguments(fourbar, q_crossed, kwargs, pattern):
     with pytest.raises(cc.ClosedChainError, match=pattern):
         simulate(fourbar, q_crossed, np.zeros(3), 0.2, **kwargs)
+
+
+@pytest.mark.parametrize("t_final", [0.0, -1.0, np.inf, np.nan])
+def test_bad_t_final(fourbar, q_crossed, t_final):
+    with pytest.raises(
+        ValueError, match=r"t_final \(the duration \[s\]\) must be a finite number > 0"
+    ):
+        simulate(fourbar, q_crossed, np.zeros(3), t_final)
+
+
+def test_bad_arguments_are_value_errors(fourbar, q_crossed):
+    """Argument errors are ValueErrors too (and ClosedChainErrors)."""
+    with pytest.raises(ValueError, match="t_eval has shape"):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.2, t_eval=[])
+
+
+def test_every_step_beyond_max_outputs_is_refused(fourbar, q_crossed):
+    settings = cc.SimulationSettings(max_outputs=100)
+    with pytest.raises(cc.InvalidArgumentError, match=r"recording every one of 200 steps .*t_eval"):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.2, integrator="rk4", settings=settings)
+
+
+@pytest.mark.parametrize(("v_scale", "tau_scale"), [(1e200, 0.0), (0.0, 1e308), (1e160, 0.0)])
+@pytest.mark.parametrize("integrator", ["DOP853", "rk4"])
+def test_huge_velocity_or_torque_is_an_error_never_nan(
+    fourbar, q_crossed, v_scale, tau_scale, integrator
+):
+    J = cc.compute_jacobian(fourbar, q_crossed)
+    v0 = v_scale * scipy.linalg.null_space(J)[:, 0]
+    tau = np.full(3, tau_scale)
+    with pytest.raises(
+        (SimulationError, cc.NonFiniteError), match=r"non-finite|failed at t|left the"
+    ):
+        simulate(fourbar, q_crossed, v0, 0.2, integrator=integrator, tau=tau)
+
+
+def test_fixed_step_output_memory_is_proportional_to_outputs(fourbar, q_crossed):
+    """Output indices are an array of the outputs, not a set of every step (issue 12)."""
+    from closedchain.simulate.fixed import output_grid
+
+    dt, n_steps, out = output_grid(10.0, 1e-9, np.array([0.0, 5.0, 10.0]))
+    assert n_steps == 10_000_000_000 and dt == pytest.approx(1e-9)
+    np.testing.assert_array_equal(out, [0, 5_000_000_000, 10_000_000_000])
+    assert output_grid(1.0, 1e-3, None)[2] is None  # every step: no index array at all
+    _, n_steps, out = output_grid(1.0, 1e-3, np.array([0.0]))
+    assert n_steps == 0
+    np.testing.assert_array_equal(out, [0])
+
+
+@pytest.mark.parametrize(
+    ("integrator", "registered"),
+    [("dop853", "DOP853"), ("RK4", "rk4"), ("Euler", "euler"), ("radau", "Radau")],
+)
+def test_names_are_case_insensitive(fourbar, q_crossed, integrator, registered):
+    traj = simulate(
+        fourbar,
+        q_crossed,
+        np.zeros(3),
+        0.02,
+        integrator=integrator,
+        method="KKT",
+        stabilization="NONE" if integrator.lower() != "rk4" else "Projection",
+    )
+    assert traj.info["integrator"] == registered
+    assert traj.info["method"] == "kkt"
 
 
 def test_adaptive_needs_nq_equal_nv(load_mechanism):
@@ -771,12 +787,3 @@ def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
         tau=tau,
     )
     assert seen and max(seen) <= 1e-15
-
-
-def test_csv_names_configuration_entries_when_nq_differs_from_nv(load_mechanism, tmp_path):
-    """A continuous joint's two configuration entries get their own CSV column names."""
-    mech = load_mechanism("slider_crank")
-    traj = simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.01, integrator="rk4", dt=1e-3)
-    header = traj.save(tmp_path / "t.csv").read_text().splitlines()[0].split(",")
-    assert header[1:3] == ["q:crank_joint[0]", "q:crank_joint[1]"]
-    assert len([h for h in header if h.startswith("q:")]) == mech.nq

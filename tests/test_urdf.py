@@ -497,3 +497,150 @@ def test_independent_false_is_the_default(fourbar_text, write):
     mech = cc.load(write(text))
     assert mech.urdf.independent == ()
     assert mech.independent_source == "actuated"
+
+
+# -- the tree: inertials, joint origins, axes and limits (urdfdom only warns) ------------
+
+CRANK_MASS = '<mass value="1.0"/>\n      <!-- m a^2 / 12 = 1 * 0.2^2 / 12 -->'
+CRANK_INERTIA = (
+    '<inertia ixx="0" ixy="0" ixz="0" iyy="0.0033333333333333335" iyz="0" '
+    'izz="0.0033333333333333335"/>'
+)
+CRANK_JOINT_AXIS = """  <joint name="crank_joint" type="revolute">
+    <parent link="ground"/>
+    <child link="crank"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/>
+    <limit lower="-6.283185307179586" upper="6.283185307179586" effort="50" velocity="50"/>"""
+
+
+def crank_link_where(path: Path) -> str:
+    return re.escape(str(path)) + r": line \d+: " + re.escape('<link name="crank"> <inertial>')
+
+
+@pytest.mark.parametrize("mass", ["nan", "abc", "-1", "inf", ""])
+def test_inertial_mass_must_be_finite_and_non_negative(fourbar_text, write, mass):
+    path = write(
+        replaced(
+            fourbar_text,
+            '<mass value="1.0"/>\n      <!-- m a^2 / 12',
+            f'<mass value="{mass}"/>\n      <!-- m a^2 / 12',
+        )
+    )
+    with pytest.raises(
+        cc.URDFError, match=crank_link_where(path) + r" <mass value=.*must be a finite number >= 0"
+    ):
+        cc.load(path)
+
+
+@pytest.mark.parametrize(
+    ("inertia", "message"),
+    [
+        ('ixx="-1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"', "not positive semi-definite"),
+        ('ixx="1" ixy="2" ixz="0" iyy="1" iyz="0" izz="1"', "not positive semi-definite"),
+        ('ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="1"', "triangle inequality"),
+        (
+            'ixx="nan" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"',
+            r"<inertia ixx='nan'>: must be a finite",
+        ),
+    ],
+)
+def test_inertia_must_be_a_rigid_body_inertia(fourbar_text, write, inertia, message):
+    path = write(replaced(fourbar_text, CRANK_INERTIA, f"<inertia {inertia}/>"))
+    with pytest.raises(cc.URDFError, match=crank_link_where(path) + ".*" + message):
+        cc.load(path)
+
+
+def test_inertial_without_mass(fourbar_text, write):
+    path = write(
+        replaced(fourbar_text, '<mass value="1.0"/>\n      <!-- m a^2 / 12', "<!-- m a^2 / 12")
+    )
+    with pytest.raises(cc.URDFError, match=crank_link_where(path) + ": missing <mass"):
+        cc.load(path)
+
+
+def joint_where(path: Path, name: str) -> str:
+    return re.escape(str(path)) + r": line \d+: " + re.escape(f'<joint name="{name}">')
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            '<origin xyz="0 0 0" rpy="0 0 0"/>',
+            '<origin xyz="0 nan 0" rpy="0 0 0"/>',
+            r" <origin>: attribute xyz='0 nan 0' must be three finite",
+        ),
+        (
+            '<origin xyz="0 0 0" rpy="0 0 0"/>',
+            '<origin xyz="0 0 0" rpy="inf 0 0"/>',
+            r" <origin>: attribute rpy='inf 0 0' must be three finite",
+        ),
+        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 0 0"/>', r" <axis xyz='0 0 0'>: has zero length"),
+        (
+            '<axis xyz="0 -1 0"/>',
+            '<axis xyz="0 nan 0"/>',
+            r" <axis>: attribute xyz='0 nan 0' must be three finite",
+        ),
+        (
+            'lower="-6.283185307179586"',
+            'lower="nan"',
+            r" <limit lower='nan'>: must be a finite number$",
+        ),
+        (
+            'upper="6.283185307179586"',
+            'upper="abc"',
+            r" <limit upper='abc'>: must be a finite number$",
+        ),
+        ('effort="50"', 'effort="-5"', r" <limit effort='-5'>: must be a finite number >= 0"),
+        ('lower="-6.283185307179586"', 'lower="7"', r" <limit>: lower=7 exceeds upper=6.28319"),
+    ],
+)
+def test_joint_origin_axis_and_limits_are_checked(fourbar_text, write, old, new, message):
+    path = write(replaced(fourbar_text, CRANK_JOINT_AXIS, CRANK_JOINT_AXIS.replace(old, new)))
+    with pytest.raises(cc.URDFError, match=joint_where(path, "crank_joint") + message):
+        cc.load(path)
+
+
+# -- the <scene> element --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("scene", "message"),
+    [
+        (
+            '<scene><initial joint="nope" value="1"/></scene>',
+            r"<initial>: joint='nope' is not a revolute or prismatic joint of this file; "
+            r"valid: coupler_joint, crank_joint, rocker_joint",
+        ),
+        (
+            '<scene><initial joint="crank_joint" value="nan"/></scene>',
+            r"<initial> <initial value='nan'>: must be a finite number",
+        ),
+        ('<scene><initial joint="crank_joint"/></scene>', r"<initial>: missing value="),
+        (
+            '<scene><track kp="1"><sinusoid joint="crank_joint"/></track></scene>',
+            r"<track>: missing kd= \(a gain >= 0\)",
+        ),
+        (
+            '<scene><track kp="-1" kd="1"><sinusoid joint="crank_joint"/></track></scene>',
+            r"<track kp='-1'>: must be a finite number >= 0",
+        ),
+        (
+            '<scene><track kp="1" kd="1"></track></scene>',
+            r"<track>: has no <sinusoid joint=...> child",
+        ),
+        (
+            '<scene><track kp="1" kd="1"><sinusoid joint="crank_joint" frequency="-2"/>'
+            "</track></scene>",
+            r"<sinusoid frequency='-2'>: must be a finite number >= 0",
+        ),
+        ("<scene/><scene/>", r"<scene>: more than one <scene> \(at most one\)"),
+    ],
+)
+def test_bad_scene(fourbar_text, write, scene, message):
+    start = fourbar_text.index("  <scene>")
+    end = fourbar_text.index("</scene>") + len("</scene>")
+    path = write(fourbar_text[:start] + scene + fourbar_text[end:])
+    with pytest.raises(cc.URDFError, match=re.escape(str(path)) + r": line \d+: .*" + message):
+        cc.load(path)

@@ -16,19 +16,13 @@ import mpmath
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import SHIPPED_MECHANISMS, VALIDATABLE_MECHANISMS
 
 import closedchain as cc
 from closedchain.dynamics import base as dynamics_base
 
 #: Mechanisms with a Pinocchio reference (no prismatic loops).
-VALIDATABLE = [
-    "fourbar",
-    "agile_eye",
-    "turntable_fourbar",
-    "bricard",
-    "spherical_chain",
-    "fixed_branches",
-]
+VALIDATABLE = list(VALIDATABLE_MECHANISMS)
 
 #: Random consistent states compared with pinocchio.constraintDynamics per model.
 N_VALIDATION_STATES = 100
@@ -64,7 +58,7 @@ TOL_ACCELERATION_RELATIVE = 1e-11
 # -- closedchain.validate -------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye", "turntable_fourbar", "bricard"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_validate_agrees_with_pinocchio_on_the_models(load_mechanism, name):
     rep = cc.validate(load_mechanism(name), n_samples=N_VALIDATION_STATES, seed=VALIDATION_SEED)
     assert rep.n_samples == N_VALIDATION_STATES
@@ -233,7 +227,7 @@ def mp_solve_kkt(M, h, J, gamma, tau):
         )
 
 
-@pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
+@pytest.mark.parametrize("name", SHIPPED_MECHANISMS)
 def test_kkt_agrees_with_a_40_digit_solve(load_mechanism, rng, name):
     mech = load_mechanism(name)
     model = mech.model
@@ -279,3 +273,14 @@ def test_validate_fails_when_the_reference_returns_nan(fourbar, monkeypatch):
 def test_validate_refuses_to_compare_pinocchio_with_itself(fourbar):
     with pytest.raises(cc.UnknownChoiceError, match=r"'pinocchio'.*valid choices: kkt"):
         cc.validate(fourbar, n_samples=1, method="pinocchio")
+
+
+@pytest.mark.parametrize("n_samples", [0, -5, 2.5, True, "10"])
+def test_validate_refuses_no_samples(fourbar, n_samples):
+    """A check on no states would report PASSED having compared nothing."""
+    with pytest.raises(cc.InvalidArgumentError, match=r"n_samples must be an integer >= 1 .*got"):
+        cc.validate(fourbar, n_samples=n_samples)
+
+
+def test_validate_method_in_any_case(fourbar):
+    assert cc.validate(fourbar, n_samples=2, method="Schur").method == "schur"

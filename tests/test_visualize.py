@@ -22,6 +22,7 @@ from conftest import MODELS, fourbar_sweep, kinematic_trajectory
 import closedchain as cc
 from closedchain import visualize as vz
 from closedchain.exceptions import ClosedChainError
+from closedchain.visualize import framing, shapes
 
 #: Keyframes are stored in single precision (three.js keeps Float32Array):
 #: absolute error on positions of ~1 m [m] and on unit quaternions [-].
@@ -127,7 +128,7 @@ def test_markers_sit_on_the_joint_axes(request, name):
             axis, point = oMc.rotation @ spec.axis, oMc.translation
         else:
             jid = model.getJointId(m.name)
-            axis_j, _ = vz._joint_axis(model.joints[jid], pin.neutral(model))
+            axis_j, _ = shapes._joint_axis(model.joints[jid], pin.neutral(model))
             axis, point = data.oMi[jid].rotation @ axis_j, data.oMi[jid].translation
         assert np.linalg.norm(np.cross(oMm[:3, 2], axis)) <= EXACT_TOL
         d = oMm[:3, 3] - point
@@ -291,7 +292,7 @@ def test_every_test_mechanism_animates(load_mechanism, name, tmp_path):
 def test_camera_frames_the_swept_volume(case):
     mech, _, scene = case
     settings = vz.DEFAULT_SETTINGS
-    points = vz._swept_points(
+    points = framing._swept_points(
         scene.bodies,
         scene.visuals,
         (),
@@ -355,7 +356,7 @@ def scripts_of(text: str) -> list[tuple[str, str]]:
 
 def test_page_is_self_contained_and_offline(fourbar, fourbar_traj, tmp_path):
     text = cc.write_html(fourbar, fourbar_traj, tmp_path / "f.html").path.read_text()
-    meshcat_js = (Path(vz._meshcat().viewer_assets_path()) / "dist" / "main.min.js").read_text()
+    meshcat_js = (Path(shapes._meshcat().viewer_assets_path()) / "dist" / "main.min.js").read_text()
     scripts = scripts_of(text)
     assert [attrs for attrs, _ in scripts] == [
         ' type="application/json" id="closedchain-scene"',

@@ -9,13 +9,40 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from .exceptions import ClosedChainError
+from .exceptions import (
+    ClosedChainError,
+    NonFiniteError,
+    SingularConfigurationError,
+    UnknownChoiceError,
+    resolve_choice,
+)
+
+#: Exit statuses of the ``closedchain`` command (documented in ``--help`` and the README).
+EXIT_OK = 0
+#: A check ran and FAILED (``validate`` beyond its tolerances).
+EXIT_FAILED = 1
+#: Bad input: an option, a file or a value refused before or during the work.
+EXIT_BAD_INPUT = 2
+#: A simulation stopped at a singular configuration or a non-finite or drifting state.
+EXIT_STOPPED = 3
+#: An internal error (a bug): the traceback is printed with ``--debug``.
+EXIT_INTERNAL = 4
+
+EXIT_STATUS_HELP = f"""exit status:
+  {EXIT_OK}  success
+  {EXIT_FAILED}  a check ran and FAILED (validate beyond its tolerances)
+  {EXIT_BAD_INPUT}  bad input (options, files, values); one-line message
+  {EXIT_STOPPED}  a simulation stopped: singular configuration, non-finite state or
+     drift beyond the limit (animate still writes the animation up to the stop)
+  {EXIT_INTERNAL}  internal error (a bug; add --debug for the traceback)"""
 
 #: Options that must be finite and positive, by argparse attribute.
 POSITIVE_OPTIONS = {
@@ -72,6 +99,22 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _choice(choices):
+    """Return an argparse ``type`` that maps a name in any case to its registered spelling.
+
+    An unknown name is passed through unchanged, so that argparse's ``choices``
+    check refuses it with the list of valid choices (exit status 2).
+    """
+
+    def convert(value: str) -> str:
+        try:
+            return resolve_choice("choice", value, choices)
+        except UnknownChoiceError:
+            return value
+
+    return convert
+
+
 def _coordinate(token: str) -> str | int:
     """A ``--coordinates`` token: an integer is a velocity index, anything else a name."""
     try:
@@ -91,6 +134,8 @@ def check_args(args: argparse.Namespace) -> None:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ClosedChainError(f"{flag} must be a positive number, got {value:g}")
+    if getattr(args, "fps", None) is not None and getattr(args, "t_final", None) is not None:
+        output_times(args.t_final, args.fps)  # checks the sample count before any work
     samples = getattr(args, "samples", None)
     if samples is not None and samples < 1:
         raise ClosedChainError(f"--samples must be at least 1, got {samples}")
@@ -209,16 +254,28 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_animate(args) -> int:
+    from .simulate import SimulationError
     from .visualize import write_html
 
     mech = _load(args)
-    traj = simulate_from_args(args, mech)
-    out = write_html(mech, traj, args.output, fps=args.fps)
+    stopped = None
+    try:
+        traj = simulate_from_args(args, mech)
+    except (SingularConfigurationError, SimulationError) as exc:
+        # Nothing is lost: animate the motion up to the stop, marked in the page.
+        if exc.trajectory is None or len(exc.trajectory.t) < 2:
+            raise
+        traj, stopped = exc.trajectory, exc
+    stop = None if stopped is None else f"Simulation stopped at t = {stopped.t:.6g} s: {stopped}"
+    out = write_html(mech, traj, args.output, fps=args.fps, stop=stop)
     print(
         f"wrote {out.path} ({out.size / 1e6:.2f} MB; {out.duration:.3g} s at {out.fps:g} fps, "
         f"{out.n_keyframes} keyframes x {out.n_tracks} tracks)"
     )
-    return 0
+    if stopped is not None:
+        print(f"closedchain: error: {stopped} (animation written up to the stop)", file=sys.stderr)
+        return EXIT_STOPPED
+    return EXIT_OK
 
 
 def _cmd_plot(args) -> int:
@@ -243,9 +300,19 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
-    p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="dynamics method")
     p.add_argument(
-        "--integrator", default="DOP853", choices=sorted(INTEGRATORS), help="time integrator"
+        "--method",
+        default="kkt",
+        type=_choice(METHODS),
+        choices=sorted(METHODS),
+        help="dynamics method (any case)",
+    )
+    p.add_argument(
+        "--integrator",
+        default="DOP853",
+        type=_choice(INTEGRATORS),
+        choices=sorted(INTEGRATORS),
+        help="time integrator (any case)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
@@ -254,15 +321,17 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--stabilization",
         default=None,
+        type=_choice(STABILIZATIONS),
         choices=sorted(STABILIZATIONS),
-        help="drift control (default: projection for fixed-step, none for adaptive)",
+        help="drift control, any case (default: projection for fixed-step, none for adaptive)",
     )
     p.add_argument(
         "--q0",
         type=float,
         nargs="+",
         metavar="Q",
-        help="initial configuration (nq numbers, assembled before the run; default: q_ref)",
+        help="initial configuration (nq numbers, assembled before the run, released from rest;"
+        " default: the URDF's <scene>, else rest at q_ref)",
     )
     p.add_argument(
         "--torque",
@@ -274,19 +343,47 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="output samples per second")
 
 
+def output_times(t_final: float, fps: float) -> np.ndarray:
+    """Return the output times of a run of ``t_final`` seconds at ``fps`` samples per second.
+
+    At least the start and the end are kept (``--fps`` below 1 / t_final keeps
+    those two); the count is checked against ``SimulationSettings.max_outputs``
+    before the array is made.
+
+    Raises:
+        ClosedChainError: more samples than ``SimulationSettings.max_outputs``.
+    """
+    from .simulate.settings import DEFAULT_SIMULATION_SETTINGS
+
+    limit = DEFAULT_SIMULATION_SETTINGS.max_outputs
+    n = math.ceil(t_final * fps - 1e-9) + 1
+    if n > limit:
+        raise ClosedChainError(
+            f"--fps {fps:g} over --t-final {t_final:g} s is {n:.3g} output samples, more than "
+            f"the limit {limit:.3g} (SimulationSettings.max_outputs); valid --fps: "
+            f"(0, {(limit - 1) / t_final:.6g}]"
+        )
+    return np.linspace(0.0, t_final, max(n, 2))
+
+
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
+    from .control import default_scene
     from .kinematics import assemble
     from .simulate import simulate
 
-    q0 = mech.q_ref if args.q0 is None else assemble(mech, np.array(args.q0), fixed="independent")
-    v0 = np.zeros(mech.nv)
-    tau = None
+    if args.q0 is None:
+        scene = default_scene(mech)  # the <scene> element of the URDF, or rest at q_ref
+        q0, v0, tau = scene.q0, scene.v0, scene.tau
+        logging.getLogger(__name__).info("%s: default scene: %s", mech.name, scene.description)
+    else:
+        q0 = assemble(mech, np.array(args.q0), fixed="independent")
+        v0, tau = np.zeros(mech.nv), None
     if getattr(args, "torque", "zero") == "gravity":
         from .control import gravity_torque
 
         tau = gravity_torque(mech, q0)
-    n = int(round(args.t_final * args.fps)) + 1
+    t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
         from tqdm import tqdm
@@ -314,8 +411,8 @@ def simulate_from_args(args, mech):
             rtol=args.rtol,
             atol=args.atol,
             stabilization=args.stabilization,
+            t_eval=t_eval,
             tau=tau,
-            t_eval=np.linspace(0.0, args.t_final, n),
             progress=progress if bar else None,
         )
     finally:
@@ -373,6 +470,13 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _add_debug(p: argparse.ArgumentParser) -> None:
+    """Accept ``--debug`` after the subcommand too (it never resets a ``--debug`` before it)."""
+    p.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -380,8 +484,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="closedchain",
         description="Dynamics of closed-chain mechanisms (URDF + <loop>) on top of Pinocchio.",
+        epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="print the traceback of an internal error (exit status 4)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, help_: str, handler) -> argparse.ArgumentParser:
@@ -395,6 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
             metavar=("GX", "GY", "GZ"),
             help="gravity in the world frame [m/s^2] (default 0 0 -9.81)",
         )
+        _add_debug(p)
         p.set_defaults(handler=handler)
         return p
 
@@ -408,8 +520,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="kkt",
+        type=_choice(METHODS),
         choices=sorted(set(METHODS) - {"pinocchio"}),
-        help="method to check",
+        help="method to check (any case)",
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
@@ -455,22 +568,52 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="image file to write; its suffix gives the format (.png, .pdf, .svg, ...)",
     )
+    _add_debug(p)
     p.set_defaults(handler=_cmd_plot)
     return parser
 
 
+def exit_status(exc: BaseException) -> int:
+    """Return the exit status for an exception that ended a command.
+
+    A simulation stopped by a singular configuration or a non-finite or
+    drifting state is :data:`EXIT_STOPPED`; any other closedchain error and a
+    file that cannot be written (OSError) is bad input, :data:`EXIT_BAD_INPUT`;
+    anything else is a bug, :data:`EXIT_INTERNAL`.
+    """
+    from .simulate import SimulationError
+
+    if isinstance(exc, SingularConfigurationError | SimulationError | NonFiniteError):
+        return EXIT_STOPPED
+    if isinstance(exc, ClosedChainError | OSError):
+        return EXIT_BAD_INPUT
+    return EXIT_INTERNAL
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; return the exit status."""
+    """Run the command line; return the exit status (see :data:`EXIT_STATUS_HELP`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
     try:
         check_args(args)
         return int(args.handler(args))
-    except (ClosedChainError, OSError) as exc:
-        # OSError: a file the command writes cannot be (no such directory, no permission).
-        print(f"closedchain: error: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print("closedchain: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        status = exit_status(exc)
+        if status == EXIT_INTERNAL:
+            if args.debug:
+                traceback.print_exc()
+            print(
+                f"closedchain: internal error: {type(exc).__name__}: {exc}"
+                + ("" if args.debug else " (run with --debug for the traceback)"),
+                file=sys.stderr,
+            )
+        else:
+            print(f"closedchain: error: {exc}", file=sys.stderr)
+        return status
 
 
 if __name__ == "__main__":  # pragma: no cover

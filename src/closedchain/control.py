@@ -17,7 +17,8 @@ so it stays at the level of the integration error.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -28,8 +29,15 @@ from .inverse import _resolve_ordered, inverse_dynamics
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
+    from .urdf import SinusoidSpec
 
-__all__ = ["computed_torque_controller", "gravity_torque"]
+__all__ = [
+    "Scene",
+    "computed_torque_controller",
+    "default_scene",
+    "gravity_torque",
+    "sinusoid_reference",
+]
 
 #: A reference: t [s] -> (q_P, v_P, a_P), each of shape (mobility,) [rad, rad/s, rad/s^2].
 Reference = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -113,3 +121,75 @@ def gravity_torque(
     """
     zero_v = np.zeros(mech.nv)
     return inverse_dynamics(mech, q, zero_v, np.zeros(mech.mobility), settings=settings).tau
+
+
+def sinusoid_reference(specs: Sequence[SinusoidSpec]) -> Reference:
+    """Return ``reference(t) -> (q, v, a)`` of ``offset + amplitude sin(2 pi frequency t)``."""
+    c = np.array([s.offset for s in specs], dtype=float)
+    amp = np.array([s.amplitude for s in specs], dtype=float)
+    w = 2.0 * np.pi * np.array([s.frequency for s in specs], dtype=float)
+
+    def reference(t: float):
+        sin, cos = np.sin(w * t), np.cos(w * t)
+        return c + amp * sin, amp * w * cos, -amp * w * w * sin
+
+    return reference
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The initial state and inputs of a mechanism's default scene.
+
+    Attributes:
+        q0: initial configuration, shape (nq,), assembled (phi = 0).
+        v0: initial velocity, shape (nv,), with J v0 = 0.
+        tau: generalized forces for :func:`simulate` (None: passive).
+        description: one line saying what the scene shows.
+    """
+
+    q0: np.ndarray
+    v0: np.ndarray
+    tau: Callable[[float, np.ndarray, np.ndarray], np.ndarray] | None
+    description: str
+
+
+def default_scene(mech: Mechanism) -> Scene:
+    """Return the mechanism's default scene, from its URDF's ``<scene>`` element.
+
+    Without one: released from rest at ``q_ref``. With one: the ``<initial>``
+    values are a guess assembled onto phi = 0 holding the tracked joints at
+    their reference (else the independent coordinates); with a ``<track>``,
+    the computed-torque controller drives the tracked joints along their
+    sinusoids from a matching initial velocity.
+
+    Raises:
+        ClosedChainError: the scene cannot be assembled, or its tracked joints
+            are not ``mobility`` many (the message names the file).
+    """
+    from .kinematics import assemble, project_velocity
+
+    spec = mech.urdf.scene
+    if spec is None:
+        return Scene(mech.q_ref.copy(), np.zeros(mech.nv), None, "released from rest at q_ref")
+    q = mech.q_ref.copy()
+    for name, value in spec.initial.items():
+        q[mech.model.joints[mech.model.getJointId(name)].idx_q] = value
+    if not spec.track:
+        q0 = assemble(mech, q, fixed="independent")
+        return Scene(q0, np.zeros(mech.nv), None, "released from rest (<scene> initial)")
+    names = [s.joint for s in spec.track]
+    if len(names) != mech.mobility:
+        raise ClosedChainError(
+            f"{mech.path}: line {spec.line}: <scene> <track> drives {len(names)} joints "
+            f"({', '.join(names)}); it needs the mobility, {mech.mobility}"
+        )
+    reference = sinusoid_reference(spec.track)
+    q_ref0, v_ref0, _ = reference(0.0)
+    idx = [mech.model.joints[mech.model.getJointId(n)] for n in names]
+    q[[j.idx_q for j in idx]] = q_ref0
+    q0 = assemble(mech, q, fixed=names)
+    v = np.zeros(mech.nv)
+    v[[j.idx_v for j in idx]] = v_ref0
+    v0 = project_velocity(mech, q0, v, fixed=names)
+    tau = computed_torque_controller(mech, reference, kp=spec.kp, kd=spec.kd, coordinates=names)
+    return Scene(q0, v0, tau, f"computed-torque tracking of sinusoids on {', '.join(names)}")

@@ -18,6 +18,20 @@ class URDFError(ClosedChainError):
     """A URDF file, or one of its URDF+ extension elements, is invalid."""
 
 
+class ModelTooLargeError(URDFError):
+    """A tree has more degrees of freedom than closedchain supports (refused before any work).
+
+    Attributes:
+        nv: degrees of freedom of the tree.
+        max_nv: the largest supported nv.
+    """
+
+    def __init__(self, message: str, *, nv: int, max_nv: int) -> None:
+        super().__init__(message)
+        self.nv = nv
+        self.max_nv = max_nv
+
+
 class LoopClosureError(ClosedChainError):
     """The frames of a loop joint cannot be brought together."""
 
@@ -38,6 +52,8 @@ class SingularConfigurationError(ClosedChainError):
         q: configuration at which it happened, shape (nq,).
         condition_number: estimated 2-norm or 1-norm condition number.
         t: simulation time [s] when raised during a simulation, else None.
+        trajectory: when it stopped a simulation, the Trajectory recorded up to
+            the stop (output samples before ``t``), else None.
     """
 
     def __init__(self, message: str, *, q=None, condition_number: float = float("inf"), t=None):
@@ -45,6 +61,70 @@ class SingularConfigurationError(ClosedChainError):
         self.q = q
         self.condition_number = condition_number
         self.t = t
+        self.trajectory = None
+
+    @classmethod
+    def build(
+        cls,
+        name: str,
+        what: str,
+        *,
+        q,
+        cond: float,
+        bound: float | None = None,
+        bound_name: str = "cond_max",
+        state: str = "is singular",
+        detail: str = "",
+        hint: str = "",
+        t: float | None = None,
+    ) -> SingularConfigurationError:
+        """Return the error in the one message format every site uses.
+
+        ``"{name}: [at t = {t} s ]{what} {state} at q = [...] (condition number
+        {cond} > {bound_name} {bound}{detail}); {hint}"``; the comparison is
+        written only when ``cond`` exceeds ``bound``.
+
+        Args:
+            name: mechanism name.
+            what: the matrix or solver (``"the KKT matrix [[M, J^T], [J, 0]]"``).
+            q: configuration, shape (nq,).
+            cond: its condition number (inf when exactly singular).
+            bound: the bound it was checked against, or None.
+            bound_name: the setting holding ``bound``.
+            state: what happened (``"is singular"``, ``"has lost rank"``).
+            detail: appended inside the parentheses (start it with ``"; "``).
+            hint: what to do, or what it means.
+            t: simulation time [s], or None.
+        """
+        import numpy as np
+
+        q = np.array(q, dtype=float)
+        when = "" if t is None else f"at t = {t:.9g} s "
+        if bound is None:
+            versus = ""
+        elif cond > bound:
+            versus = f" > {bound_name} {bound:.1e}"
+        else:
+            versus = f", {bound_name} {bound:.1e}"
+        message = (
+            f"{name}: {when}{what} {state} at q = {np.array2string(q, precision=6)} "
+            f"(condition number {cond:.3e}{versus}{detail})" + (f"; {hint}" if hint else "")
+        )
+        return cls(message, q=q, condition_number=cond, t=t)
+
+    def at_time(self, t: float) -> SingularConfigurationError:
+        """Return this error with the simulation time ``t`` [s] prefixed and set."""
+        return type(self)(
+            f"at t = {t:.9g} s: {self}", q=self.q, condition_number=self.condition_number, t=t
+        )
+
+
+class InvalidArgumentError(ClosedChainError, ValueError):
+    """An argument is out of its valid range (the message names it and the range)."""
+
+
+class NonFiniteError(ClosedChainError, ValueError):
+    """A computation overflowed to inf or NaN (inputs too large for double precision)."""
 
 
 class UnknownChoiceError(ClosedChainError, ValueError):
@@ -59,3 +139,25 @@ class UnknownChoiceError(ClosedChainError, ValueError):
 
 class ValidationUnavailableError(ClosedChainError):
     """No equivalent Pinocchio constraint model exists for a loop type."""
+
+
+def resolve_choice(what: str, value: object, choices: Iterable[str]) -> str:
+    """Return the choice that ``value`` names, ignoring case, or raise listing the choices.
+
+    Args:
+        what: what is chosen, for the message (``"integrator"``).
+        value: the name given.
+        choices: the registered names (their own spelling is returned).
+
+    Raises:
+        UnknownChoiceError: no choice matches ``value`` case-insensitively.
+    """
+    choices = list(choices)
+    if isinstance(value, str):
+        if value in choices:
+            return value
+        folded = {c.casefold(): c for c in choices}
+        match = folded.get(value.casefold())
+        if match is not None:
+            return match
+    raise UnknownChoiceError(what, value, choices)

@@ -62,7 +62,7 @@ from .dynamics.base import (
     singular_error,
     workspace,
 )
-from .exceptions import ClosedChainError
+from .exceptions import ClosedChainError, NonFiniteError
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -263,6 +263,13 @@ def inverse_dynamics(
         a[F] = lapack.dgetrs(lu, piv, -gamma - J[:, P] @ a_P)[0]
 
     b = M @ a + h  # = B tau_A - J^T lam
+    if not np.all(np.isfinite(b)):
+        raise NonFiniteError(
+            f"{mech.name}: inverse dynamics overflowed to non-finite M a + h at "
+            f"max|v| = {np.max(np.abs(v), initial=0):.3g}, "
+            f"max|a_independent| = {np.max(np.abs(a_P), initial=0):.3g}: the motion must be "
+            "small enough for M a + h to stay finite in double precision"
+        )
     if nc:
         U, s, Vt = _svd(J)
         cond = _condition(s)

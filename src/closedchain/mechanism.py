@@ -29,6 +29,7 @@ from .exceptions import (
     AssemblyError,
     ClosedChainError,
     LoopClosureError,
+    ModelTooLargeError,
     UnknownChoiceError,
     URDFError,
     ValidationUnavailableError,
@@ -48,6 +49,16 @@ ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointM
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 
 
+#: Measured memory of one ``pinocchio.Data`` per nv^3 [bytes] (pin 4.1: 70, 66, 64 at
+#: nv = 100, 200, 300 chains; eight nv x nv x nv double tensors).
+PINOCCHIO_DATA_BYTES_PER_NV3 = 64
+
+
+def max_nv(settings: LoadSettings) -> int:
+    """Return the largest nv whose Pinocchio ``Data`` fits ``settings.max_data_bytes``."""
+    return int((settings.max_data_bytes / PINOCCHIO_DATA_BYTES_PER_NV3) ** (1 / 3) + 1e-9)
+
+
 @dataclass(frozen=True)
 class LoadSettings:
     """Settings of the work :func:`load` does once per mechanism.
@@ -65,6 +76,12 @@ class LoadSettings:
             independent coordinates.
         prismatic_range: sampling range [m] for unbounded prismatic coordinates.
         seed: seed of the sampling.
+        max_data_bytes: largest memory [bytes] one Pinocchio ``Data`` may take.
+            Pinocchio 4.1 allocates about :data:`PINOCCHIO_DATA_BYTES_PER_NV3`
+            x nv^3 bytes per ``Data`` (its second-order derivative tensors,
+            nv x nv x nv each), whatever closedchain uses: 2 GB is nv <= 315,
+            and a 1000-joint chain would need 64 GB. A larger tree is refused
+            before Pinocchio builds anything.
     """
 
     n_samples: int = 8
@@ -75,6 +92,7 @@ class LoadSettings:
     cond_JD_max: float = 1e6
     prismatic_range: float = 1.0
     seed: int = 0
+    max_data_bytes: float = 2e9
 
     def selection(self) -> SelectionSettings:
         """The row-selection part of these settings."""
@@ -443,7 +461,8 @@ def load(
         The mechanism, with independent rows selected and an assembled ``q_ref``.
 
     Raises:
-        URDFError: invalid file or extension element.
+        URDFError: invalid file or extension element, or a tree beyond
+            ``settings.max_data_bytes`` (refused before any work).
         LoopClosureError: a loop's frames cannot be brought together.
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
@@ -452,10 +471,20 @@ def load(
     if root_joint not in ROOT_JOINTS:
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
-    if loops is None and entry is None:
-        urdf = parse_urdf(base)
-    else:
-        urdf = merge_overlay(base, loops, primitive=entry is not None)
+    try:
+        if loops is None and entry is None:
+            urdf = parse_urdf(base, max_nv=max_nv(settings))
+        else:
+            urdf = merge_overlay(base, loops, primitive=entry is not None, max_nv=max_nv(settings))
+    except ModelTooLargeError as exc:
+        raise ModelTooLargeError(
+            f"{exc}: one Pinocchio Data takes about {PINOCCHIO_DATA_BYTES_PER_NV3} nv^3 "
+            f"bytes (its second-order derivative tensors), "
+            f"{PINOCCHIO_DATA_BYTES_PER_NV3 * float(exc.nv) ** 3:.3g} here, over "
+            f"LoadSettings.max_data_bytes = {settings.max_data_bytes:.3g}",
+            nv=exc.nv,
+            max_nv=exc.max_nv,
+        ) from None
     gravity = np.asarray(gravity, dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")

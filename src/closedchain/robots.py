@@ -161,7 +161,13 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
     return np.array(probe.referenceConfigurations[entry.reference], dtype=float)
 
 
-def merge_overlay(base: Path, overlay: str | Path | None, *, primitive: bool = False) -> URDFPlus:
+def merge_overlay(
+    base: Path,
+    overlay: str | Path | None,
+    *,
+    primitive: bool = False,
+    max_nv: int | None = None,
+) -> URDFPlus:
     """Merge an overlay's elements into a base URDF and parse the result.
 
     Args:
@@ -170,6 +176,7 @@ def merge_overlay(base: Path, overlay: str | Path | None, *, primitive: bool = F
             (only ``primitive`` applies).
         primitive: replace mesh visuals by primitive geometry (see
             :func:`primitive_visuals`).
+        max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
 
     Returns:
         The parsed, merged model. Its ``path`` is the overlay (messages about
@@ -209,7 +216,7 @@ def merge_overlay(base: Path, overlay: str | Path | None, *, primitive: bool = F
         _check_world_joints(path, root)
     if primitive:
         primitive_visuals(root)
-    return parse_urdf(path, element=root)
+    return parse_urdf(path, element=root, max_nv=max_nv)
 
 
 def _check_world_joints(path: Path, root) -> None:

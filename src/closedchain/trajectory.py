@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,6 +13,15 @@ import numpy as np
 from .exceptions import ClosedChainError
 
 _ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
+
+#: First characters that make a spreadsheet read a cell as a formula (CSV injection,
+#: OWASP): a cell starting with one gets a leading apostrophe.
+FORMULA_PREFIXES = ("=", "+", "-", "@", "\t", "\r")
+
+
+def neutralize_formula(cell: str) -> str:
+    """Return ``cell`` with a leading ``'`` when a spreadsheet would read it as a formula."""
+    return "'" + cell if cell.startswith(FORMULA_PREFIXES) else cell
 
 
 @dataclass(frozen=True)
@@ -70,6 +81,10 @@ class Trajectory:
     def save(self, path: str | Path) -> Path:
         """Write the trajectory as ``.npz`` (all arrays, info) or ``.csv`` (t, q, v, residuals, E).
 
+        The CSV is written by the csv module: header cells quoted, names that a
+        spreadsheet would read as formulas prefixed with ``'`` (see
+        :func:`neutralize_formula`), numbers unquoted with all digits.
+
         Raises:
             ClosedChainError: the suffix is neither .npz nor .csv.
         """
@@ -102,9 +117,12 @@ class Trajectory:
                     self.energy,
                 ]
             )
-            np.savetxt(
-                path, table, delimiter=",", header=",".join(header), comments="", fmt="%.17g"
-            )
+            # csv module, every text cell quoted: names with commas, quotes or
+            # newlines keep their column; numbers stay numbers (repr round-trips).
+            with path.open("w", newline="") as f:
+                writer = csv.writer(f, quoting=csv.QUOTE_NONNUMERIC)
+                writer.writerow([neutralize_formula(str(h)) for h in header])
+                writer.writerows(table.tolist())
         else:
             raise ClosedChainError(
                 f"cannot save a trajectory as {path.name!r}; valid suffixes: .npz, .csv"
@@ -113,16 +131,48 @@ class Trajectory:
 
     @classmethod
     def load(cls, path: str | Path) -> Trajectory:
-        """Read a trajectory written by :meth:`save` as ``.npz``."""
+        """Read a trajectory written by :meth:`save` as ``.npz``.
+
+        Raises:
+            ClosedChainError: not an .npz file, unreadable or truncated, or an
+                archive without the trajectory's arrays (the message names the
+                file and what is missing) or with inconsistent shapes.
+        """
         path = Path(path)
         if path.suffix != ".npz":
             raise ClosedChainError(f"{path}: only .npz trajectories can be loaded")
         try:
-            with np.load(path, allow_pickle=False) as f:
+            archive = np.load(path, allow_pickle=False)
+            if isinstance(archive, np.ndarray):  # a .npy file renamed
+                raise ClosedChainError(
+                    f"{path}: not a closedchain trajectory: a single array, not an .npz archive"
+                )
+            with archive as f:
+                missing = [k for k in (*_ARRAYS, "info") if k not in f.files]
+                if missing:
+                    raise ClosedChainError(
+                        f"{path}: not a closedchain trajectory: missing "
+                        + ", ".join(missing)
+                        + f" (it holds: {', '.join(f.files) or 'nothing'})"
+                    )
                 arrays = {k: f[k] for k in _ARRAYS}
                 if "kinetic_energy" in f.files:
                     arrays["kinetic_energy"] = f["kinetic_energy"]
                 info = json.loads(str(f["info"]))
-        except (OSError, KeyError, ValueError) as exc:
-            raise ClosedChainError(f"{path}: not a closedchain trajectory: {exc}") from exc
+        except ClosedChainError:
+            raise
+        except FileNotFoundError as exc:
+            raise ClosedChainError(f"{path}: no such file") from exc
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+            raise ClosedChainError(
+                f"{path}: not a readable closedchain trajectory (truncated or not an .npz "
+                f"archive): {type(exc).__name__}: {exc}"
+            ) from exc
+        n = arrays["t"].shape[0] if arrays["t"].ndim == 1 else -1
+        bad = [k for k, a in arrays.items() if a.ndim == 0 or a.shape[0] != n]
+        if n < 1 or bad or not isinstance(info, dict):
+            raise ClosedChainError(
+                f"{path}: not a closedchain trajectory: t has shape {arrays['t'].shape} and "
+                f"{', '.join(bad) or 'info'} do not have one row per time"
+            )
         return cls(**arrays, info=info)

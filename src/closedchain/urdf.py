@@ -28,7 +28,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from .exceptions import URDFError
+from .exceptions import ModelTooLargeError, URDFError
 
 #: Loop-joint types and the relative motion each allows.
 LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
@@ -40,6 +40,14 @@ WORLD_LINK = "world"
 
 #: Norm below which an ``<axis>`` is rejected as zero.
 AXIS_NORM_MIN = 1e-9
+
+#: Relative tolerance of the positive-definiteness check of an ``<inertia>``:
+#: its smallest eigenvalue must exceed ``-INERTIA_REL_TOL * max |eigenvalue|``
+#: (zero eigenvalues are point masses and thin rods, which URDF allows).
+INERTIA_REL_TOL = 1e-12
+
+#: ``<limit>`` attributes and whether each must be non-negative.
+LIMIT_ATTRIBUTES = {"lower": False, "upper": False, "effort": True, "velocity": True}
 
 
 @dataclass(frozen=True)
@@ -68,6 +76,56 @@ class LoopSpec:
 
 
 @dataclass(frozen=True)
+class SinusoidSpec:
+    """A reference ``offset + amplitude sin(2 pi frequency t)`` for one joint of a scene.
+
+    Attributes:
+        joint: a 1-dof joint name.
+        offset: [rad or m].
+        amplitude: [rad or m].
+        frequency: [Hz].
+    """
+
+    joint: str
+    offset: float
+    amplitude: float
+    frequency: float
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """The default scene of a mechanism (closedchain's ``<scene>`` element).
+
+    What ``closedchain simulate/animate/plot`` run when no ``--q0`` is given:
+    the initial configuration guess, and optionally computed-torque tracking
+    of sinusoidal references (see :mod:`closedchain.control`).
+
+    .. code-block:: xml
+
+        <scene>
+          <initial joint="crank_joint" value="0.1745"/>
+          <track kp="100" kd="20">
+            <sinusoid joint="platform_yaw" offset="0" amplitude="0.8" frequency="0.1"/>
+          </track>
+        </scene>
+
+    Attributes:
+        initial: joint name -> initial value guess [rad or m] (assembled onto
+            phi = 0 holding the tracked joints, else the independent ones).
+        track: the tracked joints' references (empty: a passive motion).
+        kp: position gain [1/s^2] of the tracking controller.
+        kd: velocity gain [1/s] of the tracking controller.
+        line: source line of the ``<scene>`` element.
+    """
+
+    initial: dict[str, float] = field(default_factory=dict)
+    track: tuple[SinusoidSpec, ...] = ()
+    kp: float = 0.0
+    kd: float = 0.0
+    line: int = 0
+
+
+@dataclass(frozen=True)
 class URDFPlus:
     """What a URDF+ file adds to the tree.
 
@@ -80,6 +138,7 @@ class URDFPlus:
         loops: the ``<loop>`` elements.
         actuated: joints named by ``<transmission>`` elements, in file order.
         independent: joints marked ``independent="true"``, in file order.
+        scene: the ``<scene>`` element (default scene), or None.
     """
 
     path: Path
@@ -90,6 +149,7 @@ class URDFPlus:
     loops: tuple[LoopSpec, ...] = ()
     actuated: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
+    scene: SceneSpec | None = None
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -127,23 +187,127 @@ def _where(path: Path, element) -> str:
     return f"{path}: line {element.sourceline}: {tag}"
 
 
-def _floats(path: Path, element, attribute: str, default: str) -> np.ndarray:
+def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
     text = element.get(attribute, default)
     try:
-        values = np.array([float(x) for x in text.split()])
+        values = [float(x) for x in text.split()]
     except ValueError:
-        values = np.array([])
-    if values.shape != (3,) or not np.all(np.isfinite(values)):
+        values = []
+    if len(values) != 3 or not all(math.isfinite(x) for x in values):
+        prefix = f"{where} <{element.tag}>" if where else _where(path, element)
+        raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
+    return np.array(values)
+
+
+def _number(where: str, element, attribute: str, *, minimum: float | None = None) -> float | None:
+    """Return a finite float attribute (None when absent), or raise naming where and attribute.
+
+    Args:
+        where: location prefix of the message (file, line, enclosing element).
+        element: the element holding the attribute.
+        attribute: attribute name.
+        minimum: smallest valid value, or None.
+    """
+    text = element.get(attribute)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or (minimum is not None and value < minimum):
+        valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
+        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be {valid}")
+    return value
+
+
+def _check_inertial(path: Path, link) -> None:
+    """Refuse an ``<inertial>`` whose mass or inertia is not a physical one.
+
+    urdfdom only warns about these and Pinocchio then builds a massless or
+    wrong link, so every dynamics result would be wrong without a word.
+    """
+    inertial = link.find("inertial")
+    if inertial is None:
+        return
+    where = f'{path}: line {inertial.sourceline}: <link name="{link.get("name")}"> <inertial>'
+    origin = inertial.find("origin")
+    if origin is not None:
+        _floats(path, origin, "xyz", "0 0 0", where)
+        _floats(path, origin, "rpy", "0 0 0", where)
+    mass = inertial.find("mass")
+    if mass is None or mass.get("value") is None:
+        raise URDFError(f"{where}: missing <mass value=...>")
+    _number(where, mass, "value", minimum=0.0)
+    inertia = inertial.find("inertia")
+    if inertia is None:
+        raise URDFError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
+    names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+    values = {n: _number(where, inertia, n) or 0.0 for n in names}
+    inertia_matrix = np.array(
+        [
+            [values["ixx"], values["ixy"], values["ixz"]],
+            [values["ixy"], values["iyy"], values["iyz"]],
+            [values["ixz"], values["iyz"], values["izz"]],
+        ]
+    )
+    eig = np.linalg.eigvalsh(inertia_matrix)
+    if eig[0] < -INERTIA_REL_TOL * max(1.0, float(np.max(np.abs(eig)))):
         raise URDFError(
-            f"{_where(path, element)}: attribute {attribute}={text!r} must be three finite numbers"
+            f"{where}: <inertia> is not positive semi-definite (eigenvalues "
+            f"{np.array2string(eig, precision=6)} kg m^2); a rigid body's rotational "
+            "inertia has non-negative eigenvalues"
         )
-    return values
+    # Triangle inequality of principal moments (a real mass distribution).
+    tol = INERTIA_REL_TOL * max(1.0, float(eig[-1]))
+    if eig[0] + eig[1] < eig[2] - tol:
+        raise URDFError(
+            f"{where}: <inertia> principal moments {np.array2string(eig, precision=6)} kg m^2 "
+            "violate the triangle inequality I1 + I2 >= I3 (no mass distribution has them)"
+        )
+
+
+def _check_joint(path: Path, joint) -> None:
+    """Refuse a ``<joint>`` with a non-finite origin, a zero or non-finite axis or NaN limits."""
+    where = _where(path, joint)
+    origin = joint.find("origin")
+    if origin is not None:
+        _floats(path, origin, "xyz", "0 0 0", where)
+        _floats(path, origin, "rpy", "0 0 0", where)
+    axis = joint.find("axis")
+    if axis is not None:
+        xyz = _floats(path, axis, "xyz", "1 0 0", where)
+        if not float(np.linalg.norm(xyz)) > AXIS_NORM_MIN:
+            raise URDFError(
+                f"{where} <axis xyz={axis.get('xyz')!r}>: has zero length "
+                f"(norm must exceed {AXIS_NORM_MIN:g})"
+            )
+    limit = joint.find("limit")
+    if limit is not None:
+        bounds = {
+            a: _number(where, limit, a, minimum=0.0 if nonneg else None)
+            for a, nonneg in LIMIT_ATTRIBUTES.items()
+        }
+        lower, upper = bounds["lower"], bounds["upper"]
+        if lower is not None and upper is not None and lower > upper:
+            raise URDFError(f"{where} <limit>: lower={lower:g} exceeds upper={upper:g}")
 
 
 def _origin(path: Path, element) -> pin.SE3:
     xyz = _floats(path, element, "xyz", "0 0 0")
     rpy = _floats(path, element, "rpy", "0 0 0")
     return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
+
+
+#: Velocity-space dimension of each URDF joint type (unknown types: Pinocchio refuses them).
+URDF_JOINT_NV = {
+    "revolute": 1,
+    "continuous": 1,
+    "prismatic": 1,
+    "fixed": 0,
+    "planar": 3,
+    "floating": 6,
+}
 
 
 def read_xml(path: Path):
@@ -172,7 +336,7 @@ def read_xml(path: Path):
     return root
 
 
-def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
+def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> URDFPlus:
     """Read a URDF file and its URDF+ extension elements.
 
     Args:
@@ -180,6 +344,9 @@ def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
         element: an already parsed ``<robot>`` element to read instead of the
             file (used by :func:`closedchain.robots.merge_overlay`); ``path``
             then only names it in messages.
+        max_nv: largest supported number of degrees of freedom of the tree
+            (sum over joints of :data:`URDF_JOINT_NV`); a larger tree is
+            refused right after the XML is read, before any per-element work.
 
     Returns:
         The parsed extensions, with the checked XML text.
@@ -199,6 +366,18 @@ def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
     if not links:
         raise URDFError(f"{path}: <robot> has no <link> elements")
     joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
+    nv = sum(URDF_JOINT_NV.get(t, 0) for t in joints.values())
+    if max_nv is not None and nv > max_nv:
+        raise ModelTooLargeError(
+            f"{path}: {len(joints)} joints with nv = {nv} degrees of freedom are beyond the "
+            f"supported size; valid: nv <= {max_nv}",
+            nv=nv,
+            max_nv=max_nv,
+        )
+    for link in root.findall("link"):
+        _check_inertial(path, link)
+    for joint in root.findall("joint"):
+        _check_joint(path, joint)
 
     # A loop may name the world (WORLD_LINK) even when no link has that name.
     loop_links = links if WORLD_LINK in links else (*links, WORLD_LINK)
@@ -239,6 +418,11 @@ def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
             independent.append(je.get("name"))
 
+    scenes = root.findall("scene")
+    if len(scenes) > 1:
+        raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
+    scene = _parse_scene(path, scenes[0], joints) if scenes else None
+
     xml = etree.tostring(root, encoding="unicode")
     return URDFPlus(
         path=path,
@@ -249,6 +433,7 @@ def parse_urdf(path: str | Path, *, element=None) -> URDFPlus:
         loops=loops,
         actuated=tuple(actuated),
         independent=tuple(independent),
+        scene=scene,
     )
 
 
@@ -307,3 +492,56 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         axis=axis,
         line=element.sourceline or 0,
     )
+
+
+#: Joint types a ``<scene>`` may set or track (one coordinate each).
+SCENE_JOINT_TYPES = ("revolute", "prismatic")
+
+
+def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
+    name = element.get("joint")
+    if joints.get(name) not in SCENE_JOINT_TYPES:
+        valid = sorted(j for j, t in joints.items() if t in SCENE_JOINT_TYPES)
+        raise URDFError(
+            f"{_where(path, element)}: joint={name!r} is not a revolute or prismatic joint "
+            f"of this file; valid: {', '.join(valid)}"
+        )
+    return name
+
+
+def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
+    """Read the ``<scene>`` element (see :class:`SceneSpec`)."""
+    where = _where(path, element)
+    initial: dict[str, float] = {}
+    for e in element.findall("initial"):
+        name = _scene_joint(path, e, joints)
+        value = _number(_where(path, e), e, "value")
+        if value is None:
+            raise URDFError(f"{_where(path, e)}: missing value=")
+        initial[name] = value
+    tracks = element.findall("track")
+    if len(tracks) > 1:
+        raise URDFError(f"{where}: more than one <track>")
+    if not tracks:
+        return SceneSpec(initial=initial, line=element.sourceline or 0)
+    track = tracks[0]
+    gains = {}
+    for gain in ("kp", "kd"):
+        value = _number(_where(path, track), track, gain, minimum=0.0)
+        if value is None:
+            raise URDFError(f"{_where(path, track)}: missing {gain}= (a gain >= 0)")
+        gains[gain] = value
+    refs = []
+    for e in track.findall("sinusoid"):
+        w = _where(path, e)
+        refs.append(
+            SinusoidSpec(
+                joint=_scene_joint(path, e, joints),
+                offset=_number(w, e, "offset") or 0.0,
+                amplitude=_number(w, e, "amplitude") or 0.0,
+                frequency=_number(w, e, "frequency", minimum=0.0) or 0.0,
+            )
+        )
+    if not refs:
+        raise URDFError(f"{_where(path, track)}: has no <sinusoid joint=...> child")
+    return SceneSpec(initial=initial, track=tuple(refs), line=element.sourceline or 0, **gains)

@@ -15,9 +15,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .dynamics import METHODS, SolverSettings, forward_dynamics
+from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamics
+from .dynamics.base import method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
-from .exceptions import SingularConfigurationError, UnknownChoiceError
+from .exceptions import InvalidArgumentError, SingularConfigurationError, UnknownChoiceError
 from .kinematics import random_consistent_state
 from .mechanism import Mechanism
 
@@ -83,7 +84,7 @@ def validate(
     method: str = "kkt",
     tol_a: float = TOL_ACCELERATION,
     tol_force: float = TOL_FORCE,
-    settings: SolverSettings | None = None,
+    settings: SolverSettings = DEFAULT_SETTINGS,
     velocity_scale: float = 1.0,
     tau_scale: float | None = None,
 ) -> ValidationReport:
@@ -105,8 +106,17 @@ def validate(
 
     Returns:
         The report; ``report.passed`` says whether both tolerances hold.
+
+    Raises:
+        InvalidArgumentError: ``n_samples`` is not an integer >= 1.
+        UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
     """
-    settings = settings or SolverSettings()
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int | np.integer) or n_samples < 1:
+        raise InvalidArgumentError(
+            f"n_samples must be an integer >= 1 (a check on no states proves nothing), "
+            f"got {n_samples!r}"
+        )
+    method = method_name(method)
     if method == "pinocchio":
         raise UnknownChoiceError(
             "method to validate against pinocchio.constraintDynamics (it is the reference)",

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..exceptions import NonFiniteError
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
 from . import nullspace as _nullspace  # noqa: F401  (registers "nullspace")
 from . import pinocchio_method as _pinocchio_method  # noqa: F401  (registers "pinocchio")
@@ -19,7 +20,7 @@ from .base import (
     METHODS,
     ForwardDynamicsResult,
     SolverSettings,
-    get_method,
+    method_name,
     workspace,
 )
 
@@ -45,7 +46,7 @@ def forward_dynamics(
         q: configuration, shape (nq,), on the constraint manifold.
         v: velocity, shape (nv,), with J v = 0.
         tau: generalized forces, shape (nv,) [N m or N]; zeros when None.
-        method: a name in :data:`METHODS`.
+        method: a name in :data:`METHODS` (any case).
         settings: numerical settings.
 
     Returns:
@@ -55,12 +56,21 @@ def forward_dynamics(
         UnknownChoiceError: unknown method (lists the valid ones).
         SingularConfigurationError: the method cannot solve at q (names q and
             the condition number).
+        NonFiniteError: v or tau so large that the result overflows.
     """
-    func = get_method(method)
+    method = method_name(method)
+    func = METHODS[method]
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
     a, lam = func(mech, q, v, tau, settings)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(lam))):
+        raise NonFiniteError(
+            f"{mech.name}: method {method!r} overflowed to non-finite accelerations or "
+            f"multipliers at max|v| = {np.max(np.abs(v), initial=0):.3g}, "
+            f"max|tau| = {np.max(np.abs(tau), initial=0):.3g}: v and tau must be small enough "
+            "for M a + h (quadratic in v) to stay finite in double precision"
+        )
     ws = workspace(mech)
     return ForwardDynamicsResult(
         a=np.array(a), lam=np.array(lam), method=method, J=ws.J.copy(), gamma=ws.gamma.copy()

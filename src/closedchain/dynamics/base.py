@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from ..exceptions import SingularConfigurationError, UnknownChoiceError
+from ..exceptions import SingularConfigurationError, resolve_choice
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -123,12 +123,14 @@ def register(
     return decorator
 
 
+def method_name(name: str) -> str:
+    """Return the registered spelling of method ``name`` (any case), or raise listing them."""
+    return resolve_choice("forward-dynamics method", name, METHODS)
+
+
 def get_method(name: str) -> MethodFunction:
-    """Return the method registered as ``name``, or raise listing the valid names."""
-    try:
-        return METHODS[name]
-    except KeyError:
-        raise UnknownChoiceError("forward-dynamics method", name, METHODS) from None
+    """Return the method registered as ``name`` (any case), or raise listing the valid names."""
+    return METHODS[method_name(name)]
 
 
 class Workspace:
@@ -167,12 +169,12 @@ def singular_error(
     *,
     bound_name: str = "cond_max",
 ) -> SingularConfigurationError:
-    """Return the error for a matrix ``what`` whose condition number exceeds ``bound`` at q."""
-    return SingularConfigurationError(
-        f"{mech.name}: {what} is singular at q = {np.array2string(q, precision=6)} "
-        f"(condition number {cond:.3e} > {bound_name} {bound:.1e}); {hint}",
-        q=np.array(q),
-        condition_number=cond,
+    """Return the error for a matrix ``what`` whose condition number exceeds ``bound`` at q.
+
+    A shorthand of :meth:`SingularConfigurationError.build`, the one builder.
+    """
+    return SingularConfigurationError.build(
+        mech.name, what, q=q, cond=cond, bound=bound, bound_name=bound_name, hint=hint
     )
 
 

@@ -74,13 +74,15 @@ def check_rank(mech: Mechanism, q: np.ndarray, s: np.ndarray, settings: SolverSe
     smax, smin = float(s[0]), float(s[-1])
     if smin * settings.cond_max <= smax:
         cond = smax / smin if smin > 0.0 else float("inf")
-        raise SingularConfigurationError(
-            f"{mech.name}: the constraint Jacobian J has lost rank at "
-            f"q = {np.array2string(q, precision=6)} (sigma_min = {smin:.3e}, "
-            f"sigma_max = {smax:.3e}, condition number {cond:.3e} > cond_max "
-            f"{settings.cond_max:.1e}); the configuration is a singularity",
-            q=np.array(q),
-            condition_number=cond,
+        raise SingularConfigurationError.build(
+            mech.name,
+            "the constraint Jacobian J",
+            q=q,
+            cond=cond,
+            bound=settings.cond_max,
+            state="has lost rank",
+            detail=f"; sigma_min = {smin:.3e}, sigma_max = {smax:.3e}",
+            hint="the configuration is a singularity",
         )
 
 

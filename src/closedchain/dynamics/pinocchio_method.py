@@ -202,10 +202,13 @@ def pinocchio_method(
 def _raise(mech: Mechanism, q: np.ndarray, J: np.ndarray, why: str, settings) -> None:
     s = np.linalg.svd(J, compute_uv=False) if J.size else np.ones(1)
     cond = float(s[0] / s[-1]) if s[-1] > 0 and np.isfinite(s).all() else float("inf")
-    raise SingularConfigurationError(
-        f"{mech.name}: pinocchio.constraintDynamics failed at q = "
-        f"{np.array2string(q, precision=6)}: {why}; condition number of J {cond:.3e} "
-        f"(cond_max {settings.cond_max:.1e}, mu = {settings.pinocchio_mu:.1e})",
-        q=np.array(q),
-        condition_number=cond,
+    raise SingularConfigurationError.build(
+        mech.name,
+        "pinocchio.constraintDynamics",
+        q=q,
+        cond=cond,
+        bound=settings.cond_max,
+        state="failed",
+        detail=f" of J; mu = {settings.pinocchio_mu:.1e}",
+        hint=why,
     )

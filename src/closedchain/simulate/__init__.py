@@ -44,8 +44,8 @@ import numpy as np
 
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
-from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
-from ..exceptions import ClosedChainError
+from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
+from ..exceptions import InvalidArgumentError, SingularConfigurationError
 from ..trajectory import Trajectory
 from .problem import Problem, Recorder
 from .registry import (
@@ -59,7 +59,13 @@ from .registry import (
     register_integrator,
     register_stabilization,
 )
-from .settings import SimulationError, SimulationSettings, TorqueInput, seed_settings
+from .settings import (
+    DEFAULT_SIMULATION_SETTINGS,
+    SimulationError,
+    SimulationSettings,
+    TorqueInput,
+    seed_settings,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -84,6 +90,60 @@ __all__ = [
 ]
 
 
+def check_positive(name: str, value, what: str) -> None:
+    """Raise ClosedChainError (a ValueError) unless ``value`` is a finite number > 0.
+
+    Args:
+        name: argument name, for the message.
+        value: the value given.
+        what: what the argument is, for the message.
+    """
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not (math.isfinite(x) and x > 0):
+        raise InvalidArgumentError(
+            f"{name} ({what}) must be a finite number > 0, got {value!r}; valid range: (0, inf)"
+        )
+
+
+def check_t_eval(
+    t_eval, t_final: float, settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS
+) -> np.ndarray | None:
+    """Return ``t_eval`` as a float array, or raise naming what is wrong with it.
+
+    Valid: None, or a 1-D array of 1 to ``settings.max_outputs`` finite,
+    strictly increasing times within [0, t_final].
+    """
+    if t_eval is None:
+        return None
+    t_eval = np.asarray(t_eval, dtype=float)
+    valid = (
+        f"valid: 1 to {settings.max_outputs} finite, strictly increasing times within "
+        f"[0, t_final = {t_final:g}] s"
+    )
+    if t_eval.ndim != 1 or t_eval.size == 0:
+        raise InvalidArgumentError(f"t_eval has shape {t_eval.shape}; {valid}")
+    if t_eval.size > settings.max_outputs:
+        raise InvalidArgumentError(
+            f"t_eval has {t_eval.size} times, more than SimulationSettings.max_outputs; {valid}"
+        )
+    if not np.all(np.isfinite(t_eval)):
+        raise InvalidArgumentError(f"t_eval contains non-finite times; {valid}")
+    if np.any(np.diff(t_eval) <= 0):
+        k = int(np.argmax(np.diff(t_eval) <= 0))
+        raise InvalidArgumentError(
+            f"t_eval is not strictly increasing (t_eval[{k}] = {t_eval[k]:g}, "
+            f"t_eval[{k + 1}] = {t_eval[k + 1]:g}); {valid}"
+        )
+    if t_eval[0] < 0 or t_eval[-1] > t_final * (1 + 1e-12):
+        raise InvalidArgumentError(
+            f"t_eval spans [{t_eval[0]:g}, {t_eval[-1]:g}] s, outside [0, t_final]; {valid}"
+        )
+    return t_eval
+
+
 def simulate(
     mech: Mechanism,
     q0: np.ndarray,
@@ -98,7 +158,7 @@ def simulate(
     stabilization: str | None = None,
     tau: TorqueInput = None,
     t_eval: np.ndarray | None = None,
-    settings: SimulationSettings | None = None,
+    settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS,
     solver_settings: SolverSettings = DEFAULT_SOLVER_SETTINGS,
     progress: Callable[[float], None] | None = None,
 ) -> Trajectory:
@@ -135,55 +195,67 @@ def simulate(
     Raises:
         UnknownChoiceError: unknown integrator, stabilization or method.
         SingularConfigurationError: the method met a singular configuration
-            (message and attributes give the time and condition number).
+            (message and attributes give the time and condition number;
+            ``exc.trajectory`` holds the motion up to the stop).
         SimulationError: non-finite state, integrator failure, or drift
-            beyond ``settings.drift_limit``.
+            beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
-    settings = settings or SimulationSettings()
     spec = get_integrator(integrator)
+    integrator = spec.name
     fixed = spec.kind == "fixed"
     if stabilization is None:
         stabilization = spec.default_stabilization
     stab = get_stabilization(stabilization)
+    stabilization = stab.name
     if stabilization not in spec.stabilizations:
-        raise ClosedChainError(
+        raise InvalidArgumentError(
             f"integrator {integrator!r} does not support stabilization {stabilization!r}; "
             f"valid choices: {', '.join(spec.stabilizations)}"
         )
-    get_method(method)
+    method = method_name(method)
     if stab.accel_terms and not METHOD_CAPABILITIES[method].baumgarte:
         with_terms = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].baumgarte]
-        raise ClosedChainError(
+        raise InvalidArgumentError(
             f"method {method!r} solves its own constraint equations and cannot apply the "
             "Baumgarte terms; use stabilization 'projection' or 'partitioning', or a "
             f"method among {', '.join(with_terms)}"
         )
     q0 = mech.check_q(q0, "q0")
     v0 = mech.check_v(v0, "v0")
-    if not (t_final > 0 and math.isfinite(t_final)):
-        raise ClosedChainError(f"t_final must be a positive number of seconds, got {t_final}")
+    check_positive("t_final", t_final, "the duration [s]")
+    t_final = float(t_final)
+    if tau is not None and not callable(tau):
+        tau = mech.check_v(tau, "tau")
     if (spec.vector_state or stab.partitions) and mech.nq != mech.nv:
-        raise ClosedChainError(
+        raise InvalidArgumentError(
             f"integrator {integrator!r} with stabilization {stabilization!r} integrates q as a "
             f"vector and needs nq == nv (this mechanism has nq={mech.nq}, nv={mech.nv}); use "
             "a fixed-step integrator (euler, semi-implicit, rk4) with projection"
         )
-    if t_eval is not None:
-        t_eval = np.asarray(t_eval, dtype=float)
-        if (
-            t_eval.ndim != 1
-            or np.any(np.diff(t_eval) <= 0)
-            or t_eval[0] < 0
-            or (t_eval[-1] > t_final * (1 + 1e-12))
-        ):
-            raise ClosedChainError("t_eval must be increasing times within [0, t_final]")
+    t_eval = check_t_eval(t_eval, t_final, settings)
     if fixed:
-        dt = settings.dt if dt is None else float(dt)
-        if not dt > 0:
-            raise ClosedChainError(f"dt must be positive, got {dt}")
+        dt = settings.dt if dt is None else dt
+        check_positive("dt", dt, "the fixed step [s]")
+        dt = float(dt)
+        n_steps = math.ceil(t_final / dt - 1e-9)
+        if n_steps > settings.max_steps:
+            raise InvalidArgumentError(
+                f"dt = {dt:g} s over t_final = {t_final:g} s is {n_steps:.3g} steps, more than "
+                f"SimulationSettings.max_steps = {settings.max_steps:.3g}; use a larger dt "
+                f"(>= {t_final / settings.max_steps:.3g} s) or an adaptive integrator"
+            )
+        if t_eval is None and n_steps + 1 > settings.max_outputs:
+            raise InvalidArgumentError(
+                f"recording every one of {n_steps:.3g} steps is more than "
+                f"SimulationSettings.max_outputs = {settings.max_outputs:.3g} samples; "
+                "pass t_eval (the output times) to keep fewer"
+            )
     else:
-        rtol = settings.rtol if rtol is None else float(rtol)
-        atol = settings.atol if atol is None else float(atol)
+        rtol = settings.rtol if rtol is None else rtol
+        atol = settings.atol if atol is None else atol
+        check_positive("rtol", rtol, "the relative tolerance")
+        check_positive("atol", atol, "the absolute tolerance")
+        rtol, atol = float(rtol), float(atol)
 
     if stab.accel_terms:
         gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
@@ -210,9 +282,17 @@ def simulate(
         info["baumgarte"] = list(solver_settings.baumgarte)
     cpu0 = time.process_time()
     control = StepControl(dt=dt, rtol=rtol, atol=atol)
-    steps = spec.run(
-        problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
-    )
+    try:
+        steps = spec.run(
+            problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
+        )
+    except (SingularConfigurationError, SimulationError) as exc:
+        # Nothing is lost: the caller gets the motion up to the stop (e.g. to animate it).
+        info["stopped"] = {"t": exc.t, "reason": str(exc)}
+        info["cpu_time"] = time.process_time() - cpu0
+        info["evaluations"] = problem.n_evals
+        exc.trajectory = recorder.trajectory(info) if recorder.rows["t"] else None
+        raise
     info["cpu_time"] = time.process_time() - cpu0
     info["row_reselections"] = problem.reselections
     info["steps"] = steps

@@ -117,13 +117,15 @@ def run_adaptive(
                 # dependent solve may have jumped to another assembly branch.
                 sign = problem.det_sign_JD(q)
                 if sign * state.setdefault("sign", sign) <= 0.0:
-                    raise SingularConfigurationError(
-                        f"{mech.name}: at t = {t_new:.9g} s det(J_D) changed sign within the "
-                        f"last step (condition number of J_D {problem.cond_JD(q):.3e} at its "
-                        "end): the motion crossed a singular configuration, which adaptive "
+                    raise SingularConfigurationError.build(
+                        mech.name,
+                        "det(J_D)",
+                        q=q,
+                        cond=problem.cond_JD(q),
+                        state="changed sign within the last step, ending",
+                        detail=" of J_D at the step's end",
+                        hint="the motion crossed a singular configuration, which adaptive "
                         "partitioning cannot follow; use a fixed-step integrator",
-                        q=np.array(q),
-                        condition_number=problem.cond_JD(q),
                         t=t_new,
                     )
                 if (

@@ -40,17 +40,21 @@ def output_grid(t_final: float, dt: float, t_eval: np.ndarray | None):
     """Return (dt, n_steps, output step indices) with every output time on the step grid.
 
     ``dt`` is shortened so that each output interval is a whole number of steps.
+    The output step indices are a strictly increasing integer array, or None for
+    "every step": memory is proportional to the outputs, never to the steps.
     """
     if t_eval is None:
         n_steps = int(math.ceil(t_final / dt - 1e-9))
-        return t_final / n_steps, n_steps, set(range(n_steps + 1))
+        return t_final / n_steps, n_steps, None
     gaps = np.diff(np.concatenate([[0.0], t_eval]))
-    per = [max(1, int(math.ceil(g / dt - 1e-9))) if g > 0 else 0 for g in gaps]
+    per = np.where(gaps > 0, np.maximum(1, np.ceil(gaps / dt - 1e-9)), 0)
     # Uniform grid when outputs are uniform (the common case).
-    h = min((g / p for g, p in zip(gaps, per, strict=True) if p), default=dt)
+    h = float(np.min(gaps[per > 0] / per[per > 0])) if np.any(per > 0) else dt
     n_steps = int(round(t_eval[-1] / h))
+    if n_steps == 0:  # t_eval == [0]: the initial state only
+        return dt, 0, np.zeros(1, dtype=np.int64)
     dt = t_eval[-1] / n_steps
-    return dt, n_steps, {int(round(te / dt)) for te in t_eval}
+    return dt, n_steps, np.unique(np.rint(t_eval / dt).astype(np.int64))
 
 
 def run_fixed(
@@ -70,8 +74,12 @@ def run_fixed(
         q, v = problem.complete(q, v[problem.ind], 0.0)
     t = 0.0
     a = problem.accel(t, q, v)
-    if 0 in out_steps:
+    # Next output step: walk the sorted indices (no set of every step index).
+    n_out = None if out_steps is None else len(out_steps)
+    j = 0
+    if out_steps is None or out_steps[0] == 0:
         recorder.add(t, q, v, a, problem.lam)
+        j = 1
 
     def deriv(t, q, v):
         if partition:
@@ -97,8 +105,9 @@ def run_fixed(
             problem.check_rows(q_new, t)
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
-        if k in out_steps:
+        if out_steps is None or (j < n_out and out_steps[j] == k):
             recorder.add(t, q, v, a, problem.lam)
+            j += 1
         if progress is not None:
             progress(t)
     return n_steps

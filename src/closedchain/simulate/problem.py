@@ -79,9 +79,7 @@ class Problem:
         try:
             a, lam = self.func(self.mech, q, v, tau, self.solver_settings)
         except SingularConfigurationError as exc:
-            raise SingularConfigurationError(
-                f"at t = {t:.9g} s: {exc}", q=exc.q, condition_number=exc.condition_number, t=t
-            ) from None
+            raise exc.at_time(t) from None
         self.n_evals += 1
         if not np.all(np.isfinite(a)):
             raise SimulationError(f"non-finite acceleration at t = {t:.9g} s, q = {q}", t)
@@ -122,12 +120,14 @@ class Problem:
         J = self.jacobian(q)
         _, dep, cond = self.mech.closure.partition_at(J)
         if cond > self.settings.partition_singular_cond:
-            raise SingularConfigurationError(
-                f"{self.mech.name}: at t = {t:.9g} s no partition of the coordinates has a "
-                f"regular J_D (condition number {cond:.3e} > partition_singular_cond "
-                f"{self.settings.partition_singular_cond:.1e}): a singular configuration",
-                q=np.array(q),
-                condition_number=cond,
+            raise SingularConfigurationError.build(
+                self.mech.name,
+                "the best-conditioned J_D of any partition of the coordinates",
+                q=q,
+                cond=cond,
+                bound=self.settings.partition_singular_cond,
+                bound_name="partition_singular_cond",
+                hint="no partition has a regular J_D: a singular configuration",
                 t=t,
             )
         if np.array_equal(dep, self.dep):
@@ -184,14 +184,17 @@ class Problem:
             s = np.linalg.svd(self.jacobian(q), compute_uv=False)
             cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
         if cond > self.settings.singular_cond:
-            raise SingularConfigurationError(
-                f"{self.mech.name}: at t = {t:.9g} s the constraint Jacobian is close to losing "
-                f"rank (condition number {cond:.3e} > singular_cond "
-                f"{self.settings.singular_cond:.1e}): a singular configuration, where the motion "
-                "is not determined by the equations; a fixed-step integrator with "
-                "stabilization='partitioning' can step across some (see SimulationSettings)",
-                q=np.array(q),
-                condition_number=cond,
+            raise SingularConfigurationError.build(
+                self.mech.name,
+                "the constraint Jacobian",
+                q=q,
+                cond=cond,
+                bound=self.settings.singular_cond,
+                bound_name="singular_cond",
+                state="is close to losing rank",
+                hint="a singular configuration, where the motion is not determined by the "
+                "equations; a fixed-step integrator with stabilization='partitioning' can step "
+                "across some (see SimulationSettings)",
                 t=t,
             )
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ..exceptions import UnknownChoiceError
+from ..exceptions import resolve_choice
 from . import adaptive, fixed
 
 
@@ -93,19 +93,13 @@ def register_stabilization(spec: StabilizationSpec) -> StabilizationSpec:
 
 
 def get_integrator(name: str) -> IntegratorSpec:
-    """Return the integrator registered as ``name``, or raise listing the valid names."""
-    try:
-        return INTEGRATORS[name]
-    except KeyError:
-        raise UnknownChoiceError("integrator", name, INTEGRATORS) from None
+    """Return the integrator registered as ``name`` (any case), or raise listing the names."""
+    return INTEGRATORS[resolve_choice("integrator", name, INTEGRATORS)]
 
 
 def get_stabilization(name: str) -> StabilizationSpec:
-    """Return the stabilization registered as ``name``, or raise listing the valid names."""
-    try:
-        return STABILIZATIONS[name]
-    except KeyError:
-        raise UnknownChoiceError("stabilization", name, STABILIZATIONS) from None
+    """Return the stabilization registered as ``name`` (any case), or raise listing the names."""
+    return STABILIZATIONS[resolve_choice("stabilization", name, STABILIZATIONS)]
 
 
 for _spec in (

@@ -18,11 +18,14 @@ class SimulationError(ClosedChainError):
 
     Attributes:
         t: simulation time [s] at which it happened.
+        trajectory: the Trajectory recorded up to the stop (output samples
+            before ``t``), or None.
     """
 
     def __init__(self, message: str, t: float) -> None:
         super().__init__(message)
         self.t = t
+        self.trajectory = None
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,10 @@ class SimulationSettings:
         dropped_row_ratio: see ``dropped_row_tol``.
         open_row_tol: an open dropped row that no re-selection takes in stops
             the run with LoopClosureError above this [m or -].
+        max_steps: largest number of fixed steps a run may take; more is
+            refused before any work (dt far too small for t_final).
+        max_outputs: largest number of output samples (``t_eval`` times) a
+            run may keep; memory grows with them, not with the steps.
     """
 
     dt: float = 1e-3
@@ -85,6 +92,12 @@ class SimulationSettings:
     dropped_row_tol: float = 1e-9
     dropped_row_ratio: float = 100.0
     open_row_tol: float = 1e-6
+    max_steps: int = 100_000_000
+    max_outputs: int = 10_000_000
+
+
+#: The default settings of :func:`simulate`, shared (settings are frozen).
+DEFAULT_SIMULATION_SETTINGS = SimulationSettings()
 
 
 def seed_settings() -> SimulationSettings:

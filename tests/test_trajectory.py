@@ -1,0 +1,170 @@
+"""Tests of the Trajectory result: npz and CSV files, and their error paths."""
+
+from __future__ import annotations
+
+import csv
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+import closedchain as cc
+from closedchain.trajectory import FORMULA_PREFIXES, neutralize_formula
+
+ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
+
+
+@pytest.fixture(scope="module")
+def short_traj(fourbar) -> cc.Trajectory:
+    return cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.2, integrator="rk4", dt=1e-2)
+
+
+def read_csv(path) -> tuple[list[str], np.ndarray]:
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0], np.array(rows[1:], dtype=float)
+
+
+# -- npz -----------------------------------------------------------------------------------
+
+
+def test_npz_round_trip_is_exact(short_traj, tmp_path):
+    path = short_traj.save(tmp_path / "t.npz")
+    back = cc.Trajectory.load(path)
+    for name in ARRAYS:
+        assert np.array_equal(getattr(back, name), getattr(short_traj, name)), name
+    assert back.info == json.loads(json.dumps(short_traj.info))
+
+
+def test_truncated_npz_names_the_file(short_traj, tmp_path):
+    path = short_traj.save(tmp_path / "t.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(
+        cc.ClosedChainError, match=rf"^{path}: not a readable closedchain trajectory \(truncated"
+    ):
+        cc.Trajectory.load(path)
+
+
+def test_foreign_npz_names_what_is_missing(tmp_path):
+    path = tmp_path / "other.npz"
+    np.savez(path, x=np.zeros(3), t=np.zeros(3))
+    pattern = (
+        rf"^{path}: not a closedchain trajectory: missing q, v, a, lam, constraint_residual, "
+        r"velocity_residual, energy, info \(it holds: x, t\)$"
+    )
+    with pytest.raises(cc.ClosedChainError, match=pattern):
+        cc.Trajectory.load(path)
+
+
+def test_npz_with_a_missing_array_names_it(short_traj, tmp_path):
+    full = short_traj.save(tmp_path / "t.npz")
+    path = tmp_path / "partial.npz"
+    with zipfile.ZipFile(full) as src, zipfile.ZipFile(path, "w") as dst:
+        for item in src.namelist():
+            if item != "lam.npy":
+                dst.writestr(item, src.read(item))
+    with pytest.raises(cc.ClosedChainError, match=rf"^{path}: .*missing lam \(it holds: "):
+        cc.Trajectory.load(path)
+
+
+def test_npz_with_inconsistent_rows(short_traj, tmp_path):
+    path = tmp_path / "bad.npz"
+    arrays = {k: getattr(short_traj, k) for k in ARRAYS}
+    arrays["q"] = arrays["q"][:-1]
+    np.savez(path, **arrays, info=json.dumps({}))
+    with pytest.raises(cc.ClosedChainError, match=r"q do not have one row per time"):
+        cc.Trajectory.load(path)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "pattern"),
+    [
+        ("missing.npz", None, r"missing.npz: no such file"),
+        ("text.npz", b"hello", r"text.npz: not a readable closedchain trajectory"),
+        ("t.csv", b"t\n0\n", r"t.csv: only .npz trajectories can be loaded"),
+    ],
+)
+def test_unreadable_files(tmp_path, name, content, pattern):
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(cc.ClosedChainError, match=pattern):
+        cc.Trajectory.load(path)
+
+
+def test_single_array_npy_renamed_npz(tmp_path):
+    path = tmp_path / "array.npz"
+    with path.open("wb") as f:
+        np.save(f, np.zeros(3))
+    with pytest.raises(
+        cc.ClosedChainError, match=r"array.npz: not a closedchain trajectory: a single"
+    ):
+        cc.Trajectory.load(path)
+
+
+# -- CSV -----------------------------------------------------------------------------------
+
+
+def test_csv_is_readable(short_traj, fourbar, tmp_path):
+    path = short_traj.save(tmp_path / "t.csv")
+    header, table = read_csv(path)
+    assert header[0] == "t" and header[-1] == "energy"
+    assert [f"q:{n}" for n in fourbar.coordinate_names] == header[1:4]
+    assert np.array_equal(table[:, 0], short_traj.t)
+    assert np.array_equal(table[:, 1:4], short_traj.q)
+    assert np.array_equal(table[:, -1], short_traj.energy)
+    # numpy's reader agrees (numbers are plain, unquoted).
+    np.testing.assert_array_equal(np.loadtxt(path, delimiter=",", skiprows=1), table)
+    with pytest.raises(cc.ClosedChainError, match="valid suffixes"):
+        short_traj.save(tmp_path / "t.txt")
+
+
+#: Joint names a careless or hostile URDF may hold.
+HOSTILE_NAMES = ["a,b", 'say "hi"', "two\nlines", '=HYPERLINK("http://x")']
+
+
+def test_csv_round_trip_with_hostile_names(short_traj, tmp_path):
+    info = dict(short_traj.info)
+    info["configuration_names"] = HOSTILE_NAMES[:3]
+    info["velocity_names"] = HOSTILE_NAMES[1:]
+    traj = cc.Trajectory(**{k: getattr(short_traj, k) for k in ARRAYS}, info=info)
+    header, table = read_csv(traj.save(tmp_path / "t.csv"))
+    assert header == [
+        "t",
+        *(f"q:{n}" for n in HOSTILE_NAMES[:3]),
+        *(f"v:{n}" for n in HOSTILE_NAMES[1:]),
+        "constraint_residual",
+        "velocity_residual",
+        "energy",
+    ]
+    assert table.shape == (len(traj.t), len(header))
+    np.testing.assert_array_equal(table[:, 4:7], traj.v)
+
+
+@pytest.mark.parametrize("prefix", FORMULA_PREFIXES)
+def test_formula_prefixes_are_neutralized(prefix):
+    assert neutralize_formula(prefix + "SUM(A1)") == "'" + prefix + "SUM(A1)"
+    assert neutralize_formula("q:" + prefix) == "q:" + prefix
+    assert set(FORMULA_PREFIXES) >= {"=", "+", "-", "@"}
+
+
+def test_csv_header_cells_starting_a_formula_are_neutralized(short_traj, tmp_path):
+    """Header cells are checked whole: a column name that is a formula gets a ``'``."""
+    info = dict(short_traj.info)
+    info["configuration_names"] = ["x", "y", "z"]
+    traj = cc.Trajectory(**{k: getattr(short_traj, k) for k in ARRAYS}, info=info)
+    path = traj.save(tmp_path / "t.csv")
+    text = path.read_text()
+    assert text.splitlines()[0].startswith('"t","q:x","q:y","q:z",')
+    assert "\n=" not in text and ",=" not in text
+
+
+def test_csv_names_configuration_entries_when_nq_differs_from_nv(load_mechanism, tmp_path):
+    """A continuous joint's two configuration entries get their own CSV column names."""
+    mech = load_mechanism("slider_crank")
+    traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.01, integrator="rk4", dt=1e-3)
+    header, _ = read_csv(traj.save(tmp_path / "t.csv"))
+    assert header[1:3] == ["q:crank_joint[0]", "q:crank_joint[1]"]
+    assert len([h for h in header if h.startswith("q:")]) == mech.nq
