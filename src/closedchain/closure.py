@@ -553,12 +553,16 @@ class LoopClosure:
         r = self.rank
         cond_all = s_all[0] / s_all[r - 1] if s_all[r - 1] > self._tol else np.inf
         if cond_all > settings.cond_max:
-            raise SingularConfigurationError(
-                f"{self.name}{when}: the declared loop rows lose rank (condition number of "
-                f"their {r} largest singular values {cond_all:.3e} > {settings.cond_max:.1e}): "
-                "a singular configuration of the mechanism",
-                q=np.array(q),
-                condition_number=float(cond_all),
+            raise SingularConfigurationError.build(
+                self.name,
+                f"the constraint Jacobian of the declared loop rows (its {r} largest "
+                "singular values)",
+                q=q,
+                cond=float(cond_all),
+                bound=settings.cond_max,
+                bound_name="singular_cond",
+                state="loses rank",
+                hint="a singular configuration of the mechanism",
                 t=t,
             )
         worst = self.declared.declared_rows[int(np.argmax(dropped))].label
