@@ -216,9 +216,14 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
-    p.add_argument("--method", default="kkt", choices=sorted(METHODS), help="dynamics method")
     p.add_argument(
-        "--integrator", default="DOP853", choices=sorted(INTEGRATORS), help="time integrator"
+        "--method",
+        default="augmented-lagrangian",
+        choices=sorted(METHODS),
+        help="dynamics method (default augmented-lagrangian: passes singular positions)",
+    )
+    p.add_argument(
+        "--integrator", default="rk4", choices=sorted(INTEGRATORS), help="time integrator (default rk4)"
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
@@ -228,7 +233,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         "--stabilization",
         default=None,
         choices=sorted(STABILIZATIONS),
-        help="drift control (default: projection for fixed-step, none for adaptive)",
+        help="drift control (default: stage-projection for euler/semi-implicit/rk4, "
+        "mass-orthogonal for ali3p, none for adaptive)",
     )
     p.add_argument(
         "--q0",

@@ -90,8 +90,8 @@ def simulate(
     v0: np.ndarray,
     t_final: float,
     *,
-    method: str = "kkt",
-    integrator: str = "DOP853",
+    method: str = "augmented-lagrangian",
+    integrator: str = "rk4",
     dt: float | None = None,
     rtol: float | None = None,
     atol: float | None = None,
@@ -110,13 +110,17 @@ def simulate(
         v0: initial velocity, shape (nv,), with J v0 = 0 (see :func:`project_velocity`).
         t_final: duration [s].
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
-        integrator: a name in :data:`INTEGRATORS`.
+            Default ``"augmented-lagrangian"``: well posed where J loses rank.
+        integrator: a name in :data:`INTEGRATORS`. Default ``"rk4"`` with
+            ``dt = settings.dt`` (1 ms) and stage projection: together they pass
+            singular positions (see the README, "Singular positions").
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
         rtol: relative tolerance (adaptive integrators; default ``settings.rtol``).
         atol: absolute tolerance (adaptive integrators; default ``settings.atol``).
         stabilization: a name in :data:`STABILIZATIONS`; default: the
-            integrator's ``default_stabilization`` (``"projection"`` for
-            fixed-step integrators, ``"none"`` for adaptive ones).
+            integrator's ``default_stabilization`` (``"stage-projection"`` for
+            the explicit fixed-step integrators, ``"mass-orthogonal"`` for
+            ``"ali3p"``, ``"none"`` for adaptive ones).
         tau: generalized forces [N m or N]: None (zero), a constant array of
             shape (nv,), or a callable ``tau(t, q, v) -> (nv,)`` (actuators,
             springs, dampers, a controller).
@@ -151,6 +155,18 @@ def simulate(
             f"valid choices: {', '.join(spec.stabilizations)}"
         )
     get_method(method)
+    caps = METHOD_CAPABILITIES[method]
+    missing = [c for c in spec.method_capabilities if not getattr(caps, c)]
+    if missing:
+        able = [
+            m
+            for m in sorted(METHODS)
+            if all(getattr(METHOD_CAPABILITIES[m], c) for c in spec.method_capabilities)
+        ]
+        raise ClosedChainError(
+            f"integrator {integrator!r} needs a method with {', '.join(missing)}; "
+            f"method {method!r} has not; valid choices: {', '.join(able)}"
+        )
     if stab.accel_terms and not METHOD_CAPABILITIES[method].baumgarte:
         with_terms = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].baumgarte]
         raise ClosedChainError(

@@ -6,7 +6,7 @@ import numpy as np
 import scipy.integrate
 
 from ..exceptions import SingularConfigurationError
-from .problem import Problem, project
+from .problem import Problem, passing_hint, project
 from .settings import SimulationError
 
 
@@ -121,7 +121,7 @@ def run_adaptive(
                         f"{mech.name}: at t = {t_new:.9g} s det(J_D) changed sign within the "
                         f"last step (condition number of J_D {problem.cond_JD(q):.3e} at its "
                         "end): the motion crossed a singular configuration, which adaptive "
-                        "partitioning cannot follow; use a fixed-step integrator",
+                        f"partitioning cannot follow; {passing_hint()}",
                         q=np.array(q),
                         condition_number=problem.cond_JD(q),
                         t=t_new,

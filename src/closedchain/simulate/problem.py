@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
-from ..dynamics.base import get_method
+from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, partition_coordinates, solve_closure
 from ..trajectory import Trajectory
@@ -33,6 +33,9 @@ class Problem:
     def __init__(self, mech, method, tau, solver_settings, settings):
         self.mech = mech
         self.func = get_method(method)
+        self.method = method
+        #: The method stays well posed where J loses rank: no stop on cond(J).
+        self.singular_robust = METHOD_CAPABILITIES[method].singular_robust
         self.solver_settings = solver_settings
         self.settings = settings
         self.n_evals = 0
@@ -59,7 +62,8 @@ class Problem:
             self._J_at = np.array(q)
         return self._J
 
-    def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def torque(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return tau(t, q, v), shape (nv,), or raise SimulationError when it is malformed."""
         tau = np.asarray(self.tau(t, q, v), dtype=float)
         if tau.shape != (self.mech.nv,) or not np.all(np.isfinite(tau)):
             raise SimulationError(
@@ -67,11 +71,18 @@ class Problem:
                 f"({self.mech.nv},)",
                 t,
             )
+        return tau
+
+    def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        tau = self.torque(t, q, v)
         try:
             a, lam = self.func(self.mech, q, v, tau, self.solver_settings)
         except SingularConfigurationError as exc:
             raise SingularConfigurationError(
-                f"at t = {t:.9g} s: {exc}", q=exc.q, condition_number=exc.condition_number, t=t
+                f"at t = {t:.9g} s: {exc}; {passing_hint()}",
+                q=exc.q,
+                condition_number=exc.condition_number,
+                t=t,
             ) from None
         self.n_evals += 1
         if not np.all(np.isfinite(a)):
@@ -117,7 +128,8 @@ class Problem:
             raise SingularConfigurationError(
                 f"{self.mech.name}: at t = {t:.9g} s no partition of the coordinates has a "
                 f"regular J_D (condition number {cond:.3e} > partition_singular_cond "
-                f"{self.settings.partition_singular_cond:.1e}): a singular configuration",
+                f"{self.settings.partition_singular_cond:.1e}): a singular configuration; "
+                f"{passing_hint()}",
                 q=np.array(q),
                 condition_number=cond,
                 t=t,
@@ -140,8 +152,11 @@ class Problem:
         return float(np.linalg.slogdet(self.jacobian(q)[:, self.dep])[0])
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
-        """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``."""
-        if self.mech.nc == 0:
+        """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
+
+        Methods that declare ``singular_robust`` are not stopped.
+        """
+        if self.mech.nc == 0 or self.singular_robust:
             return
         s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
@@ -149,13 +164,29 @@ class Problem:
             raise SingularConfigurationError(
                 f"{self.mech.name}: at t = {t:.9g} s the constraint Jacobian is close to losing "
                 f"rank (condition number {cond:.3e} > singular_cond "
-                f"{self.settings.singular_cond:.1e}): a singular configuration, where the motion "
-                "is not determined by the equations; a fixed-step integrator with "
-                "stabilization='partitioning' can step across some (see SimulationSettings)",
+                f"{self.settings.singular_cond:.1e}): a singular configuration, where method "
+                f"{self.method!r} loses accuracy without any error estimate noticing; "
+                f"{passing_hint()}",
                 q=np.array(q),
                 condition_number=cond,
                 t=t,
             )
+
+
+def passing_hint() -> str:
+    """Name the configurations that pass singular positions (from the registries' capabilities)."""
+    from .registry import INTEGRATORS
+
+    methods = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].singular_robust]
+    integrators = [n for n, spec in INTEGRATORS.items() if spec.singular_robust]
+    if not methods:
+        return "no registered method passes singular positions"
+    text = f"to pass singular positions use method={methods[0]!r}"
+    if integrators:
+        text += f" and integrator={integrators[0]!r}"
+    if len(methods) > 1:
+        text += f"; methods that pass them: {', '.join(methods)}"
+    return text
 
 
 def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
