@@ -63,6 +63,10 @@ _NAME = "augmented-lagrangian"
 BANDED_FRACTION = 0.25
 
 
+#: Relative regularization of the normal equations that polish the multipliers.
+NORMAL_EQ_REG = 1e-14
+
+
 def structure(mech: Mechanism) -> np.ndarray:
     """Return the structural nonzero pattern of M + J^T J, shape (nv, nv), bool.
 
@@ -238,6 +242,15 @@ def solve_augmented_lagrangian(
         it += 1
         if float(np.max(np.abs(delta))) <= tol * (1.0 + float(np.max(np.abs(a)))):
             break
+    # The update alpha (J a + gamma) carries the round-off of J a times alpha (1e-4 N
+    # on the 4-bar with rho = 1e11): correct lam so that J^T lam matches the dynamics,
+    # J^T dlam = tau - h - M a - J^T lam, by regularized normal equations (the
+    # right-hand side lies in the range of J^T up to round-off, so the tiny
+    # regularization only keeps them solvable where J loses rank).
+    r_d = rhs - M @ a - J.T @ lam
+    JJ = J @ J.T
+    JJ[np.diag_indices_from(JJ)] += NORMAL_EQ_REG * max(float(np.trace(JJ)), 1.0) / len(lam)
+    lam += scipy.linalg.solve(JJ, J @ r_d, assume_a="pos", check_finite=False)
     return a, lam, it
 
 
