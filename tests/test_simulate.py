@@ -387,6 +387,7 @@ def _seed_run(mech, q0):
         q0,
         np.zeros(3),
         SEED_STEPS * SEED_DT,
+        method="kkt",  # the seed's KKT solve (the default before issue 11)
         integrator="semi-implicit",
         stabilization="projection",
         settings=seed_settings(),

@@ -205,6 +205,12 @@ def simulate(
         gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
         solver_settings = replace(solver_settings, baumgarte=gains)
     problem = Problem(mech, method, tau, solver_settings, settings)
+    # Passing singular positions takes a singular-robust method *and* accelerations
+    # evaluated on the manifold only (stage projection) or an index-3 scheme; any
+    # other configuration stops there with an error naming this one.
+    problem.singular_robust = caps.singular_robust and (
+        stab.projects_stages or spec.singular_robust
+    )
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
     info = {
         "mechanism": mech.name,

@@ -34,8 +34,9 @@ class Problem:
         self.mech = mech
         self.func = get_method(method)
         self.method = method
-        #: The method stays well posed where J loses rank: no stop on cond(J).
-        self.singular_robust = METHOD_CAPABILITIES[method].singular_robust
+        #: The configuration passes singular positions: no stop on cond(J) (set by
+        #: simulate from the method's, integrator's and stabilization's capabilities).
+        self.singular_robust = False
         self.solver_settings = solver_settings
         self.settings = settings
         self.n_evals = 0
@@ -154,7 +155,8 @@ class Problem:
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
 
-        Methods that declare ``singular_robust`` are not stopped.
+        Not when :attr:`singular_robust` (a singular-robust method with stage
+        projection, or an index-3 integrator such as ALI3-P).
         """
         if self.mech.nc == 0 or self.singular_robust:
             return
@@ -175,15 +177,18 @@ class Problem:
 
 def passing_hint() -> str:
     """Name the configurations that pass singular positions (from the registries' capabilities)."""
-    from .registry import INTEGRATORS
+    from .registry import INTEGRATORS, STABILIZATIONS
 
     methods = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].singular_robust]
     integrators = [n for n, spec in INTEGRATORS.items() if spec.singular_robust]
     if not methods:
         return "no registered method passes singular positions"
+    stages = [n for n, st in STABILIZATIONS.items() if st.projects_stages]
     text = f"to pass singular positions use method={methods[0]!r}"
+    if stages:
+        text += f" with stabilization={stages[0]!r} (and a fixed-step integrator)"
     if integrators:
-        text += f" and integrator={integrators[0]!r}"
+        text += f", or integrator={integrators[0]!r}"
     if len(methods) > 1:
         text += f"; methods that pass them: {', '.join(methods)}"
     return text
