@@ -237,6 +237,7 @@ def simulate(
     info["cpu_time"] = time.process_time() - cpu0
     info["steps"] = steps
     info["evaluations"] = problem.n_evals
+    info["branch_changes"] = recorder.branch_changes
     traj = recorder.trajectory(info)
     info["max_constraint_residual"] = traj.max_constraint_residual
     info["energy_drift"] = traj.energy_drift

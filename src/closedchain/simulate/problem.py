@@ -220,8 +220,11 @@ class Recorder:
         self.drift_limit = drift_limit
         self.jacobian = jacobian  # J(q), shared with the problem's memo
         self.rows: dict[str, list] = {
-            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
+            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke", "branch")
         }
+        self.dep = np.array(mech.dependent_idx_v, dtype=int)
+        #: Branch changes [t_before, t_after, from, to] (see Trajectory.branch).
+        self.branch_changes: list[list[float]] = []
         self._phi = np.zeros(mech.nc)
 
     def add(self, t, q, v, a, lam) -> None:
@@ -251,6 +254,12 @@ class Recorder:
         r["vres"].append(vres)
         r["e"].append(energy)
         r["ke"].append(kinetic)
+        if mech.nc and len(self.dep) == mech.nc:
+            # Sign of det(J_D): flips only through a singular J_D (assembly branch).
+            sign = float(np.linalg.slogdet(J[:, self.dep])[0])
+            if r["branch"] and sign != r["branch"][-1]:
+                self.branch_changes.append([r["t"][-2], t, r["branch"][-1], sign])
+            r["branch"].append(sign)
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows
@@ -265,5 +274,6 @@ class Recorder:
             velocity_residual=np.array(r["vres"]),
             energy=np.array(r["e"]),
             kinetic_energy=np.array(r["ke"]),
+            branch=np.array(r["branch"]) if r["branch"] else None,
             info=info,
         )
