@@ -31,14 +31,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-import closedchain as cc  # noqa: E402
 import nfourbar_reference as ref  # noqa: E402
+
+import closedchain as cc  # noqa: E402
 
 logger = logging.getLogger("nfourbar_cost")
 
 
 def _generator():
-    spec = importlib.util.spec_from_file_location("make_nfourbar", ROOT / "scripts" / "make_nfourbar.py")
+    spec = importlib.util.spec_from_file_location(
+        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -71,9 +74,7 @@ def measure(n: int, args, folder: Path) -> dict:
         full = cc.simulate(mech, q0, v0, 20.0, t_eval=np.linspace(0.0, 20.0, 21), **kw)
         row["cpu_20s"] = time.process_time() - t0
         theta = ref.crank_angle(n, 20.0)
-        row["b0_error_m"] = float(
-            np.linalg.norm(ref.point_b0(full.q[-1, 0]) - ref.point_b0(theta))
-        )
+        row["b0_error_m"] = float(np.linalg.norm(ref.point_b0(full.q[-1, 0]) - ref.point_b0(theta)))
         row["energy_drift"] = float(
             np.max(np.abs(full.energy - full.energy[0])) / ref.characteristic_energy(n)
         )
@@ -101,7 +102,8 @@ def main(argv: list[str] | None = None) -> None:
         logger.info(json.dumps({"rows": rows, "growth_exponent": exponent}, indent=1))
         return
     for r in rows:
-        logger.info("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()))
+        cells = (f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items())
+        logger.info("  ".join(cells))
     logger.info("growth exponent of cost per step in N: %.2f", exponent)
 
 

@@ -223,7 +223,10 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         help="dynamics method (default augmented-lagrangian: passes singular positions)",
     )
     p.add_argument(
-        "--integrator", default="rk4", choices=sorted(INTEGRATORS), help="time integrator (default rk4)"
+        "--integrator",
+        default="rk4",
+        choices=sorted(INTEGRATORS),
+        help="time integrator (default rk4)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")

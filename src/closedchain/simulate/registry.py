@@ -161,9 +161,7 @@ for _name, _step, _order, _what in (
             fixed.run_fixed,
             _order,
             step=_step,
-            stabilizations=(
-                "none", "baumgarte", "projection", "partitioning", "stage-projection"
-            ),
+            stabilizations=("none", "baumgarte", "projection", "partitioning", "stage-projection"),
             default_stabilization="stage-projection",
             description=f"{_what}, fixed step, on the manifold through pin.integrate",
         )
