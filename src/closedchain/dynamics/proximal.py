@@ -24,9 +24,12 @@ eigenvalue d shrinks by :math:`\mu / (d + \mu)` per iteration. The bias is
 that contraction: along a direction where J is nearly rank-deficient (d
 small, a singular configuration) the iteration stops at ``prox_max_iter`` with
 the constraint only partly enforced, by the factor
-:math:`1 - (\mu / (d + \mu))^{k}` after k iterations (measured on the
-N-four-bar at its flat position and at 1e-4 rad from it: see
-tests/test_singular.py). The relative regularization is
+:math:`1 - (\mu / (d + \mu))^{k}` after k iterations. Measured on the
+N-four-bar (N = 2, cranks at 3 rad/s, defaults mu_r = 1e-8, 50 iterations):
+at the flat position itself (consistent, rank-deficient J) it converges
+(|J a + gamma| 4e-15); at 1e-4 rad from it the iteration stops at the cap
+with |J a + gamma| = 1.9e-12 and accelerations 3.8e-8 rad/s^2 from kkt; at
+1e-2 rad it agrees with kkt to 5e-15 (tests/test_singular.py). The relative regularization is
 :math:`\mu = \mu_r \max \mathrm{diag}(D)` with mu_r = ``SolverSettings.prox_mu``.
 """
 
