@@ -63,6 +63,7 @@ def test_methods_agree_with_kkt(load_mechanism, rng, name, method):
         )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["fourbar", "agile_eye"])
 @pytest.mark.parametrize("method", ["augmented-lagrangian", "proximal"])
 def test_redundant_rows_without_row_selection(load_mechanism, rng, name, method):
@@ -209,6 +210,7 @@ ALI3P_T = 2.0
 ALI3P_B0_TOL = 1e-6
 
 
+@pytest.mark.slow
 def test_ali3p_passes_the_flat_positions(nfourbar_mech):
     mech = nfourbar_mech(2)
     q0, v0 = ref.initial_state(mech)
@@ -290,6 +292,7 @@ def test_change_point_configurations(load_mechanism, q_open, config):
         assert traj.energy_drift > ENERGY_DRIFT_TOL
 
 
+@pytest.mark.slow
 def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechanism, q_open):
     """The open-branch 4-bar passes its change point at t = 0.393 s: the branch series
     (sign of det(J_D), J_D = coupler and rocker columns) starts +1 (open) and the
