@@ -86,7 +86,13 @@ def main(argv=None) -> int:
             mech = cc.load(ROOT / "models" / f"{name}.urdf")
             n = int(round(t_final * FPS)) + 1
             traj = simulate(
-                mech, mech.q_ref, np.zeros(mech.nv), t_final, t_eval=np.linspace(0, t_final, n)
+                mech,
+                mech.q_ref,
+                np.zeros(mech.nv),
+                t_final,
+                t_eval=np.linspace(0, t_final, n),
+                method="kkt",
+                integrator="DOP853",
             )
             html = cc.write_html(mech, traj, Path(tmp) / f"{name}.html", fps=FPS, settings=settings)
             png = shrink(render(browser, html.path, t_shot, tuple(args.size)), args.colors)

@@ -4,8 +4,8 @@ The seed integrates the 4-bar with an explicit-Euler-style step (v += dt a; q +=
 followed by two Gauss-Newton projection steps, dt = 1 ms, 1000 steps, a 1 N m crank
 torque, from rest at theta2 = 10 deg. In closedchain that is one configuration::
 
-    simulate(mech, q0, v0, 1.0, integrator="semi-implicit", stabilization="projection",
-             settings=seed_settings(), dt=1e-3, tau=[1, 0, 0])
+    simulate(mech, q0, v0, 1.0, method="kkt", integrator="semi-implicit",
+             stabilization="projection", settings=seed_settings(), dt=1e-3, tau=[1, 0, 0])
 
 Differences from the seed's printout, by design: the mass matrix and bias forces are
 Pinocchio's exact ones for the URDF's rods (the seed uses a diagonal approximation);
@@ -43,6 +43,7 @@ def main() -> None:
         q0,
         np.zeros(mech.nv),
         STEPS * DT,
+        method="kkt",
         integrator="semi-implicit",
         stabilization="projection",
         settings=seed_settings(),

@@ -291,6 +291,8 @@ def test_unwritable_output_exits_2(capsys, tmp_path, mechanism_files, command):
 #: The 4-bar's open branch at theta2 = 10 deg (a guess the CLI assembles, crank held); from
 #: rest it reaches its change point at t = 0.393 s (tests/test_simulate.py).
 Q0_OPEN = ("0.17453292519943295", "0.8726646259971648", "0.5235987755982988")
+#: A configuration that stops at the change point (the default passes it: tests/test_singular.py).
+STOPPING = ("--method", "kkt", "--integrator", "DOP853")
 
 
 def test_help_documents_every_exit_status(capsys):
@@ -304,7 +306,7 @@ def test_help_documents_every_exit_status(capsys):
 
 
 def test_simulation_stopped_at_a_singularity_exits_3(capsys, mechanism_files):
-    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN]
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN, *STOPPING]
     status, out, err = run(capsys, *argv)
     assert status == cli.EXIT_STOPPED == 3
     assert out == ""
@@ -404,7 +406,7 @@ def test_animate_writes_the_motion_up_to_a_singular_stop_and_exits_3(
     capsys, tmp_path, mechanism_files
 ):
     out_file = tmp_path / "stop.html"
-    argv = ["animate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN]
+    argv = ["animate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN, *STOPPING]
     status, out, err = run(capsys, *argv, "-o", out_file)
     assert status == 3
     assert out.startswith(f"wrote {out_file} (")

@@ -302,17 +302,17 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
     p.add_argument(
         "--method",
-        default="kkt",
+        default="augmented-lagrangian",
         type=_choice(METHODS),
         choices=sorted(METHODS),
-        help="dynamics method (any case)",
+        help="dynamics method, any case (default augmented-lagrangian: passes singular positions)",
     )
     p.add_argument(
         "--integrator",
-        default="DOP853",
+        default="rk4",
         type=_choice(INTEGRATORS),
         choices=sorted(INTEGRATORS),
-        help="time integrator (any case)",
+        help="time integrator, any case (default rk4)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
@@ -323,7 +323,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         type=_choice(STABILIZATIONS),
         choices=sorted(STABILIZATIONS),
-        help="drift control, any case (default: projection for fixed-step, none for adaptive)",
+        help="drift control, any case (default: stage-projection for euler/semi-implicit/rk4, "
+        "mass-orthogonal for ali3p, none for adaptive)",
     )
     p.add_argument(
         "--q0",

@@ -112,10 +112,19 @@ class SingularConfigurationError(ClosedChainError):
         )
         return cls(message, q=q, condition_number=cond, t=t)
 
-    def at_time(self, t: float) -> SingularConfigurationError:
-        """Return this error with the simulation time ``t`` [s] prefixed and set."""
+    def at_time(self, t: float, *, hint: str = "") -> SingularConfigurationError:
+        """Return this error with the simulation time ``t`` [s] prefixed and set.
+
+        Args:
+            t: simulation time [s].
+            hint: appended after ``"; "`` when given (e.g. the configurations
+                that pass singular positions).
+        """
         return type(self)(
-            f"at t = {t:.9g} s: {self}", q=self.q, condition_number=self.condition_number, t=t
+            f"at t = {t:.9g} s: {self}" + (f"; {hint}" if hint else ""),
+            q=self.q,
+            condition_number=self.condition_number,
+            t=t,
         )
 
 

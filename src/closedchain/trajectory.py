@@ -39,6 +39,13 @@ class Trajectory:
         energy: total mechanical energy (kinetic + potential) [J], shape (N,).
         kinetic_energy: kinetic energy [J], shape (N,), or None when not recorded;
             it sets the scale of :attr:`energy_drift`.
+        branch: assembly-branch indicator, shape (N,): the sign (+1, -1; 0 when
+            singular) of det(J_D) for the mechanism's dependent coordinates
+            (``Mechanism.dependent_idx_v``). It changes only where J_D is
+            singular: at a change point it says which branch the motion leaves
+            on (the 4-bar: open +1 / crossed -1 assembly); ``info["branch_changes"]``
+            lists the changes as [t_before, t_after, from, to]. None when not
+            recorded (no loops).
         info: run metadata (mechanism, method, integrator, stabilization,
             steps, CPU time [s], ...), JSON-serialisable.
     """
@@ -52,6 +59,7 @@ class Trajectory:
     velocity_residual: np.ndarray
     energy: np.ndarray
     kinetic_energy: np.ndarray | None = None
+    branch: np.ndarray | None = None
     info: dict = field(default_factory=dict)
 
     @property
@@ -90,7 +98,11 @@ class Trajectory:
         """
         path = Path(path)
         if path.suffix == ".npz":
-            extra = {} if self.kinetic_energy is None else {"kinetic_energy": self.kinetic_energy}
+            extra = {
+                k: getattr(self, k)
+                for k in ("kinetic_energy", "branch")
+                if getattr(self, k) is not None
+            }
             np.savez_compressed(
                 path, **{k: getattr(self, k) for k in _ARRAYS}, **extra, info=json.dumps(self.info)
             )
@@ -156,8 +168,9 @@ class Trajectory:
                         + f" (it holds: {', '.join(f.files) or 'nothing'})"
                     )
                 arrays = {k: f[k] for k in _ARRAYS}
-                if "kinetic_energy" in f.files:
-                    arrays["kinetic_energy"] = f["kinetic_energy"]
+                for k in ("kinetic_energy", "branch"):
+                    if k in f.files:
+                        arrays[k] = f[k]
                 info = json.loads(str(f["info"]))
         except ClosedChainError:
             raise

@@ -10,9 +10,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..exceptions import NonFiniteError
+from . import augmented_lagrangian as _augmented_lagrangian  # noqa: F401  (registers it)
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
 from . import nullspace as _nullspace  # noqa: F401  (registers "nullspace")
 from . import pinocchio_method as _pinocchio_method  # noqa: F401  (registers "pinocchio")
+from . import proximal as _proximal  # noqa: F401  (registers "proximal")
 from . import reduced as _reduced  # noqa: F401  (registers "reduced")
 from . import schur as _schur  # noqa: F401  (registers "schur")
 from .base import (

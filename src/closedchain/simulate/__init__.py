@@ -150,8 +150,8 @@ def simulate(
     v0: np.ndarray,
     t_final: float,
     *,
-    method: str = "kkt",
-    integrator: str = "DOP853",
+    method: str = "augmented-lagrangian",
+    integrator: str = "rk4",
     dt: float | None = None,
     rtol: float | None = None,
     atol: float | None = None,
@@ -170,13 +170,17 @@ def simulate(
         v0: initial velocity, shape (nv,), with J v0 = 0 (see :func:`project_velocity`).
         t_final: duration [s].
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
-        integrator: a name in :data:`INTEGRATORS`.
+            Default ``"augmented-lagrangian"``: well posed where J loses rank.
+        integrator: a name in :data:`INTEGRATORS`. Default ``"rk4"`` with
+            ``dt = settings.dt`` (1 ms) and stage projection: together they pass
+            singular positions (see the README, "Singular positions").
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
         rtol: relative tolerance (adaptive integrators; default ``settings.rtol``).
         atol: absolute tolerance (adaptive integrators; default ``settings.atol``).
         stabilization: a name in :data:`STABILIZATIONS`; default: the
-            integrator's ``default_stabilization`` (``"projection"`` for
-            fixed-step integrators, ``"none"`` for adaptive ones).
+            integrator's ``default_stabilization`` (``"stage-projection"`` for
+            the explicit fixed-step integrators, ``"mass-orthogonal"`` for
+            ``"ali3p"``, ``"none"`` for adaptive ones).
         tau: generalized forces [N m or N]: None (zero), a constant array of
             shape (nv,), or a callable ``tau(t, q, v) -> (nv,)`` (actuators,
             springs, dampers, a controller).
@@ -213,6 +217,18 @@ def simulate(
             f"valid choices: {', '.join(spec.stabilizations)}"
         )
     method = method_name(method)
+    caps = METHOD_CAPABILITIES[method]
+    missing = [c for c in spec.method_capabilities if not getattr(caps, c)]
+    if missing:
+        able = [
+            m
+            for m in sorted(METHODS)
+            if all(getattr(METHOD_CAPABILITIES[m], c) for c in spec.method_capabilities)
+        ]
+        raise InvalidArgumentError(
+            f"integrator {integrator!r} needs a method with {', '.join(missing)}; "
+            f"method {method!r} has not; valid choices: {', '.join(able)}"
+        )
     if stab.accel_terms and not METHOD_CAPABILITIES[method].baumgarte:
         with_terms = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].baumgarte]
         raise InvalidArgumentError(
@@ -233,6 +249,17 @@ def simulate(
             "a fixed-step integrator (euler, semi-implicit, rk4) with projection"
         )
     t_eval = check_t_eval(t_eval, t_final, settings)
+    # A step control the integrator would ignore is a mistake, not a no-op.
+    ignored = ("rtol", "atol") if fixed else ("dt",)
+    given = [n for n, val in (("dt", dt), ("rtol", rtol), ("atol", atol)) if val is not None]
+    if any(n in ignored for n in given):
+        kinds = {"fixed": "dt", "adaptive": "rtol and atol"}
+        raise InvalidArgumentError(
+            f"integrator {integrator!r} is {spec.kind}-step and takes {kinds[spec.kind]}, "
+            f"not {', '.join(n for n in given if n in ignored)}; fixed-step: "
+            f"{', '.join(n for n, sp in INTEGRATORS.items() if sp.kind == 'fixed')}; adaptive: "
+            f"{', '.join(n for n, sp in INTEGRATORS.items() if sp.kind == 'adaptive')}"
+        )
     if fixed:
         dt = settings.dt if dt is None else dt
         check_positive("dt", dt, "the fixed step [s]")
@@ -261,6 +288,12 @@ def simulate(
         gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
         solver_settings = replace(solver_settings, baumgarte=gains)
     problem = Problem(mech, method, tau, solver_settings, settings)
+    # Passing singular positions takes a singular-robust method *and* accelerations
+    # evaluated on the manifold only (stage projection) or an index-3 scheme; any
+    # other configuration stops there with an error naming this one.
+    problem.singular_robust = caps.singular_robust and (
+        stab.projects_stages or spec.singular_robust
+    )
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
     problem.check_start(q0)
     info = {
@@ -297,6 +330,7 @@ def simulate(
     info["row_reselections"] = problem.reselections
     info["steps"] = steps
     info["evaluations"] = problem.n_evals
+    info["branch_changes"] = recorder.branch_changes
     traj = recorder.trajectory(info)
     info["max_constraint_residual"] = traj.max_constraint_residual
     info["energy_drift"] = traj.energy_drift

@@ -6,7 +6,7 @@ import numpy as np
 import scipy.integrate
 
 from ..exceptions import SingularConfigurationError
-from .problem import Problem, project
+from .problem import Problem, passing_hint, project
 from .settings import SimulationError
 
 
@@ -125,7 +125,8 @@ def run_adaptive(
                         state="changed sign within the last step, ending",
                         detail=" of J_D at the step's end",
                         hint="the motion crossed a singular configuration, which adaptive "
-                        "partitioning cannot follow; use a fixed-step integrator",
+                        "partitioning cannot follow; use a fixed-step integrator; "
+                        f"{passing_hint()}",
                         t=t_new,
                     )
                 if (

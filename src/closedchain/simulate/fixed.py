@@ -84,6 +84,10 @@ def run_fixed(
     def deriv(t, q, v):
         if partition:
             q, v = problem.complete(q, v[problem.ind], t)
+        elif stab.projects_stages:
+            # Accelerations only on phi = 0, J v = 0: off the manifold a nearly
+            # rank-deficient J amplifies the inconsistency of J a + gamma = 0.
+            q, v = project(problem, q, v, t)
         return v, problem.accel(t, q, v)
 
     for k in range(1, n_steps + 1):

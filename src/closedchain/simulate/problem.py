@@ -16,7 +16,7 @@ import pinocchio as pin
 import scipy.linalg
 
 from ..closure import RowCheckSettings
-from ..dynamics.base import get_method
+from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory
@@ -34,6 +34,10 @@ class Problem:
     def __init__(self, mech, method, tau, solver_settings, settings):
         self.mech = mech
         self.func = get_method(method)
+        self.method = method
+        #: The configuration passes singular positions: no stop on cond(J) (set by
+        #: simulate from the method's, integrator's and stabilization's capabilities).
+        self.singular_robust = False
         self.solver_settings = solver_settings
         self.settings = settings
         self.n_evals = 0
@@ -68,7 +72,8 @@ class Problem:
             self._J_at = np.array(q)
         return self._J
 
-    def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def torque(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return tau(t, q, v), shape (nv,), or raise SimulationError when it is malformed."""
         tau = np.asarray(self.tau(t, q, v), dtype=float)
         if tau.shape != (self.mech.nv,) or not np.all(np.isfinite(tau)):
             raise SimulationError(
@@ -76,10 +81,14 @@ class Problem:
                 f"({self.mech.nv},)",
                 t,
             )
+        return tau
+
+    def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        tau = self.torque(t, q, v)
         try:
             a, lam = self.func(self.mech, q, v, tau, self.solver_settings)
         except SingularConfigurationError as exc:
-            raise exc.at_time(t) from None
+            raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1
         if not np.all(np.isfinite(a)):
             raise SimulationError(f"non-finite acceleration at t = {t:.9g} s, q = {q}", t)
@@ -127,7 +136,7 @@ class Problem:
                 cond=cond,
                 bound=self.settings.partition_singular_cond,
                 bound_name="partition_singular_cond",
-                hint="no partition has a regular J_D: a singular configuration",
+                hint=f"no partition has a regular J_D: a singular configuration; {passing_hint()}",
                 t=t,
             )
         if np.array_equal(dep, self.dep):
@@ -175,8 +184,10 @@ class Problem:
 
         Every declared row is checked first (:meth:`check_rows`): a kept set that
         degenerates where the mechanism does not is re-selected, not reported singular.
+        Not when :attr:`singular_robust` (a singular-robust method with stage
+        projection, or an index-3 integrator such as ALI3-P).
         """
-        if self.mech.nc == 0:
+        if self.mech.nc == 0 or self.singular_robust:
             return
         s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
@@ -193,10 +204,29 @@ class Problem:
                 bound_name="singular_cond",
                 state="is close to losing rank",
                 hint="a singular configuration, where the motion is not determined by the "
-                "equations; a fixed-step integrator with stabilization='partitioning' can step "
-                "across some (see SimulationSettings)",
+                f"equations and method {self.method!r} loses accuracy without any error "
+                f"estimate noticing; {passing_hint()}",
                 t=t,
             )
+
+
+def passing_hint() -> str:
+    """Name the configurations that pass singular positions (from the registries' capabilities)."""
+    from .registry import INTEGRATORS, STABILIZATIONS
+
+    methods = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].singular_robust]
+    integrators = [n for n, spec in INTEGRATORS.items() if spec.singular_robust]
+    if not methods:
+        return "no registered method passes singular positions"
+    stages = [n for n, st in STABILIZATIONS.items() if st.projects_stages]
+    text = f"to pass singular positions use method={methods[0]!r}"
+    if stages:
+        text += f" with stabilization={stages[0]!r} (and a fixed-step integrator)"
+    if integrators:
+        text += f", or integrator={integrators[0]!r}"
+    if len(methods) > 1:
+        text += f"; methods that pass them: {', '.join(methods)}"
+    return text
 
 
 def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
@@ -225,9 +255,12 @@ class Recorder:
         self.drift_limit = drift_limit
         self.jacobian = jacobian  # J(q), shared with the problem's memo
         self.rows: dict[str, list] = {
-            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
+            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke", "branch")
         }
         self._phi = np.zeros(mech.declared.nc)
+        self.dep = np.array(mech.dependent_idx_v, dtype=int)
+        #: Branch changes [t_before, t_after, from, to] (see Trajectory.branch).
+        self.branch_changes: list[list[float]] = []
 
     def add(self, t, q, v, a, lam) -> None:
         mech = self.mech
@@ -259,6 +292,12 @@ class Recorder:
         r["vres"].append(vres)
         r["e"].append(energy)
         r["ke"].append(kinetic)
+        if mech.nc and len(self.dep) == mech.nc:
+            # Sign of det(J_D): flips only through a singular J_D (assembly branch).
+            sign = float(np.linalg.slogdet(J[:, self.dep])[0])
+            if r["branch"] and sign != r["branch"][-1]:
+                self.branch_changes.append([r["t"][-2], t, r["branch"][-1], sign])
+            r["branch"].append(sign)
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows
@@ -273,5 +312,6 @@ class Recorder:
             velocity_residual=np.array(r["vres"]),
             energy=np.array(r["e"]),
             kinetic_energy=np.array(r["ke"]),
+            branch=np.array(r["branch"]) if r["branch"] else None,
             info=info,
         )

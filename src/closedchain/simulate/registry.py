@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..exceptions import resolve_choice
-from . import adaptive, fixed
+from . import adaptive, ali3p, fixed
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,10 @@ class IntegratorSpec:
         default_stabilization: used when the caller gives none.
         step: the one-step map of a fixed-step integrator,
             ``step(model, deriv, t, q, v, a, dt) -> (q, v)``.
+        method_capabilities: capabilities (fields of ``MethodCapabilities``) the
+            forward-dynamics method must declare to pair with this integrator.
+        singular_robust: the scheme itself stays well posed where J loses rank
+            (the simulator does not stop it on cond(J)).
         description: one line for ``--help`` and the README.
     """
 
@@ -51,6 +55,8 @@ class IntegratorSpec:
     vector_state: bool = False
     default_stabilization: str = "none"
     step: Callable | None = None
+    method_capabilities: tuple[str, ...] = ()
+    singular_robust: bool = False
     description: str = ""
 
 
@@ -64,6 +70,8 @@ class StabilizationSpec:
             method must declare ``MethodCapabilities.baumgarte``).
         projects: projects (q, v) onto the manifold after each step.
         partitions: integrates the independent coordinates only (needs nq == nv).
+        projects_stages: also projects every stage state of a fixed-step
+            integrator before its accelerations are evaluated.
         description: one line.
     """
 
@@ -71,6 +79,7 @@ class StabilizationSpec:
     accel_terms: bool = False
     projects: bool = False
     partitions: bool = False
+    projects_stages: bool = False
     description: str = ""
 
 
@@ -119,6 +128,18 @@ for _spec in (
         partitions=True,
         description="coordinate partitioning with re-partitioning (Wehage & Haug 1982)",
     ),
+    StabilizationSpec(
+        "stage-projection",
+        projects=True,
+        projects_stages=True,
+        description="projection of q and v onto the manifold at every stage and after each "
+        "step: accelerations are only evaluated on phi = 0, J v = 0",
+    ),
+    StabilizationSpec(
+        "mass-orthogonal",
+        description="index-3 penalty with augmented-Lagrangian multipliers, then "
+        "M-orthogonal projections of v and a (ALI3-P; its integrator only)",
+    ),
 ):
     register_stabilization(_spec)
 
@@ -134,7 +155,8 @@ for _name, _step, _order, _what in (
             fixed.run_fixed,
             _order,
             step=_step,
-            default_stabilization="projection",
+            stabilizations=("none", "baumgarte", "projection", "partitioning", "stage-projection"),
+            default_stabilization="stage-projection",
             description=f"{_what}, fixed step, on the manifold through pin.integrate",
         )
     )
@@ -156,3 +178,18 @@ for _name, _order, _what in (
             description=f"scipy.integrate.{_name}: {_what}, adaptive, dense output",
         )
     )
+
+register_integrator(
+    IntegratorSpec(
+        "ali3p",
+        "fixed",
+        ali3p.run_ali3p,
+        2,
+        stabilizations=("mass-orthogonal",),
+        default_stabilization="mass-orthogonal",
+        method_capabilities=("singular_robust",),
+        singular_robust=True,
+        description="ALI3-P: index-3 augmented Lagrangian, implicit trapezoidal rule with "
+        "Newton, mass-orthogonal projections (Bayo & Ledesma 1996; Cuadrado et al. 2000)",
+    )
+)

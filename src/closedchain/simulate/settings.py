@@ -74,6 +74,22 @@ class SimulationSettings:
             refused before any work (dt far too small for t_final).
         max_outputs: largest number of output samples (``t_eval`` times) a
             run may keep; memory grows with them, not with the steps.
+        ali3p_tol: the ALI3-P integrator's Newton iterations stop when the
+            largest correction of the step's displacement is below this
+            [rad or m].
+        ali3p_phi_tol: ... and when max |phi| at the iterate is below this [m or -]:
+            a residual closure error left at a flat position is amplified by the
+            next passage through it (measured on the N-four-bar: 1e-10 left,
+            1e-7 after the third flat position, then Newton stalls).
+        ali3p_max_iter: its Newton iteration cap per step (then SimulationError).
+        ali3p_penalty: relative penalty rho of ALI3-P, h^2 alpha / 4 = rho tr(M) /
+            tr(J^T J) (dimensionless). Its Newton tangent M + (h^2 alpha / 4) J^T J
+            leaves out the geometric stiffness of the constraint forces, which
+            dominates along a direction where J is nearly rank-deficient unless
+            the penalty is large: with rho = 1e9 Newton stalls at the
+            N-four-bar's second flat position (dt 1 ms), with 1e11 it converges
+            in two iterations per step on average. Round-off of the factorization
+            (about rho eps) is removed by the residual form of the iterations.
     """
 
     dt: float = 1e-3
@@ -94,6 +110,10 @@ class SimulationSettings:
     open_row_tol: float = 1e-6
     max_steps: int = 100_000_000
     max_outputs: int = 10_000_000
+    ali3p_tol: float = 1e-10
+    ali3p_phi_tol: float = 1e-13
+    ali3p_max_iter: int = 50
+    ali3p_penalty: float = 1e11
 
 
 #: The default settings of :func:`simulate`, shared (settings are frozen).

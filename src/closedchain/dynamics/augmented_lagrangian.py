@@ -1,0 +1,296 @@
+r"""Augmented-Lagrangian forward dynamics: well posed where J loses rank.
+
+The index-1 augmented Lagrangian formulation (Bayo, Garcia de Jalon, Serna
+1988; Bayo and Ledesma 1996) replaces the saddle-point KKT system by a
+sequence of symmetric positive definite solves with the penalized mass matrix
+
+.. math::
+
+    P = M + \alpha J^\top J, \qquad
+    P\, a_{k+1} = \tau - h - J^\top \lambda_k - \alpha J^\top \gamma, \qquad
+    \lambda_{k+1} = \lambda_k + \alpha (J a_{k+1} + \gamma),
+
+from :math:`\lambda_0 = 0`. P stays positive definite whatever the rank of J
+(M is), so the iteration is defined at singular configurations and with
+redundant rows. While the rows of J are consistent (J a + gamma = 0 has a
+solution, as on the constraint manifold) the accelerations converge to the
+unique minimizer of Gauss's principle, :math:`(a - M^{-1}(\tau - h))^\top M
+(\cdot)` subject to :math:`J a + \gamma = 0`, i.e. the KKT accelerations when J
+has full rank; each iteration shrinks the error along a constraint direction
+of singular value sigma by :math:`m / (m + \alpha \sigma^2)`, so regular
+directions converge in one or two iterations and a direction of a nearly
+singular J more slowly but boundedly. The multipliers of redundant rows are
+not unique (their generalized force J^T lam is).
+
+The penalty is relative: :math:`\alpha = \rho\, \mathrm{tr}(M) /
+\mathrm{tr}(J^\top J)` with :math:`\rho` = ``SolverSettings.al_penalty``.
+
+:class:`PenalizedSolver` factorizes P (dense Cholesky, or banded Cholesky in
+a bandwidth-reducing order when the structure of M + J^T J is banded, as for
+the N-four-bar: cost linear in nv); the ALI3-P integrator
+(``closedchain.simulate.ali3p``) uses it too.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.csgraph
+from scipy.linalg import lapack
+
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    compute_terms,
+    method_buffers,
+    register,
+    singular_error,
+)
+
+if TYPE_CHECKING:
+    from ..mechanism import Mechanism
+
+logger = logging.getLogger(__name__)
+
+_NAME = "augmented-lagrangian"
+
+#: Use the banded factorization when the half bandwidth (after reverse
+#: Cuthill-McKee) is at most this fraction of nv; dense LAPACK otherwise.
+BANDED_FRACTION = 0.25
+
+
+#: Relative regularization of the normal equations that polish the multipliers.
+NORMAL_EQ_REG = 1e-14
+
+
+def structure(mech: Mechanism) -> np.ndarray:
+    """Return the structural nonzero pattern of M + J^T J, shape (nv, nv), bool.
+
+    M_ij is structurally nonzero when joint i supports joint j or the converse
+    (CRBA); a row of a loop depends on the joints supporting its two cut frames.
+    """
+    model = mech.model
+    nv = mech.nv
+    pattern = np.zeros((nv, nv), dtype=bool)
+    for j in range(1, model.njoints):
+        cols = _support_columns(model, j)
+        pattern[np.ix_(cols, cols)] = True
+    for blk, _ in mech.constraints.per_loop():
+        cols = np.union1d(
+            _support_columns(model, model.frames[blk.fid_p].parentJoint),
+            _support_columns(model, model.frames[blk.fid_s].parentJoint),
+        )
+        pattern[np.ix_(cols, cols)] = True
+    return pattern
+
+
+def _support_columns(model, joint: int) -> np.ndarray:
+    cols: list[int] = []
+    for s in model.supports[joint]:
+        if s == 0:
+            continue
+        jm = model.joints[s]
+        cols += range(jm.idx_v, jm.idx_v + jm.nv)
+    return np.array(cols, dtype=int)
+
+
+class PenalizedSolver:
+    """Factorize and solve with P = M + alpha J^T J (symmetric positive definite).
+
+    Built once per mechanism. Chooses a banded Cholesky (``scipy.linalg.
+    cholesky_banded``, O(nv b^2)) in reverse Cuthill-McKee order when the
+    structural half bandwidth b is small (:data:`BANDED_FRACTION`), else a dense
+    LAPACK Cholesky.
+
+    Attributes:
+        banded: whether the banded path is used.
+        bandwidth: structural half bandwidth in the chosen order.
+        perm: the order, shape (nv,).
+    """
+
+    def __init__(self, mech: Mechanism) -> None:
+        nv = mech.nv
+        pattern = structure(mech)
+        perm = scipy.sparse.csgraph.reverse_cuthill_mckee(
+            scipy.sparse.csr_matrix(pattern), symmetric_mode=True
+        )
+        # Keep the natural order when it is at least as narrow (it often is).
+        self.perm = np.arange(nv)
+        self.bandwidth = _bandwidth(pattern)
+        b_rcm = _bandwidth(pattern[np.ix_(perm, perm)])
+        if b_rcm < self.bandwidth:
+            self.perm, self.bandwidth = np.asarray(perm), b_rcm
+        self.banded = nv > 8 and self.bandwidth <= BANDED_FRACTION * nv
+        self.nv = nv
+        b = self.bandwidth
+        if self.banded:
+            self._ab = np.zeros((b + 1, nv))
+            # Upper band storage: ab[b + i - j, j] = P[i, j], i <= j.
+            jj = np.concatenate([np.arange(k, nv) for k in range(b + 1)])
+            ii = np.concatenate([np.arange(0, nv - k) for k in range(b + 1)])
+            self._band_ij = (ii, jj)
+            self._band_rows = b + ii - jj
+            self._fac = None
+        self._P = np.zeros((nv, nv))
+        self.alpha = 0.0
+
+    def factor(self, M: np.ndarray, J: np.ndarray, alpha: float, mech, q) -> None:
+        """Factorize P = M + alpha J^T J.
+
+        Args:
+            M: mass matrix, shape (nv, nv), symmetric (full).
+            J: constraint Jacobian, shape (nc, nv).
+            alpha: penalty [same units as M / (J^T J)].
+            mech, q: for the error message.
+
+        Raises:
+            SingularConfigurationError: P is not positive definite (M singular).
+        """
+        P = self._P
+        np.dot(J.T, J, out=P)
+        P *= alpha
+        P += M
+        self.alpha = alpha
+        if self.banded:
+            Pp = P[np.ix_(self.perm, self.perm)]
+            self._ab[self._band_rows, self._band_ij[1]] = Pp[self._band_ij]
+            try:
+                self._fac = scipy.linalg.cholesky_banded(self._ab, lower=False, check_finite=False)
+            except np.linalg.LinAlgError:
+                raise self._error(mech, q) from None
+        else:
+            self._R, info = lapack.dpotrf(P, lower=0, clean=0)
+            if info != 0:
+                raise self._error(mech, q)
+
+    def _error(self, mech, q):
+        return singular_error(
+            mech,
+            q,
+            "the penalized mass matrix M + alpha J^T J",
+            float("inf"),
+            0.0,
+            "it is not positive definite, so M itself is singular (a massless subtree)",
+        )
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """Return P^-1 rhs for rhs of shape (nv,) or (nv, k)."""
+        if self.banded:
+            x = scipy.linalg.cho_solve_banded(
+                (self._fac, False), rhs[self.perm], check_finite=False
+            )
+            out = np.empty_like(x)
+            out[self.perm] = x
+            return out
+        return lapack.dpotrs(self._R, rhs)[0]
+
+
+def _bandwidth(pattern: np.ndarray) -> int:
+    i, j = np.nonzero(pattern)
+    return int(np.max(np.abs(i - j), initial=0))
+
+
+def relative_penalty(M: np.ndarray, J: np.ndarray, rho: float) -> float:
+    """Return alpha = rho tr(M) / tr(J^T J) (rho dimensionless; alpha in M's units per J^T J's)."""
+    jj = float(np.einsum("ij,ij->", J, J))
+    return rho * float(np.trace(M)) / max(jj, np.finfo(float).tiny)
+
+
+def solve_augmented_lagrangian(
+    solver: PenalizedSolver,
+    M: np.ndarray,
+    J: np.ndarray,
+    rhs: np.ndarray,
+    gamma: np.ndarray,
+    alpha: float,
+    *,
+    tol: float,
+    max_iter: int,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    r"""Iterate the augmented Lagrangian at the acceleration level (P already factorized).
+
+    Args:
+        solver: factorization of M + alpha J^T J.
+        M: mass matrix, shape (nv, nv) (for the residuals).
+        J: shape (nc, nv).
+        rhs: tau - h, shape (nv,).
+        gamma: right-hand side of J a + gamma = 0, shape (nc,).
+        alpha: the penalty used in ``solver``.
+        tol: stop when max |a_k - a_{k-1}| <= tol (1 + max |a_k|).
+        max_iter: iteration cap.
+
+    Returns:
+        ``(a, lam, iterations)``.
+    """
+    # Written as corrections, a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T lam_k
+    # - alpha J^T (J a_k + gamma)), the same iteration in exact arithmetic: the
+    # right-hand side shrinks with the residuals, so round-off of the badly
+    # conditioned P (about rho eps) is not left in a (iterative refinement).
+    lam = np.zeros(J.shape[0])
+    a = solver.solve(rhs - alpha * (J.T @ gamma))
+    lam += alpha * (J @ a + gamma)
+    it = 1
+    while it < max_iter:
+        r_c = J @ a + gamma
+        delta = solver.solve(rhs - M @ a - J.T @ (lam + alpha * r_c))
+        a += delta
+        lam += alpha * (J @ a + gamma)
+        it += 1
+        if float(np.max(np.abs(delta))) <= tol * (1.0 + float(np.max(np.abs(a)))):
+            break
+    # The update alpha (J a + gamma) carries the round-off of J a times alpha (1e-4 N
+    # on the 4-bar with rho = 1e11): correct lam so that J^T lam matches the dynamics,
+    # J^T dlam = tau - h - M a - J^T lam, by regularized normal equations (the
+    # right-hand side lies in the range of J^T up to round-off, so the tiny
+    # regularization only keeps them solvable where J loses rank).
+    r_d = rhs - M @ a - J.T @ lam
+    JJ = J @ J.T
+    JJ[np.diag_indices_from(JJ)] += NORMAL_EQ_REG * max(float(np.trace(JJ)), 1.0) / len(lam)
+    lam += scipy.linalg.solve(JJ, J @ r_d, assume_a="pos", check_finite=False)
+    return a, lam, it
+
+
+@register(
+    _NAME,
+    MethodCapabilities(baumgarte=True, singular_robust=True, redundant_rows=True),
+)
+def augmented_lagrangian(
+    mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the constrained dynamics by the augmented-Lagrangian iteration.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        v: velocity, shape (nv,).
+        tau: generalized forces, shape (nv,) [N m or N].
+        settings: ``al_penalty``, ``al_tol``, ``al_max_iter``; ``baumgarte``.
+
+    Returns:
+        ``(a, lam)``: accelerations, shape (nv,), and multipliers, shape (nc,),
+        with ``M a + h + J^T lam = tau`` (lam: one choice when rows are redundant).
+
+    Raises:
+        SingularConfigurationError: M itself is singular.
+    """
+    ws = compute_terms(mech, q, v, settings.baumgarte)
+    if mech.nc == 0:
+        return scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos"), np.zeros(0)
+    solver = method_buffers(ws, _NAME, lambda: PenalizedSolver(mech))
+    alpha = relative_penalty(ws.M, ws.J, settings.al_penalty)
+    solver.factor(ws.M, ws.J, alpha, mech, q)
+    a, lam, it = solve_augmented_lagrangian(
+        solver,
+        ws.M,
+        ws.J,
+        tau - ws.h,
+        ws.gamma,
+        alpha,
+        tol=settings.al_tol,
+        max_iter=settings.al_max_iter,
+    )
+    return a, lam
