@@ -239,6 +239,37 @@ class ConstraintLayer:
         """Return each loop's rows and their slice of phi, J, gamma and lam, in URDF order."""
         return list(zip(self._blocks, self._slices, strict=True))
 
+    def row_table(self) -> dict[str, np.ndarray]:
+        """Return the active rows as a table, in output order (the compiled core's input).
+
+        Every row is one of three scalar functions (module docstring): ``kind``
+        0, translation along ``vec1`` fixed in the world; 1, translation along
+        ``vec1`` fixed in c1; 2, rotation ``(R_p vec1).(R_s vec2)``.
+
+        Returns:
+            ``kind`` (nc,) int32, ``fid_p`` and ``fid_s`` (nc,) int32 frame ids of
+            c1 and c2, ``vec1`` and ``vec2`` (nc, 3).
+        """
+        kind, fid_p, fid_s, vec1, vec2 = [], [], [], [], []
+        zero = np.zeros(3)
+        for blk in self._blocks:
+            entries = [(0, np.eye(3)[k], zero) for k in blk.world]
+            entries += [(1, n, zero) for n in blk.perp]
+            entries += [(2, u, w) for u, w in zip(blk.rot_u, blk.rot_w, strict=True)]
+            for k, a, b in entries:
+                kind.append(k)
+                fid_p.append(blk.fid_p)
+                fid_s.append(blk.fid_s)
+                vec1.append(a)
+                vec2.append(b)
+        return {
+            "kind": np.array(kind, dtype=np.int32),
+            "fid_p": np.array(fid_p, dtype=np.int32),
+            "fid_s": np.array(fid_s, dtype=np.int32),
+            "vec1": np.array(vec1, dtype=float).reshape(-1, 3),
+            "vec2": np.array(vec2, dtype=float).reshape(-1, 3),
+        }
+
     def restricted(self, rows: list[int]) -> ConstraintLayer:
         """Return a layer that evaluates only the given declared rows.
 

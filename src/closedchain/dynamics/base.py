@@ -101,9 +101,12 @@ class MethodCapabilities:
     Attributes:
         baumgarte: the method solves ``J a + gamma' = 0`` with the gamma of
             :func:`compute_terms`, so it applies Baumgarte terms.
+        compiled: the compiled core (``closedchain._core``) implements the
+            method under the same name, so compiled integrators can use it.
     """
 
     baumgarte: bool = True
+    compiled: bool = False
 
 
 #: name -> capabilities of the method registered under that name.
