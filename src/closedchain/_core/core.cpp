@@ -28,6 +28,7 @@
 #include <eigenpy/eigenpy.hpp>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <limits>
@@ -149,6 +150,10 @@ class Core {
       rows_.push_back(row);
     }
     const int nf = static_cast<int>(fids_.size());
+    for (pinocchio::FrameIndex f : fids_) {
+      pinocchio::JointIndex j = model.frames[f].parentJoint;
+      if (std::find(joints_.begin(), joints_.end(), j) == joints_.end()) joints_.push_back(j);
+    }
     R_.resize(nf);
     p_.resize(nf);
     Jf_.assign(nf, Mat6x::Zero(6, nv_));
@@ -167,6 +172,10 @@ class Core {
     K_ = Mat::Zero(nv_ + nc_, nv_ + nc_);
     rhs_ = Vec::Zero(nv_ + nc_);
     x_ = Vec::Zero(nv_ + nc_);
+    est_x_ = Vec::Zero(nv_ + nc_);
+    est_y_ = Vec::Zero(nv_ + nc_);
+    est_z_ = Vec::Zero(nv_ + nc_);
+    z_ = Vec::Zero(std::max(nv_ - nc_, 0));
     lu_ = Eigen::PartialPivLU<Mat>(nv_ + nc_);
     llt_m_ = Eigen::LLT<Mat>(nv_);
     llt_c_ = Eigen::LLT<Mat>(nc_);
@@ -249,7 +258,18 @@ class Core {
   // M, h, phi, J, gamma at (q, v): kinematics with zero acceleration (bias
   // terms), CRBA in the world convention (also the joint Jacobians), RNEA.
   void eval_terms(const RefV &q, const RefV &v) {
-    pinocchio::forwardKinematics(model_, data_, q, v, zero_v_);
+    // CRBA (world convention): M's upper triangle, oMi and the world joint
+    // Jacobians. RNEA at zero acceleration (nonLinearEffects): h, the joint
+    // velocities and a_gf, the bias accelerations plus the gravity field, from
+    // which the bias accelerations are recovered for the frames' parent joints
+    // (a_i = a_gf_i + oMi^-1 g): one pass fewer than forwardKinematics(q, v, 0).
+    pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
+    M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
+    M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
+    pinocchio::nonLinearEffects(model_, data_, q, v);
+    h_ = data_.nle;
+    for (pinocchio::JointIndex j : joints_)
+      data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
     for (std::size_t k = 0; k < fids_.size(); ++k) {
       vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
                    .toVector();
@@ -257,15 +277,13 @@ class Core {
                                                         pinocchio::LOCAL_WORLD_ALIGNED)
                    .toVector();
     }
-    pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
-    M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
-    M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
-    pinocchio::nonLinearEffects(model_, data_, q, v);
-    h_ = data_.nle;
     placements();
     jacobians();
     rows(baumgarte_, true, true);
-    if (baumgarte_ && nc_) gamma_.noalias() += 2.0 * alpha_ * (J_ * v) + beta_ * beta_ * phi_;
+    if (baumgarte_ && nc_) {
+      tmp_c_.noalias() = J_ * v;
+      gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
+    }
   }
 
   // -- forward dynamics -------------------------------------------------------
@@ -307,14 +325,46 @@ class Core {
     K_.bottomRightCorner(nc_, nc_).setZero();
     rhs_.head(nv_) = tau - h_;
     rhs_.tail(nc_) = -gamma_;
+    const double anorm = K_.cwiseAbs().colwise().sum().maxCoeff();
     lu_.compute(K_);
     // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
-    double rcond = lu_.matrixLU().diagonal().cwiseAbs().minCoeff() == 0.0 ? 0.0 : lu_.rcond();
+    double rcond =
+        lu_.matrixLU().diagonal().cwiseAbs().minCoeff() == 0.0 ? 0.0 : rcond_lu(anorm);
     check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, t);
     x_.noalias() = lu_.solve(rhs_);
     a_ = x_.head(nv_);
     lam_ = x_.tail(nc_);
     (void)n;
+  }
+
+  // Reciprocal 1-norm condition estimate of the factored K (Hager / Higham, the
+  // estimator of LAPACK's dgecon), on preallocated vectors.
+  double rcond_lu(double anorm) {
+    const Eigen::Index n = x_.size();
+    if (anorm == 0.0) return 0.0;
+    est_x_.setConstant(1.0 / static_cast<double>(n));
+    double est = 0.0;
+    Eigen::Index jlast = -1;
+    for (int it = 0; it < 5; ++it) {
+      est_y_.noalias() = lu_.solve(est_x_);  // y = K^-1 x
+      const double e = est_y_.lpNorm<1>();
+      if (it > 0 && e <= est) break;
+      est = e;
+      for (Eigen::Index i = 0; i < n; ++i) est_y_[i] = est_y_[i] >= 0 ? 1.0 : -1.0;
+      est_z_.noalias() = lu_.transpose().solve(est_y_);  // z = K^-T sign(y)
+      Eigen::Index j;
+      est_z_.cwiseAbs().maxCoeff(&j);
+      if (it > 0 && j == jlast) break;
+      jlast = j;
+      est_x_.setZero();
+      est_x_[j] = 1.0;
+    }
+    // Higham's alternating-sign vector guards against underestimation.
+    for (Eigen::Index i = 0; i < n; ++i)
+      est_x_[i] = (i % 2 ? -1.0 : 1.0) * (1.0 + static_cast<double>(i) / std::max<Eigen::Index>(n - 1, 1));
+    est_y_.noalias() = lu_.solve(est_x_);
+    est = std::max(est, 2.0 * est_y_.lpNorm<1>() / (3.0 * static_cast<double>(n)));
+    return est > 0 ? 1.0 / (est * anorm) : 0.0;
   }
 
   void solve_schur(const RefV &q, const Vec &tau, double t) {
@@ -366,9 +416,9 @@ class Core {
                   llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
       tmp_v_ = tau - h_;
       tmp_v_.noalias() -= M_ * a_;
-      Vec z = N.transpose() * tmp_v_;
-      llt_r_.solveInPlace(z);
-      a_.noalias() += N * z;
+      z_.noalias() = N.transpose() * tmp_v_;
+      llt_r_.solveInPlace(z_);
+      a_.noalias() += N * z_;
     }
     tmp_v_ = tau - h_;
     tmp_v_.noalias() -= M_ * a_;
@@ -431,6 +481,62 @@ class Core {
     check_sizes(q, v);
     for (int i = 0; i < n; ++i) solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
     return a_;
+  }
+
+  // Mean wall time [ns] of each stage of one evaluation over n repetitions (profiling).
+  bp::dict py_profile(const Vec &q, const Vec &v, const Vec &tau, int n) {
+    check_sizes(q, v);
+    using clock = std::chrono::steady_clock;
+    double t_fk = 0, t_crba = 0, t_nle = 0, t_frames = 0, t_rows = 0, t_solve = 0;
+    auto ns = [](clock::time_point a, clock::time_point b) {
+      return std::chrono::duration<double, std::nano>(b - a).count();
+    };
+    for (int i = 0; i < n; ++i) {
+      auto c0 = clock::now();
+      auto c1 = clock::now();
+      pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
+      auto c2 = clock::now();
+      pinocchio::nonLinearEffects(model_, data_, q, v);
+      auto c3 = clock::now();
+      for (pinocchio::JointIndex j : joints_)
+        data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
+      for (std::size_t k = 0; k < fids_.size(); ++k) {
+        vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
+                     .toVector();
+        af_[k] = pinocchio::getFrameClassicalAcceleration(model_, data_, fids_[k],
+                                                          pinocchio::LOCAL_WORLD_ALIGNED)
+                     .toVector();
+      }
+      placements();
+      jacobians();
+      auto c4 = clock::now();
+      rows(baumgarte_, true, true);
+      auto c5 = clock::now();
+      M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
+      M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
+      h_ = data_.nle;
+      if (method_ == KKT)
+        solve_kkt(q, tau, 0.0);
+      else if (method_ == SCHUR)
+        solve_schur(q, tau, 0.0);
+      else
+        solve_nullspace(q, tau, 0.0);
+      auto c6 = clock::now();
+      t_fk += ns(c0, c1);
+      t_crba += ns(c1, c2);
+      t_nle += ns(c2, c3);
+      t_frames += ns(c3, c4);
+      t_rows += ns(c4, c5);
+      t_solve += ns(c5, c6);
+    }
+    bp::dict d;
+    d["fk"] = t_fk / n;
+    d["crba"] = t_crba / n;
+    d["nle"] = t_nle / n;
+    d["frames"] = t_frames / n;
+    d["rows"] = t_rows / n;
+    d["solve"] = t_solve / n;
+    return d;
   }
 
   // -- stabilization and checks ----------------------------------------------
@@ -653,7 +759,7 @@ class Core {
       pending.assign(te.data(), te.data() + te.size());
     }
     std::size_t ip = 0;
-    Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n);
+    Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
     y.head(nv_) = q0;
     y.tail(nv_) = v0;
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
@@ -726,7 +832,8 @@ class Core {
         scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
         double err;
         if (dop) {
-          Vec e5 = Vec::Zero(n), e3 = Vec::Zero(n);
+          e5.setZero();
+          e3.setZero();
           for (int j = 0; j <= n_stages; ++j) {
             e5 += dop853::E5[j] * K.col(j);
             e3 += dop853::E3[j] * K.col(j);
@@ -899,11 +1006,13 @@ class Core {
   int nq_ = 0, nv_ = 0, nc_ = 0;
   std::vector<Row> rows_;
   std::vector<pinocchio::FrameIndex> fids_;
+  std::vector<pinocchio::JointIndex> joints_;  // parent joints of fids_
   std::vector<Eigen::Matrix3d> R_;
   std::vector<Vector3d> p_;
   std::vector<Mat6x> Jf_;
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
   Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
+  Vec est_x_, est_y_, est_z_, z_;
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
   Eigen::PartialPivLU<Mat> lu_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
@@ -952,6 +1061,8 @@ BOOST_PYTHON_MODULE(_core) {
       .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")
       .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),
            "a at (q, v) after n evaluations inside C++ (timing).")
+      .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),
+           "Mean time [ns] of each stage of one evaluation (profiling).")
       .def("run_fixed", &Core::run_fixed,
            bp::args("self", "integrator", "q0", "v0", "dt", "n_steps", "out_steps", "projects",
                     "progress"))

@@ -43,7 +43,14 @@ import numpy as np
 from scipy.linalg import lapack
 
 from ..exceptions import SingularConfigurationError
-from .base import MethodCapabilities, SolverSettings, check_condition, compute_terms, method_buffers, register
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    method_buffers,
+    register,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism

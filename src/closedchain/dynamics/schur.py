@@ -28,7 +28,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.linalg import lapack
 
-from .base import MethodCapabilities, SolverSettings, check_condition, compute_terms, method_buffers, register
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    method_buffers,
+    register,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism

@@ -113,9 +113,7 @@ def _select_backend(
     if not reasons:
         return cspec
     if backend == "compiled":
-        raise ClosedChainError(
-            "backend='compiled' cannot run this request: " + "; ".join(reasons)
-        )
+        raise ClosedChainError("backend='compiled' cannot run this request: " + "; ".join(reasons))
     return spec
 
 
