@@ -23,8 +23,13 @@ from closedchain import compiled
 from closedchain.dynamics.base import METHOD_CAPABILITIES, compute_terms
 from closedchain.simulate import COMPILED_INTEGRATORS, INTEGRATORS, SimulationError
 
-#: Per evaluation: |compiled - numpy| <= EVAL_RTOL * max(1, max |reference|).
+#: Per evaluation: |compiled - numpy| <= EVAL_RTOL * max(1, max |reference|) ...
 EVAL_RTOL = 1e-12
+#: ... or, for the solution of an ill-conditioned system, ROUNDOFF_FACTOR * eps * kappa
+#: times that scale, kappa the larger 2-norm condition number of the KKT matrix and of
+#: the Delassus matrix J M^-1 J^T (the Schur method's lam on the Agile Eye: kappa ~ 1e5,
+#: both backends within eps * kappa of the exact solution, 2.4e-12 apart).
+ROUNDOFF_FACTOR = 10.0
 #: Fixed-step trajectories (same arithmetic, round-off grows over the steps) [rad, rad/s].
 FIXED_STEP_TOL = 1e-9
 #: Adaptive trajectories at RTOL/ATOL below: agreement within the integration tolerance.
@@ -32,14 +37,23 @@ RTOL, ATOL = 1e-9, 1e-11
 ADAPTIVE_TOL = 1e-7
 #: The compiled DOP853 and scipy's on the same right-hand side: steps may differ by this many.
 STEP_COUNT_SLACK = 3
-#: Duration of the trajectory comparisons [s] and fixed step [s].
-T_CMP, DT = 0.3, 1e-3
+#: Duration of the adaptive and fixed-step comparisons [s] (euler without
+#: stabilization leaves the Agile Eye's manifold beyond drift_limit at 0.147 s) and step [s].
+T_CMP, T_FIXED, DT = 0.3, 0.1, 1e-3
 
 ROOT = Path(__file__).resolve().parent.parent
 MECHS = ["fourbar", "agile_eye"]
 ALL_MECHS = ["fourbar", "agile_eye", "spherical_chain", "slider_crank", "fixed_branches"]
 COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
 STABS = ["none", "baumgarte", "projection"]
+
+
+def _kappa(mech, q, v):
+    ws = compute_terms(mech, q, v)
+    M, J = ws.M, ws.J
+    K = np.block([[M, J.T], [J, np.zeros((mech.nc, mech.nc))]])
+    D = J @ np.linalg.solve(M, J.T)
+    return max(np.linalg.cond(K), np.linalg.cond(D))
 
 
 def _close(x, ref, rtol=EVAL_RTOL):
@@ -87,8 +101,9 @@ def test_forward_matches_numpy(load_mechanism, name, method, baumgarte, rng):
         tau = rng.standard_normal(mech.nv)
         a, lam = fd.forward(q, v, tau)
         ref = cc.forward_dynamics(mech, q, v, tau, method=method, settings=settings)
-        assert _close(a, ref.a)
-        assert _close(lam, ref.lam)
+        rtol = max(EVAL_RTOL, ROUNDOFF_FACTOR * np.finfo(float).eps * _kappa(mech, q, v))
+        assert _close(a, ref.a, rtol)
+        assert _close(lam, ref.lam, rtol)
 
 
 def test_forward_singular_raises(fourbar):
@@ -123,9 +138,9 @@ def _state(mech, name):
     return mech.q_ref.copy(), cc.project_velocity(mech, mech.q_ref, v, fixed="independent")
 
 
-def _pair(mech, q0, v0, **kw):
-    a = cc.simulate(mech, q0, v0, T_CMP, backend="compiled", **kw)
-    b = cc.simulate(mech, q0, v0, T_CMP, backend="numpy", **kw)
+def _pair(mech, q0, v0, t_final=T_CMP, **kw):
+    a = cc.simulate(mech, q0, v0, t_final, backend="compiled", **kw)
+    b = cc.simulate(mech, q0, v0, t_final, backend="numpy", **kw)
     assert a.info["backend"] == "compiled" and b.info["backend"] == "numpy"
     return a, b
 
@@ -137,7 +152,9 @@ def _pair(mech, q0, v0, **kw):
 def test_fixed_step_trajectories_match(load_mechanism, name, integrator, method, stab):
     mech = load_mechanism(name)
     q0, v0 = _state(mech, name)
-    a, b = _pair(mech, q0, v0, integrator=integrator, method=method, stabilization=stab, dt=DT)
+    a, b = _pair(
+        mech, q0, v0, T_FIXED, integrator=integrator, method=method, stabilization=stab, dt=DT
+    )
     assert a.info["steps"] == b.info["steps"]
     assert a.info["evaluations"] == b.info["evaluations"]
     np.testing.assert_allclose(a.t, b.t, rtol=0, atol=1e-12)
