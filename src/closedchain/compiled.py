@@ -60,13 +60,18 @@ def supports_method(method: str) -> bool:
     return available() and METHOD_CAPABILITIES[method].compiled
 
 
-def make_core(mech: Mechanism):
-    """Return the mechanism's compiled core, built once per constraint layer."""
+def make_core(mech: Mechanism, *, shared: bool = True):
+    """Return a compiled core of the mechanism (its own Pinocchio Data and buffers).
+
+    Args:
+        shared: return the mechanism's shared core, built once per constraint
+            layer (the simulator's, reconfigured by every run); False: a new one.
+    """
     if _core is None:
         raise ClosedChainError(f"the compiled core is not available: {IMPORT_ERROR}")
     cache = mech.__dict__.setdefault("_compiled_cores", {})
     key = id(mech.constraints)
-    entry = cache.get(key)
+    entry = cache.get(key) if shared else None
     if entry is None or entry[0] is not mech.constraints:
         tab = mech.constraints.row_table()
         core = _core.Core(
@@ -78,7 +83,9 @@ def make_core(mech: Mechanism):
             tab["vec1"],
             tab["vec2"],
         )
-        entry = cache[key] = (mech.constraints, core)
+        entry = (mech.constraints, core)
+        if shared:
+            cache[key] = entry
     return entry[1]
 
 
@@ -120,7 +127,7 @@ class CompiledDynamics:
     ) -> None:
         self.mech = mech
         self.method = method
-        self.core = make_core(mech)
+        self.core = make_core(mech, shared=False)  # its method and settings stay its own
         configure(self.core, method, settings or SolverSettings())
         self._zero = np.zeros(mech.nv)
 
