@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # Create .venv if missing and install closedchain into it (editable), with the
 # extras given as arguments, e.g.  scripts/setup_venv.sh test
+# The compiled core (C++, ~4 min the first time) is built in build/ with the
+# build requirements installed in .venv (no build isolation), so a re-run
+# recompiles only what changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ -x .venv/bin/python ] || python3 -m venv .venv
@@ -8,4 +11,11 @@ extras="${1:-}"
 spec="."
 [ -n "$extras" ] && spec=".[${extras}]"
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e "$spec"
+.venv/bin/python - <<'PY' > .venv/build-requirements.txt
+import tomllib
+
+with open("pyproject.toml", "rb") as f:
+    print("\n".join(tomllib.load(f)["build-system"]["requires"]))
+PY
+.venv/bin/python -m pip install --quiet -r .venv/build-requirements.txt ninja cmake
+.venv/bin/python -m pip install --quiet --no-build-isolation -e "$spec"

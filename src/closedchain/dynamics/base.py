@@ -129,11 +129,14 @@ class MethodCapabilities:
             (singular configurations): the simulator does not stop there on
             cond(J), and names such methods in its singularity errors.
         redundant_rows: the method accepts linearly dependent constraint rows.
+        compiled: the compiled core (``closedchain._core``) implements the
+            method under the same name, so compiled integrators can use it.
     """
 
     baumgarte: bool = True
     singular_robust: bool = False
     redundant_rows: bool = False
+    compiled: bool = False
 
 
 #: name -> capabilities of the method registered under that name.

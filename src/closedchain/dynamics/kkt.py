@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import lapack
 
-from .base import SolverSettings, check_condition, compute_terms, register
+from .base import MethodCapabilities, SolverSettings, check_condition, compute_terms, register
 
 
 def solve_kkt(
@@ -59,7 +59,7 @@ def solve_kkt(
     return x[:nv], x[nv:], float(rcond), int(info)
 
 
-@register("kkt")
+@register("kkt", MethodCapabilities(compiled=True))
 def kkt(mech, q, v, tau, settings: SolverSettings):
     """Solve the dense KKT system; return (a, lam)."""
     ws = compute_terms(mech, q, v, settings.baumgarte)

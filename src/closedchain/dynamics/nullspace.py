@@ -43,7 +43,14 @@ import numpy as np
 from scipy.linalg import lapack
 
 from ..exceptions import SingularConfigurationError
-from .base import SolverSettings, check_condition, compute_terms, method_buffers, register
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    method_buffers,
+    register,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -86,7 +93,7 @@ def check_rank(mech: Mechanism, q: np.ndarray, s: np.ndarray, settings: SolverSe
         )
 
 
-@register(_NAME)
+@register(_NAME, MethodCapabilities(compiled=True))
 def nullspace(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
 ) -> tuple[np.ndarray, np.ndarray]:

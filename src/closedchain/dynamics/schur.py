@@ -28,7 +28,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.linalg import lapack
 
-from .base import SolverSettings, check_condition, compute_terms, method_buffers, register
+from .base import (
+    MethodCapabilities,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    method_buffers,
+    register,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -47,7 +54,7 @@ class _SchurBuffers:
         self.a = np.zeros(nv)
 
 
-@register(_NAME)
+@register(_NAME, MethodCapabilities(compiled=True))
 def schur(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -45,10 +45,11 @@ import numpy as np
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
-from ..exceptions import InvalidArgumentError, SingularConfigurationError
+from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
 from ..trajectory import Trajectory
 from .problem import Problem, Recorder
 from .registry import (
+    COMPILED_INTEGRATORS,
     INTEGRATORS,
     STABILIZATIONS,
     IntegratorSpec,
@@ -72,7 +73,12 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+#: Values of ``simulate(backend=...)``.
+BACKENDS = ("auto", "compiled", "numpy")
+
 __all__ = [
+    "BACKENDS",
+    "COMPILED_INTEGRATORS",
     "INTEGRATORS",
     "STABILIZATIONS",
     "IntegratorSpec",
@@ -144,6 +150,33 @@ def check_t_eval(
     return t_eval
 
 
+def _select_backend(
+    spec: IntegratorSpec, backend: str, stabilization: str, method: str
+) -> IntegratorSpec:
+    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``)."""
+    backend = resolve_choice("backend", backend, BACKENDS)
+    if backend == "numpy":
+        return spec
+    cspec = COMPILED_INTEGRATORS.get(spec.name)
+    reasons = []
+    if cspec is None:
+        reasons.append(f"integrator {spec.name!r} has no compiled loop")
+    elif stabilization not in cspec.stabilizations:
+        reasons.append(
+            f"the compiled {spec.name!r} supports stabilizations "
+            f"{', '.join(cspec.stabilizations)}, not {stabilization!r}"
+        )
+    if not METHOD_CAPABILITIES[method].compiled:
+        reasons.append(f"method {method!r} has no compiled implementation")
+    if not reasons:
+        return cspec
+    if backend == "compiled":
+        raise InvalidArgumentError(
+            "backend='compiled' cannot run this request: " + "; ".join(reasons)
+        )
+    return spec
+
+
 def simulate(
     mech: Mechanism,
     q0: np.ndarray,
@@ -161,6 +194,7 @@ def simulate(
     settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS,
     solver_settings: SolverSettings = DEFAULT_SOLVER_SETTINGS,
     progress: Callable[[float], None] | None = None,
+    backend: str = "auto",
 ) -> Trajectory:
     """Integrate the constrained dynamics from (q0, v0) over [0, t_final].
 
@@ -191,6 +225,12 @@ def simulate(
         settings: simulation settings.
         solver_settings: settings of the dynamics method.
         progress: called with the current time [s] after each step.
+        backend: ``"auto"`` (default): the compiled integrator of the same
+            name (:data:`COMPILED_INTEGRATORS`) when it supports the
+            stabilization and the method is compiled
+            (``MethodCapabilities.compiled``), else the numpy one;
+            ``"compiled"``: the compiled one or an error saying why not;
+            ``"numpy"``: the Python reference implementation.
 
     Returns:
         The trajectory; ``info`` holds the steps, evaluations, CPU time,
@@ -209,6 +249,7 @@ def simulate(
     fixed = spec.kind == "fixed"
     if stabilization is None:
         stabilization = spec.default_stabilization
+    spec = _select_backend(spec, backend, stabilization, method)
     stab = get_stabilization(stabilization)
     stabilization = stab.name
     if stabilization not in spec.stabilizations:
@@ -300,6 +341,7 @@ def simulate(
         "mechanism": mech.name,
         "method": method,
         "integrator": integrator,
+        "backend": spec.backend,
         "stabilization": stabilization,
         "dt": dt,
         "rtol": rtol,

@@ -42,6 +42,7 @@ class Problem:
         self.settings = settings
         self.n_evals = 0
         self.lam = np.zeros(mech.nc)
+        self.tau_input = tau  # as given: None, constant or callable (compiled loops)
         if tau is None:
             zero = np.zeros(mech.nv)
             self.tau = lambda t, q, v: zero
@@ -298,6 +299,21 @@ class Recorder:
             if r["branch"] and sign != r["branch"][-1]:
                 self.branch_changes.append([r["t"][-2], t, r["branch"][-1], sign])
             r["branch"].append(sign)
+
+    def extend(self, samples: dict) -> None:
+        """Append samples computed elsewhere (the compiled loops), checked the same way.
+
+        Args:
+            samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
+        """
+        res = np.asarray(samples["res"]).ravel()
+        if res.size and not (np.all(np.isfinite(res)) and res.max() <= self.drift_limit):
+            raise ClosedChainError("compiled loop returned samples beyond the drift limit")
+        r = self.rows
+        for key in ("t", "res", "vres", "e", "ke"):
+            r[key].extend(np.asarray(samples[key]).ravel().tolist())
+        for key in ("q", "v", "a", "lam"):
+            r[key].extend(np.asarray(samples[key]))
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows

@@ -10,8 +10,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from .. import compiled
 from ..exceptions import resolve_choice
-from . import adaptive, ali3p, fixed
+from . import adaptive, ali3p, compiled_loops, fixed
 
 
 @dataclass(frozen=True)
@@ -83,15 +84,19 @@ class StabilizationSpec:
     description: str = ""
 
 
-#: name -> integrator, in registration order.
+#: name -> integrator, in registration order (the numpy backend: the reference).
 INTEGRATORS: dict[str, IntegratorSpec] = {}
+#: name -> compiled integrator of the same name (``backend="compiled"``), used by
+#: :func:`closedchain.simulate` wherever it supports the request.
+COMPILED_INTEGRATORS: dict[str, IntegratorSpec] = {}
 #: name -> stabilization, in registration order.
 STABILIZATIONS: dict[str, StabilizationSpec] = {}
 
 
 def register_integrator(spec: IntegratorSpec) -> IntegratorSpec:
-    """Add ``spec`` to :data:`INTEGRATORS` (replacing an entry of the same name)."""
-    INTEGRATORS[spec.name] = spec
+    """Add ``spec`` to :data:`INTEGRATORS`, or to :data:`COMPILED_INTEGRATORS` when
+    ``spec.backend == "compiled"`` (replacing an entry of the same name)."""
+    (COMPILED_INTEGRATORS if spec.backend == "compiled" else INTEGRATORS)[spec.name] = spec
     return spec
 
 
@@ -193,3 +198,28 @@ register_integrator(
         "Newton, mass-orthogonal projections (Bayo & Ledesma 1996; Cuadrado et al. 2000)",
     )
 )
+
+# The compiled core's loops: same names, same semantics, fewer stabilizations
+# (partitioning stays in Python); registered only when the core imports.
+if compiled.available():
+    for _name, _kind, _order, _run in (
+        ("euler", "fixed", 1, compiled_loops.run_fixed_compiled),
+        ("semi-implicit", "fixed", 1, compiled_loops.run_fixed_compiled),
+        ("rk4", "fixed", 4, compiled_loops.run_fixed_compiled),
+        ("RK45", "adaptive", 5, compiled_loops.run_adaptive_compiled),
+        ("DOP853", "adaptive", 8, compiled_loops.run_adaptive_compiled),
+    ):
+        _ref = INTEGRATORS[_name]
+        register_integrator(
+            IntegratorSpec(
+                _name,
+                _kind,
+                _run,
+                _order,
+                backend="compiled",
+                stabilizations=("none", "baumgarte", "projection"),
+                vector_state=_ref.vector_state,
+                default_stabilization=_ref.default_stabilization,
+                description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
+            )
+        )

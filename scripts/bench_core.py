@@ -1,0 +1,210 @@
+"""Measure the compiled core against the numpy backend and the thirty-line peer.
+
+1. Per evaluation [us] on the 4-bar and the Agile Eye at a random consistent
+   state: the compiled right-hand side called from Python, the same inside the
+   C++ loop (``Core.repeat``), the numpy method, and a tuned
+   ``pinocchio.constraintDynamics`` call from Python (containers made once,
+   ``ProximalSettings`` of the library's defaults).
+2. Whole trajectories at matched error: closedchain.simulate (DOP853, no
+   stabilization, default backend) against the thirty-line peer
+   (pinocchio.constraintDynamics as the right-hand side of scipy's DOP853) on
+   the 4-bar (crossed branch, from rest, 10 s; errors 1e-6 and 1e-9 rad) and
+   the coasting Agile Eye (no gravity, 10 s; error 1e-6 rad). For each side the
+   tolerance rtol = atol = 10^-k is swept; the error is max |q - q_ref| over
+   101 output times against a DOP853 run at 1e-13; each side's CPU time at a
+   target error is that of the cheapest tolerance reaching it. Repeats are
+   interleaved; CPU times are process times (min over repeats); ratios come
+   from the same run. Also: partitioning against no stabilization at 1e-9.
+
+Timing is noisy on a shared machine: run it alone.
+Run: python scripts/bench_core.py [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import scipy.integrate
+
+import closedchain as cc
+from closedchain import compiled
+from closedchain.dynamics.base import DEFAULT_SETTINGS, get_method
+
+MODELS = Path(__file__).resolve().parent.parent / "models"
+T_FINAL = 10.0
+TOLS = [10.0**-k for k in range(4, 14)]
+
+
+def per_call_us(fn, number: int, repeat: int) -> float:
+    """Median over ``repeat`` of the mean CPU time of ``number`` calls [us]."""
+    runs = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        for _ in range(number):
+            fn()
+        runs.append((time.process_time() - t0) / number * 1e6)
+    return float(np.median(runs))
+
+
+def peer_setup(mech):
+    cms, cds, _, pdata = mech.pinocchio_constraints()
+    prox = pin.ProximalSettings(
+        DEFAULT_SETTINGS.pinocchio_accuracy,
+        0.0,
+        DEFAULT_SETTINGS.pinocchio_mu,
+        DEFAULT_SETTINGS.pinocchio_max_iter,
+    )
+    return cms, cds, pdata, prox
+
+
+def per_evaluation(name: str, number: int, repeat: int) -> None:
+    mech = cc.load(MODELS / f"{name}.urdf")
+    q, v = cc.random_consistent_state(mech, np.random.default_rng(0))
+    tau = np.zeros(mech.nv)
+    fd = compiled.compiled_dynamics(mech, "kkt")
+    cms, cds, pdata, prox = peer_setup(mech)
+    kkt = get_method("kkt")
+    n_loop = 20 * number
+    rows = {
+        "compiled rhs from Python": lambda: fd.forward(q, v, tau),
+        "compiled rhs in the C++ loop": None,
+        "numpy rhs (method kkt)": lambda: kkt(mech, q, v, tau, DEFAULT_SETTINGS),
+        "pin.constraintDynamics (tuned)": lambda: pin.constraintDynamics(
+            mech.model, pdata, q, v, tau, cms, cds, prox
+        ),
+    }
+    res: dict[str, list[float]] = {k: [] for k in rows}
+    for _ in range(repeat):  # interleaved
+        for label, fn in rows.items():
+            if fn is None:
+                t0 = time.process_time()
+                fd.core.repeat(q, v, tau, n_loop)
+                res[label].append((time.process_time() - t0) / n_loop * 1e6)
+            else:
+                res[label].append(per_call_us(fn, number, 1))
+    print(f"\n{name} (nv = {mech.nv}, nc = {mech.nc}): CPU us per evaluation (median)")
+    ref = float(np.median(res["pin.constraintDynamics (tuned)"]))
+    for label, r in res.items():
+        m = float(np.median(r))
+        print(f"  {label:34s} {m:8.2f}   {m / ref:6.2f} x pin.constraintDynamics")
+
+
+# -- whole trajectories -----------------------------------------------------------------
+
+
+def fourbar_problem():
+    mech = cc.load(MODELS / "fourbar.urdf")
+    q0 = cc.assemble(mech, np.radians((10.0, -65.0, -104.0)), fixed=["crank_joint"])
+    return mech, q0, np.zeros(mech.nv)
+
+
+def agile_eye_problem():
+    mech = cc.load(MODELS / "agile_eye.urdf")
+    mech.model.gravity.linear[:] = 0.0
+    v = np.zeros(mech.nv)
+    v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
+    return mech, mech.q_ref.copy(), cc.project_velocity(mech, mech.q_ref, v, fixed="independent")
+
+
+def peer_run(mech, q0, v0, tol, t_eval):
+    """The thirty-line peer: pin.constraintDynamics in scipy's DOP853."""
+    model = mech.model
+    cms, cds, pdata, prox = peer_setup(mech)
+    nv = model.nv
+    tau = np.zeros(nv)
+
+    def rhs(t, y):
+        a = pin.constraintDynamics(model, pdata, y[:nv], y[nv:], tau, cms, cds, prox)
+        return np.concatenate([y[nv:], a])
+
+    t0 = time.process_time()
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0.0, T_FINAL), np.concatenate([q0, v0]), method="DOP853",
+        rtol=tol, atol=tol, t_eval=t_eval,
+    )  # fmt: skip
+    cpu = time.process_time() - t0
+    return sol.y[:nv].T, cpu
+
+
+def cc_run(mech, q0, v0, tol, t_eval, stabilization="none"):
+    t0 = time.process_time()
+    traj = cc.simulate(
+        mech, q0, v0, T_FINAL, integrator="DOP853", rtol=tol, atol=tol, t_eval=t_eval,
+        stabilization=stabilization,
+    )  # fmt: skip
+    return traj.q, time.process_time() - t0, traj.info
+
+
+def matched(name, problem, targets, repeat):
+    mech, q0, v0 = problem()
+    t_eval = np.linspace(0.0, T_FINAL, 101)
+    q_ref = cc.simulate(
+        mech, q0, v0, T_FINAL, integrator="DOP853", rtol=1e-13, atol=1e-13, t_eval=t_eval
+    ).q
+    err = {"peer": {}, "closedchain": {}}
+    cpu = {"peer": {tol: [] for tol in TOLS}, "closedchain": {tol: [] for tol in TOLS}}
+    backend = None
+    for _ in range(repeat):
+        for tol in TOLS:
+            qp, cp = peer_run(mech, q0, v0, tol, t_eval)
+            qc, ccpu, info = cc_run(mech, q0, v0, tol, t_eval)
+            backend = info["backend"]
+            err["peer"][tol] = float(np.max(np.abs(qp - q_ref)))
+            err["closedchain"][tol] = float(np.max(np.abs(qc - q_ref)))
+            cpu["peer"][tol].append(cp)
+            cpu["closedchain"][tol].append(ccpu)
+    print(f"\n{name}, {T_FINAL:g} s, DOP853 (closedchain backend: {backend}): error [rad], CPU [s]")
+    print(f"  {'tol':>7s} {'peer err':>10s} {'peer CPU':>9s} {'cc err':>10s} {'cc CPU':>9s}")
+    for tol in TOLS:
+        print(
+            f"  {tol:7.0e} {err['peer'][tol]:10.2e} {min(cpu['peer'][tol]):9.4f} "
+            f"{err['closedchain'][tol]:10.2e} {min(cpu['closedchain'][tol]):9.4f}"
+        )
+    for target in targets:
+        best = {}
+        for side in ("peer", "closedchain"):
+            ok = [min(cpu[side][t]) for t in TOLS if err[side][t] <= target]
+            best[side] = min(ok) if ok else float("nan")
+        print(
+            f"  error <= {target:.0e}: peer {best['peer']:.4f} s, closedchain "
+            f"{best['closedchain']:.4f} s, ratio closedchain/peer "
+            f"{best['closedchain'] / best['peer']:.3f}"
+        )
+    return mech, q0, v0, t_eval
+
+
+def partitioning_cost(mech, q0, v0, t_eval, repeat):
+    runs = {"none": [], "partitioning": []}
+    for _ in range(repeat):
+        for stab in runs:
+            _, c, info = cc_run(mech, q0, v0, 1e-9, t_eval, stabilization=stab)
+            runs[stab].append((c, info["backend"]))
+    n = min(c for c, _ in runs["none"])
+    p = min(c for c, _ in runs["partitioning"])
+    print(
+        f"  partitioning vs none at tol 1e-9: {p:.4f} s ({runs['partitioning'][0][1]}) vs "
+        f"{n:.4f} s ({runs['none'][0][1]}): ratio {p / n:.2f}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--number", type=int, default=2000)
+    args = parser.parse_args()
+    print(f"machine: {platform.processor() or platform.machine()}, {platform.platform()}")
+    for name in ("fourbar", "agile_eye"):
+        per_evaluation(name, args.number, args.repeat)
+    mech, q0, v0, t_eval = matched("4-bar (crossed, from rest)", fourbar_problem, [1e-6, 1e-9],
+                                   args.repeat)  # fmt: skip
+    partitioning_cost(mech, q0, v0, t_eval, args.repeat)
+    matched("Agile Eye (coasting, no gravity)", agile_eye_problem, [1e-6], args.repeat)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1074 @@
+// closedchain._core: the compiled right-hand side and integration loops.
+//
+// One translation unit (a unit including Pinocchio's algorithms compiles in
+// minutes). The Python side (closedchain.compiled) builds one Core per
+// mechanism from the Pinocchio model and the constraint layer's row table; the
+// model is used by reference, the Core owns its Data and every buffer.
+//
+// Every constraint row is one of three smooth scalar functions of the cut
+// frames c1 (predecessor, R_p, p_p) and c2 (successor, R_s, p_s):
+//   kind 0  translation along a world axis n:   phi = n . (p_p - p_s)
+//   kind 1  translation along n fixed in c1:    phi = (R_p n) . (p_p - p_s)
+//   kind 2  rotation, u in c1 and w in c2:      phi = (R_p u) . (R_s w)
+// with exact J (derivative along pinocchio::integrate) and gamma = Jdot v, the
+// formulas of closedchain/constraints.py.
+
+#include <pinocchio/algorithm/crba.hpp>
+#include <pinocchio/algorithm/energy.hpp>
+#include <pinocchio/algorithm/frames.hpp>
+#include <pinocchio/algorithm/jacobian.hpp>
+#include <pinocchio/algorithm/joint-configuration.hpp>
+#include <pinocchio/algorithm/kinematics.hpp>
+#include <pinocchio/algorithm/rnea.hpp>
+#include <pinocchio/multibody/data.hpp>
+#include <pinocchio/multibody/model.hpp>
+
+#include <Eigen/Dense>
+#include <boost/python.hpp>
+#include <eigenpy/eigenpy.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "rk_coefficients.hpp"
+
+namespace bp = boost::python;
+
+namespace closedchain {
+
+using Model = pinocchio::Model;
+using Data = pinocchio::Data;
+using Vec = Eigen::VectorXd;
+using Mat = Eigen::MatrixXd;
+using Mat6x = Eigen::Matrix<double, 6, Eigen::Dynamic>;
+using Eigen::Vector3d;
+using RefV = Eigen::Ref<const Vec>;
+
+// ---------------------------------------------------------------------------
+// Errors: thrown in C++, translated into closedchain's Python exceptions.
+
+struct SingularError {
+  std::string message;
+  double cond;
+  double t;  // NaN outside a simulation
+  Vec q;
+};
+
+struct SimulationFailure {
+  std::string message;
+  double t;
+};
+
+struct BadArgument {
+  std::string message;
+};
+
+static std::string fmt(const char *f, double x) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, x);
+  return buf;
+}
+
+static std::string vec_str(const Vec &q) {
+  std::ostringstream s;
+  s << "[";
+  for (Eigen::Index i = 0; i < q.size(); ++i) s << (i ? " " : "") << fmt("%.6g", q[i]);
+  s << "]";
+  return s.str();
+}
+
+static bp::object to_numpy(const Vec &x) { return bp::object(Vec(x)); }
+
+static void translate_singular(const SingularError &e) {
+  bp::object exc = bp::import("closedchain.exceptions").attr("SingularConfigurationError");
+  bp::dict kw;
+  kw["q"] = to_numpy(e.q);
+  kw["condition_number"] = e.cond;
+  kw["t"] = std::isnan(e.t) ? bp::object() : bp::object(e.t);
+  bp::object inst = exc(*bp::make_tuple(e.message), **kw);
+  PyErr_SetObject(exc.ptr(), inst.ptr());
+}
+
+static void translate_simulation(const SimulationFailure &e) {
+  bp::object exc = bp::import("closedchain.simulate.settings").attr("SimulationError");
+  bp::object inst = exc(e.message, e.t);
+  PyErr_SetObject(exc.ptr(), inst.ptr());
+}
+
+static void translate_bad(const BadArgument &e) {
+  bp::object exc = bp::import("closedchain.exceptions").attr("ClosedChainError");
+  bp::object inst = exc(e.message);
+  PyErr_SetObject(exc.ptr(), inst.ptr());
+}
+
+// ---------------------------------------------------------------------------
+
+enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2 };
+enum Integrator { EULER = 0, SEMI_IMPLICIT = 1, RK4 = 2, RK45 = 3, DOP853 = 4 };
+
+struct Row {
+  int kind;  // 0 world translation, 1 translation along n in c1, 2 rotation
+  int p, s;  // indices into the Core's frame list
+  Vector3d n;  // n (kinds 0, 1) or u (kind 2)
+  Vector3d w;  // w (kind 2)
+};
+
+class Core {
+ public:
+  Core(bp::object model_obj, const std::string &name, const Eigen::VectorXi &kinds,
+       const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &vec1,
+       const Mat &vec2)
+      : model_obj_(model_obj),
+        model_(bp::extract<Model &>(model_obj)()),
+        data_(model_),
+        name_(name) {
+    const Model &model = model_;
+    nq_ = model.nq;
+    nv_ = model.nv;
+    nc_ = static_cast<int>(kinds.size());
+    if (fid_p.size() != nc_ || fid_s.size() != nc_ || vec1.rows() != nc_ ||
+        vec2.rows() != nc_ || (nc_ && (vec1.cols() != 3 || vec2.cols() != 3)))
+      throw BadArgument{"Core: row tables of inconsistent shapes"};
+    for (int r = 0; r < nc_; ++r) {
+      if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
+      for (int f : {fid_p[r], fid_s[r]})
+        if (f < 0 || f >= static_cast<int>(model.nframes))
+          throw BadArgument{"Core: frame id out of range"};
+      Row row;
+      row.kind = kinds[r];
+      row.p = frame_index(fid_p[r]);
+      row.s = frame_index(fid_s[r]);
+      row.n = vec1.row(r).transpose();
+      row.w = vec2.row(r).transpose();
+      rows_.push_back(row);
+    }
+    const int nf = static_cast<int>(fids_.size());
+    for (pinocchio::FrameIndex f : fids_) {
+      pinocchio::JointIndex j = model.frames[f].parentJoint;
+      if (std::find(joints_.begin(), joints_.end(), j) == joints_.end()) joints_.push_back(j);
+    }
+    R_.resize(nf);
+    p_.resize(nf);
+    Jf_.assign(nf, Mat6x::Zero(6, nv_));
+    vf_.assign(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    af_.assign(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    M_ = Mat::Zero(nv_, nv_);
+    h_ = Vec::Zero(nv_);
+    J_ = Mat::Zero(nc_, nv_);
+    phi_ = Vec::Zero(nc_);
+    gamma_ = Vec::Zero(nc_);
+    a_ = Vec::Zero(nv_);
+    lam_ = Vec::Zero(nc_);
+    tau_ = Vec::Zero(nv_);
+    tau_const_ = Vec::Zero(nv_);
+    zero_v_ = Vec::Zero(nv_);
+    K_ = Mat::Zero(nv_ + nc_, nv_ + nc_);
+    rhs_ = Vec::Zero(nv_ + nc_);
+    x_ = Vec::Zero(nv_ + nc_);
+    est_x_ = Vec::Zero(nv_ + nc_);
+    est_y_ = Vec::Zero(nv_ + nc_);
+    est_z_ = Vec::Zero(nv_ + nc_);
+    z_ = Vec::Zero(std::max(nv_ - nc_, 0));
+    lu_ = Eigen::PartialPivLU<Mat>(nv_ + nc_);
+    llt_m_ = Eigen::LLT<Mat>(nv_);
+    llt_c_ = Eigen::LLT<Mat>(nc_);
+    Y_ = Mat::Zero(nv_, nc_ + 1);
+    D_ = Mat::Zero(nc_, nc_);
+    svd_ = Eigen::JacobiSVD<Mat>(nc_, nv_, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    llt_r_ = Eigen::LLT<Mat>(nv_ - nc_ > 0 ? nv_ - nc_ : 0);
+    Mr_ = Mat::Zero(std::max(nv_ - nc_, 0), std::max(nv_ - nc_, 0));
+    JJt_ = Mat::Zero(nc_, nc_);
+    eig_ = Eigen::SelfAdjointEigenSolver<Mat>(nc_);
+    dq_ = Vec::Zero(nv_);
+    tmp_c_ = Vec::Zero(nc_);
+    tmp_v_ = Vec::Zero(nv_);
+  }
+
+  int nc() const { return nc_; }
+  long n_evals() const { return n_evals_; }
+  void reset_evals() { n_evals_ = 0; }
+
+  // Settings: method, cond_max, Baumgarte gains, simulation settings.
+  void configure(bp::dict s) {
+    std::string m = bp::extract<std::string>(s.get("method", "kkt"));
+    if (m == "kkt")
+      method_ = KKT;
+    else if (m == "schur")
+      method_ = SCHUR;
+    else if (m == "nullspace")
+      method_ = NULLSPACE;
+    else
+      throw BadArgument{"compiled core: unknown method '" + m + "'; compiled: kkt, schur, nullspace"};
+    method_name_ = m;
+    cond_max_ = bp::extract<double>(s.get("cond_max", 1e12));
+    bp::object bg = s.get("baumgarte", bp::object());
+    baumgarte_ = !bg.is_none();
+    if (baumgarte_) {
+      alpha_ = bp::extract<double>(bg[0]);
+      beta_ = bp::extract<double>(bg[1]);
+    }
+    projection_tol_ = bp::extract<double>(s.get("projection_tol", 1e-13));
+    projection_iters_ = bp::extract<int>(s.get("projection_iters", 10));
+    project_velocities_ = bp::extract<bool>(s.get("project_velocities", true));
+    singular_cond_ = bp::extract<double>(s.get("singular_cond", 1e3));
+    drift_limit_ = bp::extract<double>(s.get("drift_limit", 1e-2));
+  }
+
+  // tau: None, a constant (nv,) array or a callable tau(t, q, v).
+  void set_tau(bp::object tau) {
+    tau_obj_ = bp::object();
+    tau_mode_ = 0;
+    if (tau.is_none()) return;
+    if (PyCallable_Check(tau.ptr())) {
+      tau_obj_ = tau;
+      np_asarray_ = bp::import("numpy").attr("asarray");
+      tau_mode_ = 2;
+      return;
+    }
+    Vec c = bp::extract<Vec>(tau);
+    if (c.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
+    tau_const_ = c;
+    tau_mode_ = 1;
+  }
+
+  // -- constraint rows ------------------------------------------------------
+
+  // phi only: placements from forwardKinematics(q).
+  void eval_phi(const RefV &q) {
+    pinocchio::forwardKinematics(model_, data_, q);
+    placements();
+    rows(true, false, false);
+  }
+
+  // phi and J: computeJointJacobians(q) (placements and world joint Jacobians).
+  void eval_phi_J(const RefV &q) {
+    pinocchio::computeJointJacobians(model_, data_, q);
+    placements();
+    jacobians();
+    rows(true, true, false);
+  }
+
+  // M, h, phi, J, gamma at (q, v): kinematics with zero acceleration (bias
+  // terms), CRBA in the world convention (also the joint Jacobians), RNEA.
+  void eval_terms(const RefV &q, const RefV &v) {
+    // CRBA (world convention): M's upper triangle, oMi and the world joint
+    // Jacobians. RNEA at zero acceleration (nonLinearEffects): h, the joint
+    // velocities and a_gf, the bias accelerations plus the gravity field, from
+    // which the bias accelerations are recovered for the frames' parent joints
+    // (a_i = a_gf_i + oMi^-1 g): one pass fewer than forwardKinematics(q, v, 0).
+    pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
+    M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
+    M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
+    pinocchio::nonLinearEffects(model_, data_, q, v);
+    h_ = data_.nle;
+    for (pinocchio::JointIndex j : joints_)
+      data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
+    for (std::size_t k = 0; k < fids_.size(); ++k) {
+      vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
+                   .toVector();
+      af_[k] = pinocchio::getFrameClassicalAcceleration(model_, data_, fids_[k],
+                                                        pinocchio::LOCAL_WORLD_ALIGNED)
+                   .toVector();
+    }
+    placements();
+    jacobians();
+    rows(baumgarte_, true, true);
+    if (baumgarte_ && nc_) {
+      tmp_c_.noalias() = J_ * v;
+      gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
+    }
+  }
+
+  // -- forward dynamics -------------------------------------------------------
+
+  // Accelerations a_ and multipliers lam_ at (q, v) with generalized force tau.
+  void solve(const RefV &q, const RefV &v, const Vec &tau, double t) {
+    eval_terms(q, v);
+    ++n_evals_;
+    if (method_ == KKT)
+      solve_kkt(q, tau, t);
+    else if (method_ == SCHUR)
+      solve_schur(q, tau, t);
+    else
+      solve_nullspace(q, tau, t);
+  }
+
+  [[noreturn]] void singular(const RefV &q, const std::string &what, double cond,
+                             const std::string &hint, double t) {
+    std::string msg = name_ + ": " + what + " is singular at q = " + vec_str(q) +
+                      " (condition number " + fmt("%.3e", cond) + " > cond_max " +
+                      fmt("%.1e", cond_max_) + "); " + hint;
+    if (!std::isnan(t)) msg = "at t = " + fmt("%.9g", t) + " s: " + msg;
+    throw SingularError{msg, cond, t, Vec(q)};
+  }
+
+  void check_rcond(const RefV &q, const std::string &what, double rcond, double t) {
+    double cond = (rcond > 0 && std::isfinite(rcond)) ? 1.0 / rcond
+                                                       : std::numeric_limits<double>::infinity();
+    if (!(cond <= cond_max_))
+      singular(q, what, cond,
+               "the constraint Jacobian has lost rank or the configuration is a singularity", t);
+  }
+
+  void solve_kkt(const RefV &q, const Vec &tau, double t) {
+    const int n = nv_ + nc_;
+    K_.topLeftCorner(nv_, nv_) = M_;
+    K_.topRightCorner(nv_, nc_) = J_.transpose();
+    K_.bottomLeftCorner(nc_, nv_) = J_;
+    K_.bottomRightCorner(nc_, nc_).setZero();
+    rhs_.head(nv_) = tau - h_;
+    rhs_.tail(nc_) = -gamma_;
+    const double anorm = K_.cwiseAbs().colwise().sum().maxCoeff();
+    lu_.compute(K_);
+    // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
+    double rcond =
+        lu_.matrixLU().diagonal().cwiseAbs().minCoeff() == 0.0 ? 0.0 : rcond_lu(anorm);
+    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, t);
+    x_.noalias() = lu_.solve(rhs_);
+    a_ = x_.head(nv_);
+    lam_ = x_.tail(nc_);
+    (void)n;
+  }
+
+  // Reciprocal 1-norm condition estimate of the factored K (Hager / Higham, the
+  // estimator of LAPACK's dgecon), on preallocated vectors.
+  double rcond_lu(double anorm) {
+    const Eigen::Index n = x_.size();
+    if (anorm == 0.0) return 0.0;
+    est_x_.setConstant(1.0 / static_cast<double>(n));
+    double est = 0.0;
+    Eigen::Index jlast = -1;
+    for (int it = 0; it < 5; ++it) {
+      est_y_.noalias() = lu_.solve(est_x_);  // y = K^-1 x
+      const double e = est_y_.lpNorm<1>();
+      if (it > 0 && e <= est) break;
+      est = e;
+      for (Eigen::Index i = 0; i < n; ++i) est_y_[i] = est_y_[i] >= 0 ? 1.0 : -1.0;
+      est_z_.noalias() = lu_.transpose().solve(est_y_);  // z = K^-T sign(y)
+      Eigen::Index j;
+      est_z_.cwiseAbs().maxCoeff(&j);
+      if (it > 0 && j == jlast) break;
+      jlast = j;
+      est_x_.setZero();
+      est_x_[j] = 1.0;
+    }
+    // Higham's alternating-sign vector guards against underestimation.
+    for (Eigen::Index i = 0; i < n; ++i)
+      est_x_[i] = (i % 2 ? -1.0 : 1.0) * (1.0 + static_cast<double>(i) / std::max<Eigen::Index>(n - 1, 1));
+    est_y_.noalias() = lu_.solve(est_x_);
+    est = std::max(est, 2.0 * est_y_.lpNorm<1>() / (3.0 * static_cast<double>(n)));
+    return est > 0 ? 1.0 / (est * anorm) : 0.0;
+  }
+
+  void solve_schur(const RefV &q, const Vec &tau, double t) {
+    llt_m_.compute(M_);
+    check_rcond(q, "the mass matrix M", llt_m_.info() == Eigen::Success ? llt_m_.rcond() : 0.0, t);
+    Y_.leftCols(nc_) = J_.transpose();
+    Y_.col(nc_) = tau - h_;
+    llt_m_.solveInPlace(Y_);
+    if (nc_ == 0) {
+      a_ = Y_.col(0);
+      return;
+    }
+    D_.noalias() = J_ * Y_.leftCols(nc_);
+    tmp_c_.noalias() = J_ * Y_.col(nc_);
+    tmp_c_ += gamma_;
+    llt_c_.compute(D_);
+    check_rcond(q, "the Delassus matrix J M^-1 J^T",
+                llt_c_.info() == Eigen::Success ? llt_c_.rcond() : 0.0, t);
+    lam_ = tmp_c_;
+    llt_c_.solveInPlace(lam_);
+    a_ = Y_.col(nc_);
+    a_.noalias() -= Y_.leftCols(nc_) * lam_;
+  }
+
+  void solve_nullspace(const RefV &q, const Vec &tau, double t) {
+    const int nr = nv_ - nc_;
+    if (nc_ == 0) {
+      llt_m_.compute(M_);
+      a_ = llt_m_.solve(tau - h_);
+      return;
+    }
+    svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    const Vec &s = svd_.singularValues();
+    double cond = s[nc_ - 1] > 0 ? s[0] / s[nc_ - 1] : std::numeric_limits<double>::infinity();
+    if (!(cond <= cond_max_))
+      singular(q, "the constraint Jacobian J", cond,
+               "it has lost rank: a singular configuration", t);
+    const Mat &U = svd_.matrixU();
+    const Mat &V = svd_.matrixV();
+    // a_p = -V_r S^-1 U^T gamma
+    tmp_c_.noalias() = U.transpose() * gamma_;
+    tmp_c_.array() /= s.head(nc_).array();
+    a_.noalias() = -(V.leftCols(nc_) * tmp_c_);
+    if (nr > 0) {
+      auto N = V.rightCols(nr);
+      Mr_.noalias() = N.transpose() * M_ * N;
+      llt_r_.compute(Mr_);
+      check_rcond(q, "the reduced mass matrix N^T M N",
+                  llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
+      tmp_v_ = tau - h_;
+      tmp_v_.noalias() -= M_ * a_;
+      z_.noalias() = N.transpose() * tmp_v_;
+      llt_r_.solveInPlace(z_);
+      a_.noalias() += N * z_;
+    }
+    tmp_v_ = tau - h_;
+    tmp_v_.noalias() -= M_ * a_;
+    tmp_c_.noalias() = V.leftCols(nc_).transpose() * tmp_v_;
+    tmp_c_.array() /= s.head(nc_).array();
+    lam_.noalias() = U * tmp_c_;
+  }
+
+  // The generalized force at (t, q, v) into tau_.
+  const Vec &tau_at(double t, const RefV &q, const RefV &v) {
+    if (tau_mode_ == 0) return zero_v_;
+    if (tau_mode_ == 1) return tau_const_;
+    bp::object r = np_asarray_(tau_obj_(t, to_numpy(q), to_numpy(v)), "float64");
+    bp::extract<Vec> ex(r);
+    bool ok = bp::len(r.attr("shape")) == 1 && ex.check();
+    if (ok) {
+      tau_ = ex();
+      ok = tau_.size() == nv_ && tau_.allFinite();
+    }
+    if (!ok) {
+      std::string rep = bp::extract<std::string>(bp::str(r));
+      throw SimulationFailure{"tau(t, q, v) returned " + rep + " at t = " + fmt("%.6g", t) +
+                                  " s; expected finite shape (" + std::to_string(nv_) + ",)",
+                              t};
+    }
+    return tau_;
+  }
+
+  // The right-hand side of a simulation: a_ (and lam_) at (t, q, v).
+  void accel(double t, const RefV &q, const RefV &v) {
+    const Vec &tau = tau_at(t, q, v);
+    solve(q, v, tau, t);
+    if (!a_.allFinite())
+      throw SimulationFailure{"non-finite acceleration at t = " + fmt("%.9g", t) +
+                                  " s, q = " + vec_str(q),
+                              t};
+  }
+
+  // -- Python entry points of one evaluation ---------------------------------
+
+  bp::tuple py_rows(const Vec &q, const Vec &v) {
+    check_sizes(q, v);
+    eval_terms(q, v);
+    if (!baumgarte_) {  // phi was not needed by eval_terms
+      placements();
+      rows(true, false, false);
+    }
+    return bp::make_tuple(Vec(phi_), Mat(J_), Vec(gamma_));
+  }
+
+  bp::tuple py_forward(const Vec &q, const Vec &v, const Vec &tau) {
+    check_sizes(q, v);
+    if (tau.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
+    solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    return bp::make_tuple(Vec(a_), Vec(lam_));
+  }
+
+  // a at (q, v) for n_eval repetitions inside C++ (the per-evaluation cost in the loop).
+  Vec py_repeat(const Vec &q, const Vec &v, const Vec &tau, int n) {
+    check_sizes(q, v);
+    for (int i = 0; i < n; ++i) solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    return a_;
+  }
+
+  // Mean wall time [ns] of each stage of one evaluation over n repetitions (profiling).
+  bp::dict py_profile(const Vec &q, const Vec &v, const Vec &tau, int n) {
+    check_sizes(q, v);
+    using clock = std::chrono::steady_clock;
+    double t_fk = 0, t_crba = 0, t_nle = 0, t_frames = 0, t_rows = 0, t_solve = 0;
+    auto ns = [](clock::time_point a, clock::time_point b) {
+      return std::chrono::duration<double, std::nano>(b - a).count();
+    };
+    for (int i = 0; i < n; ++i) {
+      auto c0 = clock::now();
+      auto c1 = clock::now();
+      pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
+      auto c2 = clock::now();
+      pinocchio::nonLinearEffects(model_, data_, q, v);
+      auto c3 = clock::now();
+      for (pinocchio::JointIndex j : joints_)
+        data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
+      for (std::size_t k = 0; k < fids_.size(); ++k) {
+        vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
+                     .toVector();
+        af_[k] = pinocchio::getFrameClassicalAcceleration(model_, data_, fids_[k],
+                                                          pinocchio::LOCAL_WORLD_ALIGNED)
+                     .toVector();
+      }
+      placements();
+      jacobians();
+      auto c4 = clock::now();
+      rows(baumgarte_, true, true);
+      auto c5 = clock::now();
+      M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
+      M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
+      h_ = data_.nle;
+      if (method_ == KKT)
+        solve_kkt(q, tau, 0.0);
+      else if (method_ == SCHUR)
+        solve_schur(q, tau, 0.0);
+      else
+        solve_nullspace(q, tau, 0.0);
+      auto c6 = clock::now();
+      t_fk += ns(c0, c1);
+      t_crba += ns(c1, c2);
+      t_nle += ns(c2, c3);
+      t_frames += ns(c3, c4);
+      t_rows += ns(c4, c5);
+      t_solve += ns(c5, c6);
+    }
+    bp::dict d;
+    d["fk"] = t_fk / n;
+    d["crba"] = t_crba / n;
+    d["nle"] = t_nle / n;
+    d["frames"] = t_frames / n;
+    d["rows"] = t_rows / n;
+    d["solve"] = t_solve / n;
+    return d;
+  }
+
+  // -- stabilization and checks ----------------------------------------------
+
+  // cond_2(J) from the eigenvalues of J J^T.
+  double cond_J() {
+    if (nc_ == 0) return 1.0;
+    JJt_.noalias() = J_ * J_.transpose();
+    eig_.compute(JJt_, Eigen::EigenvaluesOnly);
+    const Vec &ev = eig_.eigenvalues();
+    if (!(ev[0] > 0)) return std::numeric_limits<double>::infinity();
+    return std::sqrt(ev[nc_ - 1] / ev[0]);
+  }
+
+  void check_regular(const RefV &q, double t) {
+    if (nc_ == 0) return;
+    eval_phi_J(q);
+    double cond = cond_J();
+    if (!(cond <= singular_cond_)) {
+      std::string msg =
+          name_ + ": at t = " + fmt("%.9g", t) +
+          " s the constraint Jacobian is close to losing rank (condition number " +
+          fmt("%.3e", cond) + " > singular_cond " + fmt("%.1e", singular_cond_) +
+          "): a singular configuration, where the motion is not determined by the equations; "
+          "a fixed-step integrator with stabilization='partitioning' can step across some "
+          "(see SimulationSettings)";
+      throw SingularError{msg, cond, t, Vec(q)};
+    }
+  }
+
+  // Minimum-norm solution x of J x = b (J full row rank): J^T (J J^T)^-1 b.
+  void min_norm(const Vec &b, Vec &x) {
+    JJt_.noalias() = J_ * J_.transpose();
+    llt_c_.compute(JJt_);
+    tmp_c_ = llt_c_.solve(b);
+    x.noalias() = J_.transpose() * tmp_c_;
+  }
+
+  // Gauss-Newton (minimum-norm) projection of q onto phi = 0, then v onto J v = 0.
+  void project(Vec &q, Vec &v) {
+    if (nc_ == 0) return;
+    for (int it = 0; it < projection_iters_; ++it) {
+      eval_phi(q);
+      if (phi_.cwiseAbs().maxCoeff() <= projection_tol_) break;
+      eval_phi_J(q);
+      min_norm(-phi_, dq_);
+      pinocchio::integrate(model_, Vec(q), dq_, q);
+    }
+    if (project_velocities_) {
+      eval_phi_J(q);
+      min_norm(J_ * v, dq_);
+      v -= dq_;
+    }
+  }
+
+  // -- recording ---------------------------------------------------------------
+
+  struct Samples {
+    std::vector<double> t, res, vres, e, ke;
+    std::vector<double> q, v, a, lam;
+  };
+
+  void record(Samples &out, double t, const Vec &q, const Vec &v) {
+    // a_ and lam_ are those at (t, q, v)
+    double res = 0.0, vres = 0.0;
+    if (nc_) {
+      eval_phi_J(q);
+      res = phi_.cwiseAbs().maxCoeff();
+      vres = (J_ * v).cwiseAbs().maxCoeff();
+    }
+    if (!std::isfinite(res) || res > drift_limit_)
+      throw SimulationFailure{
+          name_ + ": the state left the constraint manifold at t = " + fmt("%.9g", t) +
+              " s (max |phi| = " + fmt("%.3e", res) + " > drift_limit " +
+              fmt("%.1e", drift_limit_) + "); use a stabilization or a smaller step",
+          t};
+    double ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
+    double pe = pinocchio::computePotentialEnergy(model_, data_, q);
+    out.t.push_back(t);
+    out.res.push_back(res);
+    out.vres.push_back(vres);
+    out.e.push_back(ke + pe);
+    out.ke.push_back(ke);
+    out.q.insert(out.q.end(), q.data(), q.data() + nq_);
+    out.v.insert(out.v.end(), v.data(), v.data() + nv_);
+    out.a.insert(out.a.end(), a_.data(), a_.data() + nv_);
+    out.lam.insert(out.lam.end(), lam_.data(), lam_.data() + nc_);
+  }
+
+  static bp::object block(const std::vector<double> &x, long rows, long cols) {
+    Mat m(rows, cols);
+    for (long i = 0; i < rows; ++i)
+      for (long j = 0; j < cols; ++j) m(i, j) = x[i * cols + j];
+    return bp::object(m);
+  }
+
+  bp::dict samples_dict(const Samples &s, long steps) {
+    long n = static_cast<long>(s.t.size());
+    bp::dict d;
+    d["t"] = block(s.t, n, 1);
+    d["q"] = block(s.q, n, nq_);
+    d["v"] = block(s.v, n, nv_);
+    d["a"] = block(s.a, n, nv_);
+    d["lam"] = block(s.lam, n, nc_);
+    d["res"] = block(s.res, n, 1);
+    d["vres"] = block(s.vres, n, 1);
+    d["e"] = block(s.e, n, 1);
+    d["ke"] = block(s.ke, n, 1);
+    d["steps"] = steps;
+    d["evaluations"] = n_evals_;
+    return d;
+  }
+
+  void poll(long k, double t, const bp::object &progress) {
+    if (!progress.is_none()) progress(t);
+    if ((k & 63) == 0 && PyErr_CheckSignals() != 0) bp::throw_error_already_set();
+  }
+
+  void check_finite(const Vec &q, const Vec &v, double t) {
+    if (!(q.allFinite() && v.allFinite()))
+      throw SimulationFailure{name_ + ": non-finite state at t = " + fmt("%.9g", t) + " s", t};
+  }
+
+  // -- fixed-step integration ----------------------------------------------------
+
+  // Integrate with a fixed step dt for n_steps, recording at the steps in `out`.
+  bp::dict run_fixed(int integrator, const Vec &q0, const Vec &v0, double dt, long n_steps,
+                     const Eigen::VectorXi &out_steps, bool projects, bp::object progress) {
+    check_sizes(q0, v0);
+    if (integrator < EULER || integrator > RK4) throw BadArgument{"run_fixed: unknown integrator"};
+    n_evals_ = 0;
+    Samples S;
+    std::vector<char> out(n_steps + 1, 0);
+    for (Eigen::Index i = 0; i < out_steps.size(); ++i)
+      if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+    Vec q = q0, v = v0, qn(nq_), vn(nv_), qs(nq_), vs(nv_);
+    Vec k1v(nv_), k1a(nv_), k2v(nv_), k2a(nv_), k3v(nv_), k3a(nv_), k4v(nv_), k4a(nv_), dv(nv_);
+    double t = 0.0;
+    accel(t, q, v);
+    if (out[0]) record(S, t, q, v);
+    for (long k = 1; k <= n_steps; ++k) {
+      if (integrator == EULER) {
+        dv = dt * v;
+        pinocchio::integrate(model_, q, dv, qn);
+        vn = v + dt * a_;
+      } else if (integrator == SEMI_IMPLICIT) {
+        vn = v + dt * a_;
+        dv = dt * vn;
+        pinocchio::integrate(model_, q, dv, qn);
+      } else {
+        k1v = v;
+        k1a = a_;
+        dv = (dt / 2) * k1v;
+        pinocchio::integrate(model_, q, dv, qs);
+        vs = v + (dt / 2) * k1a;
+        accel(t + dt / 2, qs, vs);
+        k2v = vs;
+        k2a = a_;
+        dv = (dt / 2) * k2v;
+        pinocchio::integrate(model_, q, dv, qs);
+        vs = v + (dt / 2) * k2a;
+        accel(t + dt / 2, qs, vs);
+        k3v = vs;
+        k3a = a_;
+        dv = dt * k3v;
+        pinocchio::integrate(model_, q, dv, qs);
+        vs = v + dt * k3a;
+        accel(t + dt, qs, vs);
+        k4v = vs;
+        k4a = a_;
+        dv = (dt / 6) * (k1v + 2 * k2v + 2 * k3v + k4v);
+        pinocchio::integrate(model_, q, dv, qn);
+        vn = v + (dt / 6) * (k1a + 2 * k2a + 2 * k3a + k4a);
+      }
+      t = k * dt;
+      check_finite(qn, vn, t);
+      if (projects) project(qn, vn);
+      check_regular(qn, t);
+      q = qn;
+      v = vn;
+      accel(t, q, v);
+      if (out[k]) record(S, t, q, v);
+      poll(k, t, progress);
+    }
+    return samples_dict(S, n_steps);
+  }
+
+  // -- adaptive explicit Runge-Kutta (scipy's RK45 / DOP853, same error control) --
+
+  double rms(const Vec &x) const { return x.norm() / std::sqrt(static_cast<double>(x.size())); }
+
+  void fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
+    accel(t, y.head(nv_), y.tail(nv_));
+    f.head(nv_) = y.tail(nv_);
+    f.tail(nv_) = a_;
+  }
+
+  bp::dict run_adaptive(int integrator, const Vec &q0, const Vec &v0, double t_final,
+                        double rtol, double atol, bp::object t_eval_obj, bool projects,
+                        bp::object progress) {
+    check_sizes(q0, v0);
+    if (nq_ != nv_) throw BadArgument{"adaptive integration needs nq == nv"};
+    if (integrator != RK45 && integrator != DOP853)
+      throw BadArgument{"run_adaptive: unknown integrator"};
+    const bool dop = integrator == DOP853;
+    const int n_stages = dop ? dop853::N_STAGES : rk45::N_STAGES;
+    const int error_order = dop ? 7 : 4;
+    const double error_exponent = -1.0 / (error_order + 1);
+    const double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
+    const double eps = std::numeric_limits<double>::epsilon();
+    if (rtol < 100 * eps) rtol = 100 * eps;  // scipy's validate_tol
+    const std::string iname = dop ? "DOP853" : "RK45";
+    n_evals_ = 0;
+    Samples S;
+    const int n = 2 * nv_;
+    std::vector<double> pending;
+    const bool dense = !t_eval_obj.is_none();
+    if (dense) {
+      Vec te = bp::extract<Vec>(t_eval_obj);
+      pending.assign(te.data(), te.data() + te.size());
+    }
+    std::size_t ip = 0;
+    Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
+    y.head(nv_) = q0;
+    y.tail(nv_) = v0;
+    Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+    Mat F(n, dop853::INTERPOLATOR_POWER);
+    auto output = [&](double t, const Vec &yy) {
+      accel(t, yy.head(nv_), yy.tail(nv_));
+      record(S, t, yy.head(nv_), yy.tail(nv_));
+    };
+    double t = 0.0;
+    if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
+      output(0.0, y);
+      if (dense) ++ip;
+    }
+    fun(t, y, f);
+    // scipy's select_initial_step
+    double h_abs;
+    {
+      double interval = std::abs(t_final - t);
+      scale = atol + y.cwiseAbs().array() * rtol;
+      double d0 = rms(y.cwiseQuotient(scale)), d1 = rms(f.cwiseQuotient(scale));
+      double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
+      h0 = std::min(h0, interval);
+      Vec y1 = y + h0 * f;
+      Vec f1(n);
+      fun(t + h0, y1, f1);
+      double d2 = rms((f1 - f).cwiseQuotient(scale)) / h0;
+      double h1 = (d1 <= 1e-15 && d2 <= 1e-15) ? std::max(1e-6, h0 * 1e-3)
+                                                : std::pow(0.01 / std::max(d1, d2),
+                                                           1.0 / (error_order + 1));
+      h_abs = std::min(std::min(100 * h0, h1), interval);
+    }
+    long steps = 0;
+    while (t < t_final) {
+      // one step of scipy's RungeKutta._step_impl
+      double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
+      if (h_abs < min_step) h_abs = min_step;
+      bool accepted = false, rejected = false;
+      double t_new = t, h = 0.0;
+      while (!accepted) {
+        if (h_abs < min_step)
+          throw SimulationFailure{name_ + ": integrator " + iname + " failed at t = " +
+                                      fmt("%.9g", t) +
+                                      " s: Required step size is less than spacing between "
+                                      "numbers.",
+                                  t};
+        h = h_abs;
+        t_new = t + h;
+        if (t_new - t_final > 0) t_new = t_final;
+        h = t_new - t;
+        h_abs = std::abs(h);
+        // rk_step
+        K.col(0) = f;
+        for (int s = 1; s < n_stages; ++s) {
+          dy.setZero();
+          for (int j = 0; j < s; ++j) {
+            double c = dop ? dop853::A[s][j] : rk45::A[s][j];
+            if (c != 0.0) dy += c * K.col(j);
+          }
+          ye = y + h * dy;
+          fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
+        }
+        dy.setZero();
+        for (int j = 0; j < n_stages; ++j) {
+          double b = dop ? dop853::B[j] : rk45::B[j];
+          if (b != 0.0) dy += b * K.col(j);
+        }
+        y_new = y + h * dy;
+        fun(t + h, y_new, f_new);
+        K.col(n_stages) = f_new;
+        scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
+        double err;
+        if (dop) {
+          e5.setZero();
+          e3.setZero();
+          for (int j = 0; j <= n_stages; ++j) {
+            e5 += dop853::E5[j] * K.col(j);
+            e3 += dop853::E3[j] * K.col(j);
+          }
+          e5 = e5.cwiseQuotient(scale);
+          e3 = e3.cwiseQuotient(scale);
+          double n5 = e5.squaredNorm(), n3 = e3.squaredNorm();
+          if (n5 == 0 && n3 == 0)
+            err = 0.0;
+          else
+            err = std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * n);
+        } else {
+          tmp.setZero();
+          for (int j = 0; j <= n_stages; ++j) tmp += rk45::E[j] * K.col(j);
+          tmp *= h;
+          err = rms(tmp.cwiseQuotient(scale));
+        }
+        if (err < 1) {
+          double factor =
+              err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, error_exponent));
+          if (rejected) factor = std::min(1.0, factor);
+          h_abs *= factor;
+          accepted = true;
+        } else {
+          h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, error_exponent));
+          rejected = true;
+        }
+      }
+      ++steps;
+      const double t_old = t;
+      // dense output at the t_eval within the step, from the unprojected step
+      if (dense && ip < pending.size() && pending[ip] <= t_new) {
+        if (dop) {
+          for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
+            dy.setZero();
+            for (int j = 0; j < s; ++j)
+              if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
+            ye = y + h * dy;
+            fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
+          }
+          F.col(0) = y_new - y;
+          F.col(1) = h * K.col(0) - F.col(0);
+          F.col(2) = 2 * F.col(0) - h * (f_new + K.col(0));
+          for (int i = 0; i < 4; ++i) {
+            tmp.setZero();
+            for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+              if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
+            F.col(3 + i) = h * tmp;
+          }
+        } else {
+          for (int i = 0; i < 4; ++i) {  // Q = K^T P
+            tmp.setZero();
+            for (int j = 0; j <= n_stages; ++j)
+              if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
+            F.col(i) = tmp;
+          }
+        }
+        while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
+          double x = (pending[ip] - t_old) / h;
+          if (dop) {
+            ye.setZero();
+            for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
+              ye += F.col(i);
+              ye *= (r % 2 == 0) ? x : 1 - x;
+            }
+            ye += y;
+          } else {
+            double p = x;
+            ye = y;
+            for (int i = 0; i < 4; ++i, p *= x) ye += (h * p) * F.col(i);
+          }
+          output(pending[ip], ye);
+          ++ip;
+        }
+      }
+      t = t_new;
+      y = y_new;
+      f = f_new;
+      check_finite(y.head(nv_), y.tail(nv_), t);
+      if (projects) {
+        Vec q = y.head(nv_), v = y.tail(nv_);
+        project(q, v);
+        y.head(nv_) = q;
+        y.tail(nv_) = v;
+        fun(t, y, f);
+      }
+      check_regular(y.head(nv_), t);
+      if (!dense) output(t, y);
+      poll(steps, t, progress);
+    }
+    return samples_dict(S, steps);
+  }
+
+ private:
+  int frame_index(int fid) {
+    for (std::size_t k = 0; k < fids_.size(); ++k)
+      if (fids_[k] == static_cast<pinocchio::FrameIndex>(fid)) return static_cast<int>(k);
+    fids_.push_back(static_cast<pinocchio::FrameIndex>(fid));
+    return static_cast<int>(fids_.size() - 1);
+  }
+
+  void check_sizes(const Vec &q, const Vec &v) const {
+    if (q.size() != nq_ || v.size() != nv_)
+      throw BadArgument{"q must have shape (" + std::to_string(nq_) + ",) and v shape (" +
+                        std::to_string(nv_) + ",)"};
+  }
+
+  void placements() {
+    for (std::size_t k = 0; k < fids_.size(); ++k) {
+      const pinocchio::Frame &fr = model_.frames[fids_[k]];
+      const pinocchio::SE3 oMf = data_.oMi[fr.parentJoint] * fr.placement;
+      R_[k] = oMf.rotation();
+      p_[k] = oMf.translation();
+    }
+  }
+
+  void jacobians() {
+    for (std::size_t k = 0; k < fids_.size(); ++k) {
+      Jf_[k].setZero();
+      pinocchio::getFrameJacobian(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED, Jf_[k]);
+    }
+  }
+
+  // Fill phi_, J_, gamma_ from the per-frame quantities.
+  void rows(bool want_phi, bool want_J, bool want_gamma) {
+    for (int r = 0; r < nc_; ++r) {
+      const Row &row = rows_[r];
+      const int P = row.p, S = row.s;
+      if (row.kind != 2) {
+        const Vector3d d = p_[P] - p_[S];
+        const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
+        if (want_phi) phi_[r] = U.dot(d);
+        if (want_J) {
+          J_.row(r).noalias() = U.transpose() * (Jf_[P].topRows<3>() - Jf_[S].topRows<3>());
+          if (row.kind == 1) J_.row(r).noalias() += U.cross(d).transpose() * Jf_[P].bottomRows<3>();
+        }
+        if (want_gamma) {
+          const Vector3d dd = af_[P].head<3>() - af_[S].head<3>();
+          double g = U.dot(dd);
+          if (row.kind == 1) {
+            const Vector3d wp = vf_[P].tail<3>(), alp = af_[P].tail<3>();
+            const Vector3d Ud = wp.cross(U);
+            const Vector3d Udd = alp.cross(U) + wp.cross(Ud);
+            const Vector3d ddot = vf_[P].head<3>() - vf_[S].head<3>();
+            g += Udd.dot(d) + 2.0 * Ud.dot(ddot);
+          }
+          gamma_[r] = g;
+        }
+      } else {
+        const Vector3d U = R_[P] * row.n, W = R_[S] * row.w;
+        const double UW = U.dot(W);
+        if (want_phi) phi_[r] = UW;
+        const Vector3d WxU = W.cross(U);
+        if (want_J)
+          J_.row(r).noalias() = WxU.transpose() * (Jf_[S].bottomRows<3>() - Jf_[P].bottomRows<3>());
+        if (want_gamma) {
+          const Vector3d wp = vf_[P].tail<3>(), ws = vf_[S].tail<3>();
+          const double pu = wp.dot(U), pw = wp.dot(W), su = ws.dot(U), sw = ws.dot(W);
+          gamma_[r] = WxU.dot(af_[S].tail<3>() - af_[P].tail<3>()) + pu * pw + su * sw -
+                      2.0 * pw * su - (wp - ws).squaredNorm() * UW;
+        }
+      }
+    }
+  }
+
+  bp::object model_obj_;  // keeps the Python model alive
+  const Model &model_;
+  Data data_;
+  std::string name_;
+  int nq_ = 0, nv_ = 0, nc_ = 0;
+  std::vector<Row> rows_;
+  std::vector<pinocchio::FrameIndex> fids_;
+  std::vector<pinocchio::JointIndex> joints_;  // parent joints of fids_
+  std::vector<Eigen::Matrix3d> R_;
+  std::vector<Vector3d> p_;
+  std::vector<Mat6x> Jf_;
+  std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
+  Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
+  Vec est_x_, est_y_, est_z_, z_;
+  Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
+  Eigen::PartialPivLU<Mat> lu_;
+  Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
+  Eigen::JacobiSVD<Mat> svd_;
+  Eigen::SelfAdjointEigenSolver<Mat> eig_;
+  Method method_ = KKT;
+  std::string method_name_ = "kkt";
+  double cond_max_ = 1e12;
+  bool baumgarte_ = false;
+  double alpha_ = 0.0, beta_ = 0.0;
+  double projection_tol_ = 1e-13;
+  int projection_iters_ = 10;
+  bool project_velocities_ = true;
+  double singular_cond_ = 1e3;
+  double drift_limit_ = 1e-2;
+  int tau_mode_ = 0;
+  bp::object tau_obj_, np_asarray_;
+  long n_evals_ = 0;
+};
+
+}  // namespace closedchain
+
+BOOST_PYTHON_MODULE(_core) {
+  using namespace closedchain;
+  bp::import("pinocchio");
+  eigenpy::enableEigenPy();
+  eigenpy::enableEigenPySpecific<Eigen::VectorXi>();
+  bp::register_exception_translator<SingularError>(&translate_singular);
+  bp::register_exception_translator<SimulationFailure>(&translate_simulation);
+  bp::register_exception_translator<BadArgument>(&translate_bad);
+  bp::scope().attr("EULER") = static_cast<int>(EULER);
+  bp::scope().attr("SEMI_IMPLICIT") = static_cast<int>(SEMI_IMPLICIT);
+  bp::scope().attr("RK4") = static_cast<int>(RK4);
+  bp::scope().attr("RK45") = static_cast<int>(RK45);
+  bp::scope().attr("DOP853") = static_cast<int>(DOP853);
+  bp::class_<Core, boost::noncopyable>(
+      "Core",
+      "Compiled constraint rows, forward dynamics and integration loops of one mechanism.",
+      bp::init<bp::object, std::string, Eigen::VectorXi, Eigen::VectorXi, Eigen::VectorXi,
+               Eigen::MatrixXd, Eigen::MatrixXd>(
+          bp::args("self", "model", "name", "kinds", "fid_p", "fid_s", "vec1", "vec2")))
+      .def("configure", &Core::configure, bp::args("self", "settings"))
+      .def("set_tau", &Core::set_tau, bp::args("self", "tau"))
+      .def("rows", &Core::py_rows, bp::args("self", "q", "v"),
+           "(phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.")
+      .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")
+      .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),
+           "a at (q, v) after n evaluations inside C++ (timing).")
+      .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),
+           "Mean time [ns] of each stage of one evaluation (profiling).")
+      .def("run_fixed", &Core::run_fixed,
+           bp::args("self", "integrator", "q0", "v0", "dt", "n_steps", "out_steps", "projects",
+                    "progress"))
+      .def("run_adaptive", &Core::run_adaptive,
+           bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
+                    "projects", "progress"))
+      .add_property("nc", &Core::nc)
+      .add_property("n_evals", &Core::n_evals);
+}

@@ -1,0 +1,158 @@
+"""The compiled core: constraint rows, forward dynamics and integration loops in C++.
+
+``closedchain._core`` (src/closedchain/_core/core.cpp, built by CMake through
+scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
+same equations as the numpy backend: the rows of the constraint layer
+(:meth:`ConstraintLayer.row_table`), the methods whose
+:class:`MethodCapabilities` declare ``compiled``, and whole trajectories of
+the integrators registered with ``backend="compiled"`` (see
+:mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
+reference; the URDF reading, the loop bookkeeping and the API stay in Python.
+
+Use :func:`compiled_dynamics` for one evaluation from Python; ``simulate``
+picks the compiled integrators by itself.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .constraints import ROW_ROTATION, ROW_TRANSLATION
+from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
+from .exceptions import ClosedChainError
+
+if TYPE_CHECKING:
+    from .mechanism import Mechanism
+
+try:
+    import pinocchio  # noqa: F401  (its converters must be registered first)
+
+    from . import _core
+except ImportError as exc:  # pragma: no cover - a broken installation
+    _core = None
+    IMPORT_ERROR: str | None = str(exc)
+else:
+    IMPORT_ERROR = None
+
+#: The core's row kinds by the layer's row function code: 1 is translation along
+#: n fixed in c1, 2 rotation (R_p u).(R_s w) (0, a world axis, is no longer emitted).
+_CORE_KIND = np.zeros(max(ROW_TRANSLATION, ROW_ROTATION) + 1, dtype=np.int32)
+_CORE_KIND[ROW_TRANSLATION] = 1
+_CORE_KIND[ROW_ROTATION] = 2
+
+#: Integrator codes of the compiled loops.
+INTEGRATOR_CODES = (
+    {}
+    if _core is None
+    else {
+        "euler": _core.EULER,
+        "semi-implicit": _core.SEMI_IMPLICIT,
+        "rk4": _core.RK4,
+        "RK45": _core.RK45,
+        "DOP853": _core.DOP853,
+    }
+)
+
+
+def available() -> bool:
+    """Return True when the compiled core was built and imports."""
+    return _core is not None
+
+
+def supports_method(method: str) -> bool:
+    """Return True when the compiled core implements forward-dynamics ``method``."""
+    get_method(method)
+    return available() and METHOD_CAPABILITIES[method].compiled
+
+
+def make_core(mech: Mechanism, *, shared: bool = True):
+    """Return a compiled core of the mechanism (its own Pinocchio Data and buffers).
+
+    Args:
+        shared: return the mechanism's shared core, built once per constraint
+            layer (the simulator's, reconfigured by every run); False: a new one.
+    """
+    if _core is None:
+        raise ClosedChainError(f"the compiled core is not available: {IMPORT_ERROR}")
+    cache = mech.__dict__.setdefault("_compiled_cores", {})
+    key = id(mech.constraints)
+    entry = cache.get(key) if shared else None
+    if entry is None or entry[0] is not mech.constraints:
+        tab = mech.constraints.row_table()
+        core = _core.Core(
+            mech.model,
+            mech.name,
+            _CORE_KIND[tab.function].astype(np.int32),
+            tab.frame_p.astype(np.int32),
+            tab.frame_s.astype(np.int32),
+            tab.u,
+            tab.w,
+        )
+        entry = (mech.constraints, core)
+        if shared:
+            cache[key] = entry
+    return entry[1]
+
+
+def configure(core, method: str, solver_settings: SolverSettings, settings=None) -> None:
+    """Set the core's method, solver settings and (optionally) simulation settings."""
+    if not supports_method(method):
+        compiled = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
+        raise ClosedChainError(
+            f"method {method!r} has no compiled implementation; compiled methods: "
+            f"{', '.join(compiled)} (use backend='numpy')"
+        )
+    cfg = {
+        "method": method,
+        "cond_max": float(solver_settings.cond_max),
+        "baumgarte": solver_settings.baumgarte,
+    }
+    if settings is not None:
+        cfg.update(
+            projection_tol=float(settings.projection_tol),
+            projection_iters=int(settings.projection_iters),
+            project_velocities=bool(settings.project_velocities),
+            singular_cond=float(settings.singular_cond),
+            drift_limit=float(settings.drift_limit),
+        )
+    core.configure(cfg)
+
+
+class CompiledDynamics:
+    """The compiled right-hand side of one mechanism and method, called from Python.
+
+    Example::
+
+        fd = CompiledDynamics(mech, "kkt")
+        a, lam = fd.forward(q, v, tau)
+    """
+
+    def __init__(
+        self, mech: Mechanism, method: str = "kkt", settings: SolverSettings | None = None
+    ) -> None:
+        self.mech = mech
+        self.method = method
+        self.core = make_core(mech, shared=False)  # its method and settings stay its own
+        configure(self.core, method, settings or SolverSettings())
+        self._zero = np.zeros(mech.nv)
+
+    def forward(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray | None = None):
+        """Return (a, lam) at (q, v) with generalized force ``tau`` (zero when None).
+
+        Raises:
+            SingularConfigurationError: the method's matrix is singular at q.
+        """
+        return self.core.forward(q, v, self._zero if tau is None else tau)
+
+    def rows(self, q: np.ndarray, v: np.ndarray):
+        """Return (phi, J, gamma) at (q, v) (gamma with Baumgarte terms when configured)."""
+        return self.core.rows(q, v)
+
+
+def compiled_dynamics(
+    mech: Mechanism, method: str = "kkt", settings: SolverSettings | None = None
+) -> CompiledDynamics:
+    """Return the compiled right-hand side of ``mech`` with ``method``."""
+    return CompiledDynamics(mech, method, settings)

@@ -1,0 +1,367 @@
+"""The compiled core against the numpy backend (the reference implementation).
+
+Per evaluation the two must agree to round-off (:data:`EVAL_RTOL`); whole
+trajectories run the same algorithm (same steps, same error control), so they
+agree far below the integration tolerance (:data:`FIXED_STEP_TOL`,
+:data:`ADAPTIVE_TOL`).
+"""
+
+from __future__ import annotations
+
+import _thread
+import signal
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import scipy.integrate
+
+import closedchain as cc
+from closedchain import compiled
+from closedchain.dynamics.base import METHOD_CAPABILITIES, compute_terms
+from closedchain.simulate import COMPILED_INTEGRATORS, INTEGRATORS, SimulationError
+
+#: Per evaluation: |compiled - numpy| <= EVAL_RTOL * max(1, max |reference|) ...
+EVAL_RTOL = 1e-12
+#: ... or, for the solution of an ill-conditioned system, ROUNDOFF_FACTOR * eps * kappa
+#: times that scale, kappa the larger 2-norm condition number of the KKT matrix and of
+#: the Delassus matrix J M^-1 J^T (the Schur method's lam on the Agile Eye: kappa ~ 1e5,
+#: both backends within eps * kappa of the exact solution, 2.4e-12 apart).
+ROUNDOFF_FACTOR = 10.0
+#: Fixed-step trajectories (same arithmetic, round-off grows over the steps) [rad, rad/s].
+FIXED_STEP_TOL = 1e-9
+#: Adaptive trajectories at RTOL/ATOL below: agreement within the integration tolerance.
+RTOL, ATOL = 1e-9, 1e-11
+ADAPTIVE_TOL = 1e-7
+#: The compiled DOP853 and scipy's on the same right-hand side: steps may differ by this many.
+STEP_COUNT_SLACK = 3
+#: Duration of the adaptive and fixed-step comparisons [s] (euler without
+#: stabilization leaves the Agile Eye's manifold beyond drift_limit at 0.147 s) and step [s].
+T_CMP, T_FIXED, DT = 0.3, 0.1, 1e-3
+
+ROOT = Path(__file__).resolve().parent.parent
+MECHS = ["fourbar", "agile_eye"]
+ALL_MECHS = ["fourbar", "agile_eye", "spherical_chain", "slider_crank", "fixed_branches"]
+COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
+STABS = ["none", "baumgarte", "projection"]
+
+
+def _kappa(mech, q, v):
+    ws = compute_terms(mech, q, v)
+    M, J = ws.M, ws.J
+    K = np.block([[M, J.T], [J, np.zeros((mech.nc, mech.nc))]])
+    D = J @ np.linalg.solve(M, J.T)
+    return max(np.linalg.cond(K), np.linalg.cond(D))
+
+
+def _close(x, ref, rtol=EVAL_RTOL):
+    scale = max(1.0, float(np.max(np.abs(ref), initial=0.0)))
+    return float(np.max(np.abs(np.asarray(x) - ref), initial=0.0)) <= rtol * scale
+
+
+def test_core_is_built():
+    assert compiled.available(), compiled.IMPORT_ERROR
+    assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace"}
+    assert set(COMPILED_INTEGRATORS) == {"euler", "semi-implicit", "rk4", "RK45", "DOP853"}
+    for name, spec in COMPILED_INTEGRATORS.items():
+        assert spec.backend == "compiled"
+        assert spec.kind == INTEGRATORS[name].kind
+
+
+@pytest.mark.parametrize("baumgarte", [None, (10.0, 7.0)], ids=["exact", "baumgarte"])
+@pytest.mark.parametrize("name", ALL_MECHS)
+def test_rows_match_numpy(load_mechanism, name, baumgarte, rng):
+    """phi, J and gamma (with Baumgarte terms) of every loop type, at random states."""
+    mech = load_mechanism(name)
+    fd = compiled.compiled_dynamics(mech, "kkt", cc.SolverSettings(baumgarte=baumgarte))
+    for _ in range(5):
+        q, v = cc.random_consistent_state(mech, rng)
+        v = v + 0.1 * rng.standard_normal(mech.nv)  # off J v = 0: exercises every term
+        q = pin.integrate(mech.model, q, 1e-2 * rng.standard_normal(mech.nv))  # phi != 0
+        phi, J, gamma = fd.rows(q, v)
+        ws = compute_terms(mech, q, v, baumgarte)
+        phi_ref = np.zeros(mech.nc)
+        mech.constraints.evaluate(mech.model, mech.data, phi=phi_ref)
+        assert _close(phi, phi_ref)
+        assert _close(J, ws.J)
+        assert _close(gamma, ws.gamma)
+
+
+@pytest.mark.parametrize("baumgarte", [None, (10.0, 7.0)], ids=["exact", "baumgarte"])
+@pytest.mark.parametrize("method", COMPILED_METHODS)
+@pytest.mark.parametrize("name", ALL_MECHS)
+def test_forward_matches_numpy(load_mechanism, name, method, baumgarte, rng):
+    mech = load_mechanism(name)
+    settings = cc.SolverSettings(baumgarte=baumgarte)
+    fd = compiled.compiled_dynamics(mech, method, settings)
+    for _ in range(5):
+        q, v = cc.random_consistent_state(mech, rng)
+        tau = rng.standard_normal(mech.nv)
+        a, lam = fd.forward(q, v, tau)
+        ref = cc.forward_dynamics(mech, q, v, tau, method=method, settings=settings)
+        rtol = max(EVAL_RTOL, ROUNDOFF_FACTOR * np.finfo(float).eps * _kappa(mech, q, v))
+        assert _close(a, ref.a, rtol)
+        assert _close(lam, ref.lam, rtol)
+
+
+def test_forward_singular_raises(fourbar):
+    """Exactly singular KKT matrix (J = 0 rows impossible, so a zero mass matrix row is
+    simulated by an absurd cond_max): the library's exception with q and condition."""
+    fd = compiled.compiled_dynamics(fourbar, "kkt", cc.SolverSettings(cond_max=1.0))
+    q = fourbar.q_ref
+    with pytest.raises(cc.SingularConfigurationError, match="condition number") as exc:
+        fd.forward(q, np.zeros(3), np.zeros(3))
+    assert exc.value.condition_number > 1.0
+    assert np.array_equal(exc.value.q, q)
+    assert exc.value.t is None
+
+
+def test_bad_arguments_raise_library_errors(fourbar):
+    fd = compiled.compiled_dynamics(fourbar, "kkt")
+    with pytest.raises(cc.ClosedChainError, match="shape"):
+        fd.forward(np.zeros(2), np.zeros(3), np.zeros(3))
+    with pytest.raises(cc.ClosedChainError, match="no compiled implementation"):
+        compiled.compiled_dynamics(fourbar, "reduced")
+
+
+# -- trajectories -------------------------------------------------------------------------
+
+
+def _state(mech, name):
+    if name == "fourbar":
+        q = cc.assemble(mech, np.radians((10.0, -65.0, -104.0)), fixed=["crank_joint"])
+        return q, np.zeros(3)
+    v = np.zeros(mech.nv)
+    v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
+    return mech.q_ref.copy(), cc.project_velocity(mech, mech.q_ref, v, fixed="independent")
+
+
+def _pair(mech, q0, v0, t_final=T_CMP, **kw):
+    a = cc.simulate(mech, q0, v0, t_final, backend="compiled", **kw)
+    b = cc.simulate(mech, q0, v0, t_final, backend="numpy", **kw)
+    assert a.info["backend"] == "compiled" and b.info["backend"] == "numpy"
+    return a, b
+
+
+@pytest.mark.parametrize("stab", STABS)
+@pytest.mark.parametrize("method", COMPILED_METHODS)
+@pytest.mark.parametrize("integrator", ["euler", "semi-implicit", "rk4"])
+@pytest.mark.parametrize("name", MECHS)
+def test_fixed_step_trajectories_match(load_mechanism, name, integrator, method, stab):
+    mech = load_mechanism(name)
+    q0, v0 = _state(mech, name)
+    a, b = _pair(
+        mech, q0, v0, T_FIXED, integrator=integrator, method=method, stabilization=stab, dt=DT
+    )
+    assert a.info["steps"] == b.info["steps"]
+    assert a.info["evaluations"] == b.info["evaluations"]
+    np.testing.assert_allclose(a.t, b.t, rtol=0, atol=1e-12)
+    for key in ("q", "v"):
+        assert np.max(np.abs(getattr(a, key) - getattr(b, key))) <= FIXED_STEP_TOL
+    assert np.max(np.abs(a.energy - b.energy)) <= FIXED_STEP_TOL
+    assert np.max(np.abs(a.constraint_residual - b.constraint_residual)) <= FIXED_STEP_TOL
+
+
+@pytest.mark.parametrize("stab", STABS)
+@pytest.mark.parametrize("method", COMPILED_METHODS)
+@pytest.mark.parametrize("integrator", ["RK45", "DOP853"])
+@pytest.mark.parametrize("name", MECHS)
+def test_adaptive_trajectories_match(load_mechanism, name, integrator, method, stab):
+    mech = load_mechanism(name)
+    q0, v0 = _state(mech, name)
+    t_eval = np.linspace(0.0, T_CMP, 7)
+    for te in (None, t_eval):
+        a, b = _pair(
+            mech,
+            q0,
+            v0,
+            integrator=integrator,
+            method=method,
+            stabilization=stab,
+            rtol=RTOL,
+            atol=ATOL,
+            t_eval=te,
+        )
+        assert abs(a.info["steps"] - b.info["steps"]) <= STEP_COUNT_SLACK
+        if te is not None:
+            np.testing.assert_array_equal(a.t, t_eval)
+            np.testing.assert_array_equal(b.t, t_eval)
+        assert a.t[-1] == b.t[-1] == pytest.approx(T_CMP)
+        assert np.max(np.abs(a.q[-1] - b.q[-1])) <= ADAPTIVE_TOL
+        assert np.max(np.abs(a.v[-1] - b.v[-1])) <= ADAPTIVE_TOL
+        if te is not None:
+            assert np.max(np.abs(a.q - b.q)) <= ADAPTIVE_TOL
+
+
+@pytest.mark.parametrize("integrator", ["RK45", "DOP853"])
+def test_dormand_prince_matches_scipy(fourbar, integrator):
+    """The compiled loop and scipy's solver on the same right-hand side: same steps."""
+    q0, v0 = _state(fourbar, "fourbar")
+    fd = compiled.compiled_dynamics(fourbar, "kkt")
+    nv = fourbar.nv
+
+    def fun(t, y):
+        return np.concatenate([y[nv:], fd.forward(y[:nv], y[nv:], np.zeros(nv))[0]])
+
+    t_final = 2.0
+    ref = scipy.integrate.solve_ivp(
+        fun, (0.0, t_final), np.concatenate([q0, v0]), method=integrator, rtol=RTOL, atol=ATOL
+    )
+    traj = cc.simulate(
+        fourbar,
+        q0,
+        v0,
+        t_final,
+        integrator=integrator,
+        stabilization="none",
+        rtol=RTOL,
+        atol=ATOL,
+        backend="compiled",
+        settings=cc.SimulationSettings(singular_cond=np.inf),
+    )
+    assert abs(traj.info["steps"] - (len(ref.t) - 1)) <= STEP_COUNT_SLACK
+    assert np.max(np.abs(traj.q[-1] - ref.y[:nv, -1])) <= ADAPTIVE_TOL
+
+
+# -- backend selection, errors, callbacks -------------------------------------------------
+
+
+def test_auto_backend_uses_compiled_where_supported(fourbar):
+    q0, v0 = _state(fourbar, "fourbar")
+    traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4")
+    assert traj.info["backend"] == "compiled"
+    # partitioning and the reduced method have no compiled loop: numpy, silently.
+    for kw in (dict(stabilization="partitioning"), dict(method="reduced")):
+        traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw)
+        assert traj.info["backend"] == "numpy"
+        with pytest.raises(cc.ClosedChainError, match="backend='compiled' cannot"):
+            cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", backend="compiled", **kw)
+    with pytest.raises(cc.UnknownChoiceError, match="backend"):
+        cc.simulate(fourbar, q0, v0, 0.05, backend="fortran")
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "DOP853"])
+def test_callable_tau_and_progress(fourbar, integrator):
+    """A Python tau(t, q, v) is called from C++; progress sees every step; results match."""
+    q0, v0 = _state(fourbar, "fourbar")
+    seen: list[float] = []
+
+    def tau(t, q, v):
+        return np.array([0.5 * np.sin(3 * t) - 0.1 * v[0], 0.0, 0.0])
+
+    kw = dict(integrator=integrator, tau=tau, rtol=RTOL, atol=ATOL, dt=DT)
+    a = cc.simulate(fourbar, q0, v0, T_CMP, backend="compiled", progress=seen.append, **kw)
+    b = cc.simulate(fourbar, q0, v0, T_CMP, backend="numpy", **kw)
+    assert len(seen) == a.info["steps"] and seen[-1] == pytest.approx(T_CMP)
+    assert np.all(np.diff(seen) > 0)
+    assert np.max(np.abs(a.q[-1] - b.q[-1])) <= ADAPTIVE_TOL
+    const = cc.simulate(
+        fourbar,
+        q0,
+        v0,
+        T_CMP,
+        backend="compiled",
+        integrator=integrator,
+        tau=np.array([0.2, 0.0, 0.0]),
+        dt=DT,
+        rtol=RTOL,
+        atol=ATOL,
+    )
+    ref = cc.simulate(
+        fourbar,
+        q0,
+        v0,
+        T_CMP,
+        backend="numpy",
+        integrator=integrator,
+        tau=np.array([0.2, 0.0, 0.0]),
+        dt=DT,
+        rtol=RTOL,
+        atol=ATOL,
+    )
+    assert np.max(np.abs(const.q[-1] - ref.q[-1])) <= ADAPTIVE_TOL
+
+
+def test_errors_cross_the_boundary(fourbar):
+    q0, v0 = _state(fourbar, "fourbar")
+
+    def bad(t, q, v):
+        return np.array([np.nan if t > 0.01 else 0.0, 0.0, 0.0])
+
+    with pytest.raises(SimulationError, match=r"tau\(t, q, v\) returned .* at t = ") as exc:
+        cc.simulate(fourbar, q0, v0, 0.1, integrator="rk4", tau=bad, backend="compiled")
+    assert exc.value.t > 0.01
+
+    def raising(t, q, v):
+        raise RuntimeError("controller failed")
+
+    with pytest.raises(RuntimeError, match="controller failed"):
+        cc.simulate(fourbar, q0, v0, 0.1, integrator="DOP853", tau=raising, backend="compiled")
+
+    def stop(t):
+        if t > 0.02:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        cc.simulate(fourbar, q0, v0, 0.1, integrator="rk4", progress=stop, backend="compiled")
+
+    # drift beyond the limit: euler without stabilization at a coarse step
+    with pytest.raises(SimulationError, match="left the constraint manifold at t = "):
+        cc.simulate(
+            fourbar,
+            q0,
+            v0,
+            2.0,
+            integrator="euler",
+            dt=5e-2,
+            stabilization="none",
+            backend="compiled",
+            settings=cc.SimulationSettings(drift_limit=1e-3),
+        )
+
+
+def test_ctrl_c_interrupts_a_long_run(fourbar):
+    """SIGINT (here from _thread.interrupt_main) stops a long compiled run.
+
+    Python's own SIGINT handler is installed for the test: a process started in
+    the background by a non-interactive shell (CI) inherits SIGINT ignored.
+    """
+    q0, v0 = _state(fourbar, "fourbar")
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(0.5, _thread.interrupt_main)
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            # 2 million steps: seconds to minutes if not interrupted
+            cc.simulate(
+                fourbar,
+                q0,
+                v0,
+                2e3,
+                integrator="semi-implicit",
+                dt=1e-3,
+                t_eval=np.array([2e3]),
+                backend="compiled",
+            )
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_missing_compiler_message(tmp_path):
+    """Without a C++ compiler the build stops with the package to install."""
+    import cmake as cmake_pkg  # the test extra (the build's own cmake is in its isolated env)
+
+    cmake = str(Path(cmake_pkg.CMAKE_BIN_DIR) / "cmake")
+    out = subprocess.run(
+        [cmake, "-S", str(ROOT), "-B", str(tmp_path), "-DCMAKE_CXX_COMPILER=/nonexistent/c++"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert out.returncode != 0
+    assert "no C++17 compiler found" in out.stderr
+    assert "apt-get install g++" in out.stderr
