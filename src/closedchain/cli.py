@@ -333,6 +333,16 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_export_mjcf(args) -> int:
+    from .export.mjcf import STIFF, MjcfSettings, export_mjcf
+
+    mech = _load(args)
+    settings = STIFF if args.stiff else MjcfSettings()
+    export_mjcf(mech, args.output, settings=settings)
+    print(f"wrote {args.output}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -382,6 +392,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("animate", "simulate and write a self-contained HTML animation (meshcat)", _cmd_animate)
     add_simulation_arguments(p)
     p.add_argument("-o", "--output", required=True, help="HTML file to write")
+
+    p = add(
+        "export-mjcf",
+        "write the mechanism as MuJoCo MJCF (loops as connect/weld equality constraints)",
+        _cmd_export_mjcf,
+    )
+    p.add_argument("-o", "--output", required=True, help="MJCF file to write")
+    p.add_argument(
+        "--stiff",
+        action="store_true",
+        help="stiff equality solref/solimp (closer to exact closure, needs a smaller timestep)",
+    )
 
     help_ = "plot coordinates, constraint residual and energy drift against time (PNG, PDF, SVG)"
     p = sub.add_parser("plot", help=help_, description=help_)
