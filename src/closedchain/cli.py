@@ -11,6 +11,7 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -343,6 +344,42 @@ def _cmd_export_mjcf(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    from tqdm import tqdm
+
+    from .benchmark import QUICK, BenchSettings, run_work_precision
+
+    if args.workers < 1:
+        raise ClosedChainError(f"--workers must be at least 1, got {args.workers}")
+    settings = QUICK if args.quick else BenchSettings()
+    if args.repeats is not None:
+        if args.repeats < 1:
+            raise ClosedChainError(f"--repeats must be at least 1, got {args.repeats}")
+        settings = replace(settings, repeats=args.repeats)
+    bar = tqdm(total=1, unit="run", disable=args.no_progress)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    rows, checks = run_work_precision(
+        args.out_dir,
+        settings=settings,
+        scenarios=args.scenarios,
+        models_dir=args.models,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=progress,
+    )
+    bar.close()
+    for c in checks:
+        print(f"reference {c.scenario}: confirmed to {c.agreement:.2e} (max coordinate difference)")
+    print((Path(args.out_dir) / "ratios.md").read_text())
+    print(f"wrote {len(rows)} rows to {Path(args.out_dir) / 'work_precision.csv'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -404,6 +441,22 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="stiff equality solref/solimp (closer to exact closure, needs a smaller timestep)",
     )
+
+    help_ = "work-precision benchmark of closedchain beside its peers (CSV, ratio table, charts)"
+    p = sub.add_parser("bench", help=help_, description=help_)
+    p.add_argument("--quick", action="store_true", help="4-bar only, 2 s, few settings, 1 repeat")
+    p.add_argument(
+        "--out", dest="out_dir", default="bench-out", help="output directory (default bench-out)"
+    )
+    p.add_argument("--workers", type=int, default=1, help="local worker processes")
+    p.add_argument(
+        "--scheduler", metavar="ADDRESS", help="Dask distributed scheduler (tcp://host:port)"
+    )
+    p.add_argument("--models", default="models", help="directory of the scenarios' URDF files")
+    p.add_argument("--scenarios", nargs="+", metavar="NAME", help="scenario names (default all)")
+    p.add_argument("--repeats", type=int, help="runs per configuration (CPU is their median)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_bench)
 
     help_ = "plot coordinates, constraint residual and energy drift against time (PNG, PDF, SVG)"
     p = sub.add_parser("plot", help=help_, description=help_)
