@@ -153,3 +153,63 @@ def test_scheduler_without_dask_message(monkeypatch):
 
     with pytest.raises(ClosedChainError, match=r"pip install 'closedchain\[dask\]'"):
         execute([{}], scheduler="tcp://127.0.0.1:1")
+
+
+# -- stability map, per-evaluation cost and scaling helpers ---------------------------
+
+#: closedchain's stabilized rk4 keeps every declared row at round-off [m] (measured 2e-14).
+STABLE_RESIDUAL_TOL = 1e-12
+#: On the change-point case at dt = 1e-2 Pinocchio's Euler loop with Baumgarte drifts
+#: (measured max declared row 2.9e-2), far above the "drift" threshold.
+EULER_PEER_DRIFT_MIN = 1e-3
+CHANGE_POINT_CASE = "fourbar change point (open branch) 1 s"
+
+
+def test_stability_job_classifies_runs():
+    from closedchain.benchmark.stability import DRIFT_ROW_TOL, PEER, run_stability_job
+
+    def job(config, step):
+        return run_stability_job(
+            dict(case=CHANGE_POINT_CASE, config=config, step=step, models_dir=str(MODELS))
+        )
+
+    ok = job("kkt/rk4/projection", 1e-2)
+    assert ok["status"] == "ok" and ok["residual"] <= STABLE_RESIDUAL_TOL
+    peer = job(PEER, 1e-2)
+    assert peer["status"] == "drift" and peer["residual"] >= EULER_PEER_DRIFT_MIN > DRIFT_ROW_TOL
+    raised = job("kkt/rk4/projection", 1e-3)  # a fine step sees the change point
+    assert raised["status"] == "raised"
+    assert "losing rank" in raised["message"]
+
+
+def test_largest_ok_step_needs_every_smaller_step_ok():
+    from closedchain.benchmark.stability import largest_ok_step, stability_summary
+
+    rows = [
+        dict(case="c", config="a", step=s, status=st)
+        for s, st in ((1e-3, "ok"), (1e-2, "ok"), (1e-1, "diverged"))
+    ]
+    rows += [
+        dict(case="c", config="b", step=s, status=st)
+        for s, st in ((1e-3, "ok"), (1e-2, "drift"), (1e-1, "ok"))
+    ]
+    assert largest_ok_step(rows, "c", "a") == 1e-2
+    assert largest_ok_step(rows, "c", "b") == 1e-3
+    assert largest_ok_step(rows, "c", "missing") == 0.0
+    assert "| c |" in stability_summary(rows)
+
+
+def test_growth_exponent_of_a_power_law():
+    from closedchain.benchmark.scaling import growth_exponents
+
+    rows = [dict(n=n, method="m", us=3.0 * n**2) for n in (1, 2, 5, 10)]
+    assert growth_exponents(rows)["m"] == pytest.approx(2.0, rel=1e-12)
+
+
+def test_evaluation_calls_cover_every_method_and_exact_pinocchio(fourbar):
+    import closedchain as cc
+    from closedchain.benchmark.evaluation import evaluation_calls
+
+    labels = [c[0] for c in evaluation_calls(fourbar)]
+    assert {f"method {m}" for m in cc.METHODS} <= set(labels)
+    assert "pin.constraintDynamics (cheapest exact)" in labels
