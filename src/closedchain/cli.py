@@ -380,6 +380,16 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_workspace(args) -> int:
+    from .workspace import plot_workspace
+
+    mech = _load(args)
+    outputs = tuple(args.outputs) if args.outputs else None
+    print(plot_workspace(mech, args.output, points=args.points, outputs=outputs))
+    print(f"wrote {args.output}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -441,6 +451,15 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="stiff equality solref/solimp (closer to exact closure, needs a smaller timestep)",
     )
+
+    p = add(
+        "workspace",
+        "4-bar: Grashof class and crank range; otherwise a singularity map (type I / II)",
+        _cmd_workspace,
+    )
+    p.add_argument("-o", "--output", required=True, help="image file to write")
+    p.add_argument("--points", type=int, help="sweep / grid points per axis")
+    p.add_argument("--outputs", nargs="+", metavar="JOINT", help="output coordinates (map)")
 
     help_ = "work-precision benchmark of closedchain beside its peers (CSV, ratio table, charts)"
     p = sub.add_parser("bench", help=help_, description=help_)
