@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 from closedchain.benchmark import write_rows
 from closedchain.benchmark.evaluation import (
@@ -43,6 +46,18 @@ MODELS = ROOT / "models"
 #: Sizes of the N-four-bar scaling study.
 SIZES = (1, 2, 5, 10, 20, 40)
 PARTS = ("evaluation", "stability", "scaling")
+
+
+def nfourbar_start(mech) -> np.ndarray:
+    """The N-four-bar's benchmark start (scripts/make_nfourbar.py): cranks vertical, couplers
+    horizontal (crank_i = pi/2, coupler_i = -pi/2), a regular configuration."""
+    q = mech.q_ref.copy()
+    for i, name in enumerate(mech.coordinate_names):
+        if name.startswith("crank"):
+            q[i] = math.pi / 2
+        elif name.startswith("coupler"):
+            q[i] = -math.pi / 2
+    return q
 
 
 def main() -> None:
@@ -86,7 +101,9 @@ def main() -> None:
                         check=True,
                     )
                 files[n] = path
-            rows = time_scaling(files, number=max(args.number // 10, 10), repeats=3)
+            rows = time_scaling(
+                files, number=max(args.number // 10, 10), repeats=3, guess=nfourbar_start
+            )
         write_rows(rows, out / "scaling.csv", SCALING_COLUMNS)
         plot_scaling(rows, out / "scaling.png")
         exps = growth_exponents(rows)

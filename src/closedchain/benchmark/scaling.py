@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
 from ..dynamics.base import DEFAULT_SETTINGS, METHODS, get_method
-from ..kinematics import project_velocity
-from ..mechanism import load
+from ..kinematics import assemble, project_velocity
+from ..mechanism import Mechanism, load
 
 logger = logging.getLogger(__name__)
 
@@ -27,15 +28,29 @@ PINOCCHIO_CALL = "pin.constraintDynamics"
 
 
 def time_scaling(
-    files: dict[int, str | Path], *, number: int = 200, repeats: int = 5, seed: int = 0
+    files: dict[int, str | Path],
+    *,
+    number: int = 200,
+    repeats: int = 5,
+    guess: Callable[[Mechanism], np.ndarray] | None = None,
 ) -> list[dict]:
-    """Microseconds per evaluation for each size N -> URDF file (tidy rows)."""
+    """Microseconds per evaluation for each size N -> URDF file (tidy rows).
+
+    Args:
+        files: N -> URDF file.
+        number: calls per timing repeat.
+        repeats: repeats (median).
+        guess: ``guess(mech) -> q`` near a regular configuration, assembled with the
+            independent coordinates held (default: the model's ``q_ref``).
+    """
     entries = []
     for n, path in sorted(files.items()):
         mech = load(path)
         # The assembled reference configuration, moving with unit independent rates
         # (random consistent states are hard to find for long chains).
         q = mech.q_ref.copy()
+        if guess is not None:
+            q = assemble(mech, guess(mech), fixed="independent")
         v = np.zeros(mech.nv)
         v[mech.independent_idx_v] = 1.0
         v = project_velocity(mech, q, v, fixed="independent")
