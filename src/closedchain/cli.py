@@ -385,7 +385,7 @@ def _cmd_workspace(args) -> int:
 
     mech = _load(args)
     outputs = tuple(args.outputs) if args.outputs else None
-    print(plot_workspace(mech, args.output, points=args.points, outputs=outputs))
+    print(plot_workspace(mech, args.output, points=args.points, outputs=outputs, span=args.span))
     print(f"wrote {args.output}")
     return 0
 
@@ -460,6 +460,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="image file to write")
     p.add_argument("--points", type=int, help="sweep / grid points per axis")
     p.add_argument("--outputs", nargs="+", metavar="JOINT", help="output coordinates (map)")
+    p.add_argument(
+        "--span", type=float, default=1.5, help="half-width of the map around q_ref [rad]"
+    )
 
     help_ = "work-precision benchmark of closedchain beside its peers (CSV, ratio table, charts)"
     p = sub.add_parser("bench", help=help_, description=help_)

@@ -208,7 +208,7 @@ def default_outputs(mech: Mechanism) -> tuple[str, ...]:
 
 
 def singularity_map(
-    mech: Mechanism, *, outputs: tuple[str, ...] | None = None, points: int = 41, span: float = 1.2
+    mech: Mechanism, *, outputs: tuple[str, ...] | None = None, points: int = 41, span: float = SPAN
 ) -> SingularityMap:
     """sigma_min of J_D (parallel, type II) and of the output map (serial, type I) over the
     first two output coordinates in [ref - span, ref + span] [rad], the others held."""
@@ -244,6 +244,7 @@ def plot_workspace(
     *,
     points: int | None = None,
     outputs: tuple[str, ...] | None = None,
+    span: float = SPAN,
 ) -> str:
     """Write the workspace picture of ``mech`` and return a one-line summary."""
     import matplotlib
@@ -284,7 +285,7 @@ def plot_workspace(
             f"{a.closed_form.mean() * 360:.0f} deg of 360; closed form and assembly agree "
             f"at {a.agreement:.1%} of {len(a.theta)} angles"
         )
-    m = singularity_map(mech, outputs=outputs, points=points or 41)
+    m = singularity_map(mech, outputs=outputs, points=points or 41, span=span)
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
     for axis, data, what in (
         (ax[0], m.parallel, "parallel / type II: sigma_min(J_D)"),
