@@ -13,6 +13,7 @@ import math
 import sys
 import traceback
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -478,6 +479,62 @@ def _add_debug(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _cmd_export_mjcf(args) -> int:
+    from .export.mjcf import STIFF, MjcfSettings, export_mjcf
+
+    mech = _load(args)
+    settings = STIFF if args.stiff else MjcfSettings()
+    export_mjcf(mech, args.output, settings=settings)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from tqdm import tqdm
+
+    from .benchmark import QUICK, BenchSettings, run_work_precision
+
+    if args.workers < 1:
+        raise ClosedChainError(f"--workers must be at least 1, got {args.workers}")
+    settings = QUICK if args.quick else BenchSettings()
+    if args.repeats is not None:
+        if args.repeats < 1:
+            raise ClosedChainError(f"--repeats must be at least 1, got {args.repeats}")
+        settings = replace(settings, repeats=args.repeats)
+    bar = tqdm(total=1, unit="run", disable=args.no_progress)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    rows, checks = run_work_precision(
+        args.out_dir,
+        settings=settings,
+        scenarios=args.scenarios,
+        models_dir=args.models,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=progress,
+    )
+    bar.close()
+    for c in checks:
+        print(f"reference {c.scenario}: confirmed to {c.agreement:.2e} (max coordinate difference)")
+    print((Path(args.out_dir) / "ratios.md").read_text())
+    print(f"wrote {len(rows)} rows to {Path(args.out_dir) / 'work_precision.csv'}")
+    return 0
+
+
+def _cmd_workspace(args) -> int:
+    from .workspace import plot_workspace
+
+    mech = _load(args)
+    outputs = tuple(args.outputs) if args.outputs else None
+    print(plot_workspace(mech, args.output, points=args.points, outputs=outputs, span=args.span))
+    print(f"wrote {args.output}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .dynamics import METHODS
@@ -537,6 +594,47 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("animate", "simulate and write a self-contained HTML animation (meshcat)", _cmd_animate)
     add_simulation_arguments(p)
     p.add_argument("-o", "--output", required=True, help="HTML file to write")
+
+    p = add(
+        "export-mjcf",
+        "write the mechanism as MuJoCo MJCF (loops as connect/weld equality constraints)",
+        _cmd_export_mjcf,
+    )
+    p.add_argument("-o", "--output", required=True, help="MJCF file to write")
+    p.add_argument(
+        "--stiff",
+        action="store_true",
+        help="stiff equality solref/solimp (closer to exact closure, needs a smaller timestep)",
+    )
+
+    p = add(
+        "workspace",
+        "4-bar: Grashof class and crank range; otherwise a singularity map (type I / II)",
+        _cmd_workspace,
+    )
+    p.add_argument("-o", "--output", required=True, help="image file to write")
+    p.add_argument("--points", type=int, help="sweep / grid points per axis")
+    p.add_argument("--outputs", nargs="+", metavar="JOINT", help="output coordinates (map)")
+    p.add_argument(
+        "--span", type=float, default=1.5, help="half-width of the map around q_ref [rad]"
+    )
+
+    help_ = "work-precision benchmark of closedchain beside its peers (CSV, ratio table, charts)"
+    p = sub.add_parser("bench", help=help_, description=help_)
+    p.add_argument("--quick", action="store_true", help="4-bar only, 2 s, few settings, 1 repeat")
+    p.add_argument(
+        "--out", dest="out_dir", default="bench-out", help="output directory (default bench-out)"
+    )
+    p.add_argument("--workers", type=int, default=1, help="local worker processes")
+    p.add_argument(
+        "--scheduler", metavar="ADDRESS", help="Dask distributed scheduler (tcp://host:port)"
+    )
+    p.add_argument("--models", default="models", help="directory of the scenarios' URDF files")
+    p.add_argument("--scenarios", nargs="+", metavar="NAME", help="scenario names (default all)")
+    p.add_argument("--repeats", type=int, help="runs per configuration (CPU is their median)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_debug(p)
+    p.set_defaults(handler=_cmd_bench)
 
     help_ = "plot coordinates, constraint residual and energy drift against time (PNG, PDF, SVG)"
     p = sub.add_parser("plot", help=help_, description=help_)

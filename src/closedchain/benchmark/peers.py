@@ -1,0 +1,269 @@
+"""The peers the benchmark runs beside closedchain (run here, never cited).
+
+Each runner integrates a scenario's mechanism from (q0, v0) and returns the
+configurations and velocities on the comparison grid with the CPU seconds of
+the integration alone (``time.process_time``; loading and set-up excluded):
+
+``scipy``
+    the thirty-line script a savvy user writes: ``pinocchio.constraintDynamics``
+    with exact proximal settings as the right-hand side of
+    ``scipy.integrate.solve_ivp`` (DOP853 or Radau).
+``pinocchio-euler``
+    Pinocchio's recommended loop: ``constraintDynamics`` with Baumgarte gains on
+    the constraint models, semi-implicit Euler, ``pin.integrate``.
+``mujoco``
+    the mechanism exported by :func:`closedchain.export.export_mjcf` (loops as
+    equality constraints), ``mj_step`` with MuJoCo's default or stiff
+    solref/solimp.
+``seed``
+    the seed text's algorithm (Euler step, two Newton projections, exact M),
+    as reproduced by :func:`closedchain.seed_settings`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from ..constraints import build_pinocchio_constraints
+from ..exceptions import ClosedChainError
+from ..simulate import seed_settings, simulate
+
+
+@dataclass(frozen=True)
+class PeerSettings:
+    """Settings of the peers.
+
+    Attributes:
+        proximal_accuracy: absolute accuracy of ``constraintDynamics`` (scipy peer).
+        proximal_mu: proximal regularization (scipy peer; PINOCCHIO.md: mu = 0
+            returns NaN on redundant rows).
+        proximal_max_iter: proximal iteration cap.
+        euler_mu: regularization of the Euler loop.
+        euler_accuracy: accuracy of the Euler loop's proximal solve.
+        baumgarte_kp: position gain on the constraint models of the Euler loop [1/s^2].
+        baumgarte_kd: velocity gain [1/s].
+    """
+
+    proximal_accuracy: float = 1e-12
+    proximal_mu: float = 1e-8
+    proximal_max_iter: int = 100
+    euler_mu: float = 1e-8
+    euler_accuracy: float = 1e-10
+    baumgarte_kp: float = 100.0
+    baumgarte_kd: float = 20.0
+
+
+DEFAULT_PEER_SETTINGS = PeerSettings()
+
+
+@dataclass
+class RunOutput:
+    """What one run returns: states on the grid, CPU seconds, status and message."""
+
+    q: np.ndarray
+    v: np.ndarray
+    cpu_s: float
+    status: str = "ok"
+    message: str = ""
+    steps: int = 0
+
+
+def _constraints(mech, kp: float = 0.0, kd: float = 0.0):
+    cms, _ = build_pinocchio_constraints(mech.model, mech.declared)
+    cds = pin.StdVec_RigidConstraintData()
+    for cm in cms:
+        if kp or kd:
+            b = cm.m_baumgarte_parameters
+            b.Kp = kp
+            b.Kd = kd
+            cm.setBaumgarteCorrectorParameters(b)
+        cds.append(cm.createData())
+    data = mech.model.createData()
+    pin.initConstraintDynamics(mech.model, data, cms, cds)
+    return cms, cds, data
+
+
+def _grid_stride(t_grid: np.ndarray, dt: float) -> int:
+    spacing = t_grid[1] - t_grid[0]
+    stride = round(spacing / dt)
+    if stride < 1 or abs(stride * dt - spacing) > 1e-9 * spacing:
+        raise ClosedChainError(f"step dt={dt} must divide the output spacing {spacing}")
+    return stride
+
+
+def run_scipy(
+    mech,
+    q0,
+    v0,
+    t_grid,
+    tau_fn,
+    *,
+    integrator: str,
+    tol: float,
+    peer: PeerSettings = DEFAULT_PEER_SETTINGS,
+) -> RunOutput:
+    """The thirty-line script: constraintDynamics as the rhs of scipy's solve_ivp."""
+    from scipy.integrate import solve_ivp
+
+    if mech.nq != mech.nv:
+        raise ClosedChainError("the scipy peer integrates q as a vector and needs nq == nv")
+    model = mech.model
+    cms, cds, data = _constraints(mech)
+    prox = pin.ProximalSettings(
+        peer.proximal_accuracy, 0.0, peer.proximal_mu, peer.proximal_max_iter
+    )
+    nq = mech.nq
+    zero = np.zeros(mech.nv)
+
+    def rhs(t, x):
+        q, v = x[:nq], x[nq:]
+        tau = zero if tau_fn is None else tau_fn(t, q, v)
+        a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox)
+        return np.concatenate([v, a])
+
+    cpu0 = time.process_time()
+    sol = solve_ivp(
+        rhs,
+        (t_grid[0], t_grid[-1]),
+        np.concatenate([q0, v0]),
+        method=integrator,
+        rtol=tol,
+        atol=tol,
+        t_eval=t_grid,
+    )
+    cpu = time.process_time() - cpu0
+    if not sol.success:
+        return RunOutput(np.empty((0, nq)), np.empty((0, nq)), cpu, "raised", sol.message)
+    return RunOutput(sol.y[:nq].T, sol.y[nq:].T, cpu, steps=int(sol.nfev))
+
+
+def run_pinocchio_euler(
+    mech, q0, v0, t_grid, tau_fn, *, dt: float, peer: PeerSettings = DEFAULT_PEER_SETTINGS
+) -> RunOutput:
+    """constraintDynamics (Baumgarte gains) + semi-implicit Euler + pin.integrate."""
+    model = mech.model
+    cms, cds, data = _constraints(mech, peer.baumgarte_kp, peer.baumgarte_kd)
+    prox = pin.ProximalSettings(peer.euler_accuracy, 0.0, peer.euler_mu, peer.proximal_max_iter)
+    stride = _grid_stride(t_grid, dt)
+    n = (len(t_grid) - 1) * stride
+    qs, vs = [q0.copy()], [v0.copy()]
+    q, v = q0.copy(), v0.copy()
+    zero = np.zeros(mech.nv)
+    status, message = "ok", ""
+    cpu0 = time.process_time()
+    for k in range(1, n + 1):
+        t = (k - 1) * dt
+        tau = zero if tau_fn is None else tau_fn(t, q, v)
+        a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox)
+        v = v + dt * a
+        q = pin.integrate(model, q, v * dt)
+        if k % stride == 0:
+            if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+                status, message = "diverged", f"non-finite state at t = {k * dt:.4g} s"
+                break
+            qs.append(q)
+            vs.append(v)
+    cpu = time.process_time() - cpu0
+    return RunOutput(np.array(qs), np.array(vs), cpu, status, message, steps=n)
+
+
+def run_mujoco(mech, q0, v0, t_grid, tau_fn, *, dt: float, stiff: bool) -> RunOutput:
+    """The exported MJCF stepped by mj_step (Euler), default or stiff equalities."""
+    import mujoco
+
+    from ..export.mjcf import STIFF, MjcfSettings, load_mujoco, mujoco_state
+
+    if mech.nq != mech.nv:
+        raise ClosedChainError("the mujoco peer compares coordinates and needs nq == nv")
+    base = STIFF if stiff else MjcfSettings()
+    settings = MjcfSettings(solref=base.solref, solimp=base.solimp, timestep=dt)
+    m, d = load_mujoco(mech, settings=settings)
+    d.qpos[:], d.qvel[:] = mujoco_state(mech, q0, v0)
+    mujoco.mj_forward(m, d)
+    stride = _grid_stride(t_grid, dt)
+    n = (len(t_grid) - 1) * stride
+    qs, vs = [d.qpos.copy()], [d.qvel.copy()]
+    status, message = "ok", ""
+    bad = int(mujoco.mjtWarning.mjWARN_BADQACC)
+    cpu0 = time.process_time()
+    for k in range(1, n + 1):
+        if tau_fn is not None:
+            d.qfrc_applied[:] = tau_fn(d.time, d.qpos, d.qvel)
+        mujoco.mj_step(m, d)
+        if k % stride == 0:
+            if d.warning[bad].number > 0:
+                status, message = "diverged", f"MuJoCo reset (bad qacc) at t = {k * dt:.4g} s"
+                break
+            qs.append(d.qpos.copy())
+            vs.append(d.qvel.copy())
+    cpu = time.process_time() - cpu0
+    return RunOutput(np.array(qs), np.array(vs), cpu, status, message, steps=n)
+
+
+def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float) -> RunOutput:
+    """The seed's program: Euler step and two Newton projections (closedchain.seed_settings)."""
+    cpu0 = time.process_time()
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        float(t_grid[-1]),
+        method="kkt",
+        integrator="semi-implicit",
+        stabilization="projection",
+        dt=dt,
+        tau=tau_fn,
+        t_eval=t_grid,
+        settings=seed_settings(),
+    )
+    cpu = time.process_time() - cpu0
+    return RunOutput(traj.q, traj.v, cpu, steps=int(traj.info["steps"]))
+
+
+def run_closedchain(
+    mech,
+    q0,
+    v0,
+    t_grid,
+    tau_fn,
+    *,
+    method: str,
+    integrator: str,
+    stabilization: str | None,
+    dt: float | None = None,
+    tol: float | None = None,
+) -> RunOutput:
+    """closedchain.simulate with one configuration."""
+    cpu0 = time.process_time()
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        float(t_grid[-1]),
+        method=method,
+        integrator=integrator,
+        stabilization=stabilization,
+        dt=dt,
+        rtol=tol,
+        atol=tol,
+        tau=tau_fn,
+        t_eval=t_grid,
+    )
+    cpu = time.process_time() - cpu0
+    return RunOutput(traj.q, traj.v, cpu, steps=int(traj.info["steps"]))
+
+
+#: family -> runner (closedchain first).
+RUNNERS = {
+    "closedchain": run_closedchain,
+    "scipy": run_scipy,
+    "pinocchio-euler": run_pinocchio_euler,
+    "mujoco": run_mujoco,
+    "seed": run_seed,
+}
+
+__all__ = ["DEFAULT_PEER_SETTINGS", "PeerSettings", "RUNNERS", "RunOutput"]

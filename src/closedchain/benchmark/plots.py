@@ -1,0 +1,132 @@
+"""Charts of the benchmark's tidy rows (matplotlib, Agg; reads rows, computes nothing new)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .analysis import pareto_front
+
+#: Colours per family (others get matplotlib's cycle).
+FAMILY_COLORS = {
+    "closedchain": "tab:blue",
+    "scipy": "tab:orange",
+    "pinocchio-euler": "tab:green",
+    "mujoco": "tab:red",
+    "seed": "tab:purple",
+}
+#: Error floor drawn for runs with zero error (log axes) [rad].
+ERROR_FLOOR = 1e-16
+
+
+def plot_work_precision(
+    rows: list[dict],
+    scenario: str,
+    path: str | Path,
+    *,
+    agreement: float | None = None,
+    title: str = "",
+) -> None:
+    """Error (log) against CPU seconds per simulated second (log) for one scenario:
+    every run as a point, each family's Pareto front as a line, closedchain's bold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in rows if r["scenario"] == scenario]
+    fig, ax = plt.subplots(figsize=(7.5, 5.5))
+    families = sorted({r["family"] for r in rows}, key=lambda f: (f != "closedchain", f))
+    for fam in families:
+        mine = [r for r in rows if r["family"] == fam]
+        ok = [r for r in mine if r["status"] == "ok" and math.isfinite(r["error"])]
+        color = FAMILY_COLORS.get(fam)
+        ax.scatter(
+            [r["cpu_s"] for r in ok],
+            [max(r["error"], ERROR_FLOOR) for r in ok],
+            s=14,
+            color=color,
+            alpha=0.45,
+        )
+        front = pareto_front(mine)
+        ax.plot(
+            [r["cpu_s"] for r in front],
+            [max(r["error"], ERROR_FLOOR) for r in front],
+            "-o",
+            color=color,
+            lw=3.0 if fam == "closedchain" else 1.2,
+            ms=5 if fam == "closedchain" else 3,
+            label=f"{fam} (front)",
+        )
+    if agreement is not None:
+        ax.axhline(
+            max(agreement, ERROR_FLOOR),
+            color="gray",
+            ls=":",
+            label=f"reference agreement {agreement:.1e}",
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("CPU seconds per simulated second")
+    ax.set_ylabel("max coordinate error over the horizon [rad]")
+    ax.set_title(title or scenario)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_stability_map(rows: list[dict], path: str | Path) -> None:
+    """Grid chart of the stability map: one panel per case, configurations x step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    states = ["ok", "drift", "diverged", "raised"]
+    cmap = ListedColormap(["#4caf50", "#ffc107", "#e53935", "#7e57c2"])
+    cases = sorted({r["case"] for r in rows})
+    fig, axes = plt.subplots(
+        len(cases), 1, figsize=(9, 2.2 + 0.28 * len(rows) / max(len(cases), 1)), squeeze=False
+    )
+    for ax, case in zip(axes[:, 0], cases, strict=True):
+        mine = [r for r in rows if r["case"] == case]
+        configs = sorted({r["config"] for r in mine})
+        steps = sorted({r["step"] for r in mine})
+        grid = [[math.nan] * len(steps) for _ in configs]
+        for r in mine:
+            grid[configs.index(r["config"])][steps.index(r["step"])] = states.index(r["status"])
+        ax.imshow(grid, cmap=cmap, vmin=-0.5, vmax=3.5, aspect="auto")
+        ax.set_yticks(range(len(configs)), configs, fontsize=7)
+        ax.set_xticks(range(len(steps)), [f"{s:.0e}" for s in steps], fontsize=7)
+        ax.set_title(case, fontsize=9)
+    handles = [plt.Rectangle((0, 0), 1, 1, color=cmap(i)) for i in range(4)]
+    fig.legend(handles, states, loc="upper right", ncol=4, fontsize=8)
+    axes[-1, 0].set_xlabel("step [s]")
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_scaling(rows: list[dict], path: str | Path) -> None:
+    """Cost per evaluation against N (log-log), one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for method in sorted({r["method"] for r in rows}):
+        mine = sorted((r for r in rows if r["method"] == method), key=lambda r: r["n"])
+        ax.plot([r["n"] for r in mine], [r["us"] for r in mine], "-o", label=method)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("N")
+    ax.set_ylabel("microseconds per evaluation")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,112 @@
+"""Cost per forward-dynamics evaluation against the size of a mechanism family.
+
+Times one evaluation (the work of one explicit step) of every registered method
+and of ``pinocchio.constraintDynamics`` on a family of models of growing size
+(e.g. the N-four-bar for N = 1..40), interleaved size by size, and fits the
+growth exponent p of cost ~ N^p by least squares on log-log axes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from ..dynamics.base import DEFAULT_SETTINGS, METHODS, get_method
+from ..kinematics import assemble, project_velocity
+from ..mechanism import Mechanism, load
+
+logger = logging.getLogger(__name__)
+
+SCALING_COLUMNS = ("n", "nv", "nc", "method", "us")
+#: Label of Pinocchio's solver in the rows.
+PINOCCHIO_CALL = "pin.constraintDynamics"
+
+
+def time_scaling(
+    files: dict[int, str | Path],
+    *,
+    number: int = 200,
+    repeats: int = 5,
+    guess: Callable[[Mechanism], np.ndarray] | None = None,
+) -> list[dict]:
+    """Microseconds per evaluation for each size N -> URDF file (tidy rows).
+
+    Args:
+        files: N -> URDF file.
+        number: calls per timing repeat.
+        repeats: repeats (median).
+        guess: ``guess(mech) -> q`` near a regular configuration, assembled with the
+            independent coordinates held (default: the model's ``q_ref``).
+    """
+    entries = []
+    for n, path in sorted(files.items()):
+        mech = load(path)
+        # The assembled reference configuration, moving with unit independent rates
+        # (random consistent states are hard to find for long chains).
+        q = mech.q_ref.copy()
+        if guess is not None:
+            q = assemble(mech, guess(mech), fixed="independent")
+        v = np.zeros(mech.nv)
+        v[mech.independent_idx_v] = 1.0
+        v = project_velocity(mech, q, v, fixed="independent")
+        tau = np.zeros(mech.nv)
+        for name in sorted(METHODS):
+            f = get_method(name)
+            entries.append(
+                (
+                    n,
+                    mech,
+                    name,
+                    lambda f=f, m=mech, q=q, v=v, t=tau: f(m, q, v, t, DEFAULT_SETTINGS),
+                    [],
+                )
+            )
+        cms, cds, _, data = mech.pinocchio_constraints()
+        prox = pin.ProximalSettings(
+            DEFAULT_SETTINGS.pinocchio_accuracy,
+            0.0,
+            DEFAULT_SETTINGS.pinocchio_mu,
+            DEFAULT_SETTINGS.pinocchio_max_iter,
+        )
+        entries.append(
+            (
+                n,
+                mech,
+                PINOCCHIO_CALL,
+                lambda m=mech, d=data, c=cms, cd=cds, q=q, v=v, t=tau, p=prox: (
+                    pin.constraintDynamics(m.model, d, q, v, t, c, cd, p)
+                ),
+                [],
+            )
+        )
+    for _ in range(repeats):
+        for *_, fn, runs in entries:
+            try:
+                t0 = time.process_time()
+                for _ in range(number):
+                    fn()
+                runs.append((time.process_time() - t0) / number * 1e6)
+            except Exception as exc:  # a method that cannot handle a size is reported
+                logger.warning("scaling: %s", exc)
+                runs.append(np.nan)
+    return [
+        dict(n=n, nv=mech.nv, nc=mech.nc, method=name, us=float(np.median(runs)))
+        for n, mech, name, _fn, runs in entries
+    ]
+
+
+def growth_exponents(rows: list[dict]) -> dict[str, float]:
+    """Least-squares slope p of log(us) against log(N) per method."""
+    out = {}
+    for method in sorted({r["method"] for r in rows}):
+        mine = [r for r in rows if r["method"] == method and np.isfinite(r["us"])]
+        if len(mine) >= 2:
+            x = np.log([r["n"] for r in mine])
+            y = np.log([r["us"] for r in mine])
+            out[method] = float(np.polyfit(x, y, 1)[0])
+    return out

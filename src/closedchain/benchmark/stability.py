@@ -1,0 +1,187 @@
+"""Stability map: where each configuration stays on the manifold, drifts, diverges or raises.
+
+For every case (a scenario and a horizon) and step size, each configuration
+(method x fixed-step integrator x stabilization from the registries, plus
+Pinocchio's Euler loop with Baumgarte gains) is classified as
+
+* ``ok``: finite, every declared constraint row within :data:`DRIFT_ROW_TOL`;
+* ``drift``: finite but a declared row above it (or closedchain's drift limit hit);
+* ``diverged``: a non-finite state;
+* ``raised``: an error (singular configuration, integrator failure), with its message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pinocchio as pin
+
+from ..dynamics.base import METHODS
+from ..exceptions import ClosedChainError
+from ..simulate import INTEGRATORS, STABILIZATIONS, SimulationError
+from .peers import run_closedchain, run_pinocchio_euler
+from .scenarios import SCENARIOS, Scenario, initial_state, load_scenario_mechanism, torque_function
+
+#: A declared constraint row above this is "drift" [m or -].
+DRIFT_ROW_TOL = 1e-6
+#: Step sizes of the map [s] (each divides the output spacing of 0.1 s).
+STEPS = (1e-1, 5e-2, 2e-2, 1e-2, 5e-3, 2e-3, 1e-3, 5e-4)
+#: Output spacing of the map's runs [s].
+OUTPUT_DT = 0.1
+#: The configuration whose largest "ok" step is compared with Pinocchio's Euler loop.
+BEST_FIXED = "kkt/rk4/projection"
+PEER = "pinocchio-euler/baumgarte"
+#: Extra, smaller steps for the peer (cheap per step) [s].
+PEER_EXTRA_STEPS = (2e-4, 1e-4)
+
+STABILITY_COLUMNS = ("case", "config", "step", "status", "residual", "message")
+
+
+@dataclass(frozen=True)
+class StabilityCase:
+    """A map row group: a scenario run for ``t_final`` seconds, all or only ``configs``."""
+
+    name: str
+    scenario: Scenario
+    t_final: float
+    configs: tuple[str, ...] | None = None
+    steps: tuple[float, ...] = STEPS
+
+
+_OPEN_BRANCH = tuple(math.radians(x) for x in (10.0, 50.0, 30.0))
+
+#: name -> case.
+CASES: dict[str, StabilityCase] = {
+    c.name: c
+    for c in (
+        StabilityCase("fourbar regular 2 s", SCENARIOS["fourbar-passive"], 2.0),
+        StabilityCase(
+            "fourbar change point (open branch) 1 s",
+            replace(SCENARIOS["fourbar-passive"], name="fourbar-open", guess=_OPEN_BRANCH),
+            1.0,
+        ),
+        StabilityCase("agile_eye coasting 1 s", SCENARIOS["agile_eye-coasting"], 1.0),
+        StabilityCase(
+            "fourbar passive 100 s",
+            SCENARIOS["fourbar-passive"],
+            100.0,
+            configs=(BEST_FIXED, "kkt/semi-implicit/projection", "kkt/rk4/partitioning", PEER),
+            steps=(1e-1, 5e-2, 2e-2, 1e-2, 5e-3, 2e-3),
+        ),
+    )
+}
+
+
+def stability_configurations() -> list[str]:
+    """``method/integrator/stabilization`` names: kkt with every fixed-step integrator and
+    every stabilization it supports, every method with rk4 and projection, and the peer."""
+    out = []
+    for name, spec in INTEGRATORS.items():
+        if spec.kind != "fixed":
+            continue
+        for stab in spec.stabilizations:
+            if stab in STABILIZATIONS:
+                out.append(f"kkt/{name}/{stab}")
+    for method in sorted(METHODS):
+        if method != "kkt" and "rk4" in INTEGRATORS:
+            out.append(f"{method}/rk4/projection")
+    out.append(PEER)
+    return out
+
+
+def make_stability_jobs(cases: list[str], models_dir: str) -> list[dict]:
+    """One job per case x configuration x step."""
+    jobs = []
+    for case in cases:
+        c = CASES[case]
+        for cfg in c.configs or stability_configurations():
+            for dt in c.steps + (PEER_EXTRA_STEPS if cfg == PEER else ()):
+                jobs.append(dict(case=case, config=cfg, step=dt, models_dir=models_dir))
+    return jobs
+
+
+def _max_declared_row(mech, q: np.ndarray) -> float:
+    model, data = mech.model, mech.model.createData()
+    out = np.zeros(mech.declared.nc)
+    worst = 0.0
+    for qk in q:
+        pin.forwardKinematics(model, data, qk)
+        mech.declared.evaluate(model, data, phi=out)
+        worst = max(worst, float(np.max(np.abs(out))))
+    return worst
+
+
+def run_stability_job(job: dict) -> dict:
+    """Classify one (case, configuration, step)."""
+    c = CASES[job["case"]]
+    sc = c.scenario
+    mech = load_scenario_mechanism(job["models_dir"], sc.urdf, sc.gravity)
+    q0, v0 = initial_state(mech, sc)
+    tau_fn = torque_function(mech, sc)
+    n = round(c.t_final / OUTPUT_DT)
+    t_grid = np.linspace(0.0, n * OUTPUT_DT, n + 1)
+    out = dict(
+        case=job["case"], config=job["config"], step=job["step"], residual=math.nan, message=""
+    )
+    try:
+        if job["config"] == PEER:
+            res = run_pinocchio_euler(mech, q0, v0, t_grid, tau_fn, dt=job["step"])
+        else:
+            method, integrator, stab = job["config"].split("/")
+            with np.errstate(all="ignore"):
+                res = run_closedchain(
+                    mech,
+                    q0,
+                    v0,
+                    t_grid,
+                    tau_fn,
+                    method=method,
+                    integrator=integrator,
+                    stabilization=stab,
+                    dt=job["step"],
+                )
+    except SimulationError as exc:
+        status = (
+            "drift" if "drift" in str(exc) else ("diverged" if "finite" in str(exc) else "raised")
+        )
+        out.update(status=status, message=str(exc).splitlines()[0][:200])
+        return out
+    except (ClosedChainError, np.linalg.LinAlgError, ValueError) as exc:
+        out.update(status="raised", message=str(exc).splitlines()[0][:200])
+        return out
+    if res.status != "ok" or not (np.all(np.isfinite(res.q)) and np.all(np.isfinite(res.v))):
+        out.update(status="diverged", message=res.message or "non-finite state")
+        return out
+    r = _max_declared_row(mech, res.q)
+    out.update(residual=r, status="ok" if r <= DRIFT_ROW_TOL else "drift")
+    return out
+
+
+def largest_ok_step(rows: list[dict], case: str, config: str) -> float:
+    """Largest step at which ``config`` is "ok" on ``case`` with every smaller step also ok
+    (0 when none)."""
+    mine = sorted(
+        (r for r in rows if r["case"] == case and r["config"] == config), key=lambda r: r["step"]
+    )
+    best = 0.0
+    for r in mine:
+        if r["status"] != "ok":
+            break
+        best = r["step"]
+    return best
+
+
+def stability_summary(rows: list[dict]) -> str:
+    """Markdown: per case, the largest ok step of the best fixed-step configuration and of
+    Pinocchio's Euler loop, and their ratio (target >= 10)."""
+    lines = [
+        f"| case | largest ok step {BEST_FIXED} [s] | largest ok step {PEER} [s] | ratio |",
+        "| --- | --- | --- | --- |",
+    ]
+    for case in sorted({r["case"] for r in rows}):
+        a, b = largest_ok_step(rows, case, BEST_FIXED), largest_ok_step(rows, case, PEER)
+        ratio = f"{a / b:.3g}" if b > 0 else ("inf (peer never ok)" if a > 0 else "")
+        lines.append(f"| {case} | {a:g} | {b:g} | {ratio} |")
+    return "\n".join(lines) + "\n"
