@@ -1,4 +1,4 @@
-"""Write src/closedchain/_core/rk_coefficients.hpp from scipy's RK45 and DOP853 tables.
+"""Write src/cpp/rk_coefficients.hpp from scipy's RK45 and DOP853 tables.
 
 The compiled Dormand-Prince integrators use scipy's own coefficients (same
 error control, same dense output), printed to 17 significant digits.
@@ -13,7 +13,7 @@ import numpy as np
 from scipy.integrate._ivp import dop853_coefficients as d
 from scipy.integrate._ivp.rk import RK45
 
-OUT = Path(__file__).resolve().parent.parent / "src/closedchain/_core/rk_coefficients.hpp"
+OUT = Path(__file__).resolve().parent.parent / "src/cpp/rk_coefficients.hpp"
 
 
 def arr(name: str, a: np.ndarray) -> str:

@@ -1,6 +1,6 @@
 """The compiled core: constraint rows, forward dynamics and integration loops in C++.
 
-``closedchain._core`` (src/closedchain/_core/core.cpp, built by CMake through
+``closedchain._core`` (src/cpp/core.cpp, built by CMake through
 scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
 (:meth:`ConstraintLayer.row_table`), the methods whose
