@@ -602,6 +602,17 @@ def test_joint_origin_axis_and_limits_are_checked(fourbar_text, write, old, new,
         cc.load(path)
 
 
+def test_zero_axis_of_a_fixed_joint_is_ignored(fourbar_text, write):
+    # URDF ignores the axis of fixed joints; real robots (Talos) write 0 0 0 there.
+    text = fourbar_text.replace(
+        "</robot>",
+        '<link name="tag"/><joint name="tag_joint" type="fixed"><parent link="crank"/>'
+        '<child link="tag"/><axis xyz="0 0 0"/></joint></robot>',
+    )
+    mech = cc.load(write(text))
+    assert mech.model.existFrame("tag")
+
+
 # -- the <scene> element --------------------------------------------------------------------
 
 

@@ -267,6 +267,10 @@ def _check_inertial(path: Path, link) -> None:
         )
 
 
+#: Joint types whose motion is defined by ``<axis>`` (its length must not vanish).
+AXIS_JOINT_TYPES = ("revolute", "continuous", "prismatic", "planar")
+
+
 def _check_joint(path: Path, joint) -> None:
     """Refuse a ``<joint>`` with a non-finite origin, a zero or non-finite axis or NaN limits."""
     where = _where(path, joint)
@@ -277,7 +281,8 @@ def _check_joint(path: Path, joint) -> None:
     axis = joint.find("axis")
     if axis is not None:
         xyz = _floats(path, axis, "xyz", "1 0 0", where)
-        if not float(np.linalg.norm(xyz)) > AXIS_NORM_MIN:
+        # URDF ignores the axis of fixed and floating joints (Talos writes 0 0 0 there).
+        if joint.get("type") in AXIS_JOINT_TYPES and not float(np.linalg.norm(xyz)) > AXIS_NORM_MIN:
             raise URDFError(
                 f"{where} <axis xyz={axis.get('xyz')!r}>: has zero length "
                 f"(norm must exceed {AXIS_NORM_MIN:g})"
