@@ -42,7 +42,10 @@ def run_fixed_compiled(
         np.asarray(v, dtype=float),
         float(dt),
         int(n_steps),
-        np.array(sorted(out_steps), dtype=np.int32),
+        # None: every step is an output.
+        np.arange(n_steps + 1, dtype=np.int32)
+        if out_steps is None
+        else np.asarray(out_steps, dtype=np.int32),
         bool(stab.projects),
         progress,
     )

@@ -303,14 +303,33 @@ class Recorder:
     def extend(self, samples: dict) -> None:
         """Append samples computed elsewhere (the compiled loops), checked the same way.
 
+        The compiled loop reports the residual of the kept rows; here it is
+        recomputed over every declared row at each output sample (a loop is
+        never reported closed while a dropped row is open), with the same
+        drift-limit check as :meth:`add`.
+
         Args:
             samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
         """
-        res = np.asarray(samples["res"]).ravel()
-        if res.size and not (np.all(np.isfinite(res)) and res.max() <= self.drift_limit):
-            raise ClosedChainError("compiled loop returned samples beyond the drift limit")
+        mech = self.mech
+        model, data = mech.model, mech.data
+        times = np.asarray(samples["t"]).ravel()
+        res = np.empty(times.size)
+        for i, q in enumerate(np.asarray(samples["q"])):
+            pin.forwardKinematics(model, data, q)
+            mech.declared.evaluate(model, data, phi=self._phi)
+            res[i] = float(np.max(np.abs(self._phi), initial=0.0))
+            if not math.isfinite(res[i]) or res[i] > self.drift_limit:
+                label, _ = mech.closure.worst_row(np.nan_to_num(self._phi, nan=np.inf))
+                raise SimulationError(
+                    f"{mech.name}: the state left the constraint manifold at t = "
+                    f"{times[i]:.9g} s (max |phi| = {res[i]:.3e} > drift_limit "
+                    f"{self.drift_limit:.1e}, row {label}); use a stabilization or a smaller step",
+                    float(times[i]),
+                )
         r = self.rows
-        for key in ("t", "res", "vres", "e", "ke"):
+        r["res"].extend(res.tolist())
+        for key in ("t", "vres", "e", "ke"):
             r[key].extend(np.asarray(samples[key]).ravel().tolist())
         for key in ("q", "v", "a", "lam"):
             r[key].extend(np.asarray(samples[key]))
