@@ -216,6 +216,7 @@ def test_dormand_prince_matches_scipy(fourbar, integrator):
         v0,
         t_final,
         integrator=integrator,
+        method="kkt",
         stabilization="none",
         rtol=RTOL,
         atol=ATOL,
@@ -228,13 +229,22 @@ def test_dormand_prince_matches_scipy(fourbar, integrator):
 
 # -- backend selection, errors, callbacks -------------------------------------------------
 
+#: A request the compiled loops run (the default method, augmented-lagrangian with
+#: stage projection, has no compiled implementation).
+COMPILED_REQUEST = dict(method="kkt", stabilization="projection")
+
 
 def test_auto_backend_uses_compiled_where_supported(fourbar):
     q0, v0 = _state(fourbar, "fourbar")
-    traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4")
+    traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **COMPILED_REQUEST)
     assert traj.info["backend"] == "compiled"
-    # partitioning and the reduced method have no compiled loop: numpy, silently.
-    for kw in (dict(stabilization="partitioning"), dict(method="reduced")):
+    # partitioning, the reduced method and the default (augmented-lagrangian with
+    # stage projection) have no compiled loop: numpy, silently.
+    for kw in (
+        dict(COMPILED_REQUEST, stabilization="partitioning"),
+        dict(COMPILED_REQUEST, method="reduced"),
+        dict(),
+    ):
         traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw)
         assert traj.info["backend"] == "numpy"
         with pytest.raises(cc.ClosedChainError, match="backend='compiled' cannot"):
@@ -252,7 +262,8 @@ def test_callable_tau_and_progress(fourbar, integrator):
     def tau(t, q, v):
         return np.array([0.5 * np.sin(3 * t) - 0.1 * v[0], 0.0, 0.0])
 
-    kw = dict(integrator=integrator, tau=tau, rtol=RTOL, atol=ATOL, dt=DT)
+    step = dict(dt=DT) if integrator == "rk4" else dict(rtol=RTOL, atol=ATOL)
+    kw = dict(integrator=integrator, tau=tau, **step, **COMPILED_REQUEST)
     a = cc.simulate(fourbar, q0, v0, T_CMP, backend="compiled", progress=seen.append, **kw)
     b = cc.simulate(fourbar, q0, v0, T_CMP, backend="numpy", **kw)
     assert len(seen) == a.info["steps"] and seen[-1] == pytest.approx(T_CMP)
@@ -266,9 +277,8 @@ def test_callable_tau_and_progress(fourbar, integrator):
         backend="compiled",
         integrator=integrator,
         tau=np.array([0.2, 0.0, 0.0]),
-        dt=DT,
-        rtol=RTOL,
-        atol=ATOL,
+        **step,
+        **COMPILED_REQUEST,
     )
     ref = cc.simulate(
         fourbar,
@@ -278,9 +288,8 @@ def test_callable_tau_and_progress(fourbar, integrator):
         backend="numpy",
         integrator=integrator,
         tau=np.array([0.2, 0.0, 0.0]),
-        dt=DT,
-        rtol=RTOL,
-        atol=ATOL,
+        **step,
+        **COMPILED_REQUEST,
     )
     assert np.max(np.abs(const.q[-1] - ref.q[-1])) <= ADAPTIVE_TOL
 
@@ -292,21 +301,41 @@ def test_errors_cross_the_boundary(fourbar):
         return np.array([np.nan if t > 0.01 else 0.0, 0.0, 0.0])
 
     with pytest.raises(SimulationError, match=r"tau\(t, q, v\) returned .* at t = ") as exc:
-        cc.simulate(fourbar, q0, v0, 0.1, integrator="rk4", tau=bad, backend="compiled")
+        cc.simulate(
+            fourbar, q0, v0, 0.1, integrator="rk4", tau=bad, backend="compiled", **COMPILED_REQUEST
+        )
     assert exc.value.t > 0.01
 
     def raising(t, q, v):
         raise RuntimeError("controller failed")
 
     with pytest.raises(RuntimeError, match="controller failed"):
-        cc.simulate(fourbar, q0, v0, 0.1, integrator="DOP853", tau=raising, backend="compiled")
+        cc.simulate(
+            fourbar,
+            q0,
+            v0,
+            0.1,
+            integrator="DOP853",
+            tau=raising,
+            backend="compiled",
+            **COMPILED_REQUEST,
+        )
 
     def stop(t):
         if t > 0.02:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        cc.simulate(fourbar, q0, v0, 0.1, integrator="rk4", progress=stop, backend="compiled")
+        cc.simulate(
+            fourbar,
+            q0,
+            v0,
+            0.1,
+            integrator="rk4",
+            progress=stop,
+            backend="compiled",
+            **COMPILED_REQUEST,
+        )
 
     # drift beyond the limit: euler without stabilization at a coarse step
     with pytest.raises(SimulationError, match="left the constraint manifold at t = "):
@@ -317,6 +346,7 @@ def test_errors_cross_the_boundary(fourbar):
             2.0,
             integrator="euler",
             dt=5e-2,
+            method="kkt",
             stabilization="none",
             backend="compiled",
             settings=cc.SimulationSettings(drift_limit=1e-3),
@@ -345,6 +375,7 @@ def test_ctrl_c_interrupts_a_long_run(fourbar):
                 dt=1e-3,
                 t_eval=np.array([2e3]),
                 backend="compiled",
+                **COMPILED_REQUEST,
             )
     finally:
         timer.cancel()

@@ -418,7 +418,7 @@ def test_method_names_are_case_insensitive(mechs, method):
 
 
 def test_unknown_method_lists_the_choices(mechs):
-    with pytest.raises(cc.UnknownChoiceError, match=r"unknown .* 'kt'; valid choices: kkt, "):
+    with pytest.raises(cc.UnknownChoiceError, match=r"unknown .* 'kt'; valid choices: .*kkt, "):
         cc.forward_dynamics(mechs["fourbar"], mechs["fourbar"].q_ref, np.zeros(3), method="kt")
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import pinocchio as pin
 
 from .closure import AssemblySettings as AssemblySettings  # re-exported
-from .closure import layer_jacobian, layer_phi
+from .closure import SelectionSettings, layer_jacobian, layer_phi
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
 from .exceptions import AssemblyError, ClosedChainError
@@ -130,7 +130,11 @@ def project_velocity(
     J = layer_jacobian(mech.model, mech.data, mech.declared, q)
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)
-    v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=None)[0]
+    # The declared rows are redundant (rank < rows): singular values below the
+    # rank tolerance of the row selection are round-off, not directions to project
+    # along (lstsq's default cutoff, ~1e-15, amplified Bricard's 1e-13 one to 1e-3).
+    rcond = SelectionSettings().rank_tol
+    v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=rcond)[0]
     residual = float(np.max(np.abs(J @ v), initial=0.0))
     scale = max(1.0, float(np.linalg.norm(J, 2) * np.linalg.norm(v)))
     if residual > VELOCITY_TOL * scale:

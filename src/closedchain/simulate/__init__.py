@@ -157,6 +157,7 @@ def _select_backend(
     backend = resolve_choice("backend", backend, BACKENDS)
     if backend == "numpy":
         return spec
+    method = method_name(method)
     cspec = COMPILED_INTEGRATORS.get(spec.name)
     reasons = []
     if cspec is None:
