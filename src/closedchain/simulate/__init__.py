@@ -326,6 +326,7 @@ def simulate(
         check_positive("atol", atol, "the absolute tolerance")
         rtol, atol = float(rtol), float(atol)
 
+    original_solver_settings = solver_settings
     if stab.accel_terms:
         gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
         solver_settings = replace(solver_settings, baumgarte=gains)
@@ -363,6 +364,29 @@ def simulate(
             problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
         )
     except (SingularConfigurationError, SimulationError) as exc:
+        if spec.backend == "compiled" and not recorder.rows["t"]:
+            # The compiled loop hands its samples over at the end only: the
+            # reference loop recovers the motion up to the stop (its error,
+            # with exc.trajectory, is raised instead).
+            logger.info("%s: compiled run stopped (%s); re-running with numpy", mech.name, exc)
+            simulate(
+                mech,
+                q0,
+                v0,
+                t_final,
+                method=method,
+                integrator=integrator,
+                dt=None if not fixed else control.dt,
+                rtol=None if fixed else rtol,
+                atol=None if fixed else atol,
+                stabilization=stabilization,
+                tau=tau,
+                t_eval=t_eval,
+                settings=settings,
+                solver_settings=original_solver_settings,
+                progress=progress,
+                backend="numpy",
+            )
         # Nothing is lost: the caller gets the motion up to the stop (e.g. to animate it).
         info["stopped"] = {"t": exc.t, "reason": str(exc)}
         info["cpu_time"] = time.process_time() - cpu0
