@@ -103,7 +103,12 @@ def test_forward_matches_numpy(load_mechanism, name, method, baumgarte, rng):
         a, lam = fd.forward(q, v, tau)
         ref = cc.forward_dynamics(mech, q, v, tau, method=method, settings=settings)
         rtol = max(EVAL_RTOL, ROUNDOFF_FACTOR * np.finfo(float).eps * _kappa(mech, q, v))
-        assert _close(a, ref.a, rtol)
+        # a = M^-1 (tau - h - J^T lam) cancels terms larger than a itself: round-off
+        # scales with the largest of them (slider_crank: |M^-1 J^T lam| ~ 10 |a|).
+        ws = compute_terms(mech, q, v)
+        constraint_term = np.linalg.solve(ws.M, ws.J.T @ ref.lam)
+        scale = max(1.0, float(np.max(np.abs(ref.a))), float(np.max(np.abs(constraint_term))))
+        assert np.max(np.abs(a - ref.a)) <= rtol * scale
         assert _close(lam, ref.lam, rtol)
 
 
