@@ -166,6 +166,23 @@ def layer_phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
     return out
 
 
+def max_declared_residual(mech, qs: np.ndarray) -> float:
+    """Return max |phi| over every declared row and every configuration of ``qs``.
+
+    Args:
+        mech: the mechanism (its declared rows, dropped ones included).
+        qs: configurations, shape (n, nq).
+    """
+    data = mech.model.createData()  # callers may run beside a simulation using mech.data
+    return max(
+        (
+            float(np.max(np.abs(layer_phi(mech.model, data, mech.declared, q)), initial=0.0))
+            for q in qs
+        ),
+        default=0.0,
+    )
+
+
 def layer_jacobian(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
     """Return J(q) of every row of ``layer``, shape (layer.nc, nv)."""
     pin.computeJointJacobians(model, data, q)
@@ -561,7 +578,7 @@ class LoopClosure:
                 cond=float(cond_all),
                 bound=settings.cond_max,
                 bound_name="singular_cond",
-                state="loses rank",
+                state="is close to losing rank",
                 hint="a singular configuration of the mechanism",
                 t=t,
             )

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pinocchio as pin
 
+from ..closure import max_declared_residual
 from ..exceptions import ClosedChainError
 from ..simulate import INTEGRATORS
 from .peers import RUNNERS
@@ -308,17 +309,6 @@ def execute(
     return results
 
 
-def _declared_residual(mech, q: np.ndarray) -> float:
-    model, data = mech.model, mech.model.createData()
-    out = np.zeros(mech.declared.nc)
-    worst = 0.0
-    for qk in q:
-        pin.forwardKinematics(model, data, qk)
-        mech.declared.evaluate(model, data, phi=out)
-        worst = max(worst, float(np.max(np.abs(out))))
-    return worst
-
-
 def _energy(mech, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     model, data = mech.model, mech.model.createData()
     return np.array(
@@ -399,7 +389,7 @@ def measure(
                 row.update(status="diverged", message="non-finite state")
             else:
                 row["error"] = _coordinate_error(mech, q, ref["q"][:n])
-                row["residual"] = _declared_residual(mech, q)
+                row["residual"] = max_declared_residual(mech, q)
                 if scenario.passive:
                     e = _energy(mech, q, v)
                     row["energy_drift"] = float(np.max(np.abs(e - e[0])))

@@ -16,8 +16,8 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-import pinocchio as pin
 
+from ..closure import max_declared_residual
 from ..dynamics.base import METHODS
 from ..exceptions import ClosedChainError
 from ..simulate import INTEGRATORS, STABILIZATIONS, SimulationError
@@ -102,17 +102,6 @@ def make_stability_jobs(cases: list[str], models_dir: str) -> list[dict]:
     return jobs
 
 
-def _max_declared_row(mech, q: np.ndarray) -> float:
-    model, data = mech.model, mech.model.createData()
-    out = np.zeros(mech.declared.nc)
-    worst = 0.0
-    for qk in q:
-        pin.forwardKinematics(model, data, qk)
-        mech.declared.evaluate(model, data, phi=out)
-        worst = max(worst, float(np.max(np.abs(out))))
-    return worst
-
-
 def run_stability_job(job: dict) -> dict:
     """Classify one (case, configuration, step)."""
     c = CASES[job["case"]]
@@ -154,7 +143,7 @@ def run_stability_job(job: dict) -> dict:
     if res.status != "ok" or not (np.all(np.isfinite(res.q)) and np.all(np.isfinite(res.v))):
         out.update(status="diverged", message=res.message or "non-finite state")
         return out
-    r = _max_declared_row(mech, res.q)
+    r = max_declared_residual(mech, res.q)
     out.update(residual=r, status="ok" if r <= DRIFT_ROW_TOL else "drift")
     return out
 
