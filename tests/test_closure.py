@@ -116,7 +116,9 @@ def test_simulation_reselects_a_degenerate_kept_set(mechanism_files):
     labels = [r.label for r in mech.declared.declared_rows]
     mech.closure.active = mech.declared.restricted([labels.index("C.t1"), labels.index("C.ta")])
     q0 = cc.assemble(mech, np.radians((10.0, -65.0, -104.0)), fixed=["crank_joint"])
-    traj = cc.simulate(mech, q0, np.zeros(3), 0.5)
+    # kkt + DOP853: a configuration that checks the kept rows' rank (the default,
+    # singular-robust, passes rank loss through and catches the open t2 a step later).
+    traj = cc.simulate(mech, q0, np.zeros(3), 0.5, method="kkt", integrator="DOP853")
     (event,) = traj.info["row_reselections"]
     assert event[0] == 0.0 and event[1] == ["C.t1", "C.t2"]
     assert "kept rows degenerate" in event[2]

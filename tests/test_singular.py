@@ -41,7 +41,7 @@ T_CHANGE_POINT = 10.0
 def _with_all_declared_rows(path) -> cc.Mechanism:
     """A mechanism whose layer keeps every declared row (redundant ones included)."""
     mech = cc.load(path)
-    mech.constraints = mech.declared
+    mech.closure.active = mech.declared  # LoopClosure owns the kept rows
     return mech
 
 

@@ -59,7 +59,7 @@ from ..dynamics.augmented_lagrangian import (
     solve_augmented_lagrangian,
 )
 from ..dynamics.base import method_buffers, workspace
-from .fixed import output_grid
+from .fixed import OutputSteps, output_grid
 from .problem import Problem
 from .settings import SimulationError
 
@@ -103,7 +103,8 @@ def run_ali3p(
     # mu = h^2 / 4 lambda*: the multiplier estimate, warm-started from the method's
     # multipliers and carried from step to step (the augmented-Lagrangian memory).
     mu = dt * dt / 4.0 * np.array(problem.lam, dtype=float) if nc else np.zeros(0)
-    if 0 in out_steps:
+    outputs = OutputSteps(out_steps)
+    if outputs.take(0):
         recorder.add(t, q, v, a, problem.lam)
     newton_total = 0
     zero_v = np.zeros(nv)
@@ -159,7 +160,7 @@ def run_ali3p(
             )
         q, v, a = q_new, v_new, a_new
         t = t_new
-        if k in out_steps:
+        if outputs.take(k):
             recorder.add(t, q, v, a, lam)
         if progress is not None:
             progress(t)

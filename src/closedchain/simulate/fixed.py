@@ -57,6 +57,26 @@ def output_grid(t_final: float, dt: float, t_eval: np.ndarray | None):
     return dt, n_steps, np.unique(np.rint(t_eval / dt).astype(np.int64))
 
 
+class OutputSteps:
+    """The output step indices of :func:`output_grid`, walked in step order.
+
+    Memory follows the outputs, never the steps (no set of every step index).
+    """
+
+    def __init__(self, steps: np.ndarray | None) -> None:
+        self.steps = steps  # sorted unique indices, or None: every step
+        self.j = 0
+
+    def take(self, k: int) -> bool:
+        """Return True when step ``k`` (called with increasing k) is an output."""
+        if self.steps is None:
+            return True
+        if self.j < len(self.steps) and self.steps[self.j] == k:
+            self.j += 1
+            return True
+        return False
+
+
 def run_fixed(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
@@ -74,12 +94,9 @@ def run_fixed(
         q, v = problem.complete(q, v[problem.ind], 0.0)
     t = 0.0
     a = problem.accel(t, q, v)
-    # Next output step: walk the sorted indices (no set of every step index).
-    n_out = None if out_steps is None else len(out_steps)
-    j = 0
-    if out_steps is None or out_steps[0] == 0:
+    outputs = OutputSteps(out_steps)
+    if outputs.take(0):
         recorder.add(t, q, v, a, problem.lam)
-        j = 1
 
     def deriv(t, q, v):
         if partition:
@@ -109,9 +126,8 @@ def run_fixed(
             problem.check_rows(q_new, t)
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
-        if out_steps is None or (j < n_out and out_steps[j] == k):
+        if outputs.take(k):
             recorder.add(t, q, v, a, problem.lam)
-            j += 1
         if progress is not None:
             progress(t)
     return n_steps

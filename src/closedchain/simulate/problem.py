@@ -161,9 +161,17 @@ class Problem:
         """Check every declared row at q; re-select the kept rows when they stop describing
         the loops (:meth:`LoopClosure.check_rows`). Returns True when re-selected."""
         mech = self.mech
-        if not mech.closure.check_rows(
-            mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
-        ):
+        if self.singular_robust:
+            kept_cond = None  # rank loss is passed through, not re-selected around
+        try:
+            changed = mech.closure.check_rows(
+                mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
+            )
+        except SingularConfigurationError as exc:
+            raise SingularConfigurationError(
+                f"{exc}; {passing_hint()}", q=exc.q, condition_number=exc.condition_number, t=t
+            ) from None
+        if not changed:
             return False
         self._J_at = None  # the memo holds the old rows
         self.reselections.append(
@@ -185,10 +193,14 @@ class Problem:
 
         Every declared row is checked first (:meth:`check_rows`): a kept set that
         degenerates where the mechanism does not is re-selected, not reported singular.
-        Not when :attr:`singular_robust` (a singular-robust method with stage
-        projection, or an index-3 integrator such as ALI3-P).
+        When :attr:`singular_robust` (a singular-robust method with stage
+        projection, or an index-3 integrator such as ALI3-P) only the dropped
+        rows are checked: rank loss is passed through, never reported.
         """
-        if self.mech.nc == 0 or self.singular_robust:
+        if self.mech.nc == 0:
+            return
+        if self.singular_robust:
+            self.check_rows(q, t)
             return
         s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
@@ -315,7 +327,7 @@ class Recorder:
         model, data = mech.model, mech.data
         times = np.asarray(samples["t"]).ravel()
         res = np.empty(times.size)
-        for i, q in enumerate(np.asarray(samples["q"])):
+        for i, q in enumerate(np.asarray(samples["q"], dtype=float).reshape(-1, mech.nq)):
             pin.forwardKinematics(model, data, q)
             mech.declared.evaluate(model, data, phi=self._phi)
             res[i] = float(np.max(np.abs(self._phi), initial=0.0))
