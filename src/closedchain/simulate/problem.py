@@ -275,13 +275,15 @@ class Recorder:
         #: Branch changes [t_before, t_after, from, to] (see Trajectory.branch).
         self.branch_changes: list[list[float]] = []
 
-    def add(self, t, q, v, a, lam) -> None:
+    def declared_residual(self, t: float, q: np.ndarray) -> float:
+        """Return max |phi| over every declared row at q, or raise beyond ``drift_limit``.
+
+        Dropped rows included: a loop is never reported closed while one of its
+        rows is open. Leaves ``mech.data``'s placements at q.
+        """
         mech = self.mech
-        model, data = mech.model, mech.data
-        # The residual covers every declared row, dropped ones included: a loop is
-        # never reported closed while one of its rows is open.
-        pin.forwardKinematics(model, data, q)
-        mech.declared.evaluate(model, data, phi=self._phi)
+        pin.forwardKinematics(mech.model, mech.data, q)
+        mech.declared.evaluate(mech.model, mech.data, phi=self._phi)
         res = float(np.max(np.abs(self._phi), initial=0.0))
         if not math.isfinite(res) or res > self.drift_limit:
             label, _ = mech.closure.worst_row(np.nan_to_num(self._phi, nan=np.inf))
@@ -291,6 +293,12 @@ class Recorder:
                 "use a stabilization or a smaller step",
                 t,
             )
+        return res
+
+    def add(self, t, q, v, a, lam) -> None:
+        mech = self.mech
+        model, data = mech.model, mech.data
+        res = self.declared_residual(t, q)
         J = self.jacobian(q)
         vres = float(np.max(np.abs(J @ v), initial=0.0))
         kinetic = pin.computeKineticEnergy(model, data, q, v)
@@ -323,24 +331,11 @@ class Recorder:
         Args:
             samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
         """
-        mech = self.mech
-        model, data = mech.model, mech.data
-        times = np.asarray(samples["t"]).ravel()
-        res = np.empty(times.size)
-        for i, q in enumerate(np.asarray(samples["q"], dtype=float).reshape(-1, mech.nq)):
-            pin.forwardKinematics(model, data, q)
-            mech.declared.evaluate(model, data, phi=self._phi)
-            res[i] = float(np.max(np.abs(self._phi), initial=0.0))
-            if not math.isfinite(res[i]) or res[i] > self.drift_limit:
-                label, _ = mech.closure.worst_row(np.nan_to_num(self._phi, nan=np.inf))
-                raise SimulationError(
-                    f"{mech.name}: the state left the constraint manifold at t = "
-                    f"{times[i]:.9g} s (max |phi| = {res[i]:.3e} > drift_limit "
-                    f"{self.drift_limit:.1e}, row {label}); use a stabilization or a smaller step",
-                    float(times[i]),
-                )
+        times = np.asarray(samples["t"], dtype=float).ravel()
+        qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
+        res = [self.declared_residual(float(t), q) for t, q in zip(times, qs, strict=True)]
         r = self.rows
-        r["res"].extend(res.tolist())
+        r["res"].extend(res)
         for key in ("t", "vres", "e", "ke"):
             r[key].extend(np.asarray(samples[key]).ravel().tolist())
         for key in ("q", "v", "a", "lam"):
