@@ -283,6 +283,84 @@ def test_robot_validates_against_pinocchio(robot, key):
     assert rep.max_dforce <= TOL_FORCE, rep
 
 
+#: Validation states of the UR5 crank (the issue's ``validate --samples 100``).
+N_UR5_STATES = 100
+#: Digits of the extended-precision KKT solve judging both answers.
+MP_DIGITS = 40
+#: UR5 states judged against it (those where a single constraintDynamics call
+#: is farthest from our answer).
+N_MP_STATES = 4
+#: Agreement of our KKT answer and of the refined reference with the 40-digit
+#: solve [rad/s^2] at accelerations of ~1e3 rad/s^2.
+TOL_A_HIGH_PRECISION = 2e-10
+
+
+def test_ur5_crank_validates_at_a_hundred_states(robot):
+    """``closedchain validate erd:ur5 --loops models/ur5_crank.urdf --samples 100``
+    passes at the 1e-9 bar (a single constraintDynamics call reached 2.1e-9)."""
+    rep = cc.validate(robot("ur5_crank"), n_samples=N_UR5_STATES, seed=0)
+    assert rep.n_singular == 0
+    assert rep.max_da <= TOL_A, rep
+    assert rep.max_dforce <= TOL_FORCE, rep
+
+
+def _mp_kkt_accelerations(M, h, J, gamma, tau) -> np.ndarray:
+    """Accelerations of [[M, J^T], [J, 0]] [a; lam] = [tau - h; -gamma] at MP_DIGITS digits."""
+    import mpmath
+
+    nv, nc = M.shape[0], J.shape[0]
+    with mpmath.workdps(MP_DIGITS):
+        K = mpmath.matrix(nv + nc, nv + nc)
+        rhs = mpmath.matrix(nv + nc, 1)
+        for i in range(nv):
+            rhs[i] = mpmath.mpf(float(tau[i] - h[i]))
+            for j in range(nv):
+                K[i, j] = mpmath.mpf(float(M[i, j]))
+            for k in range(nc):
+                K[i, nv + k] = K[nv + k, i] = mpmath.mpf(float(J[k, i]))
+        for k in range(nc):
+            rhs[nv + k] = -mpmath.mpf(float(gamma[k]))
+        x = mpmath.lu_solve(K, rhs)
+        return np.array([float(x[i]) for i in range(nv)])
+
+
+@pytest.mark.slow
+def test_refined_reference_and_ours_agree_with_a_high_precision_solve(robot):
+    """The root cause of the UR5's 2.1e-9: Pinocchio's single call, not our answer.
+
+    At the validation states where a single constraintDynamics call is farthest
+    from our KKT answer, a 40-digit solve of the same KKT system (M, h from
+    Pinocchio, J, gamma from the layer; exact on those double inputs) agrees
+    with our answer and with the refined reference to TOL_A_HIGH_PRECISION.
+    """
+    from closedchain.closure import AssemblySettings
+    from closedchain.validation import VALIDATION_PHI_TOL, pinocchio_reference_dynamics
+
+    mech = robot("ur5_crank")
+    rng = np.random.default_rng(0)
+    scale = mech.gravity_torque_scale()
+    data = mech.model.createData()
+    cases = []
+    for _ in range(N_UR5_STATES):
+        q, v = cc.random_consistent_state(
+            mech, rng, assembly=AssemblySettings(tol=VALIDATION_PHI_TOL)
+        )
+        tau = scale * rng.standard_normal(mech.nv)
+        ours = cc.forward_dynamics(mech, q, v, tau, method="kkt")
+        a_ref, _, a_raw = pinocchio_reference_dynamics(mech, q, v, tau, SolverSettings())
+        cases.append((float(np.max(np.abs(ours.a - a_raw))), q, v, tau, ours.a, a_ref))
+    cases.sort(key=lambda c: -c[0])
+    for _, q, v, tau, a_ours, a_ref in cases[:N_MP_STATES]:
+        M = pin.crba(mech.model, data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        h = pin.nonLinearEffects(mech.model, data, q, v)
+        a_mp = _mp_kkt_accelerations(
+            M, h, cc.compute_jacobian(mech, q), cc.compute_gamma(mech, q, v), tau
+        )
+        assert np.max(np.abs(a_ours - a_mp)) <= TOL_A_HIGH_PRECISION
+        assert np.max(np.abs(a_ref - a_mp)) <= TOL_A_HIGH_PRECISION
+
+
 @pytest.mark.parametrize("key", list(ROBOTS))
 def test_robot_runs_two_seconds_with_the_loops_holding(robot, key):
     mech = robot(key)

@@ -262,9 +262,10 @@ def test_validate_fails_when_the_reference_returns_nan(fourbar, monkeypatch):
     from closedchain import validation
 
     def nan_reference(mech, q, v, tau, settings):
-        return np.full(mech.nv, np.nan), np.full(mech.nv, np.nan)
+        nan = np.full(mech.nv, np.nan)
+        return nan, nan, nan
 
-    monkeypatch.setattr(validation, "pinocchio_forward_dynamics", nan_reference)
+    monkeypatch.setattr(validation, "pinocchio_reference_dynamics", nan_reference)
     report = cc.validate(fourbar, n_samples=3, seed=0)
     assert not report.passed
     assert report.max_da == np.inf

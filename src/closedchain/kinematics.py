@@ -189,6 +189,7 @@ def random_consistent_state(
     max_attempts: int = 1000,
     uniform_attempts: int = 20,
     local_scale: float = 0.1,
+    assembly: AssemblySettings | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw an assembled configuration within joint limits and a velocity with J v = 0.
 
@@ -209,6 +210,8 @@ def random_consistent_state(
         uniform_attempts: uniform starts before starts near ``q_ref`` are mixed in.
         local_scale: standard deviation of the tangent vector moving ``q_ref``
             for those starts [rad or m].
+        assembly: settings of the assembly onto phi = 0 (default
+            :class:`AssemblySettings`); validation asks for a tighter ``tol``.
 
     Returns:
         (q, v), shapes (nq,) and (nv,).
@@ -227,7 +230,7 @@ def random_consistent_state(
                 mech.model, np.clip(pin.integrate(mech.model, mech.q_ref, dv), lo, hi)
             )
         try:
-            q = assemble(mech, q0)
+            q = assemble(mech, q0, settings=assembly)
         except AssemblyError as exc:
             last = exc
             continue
