@@ -295,6 +295,21 @@ Q0_OPEN = ("0.17453292519943295", "0.8726646259971648", "0.5235987755982988")
 STOPPING = ("--method", "kkt", "--integrator", "DOP853")
 
 
+def test_python_dash_m_runs_the_cli(mechanism_files):
+    """``python -m closedchain`` is the ``closedchain`` script (README commands use both)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "closedchain", "info", str(mechanism_files["fourbar"]), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["mobility"] == 1
+
+
 def test_help_documents_every_exit_status(capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["--help"])
