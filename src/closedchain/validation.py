@@ -24,7 +24,7 @@ own error (measured on the UR5 holding a crank, where constraint forces reach
   its answer violates its own rows by ~5e-12, which a nearly singular
   direction of J (sigma_min ~ 4e-3) turns into 1e-9 rad/s^2 at |a| ~ 1.6e3
   (a 40-digit solve of the same system shows this; see
-  tests/test_validation.py). ``REFERENCE_REFINEMENT_STEPS`` steps of
+  tests/test_robots.py). ``REFERENCE_REFINEMENT_STEPS`` steps of
   iterative refinement (Wilkinson) fix this using only Pinocchio's terms:
   residuals :math:`r_d = \tau - \mathrm{rnea}(q, v, a) + J_c^\top\lambda_c`
   and :math:`r_c = J_c a - b_c` (``getConstraintsJacobian`` and the
@@ -63,8 +63,8 @@ VALIDATION_PHI_TOL = 1e-14
 REFERENCE_REFINEMENT_STEPS = 1
 #: Relative singular-value cut-off of the least-squares correction J_c da_p = -r_c:
 #: Pinocchio's rows are redundant (a revolute loop is 6 point rows of rank 5, a
-#: planar loop has zero rows), and round-off in r_c along the near-zero singular
-#: directions must not be amplified (rcond = eps gave 2e-9 on a free-floating 4-bar).
+#: planar loop has zero rows), and the round-off in r_c along their near-zero
+#: singular directions (~1e-16 of the largest) is not a correction to apply.
 REFINEMENT_RCOND = 1e-9
 
 
