@@ -151,11 +151,17 @@ class AssemblySettings:
         tol: convergence threshold on max |phi| [m or -].
         max_iter: Gauss-Newton iterations before giving up.
         max_halvings: line-search step halvings per iteration.
+        fallback_rcond: relative singular-value cut-off of the second step
+            tried when the full Gauss-Newton step does not contract the residual.
+        contraction: the full step is taken alone when it multiplies the sum of
+            squares of phi by at most this (the usual, quadratic, case).
     """
 
     tol: float = 1e-12
     max_iter: int = 60
     max_halvings: int = 12
+    fallback_rcond: float = 1e-2
+    contraction: float = 0.25
 
 
 def layer_phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
@@ -254,23 +260,41 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
         if res <= settings.tol:
             return q
         J = layer_jacobian(model, data, layer, q)
-        step = np.linalg.lstsq(J[:, free], -phi, rcond=None)[0]
-        dv[:] = 0.0
-        dv[free] = step
-        alpha = 1.0
         # Accept on the sum of squares, the merit function the Gauss-Newton step
         # descends (the max norm need not decrease along it).
         sq = float(phi @ phi)
-        for _ in range(settings.max_halvings):
-            q_try = pin.integrate(model, q, alpha * dv)
-            q_try[held_q] = q_held
-            phi_try = layer_phi(model, data, layer, q_try)
-            res_try = float(np.max(np.abs(phi_try)))
-            if float(phi_try @ phi_try) < sq or res_try <= settings.tol:
+        best = None
+        for rcond in (None, settings.fallback_rcond):
+            # Two candidate steps: the full minimum-norm Gauss-Newton step, and, unless
+            # the full step contracts the residual at once (sum of squares times
+            # <= contraction), the step without J's directions below fallback_rcond of
+            # its largest singular value; the one whose line search ends lower is
+            # taken. Off the motion of an overconstrained loop (Bricard: 5 rows, rank
+            # 4 on the manifold) J's smallest singular value is of the order of the
+            # distance to it, and the full step along it overshoots into another
+            # basin (a quarter of the starts 0.05 rad away failed).
+            step = np.linalg.lstsq(J[:, free], -phi, rcond=rcond)[0]
+            dv[:] = 0.0
+            dv[free] = step
+            alpha = 1.0
+            for _ in range(settings.max_halvings):
+                q_try = pin.integrate(model, q, alpha * dv)
+                q_try[held_q] = q_held
+                phi_try = layer_phi(model, data, layer, q_try)
+                res_try = float(np.max(np.abs(phi_try)))
+                sq_try = float(phi_try @ phi_try)
+                if sq_try < sq or res_try <= settings.tol:
+                    if best is None or sq_try < best[0]:
+                        best = (sq_try, q_try, phi_try, res_try)
+                    break
+                alpha *= 0.5
+            if best is not None and (
+                best[3] <= settings.tol or best[0] <= settings.contraction * sq
+            ):
                 break
-            alpha *= 0.5
-        else:
+        if best is None:
             break
+        _, q_try, phi_try, res_try = best
         q, phi, res = q_try, phi_try, res_try
     if res <= settings.tol:
         return q
