@@ -8,6 +8,7 @@ the error against a reference confirmed by a second configuration, and writes
 * ``work_precision.csv``: one tidy row per configuration (:data:`COLUMNS`);
 * ``reference.csv``: per scenario, the agreement of reference and confirmation;
 * ``ratios.md``: closedchain CPU / peer CPU at error 1e-3, 1e-6, 1e-9;
+* ``jobs.csv``: the wall seconds of every job (where the run's time went);
 * ``wp_<scenario>.png``: the work-precision charts.
 
 Plots are drawn from the rows by :mod:`.plots`; nothing there measures.
@@ -179,17 +180,12 @@ def run_work_precision(
         )
         total[0] = done[0] + len(more)
         results += execute(more, **kw)
-    slow = sorted(results, key=lambda r: -r.get("wall_s", 0.0))[:15]
-    for r in slow:
-        logger.info(
-            "slowest jobs: %.1f s wall %s %s %s %s %s",
-            r.get("wall_s", 0.0),
-            r["scenario"],
-            r["family"],
-            r["solver"],
-            r["backend"],
-            r["settings"],
-        )
+    # Where the wall time went, job by job (the slowest first).
+    write_rows(
+        sorted(results, key=lambda r: -r.get("wall_s", 0.0)),
+        out / "jobs.csv",
+        ("wall_s", "scenario", "family", "solver", "backend", "settings", "repeat", "status"),
+    )
     rows, checks = measure(results, models_dir, settings.quick)
     rows.sort(key=lambda r: (r["scenario"], r["family"], r["solver"], r["backend"], r["settings"]))
     write_rows(rows, out / "work_precision.csv")

@@ -554,9 +554,16 @@ def make_jobs(
     for sc in scenarios:
         scenario = SCENARIOS[sc]
         mech = load_scenario_mechanism(models_dir, scenario)
-        per_scenario[sc] = configurations(
-            settings, mujoco_available=mujoco_available, method=scenario.method
-        )
+        t_final = scenario_grid(scenario, settings.quick)[-1]
+        per_scenario[sc] = [
+            cfg
+            for cfg in configurations(
+                settings, mujoco_available=mujoco_available, method=scenario.method
+            )
+            if scenario.max_steps is None
+            or "dt" not in cfg["kwargs"]
+            or t_final / cfg["kwargs"]["dt"] <= scenario.max_steps * (1 + 1e-9)
+        ]
         if references:
             for cfg in reference_configurations(
                 settings, scenario, vector_state=mech.nq == mech.nv
