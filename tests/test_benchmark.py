@@ -42,10 +42,10 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    assert (
-        cli.main(["bench", "--quick", "--out", str(out), "--models", str(MODELS), "--no-progress"])
-        == 0
-    )
+    cache = tmp_path_factory.mktemp("bench-cache")
+    args = ["bench", "--quick", "--out", str(out), "--models", str(MODELS), "--no-progress"]
+    assert cli.main([*args, "--cache", str(cache)]) == 0
+    assert len(list(cache.glob("*.npz"))) == 2  # the reference and its confirmation
     return out
 
 

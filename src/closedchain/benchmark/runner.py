@@ -81,7 +81,7 @@ class BenchSettings:
     quick: bool = False
     repeats: int = 2
     tolerances: tuple[float, ...] = (1e-3, 1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
-    other_tolerances: tuple[float, ...] = (1e-4, 1e-6, 1e-8)
+    other_tolerances: tuple[float, ...] = (1e-4, 1e-7)
     steps: tuple[float, ...] = (1e-2, 5e-3, 2e-3, 1e-3)
     numpy_steps: tuple[float, ...] = (1e-2, 5e-3)
     euler_steps: tuple[float, ...] = (1e-3, 5e-4, 2e-4, 1e-4)
