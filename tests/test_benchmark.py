@@ -349,3 +349,24 @@ def test_mujoco_configuration_round_trip():
     q = mech.q_ref
     qpos, _ = mujoco_state(mech, q, np.zeros(mech.nv))
     assert np.max(np.abs(pinocchio_configuration(mech, qpos) - q)) <= 1e-15
+
+
+def test_bench_extras_rejects_bad_arguments(tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    for args, message in (
+        (["--workers", "0"], "--workers must be at least 1, got 0"),
+        (["--number", "0"], "--number must be at least 1, got 0"),
+        (["--parts", "nope"], "invalid choice: 'nope'"),
+    ):
+        res = subprocess.run(
+            [sys.executable, str(ROOT / "scripts" / "bench_extras.py"), "--out", str(tmp_path)]
+            + args,
+            capture_output=True,
+            text=True,
+        )
+        assert res.returncode == 2
+        assert message in res.stderr
