@@ -62,12 +62,16 @@ class BenchSettings:
         quick: 4-bar passive only, short horizons, few settings, one repeat.
         repeats: runs per configuration near a front (CPU is their median); the
             others run once (see :func:`near_front`).
-        tolerances: rtol = atol of DOP853 (closedchain and scipy).
+        tolerances: rtol = atol of DOP853 (closedchain's compiled one and scipy).
         other_tolerances: rtol = atol of the other adaptive integrators.
+        numpy_tolerances: rtol = atol of closedchain's numpy adaptive integrators (the
+            reference implementation, placed on the chart at a few points: the compiled
+            one takes the same steps).
         steps: fixed steps [s] of closedchain's compiled fixed-step integrators and the seed.
         numpy_steps: fixed steps [s] of the numpy (reference implementation) fixed-step
             integrators: their cost per step is 20-60x the compiled one's, so they are
-            placed on the chart at the larger steps only.
+            placed on the chart at the largest step only (unless the method has no
+            compiled implementation).
         euler_steps: steps of Pinocchio's Euler loop [s].
         mujoco_steps: MuJoCo timesteps [s].
         reference_tol: tolerance of the reference and its confirmation.
@@ -82,8 +86,9 @@ class BenchSettings:
     repeats: int = 2
     tolerances: tuple[float, ...] = (1e-3, 1e-4, 1e-6, 1e-8, 1e-10, 1e-12)
     other_tolerances: tuple[float, ...] = (1e-4, 1e-7)
+    numpy_tolerances: tuple[float, ...] = (1e-4, 1e-8)
     steps: tuple[float, ...] = (1e-2, 5e-3, 2e-3, 1e-3)
-    numpy_steps: tuple[float, ...] = (1e-2, 5e-3)
+    numpy_steps: tuple[float, ...] = (1e-2,)
     euler_steps: tuple[float, ...] = (1e-3, 5e-4, 2e-4, 1e-4)
     mujoco_steps: tuple[float, ...] = (2e-3, 1e-3, 5e-4, 2e-4, 1e-4)
     reference_tol: float = 1e-13
@@ -97,6 +102,7 @@ QUICK = BenchSettings(
     repeats=1,
     tolerances=(1e-4, 1e-8),
     other_tolerances=(),
+    numpy_tolerances=(1e-4, 1e-8),
     steps=(2e-3,),
     numpy_steps=(2e-3,),
     euler_steps=(1e-3, 1e-4),
@@ -134,10 +140,17 @@ def _closedchain_configs(settings: BenchSettings, method: str) -> list[dict]:
             if stab not in spec.stabilizations:  # compiled fixed-step: no stage projection
                 stab = "projection"
             if spec.kind == "adaptive":
-                grid = settings.tolerances if name == "DOP853" else settings.other_tolerances
+                if backend == "numpy":
+                    grid = settings.numpy_tolerances
+                    if name != "DOP853" and METHOD_CAPABILITIES[method].compiled:
+                        grid = grid[:1]  # one point per numpy integrator beside the compiled
+                else:
+                    grid = settings.tolerances if name == "DOP853" else settings.other_tolerances
                 key, label = "tol", "tol"
             else:
-                grid = settings.steps if backend == "compiled" else settings.numpy_steps
+                grid = settings.steps
+                if backend == "numpy" and METHOD_CAPABILITIES[method].compiled:
+                    grid = settings.numpy_steps
                 key, label = "dt", "dt"
             for x in grid:
                 configs.append(
