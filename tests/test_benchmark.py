@@ -13,7 +13,8 @@ import pytest
 from conftest import MODELS
 
 from closedchain import cli
-from closedchain.benchmark import COLUMNS, QUICK, read_rows, run_work_precision
+from closedchain import compiled as cc_compiled
+from closedchain.benchmark import COLUMNS, QUICK, SCENARIOS, read_rows, run_work_precision
 from closedchain.benchmark.analysis import cheapest_at, pareto_front, ratio_table
 from closedchain.exceptions import ClosedChainError, UnknownChoiceError
 
@@ -27,6 +28,13 @@ DOP853_1E8_ERROR_TOL = 1e-6
 SAME_DYNAMICS_FACTOR = 2.0
 #: MuJoCo's soft loop closure keeps its error above this on the 4-bar [rad] (measured 4e-3).
 MUJOCO_SOFT_ERROR_MIN = 1e-4
+#: numpy and compiled DOP853 take the same steps: their errors agree to this (relative).
+SAME_BACKEND_ERROR_RTOL = 1e-3
+#: The exact N-four-bar reference against tests/nfourbar_reference.py [rad] (measured 1.6e-14),
+#: and its mpmath confirmation against the double-precision one (measured 8.9e-15).
+EXACT_REFERENCE_TOL = 1e-12
+#: Every scenario's start is assembled to round-off [m or -].
+ASSEMBLY_TOL = 1e-10
 
 pytestmark = pytest.mark.slow
 
@@ -34,10 +42,10 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    assert (
-        cli.main(["bench", "--quick", "--out", str(out), "--models", str(MODELS), "--no-progress"])
-        == 0
-    )
+    cache = tmp_path_factory.mktemp("bench-cache")
+    args = ["bench", "--quick", "--out", str(out), "--models", str(MODELS), "--no-progress"]
+    assert cli.main([*args, "--cache", str(cache)]) == 0
+    assert len(list(cache.glob("*.npz"))) == 2  # the reference and its confirmation
     return out
 
 
@@ -61,23 +69,37 @@ def test_quick_reference_agreement(quick_run):
     ref = list(csv.DictReader(open(quick_run / "reference.csv", newline="")))
     assert [r["scenario"] for r in ref] == ["fourbar-passive"]
     assert float(ref[0]["agreement"]) <= REFERENCE_AGREEMENT_TOL
+    assert "confirmed by nullspace/DOP853/partitioning" in ref[0]["reference"]
+
+
+def test_quick_runs_both_backends(quick_run):
+    rows = read_rows(quick_run / "work_precision.csv")
+    backends = {r["backend"] for r in rows if r["family"] == "closedchain"}
+    assert "numpy" in backends
+    if cc_compiled.available():
+        assert "compiled" in backends
 
 
 def test_quick_errors_against_reference(quick_run):
     rows = read_rows(quick_run / "work_precision.csv")
 
-    def row(family, solver, settings):
+    def row(family, solver, settings, backend):
         return next(
             r
             for r in rows
-            if (r["family"], r["solver"], r["settings"]) == (family, solver, settings)
+            if (r["family"], r["solver"], r["settings"], r["backend"])
+            == (family, solver, settings, backend)
         )
 
-    mine = row("closedchain", "kkt/DOP853/none", "tol=1e-08")
-    theirs = row("scipy", "constraintDynamics/DOP853", "tol=1e-08")
+    mine = row("closedchain", "kkt/DOP853/none", "tol=1e-08", "numpy")
+    theirs = row("scipy", "constraintDynamics/DOP853", "tol=1e-08", "python")
     assert mine["error"] <= DOP853_1E8_ERROR_TOL
     assert theirs["error"] <= SAME_DYNAMICS_FACTOR * mine["error"]
     assert mine["error"] <= SAME_DYNAMICS_FACTOR * theirs["error"]
+    if cc_compiled.available():
+        # The compiled DOP853 computes the same steps as the numpy one.
+        compiled = row("closedchain", "kkt/DOP853/none", "tol=1e-08", "compiled")
+        assert abs(compiled["error"] - mine["error"]) <= SAME_BACKEND_ERROR_RTOL * mine["error"]
     for r in rows:
         if r["family"] == "mujoco" and r["status"] == "ok":
             assert r["error"] >= MUJOCO_SOFT_ERROR_MIN
@@ -173,7 +195,7 @@ def test_stability_job_classifies_runs():
             dict(case=CHANGE_POINT_CASE, config=config, step=step, models_dir=str(MODELS))
         )
 
-    ok = job("kkt/rk4/projection", 1e-2)
+    ok = job("kkt/rk4/projection", 1e-2)  # compiled when the core is built
     assert ok["status"] == "ok" and ok["residual"] <= STABLE_RESIDUAL_TOL
     peer = job(PEER, 1e-2)
     assert peer["status"] == "drift" and peer["residual"] >= EULER_PEER_DRIFT_MIN > DRIFT_ROW_TOL
@@ -183,7 +205,7 @@ def test_stability_job_classifies_runs():
 
 
 def test_largest_ok_step_needs_every_smaller_step_ok():
-    from closedchain.benchmark.stability import largest_ok_step, stability_summary
+    from closedchain.benchmark.stability import best_fixed, largest_ok_step, stability_summary
 
     rows = [
         dict(case="c", config="a", step=s, status=st)
@@ -196,7 +218,8 @@ def test_largest_ok_step_needs_every_smaller_step_ok():
     assert largest_ok_step(rows, "c", "a") == 1e-2
     assert largest_ok_step(rows, "c", "b") == 1e-3
     assert largest_ok_step(rows, "c", "missing") == 0.0
-    assert "| c |" in stability_summary(rows)
+    assert best_fixed(rows, "c") == ("a", 1e-2)
+    assert "| c | a | 0.01 |" in stability_summary(rows)
 
 
 def test_growth_exponent_of_a_power_law():
@@ -209,7 +232,141 @@ def test_growth_exponent_of_a_power_law():
 def test_evaluation_calls_cover_every_method_and_exact_pinocchio(fourbar):
     import closedchain as cc
     from closedchain.benchmark.evaluation import evaluation_calls
+    from closedchain.dynamics.base import METHOD_CAPABILITIES
 
-    labels = [c[0] for c in evaluation_calls(fourbar)]
+    calls = evaluation_calls(fourbar)
+    labels = [c[0] for c in calls]
     assert {f"method {m}" for m in cc.METHODS} <= set(labels)
     assert "pin.constraintDynamics (cheapest exact)" in labels
+    if cc_compiled.available():
+        compiled = {c[0] for c in calls if c[1] == "compiled"}
+        assert compiled == {f"method {m}" for m, c in METHOD_CAPABILITIES.items() if c.compiled}
+        for _label, _backend, fn, _note in calls:
+            fn()  # every timed call runs
+
+
+# -- scenarios, references and the reference cache -----------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_scenario_starts_assembled(name):
+    import numpy as np
+
+    import closedchain as cc
+    from closedchain.benchmark.scenarios import (
+        initial_state,
+        load_scenario_mechanism,
+        torque_function,
+    )
+
+    sc = SCENARIOS[name]
+    mech = load_scenario_mechanism(str(MODELS), sc)
+    q0, v0 = initial_state(mech, sc)
+    assert np.max(np.abs(cc.compute_phi(mech, q0))) <= ASSEMBLY_TOL
+    assert np.max(np.abs(cc.compute_jacobian(mech, q0) @ v0)) <= ASSEMBLY_TOL
+    tau = torque_function(mech, sc)
+    assert (tau is None) == sc.passive
+    if tau is not None:
+        assert tau(0.0, q0, v0).shape == (mech.nv,)
+
+
+def test_exact_nfourbar_reference():
+    import nfourbar_reference as ref
+    import numpy as np
+
+    from closedchain.benchmark.references import EXACT_REFERENCES
+    from closedchain.benchmark.scenarios import initial_state, load_scenario_mechanism
+
+    sc = SCENARIOS["nfourbar2-singular"]
+    mech = load_scenario_mechanism(str(MODELS), sc)
+    q0, v0 = initial_state(mech, sc)
+    t_grid = np.linspace(0.0, 1.0, 11)  # through the first flat position (t ~ 0.3 s)
+    double, mp = EXACT_REFERENCES[sc.exact]
+    q = double(mech, q0, v0, t_grid)
+    expected = np.array([ref.crank_angle(2, t) for t in t_grid])
+    assert np.max(np.abs(q[:, 0] - expected)) <= EXACT_REFERENCE_TOL
+    assert np.max(np.abs(q + q[:, [0]] * np.where(q0 > 0, -1.0, 1.0))) == 0.0
+    assert np.max(np.abs(mp(mech, q0, v0, t_grid[:4]) - q[:4])) <= EXACT_REFERENCE_TOL
+
+
+def test_exact_reference_refuses_another_model(fourbar):
+    import numpy as np
+
+    from closedchain.benchmark.references import nfourbar_parallelogram
+
+    with pytest.raises(ClosedChainError, match="does not describe this model"):
+        nfourbar_parallelogram(fourbar, fourbar.q_ref, np.zeros(3), np.linspace(0, 1, 3))
+
+
+def test_reference_cache_round_trip(tmp_path):
+    import numpy as np
+
+    from closedchain.benchmark.references import cache_key, cache_load, cache_store
+    from closedchain.benchmark.runner import make_jobs
+
+    jobs = make_jobs(QUICK, ["fourbar-passive"], str(MODELS), mujoco_available=False, repeats=())
+    assert [j["family"] for j in jobs] == ["reference", "confirmation"]
+    sc = SCENARIOS["fourbar-passive"]
+    keys = {cache_key(j, sc) for j in jobs}
+    assert len(keys) == 2
+    key = cache_key(jobs[0], sc)
+    assert cache_load(tmp_path, key) is None
+    res = dict(q=np.arange(6.0).reshape(2, 3), v=np.ones((2, 3)), cpu_s=1.5, status="ok")
+    cache_store(tmp_path, key, res)
+    hit = cache_load(tmp_path, key)
+    assert hit["cpu_s"] == 1.5 and np.array_equal(hit["q"], res["q"])
+    cache_store(tmp_path, "failed", dict(res, status="raised"))
+    assert cache_load(tmp_path, "failed") is None
+    assert cache_load(None, key) is None
+
+
+def test_near_front_keeps_cheap_accurate_runs():
+    from closedchain.benchmark.runner import near_front
+
+    rows = [
+        dict(_row("closedchain", 1.0, 1e-4), backend="b"),
+        dict(_row("closedchain", 1.5, 1e-6), backend="b", settings="x"),
+        dict(_row("closedchain", 10.0, 1e-5), backend="b", settings="far"),
+        dict(_row("closedchain", 0.1, 1e-9, "raised"), backend="b", settings="bad"),
+    ]
+    keys = near_front(rows, 2.0)
+    assert ("s", "closedchain", "closedchain", "b", "") in keys
+    assert ("s", "closedchain", "closedchain", "b", "x") in keys
+    assert ("s", "closedchain", "closedchain", "b", "far") not in keys
+    assert ("s", "closedchain", "closedchain", "b", "bad") not in keys
+
+
+def test_mujoco_configuration_round_trip():
+    import numpy as np
+
+    pytest.importorskip("mujoco")
+    import closedchain as cc
+    from closedchain.benchmark.peers import pinocchio_configuration
+    from closedchain.export.mjcf import mujoco_state
+
+    mech = cc.load("erd:ur5", loops=MODELS / "ur5_crank.urdf")
+    assert mech.nq != mech.nv  # the crank is a continuous joint: (cos, sin)
+    q = mech.q_ref
+    qpos, _ = mujoco_state(mech, q, np.zeros(mech.nv))
+    assert np.max(np.abs(pinocchio_configuration(mech, qpos) - q)) <= 1e-15
+
+
+def test_bench_extras_rejects_bad_arguments(tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    for args, message in (
+        (["--workers", "0"], "--workers must be at least 1, got 0"),
+        (["--number", "0"], "--number must be at least 1, got 0"),
+        (["--parts", "nope"], "invalid choice: 'nope'"),
+    ):
+        res = subprocess.run(
+            [sys.executable, str(ROOT / "scripts" / "bench_extras.py"), "--out", str(tmp_path)]
+            + args,
+            capture_output=True,
+            text=True,
+        )
+        assert res.returncode == 2
+        assert message in res.stderr

@@ -496,6 +496,13 @@ def _cmd_export_mjcf(args) -> int:
     return 0
 
 
+def _default_cache() -> Path:
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "closedchain" / "bench-references"
+
+
 def _cmd_bench(args) -> int:
     from tqdm import tqdm
 
@@ -523,10 +530,14 @@ def _cmd_bench(args) -> int:
         workers=args.workers,
         scheduler=args.scheduler,
         progress=progress,
+        cache_dir=None if args.no_cache else args.cache,
     )
     bar.close()
     for c in checks:
-        print(f"reference {c.scenario}: confirmed to {c.agreement:.2e} (max coordinate difference)")
+        print(
+            f"reference {c.scenario}: {c.reference}: agreement {c.agreement:.2e} "
+            "(max coordinate difference over the horizon)"
+        )
     print((Path(args.out_dir) / "ratios.md").read_text())
     print(f"wrote {len(rows)} rows to {Path(args.out_dir) / 'work_precision.csv'}")
     return 0
@@ -640,6 +651,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenarios", nargs="+", metavar="NAME", help="scenario names (default all)")
     p.add_argument("--repeats", type=int, help="runs per configuration (CPU is their median)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--cache",
+        default=str(_default_cache()),
+        help="directory of cached references, keyed by scenario, models and code version"
+        " (default %(default)s)",
+    )
+    p.add_argument("--no-cache", action="store_true", help="recompute the references")
     _add_debug(p)
     p.set_defaults(handler=_cmd_bench)
 

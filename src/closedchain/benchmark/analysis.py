@@ -56,6 +56,10 @@ def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
                     peer_run="",
                     note="",
                 )
+                if not math.isfinite(agreements.get(sc, 0.0)):
+                    entry["note"] = "no confirmed reference"
+                    out.append(entry)
+                    continue
                 if agreements.get(sc, 0.0) > target:
                     entry["note"] = f"reference confirmed only to {agreements[sc]:.1e}"
                     out.append(entry)

@@ -58,6 +58,21 @@ def _cheapest_exact(mech: Mechanism, q, v, tau, a_ref, cms, cds, data):
     return None, "no exact setting found"
 
 
+def compiled_methods(mech: Mechanism) -> list[tuple[str, object]]:
+    """(name, :class:`closedchain.compiled.CompiledDynamics`) of every compiled method
+    (empty when the compiled core is not built)."""
+    from .. import compiled
+
+    if not compiled.available():
+        logger.warning("the compiled core is not built: compiled methods left out")
+        return []
+    return [
+        (name, compiled.compiled_dynamics(mech, name))
+        for name in sorted(METHODS)
+        if METHOD_CAPABILITIES[name].compiled
+    ]
+
+
 def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Callable, str]]:
     """The timed calls (label, backend, function, note) at one random consistent state."""
     q, v = random_consistent_state(mech, np.random.default_rng(seed))
@@ -65,9 +80,12 @@ def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Cal
     calls = []
     for name in sorted(METHODS):
         func = get_method(name)
-        backend = getattr(METHOD_CAPABILITIES[name], "backend", "numpy")
         calls.append(
-            (f"method {name}", backend, lambda f=func: f(mech, q, v, tau, DEFAULT_SETTINGS), "")
+            (f"method {name}", "numpy", lambda f=func: f(mech, q, v, tau, DEFAULT_SETTINGS), "")
+        )
+    for name, fd in compiled_methods(mech):
+        calls.append(
+            (f"method {name}", "compiled", lambda fd=fd: fd.forward(q, v, tau), "from Python")
         )
     cms, cds, _, data = mech.pinocchio_constraints()
     lib = pin.ProximalSettings(

@@ -22,6 +22,7 @@ the integration alone (``time.process_time``; loading and set-up excluded):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -109,36 +110,41 @@ def run_scipy(
     """The thirty-line script: constraintDynamics as the rhs of scipy's solve_ivp."""
     from scipy.integrate import solve_ivp
 
-    if mech.nq != mech.nv:
-        raise ClosedChainError("the scipy peer integrates q as a vector and needs nq == nv")
     model = mech.model
+    chart = mech.nq != mech.nv
+    if chart and any(j.nv != 1 for j in model.joints[1:]):
+        raise ClosedChainError(
+            "the scipy peer integrates q as a vector: it needs nq == nv or only 1-dof joints"
+        )
     cms, cds, data = _constraints(mech)
     prox = pin.ProximalSettings(
         peer.proximal_accuracy, 0.0, peer.proximal_mu, peer.proximal_max_iter
     )
-    nq = mech.nq
-    zero = np.zeros(mech.nv)
+    nv = mech.nv
+    zero = np.zeros(nv)
 
+    # With continuous joints (cos, sin) the script integrates x = q (-) q0 in the tangent
+    # space at q0: for 1-dof joints (R and SO(2) are abelian) dx/dt = v exactly.
     def rhs(t, x):
-        q, v = x[:nq], x[nq:]
+        q = pin.integrate(model, q0, x[:nv]) if chart else x[:nv]
+        v = x[nv:]
         tau = zero if tau_fn is None else tau_fn(t, q, v)
         a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox)
         return np.concatenate([v, a])
 
+    x0 = np.concatenate([np.zeros(nv) if chart else q0, v0])
     cpu0 = time.process_time()
     sol = solve_ivp(
-        rhs,
-        (t_grid[0], t_grid[-1]),
-        np.concatenate([q0, v0]),
-        method=integrator,
-        rtol=tol,
-        atol=tol,
-        t_eval=t_grid,
+        rhs, (t_grid[0], t_grid[-1]), x0, method=integrator, rtol=tol, atol=tol, t_eval=t_grid
     )
+    if sol.success and chart:
+        qs = np.array([pin.integrate(model, q0, x) for x in sol.y[:nv].T])
+    elif sol.success:
+        qs = sol.y[:nv].T
     cpu = time.process_time() - cpu0
     if not sol.success:
-        return RunOutput(np.empty((0, nq)), np.empty((0, nq)), cpu, "raised", sol.message)
-    return RunOutput(sol.y[:nq].T, sol.y[nq:].T, cpu, steps=int(sol.nfev))
+        return RunOutput(np.empty((0, mech.nq)), np.empty((0, nv)), cpu, "raised", sol.message)
+    return RunOutput(qs, sol.y[nv:].T, cpu, steps=int(sol.nfev))
 
 
 def run_pinocchio_euler(
@@ -177,8 +183,6 @@ def run_mujoco(mech, q0, v0, t_grid, tau_fn, *, dt: float, stiff: bool) -> RunOu
 
     from ..export.mjcf import STIFF, MjcfSettings, load_mujoco, mujoco_state
 
-    if mech.nq != mech.nv:
-        raise ClosedChainError("the mujoco peer compares coordinates and needs nq == nv")
     base = STIFF if stiff else MjcfSettings()
     settings = MjcfSettings(solref=base.solref, solimp=base.solimp, timestep=dt)
     m, d = load_mujoco(mech, settings=settings)
@@ -192,7 +196,8 @@ def run_mujoco(mech, q0, v0, t_grid, tau_fn, *, dt: float, stiff: bool) -> RunOu
     cpu0 = time.process_time()
     for k in range(1, n + 1):
         if tau_fn is not None:
-            d.qfrc_applied[:] = tau_fn(d.time, d.qpos, d.qvel)
+            q = d.qpos if mech.nq == mech.nv else pinocchio_configuration(mech, d.qpos)
+            d.qfrc_applied[:] = tau_fn(d.time, q, d.qvel)
         mujoco.mj_step(m, d)
         if k % stride == 0:
             if d.warning[bad].number > 0:
@@ -201,11 +206,40 @@ def run_mujoco(mech, q0, v0, t_grid, tau_fn, *, dt: float, stiff: bool) -> RunOu
             qs.append(d.qpos.copy())
             vs.append(d.qvel.copy())
     cpu = time.process_time() - cpu0
+    qs = [pinocchio_configuration(mech, x) for x in qs]
     return RunOutput(np.array(qs), np.array(vs), cpu, status, message, steps=n)
 
 
-def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float) -> RunOutput:
-    """The seed's program: Euler step and two Newton projections (closedchain.seed_settings)."""
+def pinocchio_configuration(mech, qpos: np.ndarray) -> np.ndarray:
+    """Map MuJoCo's qpos of the exported model back to Pinocchio's q, shape (nq,):
+    the inverse of :func:`closedchain.export.mjcf.mujoco_state`."""
+    model = mech.model
+    q = np.empty(mech.nq)
+    k = 0
+    for j in range(1, model.njoints):
+        jm = model.joints[j]
+        short = jm.shortname()
+        if short.startswith("JointModelRUB") or short == "JointModelRevoluteUnboundedUnaligned":
+            q[jm.idx_q : jm.idx_q + 2] = math.cos(qpos[k]), math.sin(qpos[k])
+            k += 1
+        elif short == "JointModelSpherical":
+            w, x, y, z = qpos[k : k + 4]
+            q[jm.idx_q : jm.idx_q + 4] = x, y, z, w
+            k += 4
+        elif short == "JointModelFreeFlyer":
+            q[jm.idx_q : jm.idx_q + 3] = qpos[k : k + 3]
+            w, x, y, z = qpos[k + 3 : k + 7]
+            q[jm.idx_q + 3 : jm.idx_q + 7] = x, y, z, w
+            k += 7
+        else:
+            q[jm.idx_q : jm.idx_q + jm.nq] = qpos[k : k + jm.nq]
+            k += jm.nq
+    return q
+
+
+def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float, backend: str = "numpy") -> RunOutput:
+    """The seed's program: Euler step and two Newton projections (closedchain.seed_settings),
+    on closedchain's ``backend`` (numpy or compiled)."""
     cpu0 = time.process_time()
     traj = simulate(
         mech,
@@ -219,6 +253,7 @@ def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float) -> RunOutput:
         tau=tau_fn,
         t_eval=t_grid,
         settings=seed_settings(),
+        backend=backend,
     )
     cpu = time.process_time() - cpu0
     return RunOutput(traj.q, traj.v, cpu, steps=int(traj.info["steps"]))
@@ -236,8 +271,9 @@ def run_closedchain(
     stabilization: str | None,
     dt: float | None = None,
     tol: float | None = None,
+    backend: str = "auto",
 ) -> RunOutput:
-    """closedchain.simulate with one configuration."""
+    """closedchain.simulate with one configuration (``backend``: numpy, compiled or auto)."""
     cpu0 = time.process_time()
     traj = simulate(
         mech,
@@ -252,6 +288,7 @@ def run_closedchain(
         atol=tol,
         tau=tau_fn,
         t_eval=t_grid,
+        backend=backend,
     )
     cpu = time.process_time() - cpu0
     return RunOutput(traj.q, traj.v, cpu, steps=int(traj.info["steps"]))

@@ -117,14 +117,25 @@ def plot_scaling(rows: list[dict], path: str | Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 5))
-    for method in sorted({r["method"] for r in rows}):
-        mine = sorted((r for r in rows if r["method"] == method), key=lambda r: r["n"])
-        ax.plot([r["n"] for r in mine], [r["us"] for r in mine], "-o", label=method)
+    from .scaling import growth_exponents, series_label
+
+    exps = growth_exponents(rows)
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    for label in sorted({series_label(r) for r in rows}):
+        mine = sorted((r for r in rows if series_label(r) == label), key=lambda r: r["n"])
+        style = "--s" if "compiled" in label else ("-^" if "C++" in label else "-o")
+        p = exps.get(label)
+        ax.plot(
+            [r["n"] for r in mine],
+            [r["us"] for r in mine],
+            style,
+            label=label + ("" if p is None else f"  p = {p:.2f}"),
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("N")
-    ax.set_ylabel("microseconds per evaluation")
+    ax.set_xlabel("N (N-four-bar loops)")
+    ax.set_ylabel("CPU microseconds per evaluation")
+    ax.set_title("cost per forward-dynamics evaluation against N (fitted cost ~ N^p)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

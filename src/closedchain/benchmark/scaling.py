@@ -19,10 +19,11 @@ import pinocchio as pin
 from ..dynamics.base import DEFAULT_SETTINGS, METHODS, get_method
 from ..kinematics import assemble, project_velocity
 from ..mechanism import Mechanism, load
+from .evaluation import compiled_methods
 
 logger = logging.getLogger(__name__)
 
-SCALING_COLUMNS = ("n", "nv", "nc", "method", "us")
+SCALING_COLUMNS = ("n", "nv", "nc", "method", "backend", "us")
 #: Label of Pinocchio's solver in the rows.
 PINOCCHIO_CALL = "pin.constraintDynamics"
 
@@ -62,9 +63,14 @@ def time_scaling(
                     n,
                     mech,
                     name,
+                    "numpy",
                     lambda f=f, m=mech, q=q, v=v, t=tau: f(m, q, v, t, DEFAULT_SETTINGS),
                     [],
                 )
+            )
+        for name, fd in compiled_methods(mech):
+            entries.append(
+                (n, mech, name, "compiled", lambda fd=fd, q=q, v=v, t=tau: fd.forward(q, v, t), [])
             )
         cms, cds, _, data = mech.pinocchio_constraints()
         prox = pin.ProximalSettings(
@@ -78,6 +84,7 @@ def time_scaling(
                 n,
                 mech,
                 PINOCCHIO_CALL,
+                "C++",
                 lambda m=mech, d=data, c=cms, cd=cds, q=q, v=v, t=tau, p=prox: (
                     pin.constraintDynamics(m.model, d, q, v, t, c, cd, p)
                 ),
@@ -95,16 +102,22 @@ def time_scaling(
                 logger.warning("scaling: %s", exc)
                 runs.append(np.nan)
     return [
-        dict(n=n, nv=mech.nv, nc=mech.nc, method=name, us=float(np.median(runs)))
-        for n, mech, name, _fn, runs in entries
+        dict(n=n, nv=mech.nv, nc=mech.nc, method=name, backend=backend, us=float(np.median(runs)))
+        for n, mech, name, backend, _fn, runs in entries
     ]
 
 
+def series_label(row: dict) -> str:
+    """``method (backend)`` of a scaling row (the method alone when no backend is given)."""
+    backend = row.get("backend")
+    return f"{row['method']} ({backend})" if backend else row["method"]
+
+
 def growth_exponents(rows: list[dict]) -> dict[str, float]:
-    """Least-squares slope p of log(us) against log(N) per method."""
+    """Least-squares slope p of log(us) against log(N) per method and backend."""
     out = {}
-    for method in sorted({r["method"] for r in rows}):
-        mine = [r for r in rows if r["method"] == method and np.isfinite(r["us"])]
+    for method in sorted({series_label(r) for r in rows}):
+        mine = [r for r in rows if series_label(r) == method and np.isfinite(r["us"])]
         if len(mine) >= 2:
             x = np.log([r["n"] for r in mine])
             y = np.log([r["us"] for r in mine])
