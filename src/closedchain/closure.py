@@ -46,6 +46,7 @@ import scipy.linalg
 
 from .constraints import ConstraintLayer, RowInfo
 from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
+from .pindata import new_data
 
 logger = logging.getLogger(__name__)
 
@@ -173,7 +174,7 @@ def max_declared_residual(mech, qs: np.ndarray) -> float:
         mech: the mechanism (its declared rows, dropped ones included).
         qs: configurations, shape (n, nq).
     """
-    data = mech.model.createData()  # callers may run beside a simulation using mech.data
+    data = new_data(mech.model)  # callers may run beside a simulation using mech.data
     return max(
         (
             float(np.max(np.abs(layer_phi(mech.model, data, mech.declared, q)), initial=0.0))

@@ -41,6 +41,7 @@ import pinocchio as pin
 from .exceptions import AssemblyError, ClosedChainError
 from .kinematics import assemble, compute_jacobian
 from .mechanism import Mechanism
+from .pindata import new_data
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +93,7 @@ def analyze_fourbar(mech: Mechanism, *, points: int = SWEEP_POINTS) -> FourBarAn
             f"{mech.name} is not a planar 4-bar (one revolute loop, three "
             "revolute joints, two on the ground)"
         )
-    model, data = mech.model, mech.model.createData()
+    model, data = mech.model, new_data(mech.model)
     pin.forwardKinematics(model, data, mech.q_ref)
     pin.updateFramePlacements(model, data)
     ground = [j for j in range(1, 4) if model.parents[j] == 0]
