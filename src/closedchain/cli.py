@@ -430,17 +430,17 @@ def _cmd_simulate(args) -> int:
     info = traj.info
     summary = {
         "mechanism": mech.name,
-        "method": info["method"],
-        "integrator": info["integrator"],
-        "stabilization": info["stabilization"],
-        "t_final": info["t_final"],
-        "steps": info["steps"],
-        "evaluations": info["evaluations"],
-        "cpu_time_s": info["cpu_time"],
+        "method": info.method,
+        "integrator": info.integrator,
+        "stabilization": info.stabilization,
+        "t_final": info.t_final,
+        "steps": info.steps,
+        "evaluations": info.evaluations,
+        "cpu_time_s": info.cpu_time,
         "max_constraint_residual": traj.max_constraint_residual,
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
-        "repartitions": len(info["repartitions"]),
+        "repartitions": len(info.repartitions),
         "final_independent": {
             mech.coordinate_names[i]: float(coordinate_series(mech, traj.q[-1], i))
             for i in mech.independent_idx_v

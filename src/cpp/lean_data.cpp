@@ -23,6 +23,9 @@
 
 namespace bp = boost::python;
 
+// lastChild and contact_chol are deprecated members that Pinocchio still fills.
+#pragma GCC diagnostic ignored "-Wdeprecated-declarations"
+
 namespace closedchain {
 
 namespace {
@@ -133,8 +136,6 @@ void compute_supports_from_row(const Model& model, Data& d) {
 
 }  // namespace
 
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wdeprecated-declarations"
 Data lean_data(const Model& model) {
   Data d;
   // The member initializer list of DataTpl(const Model&), in its order.
@@ -297,8 +298,6 @@ bool lean_data_matches_full(const Model& model) {
   lean.d2tau_dadq = full.d2tau_dadq;
   return lean == full;
 }
-#pragma GCC diagnostic pop
-
 void register_lean_data() {
   bp::def("lean_data", &lean_data, bp::args("model"),
           "A pinocchio.Data of model without the four nv^3 second-order derivative tensors "

@@ -46,7 +46,7 @@ from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
-from ..trajectory import Trajectory
+from ..trajectory import SimulationInfo, Trajectory
 from .problem import Problem, Recorder
 from .registry import (
     COMPILED_INTEGRATORS,
@@ -401,6 +401,7 @@ def simulate(
     traj = recorder.trajectory(info)
     info["max_constraint_residual"] = traj.max_constraint_residual
     info["energy_drift"] = traj.energy_drift
+    traj = replace(traj, info=SimulationInfo.from_dict(info))
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,
