@@ -144,6 +144,10 @@ class RowCheckSettings:
     open_tol: float = 1e-6
 
 
+#: The defaults, shared (frozen).
+DEFAULT_ROW_CHECK_SETTINGS = RowCheckSettings()
+
+
 @dataclass(frozen=True)
 class AssemblySettings:
     """Settings of :func:`assemble`.
@@ -157,6 +161,10 @@ class AssemblySettings:
     tol: float = 1e-12
     max_iter: int = 60
     max_halvings: int = 12
+
+
+#: The defaults, shared (frozen).
+DEFAULT_ASSEMBLY_SETTINGS = AssemblySettings()
 
 
 def layer_phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
@@ -524,7 +532,7 @@ class LoopClosure:
         *,
         t: float | None = None,
         kept_cond: float | None = None,
-        settings: RowCheckSettings | None = None,
+        settings: RowCheckSettings = DEFAULT_ROW_CHECK_SETTINGS,
     ) -> bool:
         """Check that the kept rows still describe every loop at q; re-select if not.
 
@@ -552,7 +560,6 @@ class LoopClosure:
                 ``settings.open_tol`` and no selection of rows of the generic rank
                 takes it in (names loop, row, time and residual).
         """
-        settings = settings or RowCheckSettings()
         if self.declared.nc == self.active.nc:
             return False
         when = f" at t = {t:.9g} s" if t is not None else ""

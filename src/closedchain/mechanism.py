@@ -103,6 +103,10 @@ class LoadSettings:
         )
 
 
+#: The defaults, shared (frozen).
+DEFAULT_LOAD_SETTINGS = LoadSettings()
+
+
 class Mechanism:
     """A closed-chain mechanism: a Pinocchio tree plus independent loop constraints.
 
@@ -436,7 +440,7 @@ def load(
     root_joint: str | None = None,
     loops: str | Path | None = None,
     gravity: Sequence[float] = DEFAULT_GRAVITY,
-    settings: LoadSettings | None = None,
+    settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
 ) -> Mechanism:
     """Load a URDF+ mechanism.
 
@@ -463,7 +467,6 @@ def load(
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
 
-    settings = settings or LoadSettings()
     if root_joint not in ROOT_JOINTS:
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
