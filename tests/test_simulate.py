@@ -802,3 +802,26 @@ def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
         tau=tau,
     )
     assert seen and max(seen) <= 1e-15
+
+
+def test_inconsistent_start_velocity_is_refused_with_the_fix(fourbar, q_crossed):
+    """A v0 with J v0 != 0 would be recorded as the motion's first sample (issue 12)."""
+    v0 = np.array([1.0, 0.0, 0.0])
+    residual = np.max(np.abs(cc.compute_jacobian(fourbar, q_crossed) @ v0))
+    assert residual > 0.1  # independent check that this v0 does violate J v = 0
+    with pytest.raises(
+        cc.InvalidArgumentError,
+        match=r"v0 violates the loops' velocity constraint J\(q0\) v0 = 0: max \|J v0\| = "
+        r".* > 1e-06 .*v0 = closedchain\.project_velocity\(mech, q0, v0\)",
+    ):
+        simulate(fourbar, q_crossed, v0, 0.1)
+    traj = simulate(fourbar, q_crossed, cc.project_velocity(fourbar, q_crossed, v0), 0.05)
+    assert traj.velocity_residual[0] <= 1e-9
+
+
+def test_rtol_below_double_precision_is_refused(fourbar, q_crossed):
+    with pytest.raises(
+        cc.InvalidArgumentError,
+        match=r"rtol = 1e-30 is below what double precision resolves .*valid range: \[2\.22e-14",
+    ):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="DOP853", rtol=1e-30)
