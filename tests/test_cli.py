@@ -8,7 +8,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import SHIPPED_MECHANISMS
+from conftest import DATA_DIR, SHIPPED_MECHANISMS
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -285,6 +285,15 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
         ),
         (["workspace", "{eye}", "-o", "{tmp}/w.png", "--span", "nan"], "--span must be a positive"),
         (
+            ["simulate", "{no_joint}", "--t-final", "0.1"],
+            "{no_joint}: the tree has no movable joint (nv = 0), so there is nothing to simulate",
+        ),
+        (["validate", "{no_joint}"], "{no_joint}: the tree has no movable joint (nv = 0)"),
+        (
+            ["plot", "{tmp}/t.csv", "-o", "{tmp}/p.png"],
+            "{tmp}/t.csv: plot reads a .npz trajectory or a URDF file to simulate",
+        ),
+        (
             ["workspace", "{eye}", "-o", "{tmp}/w.png", "--outputs", "nosuch"],
             "a singularity map needs two output coordinates, got ('nosuch',); valid: two of "
             "actuator_1,",
@@ -295,6 +304,7 @@ def test_bad_arguments_exit_2_with_one_line(capsys, tmp_path, mechanism_files, a
     fmt = {
         "fourbar": mechanism_files["fourbar"],
         "eye": mechanism_files["agile_eye"],
+        "no_joint": DATA_DIR / "no_joint.urdf",
         "tmp": tmp_path,
     }
     status, out, err = run(capsys, *(a.format(**fmt) for a in argv))

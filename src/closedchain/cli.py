@@ -172,6 +172,11 @@ def check_args(args: argparse.Namespace) -> None:
             "[protocol://]host:port, e.g. tcp://127.0.0.1:8786"
         )
     if args.command == "plot":
+        if Path(args.file).suffix.lower() == ".csv":
+            raise ClosedChainError(
+                f"{args.file}: plot reads a .npz trajectory or a URDF file to simulate; "
+                "a .csv trajectory is for spreadsheets (save it as .npz to plot it)"
+            )
         if args.urdf is not None and Path(args.file).suffix != ".npz":
             raise ClosedChainError("--urdf is for a .npz trajectory; FILE is already a URDF")
 

@@ -495,6 +495,12 @@ def load(
         )
     except (RuntimeError, ValueError) as exc:
         raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
+    if model.nv == 0:
+        raise URDFError(
+            f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "
+            "simulate or validate; valid: at least one revolute, continuous, prismatic, "
+            "planar or floating <joint>, or root_joint 'free' / 'planar' (--root)"
+        )
     model.gravity.linear = gravity
 
     frame_ids = []
