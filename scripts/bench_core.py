@@ -153,7 +153,7 @@ def matched(name, problem, targets, repeat):
         for tol in TOLS:
             qp, cp = peer_run(mech, q0, v0, tol, t_eval)
             qc, ccpu, info = cc_run(mech, q0, v0, tol, t_eval)
-            backend = info["backend"]
+            backend = info.backend
             err["peer"][tol] = float(np.max(np.abs(qp - q_ref)))
             err["closedchain"][tol] = float(np.max(np.abs(qc - q_ref)))
             cpu["peer"][tol].append(cp)
@@ -183,7 +183,7 @@ def partitioning_cost(mech, q0, v0, t_eval, repeat):
     for _ in range(repeat):
         for stab in runs:
             _, c, info = cc_run(mech, q0, v0, 1e-9, t_eval, stabilization=stab)
-            runs[stab].append((c, info["backend"]))
+            runs[stab].append((c, info.backend))
     n = min(c for c, _ in runs["none"])
     p = min(c for c, _ in runs["partitioning"])
     print(

@@ -59,7 +59,7 @@ def measure(n: int, args, folder: Path) -> dict:
     t0 = time.process_time()
     traj = cc.simulate(mech, q0, v0, args.t, **kw)
     cpu = time.process_time() - t0
-    steps = traj.info["steps"]
+    steps = traj.info.steps
     row = {
         "N": n,
         "nv": mech.nv,
@@ -67,7 +67,7 @@ def measure(n: int, args, folder: Path) -> dict:
         "steps": steps,
         "cpu_s": cpu,
         "us_per_step": 1e6 * cpu / steps,
-        "us_per_eval": 1e6 * cpu / max(traj.info["evaluations"], 1),
+        "us_per_eval": 1e6 * cpu / max(traj.info.evaluations, 1),
     }
     if args.full:
         t0 = time.process_time()

@@ -54,7 +54,7 @@ def main() -> None:
         print(f"step {k}: th2 = {np.rad2deg(traj.q[k + 1, 0]):.2f} deg, lambda = {traj.lam[k]}")
     print(
         f"max |phi| = {traj.max_constraint_residual:.3e} m, "
-        f"CPU {traj.info['cpu_time']:.3f} s for {traj.info['steps']} steps"
+        f"CPU {traj.info.cpu_time:.3f} s for {traj.info.steps} steps"
     )
 
 

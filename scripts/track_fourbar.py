@@ -70,7 +70,7 @@ def run(name: str) -> float:
     err = np.linalg.norm(traj.q[:, [j.idx_q for j in ids]] - want, axis=1)
     print(
         f"{name}: max tracking error {err.max():.3e} rad over {T_FINAL} s "
-        f"(CPU {traj.info['cpu_time']:.2f} s, max |phi| {traj.max_constraint_residual:.1e})"
+        f"(CPU {traj.info.cpu_time:.2f} s, max |phi| {traj.max_constraint_residual:.1e})"
     )
     return float(err.max())
 

@@ -125,7 +125,7 @@ def test_falls_for_ten_seconds_conserving_energy(bricard, fall):
     assert np.ptp(fall.q[:, 0]) > 1.0  # a large motion [rad], not a rest state
     assert fall.energy_drift <= TOL_ENERGY
     assert fall.max_constraint_residual <= TOL_ROWS  # every declared row
-    assert fall.info["row_reselections"] == []
+    assert fall.info.row_reselections == ()
 
 
 #: Starts drawn around q = 0 for the assembly test: count and spread [rad].

@@ -8,7 +8,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import SHIPPED_MECHANISMS
+from conftest import DATA_DIR, SHIPPED_MECHANISMS
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -254,10 +254,59 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
             ["plot", "{fourbar}", "--urdf", "{fourbar}", "-o", "{tmp}/x.png"],
             "--urdf is for a .npz trajectory",
         ),
+        # commands and options added since the first hostile-input round
+        (["bench", "--workers", "0", "--out", "{tmp}/b"], "--workers must be at least 1, got 0"),
+        (["bench", "--workers", "-1", "--out", "{tmp}/b"], "--workers must be at least 1, got -1"),
+        (["bench", "--repeats", "0", "--out", "{tmp}/b"], "--repeats must be at least 1, got 0"),
+        (
+            ["bench", "--scheduler", "garbage", "--out", "{tmp}/b"],
+            "--scheduler 'garbage' is not a scheduler address; valid: [protocol://]host:port",
+        ),
+        (
+            ["export-mjcf", "{fourbar}", "-o", "{tmp}/nodir/x.xml"],
+            "{tmp}/nodir/x.xml: directory {tmp}/nodir does not exist",
+        ),
+        (["export-mjcf", "{fourbar}", "-o", "{tmp}"], "{tmp}: Is a directory"),
+        (["info", "erd:nonexistent"], "unknown example-robot-data model 'erd:nonexistent'; valid"),
+        (["info", "{fourbar}", "--loops", "{tmp}/none.urdf"], "{tmp}/none.urdf: cannot read"),
+        (["info", "{fourbar}", "--gravity", "nan", "0", "0"], "gravity must be 3 finite numbers"),
+        (
+            ["workspace", "{fourbar}", "-o", "{tmp}/w.xyz"],
+            "cannot write an image as 'w.xyz'; supported suffixes: .",
+        ),
+        (["workspace", "{fourbar}", "-o", "{tmp}/w.png", "--points", "0"], "points must be in [2,"),
+        (
+            ["workspace", "{fourbar}", "-o", "{tmp}/w.png", "--points", "1000000000"],
+            "points must be in [2, 100000], got 1000000000",
+        ),
+        (
+            ["workspace", "{eye}", "-o", "{tmp}/w.png", "--points", "-5"],
+            "points must be in [2, 201], got -5",
+        ),
+        (["workspace", "{eye}", "-o", "{tmp}/w.png", "--span", "nan"], "--span must be a positive"),
+        (
+            ["simulate", "{no_joint}", "--t-final", "0.1"],
+            "{no_joint}: the tree has no movable joint (nv = 0), so there is nothing to simulate",
+        ),
+        (["validate", "{no_joint}"], "{no_joint}: the tree has no movable joint (nv = 0)"),
+        (
+            ["plot", "{tmp}/t.csv", "-o", "{tmp}/p.png"],
+            "{tmp}/t.csv: plot reads a .npz trajectory or a URDF file to simulate",
+        ),
+        (
+            ["workspace", "{eye}", "-o", "{tmp}/w.png", "--outputs", "nosuch"],
+            "a singularity map needs two output coordinates, got ('nosuch',); valid: two of "
+            "actuator_1,",
+        ),
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(capsys, tmp_path, mechanism_files, argv, message):
-    fmt = {"fourbar": mechanism_files["fourbar"], "tmp": tmp_path}
+    fmt = {
+        "fourbar": mechanism_files["fourbar"],
+        "eye": mechanism_files["agile_eye"],
+        "no_joint": DATA_DIR / "no_joint.urdf",
+        "tmp": tmp_path,
+    }
     status, out, err = run(capsys, *(a.format(**fmt) for a in argv))
     assert status == 2
     assert out == ""

@@ -119,8 +119,8 @@ def test_simulation_reselects_a_degenerate_kept_set(mechanism_files):
     # kkt + DOP853: a configuration that checks the kept rows' rank (the default,
     # singular-robust, passes rank loss through and catches the open t2 a step later).
     traj = cc.simulate(mech, q0, np.zeros(3), 0.5, method="kkt", integrator="DOP853")
-    (event,) = traj.info["row_reselections"]
-    assert event[0] == 0.0 and event[1] == ["C.t1", "C.t2"]
+    (event,) = traj.info.row_reselections
+    assert event[0] == 0.0 and event[1] == ("C.t1", "C.t2")
     assert "kept rows degenerate" in event[2]
     assert traj.max_constraint_residual <= 1e-9
 

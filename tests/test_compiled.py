@@ -147,7 +147,7 @@ def _state(mech, name):
 def _pair(mech, q0, v0, t_final=T_CMP, **kw):
     a = cc.simulate(mech, q0, v0, t_final, backend="compiled", **kw)
     b = cc.simulate(mech, q0, v0, t_final, backend="numpy", **kw)
-    assert a.info["backend"] == "compiled" and b.info["backend"] == "numpy"
+    assert a.info.backend == "compiled" and b.info.backend == "numpy"
     return a, b
 
 
@@ -161,8 +161,8 @@ def test_fixed_step_trajectories_match(load_mechanism, name, integrator, method,
     a, b = _pair(
         mech, q0, v0, T_FIXED, integrator=integrator, method=method, stabilization=stab, dt=DT
     )
-    assert a.info["steps"] == b.info["steps"]
-    assert a.info["evaluations"] == b.info["evaluations"]
+    assert a.info.steps == b.info.steps
+    assert a.info.evaluations == b.info.evaluations
     np.testing.assert_allclose(a.t, b.t, rtol=0, atol=1e-12)
     for key in ("q", "v"):
         assert np.max(np.abs(getattr(a, key) - getattr(b, key))) <= FIXED_STEP_TOL
@@ -190,7 +190,7 @@ def test_adaptive_trajectories_match(load_mechanism, name, integrator, method, s
             atol=ATOL,
             t_eval=te,
         )
-        assert abs(a.info["steps"] - b.info["steps"]) <= STEP_COUNT_SLACK
+        assert abs(a.info.steps - b.info.steps) <= STEP_COUNT_SLACK
         if te is not None:
             np.testing.assert_array_equal(a.t, t_eval)
             np.testing.assert_array_equal(b.t, t_eval)
@@ -228,7 +228,7 @@ def test_dormand_prince_matches_scipy(fourbar, integrator):
         backend="compiled",
         settings=cc.SimulationSettings(singular_cond=np.inf),
     )
-    assert abs(traj.info["steps"] - (len(ref.t) - 1)) <= STEP_COUNT_SLACK
+    assert abs(traj.info.steps - (len(ref.t) - 1)) <= STEP_COUNT_SLACK
     assert np.max(np.abs(traj.q[-1] - ref.y[:nv, -1])) <= ADAPTIVE_TOL
 
 
@@ -242,7 +242,7 @@ COMPILED_REQUEST = dict(method="kkt", stabilization="projection")
 def test_auto_backend_uses_compiled_where_supported(fourbar):
     q0, v0 = _state(fourbar, "fourbar")
     traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **COMPILED_REQUEST)
-    assert traj.info["backend"] == "compiled"
+    assert traj.info.backend == "compiled"
     # partitioning, the reduced method and the default (augmented-lagrangian with
     # stage projection) have no compiled loop: numpy, silently.
     for kw in (
@@ -251,7 +251,7 @@ def test_auto_backend_uses_compiled_where_supported(fourbar):
         dict(),
     ):
         traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw)
-        assert traj.info["backend"] == "numpy"
+        assert traj.info.backend == "numpy"
         with pytest.raises(cc.ClosedChainError, match="backend='compiled' cannot"):
             cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", backend="compiled", **kw)
     with pytest.raises(cc.UnknownChoiceError, match="backend"):
@@ -271,7 +271,7 @@ def test_callable_tau_and_progress(fourbar, integrator):
     kw = dict(integrator=integrator, tau=tau, **step, **COMPILED_REQUEST)
     a = cc.simulate(fourbar, q0, v0, T_CMP, backend="compiled", progress=seen.append, **kw)
     b = cc.simulate(fourbar, q0, v0, T_CMP, backend="numpy", **kw)
-    assert len(seen) == a.info["steps"] and seen[-1] == pytest.approx(T_CMP)
+    assert len(seen) == a.info.steps and seen[-1] == pytest.approx(T_CMP)
     assert np.all(np.diff(seen) > 0)
     assert np.max(np.abs(a.q[-1] - b.q[-1])) <= ADAPTIVE_TOL
     const = cc.simulate(

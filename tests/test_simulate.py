@@ -190,7 +190,7 @@ def test_agile_eye_accuracy(agile_eye_accurate, config):
     assert traj.energy_drift <= ENERGY_DRIFT_TOL
     assert traj.max_constraint_residual <= RESIDUAL_TOL
     if config == "dop853_partitioning":
-        assert traj.info["repartitions"], "the coasting wrist crosses cond(J_D) = 100"
+        assert traj.info.repartitions, "the coasting wrist crosses cond(J_D) = 100"
 
 
 def test_agile_eye_accurate_configurations_agree(agile_eye_zero_g, agile_eye_accurate):
@@ -292,7 +292,7 @@ def test_open_branch_change_point(fourbar, q_open, method, config, outcome):
         assert traj.max_constraint_residual <= PROJECTION_RESIDUAL_TOL
         # Every J_D of the 4-bar is singular at the change point at once: the
         # pivoted-QR choice stays (coupler, rocker), so nothing is re-partitioned.
-        assert traj.info["repartitions"] == []
+        assert traj.info.repartitions == ()
         return
     with pytest.raises(cc.SingularConfigurationError, match=r"t = .*condition number") as exc:
         simulate(fourbar, q_open, v0, t_final, method=method, **cfg)
@@ -435,7 +435,7 @@ def test_seed_program_reproduced(fourbar, fourbar_closed_forms, guess_deg):
     traj = _seed_run(fourbar, q0)
     ref = _seed_port(fourbar, fourbar_closed_forms, q0)
     assert traj.q.shape == ref["q"].shape
-    assert traj.info["steps"] == SEED_STEPS
+    assert traj.info.steps == SEED_STEPS
     assert np.max(np.linalg.norm(traj.q - ref["q"], axis=1)) <= SEED_Q_TOL
     assert np.max(np.linalg.norm(traj.v - ref["v"], axis=1)) <= SEED_V_TOL
     # The seed's lambda of step k is computed at the state before it: traj.lam[k].
@@ -719,8 +719,8 @@ def test_names_are_case_insensitive(fourbar, q_crossed, integrator, registered):
         method="KKT",
         stabilization="NONE" if integrator.lower() != "rk4" else "Projection",
     )
-    assert traj.info["integrator"] == registered
-    assert traj.info["method"] == "kkt"
+    assert traj.info.integrator == registered
+    assert traj.info.method == "kkt"
 
 
 def test_adaptive_needs_nq_equal_nv(load_mechanism):
@@ -770,7 +770,7 @@ def test_fixed_step_outputs_land_on_t_eval(fourbar, q_crossed):
     t_eval = np.array([0.0, 0.05, 0.1, 0.25, 0.4])
     traj = simulate(fourbar, q_crossed, np.zeros(3), 0.4, integrator="rk4", dt=7e-3, t_eval=t_eval)
     assert np.max(np.abs(traj.t - t_eval)) <= TIME_TOL
-    assert traj.info["dt"] <= 7e-3
+    assert traj.info.dt <= 7e-3
 
 
 def test_adaptive_outputs_on_t_eval(fourbar, q_crossed):
@@ -779,7 +779,7 @@ def test_adaptive_outputs_on_t_eval(fourbar, q_crossed):
         fourbar, q_crossed, np.zeros(3), 0.5, t_eval=t_eval, method="kkt", integrator="DOP853"
     )
     assert np.array_equal(traj.t, t_eval)
-    assert traj.info["steps"] > 0 and traj.info["evaluations"] > 0
+    assert traj.info.steps > 0 and traj.info.evaluations > 0
 
 
 def test_radau_short_horizon(fourbar, q_crossed):
@@ -865,3 +865,26 @@ def test_baumgarte_gains_do_not_leak_into_calls_made_by_tau(fourbar):
         tau=tau,
     )
     assert seen and max(seen) <= 1e-15
+
+
+def test_inconsistent_start_velocity_is_refused_with_the_fix(fourbar, q_crossed):
+    """A v0 with J v0 != 0 would be recorded as the motion's first sample (issue 12)."""
+    v0 = np.array([1.0, 0.0, 0.0])
+    residual = np.max(np.abs(cc.compute_jacobian(fourbar, q_crossed) @ v0))
+    assert residual > 0.1  # independent check that this v0 does violate J v = 0
+    with pytest.raises(
+        cc.InvalidArgumentError,
+        match=r"v0 violates the loops' velocity constraint J\(q0\) v0 = 0: max \|J v0\| = "
+        r".* > 1e-06 .*v0 = closedchain\.project_velocity\(mech, q0, v0\)",
+    ):
+        simulate(fourbar, q_crossed, v0, 0.1)
+    traj = simulate(fourbar, q_crossed, cc.project_velocity(fourbar, q_crossed, v0), 0.05)
+    assert traj.velocity_residual[0] <= 1e-9
+
+
+def test_rtol_below_double_precision_is_refused(fourbar, q_crossed):
+    with pytest.raises(
+        cc.InvalidArgumentError,
+        match=r"rtol = 1e-30 is below what double precision resolves .*valid range: \[2\.22e-14",
+    ):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="DOP853", rtol=1e-30)

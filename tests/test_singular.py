@@ -195,7 +195,7 @@ def test_nfourbar_default_configuration(nfourbar_mech, n):
     mech = nfourbar_mech(n)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(mech, q0, v0, T_BENCHMARK, dt=NFOURBAR_DT, t_eval=np.linspace(0, 20, 201))
-    assert traj.info["method"] == "augmented-lagrangian" and traj.info["integrator"] == "rk4"
+    assert traj.info.method == "augmented-lagrangian" and traj.info.integrator == "rk4"
     err, drift = _b0_error_and_drift(mech, traj, n)
     assert err <= B0_TOL
     assert drift <= ENERGY_DRIFT_TOL
@@ -215,7 +215,7 @@ def test_ali3p_passes_the_flat_positions(nfourbar_mech):
     mech = nfourbar_mech(2)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(mech, q0, v0, ALI3P_T, integrator="ali3p", dt=1e-3)
-    assert traj.info["stabilization"] == "mass-orthogonal"
+    assert traj.info.stabilization == "mass-orthogonal"
     theta = ref.crank_angle(2, ALI3P_T)
     assert np.linalg.norm(ref.point_b0(traj.q[-1, 0]) - ref.point_b0(theta)) <= ALI3P_B0_TOL
     assert np.min(traj.q[:, 0]) < -math.pi  # through theta = 0 and -pi (flat)
@@ -307,7 +307,7 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechani
     assert np.array_equal(np.abs(traj.branch), np.ones(len(traj.t)))
     # Up to one global sign (the orientation of the URDF axes).
     assert np.array_equal(traj.branch, closed_form) or np.array_equal(traj.branch, -closed_form)
-    changes = traj.info["branch_changes"]
+    changes = traj.info.branch_changes
     assert changes, "the motion left the change point on the other assembly branch"
     t_before, t_after, _, _ = changes[0]
     assert t_before <= 0.393 + 0.02 and t_after >= 0.393 - 0.02

@@ -34,7 +34,7 @@ def test_npz_round_trip_is_exact(short_traj, tmp_path):
     back = cc.Trajectory.load(path)
     for name in ARRAYS:
         assert np.array_equal(getattr(back, name), getattr(short_traj, name)), name
-    assert back.info == json.loads(json.dumps(short_traj.info))
+    assert back.info == short_traj.info
 
 
 def test_truncated_npz_names_the_file(short_traj, tmp_path):
@@ -126,7 +126,7 @@ HOSTILE_NAMES = ["a,b", 'say "hi"', "two\nlines", '=HYPERLINK("http://x")']
 
 
 def test_csv_round_trip_with_hostile_names(short_traj, tmp_path):
-    info = dict(short_traj.info)
+    info = short_traj.info.to_dict()
     info["configuration_names"] = HOSTILE_NAMES[:3]
     info["velocity_names"] = HOSTILE_NAMES[1:]
     traj = cc.Trajectory(**{k: getattr(short_traj, k) for k in ARRAYS}, info=info)
@@ -152,7 +152,7 @@ def test_formula_prefixes_are_neutralized(prefix):
 
 def test_csv_header_cells_starting_a_formula_are_neutralized(short_traj, tmp_path):
     """Header cells are checked whole: a column name that is a formula gets a ``'``."""
-    info = dict(short_traj.info)
+    info = short_traj.info.to_dict()
     info["configuration_names"] = ["x", "y", "z"]
     traj = cc.Trajectory(**{k: getattr(short_traj, k) for k in ARRAYS}, info=info)
     path = traj.save(tmp_path / "t.csv")

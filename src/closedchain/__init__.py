@@ -48,7 +48,7 @@ from .simulate import (
     seed_settings,
     simulate,
 )
-from .trajectory import Trajectory
+from .trajectory import SimulationInfo, StopInfo, Trajectory
 from .validation import ValidationReport, validate
 from .visualize import write_html
 
@@ -76,6 +76,8 @@ __all__ = [
     "NonFiniteError",
     "SingularConfigurationError",
     "SolverSettings",
+    "SimulationInfo",
+    "StopInfo",
     "Trajectory",
     "URDFError",
     "UnknownChoiceError",

@@ -10,6 +10,7 @@ import argparse
 import json
 import logging
 import math
+import re
 import sys
 import traceback
 from collections.abc import Sequence
@@ -52,7 +53,13 @@ POSITIVE_OPTIONS = {
     "dt": "--dt",
     "rtol": "--rtol",
     "atol": "--atol",
+    "span": "--span",
 }
+
+#: A Dask scheduler address: [protocol://]host:port.
+SCHEDULER_ADDRESS = re.compile(
+    r"(?:[a-z][a-z0-9+.-]*://)?(?:\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+):\d{1,5}"
+)
 
 #: Choices of ``--torque``.
 TORQUES = ("zero", "gravity")
@@ -149,7 +156,7 @@ def check_args(args: argparse.Namespace) -> None:
     for path in (out, getattr(args, "output", None)):
         if path is not None and not Path(path).parent.is_dir():
             raise ClosedChainError(f"{path}: directory {Path(path).parent} does not exist")
-    if args.command == "plot":
+    if args.command in ("plot", "workspace"):
         from .plotting import image_formats
 
         suffix = Path(args.output).suffix.lower().removeprefix(".")
@@ -157,6 +164,18 @@ def check_args(args: argparse.Namespace) -> None:
             raise ClosedChainError(
                 f"cannot write an image as {Path(args.output).name!r}; supported suffixes: "
                 + ", ".join("." + f for f in image_formats())
+            )
+    scheduler = getattr(args, "scheduler", None)
+    if scheduler is not None and not SCHEDULER_ADDRESS.fullmatch(scheduler):
+        raise ClosedChainError(
+            f"--scheduler {scheduler!r} is not a scheduler address; valid: "
+            "[protocol://]host:port, e.g. tcp://127.0.0.1:8786"
+        )
+    if args.command == "plot":
+        if Path(args.file).suffix.lower() == ".csv":
+            raise ClosedChainError(
+                f"{args.file}: plot reads a .npz trajectory or a URDF file to simulate; "
+                "a .csv trajectory is for spreadsheets (save it as .npz to plot it)"
             )
         if args.urdf is not None and Path(args.file).suffix != ".npz":
             raise ClosedChainError("--urdf is for a .npz trajectory; FILE is already a URDF")
@@ -437,17 +456,17 @@ def _cmd_simulate(args) -> int:
     info = traj.info
     summary = {
         "mechanism": mech.name,
-        "method": info["method"],
-        "integrator": info["integrator"],
-        "stabilization": info["stabilization"],
-        "t_final": info["t_final"],
-        "steps": info["steps"],
-        "evaluations": info["evaluations"],
-        "cpu_time_s": info["cpu_time"],
+        "method": info.method,
+        "integrator": info.integrator,
+        "stabilization": info.stabilization,
+        "t_final": info.t_final,
+        "steps": info.steps,
+        "evaluations": info.evaluations,
+        "cpu_time_s": info.cpu_time,
         "max_constraint_residual": traj.max_constraint_residual,
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
-        "repartitions": len(info["repartitions"]),
+        "repartitions": len(info.repartitions),
         "final_independent": {
             mech.coordinate_names[i]: float(coordinate_series(mech, traj.q[-1], i))
             for i in mech.independent_idx_v
@@ -714,6 +733,17 @@ def exit_status(exc: BaseException) -> int:
     return EXIT_INTERNAL
 
 
+def error_message(exc: BaseException) -> str:
+    """Return the one-line message of a bad-input or stopped-run error.
+
+    An OSError names its file first (``"/x/y.html: Permission denied"``), as
+    closedchain's own errors do, instead of Python's ``[Errno 13] ...`` form.
+    """
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit status (see :data:`EXIT_STATUS_HELP`)."""
     parser = build_parser()
@@ -736,7 +766,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 file=sys.stderr,
             )
         else:
-            print(f"closedchain: error: {exc}", file=sys.stderr)
+            print(f"closedchain: error: {error_message(exc)}", file=sys.stderr)
         return status
 
 

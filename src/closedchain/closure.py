@@ -46,6 +46,7 @@ import scipy.linalg
 
 from .constraints import ConstraintLayer, RowInfo
 from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
+from .pindata import new_data
 
 logger = logging.getLogger(__name__)
 
@@ -143,6 +144,10 @@ class RowCheckSettings:
     open_tol: float = 1e-6
 
 
+#: The defaults, shared (frozen).
+DEFAULT_ROW_CHECK_SETTINGS = RowCheckSettings()
+
+
 @dataclass(frozen=True)
 class AssemblySettings:
     """Settings of :func:`assemble`.
@@ -164,6 +169,10 @@ class AssemblySettings:
     contraction: float = 0.25
 
 
+#: The defaults, shared (frozen).
+DEFAULT_ASSEMBLY_SETTINGS = AssemblySettings()
+
+
 def layer_phi(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.ndarray:
     """Return phi(q) of every row of ``layer``, shape (layer.nc,) [m or -]."""
     pin.forwardKinematics(model, data, q)
@@ -179,7 +188,7 @@ def max_declared_residual(mech, qs: np.ndarray) -> float:
         mech: the mechanism (its declared rows, dropped ones included).
         qs: configurations, shape (n, nq).
     """
-    data = mech.model.createData()  # callers may run beside a simulation using mech.data
+    data = new_data(mech.model)  # callers may run beside a simulation using mech.data
     return max(
         (
             float(np.max(np.abs(layer_phi(mech.model, data, mech.declared, q)), initial=0.0))
@@ -547,7 +556,7 @@ class LoopClosure:
         *,
         t: float | None = None,
         kept_cond: float | None = None,
-        settings: RowCheckSettings | None = None,
+        settings: RowCheckSettings = DEFAULT_ROW_CHECK_SETTINGS,
     ) -> bool:
         """Check that the kept rows still describe every loop at q; re-select if not.
 
@@ -575,7 +584,6 @@ class LoopClosure:
                 ``settings.open_tol`` and no selection of rows of the generic rank
                 takes it in (names loop, row, time and residual).
         """
-        settings = settings or RowCheckSettings()
         if self.declared.nc == self.active.nc:
             return False
         when = f" at t = {t:.9g} s" if t is not None else ""

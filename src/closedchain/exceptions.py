@@ -112,6 +112,15 @@ class SingularConfigurationError(ClosedChainError):
         )
         return cls(message, q=q, condition_number=cond, t=t)
 
+    def with_hint(self, hint: str, *, t: float | None = None) -> SingularConfigurationError:
+        """Return this error with ``"; {hint}"`` appended (and ``t`` [s] set when given)."""
+        return type(self)(
+            f"{self}; {hint}",
+            q=self.q,
+            condition_number=self.condition_number,
+            t=self.t if t is None else t,
+        )
+
     def at_time(self, t: float, *, hint: str = "") -> SingularConfigurationError:
         """Return this error with the simulation time ``t`` [s] prefixed and set.
 

@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from .closure import DEFAULT_ASSEMBLY_SETTINGS, SelectionSettings, layer_jacobian, layer_phi
 from .closure import AssemblySettings as AssemblySettings  # re-exported
-from .closure import SelectionSettings, layer_jacobian, layer_phi
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
 from .exceptions import AssemblyError, ClosedChainError
@@ -41,7 +41,7 @@ def assemble(
     q_guess: np.ndarray,
     *,
     fixed: Iterable[str | int] | str = (),
-    settings: AssemblySettings | None = None,
+    settings: AssemblySettings = DEFAULT_ASSEMBLY_SETTINGS,
 ) -> np.ndarray:
     """Bring a configuration onto the constraint manifold phi(q) = 0.
 
@@ -61,7 +61,6 @@ def assemble(
         AssemblyError: Newton did not converge (message gives the residual),
             or converged onto a flipped (180 degree) closure.
     """
-    settings = settings or AssemblySettings()
     q_guess = mech.check_q(q_guess, "q_guess")
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)

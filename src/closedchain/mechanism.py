@@ -34,6 +34,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
+from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf
 
 logger = logging.getLogger(__name__)
@@ -49,14 +50,9 @@ ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointM
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 
 
-#: Measured memory of one ``pinocchio.Data`` per nv^3 [bytes] (pin 4.1: 70, 66, 64 at
-#: nv = 100, 200, 300 chains; eight nv x nv x nv double tensors).
-PINOCCHIO_DATA_BYTES_PER_NV3 = 64
-
-
 def max_nv(settings: LoadSettings) -> int:
     """Return the largest nv whose Pinocchio ``Data`` fits ``settings.max_data_bytes``."""
-    return int((settings.max_data_bytes / PINOCCHIO_DATA_BYTES_PER_NV3) ** (1 / 3) + 1e-9)
+    return max_nv_for(settings.max_data_bytes)
 
 
 @dataclass(frozen=True)
@@ -76,11 +72,11 @@ class LoadSettings:
             independent coordinates.
         prismatic_range: sampling range [m] for unbounded prismatic coordinates.
         seed: seed of the sampling.
-        max_data_bytes: largest memory [bytes] one Pinocchio ``Data`` may take.
-            Pinocchio 4.1 allocates about :data:`PINOCCHIO_DATA_BYTES_PER_NV3`
-            x nv^3 bytes per ``Data`` (its second-order derivative tensors,
-            nv x nv x nv each), whatever closedchain uses: 2 GB is nv <= 315,
-            and a 1000-joint chain would need 64 GB. A larger tree is refused
+        max_data_bytes: largest memory [bytes] one Pinocchio ``Data`` may take
+            (:func:`closedchain.pindata.data_bytes`: about 620 nv^2 bytes
+            with the compiled core, which leaves out Pinocchio's four nv^3
+            second-order tensors; 33 nv^3 without it). 2 GB is nv <= 1796
+            (nv <= 392 without the compiled core). A larger tree is refused
             before Pinocchio builds anything.
     """
 
@@ -105,6 +101,10 @@ class LoadSettings:
             prismatic_range=self.prismatic_range,
             seed=self.seed,
         )
+
+
+#: The defaults, shared (frozen).
+DEFAULT_LOAD_SETTINGS = LoadSettings()
 
 
 class Mechanism:
@@ -149,7 +149,7 @@ class Mechanism:
         self.name = urdf.robot_name
         self.path = urdf.path
         self.model = model
-        self.data = model.createData()
+        self.data = new_data(model)
         self.closure = closure
         self.gravity = np.array(gravity, dtype=float)
         self.nq, self.nv = model.nq, model.nv
@@ -368,7 +368,7 @@ class Mechanism:
             cds = pin.StdVec_RigidConstraintData()
             for cm in cms:
                 cds.append(cm.createData())
-            pdata = self.model.createData()
+            pdata = new_data(self.model)
             pin.initConstraintDynamics(self.model, pdata, cms, cds)
             self._pin_constraints = (cms, cds, owners, pdata)
         return self._pin_constraints
@@ -440,7 +440,7 @@ def load(
     root_joint: str | None = None,
     loops: str | Path | None = None,
     gravity: Sequence[float] = DEFAULT_GRAVITY,
-    settings: LoadSettings | None = None,
+    settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
 ) -> Mechanism:
     """Load a URDF+ mechanism.
 
@@ -467,7 +467,6 @@ def load(
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
 
-    settings = settings or LoadSettings()
     if root_joint not in ROOT_JOINTS:
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
@@ -478,9 +477,8 @@ def load(
             urdf = merge_overlay(base, loops, primitive=entry is not None, max_nv=max_nv(settings))
     except ModelTooLargeError as exc:
         raise ModelTooLargeError(
-            f"{exc}: one Pinocchio Data takes about {PINOCCHIO_DATA_BYTES_PER_NV3} nv^3 "
-            f"bytes (its second-order derivative tensors), "
-            f"{PINOCCHIO_DATA_BYTES_PER_NV3 * float(exc.nv) ** 3:.3g} here, over "
+            f"{exc}: one Pinocchio Data takes {data_cost_formula()}, "
+            f"{data_bytes(exc.nv):.3g} here, over "
             f"LoadSettings.max_data_bytes = {settings.max_data_bytes:.3g}",
             nv=exc.nv,
             max_nv=exc.max_nv,
@@ -497,6 +495,12 @@ def load(
         )
     except (RuntimeError, ValueError) as exc:
         raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
+    if model.nv == 0:
+        raise URDFError(
+            f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "
+            "simulate or validate; valid: at least one revolute, continuous, prismatic, "
+            "planar or floating <joint>, or root_joint 'free' / 'planar' (--root)"
+        )
     model.gravity.linear = gravity
 
     frame_ids = []

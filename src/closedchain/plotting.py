@@ -160,7 +160,7 @@ def _angle_series(mech: Mechanism | None, trajectory: Trajectory, idx_v: np.ndar
 
 def _coordinates(mech: Mechanism | None, trajectory: Trajectory, coordinates):
     """Return (velocity indices, names) of the coordinates to plot."""
-    info = trajectory.info or {}
+    info = trajectory.info
     nq, nv = trajectory.q.shape[1], trajectory.v.shape[1]
     if mech is not None:
         if (nq, nv) != (mech.nq, mech.nv):
@@ -178,17 +178,17 @@ def _coordinates(mech: Mechanism | None, trajectory: Trajectory, coordinates):
         # Coordinates are velocity coordinates; q holds e.g. (cos, sin) of a
         # continuous joint, so only the joint types can map one to the other.
         raise ClosedChainError(
-            f"the trajectory{' of ' + repr(info['mechanism']) if info.get('mechanism') else ''}"
+            f"the trajectory{' of ' + repr(info.mechanism) if info.mechanism else ''}"
             f" has nq = {nq} != nv = {nv}: plotting it needs the mechanism (pass mech=,"
             " or the URDF: closedchain plot TRAJ.npz --urdf FILE)"
         )
-    names = info.get("coordinate_names") or info.get("velocity_names")
+    names = info.coordinate_names or info.velocity_names
     names = list(names) if names else [f"q{i}" for i in range(nq)]
     if len(names) != nq:
         raise ClosedChainError(
             f"trajectory info names {len(names)} coordinates but q has {nq} columns"
         )
-    wanted = coordinates if coordinates is not None else info.get("independent") or names
+    wanted = coordinates if coordinates is not None else info.independent or names
     if isinstance(wanted, str):
         wanted = [wanted]
     idx = []
@@ -279,11 +279,11 @@ def plot_trajectory(
         ax.grid(True, alpha=0.3)
 
     if title is None:
-        info = trajectory.info or {}
+        info = trajectory.info
         parts = [
-            str(info[k])
+            str(getattr(info, k))
             for k in ("mechanism", "method", "integrator", "stabilization")
-            if info.get(k)
+            if getattr(info, k)
         ]
         title = " / ".join(parts) if parts else None
     if title:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import csv
 import json
 import zipfile
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,6 +24,123 @@ FORMULA_PREFIXES = ("=", "+", "-", "@", "\t", "\r")
 def neutralize_formula(cell: str) -> str:
     """Return ``cell`` with a leading ``'`` when a spreadsheet would read it as a formula."""
     return "'" + cell if cell.startswith(FORMULA_PREFIXES) else cell
+
+
+@dataclass(frozen=True)
+class StopInfo:
+    """Where and why a simulation stopped early.
+
+    Attributes:
+        t: time of the stop [s].
+        reason: the error's message (singular configuration, non-finite or
+            drifting state).
+    """
+
+    t: float
+    reason: str
+
+
+def _freeze(x):
+    """Lists (as JSON gives them back) to tuples, recursively."""
+    return tuple(_freeze(e) for e in x) if isinstance(x, (list, tuple)) else x
+
+
+@dataclass(frozen=True)
+class SimulationInfo:
+    """What a simulation ran and what it cost (``Trajectory.info``).
+
+    Attributes:
+        mechanism: the mechanism's name.
+        method: forward-dynamics method.
+        integrator: time integrator.
+        backend: ``"compiled"`` or ``"numpy"``.
+        stabilization: constraint stabilization.
+        dt: fixed step [s] (fixed-step integrators), else None.
+        rtol, atol: tolerances (adaptive integrators), else None.
+        t_final: requested duration [s].
+        coordinate_names: one name per coordinate when nq == nv, else None.
+        configuration_names: one name per entry of q (nq).
+        velocity_names: one name per entry of v (nv).
+        independent: names of the independent coordinates at the start.
+        repartitions: ``(t, independent names)`` at each re-partition.
+        baumgarte: (alpha, beta) gains when the stabilization adds them, else None.
+        stopped: where the run stopped early, else None.
+        cpu_time: CPU time of the integration [s].
+        steps: integration steps taken.
+        evaluations: forward-dynamics evaluations.
+        row_reselections: ``(t, kept rows, reason)`` at each re-selection of the
+            independent constraint rows.
+        branch_changes: ``(t_before, t_after, from, to)`` at each change of
+            assembly branch (see ``Trajectory.branch``).
+        max_constraint_residual: max over time of max |phi(q)|.
+        energy_drift: ``Trajectory.energy_drift`` of the run.
+        extra: integrator-specific entries (e.g. ``ali3p_alpha``,
+            ``newton_iterations``), JSON-serialisable.
+
+    Read-only ``info["steps"]`` / ``info.get("steps")`` access is kept for code
+    written against the former dict; new code reads the attributes.
+    """
+
+    mechanism: str = ""
+    method: str = ""
+    integrator: str = ""
+    backend: str = ""
+    stabilization: str = ""
+    dt: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    t_final: float | None = None
+    coordinate_names: tuple[str, ...] | None = None
+    configuration_names: tuple[str, ...] = ()
+    velocity_names: tuple[str, ...] = ()
+    independent: tuple[str, ...] = ()
+    repartitions: tuple = ()
+    baumgarte: tuple[float, float] | None = None
+    stopped: StopInfo | None = None
+    cpu_time: float | None = None
+    steps: int | None = None
+    evaluations: int | None = None
+    row_reselections: tuple = ()
+    branch_changes: tuple = ()
+    max_constraint_residual: float | None = None
+    energy_drift: float | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> SimulationInfo:
+        """Build from a mapping (a run's entries, or :meth:`to_dict` read back from JSON).
+
+        Keys that are not fields go to :attr:`extra`.
+        """
+        names = {f.name for f in fields(cls)}
+        kw = {k: v for k, v in d.items() if k in names and k != "extra"}
+        extra = {**d.get("extra", {}), **{k: v for k, v in d.items() if k not in names}}
+        for k, v in kw.items():
+            kw[k] = _freeze(v)
+        for k in ("configuration_names", "velocity_names", "independent", "repartitions"):
+            kw[k] = kw.get(k) or ()
+        for k in ("branch_changes", "row_reselections"):
+            kw[k] = kw.get(k) or ()
+        stopped = kw.get("stopped")
+        if isinstance(stopped, Mapping):
+            kw["stopped"] = StopInfo(t=float(stopped["t"]), reason=str(stopped["reason"]))
+        return cls(**kw, extra=extra)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the fields as a JSON-serialisable dict (``stopped`` as {t, reason})."""
+        return asdict(self) | {"extra": dict(self.extra)}
+
+    def __getitem__(self, key: str) -> Any:
+        if key in self.__dataclass_fields__:
+            return getattr(self, key)
+        return self.extra[key]
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """Read access by name (fields, then :attr:`extra`), as on the former dict."""
+        try:
+            return self[key]
+        except KeyError:
+            return default
 
 
 @dataclass(frozen=True)
@@ -43,11 +162,11 @@ class Trajectory:
             singular) of det(J_D) for the mechanism's dependent coordinates
             (``Mechanism.dependent_idx_v``). It changes only where J_D is
             singular: at a change point it says which branch the motion leaves
-            on (the 4-bar: open +1 / crossed -1 assembly); ``info["branch_changes"]``
+            on (the 4-bar: open +1 / crossed -1 assembly); ``info.branch_changes``
             lists the changes as [t_before, t_after, from, to]. None when not
             recorded (no loops).
-        info: run metadata (mechanism, method, integrator, stabilization,
-            steps, CPU time [s], ...), JSON-serialisable.
+        info: what the run was and what it cost (:class:`SimulationInfo`); a
+            mapping passed here is converted with :meth:`SimulationInfo.from_dict`.
     """
 
     t: np.ndarray
@@ -60,7 +179,11 @@ class Trajectory:
     energy: np.ndarray
     kinetic_energy: np.ndarray | None = None
     branch: np.ndarray | None = None
-    info: dict = field(default_factory=dict)
+    info: SimulationInfo = field(default_factory=SimulationInfo)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.info, SimulationInfo):
+            object.__setattr__(self, "info", SimulationInfo.from_dict(self.info or {}))
 
     @property
     def energy_scale(self) -> float:
@@ -104,15 +227,18 @@ class Trajectory:
                 if getattr(self, k) is not None
             }
             np.savez_compressed(
-                path, **{k: getattr(self, k) for k in _ARRAYS}, **extra, info=json.dumps(self.info)
+                path,
+                **{k: getattr(self, k) for k in _ARRAYS},
+                **extra,
+                info=json.dumps(self.info.to_dict()),
             )
         elif path.suffix == ".csv":
             names = (
-                self.info.get("configuration_names")
-                or self.info.get("coordinate_names")
+                self.info.configuration_names
+                or self.info.coordinate_names
                 or [f"q{i}" for i in range(self.q.shape[1])]
             )
-            vnames = self.info.get("velocity_names") or [f"v{i}" for i in range(self.v.shape[1])]
+            vnames = self.info.velocity_names or [f"v{i}" for i in range(self.v.shape[1])]
             header = (
                 ["t"]
                 + [f"q:{n}" for n in names]
@@ -188,4 +314,11 @@ class Trajectory:
                 f"{path}: not a closedchain trajectory: t has shape {arrays['t'].shape} and "
                 f"{', '.join(bad) or 'info'} do not have one row per time"
             )
+        try:
+            info = SimulationInfo.from_dict(info)
+        except (TypeError, KeyError, ValueError) as exc:
+            raise ClosedChainError(
+                f"{path}: not a closedchain trajectory: its info is not a simulation's "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
         return cls(**arrays, info=info)

@@ -38,9 +38,10 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .exceptions import AssemblyError, ClosedChainError
+from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
 from .kinematics import assemble, compute_jacobian
 from .mechanism import Mechanism
+from .pindata import new_data
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +51,20 @@ SWEEP_POINTS = 721
 GRASHOF_RTOL = 1e-9
 #: Half-width of the singularity map around the reference outputs [rad].
 SPAN = 1.5
+#: Grid points per axis of the singularity map.
+MAP_POINTS = 41
+#: Largest sweep (points) and map (points per axis: points^2 assemblies) accepted,
+#: so that a typo cannot start hours of work.
+MAX_SWEEP_POINTS = 100_000
+MAX_MAP_POINTS = 201
+
+
+def _check_points(points, largest: int) -> int:
+    if isinstance(points, bool) or not isinstance(points, int | np.integer):
+        raise InvalidArgumentError(f"points must be an integer, got {points!r}")
+    if not 2 <= points <= largest:
+        raise InvalidArgumentError(f"points must be in [2, {largest}], got {points}")
+    return int(points)
 
 
 @dataclass
@@ -92,7 +107,8 @@ def analyze_fourbar(mech: Mechanism, *, points: int = SWEEP_POINTS) -> FourBarAn
             f"{mech.name} is not a planar 4-bar (one revolute loop, three "
             "revolute joints, two on the ground)"
         )
-    model, data = mech.model, mech.model.createData()
+    points = _check_points(points, MAX_SWEEP_POINTS)
+    model, data = mech.model, new_data(mech.model)
     pin.forwardKinematics(model, data, mech.q_ref)
     pin.updateFramePlacements(model, data)
     ground = [j for j in range(1, 4) if model.parents[j] == 0]
@@ -208,13 +224,23 @@ def default_outputs(mech: Mechanism) -> tuple[str, ...]:
 
 
 def singularity_map(
-    mech: Mechanism, *, outputs: tuple[str, ...] | None = None, points: int = 41, span: float = SPAN
+    mech: Mechanism,
+    *,
+    outputs: tuple[str, ...] | None = None,
+    points: int = MAP_POINTS,
+    span: float = SPAN,
 ) -> SingularityMap:
     """sigma_min of J_D (parallel, type II) and of the output map (serial, type I) over the
     first two output coordinates in [ref - span, ref + span] [rad], the others held."""
+    points = _check_points(points, MAX_MAP_POINTS)
+    if not (math.isfinite(span) and span > 0):
+        raise InvalidArgumentError(f"span must be a positive number [rad], got {span}")
     outputs = tuple(outputs or default_outputs(mech))
     if len(outputs) < 2:
-        raise ClosedChainError(f"a singularity map needs two output coordinates, got {outputs}")
+        raise ClosedChainError(
+            f"a singularity map needs two output coordinates, got {outputs}; valid: two of "
+            + ", ".join(mech.coordinate_names)
+        )
     out_idx = mech.coordinate_indices(list(outputs))
     dep_act = np.setdiff1d(np.arange(mech.nv), mech.actuated_idx_v)
     non_out = np.setdiff1d(np.arange(mech.nv), out_idx)
@@ -253,7 +279,7 @@ def plot_workspace(
     import matplotlib.pyplot as plt
 
     if _is_planar_fourbar(mech):
-        a = analyze_fourbar(mech, points=points or SWEEP_POINTS)
+        a = analyze_fourbar(mech, points=SWEEP_POINTS if points is None else points)
         fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
         deg = np.degrees(a.theta)
         ax[0].fill_between(
@@ -285,7 +311,9 @@ def plot_workspace(
             f"{a.closed_form.mean() * 360:.0f} deg of 360; closed form and assembly agree "
             f"at {a.agreement:.1%} of {len(a.theta)} angles"
         )
-    m = singularity_map(mech, outputs=outputs, points=points or 41, span=span)
+    m = singularity_map(
+        mech, outputs=outputs, points=MAP_POINTS if points is None else points, span=span
+    )
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
     for axis, data, what in (
         (ax[0], m.parallel, "parallel / type II: sigma_min(J_D)"),

@@ -37,6 +37,7 @@
 #include <string>
 #include <vector>
 
+#include "lean_data.hpp"
 #include "rk_coefficients.hpp"
 
 namespace bp = boost::python;
@@ -127,7 +128,7 @@ class Core {
        const Mat &vec2)
       : model_obj_(model_obj),
         model_(bp::extract<Model &>(model_obj)()),
-        data_(model_),
+        data_(lean_data(model_)),  // no nv^3 tensors: see lean_data.cpp
         name_(name) {
     const Model &model = model_;
     nq_ = model.nq;
@@ -1043,6 +1044,7 @@ BOOST_PYTHON_MODULE(_core) {
   bp::register_exception_translator<SingularError>(&translate_singular);
   bp::register_exception_translator<SimulationFailure>(&translate_simulation);
   bp::register_exception_translator<BadArgument>(&translate_bad);
+  register_lean_data();
   bp::scope().attr("EULER") = static_cast<int>(EULER);
   bp::scope().attr("SEMI_IMPLICIT") = static_cast<int>(SEMI_IMPLICIT);
   bp::scope().attr("RK4") = static_cast<int>(RK4);

@@ -42,13 +42,13 @@ import scipy.sparse
 import scipy.sparse.csgraph
 from scipy.linalg import lapack
 
+from ..exceptions import SingularConfigurationError
 from .base import (
     MethodCapabilities,
     SolverSettings,
     compute_terms,
     method_buffers,
     register,
-    singular_error,
 )
 
 if TYPE_CHECKING:
@@ -168,13 +168,16 @@ class PenalizedSolver:
                 raise self._error(mech, q)
 
     def _error(self, mech, q):
-        return singular_error(
-            mech,
-            q,
+        return SingularConfigurationError.build(
+            mech.name,
             "the penalized mass matrix M + alpha J^T J",
-            float("inf"),
-            0.0,
-            "it is not positive definite, so M itself is singular (a massless subtree)",
+            q=q,
+            cond=float("inf"),
+            state=f"is not numerically positive definite (alpha = {self.alpha:.3g})",
+            hint=(
+                "M is singular (a massless subtree) or so ill-conditioned that alpha J^T J "
+                "swamps it; lower SolverSettings.al_penalty or use method='kkt'"
+            ),
         )
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:

@@ -80,6 +80,9 @@ class MjcfSettings:
     min_mass: float = MIN_MASS
 
 
+#: The defaults, shared (frozen).
+DEFAULT_MJCF_SETTINGS = MjcfSettings()
+
 #: Stiff equality settings (PINOCCHIO.md: ~1.5e-5 relative on the 4-bar).
 STIFF = MjcfSettings(solref=(0.002, 1.0), solimp=(0.9999, 0.9999, 0.001))
 
@@ -162,7 +165,7 @@ def export_mjcf(
     mech: Mechanism,
     path: str | Path | None = None,
     *,
-    settings: MjcfSettings | None = None,
+    settings: MjcfSettings = DEFAULT_MJCF_SETTINGS,
 ) -> str:
     """Write ``mech`` as MJCF (tree, inertias, gravity, loops as equality constraints).
 
@@ -177,7 +180,6 @@ def export_mjcf(
     Raises:
         ClosedChainError: a joint or loop type MuJoCo cannot express (prismatic loops).
     """
-    settings = settings or MjcfSettings()
     model = mech.model
     layer = mech.declared
     children: dict[int, list[int]] = {j: [] for j in range(model.njoints)}
@@ -288,7 +290,7 @@ def _require_mujoco():
     return mujoco
 
 
-def load_mujoco(mech: Mechanism, *, settings: MjcfSettings | None = None):
+def load_mujoco(mech: Mechanism, *, settings: MjcfSettings = DEFAULT_MJCF_SETTINGS):
     """Return ``(mjModel, mjData)`` of the exported mechanism (needs the ``mujoco`` package)."""
     mujoco = _require_mujoco()
     model = mujoco.MjModel.from_xml_string(export_mjcf(mech, settings=settings))

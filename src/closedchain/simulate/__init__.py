@@ -46,7 +46,7 @@ from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
-from ..trajectory import Trajectory
+from ..trajectory import SimulationInfo, Trajectory
 from .problem import Problem, Recorder
 from .registry import (
     COMPILED_INTEGRATORS,
@@ -94,6 +94,28 @@ __all__ = [
     "seed_settings",
     "simulate",
 ]
+
+
+#: Smallest relative tolerance accepted: 100 machine epsilons, the floor scipy's
+#: solvers silently raise a smaller rtol to.
+MIN_RTOL = 100 * float(np.finfo(float).eps)
+
+
+def check_start_velocity(mech: Mechanism, q0: np.ndarray, v0: np.ndarray, tol: float) -> None:
+    """Raise InvalidArgumentError when v0 violates the loops' velocity constraint J(q0) v0 = 0.
+
+    The residual is compared with ``tol * max(1, max |v0|)`` [m/s or rad/s per row].
+    """
+    from ..kinematics import compute_jacobian
+
+    residual = float(np.max(np.abs(compute_jacobian(mech, q0) @ v0), initial=0.0))
+    bound = tol * max(1.0, float(np.max(np.abs(v0), initial=0.0)))
+    if residual > bound:
+        raise InvalidArgumentError(
+            f"{mech.name}: v0 violates the loops' velocity constraint J(q0) v0 = 0: max |J v0| "
+            f"= {residual:.3g} > {bound:.3g} (SimulationSettings.start_velocity_tol x "
+            "max(1, max |v0|)); project it first: v0 = closedchain.project_velocity(mech, q0, v0)"
+        )
 
 
 def check_positive(name: str, value, what: str) -> None:
@@ -325,6 +347,11 @@ def simulate(
         check_positive("rtol", rtol, "the relative tolerance")
         check_positive("atol", atol, "the absolute tolerance")
         rtol, atol = float(rtol), float(atol)
+        if rtol < MIN_RTOL:
+            raise InvalidArgumentError(
+                f"rtol = {rtol:g} is below what double precision resolves (scipy would raise it "
+                f"to {MIN_RTOL:.3g} without a word); valid range: [{MIN_RTOL:.3g}, inf)"
+            )
 
     original_solver_settings = solver_settings
     if stab.accel_terms:
@@ -339,6 +366,7 @@ def simulate(
     )
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
     problem.check_start(q0)
+    check_start_velocity(mech, q0, v0, settings.start_velocity_tol)
     info = {
         "mechanism": mech.name,
         "method": method,
@@ -401,6 +429,7 @@ def simulate(
     traj = recorder.trajectory(info)
     info["max_constraint_residual"] = traj.max_constraint_residual
     info["energy_drift"] = traj.energy_drift
+    traj = replace(traj, info=SimulationInfo.from_dict(info))
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,

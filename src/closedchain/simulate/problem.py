@@ -168,9 +168,7 @@ class Problem:
                 mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
             )
         except SingularConfigurationError as exc:
-            raise SingularConfigurationError(
-                f"{exc}; {passing_hint()}", q=exc.q, condition_number=exc.condition_number, t=t
-            ) from None
+            raise exc.with_hint(passing_hint(), t=t) from None
         if not changed:
             return False
         self._J_at = None  # the memo holds the old rows

@@ -42,6 +42,9 @@ class SimulationSettings:
         projection_iters: Gauss-Newton iterations of the position projection
             (stops earlier at ``projection_tol``).
         project_velocities: project v onto J v = 0 after each step.
+        start_velocity_tol: largest max |J(q0) v0| accepted at the start, relative
+            to max(1, max |v0|) [-]; beyond it simulate refuses v0 (an
+            inconsistent start would be recorded as the motion's first sample).
         dependent_tol: max |phi| of the dependent-coordinate solve (partitioning).
         repartition_cond: re-partition when cond(J_D) exceeds this.
         singular_cond: stop with SingularConfigurationError when the 2-norm
@@ -110,6 +113,7 @@ class SimulationSettings:
     open_row_tol: float = 1e-6
     max_steps: int = 100_000_000
     max_outputs: int = 10_000_000
+    start_velocity_tol: float = 1e-6
     ali3p_tol: float = 1e-10
     ali3p_phi_tol: float = 1e-13
     ali3p_max_iter: int = 50

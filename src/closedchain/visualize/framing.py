@@ -16,6 +16,7 @@ from ..trajectory import Trajectory
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
+from ..pindata import new_data
 from .settings import (
     DEFAULT_SETTINGS,
     FRAME_EPS,
@@ -99,7 +100,7 @@ def body_placements(mech: Mechanism, bodies, qs: np.ndarray) -> np.ndarray:
     Returns:
         Homogeneous placements oMf, shape (K, nb, 4, 4) [m].
     """
-    data = mech.model.createData()
+    data = new_data(mech.model)
     out = np.empty((len(qs), len(bodies), 4, 4))
     for k, q in enumerate(qs):
         pin.framesForwardKinematics(mech.model, data, q)
