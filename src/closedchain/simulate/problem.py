@@ -321,22 +321,17 @@ class Recorder:
             r["branch"].append(sign)
 
     def extend(self, samples: dict) -> None:
-        """Append samples computed elsewhere (the compiled loops), checked the same way.
+        """Append samples computed elsewhere (the compiled loops).
 
-        The compiled loop reports the residual of the kept rows; here it is
-        recomputed over every declared row at each output sample (a loop is
-        never reported closed while a dropped row is open), with the same
-        drift-limit check as :meth:`add`.
+        The compiled loop has checked them as :meth:`add` does: ``res`` is max
+        |phi| over every declared row (dropped ones included), within
+        ``drift_limit`` at every step, not only at the outputs.
 
         Args:
             samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
         """
-        times = np.asarray(samples["t"], dtype=float).ravel()
-        qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
-        res = [self.declared_residual(float(t), q) for t, q in zip(times, qs, strict=True)]
         r = self.rows
-        r["res"].extend(res)
-        for key in ("t", "vres", "e", "ke"):
+        for key in ("t", "res", "vres", "e", "ke"):
             r[key].extend(np.asarray(samples[key]).ravel().tolist())
         for key in ("q", "v", "a", "lam"):
             r[key].extend(np.asarray(samples[key]))
