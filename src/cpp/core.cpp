@@ -197,7 +197,6 @@ class Core {
     est_y_ = Vec::Zero(nv_ + nc_);
     est_z_ = Vec::Zero(nv_ + nc_);
     z_ = Vec::Zero(std::max(nv_ - nc_, 0));
-    lu_ = Eigen::PartialPivLU<Mat>(nv_ + nc_);
     llt_m_ = Eigen::LLT<Mat>(nv_);
     llt_c_ = Eigen::LLT<Mat>(nc_);
     Y_ = Mat::Zero(nv_, nc_ + 1);
@@ -217,6 +216,7 @@ class Core {
     q_prev_ = Vec::Zero(nq_);
     vel_c_ = Vec::Zero(nc_);
     rhs_work_ = Vec::Zero(nv_ + nc_);
+    piv_.assign(nv_ + nc_, 0);
   }
 
   int nc() const { return nc_; }
@@ -480,10 +480,8 @@ class Core {
     rhs_.tail(nc_) = -gamma_;
     double anorm = 0.0;  // 1-norm of K
     for (Eigen::Index j = 0; j < K_.cols(); ++j) anorm = std::max(anorm, K_.col(j).lpNorm<1>());
-    lu_.compute(K_);
     // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
-    double rcond =
-        lu_.matrixLU().diagonal().cwiseAbs().minCoeff() == 0.0 ? 0.0 : rcond_lu(anorm);
+    double rcond = lu_factor() ? rcond_lu(anorm) : 0.0;
     check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, t);
     lu_solve(rhs_, x_);
     a_ = x_.head(nv_);
@@ -491,22 +489,76 @@ class Core {
     (void)n;
   }
 
-  // x = K^-1 b and z = K^-T y with the factors of lu_ (P K = L U), written out:
-  // Eigen's PartialPivLU::solve and its transpose copy the permutation or the
-  // factors to the heap at every call.
-  void lu_solve(const Vec &b, Vec &x) {
-    const auto &ind = lu_.permutationP().indices();
-    for (Eigen::Index i = 0; i < b.size(); ++i) x[ind[i]] = b[i];
-    lu_.matrixLU().triangularView<Eigen::UnitLower>().solveInPlace(x);
-    lu_.matrixLU().triangularView<Eigen::Upper>().solveInPlace(x);
+  // LU with partial pivoting of K_ in place (LAPACK's dgetf2: the first largest pivot,
+  // row swaps in piv_), x = K^-1 b and z = K^-T y on the factors. Written out for the
+  // small KKT matrices: Eigen's blocked PartialPivLU and its solves spend more on
+  // dynamic-size bookkeeping (and heap copies of the permutation) than on arithmetic.
+  // Returns false when a pivot is exactly zero (K singular).
+  bool lu_factor() {
+    const Eigen::Index n = K_.rows();
+    double *A = K_.data();  // column-major, leading dimension n
+    bool regular = true;
+    for (Eigen::Index k = 0; k < n; ++k) {
+      Eigen::Index p = k;
+      double big = std::abs(A[k + k * n]);
+      for (Eigen::Index i = k + 1; i < n; ++i)
+        if (std::abs(A[i + k * n]) > big) {
+          big = std::abs(A[i + k * n]);
+          p = i;
+        }
+      piv_[k] = static_cast<int>(p);
+      if (big == 0.0) {
+        regular = false;
+        continue;
+      }
+      if (p != k)
+        for (Eigen::Index j = 0; j < n; ++j) std::swap(A[k + j * n], A[p + j * n]);
+      const double inv = 1.0 / A[k + k * n];
+      for (Eigen::Index i = k + 1; i < n; ++i) A[i + k * n] *= inv;
+      for (Eigen::Index j = k + 1; j < n; ++j) {
+        const double akj = A[k + j * n];
+        if (akj != 0.0)
+          for (Eigen::Index i = k + 1; i < n; ++i) A[i + j * n] -= A[i + k * n] * akj;
+      }
+    }
+    return regular;
   }
 
-  void lu_solve_transposed(const Vec &y, Vec &z, Vec &work) {
-    work = y;
-    lu_.matrixLU().triangularView<Eigen::Upper>().transpose().solveInPlace(work);
-    lu_.matrixLU().triangularView<Eigen::UnitLower>().transpose().solveInPlace(work);
-    const auto &ind = lu_.permutationP().indices();
-    for (Eigen::Index i = 0; i < y.size(); ++i) z[i] = work[ind[i]];
+  void lu_solve(const Vec &b, Vec &x) {
+    const Eigen::Index n = K_.rows();
+    const double *A = K_.data();
+    if (&x != &b) x = b;
+    for (Eigen::Index k = 0; k < n; ++k)
+      if (piv_[k] != k) std::swap(x[k], x[piv_[k]]);
+    for (Eigen::Index j = 0; j < n; ++j) {  // L (unit lower)
+      const double xj = x[j];
+      if (xj != 0.0)
+        for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= A[i + j * n] * xj;
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // U
+      x[j] /= A[j + j * n];
+      const double xj = x[j];
+      if (xj != 0.0)
+        for (Eigen::Index i = 0; i < j; ++i) x[i] -= A[i + j * n] * xj;
+    }
+  }
+
+  void lu_solve_transposed(const Vec &y, Vec &z) {
+    const Eigen::Index n = K_.rows();
+    const double *A = K_.data();
+    z = y;
+    for (Eigen::Index j = 0; j < n; ++j) {  // U^T w = y
+      double s = z[j];
+      for (Eigen::Index i = 0; i < j; ++i) s -= A[i + j * n] * z[i];
+      z[j] = s / A[j + j * n];
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // L^T u = w
+      double s = z[j];
+      for (Eigen::Index i = j + 1; i < n; ++i) s -= A[i + j * n] * z[i];
+      z[j] = s;
+    }
+    for (Eigen::Index k = n - 1; k >= 0; --k)  // z = P^T u
+      if (piv_[k] != k) std::swap(z[k], z[piv_[k]]);
   }
 
   // Reciprocal 1-norm condition estimate of the factored K (Hager / Higham, the
@@ -523,7 +575,7 @@ class Core {
       if (it > 0 && e <= est) break;
       est = e;
       for (Eigen::Index i = 0; i < n; ++i) est_y_[i] = est_y_[i] >= 0 ? 1.0 : -1.0;
-      lu_solve_transposed(est_y_, est_z_, rhs_work_);  // z = K^-T sign(y)
+      lu_solve_transposed(est_y_, est_z_);  // z = K^-T sign(y)
       Eigen::Index j;
       est_z_.cwiseAbs().maxCoeff(&j);
       if (it > 0 && j == jlast) break;
@@ -1309,10 +1361,10 @@ class Core {
   Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
   Vec est_x_, est_y_, est_z_, z_;
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
-  Eigen::PartialPivLU<Mat> lu_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_, llt_p_;
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
+  std::vector<int> piv_;  // row swaps of lu_factor
   Eigen::JacobiSVD<Mat> svd_;
   Eigen::SelfAdjointEigenSolver<Mat> eig_;
   Method method_ = KKT;
