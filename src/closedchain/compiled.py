@@ -3,10 +3,11 @@
 ``closedchain._core`` (src/cpp/core.cpp, built by CMake through
 scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
-(:meth:`ConstraintLayer.row_table`), the methods whose
-:class:`MethodCapabilities` declare ``compiled``, and whole trajectories of
-the integrators registered with ``backend="compiled"`` (see
-:mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
+(:meth:`ConstraintLayer.row_table`, and every declared row for the per-step
+checks), the methods whose :class:`MethodCapabilities` declare ``compiled``
+(kkt, schur, nullspace, augmented-lagrangian), and whole trajectories of the
+integrators registered with ``backend="compiled"`` with every stabilization
+but partitioning (see :mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
 reference; the URDF reading, the loop bookkeeping and the API stay in Python.
 
 Use :func:`compiled_dynamics` for one evaluation from Python; ``simulate``
