@@ -45,6 +45,7 @@ class RowCheckRequired(ClosedChainError):
         super().__init__(message)
         self.t = t
 
+
 try:
     import pinocchio  # noqa: F401  (its converters must be registered first)
 

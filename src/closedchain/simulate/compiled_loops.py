@@ -58,9 +58,7 @@ def _numpy_fallback(exc, problem, recorder, args, spec, info) -> int:
     problem.n_evals = 0
     ref = INTEGRATORS[spec.name]
     q0, v0, t_final, control, stab, t_eval, progress = args
-    return ref.run(
-        problem, recorder, q0, v0, t_final, control, ref, stab, t_eval, progress, info
-    )
+    return ref.run(problem, recorder, q0, v0, t_final, control, ref, stab, t_eval, progress, info)
 
 
 def run_fixed_compiled(
