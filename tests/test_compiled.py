@@ -189,6 +189,10 @@ def test_fixed_step_trajectories_match(mech_by_name, name, integrator, method, s
         assert np.max(np.abs(getattr(a, key) - getattr(b, key))) <= FIXED_STEP_TOL
     assert np.max(np.abs(a.energy - b.energy)) <= FIXED_STEP_TOL
     assert np.max(np.abs(a.constraint_residual - b.constraint_residual)) <= FIXED_STEP_TOL
+    # the assembly-branch series (sign of det(J_D)) is recorded from compiled samples too
+    assert (a.branch is None) == (b.branch is None)
+    if b.branch is not None:
+        assert np.array_equal(a.branch, b.branch)
 
 
 @pytest.mark.parametrize("stab", STABS)
