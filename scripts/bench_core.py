@@ -4,9 +4,14 @@
    state: the compiled right-hand side called from Python, the same inside the
    C++ loop (``Core.repeat``), the numpy method, and a tuned
    ``pinocchio.constraintDynamics`` call from Python (containers made once,
-   ``ProximalSettings`` of the library's defaults).
+   ``ProximalSettings`` of the library's defaults). In-loop cost also as
+   (CPU of a 10 s compiled run) / (its evaluations): DOP853 without
+   stabilization, and the default configuration (augmented-lagrangian, rk4
+   1 ms, stage projection: its CPU includes the projections), against the
+   numpy backend on the same request.
 2. Whole trajectories at matched error: closedchain.simulate (DOP853, no
-   stabilization, default backend) against the thirty-line peer
+   stabilization, default backend; methods kkt and augmented-lagrangian) against
+   the thirty-line peer
    (pinocchio.constraintDynamics as the right-hand side of scipy's DOP853) on
    the 4-bar (crossed branch, from rest, 10 s; errors 1e-6 and 1e-9 rad) and
    the coasting Agile Eye (no gravity, 10 s; error 1e-6 rad). For each side the
@@ -23,6 +28,7 @@ Run: python scripts/bench_core.py [--repeat 3]
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 from pathlib import Path
@@ -94,6 +100,35 @@ def per_evaluation(name: str, number: int, repeat: int) -> None:
         print(f"  {label:34s} {m:8.2f}   {m / ref:6.2f} x pin.constraintDynamics")
 
 
+def per_evaluation_in_runs(name: str, problem, repeat: int) -> None:
+    """CPU of whole 10 s runs divided by their evaluations; compiled against numpy."""
+    mech, q0, v0 = problem()
+    t_eval = np.linspace(0.0, T_FINAL, 11)
+    runs = {
+        "DOP853 1e-9, kkt, none": dict(
+            integrator="DOP853", rtol=1e-9, atol=1e-9, method="kkt", stabilization="none"
+        ),
+        "DOP853 1e-9, augmented-lagrangian, none": dict(
+            integrator="DOP853", rtol=1e-9, atol=1e-9, stabilization="none"
+        ),
+        "default: augmented-lagrangian, rk4 1 ms, stage-projection": dict(),
+    }
+    print(f"\n{name}, {T_FINAL:g} s: CPU per evaluation inside whole runs [us] (min)")
+    for label, kw in runs.items():
+        res: dict[str, list[tuple[float, int]]] = {"compiled": [], "numpy": []}
+        for i in range(repeat):  # interleaved; the numpy run once (it takes seconds)
+            for backend in ("compiled", "numpy") if i == 0 else ("compiled",):
+                t0 = time.process_time()
+                traj = cc.simulate(mech, q0, v0, T_FINAL, t_eval=t_eval, backend=backend, **kw)
+                res[backend].append((time.process_time() - t0, traj.info.evaluations))
+        c_cpu, c_n = min(res["compiled"])
+        n_cpu, n_n = min(res["numpy"])
+        print(
+            f"  {label:58s} compiled {c_cpu * 1e6 / c_n:7.3f} us x {c_n} ({c_cpu:.4f} s), "
+            f"numpy {n_cpu * 1e6 / n_n:7.1f} us ({n_cpu:.2f} s): ratio {c_cpu / n_cpu:.4f}"
+        )
+
+
 # -- whole trajectories -----------------------------------------------------------------
 
 
@@ -131,11 +166,11 @@ def peer_run(mech, q0, v0, tol, t_eval):
     return sol.y[:nv].T, cpu
 
 
-def cc_run(mech, q0, v0, tol, t_eval, stabilization="none"):
+def cc_run(mech, q0, v0, tol, t_eval, stabilization="none", method="kkt"):
     t0 = time.process_time()
     traj = cc.simulate(
         mech, q0, v0, T_FINAL, integrator="DOP853", rtol=tol, atol=tol, t_eval=t_eval,
-        stabilization=stabilization,
+        stabilization=stabilization, method=method,
     )  # fmt: skip
     return traj.q, time.process_time() - t0, traj.info
 
@@ -146,34 +181,37 @@ def matched(name, problem, targets, repeat):
     q_ref = cc.simulate(
         mech, q0, v0, T_FINAL, integrator="DOP853", rtol=1e-13, atol=1e-13, t_eval=t_eval
     ).q
-    err = {"peer": {}, "closedchain": {}}
-    cpu = {"peer": {tol: [] for tol in TOLS}, "closedchain": {tol: [] for tol in TOLS}}
+    sides = ("peer", "kkt", "augmented-lagrangian")
+    err: dict[str, dict] = {side: {} for side in sides}
+    cpu: dict[str, dict] = {side: {tol: [] for tol in TOLS} for side in sides}
     backend = None
     for _ in range(repeat):
         for tol in TOLS:
             qp, cp = peer_run(mech, q0, v0, tol, t_eval)
-            qc, ccpu, info = cc_run(mech, q0, v0, tol, t_eval)
-            backend = info.backend
             err["peer"][tol] = float(np.max(np.abs(qp - q_ref)))
-            err["closedchain"][tol] = float(np.max(np.abs(qc - q_ref)))
             cpu["peer"][tol].append(cp)
-            cpu["closedchain"][tol].append(ccpu)
+            for method in sides[1:]:
+                qc, ccpu, info = cc_run(mech, q0, v0, tol, t_eval, method=method)
+                backend = info.backend
+                err[method][tol] = float(np.max(np.abs(qc - q_ref)))
+                cpu[method][tol].append(ccpu)
     print(f"\n{name}, {T_FINAL:g} s, DOP853 (closedchain backend: {backend}): error [rad], CPU [s]")
-    print(f"  {'tol':>7s} {'peer err':>10s} {'peer CPU':>9s} {'cc err':>10s} {'cc CPU':>9s}")
+    print(f"  {'tol':>7s}" + "".join(f" {s[:10] + ' err':>14s} {'CPU':>8s}" for s in sides))
     for tol in TOLS:
         print(
-            f"  {tol:7.0e} {err['peer'][tol]:10.2e} {min(cpu['peer'][tol]):9.4f} "
-            f"{err['closedchain'][tol]:10.2e} {min(cpu['closedchain'][tol]):9.4f}"
+            f"  {tol:7.0e}"
+            + "".join(f" {err[s][tol]:14.2e} {min(cpu[s][tol]):8.4f}" for s in sides)
         )
     for target in targets:
         best = {}
-        for side in ("peer", "closedchain"):
+        for side in sides:
             ok = [min(cpu[side][t]) for t in TOLS if err[side][t] <= target]
             best[side] = min(ok) if ok else float("nan")
         print(
-            f"  error <= {target:.0e}: peer {best['peer']:.4f} s, closedchain "
-            f"{best['closedchain']:.4f} s, ratio closedchain/peer "
-            f"{best['closedchain'] / best['peer']:.3f}"
+            f"  error <= {target:.0e}: peer {best['peer']:.4f} s; "
+            + "; ".join(
+                f"{m} {best[m]:.4f} s, ratio {best[m] / best['peer']:.3f}" for m in sides[1:]
+            )
         )
     return mech, q0, v0, t_eval
 
@@ -198,12 +236,15 @@ def main() -> None:
     parser.add_argument("--number", type=int, default=2000)
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {platform.platform()}")
+    print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}")
     for name in ("fourbar", "agile_eye"):
         per_evaluation(name, args.number, args.repeat)
+    per_evaluation_in_runs("4-bar", fourbar_problem, args.repeat)
     mech, q0, v0, t_eval = matched("4-bar (crossed, from rest)", fourbar_problem, [1e-6, 1e-9],
                                    args.repeat)  # fmt: skip
     partitioning_cost(mech, q0, v0, t_eval, args.repeat)
     matched("Agile Eye (coasting, no gravity)", agile_eye_problem, [1e-6], args.repeat)
+    print(f"load average at the end {os.getloadavg()}")
 
 
 if __name__ == "__main__":

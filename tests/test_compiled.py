@@ -8,10 +8,10 @@ agree far below the integration tolerance (:data:`FIXED_STEP_TOL`,
 
 from __future__ import annotations
 
-import _thread
+import os
 import signal
 import subprocess
-import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,10 +43,28 @@ STEP_COUNT_SLACK = 3
 T_CMP, T_FIXED, DT = 0.3, 0.1, 1e-3
 
 ROOT = Path(__file__).resolve().parent.parent
-MECHS = ["fourbar", "agile_eye"]
+#: The shipped models the trajectories are compared on (nfourbar_2: two four-bars in
+#: series, dropped rows in both loops).
+MECHS = ["fourbar", "agile_eye", "nfourbar_2"]
 ALL_MECHS = ["fourbar", "agile_eye", "spherical_chain", "slider_crank", "fixed_branches"]
 COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
+#: Stabilizations of the compiled adaptive loops; the fixed-step ones add stage projection.
 STABS = ["none", "baumgarte", "projection"]
+FIXED_STABS = [*STABS, "stage-projection"]
+
+
+@pytest.fixture(scope="module")
+def mech_by_name(load_mechanism):
+    """``get(name)``: the test mechanisms and the shipped models of models/."""
+    cache: dict[str, cc.Mechanism] = {}
+
+    def get(name: str) -> cc.Mechanism:
+        if name not in cache:
+            path = ROOT / "models" / f"{name}.urdf"
+            cache[name] = cc.load(path) if path.exists() else load_mechanism(name)
+        return cache[name]
+
+    return get
 
 
 def _kappa(mech, q, v):
@@ -64,7 +82,7 @@ def _close(x, ref, rtol=EVAL_RTOL):
 
 def test_core_is_built():
     assert compiled.available(), compiled.IMPORT_ERROR
-    assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace"}
+    assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace", "augmented-lagrangian"}
     assert set(COMPILED_INTEGRATORS) == {"euler", "semi-implicit", "rk4", "RK45", "DOP853"}
     for name, spec in COMPILED_INTEGRATORS.items():
         assert spec.backend == "compiled"
@@ -139,9 +157,12 @@ def _state(mech, name):
     if name == "fourbar":
         q = cc.assemble(mech, np.radians((10.0, -65.0, -104.0)), fixed=["crank_joint"])
         return q, np.zeros(3)
+    q = mech.q_ref.copy()
+    if name == "nfourbar_2":  # q_ref (theta = 0) is a flat, singular position
+        q = np.where(np.arange(mech.nq) % 2 == 0, 0.5, -0.5)
     v = np.zeros(mech.nv)
-    v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
-    return mech.q_ref.copy(), cc.project_velocity(mech, mech.q_ref, v, fixed="independent")
+    v[mech.independent_idx_v] = (0.3, -0.2, 0.1)[: len(mech.independent_idx_v)]
+    return q, cc.project_velocity(mech, q, v, fixed="independent")
 
 
 def _pair(mech, q0, v0, t_final=T_CMP, **kw):
@@ -151,12 +172,12 @@ def _pair(mech, q0, v0, t_final=T_CMP, **kw):
     return a, b
 
 
-@pytest.mark.parametrize("stab", STABS)
+@pytest.mark.parametrize("stab", FIXED_STABS)
 @pytest.mark.parametrize("method", COMPILED_METHODS)
 @pytest.mark.parametrize("integrator", ["euler", "semi-implicit", "rk4"])
 @pytest.mark.parametrize("name", MECHS)
-def test_fixed_step_trajectories_match(load_mechanism, name, integrator, method, stab):
-    mech = load_mechanism(name)
+def test_fixed_step_trajectories_match(mech_by_name, name, integrator, method, stab):
+    mech = mech_by_name(name)
     q0, v0 = _state(mech, name)
     a, b = _pair(
         mech, q0, v0, T_FIXED, integrator=integrator, method=method, stabilization=stab, dt=DT
@@ -168,14 +189,18 @@ def test_fixed_step_trajectories_match(load_mechanism, name, integrator, method,
         assert np.max(np.abs(getattr(a, key) - getattr(b, key))) <= FIXED_STEP_TOL
     assert np.max(np.abs(a.energy - b.energy)) <= FIXED_STEP_TOL
     assert np.max(np.abs(a.constraint_residual - b.constraint_residual)) <= FIXED_STEP_TOL
+    # the assembly-branch series (sign of det(J_D)) is recorded from compiled samples too
+    assert (a.branch is None) == (b.branch is None)
+    if b.branch is not None:
+        assert np.array_equal(a.branch, b.branch)
 
 
 @pytest.mark.parametrize("stab", STABS)
 @pytest.mark.parametrize("method", COMPILED_METHODS)
 @pytest.mark.parametrize("integrator", ["RK45", "DOP853"])
 @pytest.mark.parametrize("name", MECHS)
-def test_adaptive_trajectories_match(load_mechanism, name, integrator, method, stab):
-    mech = load_mechanism(name)
+def test_adaptive_trajectories_match(mech_by_name, name, integrator, method, stab):
+    mech = mech_by_name(name)
     q0, v0 = _state(mech, name)
     t_eval = np.linspace(0.0, T_CMP, 7)
     for te in (None, t_eval):
@@ -234,8 +259,7 @@ def test_dormand_prince_matches_scipy(fourbar, integrator):
 
 # -- backend selection, errors, callbacks -------------------------------------------------
 
-#: A request the compiled loops run (the default method, augmented-lagrangian with
-#: stage projection, has no compiled implementation).
+#: A request the compiled loops run (not the default, to exercise another method).
 COMPILED_REQUEST = dict(method="kkt", stabilization="projection")
 
 
@@ -243,12 +267,12 @@ def test_auto_backend_uses_compiled_where_supported(fourbar):
     q0, v0 = _state(fourbar, "fourbar")
     traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **COMPILED_REQUEST)
     assert traj.info.backend == "compiled"
-    # partitioning, the reduced method and the default (augmented-lagrangian with
-    # stage projection) have no compiled loop: numpy, silently.
+    # the default: augmented-lagrangian, rk4, stage projection
+    assert cc.simulate(fourbar, q0, v0, 0.05).info.backend == "compiled"
+    # partitioning and the reduced method have no compiled loop: numpy, silently.
     for kw in (
         dict(COMPILED_REQUEST, stabilization="partitioning"),
         dict(COMPILED_REQUEST, method="reduced"),
-        dict(),
     ):
         traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw)
         assert traj.info.backend == "numpy"
@@ -358,33 +382,48 @@ def test_errors_cross_the_boundary(fourbar):
         )
 
 
-def test_ctrl_c_interrupts_a_long_run(fourbar):
-    """SIGINT (here from _thread.interrupt_main) stops a long compiled run.
+#: Seconds after which the test's SIGINT arrives.
+SIGINT_AFTER = 0.5
 
-    Python's own SIGINT handler is installed for the test: a process started in
-    the background by a non-interactive shell (CI) inherits SIGINT ignored.
+
+def test_ctrl_c_interrupts_a_long_run(fourbar):
+    """SIGINT stops a long compiled run (checked every 64 steps).
+
+    The signal comes from another process, as Ctrl-C does: a Python thread
+    (threading.Timer + _thread.interrupt_main) would need the GIL, which the
+    compiled loop holds, so it would only run once the loop ends. Python's own
+    SIGINT handler is installed for the test: a process started in the background
+    by a non-interactive shell (CI) inherits SIGINT ignored.
     """
     q0, v0 = _state(fourbar, "fourbar")
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    timer = threading.Timer(0.5, _thread.interrupt_main)
-    timer.start()
+    killer = subprocess.Popen(["sh", "-c", f"sleep {SIGINT_AFTER}; kill -INT {os.getpid()}"])
+    reached = [0.0]
+
+    def progress(t):
+        reached[0] = t
+
     try:
         with pytest.raises(KeyboardInterrupt):
-            # 2 million steps: seconds to minutes if not interrupted
+            # 20 million steps (each calling progress): many minutes if not interrupted
             cc.simulate(
                 fourbar,
                 q0,
                 v0,
-                2e3,
+                2e4,
                 integrator="semi-implicit",
                 dt=1e-3,
-                t_eval=np.array([2e3]),
+                t_eval=np.array([2e4]),
                 backend="compiled",
+                progress=progress,
                 **COMPILED_REQUEST,
             )
+            killer.wait()  # the run ended first: let the signal arrive inside pytest.raises
+            time.sleep(1.0)
     finally:
-        timer.cancel()
+        killer.wait()
         signal.signal(signal.SIGINT, previous)
+    assert 0.0 < reached[0] < 2e4  # stopped inside the run, not after it
 
 
 def test_missing_compiler_message(tmp_path):
@@ -401,3 +440,78 @@ def test_missing_compiler_message(tmp_path):
     assert out.returncode != 0
     assert "no C++17 compiler found" in out.stderr
     assert "apt-get install g++" in out.stderr
+
+
+# -- the default configuration through singular positions; every declared row -------------
+
+#: Trajectories through the N-four-bar's flat positions (J loses rank): both backends
+#: pass them with the default configuration; round-off near the rank loss is
+#: amplified, so the agreement is that of the integration error, not of round-off.
+SINGULAR_PASSAGE_TOL = 1e-6
+
+
+def test_default_configuration_passes_flat_positions(mech_by_name):
+    """augmented-lagrangian + rk4 + stage projection (the default) compiled and numpy
+    out of a flat position of the N-four-bar (cranks at 3 rad/s from theta = 0)."""
+    mech = mech_by_name("nfourbar_2")
+    is_crank = np.array([n.startswith("crank") for n in mech.coordinate_names])
+    q0, v0 = np.zeros(mech.nq), np.where(is_crank, -3.0, 3.0)
+    a, b = _pair(mech, q0, v0, 0.3, t_eval=np.linspace(0.0, 0.3, 7))
+    assert a.info.method == "augmented-lagrangian"
+    assert a.info.stabilization == "stage-projection"
+    assert np.max(np.abs(a.q - b.q)) <= SINGULAR_PASSAGE_TOL
+    assert np.max(a.constraint_residual) <= 1e-12
+    with pytest.raises(cc.SingularConfigurationError, match="at t = .*condition number"):
+        cc.simulate(mech, q0, v0, 0.3, method="kkt", backend="compiled")
+
+
+def test_every_declared_row_is_checked_at_every_step(fourbar):
+    """The drift limit holds at every step, not only at output samples, and the error
+    names the row and the time."""
+    q0, v0 = _state(fourbar, "fourbar")
+    kw = dict(
+        integrator="euler",
+        dt=5e-2,
+        method="kkt",
+        stabilization="none",
+        t_eval=np.array([2.0]),  # one output, at the end
+        settings=cc.SimulationSettings(drift_limit=1e-3),
+    )
+    stops = []
+    for backend in ("compiled", "numpy"):
+        with pytest.raises(SimulationError, match=r"at t = .* row \w+\.t[12]\)") as exc:
+            cc.simulate(fourbar, q0, v0, 2.0, backend=backend, **kw)
+        stops.append(exc.value.t)
+    assert stops[0] == stops[1] < 2.0
+
+
+def test_an_open_dropped_row_hands_the_run_to_the_row_reselection(fourbar, monkeypatch):
+    """A dropped row that opens (here: the kept rows are declared dropped to the check,
+    so their drift without stabilization opens them) stops the compiled loop with
+    RowCheckRequired; the request runs on the numpy backend, which re-selects rows."""
+    from closedchain.simulate import compiled_loops
+
+    real = compiled.make_core
+
+    def make_core(mech, *, shared=True):
+        core = real(mech, shared=False)
+        dtab = mech.declared.row_table()
+        kept = np.zeros(len(dtab.function), dtype=np.int32)  # every row counts as dropped
+        core.set_declared(
+            compiled._CORE_KIND[dtab.function].astype(np.int32),
+            dtab.frame_p.astype(np.int32),
+            dtab.frame_s.astype(np.int32),
+            dtab.u,
+            dtab.w,
+            kept,
+            [r.label for r in mech.declared.declared_rows],
+        )
+        return core
+
+    monkeypatch.setattr(compiled_loops.compiled, "make_core", make_core)
+    q0, v0 = _state(fourbar, "fourbar")
+    traj = cc.simulate(
+        fourbar, q0, v0, 0.2, integrator="euler", method="kkt", stabilization="none", dt=DT
+    )
+    assert traj.info.backend == "numpy"
+    assert "dropped row" in traj.info.backend_fallback

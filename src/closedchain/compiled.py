@@ -3,10 +3,11 @@
 ``closedchain._core`` (src/cpp/core.cpp, built by CMake through
 scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
-(:meth:`ConstraintLayer.row_table`), the methods whose
-:class:`MethodCapabilities` declare ``compiled``, and whole trajectories of
-the integrators registered with ``backend="compiled"`` (see
-:mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
+(:meth:`ConstraintLayer.row_table`, and every declared row for the per-step
+checks), the methods whose :class:`MethodCapabilities` declare ``compiled``
+(kkt, schur, nullspace, augmented-lagrangian), and whole trajectories of the
+integrators registered with ``backend="compiled"`` with every stabilization
+but partitioning (see :mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
 reference; the URDF reading, the loop bookkeeping and the API stay in Python.
 
 Use :func:`compiled_dynamics` for one evaluation from Python; ``simulate``
@@ -25,6 +26,25 @@ from .exceptions import ClosedChainError
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
+
+
+class RowCheckRequired(ClosedChainError):
+    """Raised by a compiled loop when the kept rows stop describing the loops at ``t``.
+
+    A dropped row opened (beyond ``SimulationSettings.dropped_row_tol`` and
+    ``dropped_row_ratio`` times the kept rows' residual) or the kept rows
+    degenerate where there are dropped rows: the rows must be re-selected
+    (:meth:`LoopClosure.check_rows`), which the numpy backend does; the
+    simulator then runs the request there (:mod:`closedchain.simulate.compiled_loops`).
+
+    Attributes:
+        t: simulation time [s] of the step that found it.
+    """
+
+    def __init__(self, message: str, t: float) -> None:
+        super().__init__(message)
+        self.t = t
+
 
 try:
     import pinocchio  # noqa: F401  (its converters must be registered first)
@@ -90,14 +110,42 @@ def make_core(mech: Mechanism, *, shared: bool = True):
             tab.u,
             tab.w,
         )
+        # Every declared row, checked at every step of a compiled loop.
+        dtab = mech.declared.row_table()
+        kept = np.zeros(len(dtab.function), dtype=np.int32)
+        kept[list(mech.selected_rows)] = 1
+        core.set_declared(
+            _CORE_KIND[dtab.function].astype(np.int32),
+            dtab.frame_p.astype(np.int32),
+            dtab.frame_s.astype(np.int32),
+            dtab.u,
+            dtab.w,
+            kept,
+            [r.label for r in mech.declared.declared_rows],
+        )
         entry = (mech.constraints, core)
         if shared:
             cache[key] = entry
     return entry[1]
 
 
-def configure(core, method: str, solver_settings: SolverSettings, settings=None) -> None:
-    """Set the core's method, solver settings and (optionally) simulation settings."""
+def configure(
+    core,
+    method: str,
+    solver_settings: SolverSettings,
+    settings=None,
+    *,
+    stage_projects: bool = False,
+    singular_robust: bool = False,
+) -> None:
+    """Set the core's method, solver settings and (optionally) simulation settings.
+
+    Args:
+        stage_projects: project every stage state of a fixed-step loop
+            (stabilization ``stage-projection``).
+        singular_robust: pass singular positions (no stop on cond(J); see
+            ``Problem.singular_robust``).
+    """
     if not supports_method(method):
         compiled = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
         raise ClosedChainError(
@@ -108,6 +156,11 @@ def configure(core, method: str, solver_settings: SolverSettings, settings=None)
         "method": method,
         "cond_max": float(solver_settings.cond_max),
         "baumgarte": solver_settings.baumgarte,
+        "al_penalty": float(solver_settings.al_penalty),
+        "al_tol": float(solver_settings.al_tol),
+        "al_max_iter": int(solver_settings.al_max_iter),
+        "stage_projects": bool(stage_projects),
+        "singular_robust": bool(singular_robust),
     }
     if settings is not None:
         cfg.update(
@@ -116,6 +169,8 @@ def configure(core, method: str, solver_settings: SolverSettings, settings=None)
             project_velocities=bool(settings.project_velocities),
             singular_cond=float(settings.singular_cond),
             drift_limit=float(settings.drift_limit),
+            dropped_row_tol=float(settings.dropped_row_tol),
+            dropped_row_ratio=float(settings.dropped_row_ratio),
         )
     core.configure(cfg)
 

@@ -53,7 +53,10 @@ class SimulationInfo:
         mechanism: the mechanism's name.
         method: forward-dynamics method.
         integrator: time integrator.
-        backend: ``"compiled"`` or ``"numpy"``.
+        backend: ``"compiled"`` or ``"numpy"``: what ran.
+        backend_fallback: why a compiled request was handed to the numpy
+            loops (e.g. a dropped row that opened needs the numpy row
+            re-selection), else None.
         stabilization: constraint stabilization.
         dt: fixed step [s] (fixed-step integrators), else None.
         rtol, atol: tolerances (adaptive integrators), else None.
@@ -85,6 +88,7 @@ class SimulationInfo:
     method: str = ""
     integrator: str = ""
     backend: str = ""
+    backend_fallback: str | None = None
     stabilization: str = ""
     dt: float | None = None
     rtol: float | None = None

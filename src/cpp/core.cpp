@@ -71,6 +71,13 @@ struct BadArgument {
   std::string message;
 };
 
+// The kept rows stopped describing the loops at t (a dropped row opened, or the
+// kept rows degenerate): the Python side re-selects them (closedchain.closure).
+struct RowCheckRequired {
+  std::string message;
+  double t;
+};
+
 static std::string fmt(const char *f, double x) {
   char buf[64];
   std::snprintf(buf, sizeof buf, f, x);
@@ -103,6 +110,12 @@ static void translate_simulation(const SimulationFailure &e) {
   PyErr_SetObject(exc.ptr(), inst.ptr());
 }
 
+static void translate_row_check(const RowCheckRequired &e) {
+  bp::object exc = bp::import("closedchain.compiled").attr("RowCheckRequired");
+  bp::object inst = exc(e.message, e.t);
+  PyErr_SetObject(exc.ptr(), inst.ptr());
+}
+
 static void translate_bad(const BadArgument &e) {
   bp::object exc = bp::import("closedchain.exceptions").attr("ClosedChainError");
   bp::object inst = exc(e.message);
@@ -111,7 +124,18 @@ static void translate_bad(const BadArgument &e) {
 
 // ---------------------------------------------------------------------------
 
-enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2 };
+//: Relative regularization of the normal equations that polish the augmented-
+//: Lagrangian multipliers (NORMAL_EQ_REG of dynamics/augmented_lagrangian.py).
+constexpr double AL_NORMAL_EQ_REG = 1e-14;
+
+//: min_norm solves through J J^T while its reciprocal condition number is above
+//: this (cond(J) below ~1e4), else through the SVD of J.
+constexpr double MIN_NORM_RCOND = 1e-8;
+
+//: Relative margin of lu_inverse_norm_bound over its own round-off.
+constexpr double INVERSE_BOUND_MARGIN = 1e-8;
+
+enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2, AUGMENTED_LAGRANGIAN = 3 };
 enum Integrator { EULER = 0, SEMI_IMPLICIT = 1, RK4 = 2, RK45 = 3, DOP853 = 4 };
 
 struct Row {
@@ -177,7 +201,6 @@ class Core {
     est_y_ = Vec::Zero(nv_ + nc_);
     est_z_ = Vec::Zero(nv_ + nc_);
     z_ = Vec::Zero(std::max(nv_ - nc_, 0));
-    lu_ = Eigen::PartialPivLU<Mat>(nv_ + nc_);
     llt_m_ = Eigen::LLT<Mat>(nv_);
     llt_c_ = Eigen::LLT<Mat>(nc_);
     Y_ = Mat::Zero(nv_, nc_ + 1);
@@ -190,6 +213,14 @@ class Core {
     dq_ = Vec::Zero(nv_);
     tmp_c_ = Vec::Zero(nc_);
     tmp_v_ = Vec::Zero(nv_);
+    rhs_v_ = Vec::Zero(nv_);
+    P_ = Mat::Zero(nv_, nv_);
+    llt_p_ = Eigen::LLT<Mat>(nv_);
+    J_at_ = Vec::Zero(nq_);
+    q_prev_ = Vec::Zero(nq_);
+    vel_c_ = Vec::Zero(nc_);
+    rhs_work_ = Vec::Zero(nv_ + nc_);
+    piv_.assign(nv_ + nc_, 0);
   }
 
   int nc() const { return nc_; }
@@ -205,8 +236,11 @@ class Core {
       method_ = SCHUR;
     else if (m == "nullspace")
       method_ = NULLSPACE;
+    else if (m == "augmented-lagrangian")
+      method_ = AUGMENTED_LAGRANGIAN;
     else
-      throw BadArgument{"compiled core: unknown method '" + m + "'; compiled: kkt, schur, nullspace"};
+      throw BadArgument{"compiled core: unknown method '" + m +
+                        "'; compiled: kkt, schur, nullspace, augmented-lagrangian"};
     method_name_ = m;
     cond_max_ = bp::extract<double>(s.get("cond_max", 1e12));
     bp::object bg = s.get("baumgarte", bp::object());
@@ -220,6 +254,55 @@ class Core {
     project_velocities_ = bp::extract<bool>(s.get("project_velocities", true));
     singular_cond_ = bp::extract<double>(s.get("singular_cond", 1e3));
     drift_limit_ = bp::extract<double>(s.get("drift_limit", 1e-2));
+    al_penalty_ = bp::extract<double>(s.get("al_penalty", 1e11));
+    al_tol_ = bp::extract<double>(s.get("al_tol", 1e-13));
+    al_max_iter_ = bp::extract<int>(s.get("al_max_iter", 30));
+    stage_projects_ = bp::extract<bool>(s.get("stage_projects", false));
+    singular_robust_ = bp::extract<bool>(s.get("singular_robust", false));
+    dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
+    dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
+  }
+
+  // Every declared row (the kept ones and those dropped as redundant), checked at
+  // every step: kinds/frames/vectors as for the kept rows, kept[i] = 1 for a row
+  // the methods use, labels "loop.kind" for messages.
+  void set_declared(const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
+                    const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2,
+                    const Eigen::VectorXi &kept, bp::list labels) {
+    const int nd = static_cast<int>(kinds.size());
+    if (fid_p.size() != nd || fid_s.size() != nd || vec1.rows() != nd || vec2.rows() != nd ||
+        kept.size() != nd || bp::len(labels) != nd || (nd && (vec1.cols() != 3 || vec2.cols() != 3)))
+      throw BadArgument{"Core.set_declared: row tables of inconsistent shapes"};
+    drows_.clear();
+    dlabels_.clear();
+    for (int r = 0; r < nd; ++r) {
+      if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
+      for (int f : {fid_p[r], fid_s[r]})
+        if (f < 0 || f >= static_cast<int>(model_.nframes))
+          throw BadArgument{"Core: frame id out of range"};
+      Row row;
+      row.kind = kinds[r];
+      row.p = frame_index(fid_p[r]);
+      row.s = frame_index(fid_s[r]);
+      row.n = vec1.row(r).transpose();
+      row.w = vec2.row(r).transpose();
+      drows_.push_back(row);
+      dlabels_.push_back(bp::extract<std::string>(labels[r]));
+    }
+    dkept_ = kept;
+    dphi_ = Vec::Zero(nd);
+    const int nf = static_cast<int>(fids_.size());
+    R_.resize(nf);
+    p_.resize(nf);
+    Jf_.resize(nf, Mat6x::Zero(6, nv_));
+    vf_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    af_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    joints_.clear();
+    for (pinocchio::FrameIndex f : fids_) {
+      pinocchio::JointIndex j = model_.frames[f].parentJoint;
+      if (std::find(joints_.begin(), joints_.end(), j) == joints_.end()) joints_.push_back(j);
+    }
+    J_at_valid_ = false;
   }
 
   // tau: None, a constant (nv,) array or a callable tau(t, q, v).
@@ -243,22 +326,29 @@ class Core {
 
   // phi only: placements from forwardKinematics(q).
   void eval_phi(const RefV &q) {
+    J_at_valid_ = false;
     pinocchio::forwardKinematics(model_, data_, q);
     placements();
     rows(true, false, false);
   }
 
   // phi and J: computeJointJacobians(q) (placements and world joint Jacobians).
+  // Each step asks several times at one q (projection, regularity check, declared
+  // rows, output): the last evaluation is reused while q is the same.
   void eval_phi_J(const RefV &q) {
+    if (J_at_valid_ && q == J_at_) return;
     pinocchio::computeJointJacobians(model_, data_, q);
     placements();
     jacobians();
     rows(true, true, false);
+    J_at_ = q;
+    J_at_valid_ = true;
   }
 
   // M, h, phi, J, gamma at (q, v): kinematics with zero acceleration (bias
   // terms), CRBA in the world convention (also the joint Jacobians), RNEA.
   void eval_terms(const RefV &q, const RefV &v) {
+    J_at_valid_ = false;
     // CRBA (world convention): M's upper triangle, oMi and the world joint
     // Jacobians. RNEA at zero acceleration (nonLinearEffects): h, the joint
     // velocities and a_gf, the bias accelerations plus the gravity field, from
@@ -293,12 +383,78 @@ class Core {
   void solve(const RefV &q, const RefV &v, const Vec &tau, double t) {
     eval_terms(q, v);
     ++n_evals_;
-    if (method_ == KKT)
-      solve_kkt(q, tau, t);
-    else if (method_ == SCHUR)
-      solve_schur(q, tau, t);
-    else
-      solve_nullspace(q, tau, t);
+    dispatch(q, tau, t);
+  }
+
+  void dispatch(const RefV &q, const Vec &tau, double t) {
+    switch (method_) {
+      case KKT: solve_kkt(q, tau, t); break;
+      case SCHUR: solve_schur(q, tau, t); break;
+      case NULLSPACE: solve_nullspace(q, tau, t); break;
+      case AUGMENTED_LAGRANGIAN: solve_al(q, tau, t); break;
+    }
+  }
+
+  // Augmented Lagrangian at the acceleration level (closedchain/dynamics/
+  // augmented_lagrangian.py, Bayo & Ledesma 1996): P = M + alpha J^T J with
+  // alpha = rho tr(M) / tr(J^T J); from lam_0 = 0,
+  //   a_1 = P^-1 (tau - h - alpha J^T gamma),  lam_1 = alpha (J a_1 + gamma),
+  //   a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T (lam_k + alpha (J a_k + gamma))),
+  //   lam_{k+1} = lam_k + alpha (J a_{k+1} + gamma),
+  // until max |a_{k+1} - a_k| <= al_tol (1 + max |a_{k+1}|); then lam is polished by
+  // the regularized normal equations J J^T dlam = J (tau - h - M a - J^T lam).
+  void solve_al(const RefV &q, const Vec &tau, double t) {
+    if (nc_ == 0) {
+      llt_m_.compute(M_);
+      if (llt_m_.info() != Eigen::Success)
+        singular(q, "the mass matrix M", std::numeric_limits<double>::infinity(),
+                 "it is not positive definite (a massless subtree)", t);
+      a_ = tau - h_;
+      llt_m_.solveInPlace(a_);
+      return;
+    }
+    const double jj = J_.squaredNorm();
+    const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
+    P_.noalias() = alpha * (J_.transpose() * J_);
+    P_ += M_;
+    llt_p_.compute(P_);
+    if (llt_p_.info() != Eigen::Success)
+      singular(q, "the penalized mass matrix M + alpha J^T J",
+               std::numeric_limits<double>::infinity(),
+               "it is not positive definite, so M itself is singular (a massless subtree)", t);
+    rhs_v_ = tau - h_;
+    tmp_v_ = rhs_v_;
+    tmp_v_.noalias() -= alpha * (J_.transpose() * gamma_);
+    a_ = tmp_v_;
+    llt_p_.solveInPlace(a_);
+    lam_ = gamma_;
+    lam_.noalias() += J_ * a_;
+    lam_ *= alpha;
+    for (int it = 1; it < al_max_iter_; ++it) {
+      tmp_c_ = gamma_;
+      tmp_c_.noalias() += J_ * a_;  // r_c
+      tmp_c_ *= alpha;
+      tmp_c_ += lam_;
+      dq_ = rhs_v_;
+      dq_.noalias() -= M_ * a_;
+      dq_.noalias() -= J_.transpose() * tmp_c_;
+      llt_p_.solveInPlace(dq_);  // delta
+      a_ += dq_;
+      tmp_c_ = gamma_;
+      tmp_c_.noalias() += J_ * a_;
+      lam_ += alpha * tmp_c_;
+      if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
+    }
+    tmp_v_ = rhs_v_;
+    tmp_v_.noalias() -= M_ * a_;
+    tmp_v_.noalias() -= J_.transpose() * lam_;  // r_d
+    JJt_.noalias() = J_ * J_.transpose();
+    JJt_.diagonal().array() +=
+        AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
+    llt_c_.compute(JJt_);
+    tmp_c_.noalias() = J_ * tmp_v_;
+    llt_c_.solveInPlace(tmp_c_);
+    lam_ += tmp_c_;
   }
 
   [[noreturn]] void singular(const RefV &q, const std::string &what, double cond,
@@ -326,16 +482,117 @@ class Core {
     K_.bottomRightCorner(nc_, nc_).setZero();
     rhs_.head(nv_) = tau - h_;
     rhs_.tail(nc_) = -gamma_;
-    const double anorm = K_.cwiseAbs().colwise().sum().maxCoeff();
-    lu_.compute(K_);
+    double anorm = 0.0;  // 1-norm of K
+    for (Eigen::Index j = 0; j < K_.cols(); ++j) anorm = std::max(anorm, K_.col(j).lpNorm<1>());
     // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
-    double rcond =
-        lu_.matrixLU().diagonal().cwiseAbs().minCoeff() == 0.0 ? 0.0 : rcond_lu(anorm);
-    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond, t);
-    x_.noalias() = lu_.solve(rhs_);
+    // Away from singular configurations a cheap upper bound of cond_1(K) already
+    // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
+    // cond_max; only otherwise is the estimate computed.
+    if (!lu_factor()) {
+      check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
+    } else if (!(anorm * lu_inverse_norm_bound() <= cond_max_)) {
+      check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond_lu(anorm), t);
+    }
+    lu_solve(rhs_, x_);
     a_ = x_.head(nv_);
     lam_ = x_.tail(nc_);
     (void)n;
+  }
+
+  // LU with partial pivoting of K_ in place (LAPACK's dgetf2: the first largest pivot,
+  // row swaps in piv_), x = K^-1 b and z = K^-T y on the factors. Written out for the
+  // small KKT matrices: Eigen's blocked PartialPivLU and its solves spend more on
+  // dynamic-size bookkeeping (and heap copies of the permutation) than on arithmetic.
+  // Returns false when a pivot is exactly zero (K singular).
+  bool lu_factor() {
+    const Eigen::Index n = K_.rows();
+    double *A = K_.data();  // column-major, leading dimension n
+    bool regular = true;
+    for (Eigen::Index k = 0; k < n; ++k) {
+      Eigen::Index p = k;
+      double big = std::abs(A[k + k * n]);
+      for (Eigen::Index i = k + 1; i < n; ++i)
+        if (std::abs(A[i + k * n]) > big) {
+          big = std::abs(A[i + k * n]);
+          p = i;
+        }
+      piv_[k] = static_cast<int>(p);
+      if (big == 0.0) {
+        regular = false;
+        continue;
+      }
+      if (p != k)
+        for (Eigen::Index j = 0; j < n; ++j) std::swap(A[k + j * n], A[p + j * n]);
+      const double inv = 1.0 / A[k + k * n];
+      for (Eigen::Index i = k + 1; i < n; ++i) A[i + k * n] *= inv;
+      for (Eigen::Index j = k + 1; j < n; ++j) {
+        const double akj = A[k + j * n];
+        if (akj != 0.0)
+          for (Eigen::Index i = k + 1; i < n; ++i) A[i + j * n] -= A[i + k * n] * akj;
+      }
+    }
+    return regular;
+  }
+
+  void lu_solve(const Vec &b, Vec &x) {
+    const Eigen::Index n = K_.rows();
+    const double *A = K_.data();
+    if (&x != &b) x = b;
+    for (Eigen::Index k = 0; k < n; ++k)
+      if (piv_[k] != k) std::swap(x[k], x[piv_[k]]);
+    for (Eigen::Index j = 0; j < n; ++j) {  // L (unit lower)
+      const double xj = x[j];
+      if (xj != 0.0)
+        for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= A[i + j * n] * xj;
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // U
+      x[j] /= A[j + j * n];
+      const double xj = x[j];
+      if (xj != 0.0)
+        for (Eigen::Index i = 0; i < j; ++i) x[i] -= A[i + j * n] * xj;
+    }
+  }
+
+  void lu_solve_transposed(const Vec &y, Vec &z) {
+    const Eigen::Index n = K_.rows();
+    const double *A = K_.data();
+    z = y;
+    for (Eigen::Index j = 0; j < n; ++j) {  // U^T w = y
+      double s = z[j];
+      for (Eigen::Index i = 0; i < j; ++i) s -= A[i + j * n] * z[i];
+      z[j] = s / A[j + j * n];
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // L^T u = w
+      double s = z[j];
+      for (Eigen::Index i = j + 1; i < n; ++i) s -= A[i + j * n] * z[i];
+      z[j] = s;
+    }
+    for (Eigen::Index k = n - 1; k >= 0; --k)  // z = P^T u
+      if (piv_[k] != k) std::swap(z[k], z[piv_[k]]);
+  }
+
+  // Upper bound of ||K^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1, each
+  // bounded through the comparison matrix, |T^-1| <= M(T)^-1 elementwise for
+  // triangular T (Higham, Accuracy and Stability of Numerical Algorithms, 2002,
+  // Thm 8.12), so ||T^-1||_1 <= max(M(T)^-T e): one small triangular solve each.
+  // A relative margin covers its own round-off.
+  double lu_inverse_norm_bound() {
+    const Eigen::Index n = K_.rows();
+    const double *A = K_.data();
+    double bu = 0.0, bl = 0.0;
+    for (Eigen::Index j = 0; j < n; ++j) {  // M(U)^T y = e, forward
+      double s = 1.0;
+      for (Eigen::Index i = 0; i < j; ++i) s += std::abs(A[i + j * n]) * est_y_[i];
+      est_y_[j] = s / std::abs(A[j + j * n]);
+      bu = std::max(bu, est_y_[j]);
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // M(L)^T y = e, backward (unit diagonal)
+      double s = 1.0;
+      for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(A[i + j * n]) * est_z_[i];
+      est_z_[j] = s;
+      bl = std::max(bl, s);
+    }
+    return bu * bl * (1.0 + INVERSE_BOUND_MARGIN);
   }
 
   // Reciprocal 1-norm condition estimate of the factored K (Hager / Higham, the
@@ -347,12 +604,12 @@ class Core {
     double est = 0.0;
     Eigen::Index jlast = -1;
     for (int it = 0; it < 5; ++it) {
-      est_y_.noalias() = lu_.solve(est_x_);  // y = K^-1 x
+      lu_solve(est_x_, est_y_);  // y = K^-1 x
       const double e = est_y_.lpNorm<1>();
       if (it > 0 && e <= est) break;
       est = e;
       for (Eigen::Index i = 0; i < n; ++i) est_y_[i] = est_y_[i] >= 0 ? 1.0 : -1.0;
-      est_z_.noalias() = lu_.transpose().solve(est_y_);  // z = K^-T sign(y)
+      lu_solve_transposed(est_y_, est_z_);  // z = K^-T sign(y)
       Eigen::Index j;
       est_z_.cwiseAbs().maxCoeff(&j);
       if (it > 0 && j == jlast) break;
@@ -363,7 +620,7 @@ class Core {
     // Higham's alternating-sign vector guards against underestimation.
     for (Eigen::Index i = 0; i < n; ++i)
       est_x_[i] = (i % 2 ? -1.0 : 1.0) * (1.0 + static_cast<double>(i) / std::max<Eigen::Index>(n - 1, 1));
-    est_y_.noalias() = lu_.solve(est_x_);
+    lu_solve(est_x_, est_y_);
     est = std::max(est, 2.0 * est_y_.lpNorm<1>() / (3.0 * static_cast<double>(n)));
     return est > 0 ? 1.0 / (est * anorm) : 0.0;
   }
@@ -516,12 +773,7 @@ class Core {
       M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
       M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
       h_ = data_.nle;
-      if (method_ == KKT)
-        solve_kkt(q, tau, 0.0);
-      else if (method_ == SCHUR)
-        solve_schur(q, tau, 0.0);
-      else
-        solve_nullspace(q, tau, 0.0);
+      dispatch(q, tau, 0.0);
       auto c6 = clock::now();
       t_fk += ns(c0, c1);
       t_crba += ns(c1, c2);
@@ -552,43 +804,149 @@ class Core {
     return std::sqrt(ev[nc_ - 1] / ev[0]);
   }
 
+  // The step's checks at q (Problem.check_regular and LoopClosure.check_rows of the
+  // numpy backend), plus the drift limit over every declared row at every step:
+  // - every declared row (dropped ones too) within drift_limit, else SimulationFailure
+  //   naming the row;
+  // - a dropped row open by more than max(dropped_row_tol, dropped_row_ratio x the kept
+  //   rows' residual), or kept rows degenerate (cond(J) > singular_cond while there are
+  //   dropped rows): RowCheckRequired (the Python side re-selects the rows);
+  // - unless singular_robust, cond(J) > singular_cond: SingularError.
   void check_regular(const RefV &q, double t) {
-    if (nc_ == 0) return;
-    eval_phi_J(q);
+    if (nc_ == 0 && drows_.empty()) return;
+    eval_phi_J(q);  // placements at q for the declared rows too
+    const int nd = static_cast<int>(drows_.size());
+    double res = 0.0, kept_res = 0.0, drop_res = 0.0;
+    int worst = -1, worst_drop = -1;
+    if (nd) {
+      declared_phi();
+      for (int r = 0; r < nd; ++r) {
+        const double x = std::abs(dphi_[r]);
+        if (!(x <= res)) {  // NaN is the worst
+          res = x;
+          worst = r;
+        }
+        if (dkept_[r]) {
+          kept_res = std::max(kept_res, x);
+        } else if (!(x <= drop_res)) {
+          drop_res = x;
+          worst_drop = r;
+        }
+      }
+    } else {
+      res = nc_ ? phi_.cwiseAbs().maxCoeff() : 0.0;
+    }
+    if (!std::isfinite(res) || res > drift_limit_)
+      throw SimulationFailure{
+          name_ + ": the state left the constraint manifold at t = " + fmt("%.9g", t) +
+              " s (max |phi| = " + fmt("%.3e", res) + " > drift_limit " +
+              fmt("%.1e", drift_limit_) + (worst >= 0 ? ", row " + dlabels_[worst] : "") +
+              "); use a stabilization or a smaller step",
+          t};
+    const bool has_dropped = nd > nc_;
+    if (has_dropped && drop_res > std::max(dropped_tol_, dropped_ratio_ * kept_res))
+      throw RowCheckRequired{"dropped row " + dlabels_[worst_drop] + " open by " +
+                                 fmt("%.3e", drop_res) + " (kept rows " + fmt("%.3e", kept_res) +
+                                 ") at t = " + fmt("%.9g", t) + " s",
+                             t};
+    if (singular_robust_ || nc_ == 0) return;
     double cond = cond_J();
     if (!(cond <= singular_cond_)) {
+      if (has_dropped && declared_cond() <= singular_cond_)
+        throw RowCheckRequired{"kept rows degenerate (condition number " + fmt("%.3e", cond) +
+                                   ") at t = " + fmt("%.9g", t) + " s",
+                               t};
       std::string msg =
           name_ + ": at t = " + fmt("%.9g", t) +
-          " s the constraint Jacobian is close to losing rank (condition number " +
-          fmt("%.3e", cond) + " > singular_cond " + fmt("%.1e", singular_cond_) +
-          "): a singular configuration, where the motion is not determined by the equations; "
-          "a fixed-step integrator with stabilization='partitioning' can step across some "
-          "(see SimulationSettings)";
+          " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
+          " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
+          fmt("%.1e", singular_cond_) +
+          "): a singular configuration, where the motion is not determined by the equations "
+          "and method '" + method_name_ + "' loses accuracy without any error estimate "
+          "noticing; to pass singular positions use method='augmented-lagrangian' with "
+          "stabilization='stage-projection' (and a fixed-step integrator)";
       throw SingularError{msg, cond, t, Vec(q)};
     }
   }
 
+  // Condition number of the nc largest singular values of the declared rows' J at the
+  // last eval_phi_J (LoopClosure.check_rows): above singular_cond the mechanism itself
+  // is singular there, no re-selection of rows helps.
+  double declared_cond() {
+    const int nd = static_cast<int>(drows_.size());
+    Mat Jd(nd, nv_);  // only where the kept rows degenerate: not the hot path
+    for (int r = 0; r < nd; ++r) {
+      const Row &row = drows_[r];
+      const int P = row.p, S = row.s;
+      if (row.kind != 2) {
+        const Vector3d d = p_[P] - p_[S];
+        const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
+        Jd.row(r) = U.transpose() * Jf_[P].topRows<3>() - U.transpose() * Jf_[S].topRows<3>();
+        if (row.kind == 1) Jd.row(r) += U.cross(d).transpose() * Jf_[P].bottomRows<3>();
+      } else {
+        const Vector3d U = R_[P] * row.n, W = R_[S] * row.w;
+        const Vector3d WxU = W.cross(U);
+        Jd.row(r) = WxU.transpose() * Jf_[S].bottomRows<3>() - WxU.transpose() * Jf_[P].bottomRows<3>();
+      }
+    }
+    Eigen::JacobiSVD<Mat> svd(Jd);
+    const Vec &sv = svd.singularValues();
+    if (nc_ == 0 || sv.size() < nc_ || !(sv[nc_ - 1] > 0))
+      return std::numeric_limits<double>::infinity();
+    return sv[0] / sv[nc_ - 1];
+  }
+
+  // phi of every declared row from the placements of the last kinematics pass.
+  void declared_phi() {
+    for (std::size_t r = 0; r < drows_.size(); ++r) {
+      const Row &row = drows_[r];
+      if (row.kind != 2) {
+        const Vector3d d = p_[row.p] - p_[row.s];
+        dphi_[r] = row.kind == 0 ? row.n.dot(d) : (R_[row.p] * row.n).dot(d);
+      } else {
+        dphi_[r] = (R_[row.p] * row.n).dot(R_[row.s] * row.w);
+      }
+    }
+  }
+
   // Minimum-norm solution x of J x = b (J full row rank): J^T (J J^T)^-1 b.
+  // Where J J^T is ill-conditioned (J nearly rank-deficient, e.g. passing a singular
+  // position with stage projection) it is numpy.linalg.lstsq's minimum-norm solution
+  // from the SVD, singular values below eps max(nc, nv) s_max treated as zero.
   void min_norm(const Vec &b, Vec &x) {
     JJt_.noalias() = J_ * J_.transpose();
     llt_c_.compute(JJt_);
-    tmp_c_ = llt_c_.solve(b);
-    x.noalias() = J_.transpose() * tmp_c_;
+    if (llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND) {
+      tmp_c_ = b;
+      llt_c_.solveInPlace(tmp_c_);
+      x.noalias() = J_.transpose() * tmp_c_;
+      return;
+    }
+    svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    const Vec &sv = svd_.singularValues();
+    const double cut = std::numeric_limits<double>::epsilon() * std::max(nc_, nv_) *
+                       (sv.size() ? sv[0] : 0.0);
+    x.setZero();
+    for (Eigen::Index i = 0; i < sv.size(); ++i)
+      if (sv[i] > cut)
+        x += (svd_.matrixU().col(i).dot(b) / sv[i]) * svd_.matrixV().col(i);
   }
 
   // Gauss-Newton (minimum-norm) projection of q onto phi = 0, then v onto J v = 0.
   void project(Vec &q, Vec &v) {
     if (nc_ == 0) return;
     for (int it = 0; it < projection_iters_; ++it) {
-      eval_phi(q);
-      if (phi_.cwiseAbs().maxCoeff() <= projection_tol_) break;
       eval_phi_J(q);
-      min_norm(-phi_, dq_);
-      pinocchio::integrate(model_, Vec(q), dq_, q);
+      if (phi_.cwiseAbs().maxCoeff() <= projection_tol_) break;
+      tmp_c_ = -phi_;
+      min_norm(tmp_c_, dq_);
+      q_prev_ = q;
+      pinocchio::integrate(model_, q_prev_, dq_, q);
     }
     if (project_velocities_) {
       eval_phi_J(q);
-      min_norm(J_ * v, dq_);
+      vel_c_.noalias() = J_ * v;
+      min_norm(vel_c_, dq_);
       v -= dq_;
     }
   }
@@ -602,17 +960,33 @@ class Core {
 
   void record(Samples &out, double t, const Vec &q, const Vec &v) {
     // a_ and lam_ are those at (t, q, v)
+    // res: max |phi| over every declared row (a loop is never reported closed while
+    // a dropped row is open); vres: max |J v| over the kept rows.
     double res = 0.0, vres = 0.0;
-    if (nc_) {
+    int worst = -1;
+    if (nc_ || !drows_.empty()) {
       eval_phi_J(q);
-      res = phi_.cwiseAbs().maxCoeff();
-      vres = (J_ * v).cwiseAbs().maxCoeff();
+      if (!drows_.empty()) {
+        declared_phi();
+        for (Eigen::Index r = 0; r < dphi_.size(); ++r)
+          if (!(std::abs(dphi_[r]) <= res)) {
+            res = std::abs(dphi_[r]);
+            worst = static_cast<int>(r);
+          }
+      } else {
+        res = phi_.cwiseAbs().maxCoeff();
+      }
+      if (nc_) {
+        vel_c_.noalias() = J_ * v;
+        vres = vel_c_.cwiseAbs().maxCoeff();
+      }
     }
     if (!std::isfinite(res) || res > drift_limit_)
       throw SimulationFailure{
           name_ + ": the state left the constraint manifold at t = " + fmt("%.9g", t) +
               " s (max |phi| = " + fmt("%.3e", res) + " > drift_limit " +
-              fmt("%.1e", drift_limit_) + "); use a stabilization or a smaller step",
+              fmt("%.1e", drift_limit_) + (worst >= 0 ? ", row " + dlabels_[worst] : "") +
+              "); use a stabilization or a smaller step",
           t};
     double ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
     double pe = pinocchio::computePotentialEnergy(model_, data_, q);
@@ -693,18 +1067,21 @@ class Core {
         dv = (dt / 2) * k1v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k1a;
+        if (stage_projects_) project(qs, vs);
         accel(t + dt / 2, qs, vs);
         k2v = vs;
         k2a = a_;
         dv = (dt / 2) * k2v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k2a;
+        if (stage_projects_) project(qs, vs);
         accel(t + dt / 2, qs, vs);
         k3v = vs;
         k3a = a_;
         dv = dt * k3v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + dt * k3a;
+        if (stage_projects_) project(qs, vs);
         accel(t + dt, qs, vs);
         k4v = vs;
         k4a = a_;
@@ -952,8 +1329,8 @@ class Core {
   }
 
   void jacobians() {
+    // Columns outside a frame's support are never written: zero since construction.
     for (std::size_t k = 0; k < fids_.size(); ++k) {
-      Jf_[k].setZero();
       pinocchio::getFrameJacobian(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED, Jf_[k]);
     }
   }
@@ -968,7 +1345,8 @@ class Core {
         const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
         if (want_phi) phi_[r] = U.dot(d);
         if (want_J) {
-          J_.row(r).noalias() = U.transpose() * (Jf_[P].topRows<3>() - Jf_[S].topRows<3>());
+          J_.row(r).noalias() = U.transpose() * Jf_[P].topRows<3>();
+          J_.row(r).noalias() -= U.transpose() * Jf_[S].topRows<3>();
           if (row.kind == 1) J_.row(r).noalias() += U.cross(d).transpose() * Jf_[P].bottomRows<3>();
         }
         if (want_gamma) {
@@ -988,8 +1366,10 @@ class Core {
         const double UW = U.dot(W);
         if (want_phi) phi_[r] = UW;
         const Vector3d WxU = W.cross(U);
-        if (want_J)
-          J_.row(r).noalias() = WxU.transpose() * (Jf_[S].bottomRows<3>() - Jf_[P].bottomRows<3>());
+        if (want_J) {
+          J_.row(r).noalias() = WxU.transpose() * Jf_[S].bottomRows<3>();
+          J_.row(r).noalias() -= WxU.transpose() * Jf_[P].bottomRows<3>();
+        }
         if (want_gamma) {
           const Vector3d wp = vf_[P].tail<3>(), ws = vf_[S].tail<3>();
           const double pu = wp.dot(U), pw = wp.dot(W), su = ws.dot(U), sw = ws.dot(W);
@@ -1015,8 +1395,10 @@ class Core {
   Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
   Vec est_x_, est_y_, est_z_, z_;
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
-  Eigen::PartialPivLU<Mat> lu_;
-  Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
+  Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_, llt_p_;
+  Mat P_;
+  Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
+  std::vector<int> piv_;  // row swaps of lu_factor
   Eigen::JacobiSVD<Mat> svd_;
   Eigen::SelfAdjointEigenSolver<Mat> eig_;
   Method method_ = KKT;
@@ -1029,6 +1411,16 @@ class Core {
   bool project_velocities_ = true;
   double singular_cond_ = 1e3;
   double drift_limit_ = 1e-2;
+  double al_penalty_ = 1e11, al_tol_ = 1e-13;
+  int al_max_iter_ = 30;
+  bool stage_projects_ = false, singular_robust_ = false;
+  double dropped_tol_ = 1e-9, dropped_ratio_ = 100.0;
+  std::vector<Row> drows_;  // every declared row
+  std::vector<std::string> dlabels_;
+  Eigen::VectorXi dkept_;
+  Vec dphi_;
+  Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
+  bool J_at_valid_ = false;
   int tau_mode_ = 0;
   bp::object tau_obj_, np_asarray_;
   long n_evals_ = 0;
@@ -1045,6 +1437,7 @@ BOOST_PYTHON_MODULE(_core) {
   bp::register_exception_translator<SimulationFailure>(&translate_simulation);
   bp::register_exception_translator<BadArgument>(&translate_bad);
   register_lean_data();
+  bp::register_exception_translator<RowCheckRequired>(&translate_row_check);
   bp::scope().attr("EULER") = static_cast<int>(EULER);
   bp::scope().attr("SEMI_IMPLICIT") = static_cast<int>(SEMI_IMPLICIT);
   bp::scope().attr("RK4") = static_cast<int>(RK4);
@@ -1058,6 +1451,9 @@ BOOST_PYTHON_MODULE(_core) {
           bp::args("self", "model", "name", "kinds", "fid_p", "fid_s", "vec1", "vec2")))
       .def("configure", &Core::configure, bp::args("self", "settings"))
       .def("set_tau", &Core::set_tau, bp::args("self", "tau"))
+      .def("set_declared", &Core::set_declared,
+           bp::args("self", "kinds", "fid_p", "fid_s", "vec1", "vec2", "kept", "labels"),
+           "Every declared row (kept[i] = 1 for the rows the methods use), checked each step.")
       .def("rows", &Core::py_rows, bp::args("self", "q", "v"),
            "(phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.")
       .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")

@@ -259,7 +259,7 @@ def solve_augmented_lagrangian(
 
 @register(
     _NAME,
-    MethodCapabilities(baumgarte=True, singular_robust=True, redundant_rows=True),
+    MethodCapabilities(baumgarte=True, singular_robust=True, redundant_rows=True, compiled=True),
 )
 def augmented_lagrangian(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings

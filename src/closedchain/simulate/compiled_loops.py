@@ -1,13 +1,23 @@
 """Whole-trajectory integration in the compiled core (``backend="compiled"`` entries).
 
 The loops of :mod:`.fixed` and :mod:`.adaptive` (same output grid, projection,
-regularity check, drift limit, error control of scipy's RK45/DOP853 with the
-same dense output) run in C++; the right-hand side never enters Python unless
-``tau`` is a callable (then it is called from C++ under the GIL), and a
-progress callback is called after each step. Ctrl-C interrupts a run.
+stage projection, regularity check, drift limit, error control of scipy's
+RK45/DOP853 with the same dense output) run in C++; the right-hand side never
+enters Python unless ``tau`` is a callable (then it is called from C++ under
+the GIL), and a progress callback is called after each step. Ctrl-C
+interrupts a run.
+
+Each step checks every declared row (the dropped ones too): beyond
+``drift_limit`` the run stops with SimulationError naming the row and time;
+when a dropped row opens or the kept rows degenerate, the rows must be
+re-selected, which the numpy backend does: the loop raises
+:class:`closedchain.compiled.RowCheckRequired` and the request runs there from
+the start (logged; ``info["backend_fallback"]`` says why).
 """
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 
@@ -15,10 +25,19 @@ from .. import compiled
 from .fixed import output_grid
 from .problem import Problem
 
+logger = logging.getLogger(__name__)
 
-def _prepare(problem: Problem, info: dict):
+
+def _prepare(problem: Problem, info: dict, stab):
     core = compiled.make_core(problem.mech)
-    compiled.configure(core, info["method"], problem.solver_settings, problem.settings)
+    compiled.configure(
+        core,
+        info["method"],
+        problem.solver_settings,
+        problem.settings,
+        stage_projects=stab.projects_stages,
+        singular_robust=problem.singular_robust,
+    )
     core.set_tau(problem.tau_input)
     return core
 
@@ -29,26 +48,43 @@ def _finish(problem: Problem, recorder, out: dict) -> int:
     return int(out["steps"])
 
 
+def _numpy_fallback(exc, problem, recorder, args, spec, info) -> int:
+    """Run the request with the numpy loop of the same name (it re-selects the rows)."""
+    from .registry import INTEGRATORS
+
+    logger.info("%s: %s; the numpy backend re-selects the rows", problem.mech.name, exc)
+    info["backend"] = "numpy"
+    info["backend_fallback"] = str(exc)
+    problem.n_evals = 0
+    ref = INTEGRATORS[spec.name]
+    q0, v0, t_final, control, stab, t_eval, progress = args
+    return ref.run(problem, recorder, q0, v0, t_final, control, ref, stab, t_eval, progress, info)
+
+
 def run_fixed_compiled(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
     """Fixed-step loop in C++ (euler, semi-implicit, rk4); return the number of steps."""
-    core = _prepare(problem, info)
+    core = _prepare(problem, info, stab)
     dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
     info["dt"] = dt
-    out = core.run_fixed(
-        compiled.INTEGRATOR_CODES[spec.name],
-        np.asarray(q, dtype=float),
-        np.asarray(v, dtype=float),
-        float(dt),
-        int(n_steps),
-        # None: every step is an output.
-        np.arange(n_steps + 1, dtype=np.int32)
-        if out_steps is None
-        else np.asarray(out_steps, dtype=np.int32),
-        bool(stab.projects),
-        progress,
-    )
+    try:
+        out = core.run_fixed(
+            compiled.INTEGRATOR_CODES[spec.name],
+            np.asarray(q, dtype=float),
+            np.asarray(v, dtype=float),
+            float(dt),
+            int(n_steps),
+            # None: every step is an output.
+            np.arange(n_steps + 1, dtype=np.int32)
+            if out_steps is None
+            else np.asarray(out_steps, dtype=np.int32),
+            bool(stab.projects),
+            progress,
+        )
+    except compiled.RowCheckRequired as exc:
+        args = (q, v, t_final, control, stab, t_eval, progress)
+        return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, recorder, out)
 
 
@@ -56,16 +92,20 @@ def run_adaptive_compiled(
     problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
     """Adaptive Dormand-Prince loop in C++ (RK45, DOP853); return the number of steps."""
-    core = _prepare(problem, info)
-    out = core.run_adaptive(
-        compiled.INTEGRATOR_CODES[spec.name],
-        np.asarray(q0, dtype=float),
-        np.asarray(v0, dtype=float),
-        float(t_final),
-        float(control.rtol),
-        float(control.atol),
-        None if t_eval is None else np.asarray(t_eval, dtype=float),
-        bool(stab.projects),
-        progress,
-    )
+    core = _prepare(problem, info, stab)
+    try:
+        out = core.run_adaptive(
+            compiled.INTEGRATOR_CODES[spec.name],
+            np.asarray(q0, dtype=float),
+            np.asarray(v0, dtype=float),
+            float(t_final),
+            float(control.rtol),
+            float(control.atol),
+            None if t_eval is None else np.asarray(t_eval, dtype=float),
+            bool(stab.projects),
+            progress,
+        )
+    except compiled.RowCheckRequired as exc:
+        args = (q0, v0, t_final, control, stab, t_eval, progress)
+        return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, recorder, out)

@@ -124,6 +124,7 @@ def run_fixed(
             problem.check_regular(q_new, t)  # checks every declared row too
         else:
             problem.check_rows(q_new, t)
+        recorder.declared_residual(t, q_new)  # drift limit, every declared row, every step
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
         if outputs.take(k):

@@ -266,7 +266,8 @@ class Recorder:
         self.drift_limit = drift_limit
         self.jacobian = jacobian  # J(q), shared with the problem's memo
         self.rows: dict[str, list] = {
-            k: [] for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke", "branch")
+            k: []
+            for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke", "branch", "branch_t")
         }
         self._phi = np.zeros(mech.declared.nc)
         self.dep = np.array(mech.dependent_idx_v, dtype=int)
@@ -311,33 +312,39 @@ class Recorder:
         r["vres"].append(vres)
         r["e"].append(energy)
         r["ke"].append(kinetic)
+        self._add_branch(t, J)
+
+    def _add_branch(self, t: float, J: np.ndarray) -> None:
+        """Record the sign of det(J_D) at the sample just added (time t, Jacobian J)."""
+        mech, r = self.mech, self.rows
         if mech.nc and len(self.dep) == mech.nc:
             # Sign of det(J_D): flips only through a singular J_D (assembly branch).
             sign = float(np.linalg.slogdet(J[:, self.dep])[0])
             if r["branch"] and sign != r["branch"][-1]:
-                self.branch_changes.append([r["t"][-2], t, r["branch"][-1], sign])
+                self.branch_changes.append([r["branch_t"][-1], t, r["branch"][-1], sign])
             r["branch"].append(sign)
+            r["branch_t"].append(t)
 
     def extend(self, samples: dict) -> None:
-        """Append samples computed elsewhere (the compiled loops), checked the same way.
+        """Append samples computed elsewhere (the compiled loops).
 
-        The compiled loop reports the residual of the kept rows; here it is
-        recomputed over every declared row at each output sample (a loop is
-        never reported closed while a dropped row is open), with the same
-        drift-limit check as :meth:`add`.
+        The compiled loop has checked them as :meth:`add` does: ``res`` is max
+        |phi| over every declared row (dropped ones included), within
+        ``drift_limit`` at every step, not only at the outputs.
 
         Args:
             samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
         """
-        times = np.asarray(samples["t"], dtype=float).ravel()
-        qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
-        res = [self.declared_residual(float(t), q) for t, q in zip(times, qs, strict=True)]
         r = self.rows
-        r["res"].extend(res)
-        for key in ("t", "vres", "e", "ke"):
+        for key in ("t", "res", "vres", "e", "ke"):
             r[key].extend(np.asarray(samples[key]).ravel().tolist())
         for key in ("q", "v", "a", "lam"):
             r[key].extend(np.asarray(samples[key]))
+        if self.mech.nc and len(self.dep) == self.mech.nc:  # the branch series, as in add
+            times = np.asarray(samples["t"], dtype=float).ravel()
+            qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
+            for t, q in zip(times, qs, strict=True):
+                self._add_branch(float(t), self.jacobian(q))
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows

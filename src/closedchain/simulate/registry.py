@@ -199,8 +199,9 @@ register_integrator(
     )
 )
 
-# The compiled core's loops: same names, same semantics, fewer stabilizations
-# (partitioning stays in Python); registered only when the core imports.
+# The compiled core's loops: same names, same semantics, the numpy entry's
+# stabilizations but partitioning (it stays in Python); registered only when the
+# core imports.
 if compiled.available():
     for _name, _kind, _order, _run in (
         ("euler", "fixed", 1, compiled_loops.run_fixed_compiled),
@@ -217,7 +218,7 @@ if compiled.available():
                 _run,
                 _order,
                 backend="compiled",
-                stabilizations=("none", "baumgarte", "projection"),
+                stabilizations=tuple(s for s in _ref.stabilizations if s != "partitioning"),
                 vector_state=_ref.vector_state,
                 default_stabilization=_ref.default_stabilization,
                 description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
