@@ -12,7 +12,7 @@ Each step checks every declared row (the dropped ones too): beyond
 when a dropped row opens or the kept rows degenerate, the rows must be
 re-selected, which the numpy backend does: the loop raises
 :class:`closedchain.compiled.RowCheckRequired` and the request runs there from
-the start (logged; ``info["backend_fallback"]`` says why).
+the start (logged; ``info.backend_fallback`` says why).
 """
 
 from __future__ import annotations
