@@ -536,15 +536,35 @@ def load(
     closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
     mech = Mechanism(urdf, model, closure, gravity)
     mech.root_joint = root_joint
-    _select_rows_and_coordinates(mech, settings, q_guess=reference_configuration(model, entry))
+    starts = []
+    if urdf.scene is not None and urdf.scene.initial:
+        # The default scene's start is a configuration along the motion: sampling from
+        # it too finds the generic rank where random starts land near singular ones
+        # (the N-four-bar's random assemblies fall onto its flat positions, where every
+        # loop loses a row: without it 77 of 80 rows were kept for N = 40).
+        scene_q = pin.neutral(model)
+        for name, value in urdf.scene.initial.items():
+            scene_q[model.joints[model.getJointId(name)].idx_q] = value
+        starts.append(scene_q)
+    _select_rows_and_coordinates(
+        mech, settings, q_guess=reference_configuration(model, entry), extra_starts=starts
+    )
     logger.info("loaded %r", mech)
     return mech
 
 
 def _select_rows_and_coordinates(
-    mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
+    mech: Mechanism,
+    settings: LoadSettings,
+    *,
+    q_guess: np.ndarray | None = None,
+    extra_starts: Sequence[np.ndarray] = (),
 ) -> None:
-    """Sample configurations along the motion, select rows, assemble q_ref, partition."""
+    """Sample configurations along the motion, select rows, assemble q_ref, partition.
+
+    The samples start from ``q_guess`` (else the neutral configuration), then
+    ``extra_starts`` (the default scene's start), then random configurations.
+    """
     model, data, closure = mech.model, mech.data, mech.closure
     if closure.declared.nc == 0:
         return
@@ -555,7 +575,7 @@ def _select_rows_and_coordinates(
         closure.declared,
         lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
         sel,
-        first=[pin.neutral(model) if q_guess is None else q_guess],
+        first=[pin.neutral(model) if q_guess is None else q_guess, *extra_starts],
     )
     if not samples:
         assert best is not None
