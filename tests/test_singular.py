@@ -311,3 +311,32 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechani
     assert changes, "the motion left the change point on the other assembly branch"
     t_before, t_after, _, _ = changes[0]
     assert t_before <= 0.393 + 0.02 and t_after >= 0.393 - 0.02
+
+
+# -- banded solves (many loops) -----------------------------------------------------------
+
+#: Loops of the N-four-bar whose P = M + alpha J^T J and J J^T are banded (nv > 8).
+BANDED_N = 10
+
+
+def test_banded_solves_agree_with_dense_ones(nfourbar_mech, rng):
+    """N = 10: the augmented Lagrangian on the banded factorization of M + alpha J^T J
+    agrees with kkt (dense LU), and the banded normal equations give lstsq's minimum-norm
+    correction (the projections' Gauss-Newton step)."""
+    from closedchain.dynamics.augmented_lagrangian import NormalSolver, PenalizedSolver
+
+    mech = nfourbar_mech(BANDED_N)
+    assert PenalizedSolver(mech).banded
+    normal = NormalSolver(mech)
+    assert normal.banded and normal.bandwidth < mech.nc // 4
+    for _ in range(5):
+        q, v = cc.random_consistent_state(mech, rng)
+        ref_res = cc.forward_dynamics(mech, q, v, method="kkt")
+        res = cc.forward_dynamics(mech, q, v, method="augmented-lagrangian")
+        assert np.linalg.norm(res.a - ref_res.a) <= METHOD_AGREEMENT_TOL
+        force = res.generalized_constraint_force() - ref_res.generalized_constraint_force()
+        assert np.linalg.norm(force) <= METHOD_AGREEMENT_TOL
+        J = cc.compute_jacobian(mech, q)
+        r = rng.normal(size=mech.nc)
+        step = J.T @ normal.solve(J, r)
+        assert np.linalg.norm(step - np.linalg.lstsq(J, r, rcond=None)[0]) <= METHOD_AGREEMENT_TOL

@@ -151,12 +151,28 @@ def run_ali3p(
             # Mass-orthogonal projections (Cuadrado et al. 2000), with the factorization
             # of P at q_{n+1} from the last evaluation.
             v_new, _, _ = solve_augmented_lagrangian(
-                solver, M, J, M @ v_new, np.zeros(nc), alpha, tol=al_tol, max_iter=al_max_iter
+                solver,
+                M,
+                J,
+                M @ v_new,
+                np.zeros(nc),
+                alpha,
+                tol=al_tol,
+                max_iter=al_max_iter,
+                polish=False,
             )
             pin.forwardKinematics(model, data, q_new, v_new, zero_v)
             layer.evaluate(model, data, gamma=gamma)
             a_new, _, _ = solve_augmented_lagrangian(
-                solver, M, J, M @ a_new, gamma, alpha, tol=al_tol, max_iter=al_max_iter
+                solver,
+                M,
+                J,
+                M @ a_new,
+                gamma,
+                alpha,
+                tol=al_tol,
+                max_iter=al_max_iter,
+                polish=False,
             )
         q, v, a = q_new, v_new, a_new
         t = t_new
