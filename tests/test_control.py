@@ -203,7 +203,7 @@ def test_nfourbar_scene_is_the_benchmark_start(load_mechanism):
 def test_scene_velocity_with_a_track_is_refused(mechanism_files, tmp_path):
     text = mechanism_files["agile_eye"].read_text()
     path = tmp_path / "eye.urdf"
-    path.write_text(text.replace("<scene>", '<scene>\n    <initial joint="platform_yaw" '
-                                 'value="0" velocity="1"/>', 1))
+    initial = '<scene>\n    <initial joint="platform_yaw" value="0" velocity="1"/>'
+    path.write_text(text.replace("<scene>", initial, 1))
     with pytest.raises(cc.ClosedChainError, match=r"velocity=.*is for passive scenes"):
         cc.load(path)

@@ -458,9 +458,9 @@ class ConstraintLayer:
                 phi[tr.rows] = UW
         if J is not None:
             Jf = np.array([pin.getFrameJacobian(model, data, f, _LWA) for f in fids])
-            J[tt.rows] = np.einsum(
-                "ri,rin->rn", U, Jf[tt.pred, :3] - Jf[tt.succ, :3]
-            ) + np.einsum("ri,rin->rn", _cross(U, d), Jf[tt.pred, 3:])
+            J[tt.rows] = np.einsum("ri,rin->rn", U, Jf[tt.pred, :3] - Jf[tt.succ, :3]) + np.einsum(
+                "ri,rin->rn", _cross(U, d), Jf[tt.pred, 3:]
+            )
             if tr is not None:
                 J[tr.rows] = np.einsum(
                     "ri,rin->rn", _cross(Wr, Ur), Jf[tr.succ, 3:] - Jf[tr.pred, 3:]
