@@ -182,10 +182,11 @@ def _b0_error_and_drift(mech, traj, n):
 #: "Singular positions"; ``scripts/nfourbar_cost.py --full`` prints the same numbers).
 NFOURBAR_N = (1, 2, 5, 10, 20, 40)
 NFOURBAR_IN_CI = (1, 2)
-#: ALI3-P's step for the 20 s runs [s]: second order, its B0 error at 1 ms is 7.8e-6 m
-#: (N = 2), so 1e-6 m takes a quarter of it (measured 4.9e-7 m); minutes on numpy for
-#: every N, so all its 20 s runs are benchmark runs (the slow set keeps 2 s at 1 ms).
-ALI3P_DT = 2.5e-4
+#: ALI3-P's step for the 20 s runs [s]: second order, its B0 error at 20 s is 1.3e-5 m at
+#: 1 ms and 8.2e-7 m at 0.25 ms (N = 1), so 1e-6 m takes 0.2 ms; that is a minute or more
+#: of CPU on numpy for every N, so all its 20 s runs are benchmark runs (the slow set keeps
+#: test_ali3p_passes_the_flat_positions: 2 s at 1 ms).
+ALI3P_DT = 2e-4
 
 
 def _nfourbar_params(in_ci: tuple[int, ...]):
