@@ -197,6 +197,12 @@ DEFAULT_MISSES = {
 }
 
 
+ALI3P_MISSES = {
+    5: "SimulationError at t = 6.59 s: Newton stalls at a correction of 6.9e-10 m > "
+    "ali3p_tol near a flat position: README, Singular positions",
+}
+
+
 def _nfourbar_params(in_ci: tuple[int, ...], misses: dict[int, str]):
     params = []
     for n in NFOURBAR_N:
@@ -245,7 +251,7 @@ def test_nfourbar_default_configuration(nfourbar_mech, n):
     _check_benchmark(mech, traj, n)
 
 
-@pytest.mark.parametrize("n", _nfourbar_params((), {}))
+@pytest.mark.parametrize("n", _nfourbar_params((), ALI3P_MISSES))
 def test_nfourbar_ali3p(nfourbar_mech, n):
     """20 s of the benchmark with ALI3-P (augmented-lagrangian, mass-orthogonal) at
     ALI3P_DT: see :func:`_check_benchmark`."""
