@@ -384,6 +384,7 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechani
 BANDED_N = 10
 
 
+@pytest.mark.slow
 def test_banded_solves_agree_with_dense_ones(nfourbar_mech, rng):
     """N = 10: the augmented Lagrangian on the banded factorization of M + alpha J^T J
     agrees with kkt (dense LU), and the banded normal equations give lstsq's minimum-norm
