@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -563,7 +563,8 @@ def _select_rows_and_coordinates(
     """Sample configurations along the motion, select rows, assemble q_ref, partition.
 
     The samples start from ``q_guess`` (else the neutral configuration), then
-    ``extra_starts`` (the default scene's start), then random configurations.
+    random configurations; the samples from ``extra_starts`` (the default scene's
+    start) are added to them for the row selection only.
     """
     model, data, closure = mech.model, mech.data, mech.closure
     if closure.declared.nc == 0:
@@ -575,8 +576,20 @@ def _select_rows_and_coordinates(
         closure.declared,
         lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
         sel,
-        first=[pin.neutral(model) if q_guess is None else q_guess, *extra_starts],
+        first=[pin.neutral(model) if q_guess is None else q_guess],
     )
+    if extra_starts:
+        # Sampled apart and appended: q_ref, its fallback (the first sample) and the
+        # random samples stay what they are without the extra starts.
+        extra, _ = sample_configurations(
+            model,
+            data,
+            closure.declared,
+            lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
+            replace(sel, n_samples=len(extra_starts), max_attempts=len(extra_starts)),
+            first=list(extra_starts),
+        )
+        samples = samples + extra
     if not samples:
         assert best is not None
         pin.forwardKinematics(model, data, best.q)
