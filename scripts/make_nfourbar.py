@@ -33,6 +33,12 @@ Each rod is a thin rod (inertia m L^2 / 12 about its centre across the rod, 0
 along it). The first crank is actuated (<transmission>), so it is the
 independent coordinate.
 
+The benchmark's initial state is the model's default scene (``<scene>``): the
+cranks vertical, the couplers horizontal, crank 0 at -1 rad/s (so
+``closedchain simulate models/nfourbar_<N>.urdf --t-final 20`` runs the
+benchmark). The reference configuration q_ref stays the neutral one, which is
+the flat (singular) position.
+
 Run:  python scripts/make_nfourbar.py N [--out PATH]   (default models/nfourbar_<N>.urdf)
 """
 
@@ -49,6 +55,9 @@ MASS = 1.0  # [kg], every rod
 #: Joint limit [rad]: the cranks turn for many revolutions (limits only bound sampling).
 LIMIT = 6.283185307179586
 AXIS = "0 -1 0"
+HALF_PI = 1.5707963267948966  # [rad], crank angle at t = 0 (vertical)
+#: Crank rate at t = 0 [rad/s]: the benchmark's 1 rad/s, turning world z towards world x.
+CRANK_RATE = -1.0
 ROD_WIDTH = 0.03  # [m], visual only
 
 
@@ -139,6 +148,17 @@ def build(n: int) -> str:
   </loop>
 """
         )
+    # The benchmark's start as the default scene: cranks vertical, couplers horizontal
+    # (guesses assembled holding crank 0), crank 0 turning at -1 rad/s (the couplers move
+    # at +1 m/s along world x; the other cranks take the velocity with J v = 0).
+    parts.append("  <scene>\n")
+    parts.append(
+        f'    <initial joint="crank_{k(0)}_joint" value="{HALF_PI!r}" velocity="{CRANK_RATE!r}"/>\n'
+    )
+    for i in range(1, n + 1):
+        parts.append(f'    <initial joint="crank_{k(i)}_joint" value="{HALF_PI!r}"/>\n')
+        parts.append(f'    <initial joint="coupler_{k(i)}_joint" value="{-HALF_PI!r}"/>\n')
+    parts.append("  </scene>\n")
     parts.append(
         f"""  <transmission name="crank_{k(0)}_transmission">
     <type>transmission_interface/SimpleTransmission</type>

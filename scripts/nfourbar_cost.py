@@ -1,32 +1,41 @@
 """Cost per step of simulate on the N-four-bar (IFToMM A02) against N, and its growth exponent.
 
 For each N the script writes the model (scripts/make_nfourbar.py), runs a short
-horizon of a configuration (default: simulate's default method, integrator and
-stabilization at dt = 2 ms) and reports CPU time per step and per dynamics
-evaluation; the growth exponent is the slope of log(cost per step) against
-log(N) by least squares over the N given. With ``--full`` it also runs the
-benchmark's 20 s and reports the B0 error against the quadrature reference
+horizon of a configuration (default: simulate's defaults, i.e. method
+augmented-lagrangian, rk4, dt = 1 ms, stage-projection; each option given
+overrides one) and reports CPU time per step and per dynamics evaluation; the
+growth exponent is the slope of log(cost per step) against log(N) by least
+squares over the N given. With ``--full`` it also runs the benchmark's 20 s
+and reports its CPU time, the B0 error against the quadrature reference
 (tests/nfourbar_reference.py) and the relative energy drift.
 
+BLAS runs on one thread (OPENBLAS_NUM_THREADS=1 unless set): on a shared
+2-core machine OpenBLAS's threads spin on the small solves and triple the CPU
+time of a step (measured at N = 40: 93 ms against 30 ms per rk4 step).
+
 Run:
-    PYTHONPATH=src python scripts/nfourbar_cost.py [--n 1 2 5 10 20 40] [--t 0.2]
-        [--integrator rk4] [--dt 2e-3] [--method augmented-lagrangian] [--full] [--json]
+    python scripts/nfourbar_cost.py [--n 1 2 5 10 20 40] [--t 0.2]
+        [--integrator ali3p] [--dt 2.5e-4] [--method proximal] [--full] [--json]
 
 Prints tidy rows (one per N), then the exponent.
 """
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
-import json
-import logging
-import sys
-import tempfile
-import time
-from pathlib import Path
+import os
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
+
+import argparse  # noqa: E402
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
@@ -52,10 +61,11 @@ def measure(n: int, args, folder: Path) -> dict:
     path.write_text(_generator().build(n))
     mech = cc.load(path)
     q0, v0 = ref.initial_state(mech)
-    kw = dict(method=args.method, integrator=args.integrator, dt=args.dt)
-    if args.stabilization:
-        kw["stabilization"] = args.stabilization
-    cc.simulate(mech, q0, v0, 5 * args.dt, **kw)  # warm-up: buffers, imports
+    given = dict(
+        method=args.method, integrator=args.integrator, dt=args.dt, stabilization=args.stabilization
+    )
+    kw = {k: v for k, v in given.items() if v is not None}
+    cc.simulate(mech, q0, v0, 0.005, **kw)  # warm-up: buffers, imports
     t0 = time.process_time()
     traj = cc.simulate(mech, q0, v0, args.t, **kw)
     cpu = time.process_time() - t0
@@ -68,11 +78,16 @@ def measure(n: int, args, folder: Path) -> dict:
         "cpu_s": cpu,
         "us_per_step": 1e6 * cpu / steps,
         "us_per_eval": 1e6 * cpu / max(traj.info.evaluations, 1),
+        "method": traj.info.method,
+        "integrator": traj.info.integrator,
+        "stabilization": traj.info.stabilization,
+        "dt": traj.info.dt,
     }
     if args.full:
         t0 = time.process_time()
-        full = cc.simulate(mech, q0, v0, 20.0, t_eval=np.linspace(0.0, 20.0, 21), **kw)
+        full = cc.simulate(mech, q0, v0, 20.0, t_eval=np.linspace(0.0, 20.0, 201), **kw)
         row["cpu_20s"] = time.process_time() - t0
+        row["us_per_step_20s"] = 1e6 * row["cpu_20s"] / full.info["steps"]
         theta = ref.crank_angle(n, 20.0)
         row["b0_error_m"] = float(np.linalg.norm(ref.point_b0(full.q[-1, 0]) - ref.point_b0(theta)))
         row["energy_drift"] = float(
@@ -85,10 +100,10 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 5, 10, 20, 40])
     p.add_argument("--t", type=float, default=0.2, help="horizon of the cost runs [s]")
-    p.add_argument("--method", default="augmented-lagrangian")
-    p.add_argument("--integrator", default="rk4")
-    p.add_argument("--stabilization", default=None)
-    p.add_argument("--dt", type=float, default=2e-3)
+    p.add_argument("--method", default=None, help="default: simulate's")
+    p.add_argument("--integrator", default=None, help="default: simulate's")
+    p.add_argument("--stabilization", default=None, help="default: the integrator's")
+    p.add_argument("--dt", type=float, default=None, help="[s], default: simulate's")
     p.add_argument("--full", action="store_true", help="also run 20 s against the reference")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)

@@ -19,6 +19,24 @@ import pytest
 
 import closedchain as cc
 
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--run-benchmark",
+        action="store_true",
+        help="also run the tests marked benchmark (minutes of CPU each on the numpy path)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--run-benchmark"):
+        return
+    skip = pytest.mark.skip(reason="benchmark: run with pytest --run-benchmark")
+    for item in items:
+        if "benchmark" in item.keywords:
+            item.add_marker(skip)
+
+
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 DATA_DIR = Path(__file__).resolve().parent / "data"

@@ -339,3 +339,63 @@ def test_agile_eye_translation_rows_vanish_identically(agile_eye, rng):
         assert len(translation) == 9
         assert np.linalg.norm(phi[translation]) <= 1e-15
         assert np.linalg.norm(J[translation]) <= 1e-15
+
+
+# -- the batched evaluation (many loops) --------------------------------------------------
+
+#: The batched and the per-loop evaluation are the same formulas: round-off apart.
+TOL_BATCHED = 1e-13
+
+
+def _evaluate_all(mech, layer, q, v):
+    pin.computeAllTerms(mech.model, mech.data, q, v)
+    out = np.zeros(layer.nc), np.zeros((layer.nc, mech.nv)), np.zeros(layer.nc)
+    layer.evaluate(mech.model, mech.data, phi=out[0], J=out[1], gamma=out[2])
+    return out
+
+
+@pytest.mark.parametrize("name", ALL_MECHANISMS)
+def test_batched_evaluation_is_the_per_loop_one(load_mechanism, rng, monkeypatch, name):
+    """Every loop type: phi, J, gamma of all rows at once (as for many loops) equal the
+    per-loop evaluation, forced by setting the loop-count threshold to zero."""
+    import closedchain.constraints as constraints
+
+    mech = load_mechanism(name)
+    for layer in (mech.constraints, mech.declared):
+        assert layer._tt is None  # few loops: the per-loop path
+        if not any(r.unit == "m" for r in layer.rows):
+            continue  # rotation rows only: always batched
+        states = sample_states(mech, rng)
+        per_loop = [_evaluate_all(mech, layer, q, v) for q, v in states]
+        monkeypatch.setattr(constraints, "BATCH_LOOPS", 0)
+        layer._build_batched_tables()
+        try:
+            assert layer._tt is not None
+            for (q, v), ref in zip(states, per_loop, strict=True):
+                for got, want in zip(_evaluate_all(mech, layer, q, v), ref, strict=True):
+                    assert np.linalg.norm(got - want) <= TOL_BATCHED
+        finally:
+            monkeypatch.undo()
+            layer._build_batched_tables()
+
+
+def test_batched_evaluation_matches_finite_differences(tmp_path, rng):
+    """The N-four-bar with 5 loops (more than BATCH_LOOPS): J and gamma of the batched
+    path against central differences, every declared row."""
+    import importlib.util
+
+    from conftest import ROOT
+
+    spec = importlib.util.spec_from_file_location("gen", ROOT / "scripts" / "make_nfourbar.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    path = tmp_path / "nfourbar_5.urdf"
+    path.write_text(gen.build(5))
+    mech = cc.load(path)
+    for layer in layers(mech).values():
+        assert layer._tt is not None
+        for q, v in sample_states(mech, rng):
+            J = layer_jacobian(mech, layer, q)
+            assert np.linalg.norm(J - fd_jacobian(mech, layer, q)) <= TOL_FD
+            gamma = layer_gamma(mech, layer, q, v)
+            assert np.linalg.norm(gamma - fd_gamma(mech, layer, q, v)) <= TOL_FD

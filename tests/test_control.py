@@ -183,3 +183,27 @@ def test_scene_tracking_the_wrong_number_of_joints(mechanism_files, tmp_path):
         match=r"eye.urdf: line \d+: <scene> <track> drives 2 joints .*it needs the mobility, 3",
     ):
         default_scene(mech)
+
+
+def test_nfourbar_scene_is_the_benchmark_start(load_mechanism):
+    """<initial velocity=...> on crank 0: the N-four-bar's scene is the IFToMM A02 start
+    (tests/nfourbar_reference.py: cranks vertical at -1 rad/s, couplers horizontal)."""
+    import nfourbar_reference as ref
+    from conftest import MODELS
+
+    mech = cc.load(MODELS / "nfourbar_2.urdf")
+    assert mech.urdf.scene.velocity == {"crank_0_joint": ref.OMEGA0}
+    scene = default_scene(mech)
+    q0, v0 = ref.initial_state(mech)
+    assert scene.tau is None
+    assert np.linalg.norm(scene.q0 - q0) <= 1e-12
+    assert np.linalg.norm(scene.v0 - v0) <= 1e-12
+
+
+def test_scene_velocity_with_a_track_is_refused(mechanism_files, tmp_path):
+    text = mechanism_files["agile_eye"].read_text()
+    path = tmp_path / "eye.urdf"
+    initial = '<scene>\n    <initial joint="platform_yaw" value="0" velocity="1"/>'
+    path.write_text(text.replace("<scene>", initial, 1))
+    with pytest.raises(cc.ClosedChainError, match=r"velocity=.*is for passive scenes"):
+        cc.load(path)

@@ -28,11 +28,8 @@ B0_TOL = 1e-6
 ENERGY_DRIFT_TOL = 1e-6
 #: Closure kept by projection [m].
 RESIDUAL_TOL = 1e-10
-#: Benchmark horizon [s] and the step of the N-four-bar runs [s]: the default
-#: configuration (method augmented-lagrangian, rk4, stage-projection) at twice the
-#: default 1 ms step (the 4-bar's change point needs 1 ms, the N-four-bar does not).
+#: Benchmark horizon [s].
 T_BENCHMARK = 20.0
-NFOURBAR_DT = 2e-3
 #: Open-branch 4-bar (tests/test_simulate.py): crank angle [deg] and Newton guess [deg].
 OPEN_GUESS_DEG = (10.0, 50.0, 30.0)
 T_CHANGE_POINT = 10.0
@@ -180,29 +177,97 @@ def _b0_error_and_drift(mech, traj, n):
     return err, drift
 
 
-#: N of the 20 s runs in the test suite. N = 5, 10, 20, 40 pass the same assertions
-#: through ``scripts/nfourbar_cost.py --full`` but cost minutes each on the numpy path
-#: (measured per step: 2 ms at N = 1, 6.5 ms at N = 20, 70 ms at N = 40 under load).
-NFOURBAR_TESTED = (1, 2)
+#: The benchmark's N; N = 1, 2 run in the slow set, the others are minutes of CPU
+#: each on the numpy path and run with ``pytest --run-benchmark`` (measured figures: README,
+#: "Singular positions"; ``scripts/nfourbar_cost.py --full`` prints the same numbers).
+NFOURBAR_N = (1, 2, 5, 10, 20, 40)
+NFOURBAR_IN_CI = (1, 2)
+#: ALI3-P's step for the 20 s runs [s]: second order, its B0 error at 20 s is 1.3e-5 m at
+#: 1 ms and 8.2e-7 m at 0.25 ms (N = 1), so 1e-6 m takes 0.2 ms; that is a minute or more
+#: of CPU on numpy for every N, so all its 20 s runs are benchmark runs (the slow set keeps
+#: test_ali3p_passes_the_flat_positions: 2 s at 1 ms).
+ALI3P_DT = 2e-4
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("n", NFOURBAR_TESTED)
-def test_nfourbar_default_configuration(nfourbar_mech, n):
-    """20 s of the benchmark with simulate's default method, integrator and stabilization:
-    B0 within 1e-6 m of the quadrature reference, energy drift <= 1e-6 (relative to the
-    largest kinetic energy of the motion, ``characteristic_energy``)."""
-    mech = nfourbar_mech(n)
-    q0, v0 = ref.initial_state(mech)
-    traj = simulate(mech, q0, v0, T_BENCHMARK, dt=NFOURBAR_DT, t_eval=np.linspace(0, 20, 201))
-    assert traj.info.method == "augmented-lagrangian" and traj.info.integrator == "rk4"
+#: Measured failures of the issue's bar, kept as strict expected failures (the bar is not
+#: lowered; a fix turns them into errors to remove from here): N -> what was measured.
+DEFAULT_MISSES = {
+    5: "B0 error 2.1e-5 m at 20 s (phase error grows at each flat passage; energy kept "
+    "to 1.3e-7, branch kept): README, Singular positions",
+}
+
+
+ALI3P_MISSES = {
+    5: "SimulationError at t = 6.59 s: Newton stalls at a correction of 6.9e-10 m > "
+    "ali3p_tol near a flat position: README, Singular positions",
+}
+
+
+def _nfourbar_params(in_ci: tuple[int, ...], misses: dict[int, str]):
+    params = []
+    for n in NFOURBAR_N:
+        marks = [pytest.mark.slow] + ([] if n in in_ci else [pytest.mark.benchmark])
+        if n in misses:
+            marks.append(pytest.mark.xfail(reason=misses[n], strict=True))
+        params.append(pytest.param(n, marks=marks))
+    return params
+
+
+def _check_benchmark(mech, traj, n):
+    """The issue's bar at t = 20 s, against the quadrature reference (tests/nfourbar_reference.py).
+
+    B0 is the benchmark's output point: the tip of crank 0, i.e. the left end of the first
+    coupler, at (L cos theta, 0, L sin theta) for crank angle theta (crank 0 pivots at the
+    world origin; frame ``crank_0_tip`` of the model). Its error is the distance between
+    B0 at the simulated crank angle and at the reference's, <= B0_TOL = 1e-6 m. The energy
+    drift is max_t |E(t) - E(0)| over the output samples divided by the largest kinetic
+    energy of the motion (``characteristic_energy``), <= ENERGY_DRIFT_TOL = 1e-6.
+    """
     err, drift = _b0_error_and_drift(mech, traj, n)
-    assert err <= B0_TOL
-    assert drift <= ENERGY_DRIFT_TOL
+    assert err <= B0_TOL, err
+    assert drift <= ENERGY_DRIFT_TOL, drift
     assert traj.max_constraint_residual <= RESIDUAL_TOL
     # Every crank at the same angle: the motion stayed on the parallelogram branch.
     cranks = [i for i, nm in enumerate(mech.coordinate_names) if nm.startswith("crank")]
     assert np.max(np.ptp(traj.q[:, cranks], axis=1)) <= B0_TOL
+    assert np.min(traj.q[:, 0]) < -2 * math.pi * 9  # about 10 turns, 20 flat positions
+
+
+@pytest.mark.parametrize("n", _nfourbar_params(NFOURBAR_IN_CI, DEFAULT_MISSES))
+def test_nfourbar_default_configuration(nfourbar_mech, n):
+    """20 s of the benchmark with simulate's default method, integrator, step and
+    stabilization (augmented-lagrangian, rk4, 1 ms, stage-projection): see
+    :func:`_check_benchmark`."""
+    mech = nfourbar_mech(n)
+    q0, v0 = ref.initial_state(mech)
+    traj = simulate(mech, q0, v0, T_BENCHMARK, t_eval=np.linspace(0, T_BENCHMARK, 201))
+    info = traj.info
+    assert (info["method"], info["integrator"], info["stabilization"], info["dt"]) == (
+        "augmented-lagrangian",
+        "rk4",
+        "stage-projection",
+        SimulationSettings().dt,
+    )
+    _check_benchmark(mech, traj, n)
+
+
+@pytest.mark.parametrize("n", _nfourbar_params((), ALI3P_MISSES))
+def test_nfourbar_ali3p(nfourbar_mech, n):
+    """20 s of the benchmark with ALI3-P (augmented-lagrangian, mass-orthogonal) at
+    ALI3P_DT: see :func:`_check_benchmark`."""
+    mech = nfourbar_mech(n)
+    q0, v0 = ref.initial_state(mech)
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        T_BENCHMARK,
+        integrator="ali3p",
+        dt=ALI3P_DT,
+        t_eval=np.linspace(0, T_BENCHMARK, 201),
+    )
+    assert traj.info["stabilization"] == "mass-orthogonal"
+    _check_benchmark(mech, traj, n)
 
 
 #: ALI3-P (second order) at 1 ms over 2 s on N = 2: B0 error measured 2.4e-7 m.
@@ -311,3 +376,33 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechani
     assert changes, "the motion left the change point on the other assembly branch"
     t_before, t_after, _, _ = changes[0]
     assert t_before <= 0.393 + 0.02 and t_after >= 0.393 - 0.02
+
+
+# -- banded solves (many loops) -----------------------------------------------------------
+
+#: Loops of the N-four-bar whose P = M + alpha J^T J and J J^T are banded (nv > 8).
+BANDED_N = 10
+
+
+@pytest.mark.slow
+def test_banded_solves_agree_with_dense_ones(nfourbar_mech, rng):
+    """N = 10: the augmented Lagrangian on the banded factorization of M + alpha J^T J
+    agrees with kkt (dense LU), and the banded normal equations give lstsq's minimum-norm
+    correction (the projections' Gauss-Newton step)."""
+    from closedchain.dynamics.augmented_lagrangian import NormalSolver, PenalizedSolver
+
+    mech = nfourbar_mech(BANDED_N)
+    assert PenalizedSolver(mech).banded
+    normal = NormalSolver(mech)
+    assert normal.banded and normal.bandwidth < mech.nc // 4
+    for _ in range(5):
+        q, v = cc.random_consistent_state(mech, rng)
+        ref_res = cc.forward_dynamics(mech, q, v, method="kkt")
+        res = cc.forward_dynamics(mech, q, v, method="augmented-lagrangian")
+        assert np.linalg.norm(res.a - ref_res.a) <= METHOD_AGREEMENT_TOL
+        force = res.generalized_constraint_force() - ref_res.generalized_constraint_force()
+        assert np.linalg.norm(force) <= METHOD_AGREEMENT_TOL
+        J = cc.compute_jacobian(mech, q)
+        r = rng.normal(size=mech.nc)
+        step = J.T @ normal.solve(J, r)
+        assert np.linalg.norm(step - np.linalg.lstsq(J, r, rcond=None)[0]) <= METHOD_AGREEMENT_TOL

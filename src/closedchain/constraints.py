@@ -72,6 +72,12 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 #: it only rescales the multipliers, not J^T lam).
 PIN_REVOLUTE_POINT_OFFSET = 0.1
 
+#: With more loops than this holding translation rows, :meth:`ConstraintLayer.evaluate`
+#: evaluates every row of every loop at once (numpy over the rows, cost growing with the
+#: arithmetic, not with Python calls per loop); with fewer, per loop (numpy's per-call
+#: overhead exceeds the arithmetic of a few loops).
+BATCH_LOOPS = 4
+
 #: Row function codes of :class:`RowTable`: translation (R_p n).(p_p - p_s).
 ROW_TRANSLATION = 0
 #: Rotation (R_p u).(R_s w).
@@ -385,6 +391,9 @@ class ConstraintLayer:
         # 3 x 3 / k x 3 products (see _translation_rows). Rotation rows: all loops at
         # once, a fixed number of batched numpy calls (numpy's per-call overhead,
         # not arithmetic, dominates arrays this small).
+        if self._tt is not None:
+            self._evaluate_batched(model, data, phi, J, gamma)
+            return
         for sl, fp, fs, N in self._trans:
             _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma)
         tr = self._tr
@@ -422,9 +431,74 @@ class ConstraintLayer:
                 - np.einsum("ri,ri->r", dw, dw) * UW
             )
 
+    def _evaluate_batched(self, model, data, phi, J, gamma) -> None:
+        r"""Every row of every loop at once (many loops: numpy over all rows, one pass of
+        frame queries), the formulas of :func:`_translation_rows` and of the rotation
+        rows in :meth:`evaluate`.
+
+        Translation rows, with U = R_p n (world) and d = p_p - p_s: phi = U.d,
+        J = U^T (J_{v,p} - J_{v,s}) + (U x d)^T J_{omega,p} (from U^T [d]_x y =
+        y^T (U x d)), gamma = U.(a_{b,p} - a_{b,s} + d x alpha_{b,p} + 2 ddot x omega_p
+        + (d x omega_p) x omega_p).
+        """
+        fids = self._bfids
+        frames = [pin.updateFramePlacement(model, data, f) for f in fids]
+        R = np.array([M.rotation for M in frames])  # (2L, 3, 3): c1, c2 of each loop
+        P = np.array([M.translation for M in frames])  # (2L, 3)
+        tt, tr = self._tt, self._btr
+        U = np.einsum("rij,rj->ri", R[tt.pred], tt.n)
+        d = P[tt.pred] - P[tt.succ]
+        if tr is not None:
+            Ur = np.einsum("rij,rj->ri", R[tr.pred], tr.u)
+            Wr = np.einsum("rij,rj->ri", R[tr.succ], tr.w)
+            UW = np.einsum("ri,ri->r", Ur, Wr)
+        if phi is not None:
+            phi[tt.rows] = np.einsum("ri,ri->r", U, d)
+            if tr is not None:
+                phi[tr.rows] = UW
+        if J is not None:
+            Jf = np.array([pin.getFrameJacobian(model, data, f, _LWA) for f in fids])
+            J[tt.rows] = np.einsum("ri,rin->rn", U, Jf[tt.pred, :3] - Jf[tt.succ, :3]) + np.einsum(
+                "ri,rin->rn", _cross(U, d), Jf[tt.pred, 3:]
+            )
+            if tr is not None:
+                J[tr.rows] = np.einsum(
+                    "ri,rin->rn", _cross(Wr, Ur), Jf[tr.succ, 3:] - Jf[tr.pred, 3:]
+                )
+        if gamma is None:
+            return
+        A = np.array([pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in fids])
+        V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in fids])
+        wp = V[tt.pred, 3:]
+        dd = V[tt.pred, :3] - V[tt.succ, :3]
+        x = (
+            A[tt.pred, :3]
+            - A[tt.succ, :3]
+            + _cross(d, A[tt.pred, 3:])
+            + 2.0 * _cross(dd, wp)
+            + _cross(_cross(d, wp), wp)
+        )
+        gamma[tt.rows] = np.einsum("ri,ri->r", U, x)
+        if tr is not None:
+            wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
+            pu = np.einsum("ri,ri->r", wp, Ur)
+            pw = np.einsum("ri,ri->r", wp, Wr)
+            su = np.einsum("ri,ri->r", ws, Ur)
+            sw = np.einsum("ri,ri->r", ws, Wr)
+            dw = wp - ws
+            gamma[tr.rows] = (
+                np.einsum("ri,ri->r", _cross(Wr, Ur), A[tr.succ, 3:] - A[tr.pred, 3:])
+                + pu * pw
+                + su * sw
+                - 2.0 * pw * su
+                - np.einsum("ri,ri->r", dw, dw) * UW
+            )
+
     def _build_tables(self) -> None:
         """Index tables of the active rows over all loops: per-loop translation blocks,
-        one batched table of rotation rows."""
+        one batched table of rotation rows; with more than :data:`BATCH_LOOPS` loops
+        holding translation rows, one batched table of them too (every row at once)."""
+        self._build_batched_tables()
         self._fids: list[int] = []
         self._trans: list[tuple[slice, int, int, np.ndarray]] = []
         rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
@@ -443,6 +517,29 @@ class ConstraintLayer:
                 sl = slice(blk.start, blk.start + blk.nt)
                 self._trans.append((sl, blk.fid_p, blk.fid_s, np.array(blk.trans)))
         self._tr = _Table(rot) if rot["rows"] else None
+
+    def _build_batched_tables(self) -> None:
+        """Tables of :meth:`_evaluate_batched` (``self._tt`` None: the per-loop path)."""
+        self._tt = None
+        with_trans = [b for b in self._active if b.nt]
+        if not with_trans or len(with_trans) <= BATCH_LOOPS:
+            return  # rotation rows alone are batched by the per-loop path already
+        self._bfids: list[int] = []
+        trans: dict[str, list] = {"rows": [], "loop": [], "n": []}
+        rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
+        for i, blk in enumerate(self._active):
+            self._bfids += [blk.fid_p, blk.fid_s]
+            for k, n in enumerate(blk.trans):
+                trans["rows"].append(blk.start + k)
+                trans["loop"].append(i)
+                trans["n"].append(n)
+            for k, (u, w) in enumerate(zip(blk.rot_u, blk.rot_w, strict=True)):
+                rot["rows"].append(blk.start + blk.nt + k)
+                rot["loop"].append(i)
+                rot["u"].append(u)
+                rot["w"].append(w)
+        self._tt = _Table(trans)
+        self._btr = _Table(rot) if rot["rows"] else None
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:
         """Return the loops whose cut frames satisfy phi = 0 only spuriously.

@@ -158,7 +158,9 @@ def default_scene(mech: Mechanism) -> Scene:
 
     Without one: released from rest at ``q_ref``. With one: the ``<initial>``
     values are a guess assembled onto phi = 0 holding the tracked joints at
-    their reference (else the independent coordinates); with a ``<track>``,
+    their reference (else the independent coordinates); their ``velocity=``
+    values (passive scenes) are held while the other coordinates take the
+    velocity with J v = 0 (else the scene starts from rest); with a ``<track>``,
     the computed-torque controller drives the tracked joints along their
     sinusoids from a matching initial velocity.
 
@@ -176,7 +178,14 @@ def default_scene(mech: Mechanism) -> Scene:
         q[mech.model.joints[mech.model.getJointId(name)].idx_q] = value
     if not spec.track:
         q0 = assemble(mech, q, fixed="independent")
-        return Scene(q0, np.zeros(mech.nv), None, "released from rest (<scene> initial)")
+        if not spec.velocity:
+            return Scene(q0, np.zeros(mech.nv), None, "released from rest (<scene> initial)")
+        v = np.zeros(mech.nv)
+        for name, rate in spec.velocity.items():
+            v[mech.model.joints[mech.model.getJointId(name)].idx_v] = rate
+        v0 = project_velocity(mech, q0, v, fixed=list(spec.velocity))
+        given = ", ".join(f"{n} = {r:g}" for n, r in spec.velocity.items())
+        return Scene(q0, v0, None, f"passive motion from <scene> initial velocity ({given})")
     names = [s.joint for s in spec.track]
     if len(names) != mech.mobility:
         raise ClosedChainError(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -540,15 +540,36 @@ def load(
     closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
     mech = Mechanism(urdf, model, closure, gravity)
     mech.root_joint = root_joint
-    _select_rows_and_coordinates(mech, settings, q_guess=reference_configuration(model, entry))
+    starts = []
+    if urdf.scene is not None and urdf.scene.initial:
+        # The default scene's start is a configuration along the motion: sampling from
+        # it too finds the generic rank where random starts land near singular ones
+        # (the N-four-bar's random assemblies fall onto its flat positions, where every
+        # loop loses a row: without it 77 of 80 rows were kept for N = 40).
+        scene_q = pin.neutral(model)
+        for name, value in urdf.scene.initial.items():
+            scene_q[model.joints[model.getJointId(name)].idx_q] = value
+        starts.append(scene_q)
+    _select_rows_and_coordinates(
+        mech, settings, q_guess=reference_configuration(model, entry), extra_starts=starts
+    )
     logger.info("loaded %r", mech)
     return mech
 
 
 def _select_rows_and_coordinates(
-    mech: Mechanism, settings: LoadSettings, *, q_guess: np.ndarray | None = None
+    mech: Mechanism,
+    settings: LoadSettings,
+    *,
+    q_guess: np.ndarray | None = None,
+    extra_starts: Sequence[np.ndarray] = (),
 ) -> None:
-    """Sample configurations along the motion, select rows, assemble q_ref, partition."""
+    """Sample configurations along the motion, select rows, assemble q_ref, partition.
+
+    The samples start from ``q_guess`` (else the neutral configuration), then
+    random configurations; the samples from ``extra_starts`` (the default scene's
+    start) are added to them for the row selection only.
+    """
     model, data, closure = mech.model, mech.data, mech.closure
     if closure.declared.nc == 0:
         return
@@ -561,6 +582,18 @@ def _select_rows_and_coordinates(
         sel,
         first=[pin.neutral(model) if q_guess is None else q_guess],
     )
+    if extra_starts:
+        # Sampled apart and appended: q_ref, its fallback (the first sample) and the
+        # random samples stay what they are without the extra starts.
+        extra, _ = sample_configurations(
+            model,
+            data,
+            closure.declared,
+            lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
+            replace(sel, n_samples=len(extra_starts), max_attempts=len(extra_starts)),
+            first=list(extra_starts),
+        )
+        samples = samples + extra
     if not samples:
         assert best is not None
         pin.forwardKinematics(model, data, best.q)

@@ -103,7 +103,7 @@ class SceneSpec:
     .. code-block:: xml
 
         <scene>
-          <initial joint="crank_joint" value="0.1745"/>
+          <initial joint="crank_joint" value="0.1745" velocity="0"/>
           <track kp="100" kd="20">
             <sinusoid joint="platform_yaw" offset="0" amplitude="0.8" frequency="0.1"/>
           </track>
@@ -112,6 +112,10 @@ class SceneSpec:
     Attributes:
         initial: joint name -> initial value guess [rad or m] (assembled onto
             phi = 0 holding the tracked joints, else the independent ones).
+        velocity: joint name -> initial velocity [rad/s or m/s] (``velocity=``
+            of ``<initial>``, passive scenes only): held while the other
+            coordinates take the velocity with J v = 0 (the joints given must
+            determine it, e.g. the independent ones).
         track: the tracked joints' references (empty: a passive motion).
         kp: position gain [1/s^2] of the tracking controller.
         kd: velocity gain [1/s] of the tracking controller.
@@ -119,6 +123,7 @@ class SceneSpec:
     """
 
     initial: dict[str, float] = field(default_factory=dict)
+    velocity: dict[str, float] = field(default_factory=dict)
     track: tuple[SinusoidSpec, ...] = ()
     kp: float = 0.0
     kd: float = 0.0
@@ -518,17 +523,26 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
     """Read the ``<scene>`` element (see :class:`SceneSpec`)."""
     where = _where(path, element)
     initial: dict[str, float] = {}
+    velocity: dict[str, float] = {}
     for e in element.findall("initial"):
         name = _scene_joint(path, e, joints)
         value = _number(_where(path, e), e, "value")
         if value is None:
             raise URDFError(f"{_where(path, e)}: missing value=")
         initial[name] = value
+        rate = _number(_where(path, e), e, "velocity")
+        if rate is not None:
+            velocity[name] = rate
     tracks = element.findall("track")
     if len(tracks) > 1:
         raise URDFError(f"{where}: more than one <track>")
     if not tracks:
-        return SceneSpec(initial=initial, line=element.sourceline or 0)
+        return SceneSpec(initial=initial, velocity=velocity, line=element.sourceline or 0)
+    if velocity:
+        raise URDFError(
+            f"{where}: <initial velocity=...> is for passive scenes; a <track> starts "
+            "from its references' velocity (leave out velocity= or the <track>)"
+        )
     track = tracks[0]
     gains = {}
     for gain in ("kp", "kd"):

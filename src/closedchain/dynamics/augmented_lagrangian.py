@@ -128,15 +128,13 @@ class PenalizedSolver:
         self.nv = nv
         b = self.bandwidth
         if self.banded:
-            self._ab = np.zeros((b + 1, nv))
             # Upper band storage: ab[b + i - j, j] = P[i, j], i <= j.
-            jj = np.concatenate([np.arange(k, nv) for k in range(b + 1)])
-            ii = np.concatenate([np.arange(0, nv - k) for k in range(b + 1)])
-            self._band_ij = (ii, jj)
-            self._band_rows = b + ii - jj
+            self._ab = np.zeros((b + 1, nv))
             self._fac = None
         self._P = np.zeros((nv, nv))
         self.alpha = 0.0
+        #: The normal equations of the kept rows (multiplier polish, projections).
+        self.normal = NormalSolver(mech)
 
     def factor(self, M: np.ndarray, J: np.ndarray, alpha: float, mech, q) -> None:
         """Factorize P = M + alpha J^T J.
@@ -150,19 +148,26 @@ class PenalizedSolver:
         Raises:
             SingularConfigurationError: P is not positive definite (M singular).
         """
-        P = self._P
-        np.dot(J.T, J, out=P)
-        P *= alpha
-        P += M
         self.alpha = alpha
         if self.banded:
-            Pp = P[np.ix_(self.perm, self.perm)]
-            self._ab[self._band_rows, self._band_ij[1]] = Pp[self._band_ij]
+            # Only the band of P, diagonal by diagonal (never the dense J^T J).
+            perm, b, ab = self.perm, self.bandwidth, self._ab
+            Jp = J[:, perm]
+            Mp = M[np.ix_(perm, perm)]
+            ab[b] = np.diagonal(Mp) + alpha * np.einsum("ri,ri->i", Jp, Jp)
+            for k in range(1, b + 1):
+                ab[b - k, k:] = np.diagonal(Mp, k) + alpha * np.einsum(
+                    "ri,ri->i", Jp[:, :-k], Jp[:, k:]
+                )
             try:
                 self._fac = scipy.linalg.cholesky_banded(self._ab, lower=False, check_finite=False)
             except np.linalg.LinAlgError:
                 raise self._error(mech, q) from None
         else:
+            P = self._P
+            np.dot(J.T, J, out=P)
+            P *= alpha
+            P += M
             self._R, info = lapack.dpotrf(P, lower=0, clean=0)
             if info != 0:
                 raise self._error(mech, q)
@@ -192,6 +197,76 @@ class PenalizedSolver:
         return lapack.dpotrs(self._R, rhs)[0]
 
 
+def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
+    """Return the structural nonzero pattern of J J^T, shape (nc, nc), bool.
+
+    Rows i and j couple when their loops' cut frames are moved by a common joint.
+
+    Args:
+        mech: the mechanism.
+        layer: the constraint layer (default: the kept rows, ``mech.constraints``).
+    """
+    model = mech.model
+    layer = mech.constraints if layer is None else layer
+    cols = np.zeros((layer.nc, mech.nv), dtype=bool)
+    for blk, sl in layer.per_loop():
+        support = np.union1d(
+            _support_columns(model, model.frames[blk.fid_p].parentJoint),
+            _support_columns(model, model.frames[blk.fid_s].parentJoint),
+        )
+        cols[sl.start : sl.stop, support] = True
+    return (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
+
+
+class NormalSolver:
+    """Solve the regularized normal equations (J J^T + eps I) x = b of the kept rows.
+
+    Banded Cholesky (``scipy.linalg.solveh_banded``, O(nc b^2)) in the natural row
+    order when the structural half bandwidth b of J J^T is at most
+    :data:`BANDED_FRACTION` of nc (many loops in a chain, as the N-four-bar);
+    dense LAPACK otherwise. eps = :data:`NORMAL_EQ_REG` tr(J J^T) / nc keeps the
+    equations solvable where J loses rank; a right-hand side in the range of J
+    is solved to round-off elsewhere (the minimum-norm correction J^T x).
+
+    Attributes:
+        banded: whether the banded path is used.
+        bandwidth: structural half bandwidth of J J^T.
+    """
+
+    def __init__(self, mech: Mechanism, layer=None) -> None:
+        pattern = row_structure(mech, layer)
+        self.nc = len(pattern)
+        self.bandwidth = _bandwidth(pattern)
+        self.banded = self.nc > 8 and self.bandwidth <= BANDED_FRACTION * self.nc
+        b = self.bandwidth
+        if self.banded:
+            self._ab = np.zeros((b + 1, self.nc))
+
+    def solve(self, J: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """Return x with (J J^T + eps I) x = rhs.
+
+        Args:
+            J: constraint Jacobian, shape (nc, nv).
+            rhs: shape (nc,).
+        """
+        nc = self.nc
+        if not self.banded:
+            JJ = J @ J.T
+            JJ[np.diag_indices(nc)] += NORMAL_EQ_REG * max(float(np.trace(JJ)), 1.0) / max(nc, 1)
+            c, x, info = lapack.dposv(JJ, rhs, lower=0)
+            if info != 0:
+                return scipy.linalg.lstsq(JJ, rhs, check_finite=False)[0]
+            return x
+        ab = self._ab
+        # Upper band storage: ab[b - k, j] = (J J^T)[j - k, j].
+        b = self.bandwidth
+        ab[b] = np.einsum("ij,ij->i", J, J)
+        for k in range(1, b + 1):
+            ab[b - k, k:] = np.einsum("ij,ij->i", J[:-k], J[k:])
+        ab[b] += NORMAL_EQ_REG * max(float(np.sum(ab[b])), 1.0) / nc
+        return scipy.linalg.solveh_banded(ab, rhs, lower=False, check_finite=False)
+
+
 def _bandwidth(pattern: np.ndarray) -> int:
     i, j = np.nonzero(pattern)
     return int(np.max(np.abs(i - j), initial=0))
@@ -213,6 +288,7 @@ def solve_augmented_lagrangian(
     *,
     tol: float,
     max_iter: int,
+    polish: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     r"""Iterate the augmented Lagrangian at the acceleration level (P already factorized).
 
@@ -225,6 +301,8 @@ def solve_augmented_lagrangian(
         alpha: the penalty used in ``solver``.
         tol: stop when max |a_k - a_{k-1}| <= tol (1 + max |a_k|).
         max_iter: iteration cap.
+        polish: correct the multipliers by the normal equations (below); off
+            when only ``a`` is wanted (the projections of ALI3-P).
 
     Returns:
         ``(a, lam, iterations)``.
@@ -250,10 +328,10 @@ def solve_augmented_lagrangian(
     # J^T dlam = tau - h - M a - J^T lam, by regularized normal equations (the
     # right-hand side lies in the range of J^T up to round-off, so the tiny
     # regularization only keeps them solvable where J loses rank).
+    if not polish:
+        return a, lam, it
     r_d = rhs - M @ a - J.T @ lam
-    JJ = J @ J.T
-    JJ[np.diag_indices_from(JJ)] += NORMAL_EQ_REG * max(float(np.trace(JJ)), 1.0) / len(lam)
-    lam += scipy.linalg.solve(JJ, J @ r_d, assume_a="pos", check_finite=False)
+    lam += solver.normal.solve(J, J @ r_d)
     return a, lam, it
 
 

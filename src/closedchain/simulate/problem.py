@@ -16,6 +16,7 @@ import pinocchio as pin
 import scipy.linalg
 
 from ..closure import RowCheckSettings
+from ..dynamics.augmented_lagrangian import NormalSolver
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
@@ -55,6 +56,8 @@ class Problem:
         self.dep = np.array(mech.dependent_idx_v)
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
         self._J_at: np.ndarray | None = None
+        self._normal = None
+        self._normal_layer = None
         self._J: np.ndarray | None = None
         #: Row re-selections made during the run: [t, kept row labels, reason].
         self.reselections: list[list] = []
@@ -64,6 +67,16 @@ class Problem:
             cond_max=settings.singular_cond,
             open_tol=settings.open_row_tol,
         )
+
+    def normal_solver(self):
+        """Return the banded normal-equation solver of the kept rows, or None when they
+        do not couple in a narrow band (then projections use dense ``lstsq``)."""
+        layer = self.mech.constraints
+        if self._normal_layer is not layer:  # first call, or rows re-selected
+            solver = NormalSolver(self.mech, layer) if layer.nc else None
+            self._normal = solver if solver is not None and solver.banded else None
+            self._normal_layer = layer
+        return self._normal
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Return J(q), reusing the last one when q is the same (each step asks several
@@ -241,9 +254,22 @@ def passing_hint() -> str:
 
 
 def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
-    """Seed-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0."""
+    """Seed-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0.
+
+    The minimum-norm corrections are ``lstsq`` solves, or, when the rows couple in a
+    narrow band (many loops in a chain: :class:`~closedchain.dynamics.augmented_lagrangian.
+    NormalSolver`), J^T x with banded regularized normal equations (J J^T + eps I) x = r:
+    cost linear in the number of loops instead of a dense SVD.
+    """
     mech, s = problem.mech, problem.settings
     model, data, layer = mech.model, mech.data, mech.constraints
+    normal = problem.normal_solver()
+
+    def min_norm(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+        if normal is None:
+            return np.linalg.lstsq(J, r, rcond=None)[0]
+        return J.T @ normal.solve(J, r)
+
     phi = np.zeros(mech.nc)
     for _ in range(s.projection_iters):
         pin.forwardKinematics(model, data, q)
@@ -251,10 +277,10 @@ def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
         if np.max(np.abs(phi), initial=0.0) <= s.projection_tol:
             break
         J = problem.jacobian(q)
-        q = pin.integrate(model, q, np.linalg.lstsq(J, -phi, rcond=None)[0])
+        q = pin.integrate(model, q, min_norm(J, -phi))
     if s.project_velocities:
         J = problem.jacobian(q)
-        v = v - np.linalg.lstsq(J, J @ v, rcond=None)[0]
+        v = v - min_norm(J, J @ v)
     return q, v
 
 
