@@ -188,7 +188,7 @@ def random_consistent_state(
     max_attempts: int = 1000,
     uniform_attempts: int = 20,
     local_scale: float = 0.1,
-    assembly: AssemblySettings | None = None,
+    assembly: AssemblySettings = DEFAULT_ASSEMBLY_SETTINGS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw an assembled configuration within joint limits and a velocity with J v = 0.
 
