@@ -62,7 +62,11 @@ def measure(n: int, args, folder: Path) -> dict:
     mech = cc.load(path)
     q0, v0 = ref.initial_state(mech)
     given = dict(
-        method=args.method, integrator=args.integrator, dt=args.dt, stabilization=args.stabilization
+        method=args.method,
+        integrator=args.integrator,
+        dt=args.dt,
+        stabilization=args.stabilization,
+        backend=args.backend,
     )
     kw = {k: v for k, v in given.items() if v is not None}
     cc.simulate(mech, q0, v0, 0.005, **kw)  # warm-up: buffers, imports
@@ -78,6 +82,7 @@ def measure(n: int, args, folder: Path) -> dict:
         "cpu_s": cpu,
         "us_per_step": 1e6 * cpu / steps,
         "us_per_eval": 1e6 * cpu / max(traj.info.evaluations, 1),
+        "backend": traj.info.backend,
         "method": traj.info.method,
         "integrator": traj.info.integrator,
         "stabilization": traj.info.stabilization,
@@ -104,6 +109,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--integrator", default=None, help="default: simulate's")
     p.add_argument("--stabilization", default=None, help="default: the integrator's")
     p.add_argument("--dt", type=float, default=None, help="[s], default: simulate's")
+    p.add_argument(
+        "--backend", default=None, choices=("compiled", "numpy"), help="default: simulate's (auto)"
+    )
     p.add_argument("--full", action="store_true", help="also run 20 s against the reference")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)

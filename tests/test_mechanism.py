@@ -350,7 +350,45 @@ def test_size_limit_is_a_setting(tmp_path):
     assert (mech.nv, mech.nc, mech.mobility) == (12, 2, 10)
 
 
+#: Steps of the 1000-link chain in the CI run (each ~0.2 s CPU: four 1002 x 1002 KKT
+#: solves); the whole second is a benchmark run (below).
+CHAIN1000_CI_STEPS = 5
+
+
+@pytest.fixture(scope="module")
+def chain1000(tmp_path_factory):
+    from chain_urdf import chain_urdf
+
+    path = tmp_path_factory.mktemp("chain1000") / "chain1000.urdf"
+    path.write_text(chain_urdf(1000, length=1000.0))
+    return cc.load(path)
+
+
 @pytest.mark.slow
+def test_a_1000_link_chain_with_one_loop_loads_and_takes_its_first_steps(chain1000):
+    """The 1000-link chain loads (lean Data: no nv^3 tensors) and its first steps keep the
+    loop closed and the energy; the full second is test_..._simulates_one_second."""
+    mech = chain1000
+    assert (mech.nv, mech.nc, mech.mobility) == (1000, 2, 998)
+    dt = 1e-3
+    traj = cc.simulate(
+        mech,
+        mech.q_ref,
+        np.zeros(mech.nv),
+        CHAIN1000_CI_STEPS * dt,
+        method="kkt",
+        integrator="rk4",
+        dt=dt,
+        solver_settings=cc.SolverSettings(cond_max=1e15),
+    )
+    assert traj.info.steps == CHAIN1000_CI_STEPS
+    assert traj.max_constraint_residual <= 1e-9
+    assert traj.energy_drift <= 1e-8
+    assert np.all(np.isfinite(traj.q))
+
+
+@pytest.mark.slow
+@pytest.mark.benchmark
 def test_a_1000_link_chain_with_one_loop_loads_and_simulates_one_second(tmp_path):
     """The size the issue asks for: 1000 one-metre links, the tip pinned (one loop).
 

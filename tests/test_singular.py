@@ -177,11 +177,12 @@ def _b0_error_and_drift(mech, traj, n):
     return err, drift
 
 
-#: The benchmark's N; N = 1, 2 run in the slow set, the others are minutes of CPU
-#: each on the numpy path and run with ``pytest --run-benchmark`` (measured figures: README,
-#: "Singular positions"; ``scripts/nfourbar_cost.py --full`` prints the same numbers).
+#: The benchmark's N; the default configuration (compiled core) of N = 1, 2, 10 runs in
+#: the slow set (seconds each), the others with ``pytest --run-benchmark`` (N = 40: 43 s
+#: CPU; measured figures: README, "Singular positions"; ``scripts/nfourbar_cost.py --full``
+#: prints the same numbers).
 NFOURBAR_N = (1, 2, 5, 10, 20, 40)
-NFOURBAR_IN_CI = (1, 2)
+NFOURBAR_IN_CI = (1, 2, 10)
 #: ALI3-P's step for the 20 s runs [s]: second order, its B0 error at 20 s is 1.3e-5 m at
 #: 1 ms and 8.2e-7 m at 0.25 ms (N = 1), so 1e-6 m takes 0.2 ms; that is a minute or more
 #: of CPU on numpy for every N, so all its 20 s runs are benchmark runs (the slow set keeps
@@ -192,8 +193,11 @@ ALI3P_DT = 2e-4
 #: Measured failures of the issue's bar, kept as strict expected failures (the bar is not
 #: lowered; a fix turns them into errors to remove from here): N -> what was measured.
 DEFAULT_MISSES = {
-    5: "B0 error 2.1e-5 m at 20 s (phase error grows at each flat passage; energy kept "
-    "to 1.3e-7, branch kept): README, Singular positions",
+    5: "B0 error 4.4e-4 m at 20 s on the compiled core, 2.1e-5 m on numpy (phase error "
+    "grows at each flat passage; energy kept to 1.5e-5, branch kept): README, Singular "
+    "positions",
+    20: "B0 error 2.7e-6 m at 20 s on the compiled core (energy kept to 1.5e-8, branch "
+    "kept): README, Singular positions",
 }
 
 

@@ -173,7 +173,9 @@ def pinocchio_reference_dynamics(
             r_con = Jc @ a - b
             da_p = np.linalg.lstsq(Jc, -r_con, rcond=REFINEMENT_RCOND)[0]
             # M da_h + g = (r_dyn - M da_p + g) + J_c^T dlam, with J_c da_h = 0 at v = 0.
-            da_h = pin.constraintDynamics(model, data, q, zero, r_dyn - M @ da_p + g, cms, cds, prox)
+            da_h = pin.constraintDynamics(
+                model, data, q, zero, r_dyn - M @ da_p + g, cms, cds, prox
+            )
             a += da_p
             a += da_h
             lam += data.lambda_c
@@ -244,9 +246,7 @@ def validate(
     singular = 0
     assembly = AssemblySettings(tol=VALIDATION_PHI_TOL)
     for _ in range(n_samples):
-        q, v = random_consistent_state(
-            mech, rng, velocity_scale=velocity_scale, assembly=assembly
-        )
+        q, v = random_consistent_state(mech, rng, velocity_scale=velocity_scale, assembly=assembly)
         tau = tau_scale * rng.standard_normal(mech.nv)
         if unactuated_root:
             tau[:root_nv] = 0.0
