@@ -495,17 +495,8 @@ def test_an_open_dropped_row_hands_the_run_to_the_row_reselection(fourbar, monke
 
     def make_core(mech, *, shared=True):
         core = real(mech, shared=False)
-        dtab = mech.declared.row_table()
-        kept = np.zeros(len(dtab.function), dtype=np.int32)  # every row counts as dropped
-        core.set_declared(
-            compiled._CORE_KIND[dtab.function].astype(np.int32),
-            dtab.frame_p.astype(np.int32),
-            dtab.frame_s.astype(np.int32),
-            dtab.u,
-            dtab.w,
-            kept,
-            [r.label for r in mech.declared.declared_rows],
-        )
+        # every row counts as dropped
+        compiled.set_declared_rows(core, mech, np.zeros(mech.declared.nc, dtype=np.int32))
         return core
 
     monkeypatch.setattr(compiled_loops.compiled, "make_core", make_core)

@@ -413,7 +413,7 @@ def _seed_port(mech, closed_forms, q0: np.ndarray) -> dict[str, np.ndarray]:
     return {"q": np.array(qs), "v": np.array(vs), "lam": np.array(lams)}
 
 
-def _seed_run(mech, q0):
+def _seed_run(mech, q0, backend="auto"):
     return simulate(
         mech,
         q0,
@@ -425,6 +425,7 @@ def _seed_run(mech, q0):
         settings=seed_settings(),
         dt=SEED_DT,
         tau=SEED_TAU,
+        backend=backend,
     )
 
 
@@ -470,9 +471,14 @@ def test_seed_program_from_seed_guess(fourbar, fourbar_closed_forms):
 @pytest.mark.slow
 def test_seed_program_from_seed_guess_all_steps(fourbar, fourbar_closed_forms):
     """The same run over all 1000 steps, through the change point: within the envelope
-    of the port's own one-ulp starts (see the test above) at every step."""
+    of the port's own one-ulp starts (see the test above) at every step.
+
+    On the numpy backend, whose KKT solve is LAPACK's as the port's: the compiled
+    core's own LU rounds differently at every step, and the 1e11 amplification turns
+    that into 4.6 times the one-ulp envelope by step 1000 (before the change point the
+    backends agree to round-off: the test above runs the compiled one)."""
     q0 = _assemble_fourbar(fourbar, SEED_GUESS_DEG)
-    traj = _seed_run(fourbar, q0)
+    traj = _seed_run(fourbar, q0, backend="numpy")
     ref = _seed_port(fourbar, fourbar_closed_forms, q0)
     err = np.linalg.norm(traj.q - ref["q"], axis=1)
     envelope = np.zeros(SEED_STEPS + 1)

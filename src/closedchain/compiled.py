@@ -111,22 +111,28 @@ def make_core(mech: Mechanism, *, shared: bool = True):
             tab.w,
         )
         # Every declared row, checked at every step of a compiled loop.
-        dtab = mech.declared.row_table()
-        kept = np.zeros(len(dtab.function), dtype=np.int32)
+        kept = np.zeros(mech.declared.nc, dtype=np.int32)
         kept[list(mech.selected_rows)] = 1
-        core.set_declared(
-            _CORE_KIND[dtab.function].astype(np.int32),
-            dtab.frame_p.astype(np.int32),
-            dtab.frame_s.astype(np.int32),
-            dtab.u,
-            dtab.w,
-            kept,
-            [r.label for r in mech.declared.declared_rows],
-        )
+        set_declared_rows(core, mech, kept)
         entry = (mech.constraints, core)
         if shared:
             cache[key] = entry
     return entry[1]
+
+
+def set_declared_rows(core, mech: Mechanism, kept: np.ndarray) -> None:
+    """Give ``core`` every declared row of ``mech`` to check, ``kept[i] = 1`` for the
+    rows its methods use (the others are checked as dropped rows)."""
+    dtab = mech.declared.row_table()
+    core.set_declared(
+        _CORE_KIND[dtab.function].astype(np.int32),
+        dtab.frame_p.astype(np.int32),
+        dtab.frame_s.astype(np.int32),
+        dtab.u,
+        dtab.w,
+        np.asarray(kept, dtype=np.int32),
+        [r.label for r in mech.declared.declared_rows],
+    )
 
 
 def configure(

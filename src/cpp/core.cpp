@@ -161,19 +161,7 @@ class Core {
     if (fid_p.size() != nc_ || fid_s.size() != nc_ || vec1.rows() != nc_ ||
         vec2.rows() != nc_ || (nc_ && (vec1.cols() != 3 || vec2.cols() != 3)))
       throw BadArgument{"Core: row tables of inconsistent shapes"};
-    for (int r = 0; r < nc_; ++r) {
-      if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
-      for (int f : {fid_p[r], fid_s[r]})
-        if (f < 0 || f >= static_cast<int>(model.nframes))
-          throw BadArgument{"Core: frame id out of range"};
-      Row row;
-      row.kind = kinds[r];
-      row.p = frame_index(fid_p[r]);
-      row.s = frame_index(fid_s[r]);
-      row.n = vec1.row(r).transpose();
-      row.w = vec2.row(r).transpose();
-      rows_.push_back(row);
-    }
+    for (int r = 0; r < nc_; ++r) rows_.push_back(make_row(r, kinds, fid_p, fid_s, vec1, vec2));
     const int nf = static_cast<int>(fids_.size());
     for (pinocchio::FrameIndex f : fids_) {
       pinocchio::JointIndex j = model.frames[f].parentJoint;
@@ -276,17 +264,7 @@ class Core {
     drows_.clear();
     dlabels_.clear();
     for (int r = 0; r < nd; ++r) {
-      if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
-      for (int f : {fid_p[r], fid_s[r]})
-        if (f < 0 || f >= static_cast<int>(model_.nframes))
-          throw BadArgument{"Core: frame id out of range"};
-      Row row;
-      row.kind = kinds[r];
-      row.p = frame_index(fid_p[r]);
-      row.s = frame_index(fid_s[r]);
-      row.n = vec1.row(r).transpose();
-      row.w = vec2.row(r).transpose();
-      drows_.push_back(row);
+      drows_.push_back(make_row(r, kinds, fid_p, fid_s, vec1, vec2));
       dlabels_.push_back(bp::extract<std::string>(labels[r]));
     }
     dkept_ = kept;
@@ -1317,6 +1295,22 @@ class Core {
   }
 
  private:
+  // Row r of a row table (kind, frames, vectors as the layer's RowTable), checked.
+  Row make_row(int r, const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
+               const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2) {
+    if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
+    for (int f : {fid_p[r], fid_s[r]})
+      if (f < 0 || f >= static_cast<int>(model_.nframes))
+        throw BadArgument{"Core: frame id out of range"};
+    Row row;
+    row.kind = kinds[r];
+    row.p = frame_index(fid_p[r]);
+    row.s = frame_index(fid_s[r]);
+    row.n = vec1.row(r).transpose();
+    row.w = vec2.row(r).transpose();
+    return row;
+  }
+
   int frame_index(int fid) {
     for (std::size_t k = 0; k < fids_.size(); ++k)
       if (fids_[k] == static_cast<pinocchio::FrameIndex>(fid)) return static_cast<int>(k);
