@@ -39,6 +39,7 @@ import scipy.integrate
 
 import closedchain as cc
 from closedchain import compiled
+from closedchain.benchmark.evaluation import cpu_us_per_call
 from closedchain.dynamics.base import DEFAULT_SETTINGS, get_method
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
@@ -48,23 +49,12 @@ TOLS = [10.0**-k for k in range(4, 14)]
 
 def per_call_us(fn, number: int, repeat: int) -> float:
     """Median over ``repeat`` of the mean CPU time of ``number`` calls [us]."""
-    runs = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        for _ in range(number):
-            fn()
-        runs.append((time.process_time() - t0) / number * 1e6)
-    return float(np.median(runs))
+    return float(np.median([cpu_us_per_call(fn, number) for _ in range(repeat)]))
 
 
 def peer_setup(mech):
     cms, cds, _, pdata = mech.pinocchio_constraints()
-    prox = pin.ProximalSettings(
-        DEFAULT_SETTINGS.pinocchio_accuracy,
-        0.0,
-        DEFAULT_SETTINGS.pinocchio_mu,
-        DEFAULT_SETTINGS.pinocchio_max_iter,
-    )
+    prox = DEFAULT_SETTINGS.pinocchio_proximal()
     return cms, cds, pdata, prox
 
 

@@ -12,27 +12,21 @@ Run: python scripts/time_methods.py [--repeat 7] [--number 2000]
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
 import closedchain as cc
+from closedchain.benchmark.evaluation import cpu_us_per_call
 from closedchain.dynamics.base import DEFAULT_SETTINGS, compute_terms, get_method
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
 
 
 def median_us(fn, *, number: int, repeat: int) -> float:
-    """Median over ``repeat`` runs of the mean time of ``number`` calls [us]."""
-    runs = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(number):
-            fn()
-        runs.append((time.perf_counter() - t0) / number * 1e6)
-    return float(np.median(runs))
+    """Median over ``repeat`` runs of the mean CPU time of ``number`` calls [us]."""
+    return float(np.median([cpu_us_per_call(fn, number) for _ in range(repeat)]))
 
 
 def time_model(name: str, *, number: int, repeat: int) -> None:
@@ -42,12 +36,7 @@ def time_model(name: str, *, number: int, repeat: int) -> None:
     tau = np.zeros(mech.nv)
     ws = compute_terms(mech, q, v)
     cms, cds, _, pdata = mech.pinocchio_constraints()
-    prox = pin.ProximalSettings(
-        DEFAULT_SETTINGS.pinocchio_accuracy,
-        0.0,
-        DEFAULT_SETTINGS.pinocchio_mu,
-        DEFAULT_SETTINGS.pinocchio_max_iter,
-    )
+    prox = DEFAULT_SETTINGS.pinocchio_proximal()
     rows = {
         "pin.computeAllTerms": lambda: pin.computeAllTerms(mech.model, mech.data, q, v),
         "constraints.evaluate(J, gamma)": lambda: mech.constraints.evaluate(

@@ -153,9 +153,7 @@ def pinocchio_reference_dynamics(
     """
     cms, cds, _, data = mech.pinocchio_constraints()
     model = mech.model
-    prox = pin.ProximalSettings(
-        settings.pinocchio_accuracy, 0.0, settings.pinocchio_mu, settings.pinocchio_max_iter
-    )
+    prox = settings.pinocchio_proximal()
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
     a_raw = a.copy()
     lam = data.lambda_c.copy()

@@ -48,6 +48,14 @@ class EvaluationSettings:
     seed: int = 0
 
 
+def cpu_us_per_call(fn: Callable[[], object], number: int) -> float:
+    """Mean CPU time of ``number`` calls of ``fn`` [us] (``time.process_time``)."""
+    t0 = time.process_time()
+    for _ in range(number):
+        fn()
+    return (time.process_time() - t0) / number * 1e6
+
+
 def _cheapest_exact(mech: Mechanism, q, v, tau, a_ref, cms, cds, data):
     for max_iter in MAX_ITER_CANDIDATES:
         for mu in MU_CANDIDATES:
@@ -88,12 +96,7 @@ def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Cal
             (f"method {name}", "compiled", lambda fd=fd: fd.forward(q, v, tau), "from Python")
         )
     cms, cds, _, data = mech.pinocchio_constraints()
-    lib = pin.ProximalSettings(
-        DEFAULT_SETTINGS.pinocchio_accuracy,
-        0.0,
-        DEFAULT_SETTINGS.pinocchio_mu,
-        DEFAULT_SETTINGS.pinocchio_max_iter,
-    )
+    lib = DEFAULT_SETTINGS.pinocchio_proximal()
     calls.append(
         (
             "pin.constraintDynamics (library settings)",
@@ -146,10 +149,7 @@ def time_evaluations(
             entries.append((mech, label, backend, fn, note, []))
     for _ in range(settings.repeats):
         for *_, fn, _note, runs in entries:
-            t0 = time.process_time()
-            for _ in range(settings.number):
-                fn()
-            runs.append((time.process_time() - t0) / settings.number * 1e6)
+            runs.append(cpu_us_per_call(fn, settings.number))
     return [
         dict(
             mechanism=mech.name,

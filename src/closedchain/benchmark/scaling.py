@@ -9,7 +9,6 @@ growth exponent p of cost ~ N^p by least squares on log-log axes.
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import pinocchio as pin
 from ..dynamics.base import DEFAULT_SETTINGS, METHODS, get_method
 from ..kinematics import assemble, project_velocity
 from ..mechanism import Mechanism, load
-from .evaluation import compiled_methods
+from .evaluation import compiled_methods, cpu_us_per_call
 
 logger = logging.getLogger(__name__)
 
@@ -73,12 +72,7 @@ def time_scaling(
                 (n, mech, name, "compiled", lambda fd=fd, q=q, v=v, t=tau: fd.forward(q, v, t), [])
             )
         cms, cds, _, data = mech.pinocchio_constraints()
-        prox = pin.ProximalSettings(
-            DEFAULT_SETTINGS.pinocchio_accuracy,
-            0.0,
-            DEFAULT_SETTINGS.pinocchio_mu,
-            DEFAULT_SETTINGS.pinocchio_max_iter,
-        )
+        prox = DEFAULT_SETTINGS.pinocchio_proximal()
         entries.append(
             (
                 n,
@@ -94,10 +88,7 @@ def time_scaling(
     for _ in range(repeats):
         for *_, fn, runs in entries:
             try:
-                t0 = time.process_time()
-                for _ in range(number):
-                    fn()
-                runs.append((time.process_time() - t0) / number * 1e6)
+                runs.append(cpu_us_per_call(fn, number))
             except Exception as exc:  # a method that cannot handle a size is reported
                 logger.warning("scaling: %s", exc)
                 runs.append(np.nan)

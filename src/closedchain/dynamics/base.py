@@ -75,6 +75,15 @@ class SolverSettings:
     prox_tol: float = 1e-13
     prox_max_iter: int = 50
 
+    def pinocchio_proximal(self) -> pin.ProximalSettings:
+        """Pinocchio's ProximalSettings of these settings: absolute accuracy
+        ``pinocchio_accuracy`` with relative accuracy 0 (iterate to it or to
+        ``pinocchio_max_iter``), ``pinocchio_mu``; the "pinocchio" method, validation
+        and the benchmark's library-settings peer all call Pinocchio with these."""
+        return pin.ProximalSettings(
+            self.pinocchio_accuracy, 0.0, self.pinocchio_mu, self.pinocchio_max_iter
+        )
+
 
 DEFAULT_SETTINGS = SolverSettings()
 

@@ -80,14 +80,7 @@ class _PinocchioBuffers:
 
     def proximal(self, settings: SolverSettings) -> pin.ProximalSettings:
         if settings is not self.settings and settings != self.settings:
-            # relative accuracy 0: iterate to absolute accuracy or max_iter, as
-            # the validation reference does.
-            self.prox = pin.ProximalSettings(
-                settings.pinocchio_accuracy,
-                0.0,
-                settings.pinocchio_mu,
-                settings.pinocchio_max_iter,
-            )
+            self.prox = settings.pinocchio_proximal()
             self.settings = settings
         assert self.prox is not None
         return self.prox
