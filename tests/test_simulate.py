@@ -21,7 +21,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import scipy.linalg
-from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS
+from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS, MODELS
 
 import closedchain as cc
 from closedchain import cli
@@ -729,21 +729,112 @@ def test_names_are_case_insensitive(fourbar, q_crossed, integrator, registered):
     assert traj.info.method == "kkt"
 
 
-def test_adaptive_needs_nq_equal_nv(load_mechanism):
-    """A mechanism with nq != nv (continuous joints) cannot use an adaptive integrator."""
-    mech = next(
-        (
-            load_mechanism(n)
-            for n in ("spherical_chain", "slider_crank", "slider_crank_planar", "fixed_branches")
-            if load_mechanism(n).nq != load_mechanism(n).nv
-        ),
-        None,
-    )
-    if mech is None:
-        pytest.skip("no test mechanism with nq != nv")
+#: Agreement of DOP853 at rtol 1e-11 with rk4 at 1e-4 s (projection) on a mechanism
+#: with a continuous joint (nq = nv + 1: the chart is global, D = I) [rad or m].
+CHART_AGREEMENT = 1e-8
+
+
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_adaptive_integrators_with_continuous_joints(load_mechanism, backend):
+    """Adaptive integrators integrate the chart x of q = q0 (+) x when nq != nv; checked
+    against the fixed-step rk4 on the manifold (another scheme, another state)."""
+    mech = load_mechanism("slider_crank")
+    assert mech.nq == mech.nv + 1
+    q0, v0 = mech.q_ref, np.zeros(mech.nv)
+    t_eval = np.linspace(0.0, 2.0, 9)
+    ref = simulate(mech, q0, v0, 2.0, integrator="rk4", dt=1e-4, stabilization="projection",
+                   t_eval=t_eval)
+    traj = simulate(mech, q0, v0, 2.0, integrator="DOP853", rtol=1e-11, atol=1e-11,
+                    t_eval=t_eval, backend=backend)
+    assert traj.info.backend == backend
+    # The motion goes somewhere (a still mechanism would pass any comparison).
+    assert np.max(np.abs(pin.difference(mech.model, q0, ref.q[-1]))) > 0.1
+    err = max(np.max(np.abs(pin.difference(mech.model, a, b))) for a, b in zip(ref.q, traj.q))
+    assert err <= CHART_AGREEMENT, err
+    assert np.all(np.abs(np.linalg.norm(traj.q[:, _unit_pairs(mech)], axis=2) - 1) < 1e-14)
+
+
+def _unit_pairs(mech):
+    """Index pairs (cos, sin) of the continuous joints in q."""
+    return [
+        [j.idx_q, j.idx_q + 1] for j in mech.model.joints[1:] if j.nq == 2 and j.nv == 1
+    ]
+
+
+@pytest.fixture(scope="module")
+def free_fourbar():
+    """The 4-bar on a free-flyer, no gravity: a tumbling linkage."""
+    return cc.load(MODELS / "fourbar.urdf", root_joint="free", gravity=[0.0, 0.0, 0.0])
+
+
+def _tumbling_start(mech):
     v0 = np.zeros(mech.nv)
-    with pytest.raises(cc.ClosedChainError, match="needs nq == nv"):
-        simulate(mech, mech.q_ref, v0, 0.1, integrator="DOP853")
+    v0[:6] = [0.1, 0.0, 0.2, 0.3, 2.0, 1.0]  # a rigid motion of the whole linkage: J v0 = 0
+    return mech.q_ref, v0
+
+
+def _world_momentum(mech, q, v):
+    """Spatial momentum of the linkage in the world frame (conserved without gravity)."""
+    data = mech.model.createData()
+    pin.computeCentroidalMomentum(mech.model, data, q, v)
+    com = data.com[0]
+    h = data.hg  # about the centre of mass, world axes
+    return np.concatenate([h.linear, h.angular + np.cross(com, h.linear)])
+
+
+#: Free-flyer runs: horizon [s] (the base turns about 11 rad: the chart re-centres),
+#: relative conservation of spatial momentum and energy by DOP853 at rtol 1e-11.
+FREE_T = 5.0
+FREE_CONSERVATION = 1e-8
+
+
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_adaptive_integrators_with_a_free_flyer(free_fourbar, backend):
+    mech = free_fourbar
+    q0, v0 = _tumbling_start(mech)
+    traj = simulate(mech, q0, v0, FREE_T, integrator="DOP853", rtol=1e-11, atol=1e-11,
+                    t_eval=np.linspace(0, FREE_T, 51), backend=backend)
+    h0 = _world_momentum(mech, q0, v0)
+    for q, v in zip(traj.q, traj.v):
+        dh = np.linalg.norm(_world_momentum(mech, q, v) - h0)
+        assert dh <= FREE_CONSERVATION * np.linalg.norm(h0), dh
+    drift = np.ptp(traj.energy) / abs(traj.energy[0])
+    assert drift <= FREE_CONSERVATION, drift
+    assert traj.max_constraint_residual <= 1e-9
+    # The base turned by more than 2 pi (a chart about q0 alone would degenerate).
+    turned = sum(
+        np.linalg.norm(pin.log3(pin.Quaternion(q1[3:7]).matrix().T
+                                @ pin.Quaternion(q2[3:7]).matrix()))
+        for q1, q2 in zip(traj.q[:-1], traj.q[1:])
+    )
+    assert turned > 2 * math.pi
+    assert np.all(np.abs(np.linalg.norm(traj.q[:, 3:7], axis=1) - 1) < 1e-14)
+
+
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_rk4_is_fourth_order_on_a_free_flyer(free_fourbar, backend):
+    """rk4's stages add D(x_i)^-1 v_i in one tangent space: order 4 on a tumbling base
+    (summing the v_i themselves is second order there), against DOP853 at rtol 1e-12."""
+    mech = free_fourbar
+    q0, v0 = _tumbling_start(mech)
+    t = 1.0
+    ref = simulate(mech, q0, v0, t, integrator="DOP853", rtol=1e-12, atol=1e-12,
+                   t_eval=[0.0, t], backend=backend)
+    errs = []
+    for dt in (0.02, 0.01):
+        traj = simulate(mech, q0, v0, t, integrator="rk4", dt=dt, stabilization="none",
+                        t_eval=[0.0, t], backend=backend)
+        errs.append(np.max(np.abs(pin.difference(mech.model, ref.q[-1], traj.q[-1]))))
+    order = math.log2(errs[0] / errs[1])
+    assert order >= 3.5, (errs, order)
+
+
+def test_partitioning_needs_nq_equal_nv(load_mechanism):
+    """Partitioning integrates independent coordinates of q as a vector: nq == nv."""
+    mech = load_mechanism("slider_crank")
+    with pytest.raises(cc.ClosedChainError, match="needs nq == nv.*valid choices here: none"):
+        simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.1, integrator="DOP853",
+                 stabilization="partitioning")
 
 
 #: Coarse fixed step of the stabilization comparison [s] and its horizon [s].

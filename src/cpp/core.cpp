@@ -51,6 +51,7 @@ using Mat = Eigen::MatrixXd;
 using Mat6x = Eigen::Matrix<double, 6, Eigen::Dynamic>;
 using Eigen::Vector3d;
 using RefV = Eigen::Ref<const Vec>;
+using SmallMat = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;  // no heap
 
 // ---------------------------------------------------------------------------
 // Errors: thrown in C++, translated into closedchain's Python exceptions.
@@ -209,6 +210,14 @@ class Core {
     vel_c_ = Vec::Zero(nc_);
     rhs_work_ = Vec::Zero(nv_ + nc_);
     piv_.assign(nv_ + nc_, 0);
+    for (std::size_t j = 1; j < model.joints.size(); ++j) {
+      const auto &jm = model.joints[j];
+      if (jm.nv() > 1 && jm.nq() != jm.nv()) {
+        if (jm.nv() > 6) throw BadArgument{"Core: a curved joint with more than 6 velocities"};
+        curved_.emplace_back(jm.idx_v(), jm.nv());
+      }
+    }
+    D_chart_ = Mat::Zero(curved_.empty() ? 0 : nv_, curved_.empty() ? 0 : nv_);
   }
 
   int nc() const { return nc_; }
@@ -1058,21 +1067,21 @@ class Core {
         vs = v + (dt / 2) * k1a;
         if (stage_projects_) project(qs, vs);
         accel(t + dt / 2, qs, vs);
-        k2v = vs;
+        chart_rate(q, dv, vs, k2v);  // the chart about q (simulate/chart.py)
         k2a = a_;
         dv = (dt / 2) * k2v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k2a;
         if (stage_projects_) project(qs, vs);
         accel(t + dt / 2, qs, vs);
-        k3v = vs;
+        chart_rate(q, dv, vs, k3v);
         k3a = a_;
         dv = dt * k3v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + dt * k3a;
         if (stage_projects_) project(qs, vs);
         accel(t + dt, qs, vs);
-        k4v = vs;
+        chart_rate(q, dv, vs, k4v);
         k4a = a_;
         dv = (dt / 6) * (k1v + 2 * k2v + 2 * k3v + k4v);
         pinocchio::integrate(model_, q, dv, qn);
@@ -1095,9 +1104,52 @@ class Core {
 
   double rms(const Vec &x) const { return x.norm() / std::sqrt(static_cast<double>(x.size())); }
 
+  // The chart of the adaptive loops when nq != nv (simulate/chart.py): the state
+  // holds x with q = integrate(q_c, x), dx/dt = D(x)^-1 v, D = dIntegrate/dx.
+  void chart_start(const Vec &q0) {
+    chart_ = nq_ != nv_;
+    if (!chart_) return;
+    q_c_ = q0;
+    q_x_ = q0;
+  }
+
+  // out = D(x)^-1 v for q = integrate(q_c, x): the identity but on the blocks of
+  // the joints whose integrate is not x + v (free-flyer, spherical, planar).
+  void chart_rate(const Vec &q_c, const Eigen::Ref<const Vec> &x, const Eigen::Ref<const Vec> &v,
+                  Eigen::Ref<Vec> out) {
+    out = v;
+    if (curved_.empty()) return;
+    pinocchio::dIntegrate(model_, q_c, x, D_chart_, pinocchio::ARG1);
+    for (const auto &b : curved_) {
+      SmallMat Db = D_chart_.block(b.first, b.first, b.second, b.second);
+      out.segment(b.first, b.second) = Db.partialPivLu().solve(v.segment(b.first, b.second));
+    }
+  }
+
+  // The configuration of state y's position part (y itself without a chart).
+  RefV chart_q(const Eigen::Ref<const Vec> &x) {
+    if (!chart_) return x;
+    pinocchio::integrate(model_, q_c_, x, q_x_);
+    return q_x_;
+  }
+
+  // Re-centre the chart when a curved joint's block exceeds 1 (chart.RECENTRE_NORM).
+  bool chart_recentre(Eigen::Ref<Vec> x) {
+    bool far = false;
+    for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > 1.0;
+    if (!far) return false;
+    pinocchio::integrate(model_, q_c_, x, q_x_);
+    q_c_ = q_x_;
+    x.setZero();
+    return true;
+  }
+
   void fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
-    accel(t, y.head(nv_), y.tail(nv_));
-    f.head(nv_) = y.tail(nv_);
+    accel(t, chart_q(y.head(nv_)), y.tail(nv_));
+    if (chart_)
+      chart_rate(q_c_, y.head(nv_), y.tail(nv_), f.head(nv_));
+    else
+      f.head(nv_) = y.tail(nv_);
     f.tail(nv_) = a_;
   }
 
@@ -1105,7 +1157,6 @@ class Core {
                         double rtol, double atol, bp::object t_eval_obj, bool projects,
                         bp::object progress) {
     check_sizes(q0, v0);
-    if (nq_ != nv_) throw BadArgument{"adaptive integration needs nq == nv"};
     if (integrator != RK45 && integrator != DOP853)
       throw BadArgument{"run_adaptive: unknown integrator"};
     const bool dop = integrator == DOP853;
@@ -1127,13 +1178,20 @@ class Core {
     }
     std::size_t ip = 0;
     Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
-    y.head(nv_) = q0;
+    chart_start(q0);
+    if (chart_)
+      y.head(nv_).setZero();
+    else
+      y.head(nv_) = q0;
     y.tail(nv_) = v0;
+    Vec q_out(nq_), v_out(nv_), x_out(nv_);
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
     Mat F(n, dop853::INTERPOLATOR_POWER);
     auto output = [&](double t, const Vec &yy) {
-      accel(t, yy.head(nv_), yy.tail(nv_));
-      record(S, t, yy.head(nv_), yy.tail(nv_));
+      q_out = chart_q(yy.head(nv_));
+      v_out = yy.tail(nv_);
+      accel(t, q_out, v_out);
+      record(S, t, q_out, v_out);
     };
     double t = 0.0;
     if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
@@ -1279,15 +1337,19 @@ class Core {
       t = t_new;
       y = y_new;
       f = f_new;
-      check_finite(y.head(nv_), y.tail(nv_), t);
+      q_out = chart_q(y.head(nv_));
+      v_out = y.tail(nv_);
+      check_finite(q_out, v_out, t);
       if (projects) {
-        Vec q = y.head(nv_), v = y.tail(nv_);
-        project(q, v);
-        y.head(nv_) = q;
-        y.tail(nv_) = v;
+        project(q_out, v_out);
+        if (chart_)
+          pinocchio::difference(model_, q_c_, q_out, x_out);
+        y.head(nv_) = chart_ ? x_out : q_out;
+        y.tail(nv_) = v_out;
         fun(t, y, f);
       }
-      check_regular(y.head(nv_), t);
+      if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
+      check_regular(q_out, t);
       if (!dense) output(t, y);
       poll(steps, t, progress);
     }
@@ -1424,6 +1486,11 @@ class Core {
   std::vector<std::string> dlabels_;
   Eigen::VectorXi dkept_;
   Vec dphi_;
+  // chart of the adaptive loops (nq != nv): centre, q of the last x, curved joints' blocks
+  bool chart_ = false;
+  Vec q_c_, q_x_;
+  std::vector<std::pair<int, int>> curved_;
+  Mat D_chart_;
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
   int tau_mode_ = 0;

@@ -75,8 +75,6 @@ class BenchSettings:
         euler_steps: steps of Pinocchio's Euler loop [s].
         mujoco_steps: MuJoCo timesteps [s].
         reference_tol: tolerance of the reference and its confirmation.
-        reference_steps: fixed steps [s] of the reference and its confirmation where
-            adaptive integrators cannot run (nq != nv).
         front_factor: a configuration whose CPU is within this factor of its family's
             Pareto front at its error is "near the front" and gets every repeat.
         seed: shuffling seed of the interleaved job order.
@@ -92,7 +90,6 @@ class BenchSettings:
     euler_steps: tuple[float, ...] = (1e-3, 5e-4, 2e-4, 1e-4)
     mujoco_steps: tuple[float, ...] = (2e-3, 1e-3, 5e-4, 2e-4, 1e-4)
     reference_tol: float = 1e-13
-    reference_steps: tuple[float, float] = (1e-4, 5e-5)
     front_factor: float = 2.0
     seed: int = 0
 
@@ -234,19 +231,17 @@ def configurations(
 
 
 def reference_configurations(
-    settings: BenchSettings, scenario: Scenario | None = None, *, vector_state: bool = True
+    settings: BenchSettings, scenario: Scenario | None = None, *, nq_equals_nv: bool = True
 ) -> list[dict]:
     """The reference and its confirmation of a scenario.
 
     * An exact reference (``scenario.exact``): the double-precision quadrature, confirmed
       by the mpmath one.
-    * Otherwise, with nq == nv: the scenario's method with DOP853 at the tightest
-      tolerance (compiled when it can), confirmed by the numpy nullspace method with
-      DOP853 and coordinate partitioning (another formulation, another drift control,
-      another implementation).
-    * With nq != nv (adaptive integrators need a vector state): rk4 with projection at
-      ``reference_steps[0]`` (the scenario's method), confirmed by nullspace at
-      ``reference_steps[1]``.
+    * Otherwise: the scenario's method with DOP853 at the tightest tolerance (compiled
+      when it can), confirmed by the numpy nullspace method with DOP853 and coordinate
+      partitioning (another formulation, another drift control, another
+      implementation); with nq != nv (continuous joints), where partitioning cannot
+      run, projection after each step instead.
     """
     if scenario is not None and scenario.exact:
         return [
@@ -261,37 +256,8 @@ def reference_configurations(
         ]
     method = scenario.method if scenario is not None else "kkt"
     backend = "compiled" if METHOD_CAPABILITIES[method].compiled else "numpy"
-    if not vector_state:
-        h1, h2 = settings.reference_steps
-        return [
-            dict(
-                family="reference",
-                solver=f"{method}/rk4/projection",
-                backend=backend,
-                settings=f"dt={_fmt(h1)}",
-                kwargs=dict(
-                    method=method,
-                    integrator="rk4",
-                    stabilization="projection",
-                    backend=backend,
-                    dt=h1,
-                ),
-            ),
-            dict(
-                family="confirmation",
-                solver="nullspace/rk4/projection",
-                backend="compiled",
-                settings=f"dt={_fmt(h2)}",
-                kwargs=dict(
-                    method="nullspace",
-                    integrator="rk4",
-                    stabilization="projection",
-                    backend="compiled",
-                    dt=h2,
-                ),
-            ),
-        ]
     tol = settings.reference_tol
+    confirm_stab = "partitioning" if nq_equals_nv else "projection"
     return [
         dict(
             family="reference",
@@ -304,13 +270,13 @@ def reference_configurations(
         ),
         dict(
             family="confirmation",
-            solver="nullspace/DOP853/partitioning",
+            solver=f"nullspace/DOP853/{confirm_stab}",
             backend="numpy",
             settings=f"tol={_fmt(tol)}",
             kwargs=dict(
                 method="nullspace",
                 integrator="DOP853",
-                stabilization="partitioning",
+                stabilization=confirm_stab,
                 backend="numpy",
                 tol=tol,
             ),
@@ -579,7 +545,7 @@ def make_jobs(
         ]
         if references:
             for cfg in reference_configurations(
-                settings, scenario, vector_state=mech.nq == mech.nv
+                settings, scenario, nq_equals_nv=mech.nq == mech.nv
             ):
                 jobs.append(
                     dict(cfg, scenario=sc, repeat=0, quick=settings.quick, models_dir=models_dir)

@@ -306,11 +306,12 @@ def simulate(
     t_final = float(t_final)
     if tau is not None and not callable(tau):
         tau = mech.check_v(tau, "tau")
-    if (spec.vector_state or stab.partitions) and mech.nq != mech.nv:
+    if stab.partitions and mech.nq != mech.nv:
         raise InvalidArgumentError(
-            f"integrator {integrator!r} with stabilization {stabilization!r} integrates q as a "
-            f"vector and needs nq == nv (this mechanism has nq={mech.nq}, nv={mech.nv}); use "
-            "a fixed-step integrator (euler, semi-implicit, rk4) with projection"
+            f"stabilization {stabilization!r} integrates the independent coordinates of q as "
+            f"a vector and needs nq == nv (this mechanism has nq={mech.nq}, nv={mech.nv}); "
+            "valid choices here: "
+            + ", ".join(s for s in spec.stabilizations if not STABILIZATIONS[s].partitions)
         )
     t_eval = check_t_eval(t_eval, t_final, settings)
     # A step control the integrator would ignore is a mistake, not a no-op.

@@ -6,6 +6,7 @@ import numpy as np
 import scipy.integrate
 
 from ..exceptions import SingularConfigurationError
+from .chart import Chart
 from .problem import Problem, passing_hint, project
 from .settings import SimulationError
 
@@ -25,6 +26,7 @@ def run_adaptive(
     partition = stab.partitions
     solver_cls = getattr(scipy.integrate, spec.name)
     state = {"q": np.array(q0)}  # warm start of the dependent solve
+    chart = None
 
     if partition:
         q, v = problem.complete(q0, v0[problem.ind], 0.0)
@@ -38,6 +40,16 @@ def run_adaptive(
             guess[problem.ind] = y[:m]
             q, v = problem.complete(guess, y[m:], t)
             return q, v
+    elif mech.nq != nv:
+        # Unit quaternions or (cos, sin) pairs: integrate a chart coordinate (chart.py).
+        q, v = np.array(q0), np.array(v0)
+        chart = Chart(mech.model, q0)
+
+        def pack(q, v):
+            return np.concatenate([chart.x(q), v])
+
+        def unpack(y, t):
+            return chart.q(y[:nv]), y[nv:]
     else:
         q, v = np.array(q0), np.array(v0)
 
@@ -53,6 +65,8 @@ def run_adaptive(
         if partition:
             state["q"] = q
             return np.concatenate([v[problem.ind], a[problem.ind]])
+        if chart is not None:
+            return np.concatenate([chart.rate(y[:nv], v), a])
         return np.concatenate([v, a])
 
     def output(t, y):
@@ -77,7 +91,7 @@ def run_adaptive(
             t_final,
             rtol=rtol,
             atol=atol,
-            **({"first_step": first_step} if first_step else {}),
+            **({"first_step": min(first_step, t_final - t0)} if first_step else {}),
         )
         restart = False
         while solver.status == "running":
@@ -97,8 +111,8 @@ def run_adaptive(
                         output(pending[0], sol(pending[0]))
                         pending.pop(0)
             if stab.projects:
-                q, v = project(problem, solver.y[:nv], solver.y[nv:], t_new)
-                solver.y = np.concatenate([q, v])
+                q, v = project(problem, *unpack(solver.y, t_new), t_new)
+                solver.y = pack(q, v)
                 if hasattr(solver, "f"):
                     solver.f = fun(t_new, solver.y)
             # Every stabilization, partitioning included: near a branch point of
@@ -145,6 +159,12 @@ def run_adaptive(
                     first_step = getattr(solver, "h_abs", None) or None
                     restart = True
                     break
+            if chart is not None and t_new < t_final and chart.needs_recentre(solver.y[:nv]):
+                chart.recentre(solver.y[:nv])
+                t0, y = t_new, np.concatenate([np.zeros(nv), solver.y[nv:]])
+                first_step = getattr(solver, "h_abs", None) or None
+                restart = True
+                break
         if not restart:
             break
     return steps

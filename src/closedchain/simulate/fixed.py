@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pinocchio as pin
 
+from .chart import tangent_rate
 from .problem import Problem, project
 from .settings import SimulationError
 
@@ -27,12 +28,22 @@ def step_semi_implicit(model, deriv, t, q, v, a, dt):
 
 
 def step_rk4(model, deriv, t, q, v, a, dt):
-    """Classical Runge-Kutta 4, stages on the manifold through pin.integrate (order 4)."""
-    k1v, k1a = v, a
-    k2v, k2a = deriv(t + dt / 2, pin.integrate(model, q, dt / 2 * k1v), v + dt / 2 * k1a)
-    k3v, k3a = deriv(t + dt / 2, pin.integrate(model, q, dt / 2 * k2v), v + dt / 2 * k2a)
-    k4v, k4a = deriv(t + dt, pin.integrate(model, q, dt * k3v), v + dt * k3a)
-    q_new = pin.integrate(model, q, dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+    """Classical Runge-Kutta 4 in the chart x -> q (+) x about q (order 4; chart.py).
+
+    The stages' position rates are D(x_i)^-1 v_i (the identity but on free-flyer,
+    spherical and planar joints), so that they add up in one tangent space.
+    """
+    k1x, k1a = v, a
+    x2 = dt / 2 * k1x
+    v2, k2a = deriv(t + dt / 2, pin.integrate(model, q, x2), v + dt / 2 * k1a)
+    k2x = tangent_rate(model, q, x2, v2)
+    x3 = dt / 2 * k2x
+    v3, k3a = deriv(t + dt / 2, pin.integrate(model, q, x3), v + dt / 2 * k2a)
+    k3x = tangent_rate(model, q, x3, v3)
+    x4 = dt * k3x
+    v4, k4a = deriv(t + dt, pin.integrate(model, q, x4), v + dt * k3a)
+    k4x = tangent_rate(model, q, x4, v4)
+    q_new = pin.integrate(model, q, dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x))
     return q_new, v + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
 
 

@@ -36,7 +36,6 @@ class IntegratorSpec:
         order: order of accuracy.
         backend: ``"numpy"`` (Python loop) or ``"compiled"``.
         stabilizations: names of the stabilizations it supports.
-        vector_state: integrates q as a vector (needs nq == nv).
         default_stabilization: used when the caller gives none.
         step: the one-step map of a fixed-step integrator,
             ``step(model, deriv, t, q, v, a, dt) -> (q, v)``.
@@ -53,7 +52,6 @@ class IntegratorSpec:
     order: int
     backend: str = "numpy"
     stabilizations: tuple[str, ...] = ("none", "baumgarte", "projection", "partitioning")
-    vector_state: bool = False
     default_stabilization: str = "none"
     step: Callable | None = None
     method_capabilities: tuple[str, ...] = ()
@@ -179,8 +177,8 @@ for _name, _order, _what in (
             "adaptive",
             adaptive.run_adaptive,
             _order,
-            vector_state=True,
-            description=f"scipy.integrate.{_name}: {_what}, adaptive, dense output",
+            description=f"scipy.integrate.{_name}: {_what}, adaptive, dense output; "
+            "q in a chart x -> q0 (+) x when nq != nv",
         )
     )
 
@@ -219,7 +217,6 @@ if compiled.available():
                 _order,
                 backend="compiled",
                 stabilizations=tuple(s for s in _ref.stabilizations if s != "partitioning"),
-                vector_state=_ref.vector_state,
                 default_stabilization=_ref.default_stabilization,
                 description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
             )
