@@ -979,6 +979,13 @@ class Core {
     warm_q_ = Vec::Zero(nq_);
     fq_ = Vec::Zero(nq_);
     fv_ = Vec::Zero(nv_);
+    Xwarm_ = Mat::Zero(nc_, m);
+    qD0_ = KD0_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
+    dqI_ = Vec::Zero(m);
+    unpack_q_ = Vec::Zero(nq_);
+    unpack_v_ = Vec::Zero(nv_);
+    unpack_warm_ = Vec::Zero(nq_);
+    unpack_y_ = Vec::Zero(2 * m);
     std::vector<int> ind(m);
     for (int i = 0; i < m; ++i) ind[i] = nc_ + i;  // until set_partition
     set_indices(ind, red_ind_, red_dep_);
@@ -1125,26 +1132,30 @@ class Core {
   // max_iter=20): the full step, then, unless it contracts the sum of squares by
   // 1/4, the step without J_D's directions below 1e-2 of its largest singular
   // value; each with up to 12 halvings; the lower one is taken). nq == nv, so the
-  // held coordinates stay exact under pinocchio::integrate.
+  // held coordinates stay exact under pinocchio::integrate. Every trial point is
+  // evaluated with its J (one kinematics pass, computeJointJacobians): the accepted
+  // one's J serves the next iteration and v_D from the memo of eval_phi_J.
   void newton_dependent(Vec &q, double t) {
     if (nc_ == 0) return;
     constexpr int MAX_ITER = 20, MAX_HALVINGS = 12;
     constexpr double FALLBACK_RCOND = 1e-2, CONTRACTION = 0.25;
     const double tol = dependent_tol_;
-    eval_phi(q);
+    eval_phi_J(q);
     phi_n_ = phi_;
     double res = phi_n_.cwiseAbs().maxCoeff();
-    bool fk_at_q = true;  // data_'s placements are those of q
     for (int it = 0; it < MAX_ITER && !(res <= tol); ++it) {
       eval_phi_J(q);
       gather_JD(dep_);
       const double sq = phi_n_.squaredNorm();
       bool have = false;
       double best_sq = 0.0, best_res = 0.0;
-      bool best_is_last = false;
       for (int pass = 0; pass < 2; ++pass) {
+        // a regular J_D (rcond above eps nc; the factors' bound shows it cheaply
+        // away from singular J_D): lstsq's solution is the LU solution
+        const double eps_n = std::numeric_limits<double>::epsilon() * nc_;
         if (pass == 0 && lu_jd_.factor(JD_) &&
-            lu_jd_.rcond() > std::numeric_limits<double>::epsilon() * nc_) {
+            (lu_jd_.anorm * lu_jd_.inverse_norm_bound() * eps_n < 1.0 ||
+             lu_jd_.rcond() > eps_n)) {
           step_c_ = -phi_n_;
           lu_jd_.solve(step_c_);  // = lstsq's solution for a regular J_D
         } else {
@@ -1166,17 +1177,15 @@ class Core {
         for (int k = 0; k < MAX_HALVINGS; ++k) {
           dq_ = alpha * dv_n_;
           pinocchio::integrate(model_, q, dq_, q_try_);
-          eval_phi(q_try_);
+          eval_phi_J(q_try_);
           const double res_try = phi_.cwiseAbs().maxCoeff(), sq_try = phi_.squaredNorm();
           if (sq_try < sq || res_try <= tol) {
-            best_is_last = false;
             if (!have || sq_try < best_sq) {
               have = true;
               best_sq = sq_try;
               best_res = res_try;
               q_best_ = q_try_;
               phi_best_ = phi_;
-              best_is_last = true;
             }
             break;
           }
@@ -1184,14 +1193,10 @@ class Core {
         }
         if (have && (best_res <= tol || best_sq <= CONTRACTION * sq)) break;
       }
-      if (!have) {
-        fk_at_q = false;
-        break;
-      }
+      if (!have) break;
       q = q_best_;
       phi_n_ = phi_best_;
       res = best_res;
-      fk_at_q = best_is_last;
     }
     if (!(res <= tol))
       throw SimulationFailure{"at t = " + fmt("%.9g", t) +
@@ -1200,7 +1205,7 @@ class Core {
                                   fmt("%.3e", res) + " > tol " + fmt("%.1e", tol),
                               t};
     if (align_.empty()) return;
-    if (!fk_at_q) eval_phi(q);
+    eval_phi_J(q);  // the placements at q (from the memo unless a later trial moved them)
     std::string bad;
     int last = -1;
     for (const Align &al : align_) {
@@ -1318,6 +1323,7 @@ class Core {
     rep_ind_.clear();
     sign0_ = 0.0;
     rows_only_ = partitions_ && fixed_step;  // fixed.py checks the rows only
+    predictor_valid_ = unpack_valid_ = false;
     if (!partitions_) return;
     if (nq_ != nv_) throw BadArgument{"stabilization partitioning needs nq == nv"};
     set_indices(ind0_, ind_, dep_);
@@ -1339,20 +1345,71 @@ class Core {
 
   // (q, v) of the partitioned state y = (q_I, v_I), the dependent solve warm-started
   // from the last evaluation's q (adaptive.py's unpack).
-  void unpack(const Vec &y, double t, Vec &q, Vec &v) {
+  //
+  // Two savings over the numpy loop, same solution to dependent_tol: the guess of q_D
+  // follows the tangent, q_D = warm_D - (J_D^-1 J_I)(warm) (q_I - warm_I) (the numpy
+  // loop starts from warm_D: one Newton iteration more per evaluation), and the
+  // state of the last call is reused when y and the warm start are the same (each
+  // step unpacks its end state three times: checks, output, re-partitioning).
+  // Returns false when the result came from that memo (J_ and lu_jd_ are then not
+  // necessarily those of q).
+  bool unpack(const Vec &y, double t, Vec &q, Vec &v) {
     const int m = static_cast<int>(ind_.size());
+    if (unpack_valid_ && y == unpack_y_ && warm_q_ == unpack_warm_) {
+      q = unpack_q_;
+      v = unpack_v_;
+      return false;
+    }
     q = warm_q_;
     v.setZero();
     for (int k = 0; k < m; ++k) {
       q[ind_[k]] = y[k];
       v[ind_[k]] = y[m + k];
     }
+    if (predictor_valid_ && nc_) {
+      for (int k = 0; k < m; ++k) dqI_[k] = y[k] - warm_q_[ind_[k]];
+      tmp_c_.noalias() = Xwarm_ * dqI_;
+      for (int i = 0; i < nc_; ++i) q[dep_[i]] -= tmp_c_[i];
+    }
     complete(q, v, t);
+    unpack_y_ = y;
+    unpack_warm_ = warm_q_;
+    unpack_q_ = q;
+    unpack_v_ = v;
+    unpack_valid_ = true;
+    return true;
   }
 
   void fun_partitioned(double t, const Vec &y, Eigen::Ref<Vec> f) {
     const int m = static_cast<int>(ind_.size());
-    unpack(y, t, fq_, fv_);
+    if (use_guess_) {  // the stage's guess of q_D (stage_guess)
+      use_guess_ = false;
+      fq_ = warm_q_;
+      fv_.setZero();
+      for (int k = 0; k < m; ++k) {
+        fq_[ind_[k]] = y[k];
+        fv_[ind_[k]] = y[m + k];
+      }
+      for (int i = 0; i < nc_; ++i) fq_[dep_[i]] = guess_qD_[i];
+      complete(fq_, fv_, t);
+    } else if (!unpack(y, t, fq_, fv_) && nc_) {
+      eval_phi_J(fq_);
+      gather_JD(dep_);
+      lu_jd_.factor(JD_);
+    }
+    for (int i = 0; i < nc_; ++i) {
+      vD_last_[i] = fv_[dep_[i]];
+      qD_new_[i] = fq_[dep_[i]];
+    }
+    // the tangent at the new warm start: lu_jd_ holds J_D(fq_) from complete, J_ is J(fq_)
+    if (nc_) {
+      for (int k = 0; k < m; ++k) {
+        tmp_c_ = J_.col(ind_[k]);
+        lu_jd_.solve(tmp_c_);
+        Xwarm_.col(k) = tmp_c_;
+      }
+      predictor_valid_ = true;
+    }
     accel(t, fq_, fv_);
     warm_q_ = fq_;
     for (int k = 0; k < m; ++k) {
@@ -1384,11 +1441,30 @@ class Core {
     }
     if (!(cond_JD(q) > repartition_cond_ && t < t_final && repartition(q, t))) return false;
     warm_q_ = q;
+    predictor_valid_ = unpack_valid_ = false;  // made for the old partition
     gather_JD(dep_);  // J_ is still that of q
     lu_jd_.factor(JD_);
     sign0_ = lu_jd_.det_sign();
     pack(q, v, y);
     return true;
+  }
+
+  // The guess of q_D at a Runge-Kutta stage with coefficients a[0..s-1]: the dependent
+  // coordinates integrated with the stage's own weights, q_D0 + h sum_j a_j v_D,j
+  // (v_D,j of the earlier stages): accurate to the step's truncation error, so the
+  // dependent solve needs one Newton iteration (the numpy loop starts from the last
+  // evaluation's q_D, and from the tangent predictor of unpack here elsewhere).
+  void stage_guess(const double *a, int s, double h) {
+    guess_qD_ = qD0_;
+    for (int j = 0; j < s; ++j)
+      if (a[j] != 0.0) guess_qD_.noalias() += (h * a[j]) * KD_.col(j);
+    use_guess_ = nc_ > 0;
+  }
+
+  // The step start (t, y) is the last evaluation's: its q_D and v_D.
+  void step_start_from_last() {
+    qD0_ = qD_new_;
+    KD0_ = vD_last_;
   }
 
   bp::list repartitions_list() const {
@@ -1622,6 +1698,7 @@ class Core {
       y.tail(nv_) = v0;
     }
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+    KD_ = Mat::Zero(nc_, K.cols());
     Mat F(n, dop853::INTERPOLATOR_POWER);
     auto output = [&](double t, const Vec &yy) {
       if (partitions_) {
@@ -1639,6 +1716,7 @@ class Core {
       if (dense) ++ip;
     }
     fun(t, y, f);
+    if (partitions_) step_start_from_last();
     // scipy's select_initial_step
     double h_abs;
     {
@@ -1677,6 +1755,7 @@ class Core {
         h_abs = std::abs(h);
         // rk_step
         K.col(0) = f;
+        if (partitions_) KD_.col(0) = KD0_;
         for (int s = 1; s < n_stages; ++s) {
           dy.setZero();
           for (int j = 0; j < s; ++j) {
@@ -1684,7 +1763,9 @@ class Core {
             if (c != 0.0) dy += c * K.col(j);
           }
           ye = y + h * dy;
+          if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
           fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
+          if (partitions_) KD_.col(s) = vD_last_;
         }
         dy.setZero();
         for (int j = 0; j < n_stages; ++j) {
@@ -1692,7 +1773,9 @@ class Core {
           if (b != 0.0) dy += b * K.col(j);
         }
         y_new = y + h * dy;
+        if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
         fun(t + h, y_new, f_new);
+        if (partitions_) KD_.col(n_stages) = vD_last_;
         K.col(n_stages) = f_new;
         scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
         double err;
@@ -1729,6 +1812,10 @@ class Core {
       }
       ++steps;
       const double t_old = t;
+      if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
+        qD0_ = qD_new_;
+        KD0_ = KD_.col(n_stages);
+      }
       // dense output at the t_eval within the step, from the unprojected step
       if (dense && ip < pending.size() && pending[ip] <= t_new) {
         if (dop) {
@@ -1737,7 +1824,9 @@ class Core {
             for (int j = 0; j < s; ++j)
               if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
             ye = y + h * dy;
+            if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
             fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
+            if (partitions_) KD_.col(s) = vD_last_;
           }
           F.col(0) = y_new - y;
           F.col(1) = h * K.col(0) - F.col(0);
@@ -1795,7 +1884,10 @@ class Core {
       poll(steps, t, progress);
       // det(J_D) sign and re-partitioning; a new partition restarts the integrator
       // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
-      if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) fun(t, y, f);
+      if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) {
+        fun(t, y, f);
+        step_start_from_last();
+      }
     }
     return samples_dict(S, steps);
   }
@@ -1948,6 +2040,12 @@ class Core {
   bool partitions_ = false, rows_only_ = false;
   double dependent_tol_ = 1e-13, repartition_cond_ = 100.0, partition_singular_cond_ = 1e4;
   double pivot_tie_rtol_ = 1e-9;
+  Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
+  Mat KD_;     // v_D at the stages of the current adaptive step
+  Vec qD0_, KD0_, qD_new_, vD_last_, guess_qD_;
+  bool use_guess_ = false;
+  Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
+  bool predictor_valid_ = false, unpack_valid_ = false;
   double sign0_ = 0.0;  // sign of det(J_D) at the first step (0: not yet)
   Mat JD_, Sred_, MS_;
   Vec cred_, fred_, aI_, phi_n_, phi_best_, step_c_, q_try_, q_best_, dv_n_, warm_q_, fq_, fv_;
