@@ -980,7 +980,7 @@ class Core {
     fq_ = Vec::Zero(nq_);
     fv_ = Vec::Zero(nv_);
     Xwarm_ = Mat::Zero(nc_, m);
-    qD0_ = KD0_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
+    qD0_ = KD0_ = qD_end_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
     dqI_ = Vec::Zero(m);
     unpack_q_ = Vec::Zero(nq_);
     unpack_v_ = Vec::Zero(nv_);
@@ -1813,7 +1813,7 @@ class Core {
       ++steps;
       const double t_old = t;
       if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
-        qD0_ = qD_new_;
+        qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
         KD0_ = KD_.col(n_stages);
       }
       // dense output at the t_eval within the step, from the unprojected step
@@ -1866,6 +1866,7 @@ class Core {
       t = t_new;
       y = y_new;
       f = f_new;
+      if (partitions_) qD0_ = qD_end_;
       check_finite(y.head(ns), y.tail(ns), t);
       if (projects) {
         Vec q = y.head(nv_), v = y.tail(nv_);
@@ -2042,7 +2043,7 @@ class Core {
   double pivot_tie_rtol_ = 1e-9;
   Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
   Mat KD_;     // v_D at the stages of the current adaptive step
-  Vec qD0_, KD0_, qD_new_, vD_last_, guess_qD_;
+  Vec qD0_, KD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
   bool use_guess_ = false;
   Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
   bool predictor_valid_ = false, unpack_valid_ = false;
