@@ -552,7 +552,9 @@ def test_reduced_singular_partition_raises(fourbar):
     with pytest.raises(cc.SingularConfigurationError, match=r"J_D \(constraint-Jacobian") as exc:
         fd.forward(q, v, np.zeros(fourbar.nv))
     with pytest.raises(cc.SingularConfigurationError) as ref:
-        cc.forward_dynamics(fourbar, q, v, np.zeros(fourbar.nv), method="reduced", settings=settings)
+        cc.forward_dynamics(
+            fourbar, q, v, np.zeros(fourbar.nv), method="reduced", settings=settings
+        )
     dep = ", ".join(fourbar.coordinate_names[i] for i in fourbar.dependent_idx_v)
     assert f"dependent coordinates {dep})" in str(exc.value)
     assert exc.value.condition_number == pytest.approx(ref.value.condition_number, rel=1e-12)

@@ -144,7 +144,7 @@ def set_declared_rows(core, mech: Mechanism, kept: np.ndarray) -> None:
 
 
 def set_alignment(core, layer) -> None:
-    """Give ``core`` the alignment checks of ``layer`` (:meth:`ConstraintLayer.alignment_vectors`)."""
+    """Give ``core`` the alignment checks of ``layer`` (its ``alignment_vectors()``)."""
     loops = layer.alignment_vectors()
     fp, fs, u, idx = [], [], [], []
     for i, (_, fid_p, fid_s, vectors) in enumerate(loops):
