@@ -19,7 +19,12 @@
    101 output times against a DOP853 run at 1e-13; each side's CPU time at a
    target error is that of the cheapest tolerance reaching it. Repeats are
    interleaved; CPU times are process times (min over repeats); ratios come
-   from the same run. Also: partitioning against no stabilization at 1e-9.
+   from the same run.
+3. Coordinate partitioning against no stabilization (DOP853 at 1e-9, method
+   kkt, 10 s, both compiled; the issue's target is a ratio <= 1.5) on the 4-bar
+   and the coasting Agile Eye, with steps and evaluations of each side, and the
+   numpy partitioning run of the same request; per evaluation, the compiled
+   reduced method (from Python and in the C++ loop) against the numpy one.
 
 Timing is noisy on a shared machine: run it alone.
 Run: python scripts/bench_core.py [--repeat 3]
@@ -88,6 +93,31 @@ def per_evaluation(name: str, number: int, repeat: int) -> None:
     for label, r in res.items():
         m = float(np.median(r))
         print(f"  {label:34s} {m:8.2f}   {m / ref:6.2f} x pin.constraintDynamics")
+
+
+def per_evaluation_reduced(name: str, number: int, repeat: int) -> None:
+    """The reduced method per evaluation: compiled (from Python, in the C++ loop) vs numpy."""
+    mech = cc.load(MODELS / f"{name}.urdf")
+    q, v = cc.random_consistent_state(mech, np.random.default_rng(0))
+    tau = np.zeros(mech.nv)
+    fd = compiled.compiled_dynamics(mech, "reduced")
+    reduced = get_method("reduced")
+    n_loop = 20 * number
+    res: dict[str, list[float]] = {"compiled from Python": [], "compiled in the C++ loop": [],
+                                   "numpy": []}  # fmt: skip
+    for _ in range(repeat):  # interleaved
+        res["compiled from Python"].append(per_call_us(lambda: fd.forward(q, v, tau), number, 1))
+        t0 = time.process_time()
+        fd.core.repeat(q, v, tau, n_loop)
+        res["compiled in the C++ loop"].append((time.process_time() - t0) / n_loop * 1e6)
+        res["numpy"].append(
+            per_call_us(lambda: reduced(mech, q, v, tau, DEFAULT_SETTINGS), number, 1)
+        )
+    ref = float(np.median(res["numpy"]))
+    print(f"\n{name}: method reduced, CPU us per evaluation (median)")
+    for label, r in res.items():
+        m = float(np.median(r))
+        print(f"  {label:34s} {m:8.2f}   {ref / m:7.1f} x faster than numpy")
 
 
 def per_evaluation_in_runs(name: str, problem, repeat: int) -> None:
@@ -206,17 +236,36 @@ def matched(name, problem, targets, repeat):
     return mech, q0, v0, t_eval
 
 
-def partitioning_cost(mech, q0, v0, t_eval, repeat):
-    runs = {"none": [], "partitioning": []}
+def partitioning_cost(name, problem, repeat, tol=1e-9):
+    """Partitioning against no stabilization, both compiled (interleaved, min CPU), and
+    the numpy partitioning run once."""
+    mech, q0, v0 = problem()
+    t_eval = np.linspace(0.0, T_FINAL, 101)
+    runs: dict[str, list] = {"none": [], "partitioning": []}
     for _ in range(repeat):
         for stab in runs:
-            _, c, info = cc_run(mech, q0, v0, 1e-9, t_eval, stabilization=stab)
-            runs[stab].append((c, info.backend))
-    n = min(c for c, _ in runs["none"])
-    p = min(c for c, _ in runs["partitioning"])
+            _, c, info = cc_run(mech, q0, v0, tol, t_eval, stabilization=stab)
+            runs[stab].append((c, info))
+    t0 = time.process_time()
+    ref = cc.simulate(
+        mech, q0, v0, T_FINAL, integrator="DOP853", rtol=tol, atol=tol, t_eval=t_eval,
+        stabilization="partitioning", method="kkt", backend="numpy",
+    )  # fmt: skip
+    numpy_cpu = time.process_time() - t0
+    print(f"\n{name}, {T_FINAL:g} s, DOP853 at {tol:.0e}, method kkt: partitioning vs none")
+    best = {}
+    for stab, r in runs.items():
+        c, info = min(r, key=lambda x: x[0])
+        best[stab] = c
+        print(
+            f"  {stab:13s} {c:.4f} s CPU ({info.backend}), {info.steps} steps, "
+            f"{info.evaluations} evaluations, {c / info.evaluations * 1e6:.2f} us per "
+            f"evaluation, re-partitions {len(info.repartitions)}"
+        )
     print(
-        f"  partitioning vs none at tol 1e-9: {p:.4f} s ({runs['partitioning'][0][1]}) vs "
-        f"{n:.4f} s ({runs['none'][0][1]}): ratio {p / n:.2f}"
+        f"  ratio partitioning / none: {best['partitioning'] / best['none']:.2f}; numpy "
+        f"partitioning {numpy_cpu:.3f} s ({ref.info.steps} steps, re-partitions "
+        f"{len(ref.info.repartitions)}): compiled/numpy {best['partitioning'] / numpy_cpu:.4f}"
     )
 
 
@@ -224,16 +273,25 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--number", type=int, default=2000)
+    parser.add_argument(
+        "--partitioning-only",
+        action="store_true",
+        help="only the reduced method and the partitioning cost (sections 3)",
+    )
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {platform.platform()}")
     print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}")
-    for name in ("fourbar", "agile_eye"):
-        per_evaluation(name, args.number, args.repeat)
-    per_evaluation_in_runs("4-bar", fourbar_problem, args.repeat)
-    mech, q0, v0, t_eval = matched("4-bar (crossed, from rest)", fourbar_problem, [1e-6, 1e-9],
-                                   args.repeat)  # fmt: skip
-    partitioning_cost(mech, q0, v0, t_eval, args.repeat)
-    matched("Agile Eye (coasting, no gravity)", agile_eye_problem, [1e-6], args.repeat)
+    if not args.partitioning_only:
+        for name in ("fourbar", "agile_eye"):
+            per_evaluation(name, args.number, args.repeat)
+        per_evaluation_in_runs("4-bar", fourbar_problem, args.repeat)
+    for name in ("fourbar", "agile_eye", "nfourbar_2"):
+        per_evaluation_reduced(name, args.number, args.repeat)
+    if not args.partitioning_only:
+        matched("4-bar (crossed, from rest)", fourbar_problem, [1e-6, 1e-9], args.repeat)
+        matched("Agile Eye (coasting, no gravity)", agile_eye_problem, [1e-6], args.repeat)
+    partitioning_cost("4-bar (crossed, from rest)", fourbar_problem, args.repeat)
+    partitioning_cost("Agile Eye (coasting, no gravity)", agile_eye_problem, args.repeat)
     print(f"load average at the end {os.getloadavg()}")
 
 

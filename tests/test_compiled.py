@@ -49,7 +49,7 @@ MECHS = ["fourbar", "agile_eye", "nfourbar_2"]
 ALL_MECHS = ["fourbar", "agile_eye", "spherical_chain", "slider_crank", "fixed_branches"]
 COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
 #: Stabilizations of the compiled adaptive loops; the fixed-step ones add stage projection.
-STABS = ["none", "baumgarte", "projection"]
+STABS = ["none", "baumgarte", "projection", "partitioning"]
 FIXED_STABS = [*STABS, "stage-projection"]
 
 
@@ -82,7 +82,7 @@ def _close(x, ref, rtol=EVAL_RTOL):
 
 def test_core_is_built():
     assert compiled.available(), compiled.IMPORT_ERROR
-    assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace", "augmented-lagrangian"}
+    assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace", "augmented-lagrangian", "reduced"}
     assert set(COMPILED_INTEGRATORS) == {"euler", "semi-implicit", "rk4", "RK45", "DOP853"}
     for name, spec in COMPILED_INTEGRATORS.items():
         assert spec.backend == "compiled"
@@ -147,7 +147,7 @@ def test_bad_arguments_raise_library_errors(fourbar):
     with pytest.raises(cc.ClosedChainError, match="shape"):
         fd.forward(np.zeros(2), np.zeros(3), np.zeros(3))
     with pytest.raises(cc.ClosedChainError, match="no compiled implementation"):
-        compiled.compiled_dynamics(fourbar, "reduced")
+        compiled.compiled_dynamics(fourbar, "proximal")
 
 
 # -- trajectories -------------------------------------------------------------------------
@@ -269,15 +269,17 @@ def test_auto_backend_uses_compiled_where_supported(fourbar):
     assert traj.info.backend == "compiled"
     # the default: augmented-lagrangian, rk4, stage projection
     assert cc.simulate(fourbar, q0, v0, 0.05).info.backend == "compiled"
-    # partitioning and the reduced method have no compiled loop: numpy, silently.
+    # partitioning and the reduced method are compiled too
     for kw in (
         dict(COMPILED_REQUEST, stabilization="partitioning"),
         dict(COMPILED_REQUEST, method="reduced"),
     ):
-        traj = cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw)
-        assert traj.info.backend == "numpy"
-        with pytest.raises(cc.ClosedChainError, match="backend='compiled' cannot"):
-            cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", backend="compiled", **kw)
+        assert cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw).info.backend == "compiled"
+    # a method without a compiled implementation: numpy, silently, or an error saying why
+    kw = dict(COMPILED_REQUEST, method="proximal")
+    assert cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", **kw).info.backend == "numpy"
+    with pytest.raises(cc.ClosedChainError, match="backend='compiled' cannot"):
+        cc.simulate(fourbar, q0, v0, 0.05, integrator="rk4", backend="compiled", **kw)
     with pytest.raises(cc.UnknownChoiceError, match="backend"):
         cc.simulate(fourbar, q0, v0, 0.05, backend="fortran")
 
@@ -506,3 +508,170 @@ def test_an_open_dropped_row_hands_the_run_to_the_row_reselection(fourbar, monke
     )
     assert traj.info.backend == "numpy"
     assert "dropped row" in traj.info.backend_fallback
+
+
+# -- the reduced method and coordinate partitioning ----------------------------------------
+
+
+@pytest.mark.parametrize("name", MECHS)
+def test_reduced_matches_numpy_per_evaluation(mech_by_name, name, rng):
+    """The compiled reduced method against dynamics/reduced.py at random consistent states
+    (nfourbar_2 included: its partition spans two loops with dropped rows)."""
+    mech = mech_by_name(name)
+    fd = compiled.compiled_dynamics(mech, "reduced")
+    states = [_state(mech, name)] + [cc.random_consistent_state(mech, rng) for _ in range(7)]
+    compared = 0
+    for q, v in states:
+        tau = rng.standard_normal(mech.nv)
+        try:
+            ref = cc.forward_dynamics(mech, q, v, tau, method="reduced")
+        except cc.SingularConfigurationError as exc:
+            # the load-time partition's J_D is singular at this sample: the same error
+            with pytest.raises(cc.SingularConfigurationError, match="J_D") as err:
+                fd.forward(q, v, tau)
+            assert err.value.condition_number > cc.SolverSettings().cond_max
+            assert exc.condition_number > cc.SolverSettings().cond_max
+            continue
+        compared += 1
+        a, lam = fd.forward(q, v, tau)
+        assert _close(a, ref.a)
+        assert _close(lam, ref.lam)
+        # and both solve the constrained equations (an independent check of the pair)
+        ws = compute_terms(mech, q, v)
+        assert _close(ws.M @ a + ws.h + ws.J.T @ lam, tau, 1e-10)
+        assert _close(ws.J @ a + ws.gamma, np.zeros(mech.nc), 1e-10)
+    assert compared >= 4
+
+
+def test_reduced_singular_partition_raises(fourbar):
+    """J_D above cond_max: the library's error naming J_D's coordinates, with the same
+    1-norm condition estimate as LAPACK's dgecon on the numpy side."""
+    settings = cc.SolverSettings(cond_max=1.0)
+    q, v = fourbar.q_ref, np.zeros(fourbar.nv)
+    fd = compiled.compiled_dynamics(fourbar, "reduced", settings)
+    with pytest.raises(cc.SingularConfigurationError, match=r"J_D \(constraint-Jacobian") as exc:
+        fd.forward(q, v, np.zeros(fourbar.nv))
+    with pytest.raises(cc.SingularConfigurationError) as ref:
+        cc.forward_dynamics(
+            fourbar, q, v, np.zeros(fourbar.nv), method="reduced", settings=settings
+        )
+    dep = ", ".join(fourbar.coordinate_names[i] for i in fourbar.dependent_idx_v)
+    assert f"dependent coordinates {dep})" in str(exc.value)
+    assert exc.value.condition_number == pytest.approx(ref.value.condition_number, rel=1e-12)
+    assert exc.value.t is None
+
+
+#: Adaptive partitioning: the two backends' step ends drift apart by about 1e-4 of a step
+#: (the dependent solve leaves phi anywhere below dependent_tol, and that noise enters the
+#: error estimate; measured 4e-5 s at the re-partition, steps of about 0.05 s there).
+REPARTITION_T_TOL = 1e-3
+
+
+def _agile_eye_near_repartition(mech):
+    """The coasting Agile Eye (no gravity) 0.25 s before its partitioned run re-partitions
+    (test_simulate: at t = 9.49 s), from an accurate run."""
+    q0 = mech.q_ref.copy()
+    v = np.zeros(mech.nv)
+    v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
+    v0 = cc.project_velocity(mech, q0, v, fixed="independent")
+    ref = cc.simulate(
+        mech, q0, v0, 9.25, integrator="DOP853", rtol=1e-12, atol=1e-12, method="kkt",
+        stabilization="none", t_eval=np.array([9.25]),
+    )  # fmt: skip
+    return ref.q[-1], cc.project_velocity(mech, ref.q[-1], ref.v[-1])
+
+
+@pytest.fixture(scope="module")
+def agile_eye_coasting():
+    mech = cc.load(ROOT / "models" / "agile_eye.urdf")
+    mech.model.gravity.linear[:] = 0.0
+    q0, v0 = _agile_eye_near_repartition(mech)
+    return mech, q0, v0
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "DOP853"])
+@pytest.mark.parametrize("method", ["kkt", "reduced"])
+def test_repartitioning_sequence_matches_numpy(agile_eye_coasting, integrator, method):
+    """Both backends re-partition at the same time to the same independent coordinates,
+    and their trajectories agree to the integration tolerance across it."""
+    mech, q0, v0 = agile_eye_coasting
+    step = dict(dt=DT) if integrator == "rk4" else dict(rtol=RTOL, atol=ATOL)
+    a, b = _pair(
+        mech, q0, v0, 0.5, integrator=integrator, method=method, stabilization="partitioning",
+        t_eval=np.linspace(0.0, 0.5, 11), **step,
+    )  # fmt: skip
+    assert len(b.info.repartitions) >= 1, "the reference re-partitions in this window"
+    assert [r[1] for r in a.info.repartitions] == [r[1] for r in b.info.repartitions]
+    # fixed step: the same grid point; adaptive: the end of the same accepted step, whose
+    # time differs a little (REPARTITION_T_TOL)
+    t_tol = 1e-12 if integrator == "rk4" else REPARTITION_T_TOL
+    np.testing.assert_allclose(
+        [r[0] for r in a.info.repartitions], [r[0] for r in b.info.repartitions], atol=t_tol
+    )
+    tol = FIXED_STEP_TOL if integrator == "rk4" else ADAPTIVE_TOL
+    assert np.max(np.abs(a.q - b.q)) <= tol
+    assert np.max(np.abs(a.v - b.v)) <= tol
+    assert np.max(a.constraint_residual) <= cc.SimulationSettings().dependent_tol
+
+
+def _core_run(mech, integrator, q0, v0, t_final, method="kkt", settings=None, dt=DT):
+    """Run the compiled loop itself (simulate re-runs a failed compiled request on numpy
+    to recover the motion, so its error would be numpy's)."""
+    from closedchain.simulate.fixed import output_grid
+
+    settings = settings or cc.SimulationSettings()
+    core = compiled.make_core(mech, shared=False)
+    compiled.configure(core, method, cc.SolverSettings(), settings, partitions=True)
+    core.set_tau(None)
+    code = compiled.INTEGRATOR_CODES[integrator]
+    if integrator in ("RK45", "DOP853"):
+        return core.run_adaptive(code, q0, v0, t_final, RTOL, ATOL, None, False, None)
+    h, n, _ = output_grid(t_final, dt, None)
+    return core.run_fixed(code, q0, v0, h, n, np.arange(n + 1, dtype=np.int32), False, None)
+
+
+#: The open 4-bar from rest (test_singular's OPEN_GUESS_DEG) reaches its change point,
+#: where every J_D is singular at once, at t = 0.393 s.
+OPEN_GUESS_DEG = (10.0, 50.0, 30.0)
+CHANGE_POINT_T, CHANGE_POINT_T_TOL = 0.393, 1e-3
+#: DOP853 at RTOL near the change point takes steps of about 0.023 s (measured).
+MAX_STEP_PAST = 0.03
+#: With partition_singular_cond = 30 the best J_D passes it 4 ms before the change point
+#: (measured: rk4 at 1 ms stops at t = 0.389 s on both backends).
+APPROACH_T = 0.01
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "DOP853"])
+def test_partitioning_singular_error(fourbar, integrator):
+    """At the 4-bar's change point no partition has a regular J_D: the compiled loop stops
+    with SingularConfigurationError naming the time, the bound and the configuration that
+    passes, as the numpy loop does (fixed step: partition_singular_cond; adaptive:
+    det(J_D) changes sign within a step, singular_cond off to reach it)."""
+    q0 = cc.assemble(fourbar, np.radians(OPEN_GUESS_DEG), fixed=["crank_joint"])
+    v0 = np.zeros(fourbar.nv)
+    if integrator == "rk4":
+        settings = cc.SimulationSettings(repartition_cond=10.0, partition_singular_cond=30.0)
+        match = r"best-conditioned J_D .* > partition_singular_cond 3.0e\+01"
+    else:
+        settings = cc.SimulationSettings(singular_cond=np.inf)
+        match = r"det\(J_D\) changed sign within the last step"
+    hint = r"use method='augmented-lagrangian' with stabilization='stage-projection'"
+    with pytest.raises(cc.SingularConfigurationError, match=match + ".*" + hint) as exc:
+        _core_run(fourbar, integrator, q0, v0, 1.0, settings=settings)
+    step = dict(dt=DT) if integrator == "rk4" else dict(rtol=RTOL, atol=ATOL)
+    with pytest.raises(cc.SingularConfigurationError, match=match) as ref:
+        cc.simulate(
+            fourbar, q0, v0, 1.0, integrator=integrator, method="kkt",
+            stabilization="partitioning", settings=settings, backend="numpy", **step,
+        )  # fmt: skip
+    if integrator == "rk4":  # the same steps: the same grid point and J_D, on the way in
+        assert exc.value.t == pytest.approx(ref.value.t, abs=1e-12)
+        assert exc.value.condition_number == pytest.approx(ref.value.condition_number, rel=1e-6)
+        assert CHANGE_POINT_T - APPROACH_T <= exc.value.t < CHANGE_POINT_T
+        return
+    # Adaptive: the first step that ends past the change point, on each side. Their
+    # steps differ there: the dependent solve leaves phi at up to dependent_tol, noise
+    # that enters the error estimate at rest (first step 1.8e-4 s on both, the next
+    # ones differ by 5%), so the two stop at different step ends.
+    for err in (exc.value, ref.value):
+        assert CHANGE_POINT_T - CHANGE_POINT_T_TOL <= err.t <= CHANGE_POINT_T + MAX_STEP_PAST

@@ -5,9 +5,10 @@ scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
 (:meth:`ConstraintLayer.row_table`, and every declared row for the per-step
 checks), the methods whose :class:`MethodCapabilities` declare ``compiled``
-(kkt, schur, nullspace, augmented-lagrangian), and whole trajectories of the
-integrators registered with ``backend="compiled"`` with every stabilization
-but partitioning (see :mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
+(kkt, schur, nullspace, augmented-lagrangian, reduced), and whole trajectories of
+the integrators registered with ``backend="compiled"`` with every stabilization
+of their numpy namesakes, coordinate partitioning with re-partitioning included
+(see :mod:`closedchain.simulate.registry`). The Pinocchio model is passed by
 reference; the URDF reading, the loop bookkeeping and the API stay in Python.
 
 Use :func:`compiled_dynamics` for one evaluation from Python; ``simulate``
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .closure import PIVOT_TIE_RTOL
 from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
 from .exceptions import ClosedChainError
@@ -114,6 +116,12 @@ def make_core(mech: Mechanism, *, shared: bool = True):
         kept = np.zeros(mech.declared.nc, dtype=np.int32)
         kept[list(mech.selected_rows)] = 1
         set_declared_rows(core, mech, kept)
+        # The reduced method's partition; the loops the dependent solve checks for
+        # spurious closures (ConstraintLayer.misaligned_loops).
+        core.set_partition(
+            np.asarray(mech.independent_idx_v, dtype=np.int32), list(mech.coordinate_names)
+        )
+        set_alignment(core, mech.constraints)
         entry = (mech.constraints, core)
         if shared:
             cache[key] = entry
@@ -135,6 +143,25 @@ def set_declared_rows(core, mech: Mechanism, kept: np.ndarray) -> None:
     )
 
 
+def set_alignment(core, layer) -> None:
+    """Give ``core`` the alignment checks of ``layer`` (its ``alignment_vectors()``)."""
+    loops = layer.alignment_vectors()
+    fp, fs, u, idx = [], [], [], []
+    for i, (_, fid_p, fid_s, vectors) in enumerate(loops):
+        for vec in vectors:
+            fp.append(fid_p)
+            fs.append(fid_s)
+            u.append(vec)
+            idx.append(i)
+    core.set_alignment(
+        np.asarray(fp, dtype=np.int32),
+        np.asarray(fs, dtype=np.int32),
+        np.asarray(u, dtype=float).reshape(-1, 3),
+        np.asarray(idx, dtype=np.int32),
+        [name for name, *_ in loops],
+    )
+
+
 def configure(
     core,
     method: str,
@@ -143,6 +170,8 @@ def configure(
     *,
     stage_projects: bool = False,
     singular_robust: bool = False,
+    partitions: bool = False,
+    independent=None,
 ) -> None:
     """Set the core's method, solver settings and (optionally) simulation settings.
 
@@ -151,6 +180,10 @@ def configure(
             (stabilization ``stage-projection``).
         singular_robust: pass singular positions (no stop on cond(J); see
             ``Problem.singular_robust``).
+        partitions: stabilization ``partitioning`` (integrate the independent
+            coordinates, solve the dependent ones at every evaluation).
+        independent: the partition a partitioning run starts from (velocity
+            indices); None: the mechanism's.
     """
     if not supports_method(method):
         compiled = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
@@ -167,7 +200,10 @@ def configure(
         "al_max_iter": int(solver_settings.al_max_iter),
         "stage_projects": bool(stage_projects),
         "singular_robust": bool(singular_robust),
+        "partitions": bool(partitions),
     }
+    if independent is not None:
+        cfg["independent"] = np.asarray(independent, dtype=np.int32)
     if settings is not None:
         cfg.update(
             projection_tol=float(settings.projection_tol),
@@ -177,6 +213,10 @@ def configure(
             drift_limit=float(settings.drift_limit),
             dropped_row_tol=float(settings.dropped_row_tol),
             dropped_row_ratio=float(settings.dropped_row_ratio),
+            dependent_tol=float(settings.dependent_tol),
+            repartition_cond=float(settings.repartition_cond),
+            partition_singular_cond=float(settings.partition_singular_cond),
+            pivot_tie_rtol=PIVOT_TIE_RTOL,
         )
     core.configure(cfg)
 

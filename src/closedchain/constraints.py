@@ -554,17 +554,27 @@ class ConstraintLayer:
         be current.
         """
         bad = []
+        for name, fid_p, fid_s, vectors in self.alignment_vectors():
+            oMp = pin.updateFramePlacement(model, data, fid_p)
+            oMs = pin.updateFramePlacement(model, data, fid_s)
+            R = oMp.rotation.T @ oMs.rotation
+            if any(float(u @ R @ u) <= 0.0 for u in vectors):
+                bad.append(name)
+        return bad
+
+    def alignment_vectors(self) -> list[tuple[str, int, int, list[np.ndarray]]]:
+        """Return ``(loop name, fid_p, fid_s, vectors)`` of every loop that
+        :meth:`misaligned_loops` checks (spherical loops have none): the loop is
+        aligned when ``u . R_p^T R_s u > 0`` for each vector u (the compiled core's
+        dependent solve checks the same)."""
+        out = []
         for blk in self._blocks:
             if blk.spec.type == "spherical":
                 continue
-            oMp = pin.updateFramePlacement(model, data, blk.fid_p)
-            oMs = pin.updateFramePlacement(model, data, blk.fid_s)
-            R = oMp.rotation.T @ oMs.rotation
             a = blk.spec.axis
             vectors = [a] if blk.spec.type == "revolute" else [a, *axis_basis(a)]
-            if any(float(u @ R @ u) <= 0.0 for u in vectors):
-                bad.append(blk.spec.name)
-        return bad
+            out.append((blk.spec.name, blk.fid_p, blk.fid_s, vectors))
+        return out
 
     def loop_residuals(self, model: pin.Model, data: pin.Data) -> dict[str, float]:
         """Return max |phi| per loop over its active rows (placements must be current)."""

@@ -37,6 +37,7 @@
 #include <string>
 #include <vector>
 
+#include "dense_lu.hpp"
 #include "lean_data.hpp"
 #include "rk_coefficients.hpp"
 
@@ -136,7 +137,13 @@ constexpr double MIN_NORM_RCOND = 1e-8;
 //: Relative margin of lu_inverse_norm_bound over its own round-off.
 constexpr double INVERSE_BOUND_MARGIN = 1e-8;
 
-enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2, AUGMENTED_LAGRANGIAN = 3 };
+//: How to pass singular positions (simulate.problem.passing_hint with the registries
+//: of this build), appended to the partitioning stabilization's singular errors.
+static const char *const PASSING_HINT =
+    "to pass singular positions use method='augmented-lagrangian' with "
+    "stabilization='stage-projection' (and a fixed-step integrator)";
+
+enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2, AUGMENTED_LAGRANGIAN = 3, REDUCED = 4 };
 enum Integrator { EULER = 0, SEMI_IMPLICIT = 1, RK4 = 2, RK45 = 3, DOP853 = 4 };
 
 struct Row {
@@ -218,6 +225,7 @@ class Core {
       }
     }
     D_chart_ = Mat::Zero(curved_.empty() ? 0 : nv_, curved_.empty() ? 0 : nv_);
+    init_partitioning();
   }
 
   int nc() const { return nc_; }
@@ -235,9 +243,11 @@ class Core {
       method_ = NULLSPACE;
     else if (m == "augmented-lagrangian")
       method_ = AUGMENTED_LAGRANGIAN;
+    else if (m == "reduced")
+      method_ = REDUCED;
     else
       throw BadArgument{"compiled core: unknown method '" + m +
-                        "'; compiled: kkt, schur, nullspace, augmented-lagrangian"};
+                        "'; compiled: kkt, schur, nullspace, augmented-lagrangian, reduced"};
     method_name_ = m;
     cond_max_ = bp::extract<double>(s.get("cond_max", 1e12));
     bp::object bg = s.get("baumgarte", bp::object());
@@ -258,6 +268,7 @@ class Core {
     singular_robust_ = bp::extract<bool>(s.get("singular_robust", false));
     dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
     dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
+    configure_partitioning(s);
   }
 
   // Every declared row (the kept ones and those dropped as redundant), checked at
@@ -379,6 +390,7 @@ class Core {
       case SCHUR: solve_schur(q, tau, t); break;
       case NULLSPACE: solve_nullspace(q, tau, t); break;
       case AUGMENTED_LAGRANGIAN: solve_al(q, tau, t); break;
+      case REDUCED: solve_reduced(q, tau, t); break;
     }
   }
 
@@ -847,7 +859,7 @@ class Core {
                                  fmt("%.3e", drop_res) + " (kept rows " + fmt("%.3e", kept_res) +
                                  ") at t = " + fmt("%.9g", t) + " s",
                              t};
-    if (singular_robust_ || nc_ == 0) return;
+    if (singular_robust_ || rows_only_ || nc_ == 0) return;
     double cond = cond_J();
     if (!(cond <= singular_cond_)) {
       if (has_dropped && declared_cond() <= singular_cond_)
@@ -949,6 +961,539 @@ class Core {
     }
   }
 
+  // -- the reduced method and coordinate partitioning ---------------------------
+  //
+  // Same math as closedchain/dynamics/reduced.py (the method) and simulate/problem.py,
+  // fixed.py, adaptive.py (the stabilization). Two partitions are kept: the method's,
+  // mech.independent_idx_v for the whole run (as the numpy method), and the
+  // stabilization's, which re-partitioning changes.
+
+  void init_partitioning() {
+    const int m = std::max(nv_ - nc_, 0);
+    JD_ = Mat::Zero(nc_, nc_);
+    lu_jd_.resize(nc_);
+    Sred_ = Mat::Zero(nv_, m);
+    MS_ = Mat::Zero(nv_, m);
+    cred_ = Vec::Zero(nv_);
+    fred_ = Vec::Zero(nv_);
+    aI_ = Vec::Zero(m);
+    svd_jd_ = Eigen::JacobiSVD<Mat>(nc_, nc_);
+    svd_jd_uv_ = Eigen::JacobiSVD<Mat>(nc_, nc_, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    phi_n_ = Vec::Zero(nc_);
+    phi_best_ = Vec::Zero(nc_);
+    step_c_ = Vec::Zero(nc_);
+    q_try_ = Vec::Zero(nq_);
+    q_best_ = Vec::Zero(nq_);
+    dv_n_ = Vec::Zero(nv_);
+    warm_q_ = Vec::Zero(nq_);
+    fq_ = Vec::Zero(nq_);
+    fv_ = Vec::Zero(nv_);
+    Xwarm_ = Mat::Zero(nc_, m);
+    qD0_ = KD0_ = qD_end_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
+    dqI_ = Vec::Zero(m);
+    unpack_q_ = Vec::Zero(nq_);
+    unpack_v_ = Vec::Zero(nv_);
+    unpack_warm_ = Vec::Zero(nq_);
+    unpack_y_ = Vec::Zero(2 * m);
+    std::vector<int> ind(m);
+    for (int i = 0; i < m; ++i) ind[i] = nc_ + i;  // until set_partition
+    set_indices(ind, red_ind_, red_dep_);
+    ind0_ = ind_ = red_ind_;
+    dep_ = red_dep_;
+  }
+
+  // ind: the independent velocity indices; dep: the others, both sorted.
+  void set_indices(std::vector<int> ind, std::vector<int> &ind_out, std::vector<int> &dep_out) {
+    std::sort(ind.begin(), ind.end());
+    ind_out = ind;
+    dep_out.clear();
+    for (int i = 0; i < nv_; ++i)
+      if (!std::binary_search(ind.begin(), ind.end(), i)) dep_out.push_back(i);
+  }
+
+  std::vector<int> checked_indices(const Eigen::VectorXi &ind, const std::string &what) {
+    const int m = nv_ - nc_;
+    std::vector<int> v(ind.data(), ind.data() + ind.size());
+    std::vector<int> s = v;
+    std::sort(s.begin(), s.end());
+    bool ok = static_cast<int>(v.size()) == m &&
+              std::adjacent_find(s.begin(), s.end()) == s.end() &&
+              (s.empty() || (s.front() >= 0 && s.back() < nv_));
+    if (!ok)
+      throw BadArgument{what + " must be " + std::to_string(m) +
+                        " distinct velocity indices in 0.." + std::to_string(nv_ - 1) +
+                        " (the mobility)"};
+    return v;
+  }
+
+  // The reduced method's partition (mech.independent_idx_v) and the names of the
+  // velocity coordinates (for the J_D messages).
+  void set_partition(const Eigen::VectorXi &ind, bp::list names) {
+    if (bp::len(names) != nv_) throw BadArgument{"Core.set_partition: one name per coordinate"};
+    set_indices(checked_indices(ind, "independent_idx_v"), red_ind_, red_dep_);
+    coordinate_names_.clear();
+    for (int i = 0; i < nv_; ++i) coordinate_names_.push_back(bp::extract<std::string>(names[i]));
+    red_what_ = "J_D (constraint-Jacobian columns of the dependent coordinates " +
+                join_names(red_dep_) + ")";
+    Sred_.setZero();
+    for (std::size_t k = 0; k < red_ind_.size(); ++k) Sred_(red_ind_[k], k) = 1.0;
+    ind0_ = ind_ = red_ind_;
+    dep_ = red_dep_;
+  }
+
+  // The loops' alignment checks (ConstraintLayer.alignment_vectors): phi = 0 is a
+  // spurious closure when (R_p u).(R_s u) <= 0 for a vector u of loop loop[i].
+  void set_alignment(const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &u,
+                     const Eigen::VectorXi &loop, bp::list loop_names) {
+    const Eigen::Index n = fid_p.size();
+    if (fid_s.size() != n || u.rows() != n || loop.size() != n || (n && u.cols() != 3))
+      throw BadArgument{"Core.set_alignment: tables of inconsistent shapes"};
+    align_.clear();
+    align_names_.clear();
+    for (long i = 0; i < bp::len(loop_names); ++i)
+      align_names_.push_back(bp::extract<std::string>(loop_names[i]));
+    for (Eigen::Index i = 0; i < n; ++i) {
+      if (fid_p[i] < 0 || fid_p[i] >= static_cast<int>(model_.nframes) || fid_s[i] < 0 ||
+          fid_s[i] >= static_cast<int>(model_.nframes) || loop[i] < 0 ||
+          loop[i] >= static_cast<int>(align_names_.size()))
+        throw BadArgument{"Core.set_alignment: frame or loop index out of range"};
+      align_.push_back({static_cast<pinocchio::FrameIndex>(fid_p[i]),
+                        static_cast<pinocchio::FrameIndex>(fid_s[i]), u.row(i).transpose(),
+                        loop[i]});
+    }
+  }
+
+  void configure_partitioning(const bp::dict &s) {
+    dependent_tol_ = bp::extract<double>(s.get("dependent_tol", 1e-13));
+    repartition_cond_ = bp::extract<double>(s.get("repartition_cond", 100.0));
+    partition_singular_cond_ = bp::extract<double>(s.get("partition_singular_cond", 1e4));
+    partitions_ = bp::extract<bool>(s.get("partitions", false));
+    pivot_tie_rtol_ = bp::extract<double>(s.get("pivot_tie_rtol", 1e-9));
+    bp::object ind = s.get("independent", bp::object());
+    if (!ind.is_none()) {
+      Eigen::VectorXi v = bp::extract<Eigen::VectorXi>(ind);
+      ind0_ = checked_indices(v, "independent");
+    }
+  }
+
+  std::string join_names(const std::vector<int> &idx) const {
+    std::string s;
+    for (std::size_t k = 0; k < idx.size(); ++k) {
+      if (k) s += ", ";
+      s += idx[k] < static_cast<int>(coordinate_names_.size()) ? coordinate_names_[idx[k]]
+                                                                 : std::to_string(idx[k]);
+    }
+    return s;
+  }
+
+  // J_D: the columns dep of J_ into JD_.
+  void gather_JD(const std::vector<int> &dep) {
+    for (int c = 0; c < nc_; ++c) JD_.col(c) = J_.col(dep[c]);
+  }
+
+  // Reduced coordinates (dynamics/reduced.py): a = S a_I + c with S = [I; -J_D^-1 J_I],
+  // c = [0; -J_D^-1 gamma]; (S^T M S) a_I = S^T (tau - h - M c); lam = J_D^-T (tau - h - M a)_D.
+  void solve_reduced(const RefV &q, const Vec &tau, double t) {
+    const int m = nv_ - nc_;
+    fred_ = tau - h_;
+    if (nc_) {
+      gather_JD(red_dep_);
+      const double rcond = lu_jd_.factor(JD_) ? lu_jd_.rcond() : 0.0;
+      const double cond = rcond > 0.0 ? 1.0 / rcond : std::numeric_limits<double>::infinity();
+      if (!(cond <= cond_max_))
+        singular(q, red_what_, cond,
+                 "this partition cannot describe the motion here (seed Problem 4): "
+                 "re-partition with choose_partition(mech, q), or the configuration is a "
+                 "singularity of the mechanism",
+                 t);
+      for (int k = 0; k < m; ++k) {
+        tmp_c_ = J_.col(red_ind_[k]);
+        lu_jd_.solve(tmp_c_);
+        for (int i = 0; i < nc_; ++i) Sred_(red_dep_[i], k) = -tmp_c_[i];
+      }
+      tmp_c_ = gamma_;
+      lu_jd_.solve(tmp_c_);
+      for (int i = 0; i < nc_; ++i) cred_[red_dep_[i]] = -tmp_c_[i];
+      fred_.noalias() -= M_ * cred_;
+    }
+    if (m) {
+      MS_.noalias() = M_ * Sred_;
+      Mr_.noalias() = Sred_.transpose() * MS_;
+      llt_r_.compute(Mr_);
+      check_rcond(q, "the reduced mass matrix S^T M S",
+                  llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
+      aI_.noalias() = Sred_.transpose() * fred_;
+      llt_r_.solveInPlace(aI_);
+      a_.noalias() = Sred_ * aI_;
+      a_ += cred_;
+      if (!nc_) return;
+      fred_.noalias() -= MS_ * aI_;
+    } else {
+      a_ = cred_;
+    }
+    for (int i = 0; i < nc_; ++i) tmp_c_[i] = fred_[red_dep_[i]];
+    lu_jd_.solve_transposed(tmp_c_);
+    lam_ = tmp_c_;
+  }
+
+  // Gauss-Newton on phi(q) = 0 moving the dependent coordinates dep_ only, to
+  // dependent_tol (closure.solve_closure with AssemblySettings(tol=dependent_tol,
+  // max_iter=20): the full step, then, unless it contracts the sum of squares by
+  // 1/4, the step without J_D's directions below 1e-2 of its largest singular
+  // value; each with up to 12 halvings; the lower one is taken). nq == nv, so the
+  // held coordinates stay exact under pinocchio::integrate. Every trial point is
+  // evaluated with its J (one kinematics pass, computeJointJacobians): the accepted
+  // one's J serves the next iteration and v_D from the memo of eval_phi_J.
+  void newton_dependent(Vec &q, double t) {
+    if (nc_ == 0) return;
+    constexpr int MAX_ITER = 20, MAX_HALVINGS = 12;
+    constexpr double FALLBACK_RCOND = 1e-2, CONTRACTION = 0.25;
+    const double tol = dependent_tol_;
+    eval_phi_J(q);
+    phi_n_ = phi_;
+    double res = phi_n_.cwiseAbs().maxCoeff();
+    for (int it = 0; it < MAX_ITER && !(res <= tol); ++it) {
+      eval_phi_J(q);
+      gather_JD(dep_);
+      const double sq = phi_n_.squaredNorm();
+      bool have = false;
+      double best_sq = 0.0, best_res = 0.0;
+      for (int pass = 0; pass < 2; ++pass) {
+        // a regular J_D (rcond above eps nc; the factors' bound shows it cheaply
+        // away from singular J_D): lstsq's solution is the LU solution
+        const double eps_n = std::numeric_limits<double>::epsilon() * nc_;
+        if (pass == 0 && lu_jd_.factor(JD_) &&
+            (lu_jd_.anorm * lu_jd_.inverse_norm_bound() * eps_n < 1.0 ||
+             lu_jd_.rcond() > eps_n)) {
+          step_c_ = -phi_n_;
+          lu_jd_.solve(step_c_);  // = lstsq's solution for a regular J_D
+        } else {
+          // lstsq with rcond: singular values below rcond s_max dropped (rcond None:
+          // eps nc, numpy's default)
+          const double rc = pass == 0 ? std::numeric_limits<double>::epsilon() * nc_
+                                      : FALLBACK_RCOND;
+          svd_jd_uv_.compute(JD_, Eigen::ComputeFullU | Eigen::ComputeFullV);
+          const Vec &sv = svd_jd_uv_.singularValues();
+          step_c_.setZero();
+          for (Eigen::Index i = 0; i < sv.size(); ++i)
+            if (sv[i] > rc * sv[0])
+              step_c_ -= (svd_jd_uv_.matrixU().col(i).dot(phi_n_) / sv[i]) *
+                         svd_jd_uv_.matrixV().col(i);
+        }
+        dv_n_.setZero();
+        for (int i = 0; i < nc_; ++i) dv_n_[dep_[i]] = step_c_[i];
+        double alpha = 1.0;
+        for (int k = 0; k < MAX_HALVINGS; ++k) {
+          dq_ = alpha * dv_n_;
+          pinocchio::integrate(model_, q, dq_, q_try_);
+          eval_phi_J(q_try_);
+          const double res_try = phi_.cwiseAbs().maxCoeff(), sq_try = phi_.squaredNorm();
+          if (sq_try < sq || res_try <= tol) {
+            if (!have || sq_try < best_sq) {
+              have = true;
+              best_sq = sq_try;
+              best_res = res_try;
+              q_best_ = q_try_;
+              phi_best_ = phi_;
+            }
+            break;
+          }
+          alpha *= 0.5;
+        }
+        if (have && (best_res <= tol || best_sq <= CONTRACTION * sq)) break;
+      }
+      if (!have) break;
+      q = q_best_;
+      phi_n_ = phi_best_;
+      res = best_res;
+    }
+    if (!(res <= tol))
+      throw SimulationFailure{"at t = " + fmt("%.9g", t) +
+                                  " s the dependent coordinates could not be solved: assembly "
+                                  "did not converge: max |phi| = " +
+                                  fmt("%.3e", res) + " > tol " + fmt("%.1e", tol),
+                              t};
+    if (align_.empty()) return;
+    eval_phi_J(q);  // the placements at q (from the memo unless a later trial moved them)
+    std::string bad;
+    int last = -1;
+    for (const Align &al : align_) {
+      if (al.loop == last) continue;  // that loop is already reported
+      const Eigen::Matrix3d Rp = (data_.oMi[model_.frames[al.p].parentJoint] *
+                                  model_.frames[al.p].placement).rotation();
+      const Eigen::Matrix3d Rs = (data_.oMi[model_.frames[al.s].parentJoint] *
+                                  model_.frames[al.s].placement).rotation();
+      if ((Rp * al.u).dot(Rs * al.u) <= 0.0) {
+        bad += (bad.empty() ? "" : ", ") + align_names_[al.loop];
+        last = al.loop;
+      }
+    }
+    if (!bad.empty())
+      throw SimulationFailure{
+          "at t = " + fmt("%.9g", t) +
+              " s the dependent coordinates could not be solved: assembly reached phi = 0 on "
+              "a spurious closure of loop(s) " + bad +
+              ": the cut-joint frames are turned by 180 degrees against each other; start "
+              "from a guess closer to the intended assembly",
+          t};
+  }
+
+  // Problem.complete: q_D from phi = 0 (q_I held, q the guess), v_D = -J_D^-1 J_I v_I.
+  void complete(Vec &q, Vec &v, double t) {
+    if (nc_ == 0) return;
+    newton_dependent(q, t);
+    eval_phi_J(q);
+    gather_JD(dep_);
+    if (!lu_jd_.factor(JD_))
+      throw SingularError{name_ + ": at t = " + fmt("%.9g", t) + " s J_D of the dependent " +
+                              "coordinates " + join_names(dep_) + " is singular at q = " +
+                              vec_str(q) + "; " + PASSING_HINT,
+                          std::numeric_limits<double>::infinity(), t, Vec(q)};
+    tmp_c_.setZero();
+    for (int i : ind_) tmp_c_.noalias() += v[i] * J_.col(i);
+    lu_jd_.solve(tmp_c_);
+    for (int i = 0; i < nc_; ++i) v[dep_[i]] = -tmp_c_[i];
+  }
+
+  // cond_2(J_D(q)) of the stabilization's partition (np.linalg.cond).
+  double cond_JD(const Vec &q) {
+    if (nc_ == 0) return 1.0;
+    eval_phi_J(q);
+    gather_JD(dep_);
+    svd_jd_.compute(JD_);
+    const Vec &sv = svd_jd_.singularValues();
+    return sv[nc_ - 1] > 0 ? sv[0] / sv[nc_ - 1] : std::numeric_limits<double>::infinity();
+  }
+
+  // The pivot columns of Householder QR of J_, each the lowest-index column whose
+  // remaining norm is within pivot_tie_rtol of the largest (closure._tie_pivots), sorted.
+  // Only when re-partitioning is considered: allocates.
+  std::vector<int> tie_pivots() const {
+    Mat A = J_;
+    std::vector<char> taken(nv_, 0);
+    std::vector<int> piv;
+    Vec norms(nv_), u;
+    for (int k = 0; k < nc_; ++k) {
+      const int r = nc_ - k;
+      double mx = -1.0;
+      for (int j = 0; j < nv_; ++j) {
+        norms[j] = taken[j] ? -1.0 : A.col(j).tail(r).norm();
+        mx = std::max(mx, norms[j]);
+      }
+      int p = 0;
+      while (!(norms[p] >= (1.0 - pivot_tie_rtol_) * mx)) ++p;
+      piv.push_back(p);
+      taken[p] = 1;
+      u = A.col(p).tail(r);
+      u[0] += std::copysign(u.norm(), u[0]);
+      const double un = u.norm();
+      if (un > 0.0) {
+        u /= un;
+        A.bottomRows(r) -= 2.0 * u * (u.transpose() * A.bottomRows(r));
+      }
+    }
+    std::sort(piv.begin(), piv.end());
+    return piv;
+  }
+
+  // Problem.repartition: the dependent set of column-pivoted QR of J (Wehage-Haug, ties
+  // to the lowest index); true when it changed. SingularError when its J_D is above
+  // partition_singular_cond.
+  bool repartition(const Vec &q, double t) {
+    eval_phi_J(q);
+    const std::vector<int> dep = tie_pivots();
+    gather_JD(dep);
+    svd_jd_.compute(JD_);
+    const Vec &sv = svd_jd_.singularValues();
+    const double cond =
+        sv[nc_ - 1] > 0 ? sv[0] / sv[nc_ - 1] : std::numeric_limits<double>::infinity();
+    if (!(cond <= partition_singular_cond_))
+      throw SingularError{name_ + ": at t = " + fmt("%.9g", t) +
+                              " s the best-conditioned J_D of any partition of the coordinates "
+                              "is singular at q = " + vec_str(q) + " (condition number " +
+                              fmt("%.3e", cond) + " > partition_singular_cond " +
+                              fmt("%.1e", partition_singular_cond_) +
+                              "); no partition has a regular J_D: a singular configuration; " +
+                              PASSING_HINT,
+                          cond, t, Vec(q)};
+    if (dep == dep_) return false;
+    dep_ = dep;
+    ind_.clear();
+    for (int i = 0; i < nv_; ++i)
+      if (!std::binary_search(dep_.begin(), dep_.end(), i)) ind_.push_back(i);
+    rep_t_.push_back(t);
+    rep_ind_.insert(rep_ind_.end(), ind_.begin(), ind_.end());
+    return true;
+  }
+
+  // The start of a run: the stabilization's partition from configure ("independent").
+  void begin_partitioning(bool fixed_step) {
+    rep_t_.clear();
+    rep_ind_.clear();
+    sign0_ = 0.0;
+    rows_only_ = partitions_ && fixed_step;  // fixed.py checks the rows only
+    predictor_valid_ = unpack_valid_ = false;
+    if (!partitions_) return;
+    if (nq_ != nv_) throw BadArgument{"stabilization partitioning needs nq == nv"};
+    set_indices(ind0_, ind_, dep_);
+  }
+
+  // After a fixed step (fixed.py): complete (q, v), re-partition when cond(J_D) is large.
+  void partition_step(Vec &q, Vec &v, double t) {
+    complete(q, v, t);
+    if (cond_JD(q) > repartition_cond_) repartition(q, t);
+  }
+
+  void pack(const Vec &q, const Vec &v, Vec &y) const {
+    const int m = static_cast<int>(ind_.size());
+    for (int k = 0; k < m; ++k) {
+      y[k] = q[ind_[k]];
+      y[m + k] = v[ind_[k]];
+    }
+  }
+
+  // (q, v) of the partitioned state y = (q_I, v_I), the dependent solve warm-started
+  // from the last evaluation's q (adaptive.py's unpack).
+  //
+  // Two savings over the numpy loop, same solution to dependent_tol: the guess of q_D
+  // follows the tangent, q_D = warm_D - (J_D^-1 J_I)(warm) (q_I - warm_I) (the numpy
+  // loop starts from warm_D: one Newton iteration more per evaluation), and the
+  // state of the last call is reused when y and the warm start are the same (each
+  // step unpacks its end state three times: checks, output, re-partitioning).
+  // Returns false when the result came from that memo (J_ and lu_jd_ are then not
+  // necessarily those of q).
+  bool unpack(const Vec &y, double t, Vec &q, Vec &v) {
+    const int m = static_cast<int>(ind_.size());
+    if (unpack_valid_ && y == unpack_y_ && warm_q_ == unpack_warm_) {
+      q = unpack_q_;
+      v = unpack_v_;
+      return false;
+    }
+    q = warm_q_;
+    v.setZero();
+    for (int k = 0; k < m; ++k) {
+      q[ind_[k]] = y[k];
+      v[ind_[k]] = y[m + k];
+    }
+    if (predictor_valid_ && nc_) {
+      for (int k = 0; k < m; ++k) dqI_[k] = y[k] - warm_q_[ind_[k]];
+      tmp_c_.noalias() = Xwarm_ * dqI_;
+      for (int i = 0; i < nc_; ++i) q[dep_[i]] -= tmp_c_[i];
+    }
+    complete(q, v, t);
+    unpack_y_ = y;
+    unpack_warm_ = warm_q_;
+    unpack_q_ = q;
+    unpack_v_ = v;
+    unpack_valid_ = true;
+    return true;
+  }
+
+  void fun_partitioned(double t, const Vec &y, Eigen::Ref<Vec> f) {
+    const int m = static_cast<int>(ind_.size());
+    if (use_guess_) {  // the stage's guess of q_D (stage_guess)
+      use_guess_ = false;
+      fq_ = warm_q_;
+      fv_.setZero();
+      for (int k = 0; k < m; ++k) {
+        fq_[ind_[k]] = y[k];
+        fv_[ind_[k]] = y[m + k];
+      }
+      for (int i = 0; i < nc_; ++i) fq_[dep_[i]] = guess_qD_[i];
+      complete(fq_, fv_, t);
+    } else if (!unpack(y, t, fq_, fv_) && nc_) {
+      eval_phi_J(fq_);
+      gather_JD(dep_);
+      lu_jd_.factor(JD_);
+    }
+    for (int i = 0; i < nc_; ++i) {
+      vD_last_[i] = fv_[dep_[i]];
+      qD_new_[i] = fq_[dep_[i]];
+    }
+    // the tangent at the new warm start: lu_jd_ holds J_D(fq_) from complete, J_ is J(fq_)
+    if (nc_) {
+      for (int k = 0; k < m; ++k) {
+        tmp_c_ = J_.col(ind_[k]);
+        lu_jd_.solve(tmp_c_);
+        Xwarm_.col(k) = tmp_c_;
+      }
+      predictor_valid_ = true;
+    }
+    accel(t, fq_, fv_);
+    warm_q_ = fq_;
+    for (int k = 0; k < m; ++k) {
+      f[k] = fv_[ind_[k]];
+      f[m + k] = a_[ind_[k]];
+    }
+  }
+
+  // After an adaptive step (adaptive.py): stop when det(J_D) changed sign since the
+  // first step (or the last re-partition); re-partition when cond(J_D) is large and
+  // t < t_final, then y is the new partition's state. Returns true on re-partition.
+  bool adaptive_partition_check(double t, double t_final, Vec &y, Vec &q, Vec &v) {
+    unpack(y, t, q, v);
+    if (nc_ == 0) return false;
+    eval_phi_J(q);
+    gather_JD(dep_);
+    lu_jd_.factor(JD_);
+    const double sign = lu_jd_.det_sign();
+    if (sign0_ == 0.0) sign0_ = sign;
+    if (sign * sign0_ <= 0.0) {
+      const double cond = cond_JD(q);
+      throw SingularError{name_ + ": at t = " + fmt("%.9g", t) +
+                              " s det(J_D) changed sign within the last step, ending at q = " +
+                              vec_str(q) + " (condition number " + fmt("%.3e", cond) +
+                              " of J_D at the step's end); the motion crossed a singular "
+                              "configuration, which adaptive partitioning cannot follow; use a "
+                              "fixed-step integrator; " + PASSING_HINT,
+                          cond, t, Vec(q)};
+    }
+    if (!(cond_JD(q) > repartition_cond_ && t < t_final && repartition(q, t))) return false;
+    warm_q_ = q;
+    predictor_valid_ = unpack_valid_ = false;  // made for the old partition
+    gather_JD(dep_);  // J_ is still that of q
+    lu_jd_.factor(JD_);
+    sign0_ = lu_jd_.det_sign();
+    pack(q, v, y);
+    return true;
+  }
+
+  // The guess of q_D at a Runge-Kutta stage with coefficients a[0..s-1]: the dependent
+  // coordinates integrated with the stage's own weights, q_D0 + h sum_j a_j v_D,j
+  // (v_D,j of the earlier stages): accurate to the step's truncation error, so the
+  // dependent solve needs one Newton iteration (the numpy loop starts from the last
+  // evaluation's q_D, and from the tangent predictor of unpack here elsewhere).
+  void stage_guess(const double *a, int s, double h) {
+    guess_qD_ = qD0_;
+    for (int j = 0; j < s; ++j)
+      if (a[j] != 0.0) guess_qD_.noalias() += (h * a[j]) * KD_.col(j);
+    use_guess_ = nc_ > 0;
+  }
+
+  // The step start (t, y) is the last evaluation's: its q_D and v_D.
+  void step_start_from_last() {
+    qD0_ = qD_new_;
+    KD0_ = vD_last_;
+  }
+
+  bp::list repartitions_list() const {
+    bp::list out;
+    const std::size_t m = ind_.size();
+    for (std::size_t i = 0; i < rep_t_.size(); ++i) {
+      bp::list ind;
+      for (std::size_t k = 0; k < m; ++k) ind.append(rep_ind_[i * m + k]);
+      out.append(bp::make_tuple(rep_t_[i], ind));
+    }
+    return out;
+  }
+
+  bp::tuple py_partition() const {
+    bp::list ind, dep;
+    for (int i : ind_) ind.append(i);
+    for (int i : dep_) dep.append(i);
+    return bp::make_tuple(ind, dep);
+  }
+
   // -- recording ---------------------------------------------------------------
 
   struct Samples {
@@ -1020,6 +1565,7 @@ class Core {
     d["ke"] = block(s.ke, n, 1);
     d["steps"] = steps;
     d["evaluations"] = n_evals_;
+    d["repartitions"] = repartitions_list();
     return d;
   }
 
@@ -1048,6 +1594,8 @@ class Core {
     Vec q = q0, v = v0, qn(nq_), vn(nv_), qs(nq_), vs(nv_);
     Vec k1v(nv_), k1a(nv_), k2v(nv_), k2a(nv_), k3v(nv_), k3a(nv_), k4v(nv_), k4a(nv_), dv(nv_);
     double t = 0.0;
+    begin_partitioning(true);
+    if (partitions_) complete(q, v, t);
     accel(t, q, v);
     if (out[0]) record(S, t, q, v);
     for (long k = 1; k <= n_steps; ++k) {
@@ -1066,6 +1614,7 @@ class Core {
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k1a;
         if (stage_projects_) project(qs, vs);
+        else if (partitions_) complete(qs, vs, t + dt / 2);
         accel(t + dt / 2, qs, vs);
         chart_rate(q, dv, vs, k2v);  // the chart about q (simulate/chart.py)
         k2a = a_;
@@ -1073,6 +1622,7 @@ class Core {
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k2a;
         if (stage_projects_) project(qs, vs);
+        else if (partitions_) complete(qs, vs, t + dt / 2);
         accel(t + dt / 2, qs, vs);
         chart_rate(q, dv, vs, k3v);
         k3a = a_;
@@ -1080,6 +1630,7 @@ class Core {
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + dt * k3a;
         if (stage_projects_) project(qs, vs);
+        else if (partitions_) complete(qs, vs, t + dt);
         accel(t + dt, qs, vs);
         chart_rate(q, dv, vs, k4v);
         k4a = a_;
@@ -1090,7 +1641,8 @@ class Core {
       t = k * dt;
       check_finite(qn, vn, t);
       if (projects) project(qn, vn);
-      check_regular(qn, t);
+      else if (partitions_) partition_step(qn, vn, t);
+      check_regular(qn, t);  // partitioning: the rows only (Problem.check_rows)
       q = qn;
       v = vn;
       accel(t, q, v);
@@ -1145,6 +1697,10 @@ class Core {
   }
 
   void fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
+    if (partitions_) {
+      fun_partitioned(t, y, f);
+      return;
+    }
     accel(t, chart_q(y.head(nv_)), y.tail(nv_));
     if (chart_)
       chart_rate(q_c_, y.head(nv_), y.tail(nv_), f.head(nv_));
@@ -1169,7 +1725,11 @@ class Core {
     const std::string iname = dop ? "DOP853" : "RK45";
     n_evals_ = 0;
     Samples S;
-    const int n = 2 * nv_;
+    begin_partitioning(false);
+    // Partitioning integrates (q_I, v_I) only; (q_D, v_D) follow at every evaluation.
+    const int ns = partitions_ ? nv_ - nc_ : nv_;
+    const int n = 2 * ns;
+    Vec qc(nv_), vc(nv_);
     std::vector<double> pending;
     const bool dense = !t_eval_obj.is_none();
     if (dense) {
@@ -1178,16 +1738,28 @@ class Core {
     }
     std::size_t ip = 0;
     Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
-    chart_start(q0);
-    if (chart_)
-      y.head(nv_).setZero();
-    else
-      y.head(nv_) = q0;
-    y.tail(nv_) = v0;
     Vec q_out(nq_), v_out(nv_), x_out(nv_);
+    chart_start(q0);  // partitioning needs nq == nv (refused in Python): no chart then
+    if (partitions_) {
+      qc = q0;
+      vc = v0;
+      complete(qc, vc, 0.0);
+      warm_q_ = q0;  // the dependent solves start from the last evaluation's q
+      pack(qc, vc, y);
+    } else {
+      y.head(nv_) = chart_ ? Vec::Zero(nv_) : q0;
+      y.tail(nv_) = v0;
+    }
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+    KD_ = Mat::Zero(nc_, K.cols());
     Mat F(n, dop853::INTERPOLATOR_POWER);
     auto output = [&](double t, const Vec &yy) {
+      if (partitions_) {
+        unpack(yy, t, qc, vc);
+        accel(t, qc, vc);
+        record(S, t, qc, vc);
+        return;
+      }
       q_out = chart_q(yy.head(nv_));
       v_out = yy.tail(nv_);
       accel(t, q_out, v_out);
@@ -1199,6 +1771,7 @@ class Core {
       if (dense) ++ip;
     }
     fun(t, y, f);
+    if (partitions_) step_start_from_last();
     // scipy's select_initial_step
     double h_abs;
     {
@@ -1237,6 +1810,7 @@ class Core {
         h_abs = std::abs(h);
         // rk_step
         K.col(0) = f;
+        if (partitions_) KD_.col(0) = KD0_;
         for (int s = 1; s < n_stages; ++s) {
           dy.setZero();
           for (int j = 0; j < s; ++j) {
@@ -1244,7 +1818,9 @@ class Core {
             if (c != 0.0) dy += c * K.col(j);
           }
           ye = y + h * dy;
+          if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
           fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
+          if (partitions_) KD_.col(s) = vD_last_;
         }
         dy.setZero();
         for (int j = 0; j < n_stages; ++j) {
@@ -1252,7 +1828,9 @@ class Core {
           if (b != 0.0) dy += b * K.col(j);
         }
         y_new = y + h * dy;
+        if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
         fun(t + h, y_new, f_new);
+        if (partitions_) KD_.col(n_stages) = vD_last_;
         K.col(n_stages) = f_new;
         scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
         double err;
@@ -1289,6 +1867,10 @@ class Core {
       }
       ++steps;
       const double t_old = t;
+      if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
+        qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
+        KD0_ = KD_.col(n_stages);
+      }
       // dense output at the t_eval within the step, from the unprojected step
       if (dense && ip < pending.size() && pending[ip] <= t_new) {
         if (dop) {
@@ -1297,7 +1879,9 @@ class Core {
             for (int j = 0; j < s; ++j)
               if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
             ye = y + h * dy;
+            if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
             fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
+            if (partitions_) KD_.col(s) = vD_last_;
           }
           F.col(0) = y_new - y;
           F.col(1) = h * K.col(0) - F.col(0);
@@ -1337,9 +1921,14 @@ class Core {
       t = t_new;
       y = y_new;
       f = f_new;
-      q_out = chart_q(y.head(nv_));
-      v_out = y.tail(nv_);
-      check_finite(q_out, v_out, t);
+      if (partitions_) {
+        qD0_ = qD_end_;
+        check_finite(y.head(ns), y.tail(ns), t);
+      } else {
+        q_out = chart_q(y.head(nv_));
+        v_out = y.tail(nv_);
+        check_finite(q_out, v_out, t);
+      }
       if (projects) {
         project(q_out, v_out);
         if (chart_)
@@ -1348,10 +1937,21 @@ class Core {
         y.tail(nv_) = v_out;
         fun(t, y, f);
       }
-      if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
-      check_regular(q_out, t);
+      if (partitions_) {
+        unpack(y, t, qc, vc);
+        check_regular(qc, t);
+      } else {
+        if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
+        check_regular(q_out, t);
+      }
       if (!dense) output(t, y);
       poll(steps, t, progress);
+      // det(J_D) sign and re-partitioning; a new partition restarts the integrator
+      // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
+      if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) {
+        fun(t, y, f);
+        step_start_from_last();
+      }
     }
     return samples_dict(S, steps);
   }
@@ -1496,6 +2096,34 @@ class Core {
   int tau_mode_ = 0;
   bp::object tau_obj_, np_asarray_;
   long n_evals_ = 0;
+  // the reduced method and coordinate partitioning
+  struct Align {
+    pinocchio::FrameIndex p, s;
+    Vector3d u;
+    int loop;
+  };
+  std::vector<int> red_ind_, red_dep_;  // the method's partition
+  std::vector<int> ind0_, ind_, dep_;   // the stabilization's: at the start, current
+  std::vector<std::string> coordinate_names_;
+  std::string red_what_ = "J_D";
+  bool partitions_ = false, rows_only_ = false;
+  double dependent_tol_ = 1e-13, repartition_cond_ = 100.0, partition_singular_cond_ = 1e4;
+  double pivot_tie_rtol_ = 1e-9;
+  Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
+  Mat KD_;     // v_D at the stages of the current adaptive step
+  Vec qD0_, KD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
+  bool use_guess_ = false;
+  Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
+  bool predictor_valid_ = false, unpack_valid_ = false;
+  double sign0_ = 0.0;  // sign of det(J_D) at the first step (0: not yet)
+  Mat JD_, Sred_, MS_;
+  Vec cred_, fred_, aI_, phi_n_, phi_best_, step_c_, q_try_, q_best_, dv_n_, warm_q_, fq_, fv_;
+  DenseLU lu_jd_;
+  Eigen::JacobiSVD<Mat> svd_jd_, svd_jd_uv_;
+  std::vector<Align> align_;
+  std::vector<std::string> align_names_;
+  std::vector<double> rep_t_;
+  std::vector<int> rep_ind_;
 };
 
 }  // namespace closedchain
@@ -1539,6 +2167,13 @@ BOOST_PYTHON_MODULE(_core) {
       .def("run_adaptive", &Core::run_adaptive,
            bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
                     "projects", "progress"))
+      .def("set_partition", &Core::set_partition, bp::args("self", "independent", "names"),
+           "The reduced method's partition (independent velocity indices) and coordinate names.")
+      .def("set_alignment", &Core::set_alignment,
+           bp::args("self", "fid_p", "fid_s", "u", "loop", "loop_names"),
+           "The loops' alignment checks of the dependent solve (spurious closures).")
+      .add_property("partition", &Core::py_partition,
+                    "(independent, dependent) velocity indices of the stabilization's partition.")
       .add_property("nc", &Core::nc)
       .add_property("n_evals", &Core::n_evals);
 }

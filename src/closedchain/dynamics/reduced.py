@@ -43,6 +43,7 @@ from scipy.linalg import lapack
 from ..exceptions import ClosedChainError
 from .base import (
     DEFAULT_SETTINGS,
+    MethodCapabilities,
     SolverSettings,
     check_condition,
     compute_terms,
@@ -242,7 +243,7 @@ def reduced_dynamics(
     return a, f[part.dep] @ JD_inv  # lam = J_D^-T (tau - h - M a)_D
 
 
-@register(_NAME)
+@register(_NAME, MethodCapabilities(compiled=True))
 def reduced(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, tau: np.ndarray, settings: SolverSettings
 ) -> tuple[np.ndarray, np.ndarray]:

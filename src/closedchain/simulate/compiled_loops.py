@@ -1,8 +1,9 @@
 """Whole-trajectory integration in the compiled core (``backend="compiled"`` entries).
 
 The loops of :mod:`.fixed` and :mod:`.adaptive` (same output grid, projection,
-stage projection, regularity check, drift limit, error control of scipy's
-RK45/DOP853 with the same dense output) run in C++; the right-hand side never
+stage projection, coordinate partitioning with re-partitioning, regularity
+check, drift limit, error control of scipy's RK45/DOP853 with the same dense
+output) run in C++; the right-hand side never
 enters Python unless ``tau`` is a callable (then it is called from C++ under
 the GIL), and a progress callback is called after each step. Ctrl-C
 interrupts a run.
@@ -37,13 +38,27 @@ def _prepare(problem: Problem, info: dict, stab):
         problem.settings,
         stage_projects=stab.projects_stages,
         singular_robust=problem.singular_robust,
+        partitions=stab.partitions,
+        independent=problem.ind,
     )
     core.set_tau(problem.tau_input)
     return core
 
 
-def _finish(problem: Problem, core, recorder, out: dict) -> int:
+def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
     problem.n_evals += int(out["evaluations"])
+    names = problem.mech.coordinate_names
+    for t, ind in out["repartitions"]:  # as Problem.repartition logs and fixed.py records
+        logger.info(
+            "%s: re-partitioned at t = %.9g s; independent: %s",
+            problem.mech.name,
+            t,
+            ", ".join(names[i] for i in ind),
+        )
+        info["repartitions"].append([float(t), [names[i] for i in ind]])
+    if out["repartitions"]:
+        ind, dep = core.partition
+        problem.ind, problem.dep = np.array(ind, dtype=int), np.array(dep, dtype=int)
     zero_v = np.zeros(problem.mech.nv)
     recorder.extend(out, jacobian=lambda q: core.rows(q, zero_v)[1])
     return int(out["steps"])
@@ -86,7 +101,7 @@ def run_fixed_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out)
+    return _finish(problem, core, recorder, out, info)
 
 
 def run_adaptive_compiled(
@@ -109,4 +124,4 @@ def run_adaptive_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out)
+    return _finish(problem, core, recorder, out, info)

@@ -198,8 +198,7 @@ register_integrator(
 )
 
 # The compiled core's loops: same names, same semantics, the numpy entry's
-# stabilizations but partitioning (it stays in Python); registered only when the
-# core imports.
+# stabilizations (partitioning included); registered only when the core imports.
 if compiled.available():
     for _name, _kind, _order, _run in (
         ("euler", "fixed", 1, compiled_loops.run_fixed_compiled),
@@ -216,7 +215,7 @@ if compiled.available():
                 _run,
                 _order,
                 backend="compiled",
-                stabilizations=tuple(s for s in _ref.stabilizations if s != "partitioning"),
+                stabilizations=_ref.stabilizations,
                 default_stabilization=_ref.default_stabilization,
                 description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
             )
