@@ -42,8 +42,10 @@ def _prepare(problem: Problem, info: dict, stab):
     return core
 
 
-def _finish(problem: Problem, core, recorder, out: dict) -> int:
+def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
     problem.n_evals += int(out["evaluations"])
+    if "singular_splits" in out:  # rk4 with stage projection (fixed.py)
+        info["singular_splits"] = int(out["singular_splits"])
     zero_v = np.zeros(problem.mech.nv)
     recorder.extend(out, jacobian=lambda q: core.rows(q, zero_v)[1])
     return int(out["steps"])
@@ -86,7 +88,7 @@ def run_fixed_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out)
+    return _finish(problem, core, recorder, out, info)
 
 
 def run_adaptive_compiled(
@@ -109,4 +111,4 @@ def run_adaptive_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out)
+    return _finish(problem, core, recorder, out, info)
