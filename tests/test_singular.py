@@ -195,7 +195,12 @@ ALI3P_DT = 2e-4
 
 #: Measured failures of the issue's bar, kept as strict expected failures (the bar is not
 #: lowered; a fix turns them into errors to remove from here): N -> what was measured.
-DEFAULT_MISSES: dict[int, str] = {}
+DEFAULT_MISSES = {
+    20: "B0 error 1.3e-6 m at 20 s on the compiled core (2.7e-6 before the steps kept away "
+    "from the crossings; energy kept to 7e-9, branch kept): the residual of the position "
+    "projection (phi within projection_tol) is amplified as p v / d^2 near each flat "
+    "position: README, Singular positions",
+}
 
 
 ALI3P_MISSES = {

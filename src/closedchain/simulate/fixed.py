@@ -41,19 +41,21 @@ def step_rk4(model, deriv, t, q, v, a, dt):
 #
 # Where the constraint manifold crosses itself (a flat position of the N-four-bar, the
 # change point of the 4-bar) the projection onto phi = 0, J v = 0 and the accelerations
-# are ill-conditioned at distance d from the crossing: an error e of the branch-switch
-# coordinate becomes a velocity error e v / d and an acceleration error e a / d, and
-# within about 3e-6 rad the augmented Lagrangian's penalty no longer enforces the lost
-# row at all (Gauss's accelerations there differ from the branch's limit by O(g)).
-# Which grid point lands how close to the crossing is chance (it depends on the step
-# and the period): measured on the N-four-bar at N = 5, the step ending 4.7e-5 rad from
-# a flat position turned a spread of 1.2e-10 rad into a velocity error of 1.3e-5 rad/s
-# and an energy error of 1.5e-5. The step is therefore taken so that no evaluation
-# point lands near the crossing: the crossing time is located from the rank indicator
-# rho (about linear in the distance to it) at the start, midpoint and end of the step,
-# and the step is redone as two unequal substeps whose evaluation points keep away from
-# it; when the crossing is at a grid point, two steps are taken together and the state
-# at the grid point is interpolated (cubic Hermite) for the output.
+# are ill-conditioned at distance d from the crossing: a residual p of phi (within
+# projection_tol) leaves the state on the level set phi = p, which near the crossing is
+# a hyperbola p / d away from the branch, and the velocity projected onto it is off by
+# about p v / d^2; within about 3e-6 rad the augmented Lagrangian's penalty no longer
+# enforces the lost row at all (Gauss's accelerations there differ from the branch's
+# limit by O(g)). Which grid point lands how close to the crossing is chance (it depends
+# on the step and the period): on the N-four-bar at N = 5 the step ending 4.7e-5 rad from
+# a flat position turned a spread of 1.2e-10 rad between the cranks into a velocity error
+# of 1.3e-5 rad/s and an energy error of 1.5e-5. A step is therefore retaken when one of
+# its evaluation points would land within ``SimulationSettings.singular_zone`` steps of
+# the crossing: the crossing time is extrapolated from the rank indicator rho (about
+# linear in the distance to it) at the step's start and projected midpoint, and the step
+# is redone as two unequal substeps whose evaluation points keep away from it; when the
+# crossing is at the grid point, two steps are taken together and the state at the grid
+# point is interpolated (cubic Hermite) for the output only.
 
 #: Cap of the rank indicator (a regular configuration): see :func:`rank_indicator`.
 RANK_INDICATOR_CAP = 1e-2
