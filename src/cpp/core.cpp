@@ -134,6 +134,13 @@ constexpr double AL_NORMAL_EQ_REG = 1e-14;
 //: this (cond(J) below ~1e4), else through the SVD of J.
 constexpr double MIN_NORM_RCOND = 1e-8;
 
+//: rk4 with stage projection near singular positions: the constants of
+//: closedchain/simulate/fixed.py (RANK_INDICATOR_CAP,
+//: SPLIT_CANDIDATES k / 40 for k = 4..36, DOUBLE_SPLIT_MIN, RANK_INDICATOR_ITERS).
+constexpr double RANK_INDICATOR_CAP = 1e-2;
+constexpr double DOUBLE_SPLIT_MIN = 0.5;
+constexpr int RANK_INDICATOR_ITERS = 4;
+
 //: Relative margin of lu_inverse_norm_bound over its own round-off.
 constexpr double INVERSE_BOUND_MARGIN = 1e-8;
 
@@ -265,6 +272,7 @@ class Core {
     al_tol_ = bp::extract<double>(s.get("al_tol", 1e-13));
     al_max_iter_ = bp::extract<int>(s.get("al_max_iter", 30));
     stage_projects_ = bp::extract<bool>(s.get("stage_projects", false));
+    singular_zone_ = bp::extract<double>(s.get("singular_zone", 0.0));
     singular_robust_ = bp::extract<bool>(s.get("singular_robust", false));
     dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
     dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
@@ -1579,6 +1587,164 @@ class Core {
       throw SimulationFailure{name_ + ": non-finite state at t = " + fmt("%.9g", t) + " s", t};
   }
 
+  // -- rk4 with stage projection near singular positions -----------------------
+  // (simulate/fixed.py, _run_rk4_stage_projected: the same rule, step for step)
+
+  // sqrt(mu / mean eigenvalue of J J^T) at q, capped: mu the Rayleigh quotient after
+  // RANK_INDICATOR_ITERS inverse iterations from the ones vector (fixed.rank_indicator).
+  double rank_indicator(const Vec &q) {
+    if (nc_ == 0) return RANK_INDICATOR_CAP;
+    eval_phi_J(q);
+    JJt_.noalias() = J_ * J_.transpose();
+    const double ref = JJt_.trace() / nc_;
+    if (!(ref > 0.0)) return 0.0;
+    llt_c_.compute(JJt_);
+    if (llt_c_.info() != Eigen::Success) return 0.0;
+    tmp_c_.setConstant(1.0 / std::sqrt(static_cast<double>(nc_)));
+    for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
+      llt_c_.solveInPlace(tmp_c_);
+      tmp_c_ /= tmp_c_.norm();
+    }
+    vel_c_.noalias() = JJt_ * tmp_c_;
+    const double mu = tmp_c_.dot(vel_c_);
+    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+  }
+
+  // The crossing time in steps from the start, extrapolated from the indicator at the
+  // start and the midpoint (fixed.crossing_estimate).
+  static double crossing_estimate(double rho_start, double rho_mid) {
+    if (!(rho_mid < rho_start)) return std::numeric_limits<double>::infinity();
+    return rho_start / (2.0 * (rho_start - rho_mid));
+  }
+
+  // The split fraction whose substeps' evaluation points are farthest from the crossing
+  // at tau steps from the start (fixed.best_split).
+  static double best_split(double tau, bool twice) {
+    double best = 4 / 40.0, best_d = -1.0;
+    for (int k = 4; k <= 36; ++k) {
+      const double f = k / 40.0;
+      if (twice && f < DOUBLE_SPLIT_MIN) continue;
+      const double pts[3] = {twice ? f : f / 2, twice ? 2 * f : f, twice ? 1 + f : (1 + f) / 2};
+      double d = std::numeric_limits<double>::infinity();
+      for (double p : pts) d = std::min(d, std::abs(p - tau));
+      if (d > best_d) {
+        best = f;
+        best_d = d;
+      }
+    }
+    return best;
+  }
+
+  // One rk4 step of length h from (q, v) with accelerations a0 at t, every stage and
+  // the end projected; (qn, vn) the end, qm the projected stage-2 (midpoint) state.
+  void rk4_projected(double t, const Vec &q, const Vec &v, const Vec &a0, double h, Vec &qn,
+                     Vec &vn, Vec &qm) {
+    dv_ = (h / 2) * v;
+    pinocchio::integrate(model_, q, dv_, qm);
+    vs_ = v + (h / 2) * a0;
+    project(qm, vs_);
+    accel(t + h / 2, qm, vs_);
+    chart_rate(q, dv_, vs_, k2v_);  // the stages' rates in the chart about q (run_fixed)
+    k2a_ = a_;
+    dv_ = (h / 2) * k2v_;
+    pinocchio::integrate(model_, q, dv_, qs_);
+    vs_ = v + (h / 2) * k2a_;
+    project(qs_, vs_);
+    accel(t + h / 2, qs_, vs_);
+    chart_rate(q, dv_, vs_, k3v_);
+    k3a_ = a_;
+    dv_ = h * k3v_;
+    pinocchio::integrate(model_, q, dv_, qs_);
+    vs_ = v + h * k3a_;
+    project(qs_, vs_);
+    accel(t + h, qs_, vs_);
+    chart_rate(q, dv_, vs_, k4v_);
+    dv_ = (h / 6) * (v + 2 * k2v_ + 2 * k3v_ + k4v_);
+    pinocchio::integrate(model_, q, dv_, qn);
+    vn = v + (h / 6) * (a0 + 2 * k2a_ + 2 * k3a_ + a_);
+    check_finite(qn, vn, t + h);
+    project(qn, vn);
+  }
+
+  // The state at t = t0 + s h of the substep (q0, v0, a0) -> (q1, v1, a1) of length h
+  // by cubic Hermite interpolation, q projected onto phi = 0, recorded (v is not
+  // projected: near the crossing that is the ill-conditioned step avoided).
+  void record_interpolated(Samples &S, double t, double s, double h, const Vec &q0,
+                           const Vec &v0, const Vec &a0, const Vec &q1, const Vec &v1,
+                           const Vec &a1) {
+    const double h00 = 2 * s * s * s - 3 * s * s + 1, h10 = s * s * s - 2 * s * s + s;
+    const double h01 = -2 * s * s * s + 3 * s * s, h11 = s * s * s - s * s;
+    pinocchio::difference(model_, q0, q1, dv_);
+    dv_ = h10 * h * v0 + h01 * dv_ + h11 * h * v1;
+    pinocchio::integrate(model_, q0, dv_, qs_);
+    k2v_ = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1;
+    vs_ = k2v_;
+    project(qs_, vs_);
+    check_regular(qs_, t);
+    accel(t, qs_, k2v_);
+    record(S, t, qs_, k2v_);
+  }
+
+  bp::dict run_rk4_stage_projected(const Vec &q0, const Vec &v0, double dt, long n_steps,
+                                   const std::vector<char> &out, bp::object progress) {
+    Samples S;
+    Vec q = q0, v = v0, a(nv_), qn(nq_), vn(nv_), qm(nq_), q1(nq_), v1(nv_), a1(nv_);
+    dv_.resize(nv_);
+    vs_.resize(nv_);
+    qs_.resize(nq_);
+    k2v_.resize(nv_);
+    k2a_.resize(nv_);
+    k3v_.resize(nv_);
+    k3a_.resize(nv_);
+    k4v_.resize(nv_);
+    double t = 0.0;
+    accel(t, q, v);
+    a = a_;
+    if (out[0]) record(S, t, q, v);
+    long splits = 0;
+    double rho_start = rank_indicator(q);
+    for (long k = 1; k <= n_steps; ++k) {
+      rk4_projected(t, q, v, a, dt, qn, vn, qm);
+      const double tau = crossing_estimate(rho_start, rank_indicator(qm));
+      if (std::abs(tau - 1.0) < singular_zone_) {
+        // the crossing is near grid point k: two steps in two unequal substeps
+        const double f = best_split(tau, true);
+        const double h1 = 2 * f * dt, h2 = 2 * (1 - f) * dt;
+        rk4_projected(t, q, v, a, h1, q1, v1, qm);
+        check_regular(q1, t + h1);
+        accel(t + h1, q1, v1);
+        a1 = a_;
+        rk4_projected(t + h1, q1, v1, a1, h2, qn, vn, qm);
+        ++splits;
+        if (out[k]) record_interpolated(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1);
+        poll(k, k * dt, progress);
+        if (k == n_steps) break;  // the step beyond t_final only served the output
+        ++k;
+      } else if (std::abs(tau - 0.5) < singular_zone_) {
+        // the crossing is near the midpoint
+        const double f = best_split(tau, false);
+        rk4_projected(t, q, v, a, f * dt, q1, v1, qm);
+        check_regular(q1, t + f * dt);
+        accel(t + f * dt, q1, v1);
+        a1 = a_;
+        rk4_projected(t + f * dt, q1, v1, a1, (1 - f) * dt, qn, vn, qm);
+        ++splits;
+      }
+      t = k * dt;
+      check_regular(qn, t);
+      q = qn;
+      v = vn;
+      accel(t, q, v);
+      a = a_;
+      rho_start = rank_indicator(q);
+      if (out[k]) record(S, t, q, v);
+      poll(k, t, progress);
+    }
+    bp::dict d = samples_dict(S, n_steps);
+    d["singular_splits"] = splits;
+    return d;
+  }
+
   // -- fixed-step integration ----------------------------------------------------
 
   // Integrate with a fixed step dt for n_steps, recording at the steps in `out`.
@@ -1591,6 +1757,8 @@ class Core {
     std::vector<char> out(n_steps + 1, 0);
     for (Eigen::Index i = 0; i < out_steps.size(); ++i)
       if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+    if (integrator == RK4 && stage_projects_ && projects && nc_)
+      return run_rk4_stage_projected(q0, v0, dt, n_steps, out, progress);
     Vec q = q0, v = v0, qn(nq_), vn(nv_), qs(nq_), vs(nv_);
     Vec k1v(nv_), k1a(nv_), k2v(nv_), k2a(nv_), k3v(nv_), k3a(nv_), k4v(nv_), k4a(nv_), dv(nv_);
     double t = 0.0;
@@ -2065,6 +2233,7 @@ class Core {
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_, llt_p_;
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
+  Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
   std::vector<int> piv_;  // row swaps of lu_factor
   Eigen::JacobiSVD<Mat> svd_;
   Eigen::SelfAdjointEigenSolver<Mat> eig_;
@@ -2081,6 +2250,7 @@ class Core {
   double al_penalty_ = 1e11, al_tol_ = 1e-13;
   int al_max_iter_ = 30;
   bool stage_projects_ = false, singular_robust_ = false;
+  double singular_zone_ = 0.0;  // SimulationSettings.singular_zone
   double dropped_tol_ = 1e-9, dropped_ratio_ = 100.0;
   std::vector<Row> drows_;  // every declared row
   std::vector<std::string> dlabels_;

@@ -59,6 +59,8 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
     if out["repartitions"]:
         ind, dep = core.partition
         problem.ind, problem.dep = np.array(ind, dtype=int), np.array(dep, dtype=int)
+    if "singular_splits" in out:  # rk4 with stage projection (fixed.py)
+        info["singular_splits"] = int(out["singular_splits"])
     zero_v = np.zeros(problem.mech.nv)
     recorder.extend(out, jacobian=lambda q: core.rows(q, zero_v)[1])
     return int(out["steps"])

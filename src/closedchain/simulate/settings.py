@@ -63,6 +63,11 @@ class SimulationSettings:
             partitioning steps across the 4-bar's change point (the continuation
             is the one Newton finds from the previous state; energy drift 2e-7
             with rk4 at dt 1e-3).
+        singular_zone: rk4 with stage projection keeps its evaluation points at least
+            this many steps away from a singular position (a crossing of assembly
+            branches): a step whose end or midpoint is estimated closer to one is
+            retaken in two unequal substeps (see ``closedchain.simulate.fixed``);
+            0 turns this off.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
@@ -112,6 +117,7 @@ class SimulationSettings:
     repartition_cond: float = 100.0
     singular_cond: float = 1e3
     partition_singular_cond: float = 1e4
+    singular_zone: float = 0.04
     drift_limit: float = 1e-2
     dropped_row_tol: float = 1e-9
     dropped_row_ratio: float = 100.0
