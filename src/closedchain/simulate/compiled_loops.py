@@ -39,13 +39,16 @@ def _prepare(problem: Problem, info: dict, stab):
         singular_robust=problem.singular_robust,
     )
     core.set_tau(problem.tau_input)
+    # The branch series (sign of det J_D at every sample, Recorder._add_branch) in C++.
+    mech = problem.mech
+    dep = np.asarray(mech.dependent_idx_v, dtype=np.int32)
+    core.set_branch_columns(dep if mech.nc and len(dep) == mech.nc else dep[:0])
     return core
 
 
 def _finish(problem: Problem, core, recorder, out: dict) -> int:
     problem.n_evals += int(out["evaluations"])
-    zero_v = np.zeros(problem.mech.nv)
-    recorder.extend(out, jacobian=lambda q: core.rows(q, zero_v)[1])
+    recorder.extend(out)
     return int(out["steps"])
 
 
