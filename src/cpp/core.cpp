@@ -36,7 +36,7 @@
 
 #include "lean_data.hpp"
 #include "rk_coefficients.hpp"
-#include "small_dense.hpp"
+#include "small_llt.hpp"
 #include "tree_terms.hpp"
 
 namespace bp = boost::python;
@@ -378,46 +378,44 @@ class Core {
     }
     const double jj = J_.squaredNorm();
     const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-    // Small dynamic sizes: the written-out kernels of small_dense.hpp; only P's
-    // lower triangle is formed and factored.
-    gram_lower(J_, P_);
-    for (Eigen::Index j = 0; j < nv_; ++j)
-      for (Eigen::Index i = j; i < nv_; ++i) P_(i, j) = alpha * P_(i, j) + M_(i, j);
+    // Small dynamic sizes: coefficient-based products (lazyProduct) and SmallLLT,
+    // no BLAS-style kernels; only P's lower triangle is factored.
+    P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
+    P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
     if (!llt_p_.compute(P_))
       singular(q, "the penalized mass matrix M + alpha J^T J",
                std::numeric_limits<double>::infinity(),
                "it is not positive definite, so M itself is singular (a massless subtree)", t);
     rhs_v_ = tau - h_;
     a_ = rhs_v_;
-    mul_t_add(J_, gamma_, a_, -alpha);
+    a_.noalias() -= alpha * J_.transpose().lazyProduct(gamma_);
     llt_p_.solveInPlace(a_);
     lam_ = gamma_;
-    mul_add(J_, a_, lam_);
+    lam_.noalias() += J_.lazyProduct(a_);
     lam_ *= alpha;
     for (int it = 1; it < al_max_iter_; ++it) {
       tmp_c_ = gamma_;
-      mul_add(J_, a_, tmp_c_);  // r_c
+      tmp_c_.noalias() += J_.lazyProduct(a_);  // r_c
       tmp_c_ *= alpha;
       tmp_c_ += lam_;
       dq_ = rhs_v_;
-      mul_add(M_, a_, dq_, -1.0);
-      mul_t_add(J_, tmp_c_, dq_, -1.0);
+      dq_.noalias() -= M_.lazyProduct(a_);
+      dq_.noalias() -= J_.transpose().lazyProduct(tmp_c_);
       llt_p_.solveInPlace(dq_);  // delta
       a_ += dq_;
       tmp_c_ = gamma_;
-      mul_add(J_, a_, tmp_c_);
+      tmp_c_.noalias() += J_.lazyProduct(a_);
       lam_ += alpha * tmp_c_;
       if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
     }
     tmp_v_ = rhs_v_;
-    mul_add(M_, a_, tmp_v_, -1.0);
-    mul_t_add(J_, lam_, tmp_v_, -1.0);  // r_d
-    outer_gram_lower(J_, JJt_);
+    tmp_v_.noalias() -= M_.lazyProduct(a_);
+    tmp_v_.noalias() -= J_.transpose().lazyProduct(lam_);  // r_d
+    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
     JJt_.diagonal().array() +=
         AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
     llt_jj_.compute(JJt_);
-    tmp_c_.setZero();
-    mul_add(J_, tmp_v_, tmp_c_);
+    tmp_c_.noalias() = J_.lazyProduct(tmp_v_);
     llt_jj_.solveInPlace(tmp_c_);
     lam_ += tmp_c_;
   }
@@ -858,7 +856,7 @@ class Core {
   // upper bound of cond_1 from the Cholesky factor where it can (rcond >= 1 / that
   // bound), so Eigen's estimator runs only near singular positions.
   void min_norm(const Vec &b, Vec &x) {
-    outer_gram_lower(J_, JJt_);
+    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
     bool regular = false;
     if (llt_jj_.compute(JJt_)) {
       double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
@@ -878,8 +876,7 @@ class Core {
     if (regular) {
       tmp_c_ = b;
       llt_jj_.solveInPlace(tmp_c_);
-      x.setZero();
-      mul_t_add(J_, tmp_c_, x);
+      x.noalias() = J_.transpose().lazyProduct(tmp_c_);
       return;
     }
     svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
@@ -993,9 +990,7 @@ class Core {
     // right after accel there), else from Pinocchio's own passes.
     double ke, pe;
     if (q == terms_q_ && v == terms_v_) {
-      tmp_v_.setZero();
-      mul_add(M_, v, tmp_v_);
-      ke = 0.5 * v.dot(tmp_v_);
+      ke = 0.5 * v.dot(M_.lazyProduct(v));
       pe = pe_;
     } else {
       ke = pinocchio::computeKineticEnergy(model_, data_, q, v);

@@ -54,10 +54,11 @@ struct ForwardStep
     const pinocchio::JointIndex i = jmodel.id();
     const pinocchio::JointIndex parent = model.parents[i];
     jmodel.calc(jdata.derived(), q.derived(), v.derived());
-    if (parent > 0)  // data.liMi is not needed: not stored
-      data.oMi[i] = data.oMi[parent] * (model.jointPlacements[i] * jdata.M());
+    data.liMi[i] = model.jointPlacements[i] * jdata.M();
+    if (parent > 0)
+      data.oMi[i] = data.oMi[parent] * data.liMi[i];
     else
-      data.oMi[i] = model.jointPlacements[i] * jdata.M();
+      data.oMi[i] = data.liMi[i];
     const pinocchio::SE3 &oMi = data.oMi[i];
     ColsBlock J_cols = jmodel.jointCols(data.J);
     J_cols = oMi.act(jdata.S());

@@ -1,15 +1,14 @@
-// closedchain._core: dense kernels for the small matrices of one evaluation
-// (M + alpha J^T J, J J^T and their products with vectors), included by core.cpp.
+// closedchain._core: Cholesky factorization of the small symmetric positive
+// definite matrices of one evaluation (M + alpha J^T J, J J^T), included by core.cpp.
 //
-// Eigen's LLT and products on dynamic-size matrices spend more on blocking and
-// expression bookkeeping than on arithmetic at the sizes of a linkage (nv, nc ~
-// 2 to 20): on the N-four-bar N = 2 (nv 5, nc 4) the augmented-Lagrangian solve
-// took 11,800 instructions with Eigen's LLT and GEMV kernels, 8,800 with these
-// (callgrind; four solves per call). The products below are plain column
-// loops; SmallLLT is the textbook right-looking column Cholesky (Golub & Van
-// Loan, Matrix Computations, 4th ed., Alg. 4.2.2) on the lower triangle,
-// column-major, with the same acceptance test as Eigen's LLT (every pivot > 0);
-// from BLOCKED_MIN on, Eigen's blocked LLT (its GEMM updates win there).
+// Eigen's LLT on dynamic-size matrices spends more on blocking and expression
+// bookkeeping than on arithmetic at the sizes of a linkage (nv, nc ~ 2 to 20):
+// on the N-four-bar N = 2 (nv 5, nc 4) one factorization and three solves cost
+// about 7,000 instructions, the same written out about 1,000. This is the
+// textbook right-looking column Cholesky (Golub & Van Loan, Matrix
+// Computations, 4th ed., Alg. 4.2.2) on the lower triangle, column-major, with
+// the same acceptance test as Eigen's LLT (every pivot > 0); from
+// BLOCKED_MIN on, Eigen's blocked LLT (its GEMM updates win there).
 
 #pragma once
 
@@ -44,10 +43,8 @@ class SmallLLT {
       if (ok_) L_.triangularView<Eigen::Lower>() = eigen_.matrixL();
       return ok_;
     }
+    L_.triangularView<Eigen::Lower>() = A.triangularView<Eigen::Lower>();
     double *a = L_.data();
-    const double *src = A.data();
-    for (Eigen::Index j = 0; j < n; ++j)
-      for (Eigen::Index i = j; i < n; ++i) a[i + j * n] = src[i + j * n];
     ok_ = true;
     for (Eigen::Index k = 0; k < n; ++k) {
       const double d = a[k + k * n];
@@ -118,53 +115,5 @@ class SmallLLT {
   Eigen::LLT<Eigen::MatrixXd> eigen_;
   bool ok_ = false;
 };
-
-// y += s A x (A: m x n column-major, x: n, y: m).
-template <typename X, typename Y>
-inline void mul_add(const Eigen::MatrixXd &A, const X &x, Y &y, double s = 1.0) {
-  const Eigen::Index m = A.rows(), n = A.cols();
-  const double *a = A.data();
-  for (Eigen::Index j = 0; j < n; ++j) {
-    const double xj = s * x[j];
-    for (Eigen::Index i = 0; i < m; ++i) y[i] += a[i + j * m] * xj;
-  }
-}
-
-// y += s A^T x (A: m x n column-major, x: m, y: n).
-template <typename X, typename Y>
-inline void mul_t_add(const Eigen::MatrixXd &A, const X &x, Y &y, double s = 1.0) {
-  const Eigen::Index m = A.rows(), n = A.cols();
-  const double *a = A.data();
-  for (Eigen::Index j = 0; j < n; ++j) {
-    double d = 0.0;
-    for (Eigen::Index i = 0; i < m; ++i) d += a[i + j * m] * x[i];
-    y[j] += s * d;
-  }
-}
-
-// Lower triangle of G = A^T A (A: m x n, G: n x n).
-inline void gram_lower(const Eigen::MatrixXd &A, Eigen::MatrixXd &G) {
-  const Eigen::Index m = A.rows(), n = A.cols();
-  const double *a = A.data();
-  for (Eigen::Index j = 0; j < n; ++j)
-    for (Eigen::Index i = j; i < n; ++i) {
-      double d = 0.0;
-      for (Eigen::Index r = 0; r < m; ++r) d += a[r + i * m] * a[r + j * m];
-      G(i, j) = d;
-    }
-}
-
-// Lower triangle of G = A A^T (A: m x n, G: m x m).
-inline void outer_gram_lower(const Eigen::MatrixXd &A, Eigen::MatrixXd &G) {
-  const Eigen::Index m = A.rows(), n = A.cols();
-  const double *a = A.data();
-  for (Eigen::Index j = 0; j < m; ++j) {
-    for (Eigen::Index i = j; i < m; ++i) G(i, j) = 0.0;
-    for (Eigen::Index k = 0; k < n; ++k) {
-      const double ajk = a[j + k * m];
-      for (Eigen::Index i = j; i < m; ++i) G(i, j) += a[i + k * m] * ajk;
-    }
-  }
-}
 
 }  // namespace closedchain
