@@ -25,9 +25,15 @@
    and the coasting Agile Eye, with steps and evaluations of each side, and the
    numpy partitioning run of the same request; per evaluation, the compiled
    reduced method (from Python and in the C++ loop) against the numpy one.
+4. The benchmark's N-four-bar scenario (nfourbar2-singular, N = 2 through its
+   flat positions, 4 s): the configuration of closedchain's front at error 1e-6
+   (augmented-lagrangian, rk4, stage projection, dt 1e-2; whole simulate call)
+   against Pinocchio's own loop at the step that reaches 1e-6
+   (constraintDynamics + semi-implicit Euler, dt 2e-4), both through the
+   benchmark's runners; error against the scenario's exact reference.
 
 Timing is noisy on a shared machine: run it alone.
-Run: python scripts/bench_core.py [--repeat 3]
+Run: python scripts/bench_core.py [--repeat 3] [--sections evaluation runs matched nfourbar]
 """
 
 from __future__ import annotations
@@ -233,7 +239,6 @@ def matched(name, problem, targets, repeat):
                 f"{m} {best[m]:.4f} s, ratio {best[m] / best['peer']:.3f}" for m in sides[1:]
             )
         )
-    return mech, q0, v0, t_eval
 
 
 def partitioning_cost(name, problem, repeat, tol=1e-9):
@@ -269,29 +274,87 @@ def partitioning_cost(name, problem, repeat, tol=1e-9):
     )
 
 
+def nfourbar_against_euler(repeat: int) -> None:
+    """CPU of the nfourbar2-singular scenario: closedchain's 1e-6 configuration against
+    Pinocchio's Euler loop (the benchmark's runners, interleaved)."""
+    from closedchain.benchmark.peers import RUNNERS
+    from closedchain.benchmark.references import EXACT_REFERENCES
+    from closedchain.benchmark.runner import scenario_grid
+    from closedchain.benchmark.scenarios import (
+        SCENARIOS,
+        initial_state,
+        load_scenario_mechanism,
+        torque_function,
+    )
+
+    sc = SCENARIOS["nfourbar2-singular"]
+    mech = load_scenario_mechanism(str(MODELS), sc)
+    q0, v0 = initial_state(mech, sc)
+    tau = torque_function(mech, sc)
+    grid = scenario_grid(sc, False)
+    q_ref = EXACT_REFERENCES[sc.exact][0](mech, q0, v0, grid)
+    cc_kw = dict(
+        method="augmented-lagrangian", integrator="rk4", stabilization="stage-projection", dt=1e-2
+    )
+    runs = {
+        "closedchain augmented-lagrangian/rk4/stage-projection dt=1e-2": lambda: RUNNERS[
+            "closedchain"
+        ](mech, q0, v0, grid, tau, **cc_kw),
+        "pinocchio-euler constraintDynamics/semi-implicit/baumgarte dt=2e-4": lambda: RUNNERS[
+            "pinocchio-euler"
+        ](mech, q0, v0, grid, tau, dt=2e-4),
+    }
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    err: dict[str, float] = {}
+    for _ in range(repeat):
+        for label, run in runs.items():
+            out = run()
+            cpu[label].append(out.cpu_s)
+            err[label] = max(
+                float(np.max(np.abs(pin.difference(mech.model, a, b))))
+                for a, b in zip(out.q, q_ref, strict=True)
+            )
+    print(f"\nnfourbar2-singular ({sc.t_final:g} s): CPU [s] (min over {repeat}), error [rad]")
+    for label in runs:
+        print(f"  {label:68s} {min(cpu[label]):8.4f} s  error {err[label]:.2e}")
+    a, b = (min(cpu[k]) for k in runs)
+    print(f"  ratio closedchain / pinocchio-euler: {a / b:.4f}")
+
+
+#: Sections of the script (--sections): 1. per evaluation, in whole runs; 2. matched
+#: error (with partitioning); 3. the N-four-bar against Pinocchio's Euler loop.
+SECTIONS = ("evaluation", "runs", "matched", "partitioning", "nfourbar")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--number", type=int, default=2000)
     parser.add_argument(
-        "--partitioning-only",
-        action="store_true",
-        help="only the reduced method and the partitioning cost (sections 3)",
+        "--sections",
+        nargs="+",
+        choices=SECTIONS,
+        default=list(SECTIONS),
+        help="which measurements to run (default: all)",
     )
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {platform.platform()}")
     print(f"nproc {os.cpu_count()}, load average {os.getloadavg()}")
-    if not args.partitioning_only:
+    if "evaluation" in args.sections:
         for name in ("fourbar", "agile_eye"):
             per_evaluation(name, args.number, args.repeat)
+    if "runs" in args.sections:
         per_evaluation_in_runs("4-bar", fourbar_problem, args.repeat)
-    for name in ("fourbar", "agile_eye", "nfourbar_2"):
-        per_evaluation_reduced(name, args.number, args.repeat)
-    if not args.partitioning_only:
+    if "matched" in args.sections:
         matched("4-bar (crossed, from rest)", fourbar_problem, [1e-6, 1e-9], args.repeat)
         matched("Agile Eye (coasting, no gravity)", agile_eye_problem, [1e-6], args.repeat)
-    partitioning_cost("4-bar (crossed, from rest)", fourbar_problem, args.repeat)
-    partitioning_cost("Agile Eye (coasting, no gravity)", agile_eye_problem, args.repeat)
+    if "partitioning" in args.sections:
+        for name in ("fourbar", "agile_eye", "nfourbar_2"):
+            per_evaluation_reduced(name, args.number, args.repeat)
+        partitioning_cost("4-bar (crossed, from rest)", fourbar_problem, args.repeat)
+        partitioning_cost("Agile Eye (coasting, no gravity)", agile_eye_problem, args.repeat)
+    if "nfourbar" in args.sections:
+        nfourbar_against_euler(args.repeat)
     print(f"load average at the end {os.getloadavg()}")
 
 

@@ -13,13 +13,10 @@
 // with exact J (derivative along pinocchio::integrate) and gamma = Jdot v, the
 // formulas of closedchain/constraints.py.
 
-#include <pinocchio/algorithm/crba.hpp>
 #include <pinocchio/algorithm/energy.hpp>
-#include <pinocchio/algorithm/frames.hpp>
 #include <pinocchio/algorithm/jacobian.hpp>
 #include <pinocchio/algorithm/joint-configuration.hpp>
 #include <pinocchio/algorithm/kinematics.hpp>
-#include <pinocchio/algorithm/rnea.hpp>
 #include <pinocchio/multibody/data.hpp>
 #include <pinocchio/multibody/model.hpp>
 
@@ -40,6 +37,8 @@
 #include "dense_lu.hpp"
 #include "lean_data.hpp"
 #include "rk_coefficients.hpp"
+#include "small_llt.hpp"
+#include "tree_terms.hpp"
 
 namespace bp = boost::python;
 
@@ -177,16 +176,10 @@ class Core {
         vec2.rows() != nc_ || (nc_ && (vec1.cols() != 3 || vec2.cols() != 3)))
       throw BadArgument{"Core: row tables of inconsistent shapes"};
     for (int r = 0; r < nc_; ++r) rows_.push_back(make_row(r, kinds, fid_p, fid_s, vec1, vec2));
-    const int nf = static_cast<int>(fids_.size());
-    for (pinocchio::FrameIndex f : fids_) {
-      pinocchio::JointIndex j = model.frames[f].parentJoint;
-      if (std::find(joints_.begin(), joints_.end(), j) == joints_.end()) joints_.push_back(j);
-    }
-    R_.resize(nf);
-    p_.resize(nf);
-    Jf_.assign(nf, Mat6x::Zero(6, nv_));
-    vf_.assign(nf, Eigen::Matrix<double, 6, 1>::Zero());
-    af_.assign(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    if (!model.mimicking_joints.empty())
+      throw BadArgument{"compiled core: models with mimic joints are not supported "
+                        "(use backend='numpy')"};
+    frame_buffers();
     M_ = Mat::Zero(nv_, nv_);
     h_ = Vec::Zero(nv_);
     J_ = Mat::Zero(nc_, nv_);
@@ -218,8 +211,11 @@ class Core {
     tmp_v_ = Vec::Zero(nv_);
     rhs_v_ = Vec::Zero(nv_);
     P_ = Mat::Zero(nv_, nv_);
-    llt_p_ = Eigen::LLT<Mat>(nv_);
+    llt_p_.resize(nv_);
+    llt_jj_.resize(nc_);
     J_at_ = Vec::Zero(nq_);
+    terms_q_ = Vec::Constant(nq_, std::numeric_limits<double>::quiet_NaN());
+    terms_v_ = Vec::Zero(nv_);
     q_prev_ = Vec::Zero(nq_);
     vel_c_ = Vec::Zero(nc_);
     rhs_work_ = Vec::Zero(nv_ + nc_);
@@ -297,17 +293,7 @@ class Core {
     }
     dkept_ = kept;
     dphi_ = Vec::Zero(nd);
-    const int nf = static_cast<int>(fids_.size());
-    R_.resize(nf);
-    p_.resize(nf);
-    Jf_.resize(nf, Mat6x::Zero(6, nv_));
-    vf_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
-    af_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
-    joints_.clear();
-    for (pinocchio::FrameIndex f : fids_) {
-      pinocchio::JointIndex j = model_.frames[f].parentJoint;
-      if (std::find(joints_.begin(), joints_.end(), j) == joints_.end()) joints_.push_back(j);
-    }
+    frame_buffers();
     J_at_valid_ = false;
   }
 
@@ -345,42 +331,41 @@ class Core {
     if (J_at_valid_ && q == J_at_) return;
     pinocchio::computeJointJacobians(model_, data_, q);
     placements();
-    jacobians();
     rows(true, true, false);
     J_at_ = q;
     J_at_valid_ = true;
   }
 
-  // M, h, phi, J, gamma at (q, v): kinematics with zero acceleration (bias
-  // terms), CRBA in the world convention (also the joint Jacobians), RNEA.
-  void eval_terms(const RefV &q, const RefV &v) {
+  // M, h, phi, J, gamma at (q, v): one pass over the tree (tree_terms.hpp: M, h,
+  // the joints' placements, world Jacobian columns, velocities and bias
+  // accelerations), then the cut frames' placements, velocities and classical
+  // accelerations, then the rows. `mark(stage)` is called after each stage
+  // (0 tree, 1 frames, 2 rows): a no-op, or py_profile's clock.
+  template <class Mark>
+  void eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
     J_at_valid_ = false;
-    // CRBA (world convention): M's upper triangle, oMi and the world joint
-    // Jacobians. RNEA at zero acceleration (nonLinearEffects): h, the joint
-    // velocities and a_gf, the bias accelerations plus the gravity field, from
-    // which the bias accelerations are recovered for the frames' parent joints
-    // (a_i = a_gf_i + oMi^-1 g): one pass fewer than forwardKinematics(q, v, 0).
-    pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
-    M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
-    M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
-    pinocchio::nonLinearEffects(model_, data_, q, v);
-    h_ = data_.nle;
-    for (pinocchio::JointIndex j : joints_)
-      data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
-    for (std::size_t k = 0; k < fids_.size(); ++k) {
-      vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
-                   .toVector();
-      af_[k] = pinocchio::getFrameClassicalAcceleration(model_, data_, fids_[k],
-                                                        pinocchio::LOCAL_WORLD_ALIGNED)
-                   .toVector();
-    }
+    tree_terms(model_, data_, q, v, M_, h_);
+    mark(0);
     placements();
-    jacobians();
-    rows(baumgarte_, true, true);
+    frame_motion();
+    mark(1);
+    rows(true, true, true);
     if (baumgarte_ && nc_) {
       tmp_c_.noalias() = J_ * v;
       gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
     }
+    // phi_, J_ and the placements are those eval_phi_J(q) would compute; M_ and the
+    // potential energy (total mass and centre of mass in data_.oYcrb[0]) serve record().
+    J_at_ = q;
+    J_at_valid_ = true;
+    terms_q_ = q;
+    terms_v_ = v;
+    pe_ = -data_.oYcrb[0].mass() * model_.gravity.linear().dot(data_.oYcrb[0].lever());
+    mark(2);
+  }
+
+  void eval_terms(const RefV &q, const RefV &v) {
+    eval_terms(q, v, [](int) {});
   }
 
   // -- forward dynamics -------------------------------------------------------
@@ -422,45 +407,45 @@ class Core {
     }
     const double jj = J_.squaredNorm();
     const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-    P_.noalias() = alpha * (J_.transpose() * J_);
-    P_ += M_;
-    llt_p_.compute(P_);
-    if (llt_p_.info() != Eigen::Success)
+    // Small dynamic sizes: coefficient-based products (lazyProduct) and SmallLLT,
+    // no BLAS-style kernels; only P's lower triangle is factored.
+    P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
+    P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
+    if (!llt_p_.compute(P_))
       singular(q, "the penalized mass matrix M + alpha J^T J",
                std::numeric_limits<double>::infinity(),
                "it is not positive definite, so M itself is singular (a massless subtree)", t);
     rhs_v_ = tau - h_;
-    tmp_v_ = rhs_v_;
-    tmp_v_.noalias() -= alpha * (J_.transpose() * gamma_);
-    a_ = tmp_v_;
+    a_ = rhs_v_;
+    a_.noalias() -= alpha * J_.transpose().lazyProduct(gamma_);
     llt_p_.solveInPlace(a_);
     lam_ = gamma_;
-    lam_.noalias() += J_ * a_;
+    lam_.noalias() += J_.lazyProduct(a_);
     lam_ *= alpha;
     for (int it = 1; it < al_max_iter_; ++it) {
       tmp_c_ = gamma_;
-      tmp_c_.noalias() += J_ * a_;  // r_c
+      tmp_c_.noalias() += J_.lazyProduct(a_);  // r_c
       tmp_c_ *= alpha;
       tmp_c_ += lam_;
       dq_ = rhs_v_;
-      dq_.noalias() -= M_ * a_;
-      dq_.noalias() -= J_.transpose() * tmp_c_;
+      dq_.noalias() -= M_.lazyProduct(a_);
+      dq_.noalias() -= J_.transpose().lazyProduct(tmp_c_);
       llt_p_.solveInPlace(dq_);  // delta
       a_ += dq_;
       tmp_c_ = gamma_;
-      tmp_c_.noalias() += J_ * a_;
+      tmp_c_.noalias() += J_.lazyProduct(a_);
       lam_ += alpha * tmp_c_;
       if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
     }
     tmp_v_ = rhs_v_;
-    tmp_v_.noalias() -= M_ * a_;
-    tmp_v_.noalias() -= J_.transpose() * lam_;  // r_d
-    JJt_.noalias() = J_ * J_.transpose();
+    tmp_v_.noalias() -= M_.lazyProduct(a_);
+    tmp_v_.noalias() -= J_.transpose().lazyProduct(lam_);  // r_d
+    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
     JJt_.diagonal().array() +=
         AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
-    llt_c_.compute(JJt_);
-    tmp_c_.noalias() = J_ * tmp_v_;
-    llt_c_.solveInPlace(tmp_c_);
+    llt_jj_.compute(JJt_);
+    tmp_c_.noalias() = J_.lazyProduct(tmp_v_);
+    llt_jj_.solveInPlace(tmp_c_);
     lam_ += tmp_c_;
   }
 
@@ -482,15 +467,25 @@ class Core {
   }
 
   void solve_kkt(const RefV &q, const Vec &tau, double t) {
-    const int n = nv_ + nc_;
-    K_.topLeftCorner(nv_, nv_) = M_;
-    K_.topRightCorner(nv_, nc_) = J_.transpose();
-    K_.bottomLeftCorner(nc_, nv_) = J_;
-    K_.bottomRightCorner(nc_, nc_).setZero();
-    rhs_.head(nv_) = tau - h_;
-    rhs_.tail(nc_) = -gamma_;
-    double anorm = 0.0;  // 1-norm of K
-    for (Eigen::Index j = 0; j < K_.cols(); ++j) anorm = std::max(anorm, K_.col(j).lpNorm<1>());
+    // K = [[M, J^T], [J, 0]] column by column, with its 1-norm (written out: the
+    // block assignments cost more than the copy at these sizes).
+    const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
+    double *k = K_.data();
+    double anorm = 0.0;
+    for (Eigen::Index j = 0; j < nv; ++j) {
+      double *col = k + j * n, s = 0.0;
+      for (Eigen::Index i = 0; i < nv; ++i) s += std::abs(col[i] = M_(i, j));
+      for (Eigen::Index r = 0; r < nc; ++r) s += std::abs(col[nv + r] = J_(r, j));
+      anorm = std::max(anorm, s);
+    }
+    for (Eigen::Index r = 0; r < nc; ++r) {
+      double *col = k + (nv + r) * n, s = 0.0;
+      for (Eigen::Index i = 0; i < nv; ++i) s += std::abs(col[i] = J_(r, i));
+      for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
+      anorm = std::max(anorm, s);
+    }
+    for (Eigen::Index i = 0; i < nv; ++i) rhs_[i] = tau[i] - h_[i];
+    for (Eigen::Index r = 0; r < nc; ++r) rhs_[nv + r] = -gamma_[r];
     // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
     // Away from singular configurations a cheap upper bound of cond_1(K) already
     // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
@@ -503,7 +498,6 @@ class Core {
     lu_solve(rhs_, x_);
     a_ = x_.head(nv_);
     lam_ = x_.tail(nc_);
-    (void)n;
   }
 
   //: Size of K from which lu_factor uses Eigen's blocked LU instead of dgetf2's loop.
@@ -738,10 +732,6 @@ class Core {
   bp::tuple py_rows(const Vec &q, const Vec &v) {
     check_sizes(q, v);
     eval_terms(q, v);
-    if (!baumgarte_) {  // phi was not needed by eval_terms
-      placements();
-      rows(true, false, false);
-    }
     return bp::make_tuple(Vec(phi_), Mat(J_), Vec(gamma_));
   }
 
@@ -759,54 +749,27 @@ class Core {
     return a_;
   }
 
-  // Mean wall time [ns] of each stage of one evaluation over n repetitions (profiling).
+  // Mean wall time [ns] of each stage of one evaluation over n repetitions
+  // (profiling): the sequence of solve(), with a clock between its stages.
   bp::dict py_profile(const Vec &q, const Vec &v, const Vec &tau, int n) {
     check_sizes(q, v);
     using clock = std::chrono::steady_clock;
-    double t_fk = 0, t_crba = 0, t_nle = 0, t_frames = 0, t_rows = 0, t_solve = 0;
-    auto ns = [](clock::time_point a, clock::time_point b) {
-      return std::chrono::duration<double, std::nano>(b - a).count();
+    double acc[4] = {0, 0, 0, 0};
+    clock::time_point last;
+    auto mark = [&](int stage) {
+      const clock::time_point now = clock::now();
+      acc[stage] += std::chrono::duration<double, std::nano>(now - last).count();
+      last = now;
     };
     for (int i = 0; i < n; ++i) {
-      auto c0 = clock::now();
-      auto c1 = clock::now();
-      pinocchio::crba(model_, data_, q, pinocchio::Convention::WORLD);
-      auto c2 = clock::now();
-      pinocchio::nonLinearEffects(model_, data_, q, v);
-      auto c3 = clock::now();
-      for (pinocchio::JointIndex j : joints_)
-        data_.a[j] = data_.a_gf[j] + data_.oMi[j].actInv(model_.gravity);
-      for (std::size_t k = 0; k < fids_.size(); ++k) {
-        vf_[k] = pinocchio::getFrameVelocity(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED)
-                     .toVector();
-        af_[k] = pinocchio::getFrameClassicalAcceleration(model_, data_, fids_[k],
-                                                          pinocchio::LOCAL_WORLD_ALIGNED)
-                     .toVector();
-      }
-      placements();
-      jacobians();
-      auto c4 = clock::now();
-      rows(baumgarte_, true, true);
-      auto c5 = clock::now();
-      M_.triangularView<Eigen::Upper>() = data_.M.triangularView<Eigen::Upper>();
-      M_.triangularView<Eigen::StrictlyLower>() = M_.transpose();
-      h_ = data_.nle;
-      dispatch(q, tau, 0.0);
-      auto c6 = clock::now();
-      t_fk += ns(c0, c1);
-      t_crba += ns(c1, c2);
-      t_nle += ns(c2, c3);
-      t_frames += ns(c3, c4);
-      t_rows += ns(c4, c5);
-      t_solve += ns(c5, c6);
+      last = clock::now();
+      eval_terms(q, v, mark);
+      dispatch(q, tau, std::numeric_limits<double>::quiet_NaN());
+      mark(3);
     }
     bp::dict d;
-    d["fk"] = t_fk / n;
-    d["crba"] = t_crba / n;
-    d["nle"] = t_nle / n;
-    d["frames"] = t_frames / n;
-    d["rows"] = t_rows / n;
-    d["solve"] = t_solve / n;
+    const char *names[4] = {"tree", "frames", "rows", "solve"};
+    for (int k = 0; k < 4; ++k) d[names[k]] = acc[k] / n;
     return d;
   }
 
@@ -893,20 +856,7 @@ class Core {
   double declared_cond() {
     const int nd = static_cast<int>(drows_.size());
     Mat Jd(nd, nv_);  // only where the kept rows degenerate: not the hot path
-    for (int r = 0; r < nd; ++r) {
-      const Row &row = drows_[r];
-      const int P = row.p, S = row.s;
-      if (row.kind != 2) {
-        const Vector3d d = p_[P] - p_[S];
-        const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
-        Jd.row(r) = U.transpose() * Jf_[P].topRows<3>() - U.transpose() * Jf_[S].topRows<3>();
-        if (row.kind == 1) Jd.row(r) += U.cross(d).transpose() * Jf_[P].bottomRows<3>();
-      } else {
-        const Vector3d U = R_[P] * row.n, W = R_[S] * row.w;
-        const Vector3d WxU = W.cross(U);
-        Jd.row(r) = WxU.transpose() * Jf_[S].bottomRows<3>() - WxU.transpose() * Jf_[P].bottomRows<3>();
-      }
-    }
+    for (int r = 0; r < nd; ++r) row_jacobian(drows_[r], Jd.row(r));
     Eigen::JacobiSVD<Mat> svd(Jd);
     const Vec &sv = svd.singularValues();
     if (nc_ == 0 || sv.size() < nc_ || !(sv[nc_ - 1] > 0))
@@ -931,13 +881,31 @@ class Core {
   // Where J J^T is ill-conditioned (J nearly rank-deficient, e.g. passing a singular
   // position with stage projection) it is numpy.linalg.lstsq's minimum-norm solution
   // from the SVD, singular values below eps max(nc, nv) s_max treated as zero.
+  // The test "the estimate rcond of J J^T exceeds MIN_NORM_RCOND" is decided by an
+  // upper bound of cond_1 from the Cholesky factor where it can (rcond >= 1 / that
+  // bound), so Eigen's estimator runs only near singular positions.
   void min_norm(const Vec &b, Vec &x) {
-    JJt_.noalias() = J_ * J_.transpose();
-    llt_c_.compute(JJt_);
-    if (llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND) {
+    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
+    bool regular = false;
+    if (llt_jj_.compute(JJt_)) {
+      double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
+      for (Eigen::Index j = 0; j < nc_; ++j) {
+        double c = 0.0;
+        for (Eigen::Index i = 0; i < nc_; ++i) c += std::abs(i >= j ? JJt_(i, j) : JJt_(j, i));
+        anorm = std::max(anorm, c);
+      }
+      if (anorm * llt_jj_.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
+        regular = true;
+      } else {
+        JJt_.triangularView<Eigen::StrictlyUpper>() = JJt_.transpose();
+        llt_c_.compute(JJt_);
+        regular = llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND;
+      }
+    }
+    if (regular) {
       tmp_c_ = b;
-      llt_c_.solveInPlace(tmp_c_);
-      x.noalias() = J_.transpose() * tmp_c_;
+      llt_jj_.solveInPlace(tmp_c_);
+      x.noalias() = J_.transpose().lazyProduct(tmp_c_);
       return;
     }
     svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
@@ -1505,9 +1473,50 @@ class Core {
   // -- recording ---------------------------------------------------------------
 
   struct Samples {
-    std::vector<double> t, res, vres, e, ke;
+    std::vector<double> t, res, vres, e, ke, branch;
     std::vector<double> q, v, a, lam;
   };
+
+  // The columns D of J whose sign of det(J[:, D]) is recorded with every sample (the
+  // assembly branch, Recorder._add_branch); empty: none recorded.
+  void set_branch_columns(const Eigen::VectorXi &cols) {
+    if (cols.size() != 0 && cols.size() != nc_)
+      throw BadArgument{"Core.set_branch_columns: need nc = " + std::to_string(nc_) + " columns"};
+    for (Eigen::Index i = 0; i < cols.size(); ++i)
+      if (cols[i] < 0 || cols[i] >= nv_) throw BadArgument{"Core.set_branch_columns: column out of range"};
+    branch_cols_ = cols;
+    JD_ = Mat::Zero(cols.size(), cols.size());
+  }
+
+  // Sign of det(J_[:, branch_cols_]) (J_ at the sample's q): the parity of the row
+  // swaps of an LU with partial pivoting times the signs of its pivots, 0 for an
+  // exactly zero pivot (numpy.linalg.slogdet's sign).
+  double branch_sign() {
+    const Eigen::Index n = branch_cols_.size();
+    for (Eigen::Index j = 0; j < n; ++j) JD_.col(j) = J_.col(branch_cols_[j]);
+    double sign = 1.0;
+    double *A = JD_.data();
+    for (Eigen::Index k = 0; k < n; ++k) {
+      Eigen::Index p = k;
+      double big = std::abs(A[k + k * n]);
+      for (Eigen::Index i = k + 1; i < n; ++i)
+        if (std::abs(A[i + k * n]) > big) {
+          big = std::abs(A[i + k * n]);
+          p = i;
+        }
+      if (big == 0.0) return 0.0;
+      if (p != k) {
+        sign = -sign;
+        for (Eigen::Index j = k; j < n; ++j) std::swap(A[k + j * n], A[p + j * n]);
+      }
+      if (A[k + k * n] < 0) sign = -sign;
+      for (Eigen::Index i = k + 1; i < n; ++i) {
+        const double l = A[i + k * n] / A[k + k * n];
+        for (Eigen::Index j = k + 1; j < n; ++j) A[i + j * n] -= l * A[k + j * n];
+      }
+    }
+    return sign;
+  }
 
   void record(Samples &out, double t, const Vec &q, const Vec &v) {
     // a_ and lam_ are those at (t, q, v)
@@ -1539,8 +1548,16 @@ class Core {
               fmt("%.1e", drift_limit_) + (worst >= 0 ? ", row " + dlabels_[worst] : "") +
               "); use a stabilization or a smaller step",
           t};
-    double ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
-    double pe = pinocchio::computePotentialEnergy(model_, data_, q);
+    // Energies: from the last eval_terms when it was at (q, v) (the loops record
+    // right after accel there), else from Pinocchio's own passes.
+    double ke, pe;
+    if (q == terms_q_ && v == terms_v_) {
+      ke = 0.5 * v.dot(M_.lazyProduct(v));
+      pe = pe_;
+    } else {
+      ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
+      pe = pinocchio::computePotentialEnergy(model_, data_, q);
+    }
     out.t.push_back(t);
     out.res.push_back(res);
     out.vres.push_back(vres);
@@ -1550,6 +1567,7 @@ class Core {
     out.v.insert(out.v.end(), v.data(), v.data() + nv_);
     out.a.insert(out.a.end(), a_.data(), a_.data() + nv_);
     out.lam.insert(out.lam.end(), lam_.data(), lam_.data() + nc_);
+    if (branch_cols_.size() && nc_) out.branch.push_back(branch_sign());  // J_ at q (eval_phi_J)
   }
 
   static bp::object block(const std::vector<double> &x, long rows, long cols) {
@@ -1571,6 +1589,7 @@ class Core {
     d["vres"] = block(s.vres, n, 1);
     d["e"] = block(s.e, n, 1);
     d["ke"] = block(s.ke, n, 1);
+    if (branch_cols_.size() && nc_) d["branch"] = block(s.branch, n, 1);
     d["steps"] = steps;
     d["evaluations"] = n_evals_;
     d["repartitions"] = repartitions_list();
@@ -2154,20 +2173,81 @@ class Core {
                         std::to_string(nv_) + ",)"};
   }
 
+  // Per cut frame: the parent joint and the columns of its support, sized buffers.
+  void frame_buffers() {
+    const std::size_t nf = fids_.size();
+    R_.resize(nf);
+    p_.resize(nf);
+    vf_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    af_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
+    fjoint_.resize(nf);
+    fcols_.resize(nf);
+    for (std::size_t k = 0; k < nf; ++k) {
+      const pinocchio::JointIndex j = model_.frames[fids_[k]].parentJoint;
+      fjoint_[k] = j;
+      fcols_[k].clear();
+      for (pinocchio::JointIndex s : model_.supports[j]) {
+        if (s == 0) continue;
+        for (int c = 0; c < model_.nvs[s]; ++c) fcols_[k].push_back(model_.idx_vs[s] + c);
+      }
+    }
+  }
+
+  // World placement (R_, p_) of every cut frame from data_.oMi.
   void placements() {
     for (std::size_t k = 0; k < fids_.size(); ++k) {
-      const pinocchio::Frame &fr = model_.frames[fids_[k]];
-      const pinocchio::SE3 oMf = data_.oMi[fr.parentJoint] * fr.placement;
+      const pinocchio::SE3 oMf = data_.oMi[fjoint_[k]] * model_.frames[fids_[k]].placement;
       R_[k] = oMf.rotation();
       p_[k] = oMf.translation();
     }
   }
 
-  void jacobians() {
-    // Columns outside a frame's support are never written: zero since construction.
+  // Velocity vf_ and classical acceleration af_ (at a = 0) of every cut frame's
+  // origin p, world axes (LOCAL_WORLD_ALIGNED), from its joint's world spatial
+  // velocity (v_o, w) = data_.ov and bias acceleration (a_o, al) = data_.oa:
+  //   v_p = v_o + w x p,   a_p = a_o + al x p + w x v_p   (linear; angular w, al).
+  void frame_motion() {
     for (std::size_t k = 0; k < fids_.size(); ++k) {
-      pinocchio::getFrameJacobian(model_, data_, fids_[k], pinocchio::LOCAL_WORLD_ALIGNED, Jf_[k]);
+      const pinocchio::Motion &ov = data_.ov[fjoint_[k]], &oa = data_.oa[fjoint_[k]];
+      const Vector3d w = ov.angular(), al = oa.angular();
+      const Vector3d vp = ov.linear() + w.cross(p_[k]);
+      vf_[k].head<3>() = vp;
+      vf_[k].tail<3>() = w;
+      af_[k].head<3>() = oa.linear() + al.cross(p_[k]) + w.cross(vp);
+      af_[k].tail<3>() = al;
     }
+  }
+
+  // Row J of `row` from the world Jacobian columns data_.J (of the last kinematics
+  // pass) and the frame placements. A frame's LOCAL_WORLD_ALIGNED Jacobian at p
+  // has, on its joint's support, linear columns J_lin + J_ang x p and angular
+  // columns J_ang, so a row c . (linear) + e . (angular) of it is the 6-vector
+  // (c, p x c + e) applied to the world columns: the row is that of the
+  // predecessor frame minus that of the successor.
+  //   kinds 0, 1: U^T (Jlin_p - Jlin_s) + [kind 1] (U x d)^T Jang_p,
+  //   kind 2:     (W x U)^T (Jang_s - Jang_p).
+  template <typename RowXpr>
+  void row_jacobian(const Row &row, RowXpr &&out) {
+    Eigen::Matrix<double, 6, 1> wp, ws;
+    const int P = row.p, S = row.s;
+    if (row.kind != 2) {
+      const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
+      wp.head<3>() = U;
+      ws.head<3>() = U;
+      wp.tail<3>() = p_[P].cross(U);
+      if (row.kind == 1) wp.tail<3>() += U.cross(p_[P] - p_[S]);
+      ws.tail<3>() = p_[S].cross(U);
+    } else {
+      const Vector3d WxU = (R_[S] * row.w).cross(R_[P] * row.n);
+      wp.head<3>().setZero();
+      ws.head<3>().setZero();
+      wp.tail<3>() = -WxU;
+      ws.tail<3>() = -WxU;
+    }
+    out.setZero();
+    const Data::Matrix6x &Jw = data_.J;
+    for (Eigen::Index c : fcols_[P]) out(c) += wp.dot(Jw.col(c));
+    for (Eigen::Index c : fcols_[S]) out(c) -= ws.dot(Jw.col(c));
   }
 
   // Fill phi_, J_, gamma_ from the per-frame quantities.
@@ -2175,15 +2255,11 @@ class Core {
     for (int r = 0; r < nc_; ++r) {
       const Row &row = rows_[r];
       const int P = row.p, S = row.s;
+      if (want_J) row_jacobian(row, J_.row(r));
       if (row.kind != 2) {
         const Vector3d d = p_[P] - p_[S];
         const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
         if (want_phi) phi_[r] = U.dot(d);
-        if (want_J) {
-          J_.row(r).noalias() = U.transpose() * Jf_[P].topRows<3>();
-          J_.row(r).noalias() -= U.transpose() * Jf_[S].topRows<3>();
-          if (row.kind == 1) J_.row(r).noalias() += U.cross(d).transpose() * Jf_[P].bottomRows<3>();
-        }
         if (want_gamma) {
           const Vector3d dd = af_[P].head<3>() - af_[S].head<3>();
           double g = U.dot(dd);
@@ -2200,12 +2276,8 @@ class Core {
         const Vector3d U = R_[P] * row.n, W = R_[S] * row.w;
         const double UW = U.dot(W);
         if (want_phi) phi_[r] = UW;
-        const Vector3d WxU = W.cross(U);
-        if (want_J) {
-          J_.row(r).noalias() = WxU.transpose() * Jf_[S].bottomRows<3>();
-          J_.row(r).noalias() -= WxU.transpose() * Jf_[P].bottomRows<3>();
-        }
         if (want_gamma) {
+          const Vector3d WxU = W.cross(U);
           const Vector3d wp = vf_[P].tail<3>(), ws = vf_[S].tail<3>();
           const double pu = wp.dot(U), pw = wp.dot(W), su = ws.dot(U), sw = ws.dot(W);
           gamma_[r] = WxU.dot(af_[S].tail<3>() - af_[P].tail<3>()) + pu * pw + su * sw -
@@ -2222,15 +2294,16 @@ class Core {
   int nq_ = 0, nv_ = 0, nc_ = 0;
   std::vector<Row> rows_;
   std::vector<pinocchio::FrameIndex> fids_;
-  std::vector<pinocchio::JointIndex> joints_;  // parent joints of fids_
+  std::vector<pinocchio::JointIndex> fjoint_;  // parent joint of each of fids_
+  std::vector<std::vector<Eigen::Index>> fcols_;  // its support's columns
   std::vector<Eigen::Matrix3d> R_;
   std::vector<Vector3d> p_;
-  std::vector<Mat6x> Jf_;
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
   Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
   Vec est_x_, est_y_, est_z_, z_;
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
-  Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_, llt_p_;
+  Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
+  SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
@@ -2263,6 +2336,10 @@ class Core {
   Mat D_chart_;
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
+  Eigen::VectorXi branch_cols_;  // set_branch_columns
+  Mat JD_;
+  Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, pe_ valid there)
+  double pe_ = 0.0;
   int tau_mode_ = 0;
   bp::object tau_obj_, np_asarray_;
   long n_evals_ = 0;
@@ -2331,6 +2408,8 @@ BOOST_PYTHON_MODULE(_core) {
            "a at (q, v) after n evaluations inside C++ (timing).")
       .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),
            "Mean time [ns] of each stage of one evaluation (profiling).")
+      .def("set_branch_columns", &Core::set_branch_columns, bp::args("self", "cols"),
+           "Record the sign of det(J[:, cols]) with every sample ('branch'); cols: (nc,) or empty.")
       .def("run_fixed", &Core::run_fixed,
            bp::args("self", "integrator", "q0", "v0", "dt", "n_steps", "out_steps", "projects",
                     "progress"))

@@ -42,6 +42,10 @@ def _prepare(problem: Problem, info: dict, stab):
         independent=problem.ind,
     )
     core.set_tau(problem.tau_input)
+    # The branch series (sign of det J_D at every sample, Recorder._add_branch) in C++.
+    mech = problem.mech
+    dep = np.asarray(mech.dependent_idx_v, dtype=np.int32)
+    core.set_branch_columns(dep if mech.nc and len(dep) == mech.nc else dep[:0])
     return core
 
 
@@ -61,8 +65,7 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
         problem.ind, problem.dep = np.array(ind, dtype=int), np.array(dep, dtype=int)
     if "singular_splits" in out:  # rk4 with stage projection (fixed.py)
         info["singular_splits"] = int(out["singular_splits"])
-    zero_v = np.zeros(problem.mech.nv)
-    recorder.extend(out, jacobian=lambda q: core.rows(q, zero_v)[1])
+    recorder.extend(out)
     return int(out["steps"])
 
 

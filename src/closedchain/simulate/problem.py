@@ -365,9 +365,11 @@ class Recorder:
         ``drift_limit`` at every step, not only at the outputs.
 
         Args:
-            samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k).
-            jacobian: J(q) of the kept rows for the branch series (default: the
-                numpy layer's; the compiled loops pass their core's, 10x cheaper).
+            samples: arrays ``t, res, vres, e, ke`` (n, 1) and ``q, v, a, lam`` (n, k);
+                ``branch`` (n, 1), the sign of det(J_D) at each sample, when the
+                compiled loop recorded it.
+            jacobian: J(q) of the kept rows for the branch series when ``branch`` is
+                absent (default: the numpy layer's).
         """
         r = self.rows
         for key in ("t", "res", "vres", "e", "ke"):
@@ -376,12 +378,29 @@ class Recorder:
             r[key].extend(np.asarray(samples[key]))
         if self.mech.nc and len(self.dep) == self.mech.nc:  # the branch series, as in add
             times = np.asarray(samples["t"], dtype=float).ravel()
-            qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
-            jac = jacobian or self.jacobian
-            if len(times):
-                jd = np.stack([jac(q)[:, self.dep] for q in qs])
-                for t, sign in zip(times, np.linalg.slogdet(jd)[0], strict=True):
-                    self._record_branch(float(t), float(sign))
+            if not len(times):
+                return
+            if "branch" in samples:
+                signs = np.asarray(samples["branch"], dtype=float).ravel()
+            else:
+                qs = np.asarray(samples["q"], dtype=float).reshape(-1, self.mech.nq)
+                jac = jacobian or self.jacobian
+                signs = np.linalg.slogdet(np.stack([jac(q)[:, self.dep] for q in qs]))[0]
+            self._record_branches(times, signs)
+
+    def _record_branches(self, times: np.ndarray, signs: np.ndarray) -> None:
+        """:meth:`_record_branch` for arrays of samples (times and signs, shape (n,))."""
+        r = self.rows
+        # prev[i - off] precedes sample i (off = 1 when the series starts here).
+        prev = np.concatenate([r["branch"][-1:], signs[:-1]])
+        prev_t = np.concatenate([r["branch_t"][-1:], times[:-1]])
+        off = len(signs) - len(prev)
+        for i in np.flatnonzero(signs[off:] != prev) + off:
+            self.branch_changes.append(
+                [float(prev_t[i - off]), float(times[i]), float(prev[i - off]), float(signs[i])]
+            )
+        r["branch"].extend(signs.tolist())
+        r["branch_t"].extend(times.tolist())
 
     def trajectory(self, info: dict) -> Trajectory:
         r = self.rows

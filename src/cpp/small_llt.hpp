@@ -1,0 +1,120 @@
+// closedchain._core: Cholesky factorization of the small symmetric positive
+// definite matrices of one evaluation (M + alpha J^T J, J J^T), included by core.cpp.
+//
+// Eigen's LLT on dynamic-size matrices spends more on blocking and expression
+// bookkeeping than on arithmetic at the sizes of a linkage (nv, nc ~ 2 to 20):
+// on the N-four-bar N = 2 (nv 5) a factorization cost about 1,900 instructions
+// and a solve 530, written out 570 and 340 (callgrind), and Eigen's rcond()
+// 3,400 where inverse_norm_bound() below takes about 250. This is the textbook
+// right-looking column Cholesky (Golub & Van Loan, Matrix Computations, 4th
+// ed., Alg. 4.2.2) on the lower triangle, column-major, with the same
+// acceptance test as Eigen's LLT (every pivot > 0); from BLOCKED_MIN on,
+// Eigen's blocked LLT (its GEMM updates win there).
+
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <algorithm>
+#include <cmath>
+
+namespace closedchain {
+
+class SmallLLT {
+ public:
+  //: Size from which Eigen's blocked LLT is used.
+  static constexpr Eigen::Index BLOCKED_MIN = 64;
+
+  explicit SmallLLT(Eigen::Index n = 0) { resize(n); }
+
+  void resize(Eigen::Index n) {
+    L_.setZero(n, n);
+    y_.setZero(n);
+    z_.setZero(n);
+    eigen_ = Eigen::LLT<Eigen::MatrixXd>(n >= BLOCKED_MIN ? n : 0);
+  }
+
+  // Factor A = L L^T from A's lower triangle (A: n x n, the size given to resize).
+  // Returns false when a pivot is not positive (A not numerically positive definite).
+  bool compute(const Eigen::MatrixXd &A) {
+    const Eigen::Index n = L_.rows();
+    if (n >= BLOCKED_MIN) {
+      eigen_.compute(A);
+      ok_ = eigen_.info() == Eigen::Success;
+      if (ok_) L_.triangularView<Eigen::Lower>() = eigen_.matrixL();
+      return ok_;
+    }
+    L_.triangularView<Eigen::Lower>() = A.triangularView<Eigen::Lower>();
+    double *a = L_.data();
+    ok_ = true;
+    for (Eigen::Index k = 0; k < n; ++k) {
+      const double d = a[k + k * n];
+      if (!(d > 0.0)) {
+        ok_ = false;
+        return false;
+      }
+      const double s = std::sqrt(d);
+      a[k + k * n] = s;
+      const double inv = 1.0 / s;
+      for (Eigen::Index i = k + 1; i < n; ++i) a[i + k * n] *= inv;
+      for (Eigen::Index j = k + 1; j < n; ++j) {
+        const double ljk = a[j + k * n];
+        if (ljk != 0.0)
+          for (Eigen::Index i = j; i < n; ++i) a[i + j * n] -= a[i + k * n] * ljk;
+      }
+    }
+    return true;
+  }
+
+  bool ok() const { return ok_; }
+
+  // x <- A^-1 x (after a successful compute).
+  template <typename Derived>
+  void solveInPlace(Eigen::MatrixBase<Derived> &x) const {
+    const Eigen::Index n = L_.rows();
+    const double *a = L_.data();
+    for (Eigen::Index j = 0; j < n; ++j) {  // L y = x
+      const double yj = x[j] / a[j + j * n];
+      x[j] = yj;
+      if (yj != 0.0)
+        for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= a[i + j * n] * yj;
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // L^T x = y
+      double s = x[j];
+      for (Eigen::Index i = j + 1; i < n; ++i) s -= a[i + j * n] * x[i];
+      x[j] = s / a[j + j * n];
+    }
+  }
+
+  // Upper bound of ||A^-1||_1 = ||L^-T L^-1||_1 <= ||L^-1||_inf ||L^-1||_1, each
+  // bounded through the comparison matrix of L: |L^-1| <= M(L)^-1 elementwise
+  // (Higham, Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so
+  // ||L^-1||_inf <= max(M(L)^-1 e) and ||L^-1||_1 <= max(M(L)^-T e). `margin`
+  // (relative) covers the bound's own round-off.
+  double inverse_norm_bound(double margin) {
+    const Eigen::Index n = L_.rows();
+    const double *a = L_.data();
+    double b_inf = 0.0, b_one = 0.0;
+    for (Eigen::Index i = 0; i < n; ++i) {  // M(L) y = e, forward
+      double s = 1.0;
+      for (Eigen::Index k = 0; k < i; ++k) s += std::abs(a[i + k * n]) * y_[k];
+      y_[i] = s / a[i + i * n];
+      b_inf = std::max(b_inf, y_[i]);
+    }
+    for (Eigen::Index j = n - 1; j >= 0; --j) {  // M(L)^T z = e, backward
+      double s = 1.0;
+      for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(a[i + j * n]) * z_[i];
+      z_[j] = s / a[j + j * n];
+      b_one = std::max(b_one, z_[j]);
+    }
+    return b_inf * b_one * (1.0 + margin);
+  }
+
+ private:
+  Eigen::MatrixXd L_;
+  Eigen::VectorXd y_, z_;
+  Eigen::LLT<Eigen::MatrixXd> eigen_;
+  bool ok_ = false;
+};
+
+}  // namespace closedchain
