@@ -1485,7 +1485,7 @@ class Core {
     for (Eigen::Index i = 0; i < cols.size(); ++i)
       if (cols[i] < 0 || cols[i] >= nv_) throw BadArgument{"Core.set_branch_columns: column out of range"};
     branch_cols_ = cols;
-    JD_ = Mat::Zero(cols.size(), cols.size());
+    JB_ = Mat::Zero(cols.size(), cols.size());
   }
 
   // Sign of det(J_[:, branch_cols_]) (J_ at the sample's q): the parity of the row
@@ -1493,9 +1493,9 @@ class Core {
   // exactly zero pivot (numpy.linalg.slogdet's sign).
   double branch_sign() {
     const Eigen::Index n = branch_cols_.size();
-    for (Eigen::Index j = 0; j < n; ++j) JD_.col(j) = J_.col(branch_cols_[j]);
+    for (Eigen::Index j = 0; j < n; ++j) JB_.col(j) = J_.col(branch_cols_[j]);
     double sign = 1.0;
-    double *A = JD_.data();
+    double *A = JB_.data();
     for (Eigen::Index k = 0; k < n; ++k) {
       Eigen::Index p = k;
       double big = std::abs(A[k + k * n]);
@@ -2337,7 +2337,7 @@ class Core {
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
   Eigen::VectorXi branch_cols_;  // set_branch_columns
-  Mat JD_;
+  Mat JB_;  // branch_sign's scratch (J's branch columns)
   Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, pe_ valid there)
   double pe_ = 0.0;
   int tau_mode_ = 0;
