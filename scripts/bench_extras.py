@@ -12,20 +12,31 @@ Companion of ``closedchain bench`` (run by scripts/make_bench_figures.sh):
   README.md between the ``<!-- bench-results:begin -->`` and ``<!-- bench-results:end -->``
   markers (so scripts/make_bench_figures.sh is the single source of the README's numbers).
 
+BLAS runs on one thread (OPENBLAS_NUM_THREADS=1 unless set): the timers count the
+process's CPU time, and after a numpy call on matrices large enough for OpenBLAS to
+thread (the N-four-bar at N = 40) its idle worker threads spin, charging their CPU time to
+whatever is timed next: the compiled kkt at N = 40 measured 1.4-1.6 ms per call right
+after a numpy schur call against 0.49-0.59 ms of the calling thread (the 2.1 ms of the
+scaling run of issue 10).
+
 Run: python scripts/bench_extras.py --out docs/bench [--workers 2] [--parts evaluation ...]
 """
 
 from __future__ import annotations
 
-import argparse
-import logging
-import math
-import subprocess
-import sys
-import tempfile
-from pathlib import Path
+import os
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
+
+import argparse  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 from closedchain.benchmark import write_rows
 from closedchain.benchmark.evaluation import (

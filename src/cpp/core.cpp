@@ -35,6 +35,7 @@
 #include <vector>
 
 #include "dense_lu.hpp"
+#include "banded.hpp"
 #include "lean_data.hpp"
 #include "rk_coefficients.hpp"
 #include "small_llt.hpp"
@@ -229,6 +230,211 @@ class Core {
     }
     D_chart_ = Mat::Zero(curved_.empty() ? 0 : nv_, curved_.empty() ? 0 : nv_);
     init_partitioning();
+    sparsity();
+  }
+
+  // Structural nonzeros, from the kinematic tree: row r of J is nonzero only on the
+  // columns of the joints supporting its two frames (jcols_ from jcol_start_[r],
+  // sorted; hull [jlo_[r], jhi_[r]]), row i of M on those of the joints that support
+  // or are supported by i's joint (hull [mlo_[i], mhi_[i]]). The rules of
+  // closedchain/dynamics/augmented_lagrangian.py (structure, row_structure).
+  void sparsity() {
+    const Model &model = model_;
+    auto support_cols = [&](pinocchio::JointIndex j, std::vector<int> &cols) {
+      for (pinocchio::JointIndex s : model.supports[j]) {
+        if (s == 0) continue;
+        for (int c = 0; c < model.joints[s].nv(); ++c) cols.push_back(model.joints[s].idx_v() + c);
+      }
+    };
+    jcol_start_.assign(1, 0);
+    jcols_.clear();
+    jlo_.assign(nc_, 0);
+    jhi_.assign(nc_, nv_ ? nv_ - 1 : 0);
+    for (int r = 0; r < nc_; ++r) {
+      std::vector<int> cols;
+      support_cols(model.frames[fids_[rows_[r].p]].parentJoint, cols);
+      support_cols(model.frames[fids_[rows_[r].s]].parentJoint, cols);
+      std::sort(cols.begin(), cols.end());
+      cols.erase(std::unique(cols.begin(), cols.end()), cols.end());
+      jcols_.insert(jcols_.end(), cols.begin(), cols.end());
+      jcol_start_.push_back(static_cast<int>(jcols_.size()));
+      if (!cols.empty()) {
+        jlo_[r] = cols.front();
+        jhi_[r] = cols.back();
+      } else {  // a row on two frames of the base: J row zero
+        jlo_[r] = 0;
+        jhi_[r] = -1;
+      }
+    }
+    mlo_.assign(nv_, 0);
+    mhi_.assign(nv_, 0);
+    for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(model.njoints); ++j) {
+      int lo = model.joints[j].idx_v(), hi = lo + model.joints[j].nv() - 1;
+      for (pinocchio::JointIndex s : model.supports[j])
+        if (s != 0) lo = std::min(lo, model.joints[s].idx_v());
+      for (pinocchio::JointIndex s : model.subtrees[j])
+        hi = std::max(hi, model.joints[s].idx_v() + model.joints[s].nv() - 1);
+      for (int c = 0; c < model.joints[j].nv(); ++c) {
+        mlo_[model.joints[j].idx_v() + c] = lo;
+        mhi_[model.joints[j].idx_v() + c] = hi;
+      }
+    }
+  }
+
+  // Choose the band paths (closedchain.compiled.make_core, from PenalizedSolver and
+  // NormalSolver): banded_p factorizes M + alpha J^T J in the order perm (perm[k] =
+  // the column at position k) as a band, banded_n the normal equations J J^T in the
+  // natural row order. Returns the half bandwidths (b_p, b_n) of the structure in
+  // those orders (the Python side's bandwidths, checked by the tests).
+  bp::tuple set_band(const Eigen::VectorXi &perm, bool banded_p, bool banded_n) {
+    if (perm.size() != nv_) throw BadArgument{"Core.set_band: perm must have shape (nv,)"};
+    perm_.assign(perm.data(), perm.data() + nv_);
+    pinv_.assign(nv_, -1);
+    for (int k = 0; k < nv_; ++k) {
+      if (perm_[k] < 0 || perm_[k] >= nv_ || pinv_[perm_[k]] >= 0)
+        throw BadArgument{"Core.set_band: perm must be a permutation of range(nv)"};
+      pinv_[perm_[k]] = k;
+    }
+    perm_identity_ = true;
+    for (int k = 0; k < nv_; ++k) perm_identity_ = perm_identity_ && perm_[k] == k;
+    int b_p = 0;  // M's pattern and J^T J's, in the order perm
+    for (int i = 0; i < nv_; ++i)
+      for (int c = mlo_[i]; c <= mhi_[i]; ++c)
+        if (M_structural(i, c)) b_p = std::max(b_p, std::abs(pinv_[i] - pinv_[c]));
+    for (int r = 0; r < nc_; ++r)
+      for (int x = jcol_start_[r]; x < jcol_start_[r + 1]; ++x)
+        for (int y = jcol_start_[r]; y < jcol_start_[r + 1]; ++y)
+          b_p = std::max(b_p, std::abs(pinv_[jcols_[x]] - pinv_[jcols_[y]]));
+    int b_n = 0;  // rows sharing a column
+    for (int r = 0; r < nc_; ++r)
+      for (int s2 = 0; s2 < r; ++s2)
+        if (r - s2 > b_n && rows_share_column(r, s2)) b_n = r - s2;
+    b_p_ = b_p;
+    b_n_ = b_n;
+    band_p_ = banded_p && nc_ > 0;
+    band_n_ = banded_n && nc_ > 0;
+    if (band_p_) {
+      bp_.resize(nv_, b_p);
+      pw_ = Vec::Zero(nv_);
+    }
+    if (band_n_) bn_.resize(nc_, b_n);
+    J_at_valid_ = false;
+    return bp::make_tuple(b_p, b_n);
+  }
+
+  // M(i, c) structurally nonzero: one of the two joints supports the other.
+  bool M_structural(int i, int c) const {
+    const pinocchio::JointIndex ji = col_joint(i), jc = col_joint(c);
+    const auto &si = model_.supports[ji], &sc = model_.supports[jc];
+    return std::find(si.begin(), si.end(), jc) != si.end() ||
+           std::find(sc.begin(), sc.end(), ji) != sc.end();
+  }
+
+  pinocchio::JointIndex col_joint(int c) const {
+    for (pinocchio::JointIndex j = 1; j < static_cast<pinocchio::JointIndex>(model_.njoints); ++j)
+      if (c >= model_.joints[j].idx_v() && c < model_.joints[j].idx_v() + model_.joints[j].nv())
+        return j;
+    return 0;
+  }
+
+  bool rows_share_column(int r, int s2) const {
+    for (int x = jcol_start_[r]; x < jcol_start_[r + 1]; ++x)
+      for (int y = jcol_start_[s2]; y < jcol_start_[s2 + 1]; ++y)
+        if (jcols_[x] == jcols_[y]) return true;
+    return false;
+  }
+
+  bp::tuple band_info() const { return bp::make_tuple(band_p_, band_n_, b_p_, b_n_); }
+
+  // -- products on the structure (the band paths) ------------------------------
+
+  // y = J x over each row's column hull.
+  void j_mul(const Vec &x, Vec &y) const {
+    for (int r = 0; r < nc_; ++r) {
+      const int lo = jlo_[r], len = jhi_[r] - jlo_[r] + 1;
+      y[r] = len > 0 ? J_.row(r).segment(lo, len).dot(x.segment(lo, len)) : 0.0;
+    }
+  }
+
+  // x = J^T y (x overwritten).
+  void jt_mul(const Vec &y, Vec &x) const {
+    x.setZero();
+    for (int r = 0; r < nc_; ++r) {
+      const int lo = jlo_[r], len = jhi_[r] - jlo_[r] + 1;
+      if (len > 0) x.segment(lo, len) += y[r] * J_.row(r).segment(lo, len).transpose();
+    }
+  }
+
+  // y -= M x over each row's hull.
+  void m_mul_sub(const Vec &x, Vec &y) const {
+    for (int i = 0; i < nv_; ++i) {
+      const int lo = mlo_[i], len = mhi_[i] - mlo_[i] + 1;
+      y[i] -= M_.row(i).segment(lo, len).dot(x.segment(lo, len));
+    }
+  }
+
+  // sum of J_ij^2
+  double j_squared_norm() const {
+    double s = 0.0;
+    for (int r = 0; r < nc_; ++r) {
+      const int lo = jlo_[r], len = jhi_[r] - jlo_[r] + 1;
+      if (len > 0) s += J_.row(r).segment(lo, len).squaredNorm();
+    }
+    return s;
+  }
+
+  // Factorize P = M + alpha J^T J as a band in the order perm_.
+  bool factor_penalized_band(double alpha) {
+    const int b = bp_.bandwidth();
+    Mat &A = bp_.A;
+    for (int j = 0; j < nv_; ++j)
+      for (int k = 0; k <= b; ++k) A(k, j) = j + k < nv_ ? M_(perm_[j + k], perm_[j]) : 0.0;
+    for (int r = 0; r < nc_; ++r)
+      for (int x = jcol_start_[r]; x < jcol_start_[r + 1]; ++x) {
+        const int cx = jcols_[x], px = pinv_[cx];
+        const double ax = alpha * J_(r, cx);
+        for (int y = jcol_start_[r]; y < jcol_start_[r + 1]; ++y) {
+          const int cy = jcols_[y], py = pinv_[cy];
+          if (px >= py) A(px - py, py) += ax * J_(r, cy);
+        }
+      }
+    return bp_.factor();
+  }
+
+  // x <- P^-1 x on the band factor.
+  void solve_penalized_band(Vec &x) {
+    if (perm_identity_) {
+      bp_.solve_in_place(x);
+      return;
+    }
+    for (int k = 0; k < nv_; ++k) pw_[k] = x[perm_[k]];
+    bp_.solve_in_place(pw_);
+    for (int k = 0; k < nv_; ++k) x[perm_[k]] = pw_[k];
+  }
+
+  // Assemble J J^T + eps I as a band (natural row order), eps = rel_reg max(tr(J J^T), 1)
+  // / nc (0: none), and factorize it.
+  bool factor_normal_band(double rel_reg) {
+    assemble_normal_band(rel_reg);
+    return bn_.factor();
+  }
+
+  void assemble_normal_band(double rel_reg) {
+    const int b = bn_.bandwidth();
+    Mat &A = bn_.A;
+    for (int j = 0; j < nc_; ++j)
+      for (int k = 0; k <= b; ++k) {
+        const int i = j + k;
+        double v = 0.0;
+        if (i < nc_) {
+          const int lo = std::max(jlo_[i], jlo_[j]), hi = std::min(jhi_[i], jhi_[j]);
+          if (hi >= lo)
+            v = J_.row(i).segment(lo, hi - lo + 1).dot(J_.row(j).segment(lo, hi - lo + 1));
+        }
+        A(k, j) = v;
+      }
+    if (rel_reg != 0.0)
+      A.row(0).array() += rel_reg * std::max(A.row(0).sum(), 1.0) / static_cast<double>(nc_);
   }
 
   int nc() const { return nc_; }
@@ -405,6 +611,7 @@ class Core {
       llt_m_.solveInPlace(a_);
       return;
     }
+    if (band_p_) return solve_al_band(q, tau, t);
     const double jj = J_.squaredNorm();
     const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
     // Small dynamic sizes: coefficient-based products (lazyProduct) and SmallLLT,
@@ -446,6 +653,57 @@ class Core {
     llt_jj_.compute(JJt_);
     tmp_c_.noalias() = J_.lazyProduct(tmp_v_);
     llt_jj_.solveInPlace(tmp_c_);
+    lam_ += tmp_c_;
+  }
+
+  // solve_al on the band structure (set_band): P = M + alpha J^T J by a band
+  // Cholesky in the order perm_, the products over the structural hulls, the
+  // multiplier polish by the band normal equations; the same iteration and
+  // arithmetic order as the dense solve_al, O(nv) per iteration for a chain of loops.
+  void solve_al_band(const RefV &q, const Vec &tau, double t) {
+    const double jj = j_squared_norm();
+    const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
+    if (!factor_penalized_band(alpha))
+      singular(q, "the penalized mass matrix M + alpha J^T J",
+               std::numeric_limits<double>::infinity(),
+               "it is not positive definite, so M itself is singular (a massless subtree)", t);
+    rhs_v_ = tau - h_;
+    jt_mul(gamma_, tmp_v_);
+    a_ = rhs_v_ - alpha * tmp_v_;
+    solve_penalized_band(a_);
+    j_mul(a_, lam_);
+    lam_ += gamma_;
+    lam_ *= alpha;
+    for (int it = 1; it < al_max_iter_; ++it) {
+      j_mul(a_, tmp_c_);
+      tmp_c_ += gamma_;  // r_c
+      tmp_c_ *= alpha;
+      tmp_c_ += lam_;
+      dq_ = rhs_v_;
+      m_mul_sub(a_, dq_);
+      jt_mul(tmp_c_, tmp_v_);
+      dq_ -= tmp_v_;
+      solve_penalized_band(dq_);  // delta
+      a_ += dq_;
+      j_mul(a_, tmp_c_);
+      tmp_c_ += gamma_;
+      lam_ += alpha * tmp_c_;
+      if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
+    }
+    tmp_v_ = rhs_v_;
+    m_mul_sub(a_, tmp_v_);
+    jt_mul(lam_, dq_);
+    tmp_v_ -= dq_;  // r_d
+    j_mul(tmp_v_, tmp_c_);
+    if (band_n_ && factor_normal_band(AL_NORMAL_EQ_REG)) {
+      bn_.solve_in_place(tmp_c_);
+    } else {  // dense normal equations (no narrow row band, or the band factor failed)
+      JJt_.noalias() = J_ * J_.transpose();
+      JJt_.diagonal().array() +=
+          AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
+      llt_c_.compute(JJt_);
+      llt_c_.solveInPlace(tmp_c_);
+    }
     lam_ += tmp_c_;
   }
 
@@ -785,6 +1043,28 @@ class Core {
     return std::sqrt(ev[nc_ - 1] / ev[0]);
   }
 
+  // True when cond_2(J) < limit is certain, in O(nc b^2) on the band of A = J J^T
+  // (band_n_): lambda_max(A) <= ||A||_1, and A - (||A||_1 / limit^2) I is positive
+  // definite (its Cholesky factor exists) iff lambda_min(A) > ||A||_1 / limit^2
+  // (Sylvester's law of inertia), which gives cond_2(J)^2 = lambda_max / lambda_min
+  // < limit^2. False means "not certain": cond_J() decides (only within a factor
+  // sqrt(||A||_1 / lambda_max) <= sqrt(nc) of the limit, i.e. near singular positions).
+  bool cond_J_below(double limit) {
+    const int b = bn_.bandwidth();
+    assemble_normal_band(0.0);
+    Mat &A = bn_.A;
+    double anorm = 0.0;
+    for (int j = 0; j < nc_; ++j) {
+      double s = 0.0;
+      for (int k = 0; k <= b && j + k < nc_; ++k) s += std::abs(A(k, j));
+      for (int k = 1; k <= b && j - k >= 0; ++k) s += std::abs(A(k, j - k));
+      anorm = std::max(anorm, s);
+    }
+    if (!(anorm > 0.0) || !std::isfinite(anorm)) return false;
+    A.row(0).array() -= anorm / (limit * limit);
+    return bn_.factor();
+  }
+
   // The step's checks at q (Problem.check_regular and LoopClosure.check_rows of the
   // numpy backend), plus the drift limit over every declared row at every step:
   // - every declared row (dropped ones too) within drift_limit, else SimulationFailure
@@ -831,6 +1111,7 @@ class Core {
                                  ") at t = " + fmt("%.9g", t) + " s",
                              t};
     if (singular_robust_ || rows_only_ || nc_ == 0) return;
+    if (band_n_ && cond_J_below(singular_cond_)) return;
     double cond = cond_J();
     if (!(cond <= singular_cond_)) {
       if (has_dropped && declared_cond() <= singular_cond_)
@@ -885,29 +1166,49 @@ class Core {
   // upper bound of cond_1 from the Cholesky factor where it can (rcond >= 1 / that
   // bound), so Eigen's estimator runs only near singular positions.
   void min_norm(const Vec &b, Vec &x) {
-    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
-    bool regular = false;
-    if (llt_jj_.compute(JJt_)) {
-      double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
-      for (Eigen::Index j = 0; j < nc_; ++j) {
-        double c = 0.0;
-        for (Eigen::Index i = 0; i < nc_; ++i) c += std::abs(i >= j ? JJt_(i, j) : JJt_(j, i));
-        anorm = std::max(anorm, c);
+    if (band_n_) {
+      // The same test and solve on the band of J J^T. Where it is ill-conditioned the
+      // SVD below, as the dense path: the numpy backend's regularized normal equations
+      // (J J^T + eps I) there were measured less accurate through the N-four-bar's
+      // flat positions (N = 10, 20 s: B0 error 2.2e-6 m against 3.1e-8 m) and barely
+      // cheaper (N = 40: 5 %).
+      if (factor_normal_band(0.0) && bn_.rcond() > MIN_NORM_RCOND) {
+        tmp_c_ = b;
+        bn_.solve_in_place(tmp_c_);
+        jt_mul(tmp_c_, x);
+        return;
       }
-      if (anorm * llt_jj_.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
-        regular = true;
-      } else {
-        JJt_.triangularView<Eigen::StrictlyUpper>() = JJt_.transpose();
-        llt_c_.compute(JJt_);
-        regular = llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND;
+    } else {
+      JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
+      bool regular = false;
+      if (llt_jj_.compute(JJt_)) {
+        double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
+        for (Eigen::Index j = 0; j < nc_; ++j) {
+          double c = 0.0;
+          for (Eigen::Index i = 0; i < nc_; ++i) c += std::abs(i >= j ? JJt_(i, j) : JJt_(j, i));
+          anorm = std::max(anorm, c);
+        }
+        if (anorm * llt_jj_.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
+          regular = true;
+        } else {
+          JJt_.triangularView<Eigen::StrictlyUpper>() = JJt_.transpose();
+          llt_c_.compute(JJt_);
+          regular = llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND;
+        }
+      }
+      if (regular) {
+        tmp_c_ = b;
+        llt_jj_.solveInPlace(tmp_c_);
+        x.noalias() = J_.transpose().lazyProduct(tmp_c_);
+        return;
       }
     }
-    if (regular) {
-      tmp_c_ = b;
-      llt_jj_.solveInPlace(tmp_c_);
-      x.noalias() = J_.transpose().lazyProduct(tmp_c_);
-      return;
-    }
+    min_norm_svd(b, x);
+  }
+
+  // numpy.linalg.lstsq's minimum-norm solution of J x = b (dense SVD of J: only where
+  // J J^T is ill-conditioned, i.e. within a step or two of a singular position).
+  void min_norm_svd(const Vec &b, Vec &x) {
     svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
     const Vec &sv = svd_.singularValues();
     const double cut = std::numeric_limits<double>::epsilon() * std::max(nc_, nv_) *
@@ -931,7 +1232,10 @@ class Core {
     }
     if (project_velocities_) {
       eval_phi_J(q);
-      vel_c_.noalias() = J_ * v;
+      if (band_n_)
+        j_mul(v, vel_c_);
+      else
+        vel_c_.noalias() = J_ * v;
       min_norm(vel_c_, dq_);
       v -= dq_;
     }
@@ -2308,6 +2612,13 @@ class Core {
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
   std::vector<int> piv_;  // row swaps of lu_factor
+  // Structure (sparsity) and the band paths (set_band).
+  std::vector<int> jcol_start_, jcols_, jlo_, jhi_, mlo_, mhi_;
+  std::vector<int> perm_, pinv_;
+  bool perm_identity_ = true, band_p_ = false, band_n_ = false;
+  int b_p_ = 0, b_n_ = 0;
+  BandCholesky bp_, bn_;  // M + alpha J^T J (order perm_), J J^T
+  Vec pw_;
   Eigen::JacobiSVD<Mat> svd_;
   Eigen::SelfAdjointEigenSolver<Mat> eig_;
   Method method_ = KKT;
@@ -2401,6 +2712,11 @@ BOOST_PYTHON_MODULE(_core) {
       .def("set_declared", &Core::set_declared,
            bp::args("self", "kinds", "fid_p", "fid_s", "vec1", "vec2", "kept", "labels"),
            "Every declared row (kept[i] = 1 for the rows the methods use), checked each step.")
+      .def("set_band", &Core::set_band, bp::args("self", "perm", "banded_p", "banded_n"),
+           "Use band Cholesky factorizations: of M + alpha J^T J in the order perm "
+           "(banded_p) and of J J^T (banded_n); returns their half bandwidths.")
+      .def("band_info", &Core::band_info, bp::args("self"),
+           "(banded_p, banded_n, b_p, b_n) as set by set_band.")
       .def("rows", &Core::py_rows, bp::args("self", "q", "v"),
            "(phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.")
       .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")
