@@ -212,13 +212,17 @@ def run_ali3p(
     # of the crossing leaves the row unenforced (N-four-bar N = 5, dt 0.2 ms, a step
     # ending 0.002 step before the crossing: 27 iterations, crank angle off by 2.7e-6
     # rad). Steps therefore never end within singular_zone steps of a crossing: its
-    # time is extrapolated from the rank indicator at the last two grid points, and a
+    # time is extrapolated from the rank indicator at the last two grid points (before the
+    # first step: q(-dt) by Taylor's expansion), and a
     # step that would end near it is taken with the next one as two unequal substeps
     # (the skipped grid point's state is interpolated for the output only), as rk4 does.
     zone = s.singular_zone
     splits = 0
     lam_star = lam.copy()
-    rho_prev, rho_now = np.inf, indicator()  # J at q from the first evaluation
+    rho_now = indicator()  # J at q from the first evaluation
+    # Before the first step, the previous grid point by Taylor's expansion backwards.
+    evaluate(pin.integrate(model, q, -dt * v + 0.5 * dt * dt * a), v)
+    rho_prev = indicator()
     k = 1
     while k <= n_steps:
         # Crossing time [steps after t], linear through the last two grid points.
