@@ -212,10 +212,10 @@ def run_ali3p(
     # of the crossing leaves the row unenforced (N-four-bar N = 5, dt 0.2 ms, a step
     # ending 0.002 step before the crossing: 27 iterations, crank angle off by 2.7e-6
     # rad). Steps therefore never end within singular_zone steps of a crossing: its
-    # time is extrapolated from the rank indicator at the last two grid points (before the
-    # first step: q(-dt) by Taylor's expansion), and a
-    # step that would end near it is taken with the next one as two unequal substeps
-    # (the skipped grid point's state is interpolated for the output only), as rk4 does.
+    # time is extrapolated from the rank indicator at the last two states (before the
+    # first step: q(-dt) by Taylor's expansion), and a step that would end near it is
+    # taken with the next one as two unequal substeps, 1.5 and 0.5 steps (the skipped
+    # grid point's state is interpolated for the output only), as rk4 does.
     zone = s.singular_zone
     splits = 0
     lam_star = lam.copy()
@@ -223,21 +223,24 @@ def run_ali3p(
     # Before the first step, the previous grid point by Taylor's expansion backwards.
     evaluate(pin.integrate(model, q, -dt * v + 0.5 * dt * dt * a), v)
     rho_prev = indicator()
+    gap = 1.0  # steps between the two indicators
     k = 1
     while k <= n_steps:
         # Crossing time [steps after t], linear through the last two grid points.
-        tc = rho_now / (rho_prev - rho_now) if rho_now < rho_prev else math.inf
-        if abs(tc - 1.0) < zone and k < n_steps:
+        tc = gap * rho_now / (rho_prev - rho_now) if rho_now < rho_prev else math.inf
+        gap = 1.0
+        if abs(tc - 1.0) < zone:
             h1, h2 = ALI3P_SPLIT * dt, (2.0 - ALI3P_SPLIT) * dt
             q1, v1, a1, lam_star, lam1 = advance(t + h1, q, v, a, lam_star, h1)
             q_new, v_new, a_new, lam_star, lam = advance(t + 2 * dt, q1, v1, a1, lam_star, h2)
             splits += 1
+            gap = 2.0
             if outputs.take(k):
-                _record_hermite(
-                    model, recorder, k * dt, dt / h1, h1, (q, v, a), (q1, v1, a1), lam1
-                )
+                _record_hermite(model, recorder, k * dt, dt / h1, h1, (q, v, a), (q1, v1, a1), lam1)
             if progress is not None:
                 progress(k * dt)
+            if k == n_steps:  # the step beyond t_final only served the output
+                break
             k += 1
         else:
             q_new, v_new, a_new, lam_star, lam = advance(k * dt, q, v, a, lam_star, dt)
