@@ -42,6 +42,10 @@ each solved by the augmented-Lagrangian iteration with the same P
 iterated to convergence rather than one step, so the projected states satisfy
 the constraints to round-off where J has full rank.
 
+Near a singular position the multiplier update enforces the nearly lost row
+ever more slowly, so no step ends within ``SimulationSettings.singular_zone``
+steps of a crossing (see the comment in :func:`run_ali3p`).
+
 The scheme is second-order accurate and fixed-step; its settings are
 ``SimulationSettings.ali3p_tol``, ``ali3p_max_iter`` and ``ali3p_penalty``.
 """
