@@ -67,7 +67,9 @@ class SimulationSettings:
             this many steps away from a singular position (a crossing of assembly
             branches): a step whose end or midpoint is estimated closer to one is
             retaken in two unequal substeps (see ``closedchain.simulate.fixed``);
-            0 turns this off.
+            ALI3-P keeps its step ends this far away (a step estimated to end
+            closer is taken with the next as 1.5 + 0.5 steps; see
+            ``closedchain.simulate.ali3p``); 0 turns this off.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
@@ -96,13 +98,21 @@ class SimulationSettings:
             1e-7 after the third flat position, then Newton stalls).
         ali3p_max_iter: its Newton iteration cap per step (then SimulationError).
         ali3p_penalty: relative penalty rho of ALI3-P, h^2 alpha / 4 = rho tr(M) /
-            tr(J^T J) (dimensionless). Its Newton tangent M + (h^2 alpha / 4) J^T J
-            leaves out the geometric stiffness of the constraint forces, which
-            dominates along a direction where J is nearly rank-deficient unless
-            the penalty is large: with rho = 1e9 Newton stalls at the
-            N-four-bar's second flat position (dt 1 ms), with 1e11 it converges
-            in two iterations per step on average. Round-off of the factorization
-            (about rho eps) is removed by the residual form of the iterations.
+            tr(J^T J) (dimensionless). A row of relative singular value sigma is
+            enforced by the iterations' multiplier update at about the rate
+            1 / (1 + rho sigma^2) per iteration, so near a singular position
+            (sigma ~ distance d) steps must not end within d ~ rho^-1/2: with
+            rho = 1e9 Newton stalls at the N-four-bar's second flat position
+            (dt 1 ms), with 1e11 it converges in two iterations per step on
+            average, and the steps keep singular_zone away from the crossings
+            (N = 5, dt 0.2 ms: a step ending 0.002 step before one took 27
+            iterations and left the crank angle 2.7e-6 rad off; N = 5 then
+            stalled at t = 6.59 s). The tangent leaves out the
+            geometric stiffness d(J^T lambda)/dq of the constraint forces; adding
+            it (measured, by finite differences) changed nothing at that step and
+            sent the next ones off the branch (the tangent is then indefinite).
+            Round-off of the factorization (about rho eps) is removed by the
+            residual form of the iterations.
     """
 
     dt: float = 1e-3
