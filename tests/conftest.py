@@ -378,3 +378,15 @@ def fourbar_traj(fourbar) -> cc.Trajectory:
 def agile_eye_traj(agile_eye) -> cc.Trajectory:
     """4 s of actuator swing sampled at 100 Hz (not the display rate)."""
     return agile_eye_sweep(agile_eye, np.linspace(0.0, 4.0, 401))
+
+
+def nfourbar_generator():
+    """The module ``scripts/make_nfourbar.py`` (``build(n)`` writes the N-four-bar)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

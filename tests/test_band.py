@@ -11,12 +11,10 @@ trajectories (projections, regularity checks) over a few steps.
 
 from __future__ import annotations
 
-import importlib.util
-
 import nfourbar_reference as ref
 import numpy as np
 import pytest
-from conftest import MODELS, ROOT
+from conftest import MODELS, nfourbar_generator
 
 import closedchain as cc
 from closedchain import compiled
@@ -39,15 +37,6 @@ FIXED_T = 0.05
 SINGULAR_PASSAGE_TOL = 1e-6
 
 
-def _generator():
-    spec = importlib.util.spec_from_file_location(
-        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def nfourbar(tmp_path_factory):
     """``get(n) -> Mechanism`` (shipped model when there is one, else generated)."""
@@ -59,7 +48,7 @@ def nfourbar(tmp_path_factory):
             path = MODELS / f"nfourbar_{n}.urdf"
             if not path.exists():
                 path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(_generator().build(n))
+                path.write_text(nfourbar_generator().build(n))
             cache[n] = cc.load(path)
         return cache[n]
 

@@ -382,15 +382,10 @@ def test_batched_evaluation_is_the_per_loop_one(load_mechanism, rng, monkeypatch
 def test_batched_evaluation_matches_finite_differences(tmp_path, rng):
     """The N-four-bar with 5 loops (more than BATCH_LOOPS): J and gamma of the batched
     path against central differences, every declared row."""
-    import importlib.util
+    from conftest import nfourbar_generator
 
-    from conftest import ROOT
-
-    spec = importlib.util.spec_from_file_location("gen", ROOT / "scripts" / "make_nfourbar.py")
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
     path = tmp_path / "nfourbar_5.urdf"
-    path.write_text(gen.build(5))
+    path.write_text(nfourbar_generator().build(5))
     mech = cc.load(path)
     for layer in layers(mech).values():
         assert layer._tt is not None

@@ -6,14 +6,13 @@ the energy integral of the one-degree-of-freedom parallelogram motion.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import nfourbar_reference as ref
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import MODELS, ROOT
+from conftest import MODELS, nfourbar_generator
 
 import closedchain as cc
 
@@ -28,18 +27,9 @@ REFERENCE_AGREEMENT_TOL = 1e-12
 MODEL_TOL = 1e-12
 
 
-def _load_generator():
-    spec = importlib.util.spec_from_file_location(
-        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def generator():
-    return _load_generator()
+    return nfourbar_generator()
 
 
 @pytest.fixture(scope="module")

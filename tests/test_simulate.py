@@ -742,23 +742,33 @@ def test_adaptive_integrators_with_continuous_joints(load_mechanism, backend):
     assert mech.nq == mech.nv + 1
     q0, v0 = mech.q_ref, np.zeros(mech.nv)
     t_eval = np.linspace(0.0, 2.0, 9)
-    ref = simulate(mech, q0, v0, 2.0, integrator="rk4", dt=1e-4, stabilization="projection",
-                   t_eval=t_eval)
-    traj = simulate(mech, q0, v0, 2.0, integrator="DOP853", rtol=1e-11, atol=1e-11,
-                    t_eval=t_eval, backend=backend)
+    ref = simulate(
+        mech, q0, v0, 2.0, integrator="rk4", dt=1e-4, stabilization="projection", t_eval=t_eval
+    )
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        2.0,
+        integrator="DOP853",
+        rtol=1e-11,
+        atol=1e-11,
+        t_eval=t_eval,
+        backend=backend,
+    )
     assert traj.info.backend == backend
     # The motion goes somewhere (a still mechanism would pass any comparison).
     assert np.max(np.abs(pin.difference(mech.model, q0, ref.q[-1]))) > 0.1
-    err = max(np.max(np.abs(pin.difference(mech.model, a, b))) for a, b in zip(ref.q, traj.q))
+    err = max(
+        np.max(np.abs(pin.difference(mech.model, a, b))) for a, b in zip(ref.q, traj.q, strict=True)
+    )
     assert err <= CHART_AGREEMENT, err
     assert np.all(np.abs(np.linalg.norm(traj.q[:, _unit_pairs(mech)], axis=2) - 1) < 1e-14)
 
 
 def _unit_pairs(mech):
     """Index pairs (cos, sin) of the continuous joints in q."""
-    return [
-        [j.idx_q, j.idx_q + 1] for j in mech.model.joints[1:] if j.nq == 2 and j.nv == 1
-    ]
+    return [[j.idx_q, j.idx_q + 1] for j in mech.model.joints[1:] if j.nq == 2 and j.nv == 1]
 
 
 @pytest.fixture(scope="module")
@@ -792,10 +802,19 @@ FREE_CONSERVATION = 1e-8
 def test_adaptive_integrators_with_a_free_flyer(free_fourbar, backend):
     mech = free_fourbar
     q0, v0 = _tumbling_start(mech)
-    traj = simulate(mech, q0, v0, FREE_T, integrator="DOP853", rtol=1e-11, atol=1e-11,
-                    t_eval=np.linspace(0, FREE_T, 51), backend=backend)
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        FREE_T,
+        integrator="DOP853",
+        rtol=1e-11,
+        atol=1e-11,
+        t_eval=np.linspace(0, FREE_T, 51),
+        backend=backend,
+    )
     h0 = _world_momentum(mech, q0, v0)
-    for q, v in zip(traj.q, traj.v):
+    for q, v in zip(traj.q, traj.v, strict=True):
         dh = np.linalg.norm(_world_momentum(mech, q, v) - h0)
         assert dh <= FREE_CONSERVATION * np.linalg.norm(h0), dh
     drift = np.ptp(traj.energy) / abs(traj.energy[0])
@@ -803,9 +822,10 @@ def test_adaptive_integrators_with_a_free_flyer(free_fourbar, backend):
     assert traj.max_constraint_residual <= 1e-9
     # The base turned by more than 2 pi (a chart about q0 alone would degenerate).
     turned = sum(
-        np.linalg.norm(pin.log3(pin.Quaternion(q1[3:7]).matrix().T
-                                @ pin.Quaternion(q2[3:7]).matrix()))
-        for q1, q2 in zip(traj.q[:-1], traj.q[1:])
+        np.linalg.norm(
+            pin.log3(pin.Quaternion(q1[3:7]).matrix().T @ pin.Quaternion(q2[3:7]).matrix())
+        )
+        for q1, q2 in zip(traj.q[:-1], traj.q[1:], strict=True)
     )
     assert turned > 2 * math.pi
     assert np.all(np.abs(np.linalg.norm(traj.q[:, 3:7], axis=1) - 1) < 1e-14)
@@ -818,12 +838,30 @@ def test_rk4_is_fourth_order_on_a_free_flyer(free_fourbar, backend):
     mech = free_fourbar
     q0, v0 = _tumbling_start(mech)
     t = 1.0
-    ref = simulate(mech, q0, v0, t, integrator="DOP853", rtol=1e-12, atol=1e-12,
-                   t_eval=[0.0, t], backend=backend)
+    ref = simulate(
+        mech,
+        q0,
+        v0,
+        t,
+        integrator="DOP853",
+        rtol=1e-12,
+        atol=1e-12,
+        t_eval=[0.0, t],
+        backend=backend,
+    )
     errs = []
     for dt in (0.02, 0.01):
-        traj = simulate(mech, q0, v0, t, integrator="rk4", dt=dt, stabilization="none",
-                        t_eval=[0.0, t], backend=backend)
+        traj = simulate(
+            mech,
+            q0,
+            v0,
+            t,
+            integrator="rk4",
+            dt=dt,
+            stabilization="none",
+            t_eval=[0.0, t],
+            backend=backend,
+        )
         errs.append(np.max(np.abs(pin.difference(mech.model, ref.q[-1], traj.q[-1]))))
     order = math.log2(errs[0] / errs[1])
     assert order >= 3.5, (errs, order)
@@ -833,8 +871,14 @@ def test_partitioning_needs_nq_equal_nv(load_mechanism):
     """Partitioning integrates independent coordinates of q as a vector: nq == nv."""
     mech = load_mechanism("slider_crank")
     with pytest.raises(cc.ClosedChainError, match="needs nq == nv.*valid choices here: none"):
-        simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.1, integrator="DOP853",
-                 stabilization="partitioning")
+        simulate(
+            mech,
+            mech.q_ref,
+            np.zeros(mech.nv),
+            0.1,
+            integrator="DOP853",
+            stabilization="partitioning",
+        )
 
 
 #: Coarse fixed step of the stabilization comparison [s] and its horizon [s].

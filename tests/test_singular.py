@@ -13,8 +13,7 @@ import math
 import nfourbar_reference as ref
 import numpy as np
 import pytest
-from conftest import MODELS
-from test_nfourbar import _load_generator
+from conftest import MODELS, nfourbar_generator
 
 import closedchain as cc
 from closedchain import compiled
@@ -155,7 +154,7 @@ def test_proximal_bias_at_and_near_the_flat_position():
 
 @pytest.fixture(scope="module")
 def nfourbar_mech(tmp_path_factory):
-    gen = _load_generator()
+    gen = nfourbar_generator()
     folder = tmp_path_factory.mktemp("nfb")
     cache: dict[int, cc.Mechanism] = {}
 

@@ -35,11 +35,7 @@ RECENTRE_NORM = 1.0
 
 def curved_blocks(model: pin.Model) -> list[slice]:
     """The velocity blocks of the joints whose ``integrate`` is not x + v (nv > 1, nq != nv)."""
-    return [
-        slice(j.idx_v, j.idx_v + j.nv)
-        for j in model.joints[1:]
-        if j.nv > 1 and j.nq != j.nv
-    ]
+    return [slice(j.idx_v, j.idx_v + j.nv) for j in model.joints[1:] if j.nv > 1 and j.nq != j.nv]
 
 
 _CURVED: dict[int, tuple[pin.Model, list[slice]]] = {}
