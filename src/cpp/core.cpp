@@ -141,7 +141,7 @@ constexpr double RANK_INDICATOR_CAP = 1e-2;
 constexpr double DOUBLE_SPLIT_MIN = 0.5;
 constexpr int RANK_INDICATOR_ITERS = 4;
 
-//: Relative margin of lu_inverse_norm_bound over its own round-off.
+//: Relative margin of the Cholesky inverse-norm bound (min_norm) over its own round-off.
 constexpr double INVERSE_BOUND_MARGIN = 1e-8;
 
 //: How to pass singular positions (simulate.problem.passing_hint with the registries
@@ -191,12 +191,8 @@ class Core {
     tau_ = Vec::Zero(nv_);
     tau_const_ = Vec::Zero(nv_);
     zero_v_ = Vec::Zero(nv_);
-    K_ = Mat::Zero(nv_ + nc_, nv_ + nc_);
-    rhs_ = Vec::Zero(nv_ + nc_);
+    kkt_.resize(nv_ + nc_);
     x_ = Vec::Zero(nv_ + nc_);
-    est_x_ = Vec::Zero(nv_ + nc_);
-    est_y_ = Vec::Zero(nv_ + nc_);
-    est_z_ = Vec::Zero(nv_ + nc_);
     z_ = Vec::Zero(std::max(nv_ - nc_, 0));
     llt_m_ = Eigen::LLT<Mat>(nv_);
     llt_c_ = Eigen::LLT<Mat>(nc_);
@@ -220,7 +216,6 @@ class Core {
     q_prev_ = Vec::Zero(nq_);
     vel_c_ = Vec::Zero(nc_);
     rhs_work_ = Vec::Zero(nv_ + nc_);
-    piv_.assign(nv_ + nc_, 0);
     for (std::size_t j = 1; j < model.joints.size(); ++j) {
       const auto &jm = model.joints[j];
       if (jm.nv() > 1 && jm.nq() != jm.nv()) {
@@ -725,174 +720,34 @@ class Core {
   }
 
   void solve_kkt(const RefV &q, const Vec &tau, double t) {
-    // K = [[M, J^T], [J, 0]] column by column, with its 1-norm (written out: the
-    // block assignments cost more than the copy at these sizes).
+    // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
+    // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
     const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
-    double *k = K_.data();
-    double anorm = 0.0;
+    double *k = kkt_.A.data();
     for (Eigen::Index j = 0; j < nv; ++j) {
-      double *col = k + j * n, s = 0.0;
-      for (Eigen::Index i = 0; i < nv; ++i) s += std::abs(col[i] = M_(i, j));
-      for (Eigen::Index r = 0; r < nc; ++r) s += std::abs(col[nv + r] = J_(r, j));
-      anorm = std::max(anorm, s);
+      double *col = k + j * n;
+      for (Eigen::Index i = 0; i < nv; ++i) col[i] = M_(i, j);
+      for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = J_(r, j);
     }
     for (Eigen::Index r = 0; r < nc; ++r) {
-      double *col = k + (nv + r) * n, s = 0.0;
-      for (Eigen::Index i = 0; i < nv; ++i) s += std::abs(col[i] = J_(r, i));
+      double *col = k + (nv + r) * n;
+      for (Eigen::Index i = 0; i < nv; ++i) col[i] = J_(r, i);
       for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
-      anorm = std::max(anorm, s);
     }
-    for (Eigen::Index i = 0; i < nv; ++i) rhs_[i] = tau[i] - h_[i];
-    for (Eigen::Index r = 0; r < nc; ++r) rhs_[nv + r] = -gamma_[r];
+    for (Eigen::Index i = 0; i < nv; ++i) x_[i] = tau[i] - h_[i];
+    for (Eigen::Index r = 0; r < nc; ++r) x_[nv + r] = -gamma_[r];
     // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
     // Away from singular configurations a cheap upper bound of cond_1(K) already
     // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
     // cond_max; only otherwise is the estimate computed.
-    if (!lu_factor()) {
+    if (!kkt_.factor_in_place()) {
       check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
-    } else if (!(anorm * lu_inverse_norm_bound() <= cond_max_)) {
-      check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", rcond_lu(anorm), t);
+    } else if (!(kkt_.anorm * kkt_.inverse_norm_bound() <= cond_max_)) {
+      check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", kkt_.rcond(), t);
     }
-    lu_solve(rhs_, x_);
+    kkt_.solve(x_);
     a_ = x_.head(nv_);
     lam_ = x_.tail(nc_);
-  }
-
-  //: Size of K from which lu_factor uses Eigen's blocked LU instead of dgetf2's loop.
-  static constexpr Eigen::Index LU_BLOCKED_MIN = 96;
-
-  // LU with partial pivoting of K_ in place (LAPACK's dgetf2: the first largest pivot,
-  // row swaps in piv_), x = K^-1 b and z = K^-T y on the factors. Written out for the
-  // small KKT matrices: Eigen's blocked PartialPivLU and its solves spend more on
-  // dynamic-size bookkeeping (and heap copies of the permutation) than on arithmetic.
-  // Returns false when a pivot is exactly zero (K singular).
-  bool lu_factor() {
-    const Eigen::Index n = K_.rows();
-    double *A = K_.data();  // column-major, leading dimension n
-    if (n >= LU_BLOCKED_MIN) {
-      // Large trees (hundreds of joints): Eigen's blocked LU (GEMM updates; its
-      // workspace may come from the heap, which is negligible against the O(n^3)
-      // work), the same row swaps in piv_; the loop below is 4x slower at n = 1000.
-      int swaps = 0;
-      return Eigen::internal::partial_lu_impl<double, Eigen::ColMajor, int>::blocked_lu(
-                 n, n, A, n, piv_.data(), swaps) < 0;
-    }
-    bool regular = true;
-    for (Eigen::Index k = 0; k < n; ++k) {
-      Eigen::Index p = k;
-      double big = std::abs(A[k + k * n]);
-      for (Eigen::Index i = k + 1; i < n; ++i)
-        if (std::abs(A[i + k * n]) > big) {
-          big = std::abs(A[i + k * n]);
-          p = i;
-        }
-      piv_[k] = static_cast<int>(p);
-      if (big == 0.0) {
-        regular = false;
-        continue;
-      }
-      if (p != k)
-        for (Eigen::Index j = 0; j < n; ++j) std::swap(A[k + j * n], A[p + j * n]);
-      const double inv = 1.0 / A[k + k * n];
-      for (Eigen::Index i = k + 1; i < n; ++i) A[i + k * n] *= inv;
-      for (Eigen::Index j = k + 1; j < n; ++j) {
-        const double akj = A[k + j * n];
-        if (akj != 0.0)
-          for (Eigen::Index i = k + 1; i < n; ++i) A[i + j * n] -= A[i + k * n] * akj;
-      }
-    }
-    return regular;
-  }
-
-  void lu_solve(const Vec &b, Vec &x) {
-    const Eigen::Index n = K_.rows();
-    const double *A = K_.data();
-    if (&x != &b) x = b;
-    for (Eigen::Index k = 0; k < n; ++k)
-      if (piv_[k] != k) std::swap(x[k], x[piv_[k]]);
-    for (Eigen::Index j = 0; j < n; ++j) {  // L (unit lower)
-      const double xj = x[j];
-      if (xj != 0.0)
-        for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= A[i + j * n] * xj;
-    }
-    for (Eigen::Index j = n - 1; j >= 0; --j) {  // U
-      x[j] /= A[j + j * n];
-      const double xj = x[j];
-      if (xj != 0.0)
-        for (Eigen::Index i = 0; i < j; ++i) x[i] -= A[i + j * n] * xj;
-    }
-  }
-
-  void lu_solve_transposed(const Vec &y, Vec &z) {
-    const Eigen::Index n = K_.rows();
-    const double *A = K_.data();
-    z = y;
-    for (Eigen::Index j = 0; j < n; ++j) {  // U^T w = y
-      double s = z[j];
-      for (Eigen::Index i = 0; i < j; ++i) s -= A[i + j * n] * z[i];
-      z[j] = s / A[j + j * n];
-    }
-    for (Eigen::Index j = n - 1; j >= 0; --j) {  // L^T u = w
-      double s = z[j];
-      for (Eigen::Index i = j + 1; i < n; ++i) s -= A[i + j * n] * z[i];
-      z[j] = s;
-    }
-    for (Eigen::Index k = n - 1; k >= 0; --k)  // z = P^T u
-      if (piv_[k] != k) std::swap(z[k], z[piv_[k]]);
-  }
-
-  // Upper bound of ||K^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1, each
-  // bounded through the comparison matrix, |T^-1| <= M(T)^-1 elementwise for
-  // triangular T (Higham, Accuracy and Stability of Numerical Algorithms, 2002,
-  // Thm 8.12), so ||T^-1||_1 <= max(M(T)^-T e): one small triangular solve each.
-  // A relative margin covers its own round-off.
-  double lu_inverse_norm_bound() {
-    const Eigen::Index n = K_.rows();
-    const double *A = K_.data();
-    double bu = 0.0, bl = 0.0;
-    for (Eigen::Index j = 0; j < n; ++j) {  // M(U)^T y = e, forward
-      double s = 1.0;
-      for (Eigen::Index i = 0; i < j; ++i) s += std::abs(A[i + j * n]) * est_y_[i];
-      est_y_[j] = s / std::abs(A[j + j * n]);
-      bu = std::max(bu, est_y_[j]);
-    }
-    for (Eigen::Index j = n - 1; j >= 0; --j) {  // M(L)^T y = e, backward (unit diagonal)
-      double s = 1.0;
-      for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(A[i + j * n]) * est_z_[i];
-      est_z_[j] = s;
-      bl = std::max(bl, s);
-    }
-    return bu * bl * (1.0 + INVERSE_BOUND_MARGIN);
-  }
-
-  // Reciprocal 1-norm condition estimate of the factored K (Hager / Higham, the
-  // estimator of LAPACK's dgecon), on preallocated vectors.
-  double rcond_lu(double anorm) {
-    const Eigen::Index n = x_.size();
-    if (anorm == 0.0) return 0.0;
-    est_x_.setConstant(1.0 / static_cast<double>(n));
-    double est = 0.0;
-    Eigen::Index jlast = -1;
-    for (int it = 0; it < 5; ++it) {
-      lu_solve(est_x_, est_y_);  // y = K^-1 x
-      const double e = est_y_.lpNorm<1>();
-      if (it > 0 && e <= est) break;
-      est = e;
-      for (Eigen::Index i = 0; i < n; ++i) est_y_[i] = est_y_[i] >= 0 ? 1.0 : -1.0;
-      lu_solve_transposed(est_y_, est_z_);  // z = K^-T sign(y)
-      Eigen::Index j;
-      est_z_.cwiseAbs().maxCoeff(&j);
-      if (it > 0 && j == jlast) break;
-      jlast = j;
-      est_x_.setZero();
-      est_x_[j] = 1.0;
-    }
-    // Higham's alternating-sign vector guards against underestimation.
-    for (Eigen::Index i = 0; i < n; ++i)
-      est_x_[i] = (i % 2 ? -1.0 : 1.0) * (1.0 + static_cast<double>(i) / std::max<Eigen::Index>(n - 1, 1));
-    lu_solve(est_x_, est_y_);
-    est = std::max(est, 2.0 * est_y_.lpNorm<1>() / (3.0 * static_cast<double>(n)));
-    return est > 0 ? 1.0 / (est * anorm) : 0.0;
   }
 
   void solve_schur(const RefV &q, const Vec &tau, double t) {
@@ -1789,37 +1644,17 @@ class Core {
     for (Eigen::Index i = 0; i < cols.size(); ++i)
       if (cols[i] < 0 || cols[i] >= nv_) throw BadArgument{"Core.set_branch_columns: column out of range"};
     branch_cols_ = cols;
-    JB_ = Mat::Zero(cols.size(), cols.size());
+    lu_branch_.resize(cols.size());
   }
 
   // Sign of det(J_[:, branch_cols_]) (J_ at the sample's q): the parity of the row
   // swaps of an LU with partial pivoting times the signs of its pivots, 0 for an
   // exactly zero pivot (numpy.linalg.slogdet's sign).
   double branch_sign() {
-    const Eigen::Index n = branch_cols_.size();
-    for (Eigen::Index j = 0; j < n; ++j) JB_.col(j) = J_.col(branch_cols_[j]);
-    double sign = 1.0;
-    double *A = JB_.data();
-    for (Eigen::Index k = 0; k < n; ++k) {
-      Eigen::Index p = k;
-      double big = std::abs(A[k + k * n]);
-      for (Eigen::Index i = k + 1; i < n; ++i)
-        if (std::abs(A[i + k * n]) > big) {
-          big = std::abs(A[i + k * n]);
-          p = i;
-        }
-      if (big == 0.0) return 0.0;
-      if (p != k) {
-        sign = -sign;
-        for (Eigen::Index j = k; j < n; ++j) std::swap(A[k + j * n], A[p + j * n]);
-      }
-      if (A[k + k * n] < 0) sign = -sign;
-      for (Eigen::Index i = k + 1; i < n; ++i) {
-        const double l = A[i + k * n] / A[k + k * n];
-        for (Eigen::Index j = k + 1; j < n; ++j) A[i + j * n] -= l * A[k + j * n];
-      }
-    }
-    return sign;
+    for (Eigen::Index j = 0; j < branch_cols_.size(); ++j)
+      lu_branch_.A.col(j) = J_.col(branch_cols_[j]);
+    lu_branch_.factor_in_place();
+    return lu_branch_.det_sign();
   }
 
   void record(Samples &out, double t, const Vec &q, const Vec &v) {
@@ -2603,15 +2438,15 @@ class Core {
   std::vector<Eigen::Matrix3d> R_;
   std::vector<Vector3d> p_;
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
-  Mat M_, J_, K_, Y_, D_, Mr_, JJt_;
-  Vec est_x_, est_y_, est_z_, z_;
-  Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, rhs_, x_, dq_, tmp_c_, tmp_v_;
+  Mat M_, J_, Y_, D_, Mr_, JJt_;
+  Vec z_;
+  DenseLU kkt_;  // K of the kkt method
+  Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, x_, dq_, tmp_c_, tmp_v_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
   SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
-  std::vector<int> piv_;  // row swaps of lu_factor
   // Structure (sparsity) and the band paths (set_band).
   std::vector<int> jcol_start_, jcols_, jlo_, jhi_, mlo_, mhi_;
   std::vector<int> perm_, pinv_;
@@ -2648,7 +2483,7 @@ class Core {
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
   Eigen::VectorXi branch_cols_;  // set_branch_columns
-  Mat JB_;  // branch_sign's scratch (J's branch columns)
+  DenseLU lu_branch_;  // branch_sign's LU of J's branch columns
   Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, pe_ valid there)
   double pe_ = 0.0;
   int tau_mode_ = 0;
