@@ -88,6 +88,27 @@ _I1 = np.array([1, 2, 0])
 _I2 = np.array([2, 0, 1])
 
 
+def _rotation_gamma(V, A, tr, U, W, UW) -> np.ndarray:
+    """gamma of rotation rows u.w = 0 (u = R_p u0, w = R_s w0 in the world): with the
+    frames' velocities V and classical bias accelerations A, shape (frames, 6), and the
+    rows' table ``tr`` (pred, succ),
+    gamma = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
+            - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w), the triple products expanded."""
+    wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
+    pu = np.einsum("ri,ri->r", wp, U)
+    pw = np.einsum("ri,ri->r", wp, W)
+    su = np.einsum("ri,ri->r", ws, U)
+    sw = np.einsum("ri,ri->r", ws, W)
+    dw = wp - ws
+    return (
+        np.einsum("ri,ri->r", _cross(W, U), A[tr.succ, 3:] - A[tr.pred, 3:])
+        + pu * pw
+        + su * sw
+        - 2.0 * pw * su
+        - np.einsum("ri,ri->r", dw, dw) * UW
+    )
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (k, 3) arrays (or a (3,) vector against (k, 3)).
 
@@ -414,22 +435,7 @@ class ConstraintLayer:
                 [pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in self._fids]
             )  # (2L, 6): classical linear, angular; bias (zero joint acceleration)
             V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in self._fids])
-            # Triple products expanded (one cross product):
-            # gamma_r = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
-            #           - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w)
-            wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
-            pu = np.einsum("ri,ri->r", wp, U)
-            pw = np.einsum("ri,ri->r", wp, W)
-            su = np.einsum("ri,ri->r", ws, U)
-            sw = np.einsum("ri,ri->r", ws, W)
-            dw = wp - ws
-            gamma[tr.rows] = (
-                np.einsum("ri,ri->r", _cross(W, U), A[tr.succ, 3:] - A[tr.pred, 3:])
-                + pu * pw
-                + su * sw
-                - 2.0 * pw * su
-                - np.einsum("ri,ri->r", dw, dw) * UW
-            )
+            gamma[tr.rows] = _rotation_gamma(V, A, tr, U, W, UW)
 
     def _evaluate_batched(self, model, data, phi, J, gamma) -> None:
         r"""Every row of every loop at once (many loops: numpy over all rows, one pass of
@@ -480,19 +486,7 @@ class ConstraintLayer:
         )
         gamma[tt.rows] = np.einsum("ri,ri->r", U, x)
         if tr is not None:
-            wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
-            pu = np.einsum("ri,ri->r", wp, Ur)
-            pw = np.einsum("ri,ri->r", wp, Wr)
-            su = np.einsum("ri,ri->r", ws, Ur)
-            sw = np.einsum("ri,ri->r", ws, Wr)
-            dw = wp - ws
-            gamma[tr.rows] = (
-                np.einsum("ri,ri->r", _cross(Wr, Ur), A[tr.succ, 3:] - A[tr.pred, 3:])
-                + pu * pw
-                + su * sw
-                - 2.0 * pw * su
-                - np.einsum("ri,ri->r", dw, dw) * UW
-            )
+            gamma[tr.rows] = _rotation_gamma(V, A, tr, Ur, Wr, UW)
 
     def _build_tables(self) -> None:
         """Index tables of the active rows over all loops: per-loop translation blocks,
