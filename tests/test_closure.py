@@ -198,3 +198,41 @@ def test_fixed_loop_gives_the_motion_of_the_revolute_loop(fourbar, method):
     assert np.ptp(a.q[:, 0]) > 0.5  # it swings [rad]
     assert np.max(np.abs(a.q - b.q[:, same])) <= TOL_SAME_MOTION
     assert b.max_constraint_residual <= 1e-9  # all six welded rows
+
+
+#: The greedy row choice's smallest singular values against one SVD per candidate set,
+#: relative to the largest singular value of the stacked rows (round-off of two SVDs).
+SIGMA_MIN_TOL = 1e-13
+
+
+@pytest.mark.parametrize("case", ["generic", "near-dependent", "dependent", "tiny", "ill"])
+def test_sigma_min_with_each_row_matches_an_svd_per_candidate(rng, case):
+    """closure._sigma_min_with_each_row (secular equation of the arrowhead matrix) gives
+    the smallest singular value of [B; a] for every candidate row a, as scipy's SVD of
+    each stacked matrix does, also where a row is (nearly) dependent on B."""
+    import scipy.linalg
+
+    from closedchain.closure import _sigma_min_with_each_row
+
+    for _ in range(40):
+        n = int(rng.integers(3, 12))
+        k = int(rng.integers(1, n))
+        m = int(rng.integers(1, 6))
+        samples = int(rng.integers(1, 4))
+        B = rng.standard_normal((samples, k, n))
+        A = rng.standard_normal((samples, m, n))
+        if case == "near-dependent":
+            A[:, 0] = 2.0 * B[:, 0] + 1e-9 * rng.standard_normal(n)
+        elif case == "dependent":
+            A[:, 0] = B[:, -1]
+        elif case == "tiny":
+            A *= 1e-6
+        elif case == "ill" and k > 1:
+            B[:, 1] = B[:, 0] * (1.0 + 1e-7)
+        got = _sigma_min_with_each_row(B, A)
+        for s in range(samples):
+            for i in range(m):
+                stacked = np.vstack([B[s], A[s, i]])
+                ref = scipy.linalg.svdvals(stacked)[-1]
+                scale = scipy.linalg.svdvals(stacked)[0]
+                assert abs(got[s, i] - ref) <= SIGMA_MIN_TOL * scale

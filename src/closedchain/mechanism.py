@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from threadpoolctl import threadpool_limits
 
 from .closure import (
     AssemblySettings,
@@ -570,9 +571,16 @@ def _select_rows_and_coordinates(
     random configurations; the samples from ``extra_starts`` (the default scene's
     start) are added to them for the row selection only.
     """
-    model, data, closure = mech.model, mech.data, mech.closure
-    if closure.declared.nc == 0:
+    if mech.closure.declared.nc == 0:
         return
+    # Many small SVDs and least-squares solves: OpenBLAS's threads only spin on them (N-four-bar
+    # N = 40 on the shared 2-core machine: 5.2 s CPU with one thread, 67 s with two).
+    with threadpool_limits(limits=1, user_api="blas"):
+        _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts)
+
+
+def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -> None:
+    model, data, closure = mech.model, mech.data, mech.closure
     sel = settings.selection()
     samples, best = sample_configurations(
         model,
