@@ -675,3 +675,41 @@ def test_partitioning_singular_error(fourbar, integrator):
     # ones differ by 5%), so the two stop at different step ends.
     for err in (exc.value, ref.value):
         assert CHANGE_POINT_T - CHANGE_POINT_T_TOL <= err.t <= CHANGE_POINT_T + MAX_STEP_PAST
+
+
+def test_a_partitioning_run_leaves_no_state_in_the_shared_core(mech_by_name):
+    """The compiled core is shared by every run on a mechanism; each run starts from its
+    own configuration. A fixed-step partitioning run (which checks the rows only) before
+    a kkt + rk4 + stage-projection run must not switch off the latter's singularity check:
+    it stops at the N-four-bar's first flat position as the numpy backend's run does
+    (before the fix it ran through every flat position unchecked)."""
+    import nfourbar_reference as ref
+
+    mech = mech_by_name("nfourbar_2")
+    q0, v0 = ref.initial_state(mech)
+    stops = {}
+    for backend in ("numpy", "compiled"):
+        cc.simulate(
+            mech,
+            q0,
+            v0,
+            0.2,
+            integrator="euler",
+            stabilization="partitioning",
+            method="kkt",
+            backend=backend,
+        )
+        with pytest.raises(cc.SingularConfigurationError) as info:
+            cc.simulate(
+                mech,
+                q0,
+                v0,
+                2.0,
+                method="kkt",
+                integrator="rk4",
+                stabilization="stage-projection",
+                backend=backend,
+            )
+        stops[backend] = info.value.t
+    assert stops["compiled"] < 1.0  # the first flat position, t = 0.73 s
+    assert abs(stops["compiled"] - stops["numpy"]) <= 2 * cc.SimulationSettings().dt

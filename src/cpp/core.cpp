@@ -1203,6 +1203,7 @@ class Core {
     repartition_cond_ = bp::extract<double>(s.get("repartition_cond", 100.0));
     partition_singular_cond_ = bp::extract<double>(s.get("partition_singular_cond", 1e4));
     partitions_ = bp::extract<bool>(s.get("partitions", false));
+    rows_only_ = false;  // set by begin_partitioning for the run
     pivot_tie_rtol_ = bp::extract<double>(s.get("pivot_tie_rtol", 1e-9));
     bp::object ind = s.get("independent", bp::object());
     if (!ind.is_none()) {
@@ -1915,12 +1916,14 @@ class Core {
     std::vector<char> out(n_steps + 1, 0);
     for (Eigen::Index i = 0; i < out_steps.size(); ++i)
       if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+    // Every run starts from its own configuration: a previous partitioning run's
+    // rows_only_ left set would skip the stage-projected loop's singularity check.
+    begin_partitioning(true);
     if (integrator == RK4 && stage_projects_ && projects && nc_)
       return run_rk4_stage_projected(q0, v0, dt, n_steps, out, progress);
     Vec q = q0, v = v0, qn(nq_), vn(nv_), qs(nq_), vs(nv_);
     Vec k1v(nv_), k1a(nv_), k2v(nv_), k2a(nv_), k3v(nv_), k3a(nv_), k4v(nv_), k4a(nv_), dv(nv_);
     double t = 0.0;
-    begin_partitioning(true);
     if (partitions_) complete(q, v, t);
     accel(t, q, v);
     if (out[0]) record(S, t, q, v);
