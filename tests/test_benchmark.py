@@ -171,6 +171,9 @@ def test_steps_run_only_where_they_divide_the_output_spacing():
     assert {5e-2, 2.5e-2, 1.25e-2} <= steps("nfourbar2-singular", "seed")
     assert max(steps("fourbar-passive", "closedchain", "kkt/rk4/stage-projection")) == 1e-2
     assert max(steps("fourbar-passive", "seed")) == 1e-2
+    # The settings label is part of a row's key: 1.25e-2 and 1e-2 must not share one.
+    keys = [(j["scenario"], j["family"], j["solver"], j["backend"], j["settings"]) for j in jobs]
+    assert len(keys) == len(set(keys))
 
 
 def test_unknown_scenario_raises(tmp_path):

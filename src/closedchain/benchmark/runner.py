@@ -119,7 +119,13 @@ QUICK_INTEGRATORS = ("DOP853", "rk4")
 
 
 def _fmt(x: float) -> str:
-    return f"{x:.0e}"
+    """``x`` in the shortest e-notation that reads back exactly (1e-02, 1.25e-02): the label is
+    part of a configuration's key, so two settings must never share one."""
+    for digits in range(16):
+        s = f"{x:.{digits}e}"
+        if float(s) == x:
+            return s
+    return repr(x)
 
 
 def _closedchain_configs(settings: BenchSettings, method: str) -> list[dict]:
