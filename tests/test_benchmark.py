@@ -271,6 +271,23 @@ def test_nfourbar_map_case_separates_the_peer():
     assert mine["status"] == "ok" and mine["residual"] <= NFOURBAR_STAGE_RESIDUAL_TOL
 
 
+def test_stability_jobs_are_independent():
+    # A partitioning run that stops on the N-four-bar left state in the mechanism's shared
+    # compiled core that let a later kkt + rk4 + stage-projection run pass the flat position
+    # it stops at on a new core: each job starts from a new core.
+    from closedchain.benchmark.stability import CASES, run_stability_job
+
+    case = next(c for c in CASES if c.startswith("nfourbar"))
+
+    def job(config, step):
+        return run_stability_job(dict(case=case, config=config, step=step, models_dir=str(MODELS)))
+
+    first = job("kkt/rk4/stage-projection", 1e-2)
+    job("kkt/euler/partitioning", 2e-3)
+    again = job("kkt/rk4/stage-projection", 1e-2)
+    assert (again["status"], again["message"]) == (first["status"], first["message"])
+
+
 def test_largest_ok_step_needs_every_smaller_step_ok():
     from closedchain.benchmark.stability import best_fixed, largest_ok_step, stability_summary
 

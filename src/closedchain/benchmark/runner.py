@@ -30,6 +30,7 @@ from .references import EXACT_REFERENCES
 from .scenarios import (
     SCENARIOS,
     Scenario,
+    fresh_compiled_core,
     initial_state,
     load_scenario_mechanism,
     torque_function,
@@ -312,6 +313,7 @@ def run_job(job: dict) -> dict:
     wall0 = time.perf_counter()
     scenario = SCENARIOS[job["scenario"]]
     mech = load_scenario_mechanism(job["models_dir"], scenario)
+    fresh_compiled_core(mech)
     q0, v0 = initial_state(mech, scenario)
     tau_fn = torque_function(mech, scenario)
     t_grid = scenario_grid(scenario, job["quick"])

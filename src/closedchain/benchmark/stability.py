@@ -22,7 +22,14 @@ from ..dynamics.base import METHOD_CAPABILITIES, METHODS
 from ..exceptions import ClosedChainError
 from ..simulate import INTEGRATORS, STABILIZATIONS, SimulationError
 from .peers import run_closedchain, run_pinocchio_euler
-from .scenarios import SCENARIOS, Scenario, initial_state, load_scenario_mechanism, torque_function
+from .scenarios import (
+    SCENARIOS,
+    Scenario,
+    fresh_compiled_core,
+    initial_state,
+    load_scenario_mechanism,
+    torque_function,
+)
 
 #: A declared constraint row above this is "drift" [m or -].
 DRIFT_ROW_TOL = 1e-6
@@ -184,6 +191,7 @@ def run_stability_job(job: dict) -> dict:
     c = CASES[job["case"]]
     sc = c.scenario
     mech = load_scenario_mechanism(job["models_dir"], sc)
+    fresh_compiled_core(mech)
     q0, v0 = initial_state(mech, sc)
     tau_fn = torque_function(mech, sc)
     spacing = max(OUTPUT_DT, job["step"])
