@@ -26,11 +26,12 @@
    numpy partitioning run of the same request; per evaluation, the compiled
    reduced method (from Python and in the C++ loop) against the numpy one.
 4. The benchmark's N-four-bar scenario (nfourbar2-singular, N = 2 through its
-   flat positions, 4 s): the configuration of closedchain's front at error 1e-6
-   (augmented-lagrangian, rk4, stage projection, dt 1e-2; whole simulate call)
-   against Pinocchio's own loop at the step that reaches 1e-6
-   (constraintDynamics + semi-implicit Euler, dt 2e-4), both through the
-   benchmark's runners; error against the scenario's exact reference.
+   flat positions, 4 s, 0.05 s grid): closedchain's augmented Lagrangian with
+   stage projection (rk4 at 5e-2 to 1e-2 s, semi-implicit at 1e-2 s; whole
+   simulate calls) against the seed's scheme (compiled, 1e-2 and 5e-3 s) and
+   Pinocchio's own loop (constraintDynamics + semi-implicit Euler, 5e-4 and
+   2e-4 s), all through the benchmark's runners; error against the scenario's
+   exact reference; ratios at 1e-3 (seed) and 1e-6 (Pinocchio's loop).
 
 Timing is noisy on a shared machine: run it alone.
 Run: python scripts/bench_core.py [--repeat 3] [--sections evaluation runs matched nfourbar]
@@ -275,13 +276,17 @@ def partitioning_cost(name, problem, repeat, tol=1e-9):
 
 
 def nfourbar_against_euler(repeat: int) -> None:
-    """CPU of the nfourbar2-singular scenario: closedchain's 1e-6 configuration against
-    Pinocchio's Euler loop (the benchmark's runners, interleaved)."""
+    """CPU of the nfourbar2-singular scenario: closedchain's configurations of its front at
+    1e-3 and 1e-6 against the seed's scheme and Pinocchio's Euler loop at the steps around
+    those errors (the benchmark's runners and grid, interleaved); the ratios from the cheapest
+    run reaching each error and at exactly it (log-log on each front, as ``ratios.md``)."""
+    from closedchain.benchmark.analysis import cheapest_at, cpu_at
     from closedchain.benchmark.peers import RUNNERS
     from closedchain.benchmark.references import EXACT_REFERENCES
     from closedchain.benchmark.runner import scenario_grid
     from closedchain.benchmark.scenarios import (
         SCENARIOS,
+        fresh_compiled_core,
         initial_state,
         load_scenario_mechanism,
         torque_function,
@@ -293,32 +298,55 @@ def nfourbar_against_euler(repeat: int) -> None:
     tau = torque_function(mech, sc)
     grid = scenario_grid(sc, False)
     q_ref = EXACT_REFERENCES[sc.exact][0](mech, q0, v0, grid)
-    cc_kw = dict(
-        method="augmented-lagrangian", integrator="rk4", stabilization="stage-projection", dt=1e-2
-    )
+
+    def ours(integrator: str, dt: float):
+        kw = dict(method=sc.method, integrator=integrator, stabilization="stage-projection")
+        return lambda: RUNNERS["closedchain"](mech, q0, v0, grid, tau, dt=dt, **kw)
+
     runs = {
-        "closedchain augmented-lagrangian/rk4/stage-projection dt=1e-2": lambda: RUNNERS[
-            "closedchain"
-        ](mech, q0, v0, grid, tau, **cc_kw),
-        "pinocchio-euler constraintDynamics/semi-implicit/baumgarte dt=2e-4": lambda: RUNNERS[
-            "pinocchio-euler"
-        ](mech, q0, v0, grid, tau, dt=2e-4),
+        ("closedchain", f"{sc.method}/rk4/stage-projection dt={dt:g}"): ours("rk4", dt)
+        for dt in (5e-2, 2.5e-2, 1.25e-2, 1e-2)
     }
-    cpu: dict[str, list[float]] = {k: [] for k in runs}
-    err: dict[str, float] = {}
+    runs[("closedchain", f"{sc.method}/semi-implicit/stage-projection dt=0.01")] = ours(
+        "semi-implicit", 1e-2
+    )
+    for dt in (1e-2, 5e-3):
+        runs[("seed", f"euler/2 newton (compiled) dt={dt:g}")] = lambda dt=dt: RUNNERS["seed"](
+            mech, q0, v0, grid, tau, dt=dt, backend="compiled"
+        )
+    for dt in (5e-4, 2e-4):
+        runs[("pinocchio-euler", f"constraintDynamics/semi-implicit/baumgarte dt={dt:g}")] = (
+            lambda dt=dt: RUNNERS["pinocchio-euler"](mech, q0, v0, grid, tau, dt=dt)
+        )
+    cpu: dict[tuple, list[float]] = {k: [] for k in runs}
+    err: dict[tuple, float] = {}
     for _ in range(repeat):
-        for label, run in runs.items():
+        for key, run in runs.items():
+            fresh_compiled_core(mech)
             out = run()
-            cpu[label].append(out.cpu_s)
-            err[label] = max(
+            cpu[key].append(out.cpu_s)
+            err[key] = max(
                 float(np.max(np.abs(pin.difference(mech.model, a, b))))
                 for a, b in zip(out.q, q_ref, strict=True)
             )
-    print(f"\nnfourbar2-singular ({sc.t_final:g} s): CPU [s] (min over {repeat}), error [rad]")
-    for label in runs:
-        print(f"  {label:68s} {min(cpu[label]):8.4f} s  error {err[label]:.2e}")
-    a, b = (min(cpu[k]) for k in runs)
-    print(f"  ratio closedchain / pinocchio-euler: {a / b:.4f}")
+    t = float(grid[-1])
+    print(f"\nnfourbar2-singular ({t:g} s): CPU [s/s] (median of {repeat}), error [rad]")
+    rows = []
+    for (family, label), c in cpu.items():
+        rows.append(
+            dict(
+                family=family, cpu_s=float(np.median(c)) / t, error=err[family, label], status="ok"
+            )
+        )
+        print(f"  {family:16s} {label:52s} {rows[-1]['cpu_s']:9.5f}  error {rows[-1]['error']:.2e}")
+    mine = [r for r in rows if r["family"] == "closedchain"]
+    for peer, target in (("seed", 1e-3), ("pinocchio-euler", 1e-6)):
+        theirs = [r for r in rows if r["family"] == peer]
+        a, b = cheapest_at(mine, target), cheapest_at(theirs, target)
+        print(
+            f"  closedchain / {peer} at {target:.0e}: {a['cpu_s'] / b['cpu_s']:.4f} "
+            f"(interpolated on the fronts {cpu_at(mine, target) / cpu_at(theirs, target):.4f})"
+        )
 
 
 #: Sections of the script (--sections): 1. per evaluation, in whole runs; 2. matched

@@ -15,7 +15,7 @@ from conftest import MODELS
 from closedchain import cli
 from closedchain import compiled as cc_compiled
 from closedchain.benchmark import COLUMNS, QUICK, SCENARIOS, read_rows, run_work_precision
-from closedchain.benchmark.analysis import cheapest_at, pareto_front, ratio_table
+from closedchain.benchmark.analysis import cheapest_at, cpu_at, pareto_front, ratio_table
 from closedchain.exceptions import ClosedChainError, UnknownChoiceError
 
 #: The quick run's reference (kkt DOP853 1e-13) and its confirmation (nullspace, DOP853,
@@ -131,6 +131,51 @@ def test_pareto_front_and_ratios():
     assert "reference confirmed only to 1.0e-07" in table[1e-9]["note"]
 
 
+def test_cpu_at_interpolates_the_front_log_log():
+    # A front on the power law cpu = error^-1/4 (a fourth-order method): log-log
+    # interpolation between two of its runs is exact.
+    rows = [_row("closedchain", e**-0.25, e) for e in (1e-2, 1e-4, 1e-8)]
+    rows.append(_row("closedchain", 50.0, 1e-3))  # dominated: not on the front
+    assert cpu_at(rows, 1e-6) == pytest.approx((1e-6) ** -0.25, rel=1e-12)
+    assert cpu_at(rows, 1e-1) == pytest.approx((1e-2) ** -0.25)  # no extrapolation
+    assert math.isnan(cpu_at(rows, 1e-9))
+    table = {e["target"]: e for e in ratio_table(rows + [_row("peer", 1.0, 1e-7)], {"s": 0.0})}
+    assert table[1e-3]["interpolated"] == pytest.approx((1e-3) ** -0.25)
+    assert table[1e-3]["ratio"] == pytest.approx((1e-4) ** -0.25)  # the grid's cheapest run
+
+
+def test_steps_run_only_where_they_divide_the_output_spacing():
+    from closedchain.benchmark.runner import BenchSettings, make_jobs
+
+    settings = BenchSettings(repeats=1)
+    jobs = make_jobs(
+        settings,
+        ["fourbar-passive", "nfourbar2-singular"],
+        str(MODELS),
+        mujoco_available=False,
+        references=False,
+    )
+
+    def steps(scenario, family, solver=None):
+        return {
+            j["kwargs"]["dt"]
+            for j in jobs
+            if j["scenario"] == scenario
+            and j["family"] == family
+            and (solver is None or j["solver"] == solver)
+            and "dt" in j["kwargs"]
+        }
+
+    rk4 = "augmented-lagrangian/rk4/stage-projection"
+    assert max(steps("nfourbar2-singular", "closedchain", rk4)) == 5e-2
+    assert {5e-2, 2.5e-2, 1.25e-2} <= steps("nfourbar2-singular", "seed")
+    assert max(steps("fourbar-passive", "closedchain", "kkt/rk4/stage-projection")) == 1e-2
+    assert max(steps("fourbar-passive", "seed")) == 1e-2
+    # The settings label is part of a row's key: 1.25e-2 and 1e-2 must not share one.
+    keys = [(j["scenario"], j["family"], j["solver"], j["backend"], j["settings"]) for j in jobs]
+    assert len(keys) == len(set(keys))
+
+
 def test_unknown_scenario_raises(tmp_path):
     with pytest.raises(UnknownChoiceError, match="scenario.*fourbar-passive"):
         run_work_precision(tmp_path, settings=QUICK, scenarios=["nope"], models_dir=MODELS)
@@ -202,6 +247,45 @@ def test_stability_job_classifies_runs():
     raised = job("kkt/rk4/projection", 1e-3)  # a fine step sees the change point
     assert raised["status"] == "raised"
     assert "losing rank" in raised["message"]
+
+
+#: Largest declared row of closedchain's singular-robust configuration on the N-four-bar
+#: over 20 s at 0.1 s steps [-] (measured 6e-14).
+NFOURBAR_STAGE_RESIDUAL_TOL = 1e-12
+
+
+def test_nfourbar_map_case_separates_the_peer():
+    # Over 20 s (a dozen flat positions) Pinocchio's Euler loop reaches a non-finite state
+    # at 0.1 s steps; the augmented Lagrangian with rk4 and stage projection stays closed.
+    from closedchain.benchmark.stability import CASES, PEER, run_stability_job
+
+    case = next(c for c in CASES if c.startswith("nfourbar"))
+    assert CASES[case].t_final == 20.0
+
+    def job(config):
+        return run_stability_job(dict(case=case, config=config, step=0.1, models_dir=str(MODELS)))
+
+    peer = job(PEER)
+    assert peer["status"] == "diverged" and "non-finite" in peer["message"]
+    mine = job("augmented-lagrangian/rk4/stage-projection")
+    assert mine["status"] == "ok" and mine["residual"] <= NFOURBAR_STAGE_RESIDUAL_TOL
+
+
+def test_stability_jobs_are_independent():
+    # A partitioning run that stops on the N-four-bar left state in the mechanism's shared
+    # compiled core that let a later kkt + rk4 + stage-projection run pass the flat position
+    # it stops at on a new core: each job starts from a new core.
+    from closedchain.benchmark.stability import CASES, run_stability_job
+
+    case = next(c for c in CASES if c.startswith("nfourbar"))
+
+    def job(config, step):
+        return run_stability_job(dict(case=case, config=config, step=step, models_dir=str(MODELS)))
+
+    first = job("kkt/rk4/stage-projection", 1e-2)
+    job("kkt/euler/partitioning", 2e-3)
+    again = job("kkt/rk4/stage-projection", 1e-2)
+    assert (again["status"], again["message"]) == (first["status"], first["message"])
 
 
 def test_largest_ok_step_needs_every_smaller_step_ok():

@@ -28,6 +28,22 @@ def cheapest_at(rows: list[dict], error: float) -> dict | None:
     return min(ok, key=lambda r: r["cpu_s"]) if ok else None
 
 
+def cpu_at(rows: list[dict], error: float) -> float:
+    """CPU at exactly ``error`` on the Pareto front of ``rows``: log-log interpolation between
+    the two front runs around it (a step or tolerance grid puts its runs at whatever error
+    they land on; this removes the grid's luck from a ratio). The cheapest front run when it
+    already reaches ``error`` (no extrapolation); nan when no run reaches it."""
+    front = pareto_front(rows)
+    for i, r in enumerate(front):
+        if r["error"] <= error:
+            if i == 0 or not r["error"] > 0:
+                return r["cpu_s"]
+            p = front[i - 1]
+            s = math.log(error / p["error"]) / math.log(r["error"] / p["error"])
+            return math.exp(math.log(p["cpu_s"]) + s * math.log(r["cpu_s"] / p["cpu_s"]))
+    return math.nan
+
+
 def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
     """CPU of closedchain's cheapest run over each peer's cheapest run at each target error.
 
@@ -37,8 +53,9 @@ def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
             targets below it cannot be ranked.
 
     Returns:
-        Rows (scenario, peer, target, ratio, closedchain, peer_run, note): ratio < 1
-        means closedchain needs less CPU.
+        Rows (scenario, peer, target, ratio, interpolated, closedchain, peer_run, note):
+        ratio < 1 means closedchain needs less CPU; ``interpolated`` is the same ratio
+        with each side's CPU at exactly the target (:func:`cpu_at`).
     """
     out = []
     for sc in sorted({r["scenario"] for r in rows}):
@@ -52,6 +69,7 @@ def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
                     peer=peer,
                     target=target,
                     ratio=math.nan,
+                    interpolated=math.nan,
                     closedchain="",
                     peer_run="",
                     note="",
@@ -71,6 +89,7 @@ def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
                     entry["peer_run"] = f"{b['solver']} {b['settings']}"
                 if a and b:
                     entry["ratio"] = a["cpu_s"] / b["cpu_s"]
+                    entry["interpolated"] = cpu_at(mine, target) / cpu_at(theirs, target)
                 elif not b:
                     ok = [r for r in theirs if _ok(r)]
                     if ok:
@@ -92,14 +111,16 @@ def ratio_table(rows: list[dict], agreements: dict[str, float]) -> list[dict]:
 def ratio_markdown(table: list[dict]) -> str:
     """The ratio table as Markdown (closedchain CPU / peer CPU at equal error)."""
     lines = [
-        "| scenario | peer | error <= | closedchain / peer CPU | closedchain run | peer run "
-        "| note |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| scenario | peer | error <= | closedchain / peer CPU | interpolated on the fronts "
+        "| closedchain run | peer run | note |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for e in table:
         ratio = "" if math.isnan(e["ratio"]) else f"{e['ratio']:.3g}"
+        inter = e.get("interpolated", math.nan)
+        inter = "" if math.isnan(inter) else f"{inter:.3g}"
         lines.append(
-            f"| {e['scenario']} | {e['peer']} | {e['target']:.0e} | {ratio} | "
+            f"| {e['scenario']} | {e['peer']} | {e['target']:.0e} | {ratio} | {inter} | "
             f"{e['closedchain']} | {e['peer_run']} | {e['note']} |"
         )
     return "\n".join(lines) + "\n"

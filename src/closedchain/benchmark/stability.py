@@ -22,14 +22,26 @@ from ..dynamics.base import METHOD_CAPABILITIES, METHODS
 from ..exceptions import ClosedChainError
 from ..simulate import INTEGRATORS, STABILIZATIONS, SimulationError
 from .peers import run_closedchain, run_pinocchio_euler
-from .scenarios import SCENARIOS, Scenario, initial_state, load_scenario_mechanism, torque_function
+from .scenarios import (
+    SCENARIOS,
+    Scenario,
+    fresh_compiled_core,
+    initial_state,
+    load_scenario_mechanism,
+    torque_function,
+)
 
 #: A declared constraint row above this is "drift" [m or -].
 DRIFT_ROW_TOL = 1e-6
 #: Step sizes of the map [s] (each divides the output spacing of 0.1 s).
 STEPS = (1e-1, 5e-2, 2e-2, 1e-2, 5e-3, 2e-3)
-#: Output spacing of the map's runs [s].
+#: Output spacing of the map's runs [s]; a larger step is its own output spacing (it must
+#: divide the case's horizon).
 OUTPUT_DT = 0.1
+#: The N-four-bar's steps: the grid goes on to 1 s, since on its parallelogram branch every
+#: Euler step of Pinocchio's loop stays closed (a declared row below 1e-7 at every step up to
+#: 1 s over 2 s), so only a longer horizon and larger steps separate the configurations.
+NFOURBAR_STEPS = (1.0, 0.5, 0.2) + STEPS
 #: The default stabilized fixed-step configuration (always reported beside the best one).
 BEST_FIXED = "kkt/rk4/projection"
 PEER = "pinocchio-euler/baumgarte"
@@ -103,8 +115,14 @@ CASES: dict[str, StabilityCase] = {
             ),
             peer_extra_steps=(1e-3, 5e-4),
         ),
+        # 20 s: about a dozen flat positions. Over 2 s (the case before) Pinocchio's loop
+        # and closedchain's stabilized configurations were ok at every step up to 1 s (ratio
+        # 1 by structure); over 20 s the peer's Euler steps diverge from 0.1 s on.
         StabilityCase(
-            "nfourbar N=2 through flat positions 2 s", SCENARIOS["nfourbar2-singular"], 2.0
+            "nfourbar N=2 through flat positions 20 s",
+            SCENARIOS["nfourbar2-singular"],
+            20.0,
+            steps=NFOURBAR_STEPS,
         ),
         StabilityCase("bricard 2 s", _BRICARD, 2.0),
         StabilityCase(
@@ -124,8 +142,9 @@ CASES: dict[str, StabilityCase] = {
 def stability_configurations() -> list[str]:
     """``method/integrator/stabilization`` names: kkt with every fixed-step integrator and
     every stabilization it supports (an integrator that needs a method capability, such as
-    ALI3-P, with the first method that has it), every method with rk4 and projection, and
-    the peer."""
+    ALI3-P, with the first method that has it), every method with rk4 and projection, every
+    singular-robust method with rk4 and stage projection (the configuration that passes
+    singular positions), and the peer."""
     out = []
     for name, spec in INTEGRATORS.items():
         if spec.kind != "fixed":
@@ -144,8 +163,14 @@ def stability_configurations() -> list[str]:
             if stab in STABILIZATIONS:
                 out.append(f"{method}/{name}/{stab}")
     for method in sorted(METHODS):
-        if method != "kkt" and "rk4" in INTEGRATORS:
-            out.append(f"{method}/rk4/projection")
+        if method == "kkt" or "rk4" not in INTEGRATORS:
+            continue
+        out.append(f"{method}/rk4/projection")
+        if (
+            METHOD_CAPABILITIES[method].singular_robust
+            and "stage-projection" in INTEGRATORS["rk4"].stabilizations
+        ):
+            out.append(f"{method}/rk4/stage-projection")
     out.append(PEER)
     return out
 
@@ -166,10 +191,12 @@ def run_stability_job(job: dict) -> dict:
     c = CASES[job["case"]]
     sc = c.scenario
     mech = load_scenario_mechanism(job["models_dir"], sc)
+    fresh_compiled_core(mech)
     q0, v0 = initial_state(mech, sc)
     tau_fn = torque_function(mech, sc)
-    n = round(c.t_final / OUTPUT_DT)
-    t_grid = np.linspace(0.0, n * OUTPUT_DT, n + 1)
+    spacing = max(OUTPUT_DT, job["step"])
+    n = round(c.t_final / spacing)
+    t_grid = np.linspace(0.0, n * spacing, n + 1)
     out = dict(
         case=job["case"], config=job["config"], step=job["step"], residual=math.nan, message=""
     )
