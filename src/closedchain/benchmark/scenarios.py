@@ -190,11 +190,13 @@ def load_scenario_mechanism(models_dir: str, scenario: Scenario) -> Mechanism:
 def fresh_compiled_core(mech: Mechanism) -> None:
     """Give ``mech`` a newly built shared compiled core, before a job's timer starts.
 
-    The simulator reconfigures the mechanism's shared core at every run, but some state
-    survives a run: on the N-four-bar over 20 s, kkt + rk4 + stage projection at 0.01 s stops
-    at a flat position (t = 4.6 s) on a new core and runs through after a kkt + Euler +
-    partitioning run stopped on the same core. Jobs are independent: each starts from a
-    new core (1.4-2.4 ms to build, outside the timed integration).
+    The simulator reconfigures the mechanism's shared core at every run. A state that
+    survived a run was found this way (a fixed-step partitioning run left the core's
+    rows-only check set, so on the N-four-bar kkt + rk4 + stage projection at 0.01 s ran
+    through the flat position it stops at, t = 4.6 s; fixed in the core, regression test
+    ``tests/test_compiled.py::test_a_partitioning_run_leaves_no_state_in_the_shared_core``);
+    a new core per job keeps the jobs independent whatever else a core may keep (1.4-2.4 ms
+    to build, outside the timed integration).
     """
     from .. import compiled
 
