@@ -192,6 +192,10 @@ class Core {
     tau_const_ = Vec::Zero(nv_);
     zero_v_ = Vec::Zero(nv_);
     kkt_.resize(nv_ + nc_);
+    kkt_m_.resize(nv_);
+    kkt_d_.resize(nc_);
+    kkt_y_ = Mat::Zero(nv_, nc_ + 1);
+    kkt_d_mat_ = Mat::Zero(nc_, nc_);
     x_ = Vec::Zero(nv_ + nc_);
     z_ = Vec::Zero(std::max(nv_ - nc_, 0));
     llt_m_ = Eigen::LLT<Mat>(nv_);
@@ -542,15 +546,29 @@ class Core {
   // accelerations), then the cut frames' placements, velocities and classical
   // accelerations, then the rows. `mark(stage)` is called after each stage
   // (0 tree, 1 frames, 2 rows): a no-op, or py_profile's clock.
+  //
+  // When the last kinematics pass was at q (eval_phi_J(q): the dependent solve of
+  // the partitioning stabilization ends there), data_ already holds the joints'
+  // placements and Jacobian columns and phi_, J_ and the frame placements are
+  // those of q: only the velocity-dependent part of the tree pass and gamma are
+  // computed (tree_terms_at_kinematics; the same arithmetic, the same results).
   template <class Mark>
   void eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
-    J_at_valid_ = false;
-    tree_terms(model_, data_, q, v, M_, h_);
-    mark(0);
-    placements();
-    frame_motion();
-    mark(1);
-    rows(true, true, true);
+    if (J_at_valid_ && q == J_at_) {
+      tree_terms_at_kinematics(model_, data_, q, v, M_, h_);
+      mark(0);
+      frame_motion();
+      mark(1);
+      rows(false, false, true);
+    } else {
+      J_at_valid_ = false;
+      tree_terms(model_, data_, q, v, M_, h_);
+      mark(0);
+      placements();
+      frame_motion();
+      mark(1);
+      rows(true, true, true);
+    }
     if (baumgarte_ && nc_) {
       tmp_c_.noalias() = J_ * v;
       gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
@@ -719,7 +737,83 @@ class Core {
                "the constraint Jacobian has lost rank or the configuration is a singularity", t);
   }
 
+  // The kkt method: first by the Schur complement (solve_kkt_schur), else (M or the
+  // Delassus matrix not numerically positive definite, or cond_1(K) not shown below
+  // cond_max by the bound) by the LU of K with its condition check.
   void solve_kkt(const RefV &q, const Vec &tau, double t) {
+    if (nc_ && nv_ + nc_ < DenseLU::BLOCKED_MIN && solve_kkt_schur(tau)) return;
+    solve_kkt_lu(q, tau, t);
+  }
+
+  // K [a; lam] = [tau - h; -gamma] through the Cholesky factors of M and of the
+  // Delassus matrix D = J M^-1 J^T (SmallLLT): Y = M^-1 [J^T, tau - h],
+  // D lam = J y0 + gamma, a = y0 - Y_J lam; the same solution as the LU of K to
+  // round-off (K is 5 x 5 on the 4-bar: about half the instructions of its LU and
+  // condition bound). Accepted only when cond_1(K) is shown <= cond_max by an upper
+  // bound of ||K^-1||_1 from the block inverse
+  //   K^-1 = [[M^-1 - Y D^-1 Y^T, Y D^-1], [D^-1 Y^T, -D^-1]]   (Y = M^-1 J^T),
+  //   ||K^-1||_1 <= max(bM + |Y|_1 bD |Y|_inf + bD |Y|_inf, |Y|_1 bD + bD),
+  // bM, bD the factors' bounds of ||M^-1||_1, ||D^-1||_1 (SmallLLT::inverse_norm_bound):
+  // then the LU path's estimate (a lower bound of cond_1(K)) could not exceed cond_max
+  // either. Returns false (nothing changed but scratch) otherwise.
+  bool solve_kkt_schur(const Vec &tau) {
+    const Eigen::Index nv = nv_, nc = nc_;
+    if (!kkt_m_.compute(M_)) return false;
+    double *y = kkt_y_.data();  // nv x (nc + 1), column-major
+    for (Eigen::Index r = 0; r < nc; ++r)
+      for (Eigen::Index i = 0; i < nv; ++i) y[i + r * nv] = J_(r, i);
+    for (Eigen::Index i = 0; i < nv; ++i) y[i + nc * nv] = tau[i] - h_[i];
+    for (Eigen::Index c = 0; c <= nc; ++c) {
+      Eigen::Map<Vec> col(y + c * nv, nv);
+      kkt_m_.solveInPlace(col);
+    }
+    double *d = kkt_d_mat_.data();
+    const double *y0 = y + nc * nv;
+    for (Eigen::Index i = 0; i < nc; ++i) {
+      for (Eigen::Index j = 0; j <= i; ++j) {
+        double s = 0.0;
+        for (Eigen::Index k = 0; k < nv; ++k) s += J_(i, k) * y[k + j * nv];
+        d[i + j * nc] = s;
+      }
+      double s = gamma_[i];
+      for (Eigen::Index k = 0; k < nv; ++k) s += J_(i, k) * y0[k];
+      lam_[i] = s;
+    }
+    if (!kkt_d_.compute(kkt_d_mat_)) return false;
+    double anorm = 0.0, y1 = 0.0, yinf = 0.0;  // ||K||_1, ||Y||_1, ||Y||_inf
+    for (Eigen::Index j = 0; j < nv; ++j) {
+      double c = 0.0, ri = 0.0;
+      for (Eigen::Index i = 0; i < nv; ++i) c += std::abs(M_(i, j));
+      for (Eigen::Index r = 0; r < nc; ++r) {
+        c += std::abs(J_(r, j));
+        ri += std::abs(y[j + r * nv]);
+      }
+      anorm = std::max(anorm, c);
+      yinf = std::max(yinf, ri);
+    }
+    for (Eigen::Index r = 0; r < nc; ++r) {
+      double c = 0.0, cy = 0.0;
+      for (Eigen::Index i = 0; i < nv; ++i) {
+        c += std::abs(J_(r, i));
+        cy += std::abs(y[i + r * nv]);
+      }
+      anorm = std::max(anorm, c);
+      y1 = std::max(y1, cy);
+    }
+    const double bM = kkt_m_.inverse_norm_bound(INVERSE_BOUND_MARGIN);
+    const double bD = kkt_d_.inverse_norm_bound(INVERSE_BOUND_MARGIN);
+    const double inv = std::max(bM + y1 * bD * yinf + bD * yinf, y1 * bD + bD);
+    if (!(anorm * inv * (1.0 + INVERSE_BOUND_MARGIN) <= cond_max_)) return false;
+    kkt_d_.solveInPlace(lam_);
+    for (Eigen::Index i = 0; i < nv; ++i) {
+      double s = y0[i];
+      for (Eigen::Index r = 0; r < nc; ++r) s -= y[i + r * nv] * lam_[r];
+      a_[i] = s;
+    }
+    return true;
+  }
+
+  void solve_kkt_lu(const RefV &q, const Vec &tau, double t) {
     // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
     // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
     const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
@@ -851,6 +945,7 @@ class Core {
   bp::tuple py_forward(const Vec &q, const Vec &v, const Vec &tau) {
     check_sizes(q, v);
     if (tau.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
+    J_at_valid_ = false;  // one whole evaluation per call
     solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
     return bp::make_tuple(Vec(a_), Vec(lam_));
   }
@@ -858,7 +953,10 @@ class Core {
   // a at (q, v) for n_eval repetitions inside C++ (the per-evaluation cost in the loop).
   Vec py_repeat(const Vec &q, const Vec &v, const Vec &tau, int n) {
     check_sizes(q, v);
-    for (int i = 0; i < n; ++i) solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < n; ++i) {
+      J_at_valid_ = false;  // a whole evaluation each time (not the kinematics' reuse)
+      solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    }
     return a_;
   }
 
@@ -875,6 +973,7 @@ class Core {
       last = now;
     };
     for (int i = 0; i < n; ++i) {
+      J_at_valid_ = false;
       last = clock::now();
       eval_terms(q, v, mark);
       dispatch(q, tau, std::numeric_limits<double>::quiet_NaN());
@@ -1492,13 +1591,17 @@ class Core {
   //
   // Two savings over the numpy loop, same solution to dependent_tol: the guess of q_D
   // follows the tangent, q_D = warm_D - (J_D^-1 J_I)(warm) (q_I - warm_I) (the numpy
-  // loop starts from warm_D: one Newton iteration more per evaluation), and the
+  // loop starts from warm_D: one Newton iteration more per evaluation; a dense
+  // output of run_adaptive passes q_D from the step's own interpolant instead,
+  // use_out_guess_: one iteration where the tangent took two to four), and the
   // state of the last call is reused when y and the warm start are the same (each
   // step unpacks its end state three times: checks, output, re-partitioning).
   // Returns false when the result came from that memo (J_ and lu_jd_ are then not
   // necessarily those of q).
   bool unpack(const Vec &y, double t, Vec &q, Vec &v) {
     const int m = static_cast<int>(ind_.size());
+    const bool guess = use_out_guess_;
+    use_out_guess_ = false;
     if (unpack_valid_ && y == unpack_y_ && warm_q_ == unpack_warm_) {
       q = unpack_q_;
       v = unpack_v_;
@@ -1510,7 +1613,9 @@ class Core {
       q[ind_[k]] = y[k];
       v[ind_[k]] = y[m + k];
     }
-    if (predictor_valid_ && nc_) {
+    if (guess) {  // a dense output's q_D (run_adaptive)
+      for (int i = 0; i < nc_; ++i) q[dep_[i]] = guess_qD_[i];
+    } else if (predictor_valid_ && nc_) {
       for (int k = 0; k < m; ++k) dqI_[k] = y[k] - warm_q_[ind_[k]];
       tmp_c_.noalias() = Xwarm_ * dqI_;
       for (int i = 0; i < nc_; ++i) q[dep_[i]] -= tmp_c_[i];
@@ -2079,6 +2184,9 @@ class Core {
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
     KD_ = Mat::Zero(nc_, K.cols());
     Mat F(n, dop853::INTERPOLATOR_POWER);
+    // partitioning: the same dense output of q_D from its rates v_D at the stages (KD_),
+    // the guess of the output's dependent solve (as stage_guess for the stages)
+    Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
     auto output = [&](double t, const Vec &yy) {
       if (partitions_) {
         unpack(yy, t, qc, vc);
@@ -2218,28 +2326,55 @@ class Core {
               if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
             F.col(3 + i) = h * tmp;
           }
+          if (partitions_ && nc_) {
+            FD.col(0) = qD_end_ - qD0_;
+            FD.col(1) = h * KD_.col(0) - FD.col(0);
+            FD.col(2) = 2 * FD.col(0) - h * (KD_.col(n_stages) + KD_.col(0));
+            for (int i = 0; i < 4; ++i) {
+              FD.col(3 + i).setZero();
+              for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+                if (dop853::D[i][j] != 0.0) FD.col(3 + i) += (h * dop853::D[i][j]) * KD_.col(j);
+            }
+          }
         } else {
           for (int i = 0; i < 4; ++i) {  // Q = K^T P
             tmp.setZero();
             for (int j = 0; j <= n_stages; ++j)
               if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
             F.col(i) = tmp;
+            if (partitions_ && nc_) {
+              FD.col(i).setZero();
+              for (int j = 0; j <= n_stages; ++j)
+                if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * KD_.col(j);
+            }
           }
         }
         while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
           double x = (pending[ip] - t_old) / h;
+          const bool guess = partitions_ && nc_;
           if (dop) {
             ye.setZero();
+            if (guess) guess_qD_.setZero();
             for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
               ye += F.col(i);
               ye *= (r % 2 == 0) ? x : 1 - x;
+              if (guess) {
+                guess_qD_ += FD.col(i);
+                guess_qD_ *= (r % 2 == 0) ? x : 1 - x;
+              }
             }
             ye += y;
+            if (guess) guess_qD_ += qD0_;
           } else {
             double p = x;
             ye = y;
-            for (int i = 0; i < 4; ++i, p *= x) ye += (h * p) * F.col(i);
+            if (guess) guess_qD_ = qD0_;
+            for (int i = 0; i < 4; ++i, p *= x) {
+              ye += (h * p) * F.col(i);
+              if (guess) guess_qD_ += (h * p) * FD.col(i);
+            }
           }
+          use_out_guess_ = guess;
           output(pending[ip], ye);
           ++ip;
         }
@@ -2440,7 +2575,9 @@ class Core {
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
   Mat M_, J_, Y_, D_, Mr_, JJt_;
   Vec z_;
-  DenseLU kkt_;  // K of the kkt method
+  DenseLU kkt_;  // K of the kkt method (the LU path)
+  SmallLLT kkt_m_, kkt_d_;  // the kkt method's Schur path: M, D = J M^-1 J^T
+  Mat kkt_y_, kkt_d_mat_;   // M^-1 [J^T, tau - h]; D (lower triangle)
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, x_, dq_, tmp_c_, tmp_v_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
   SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
@@ -2505,7 +2642,7 @@ class Core {
   Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
   Mat KD_;     // v_D at the stages of the current adaptive step
   Vec qD0_, KD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
-  bool use_guess_ = false;
+  bool use_guess_ = false, use_out_guess_ = false;
   Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
   bool predictor_valid_ = false, unpack_valid_ = false;
   double sign0_ = 0.0;  // sign of det(J_D) at the first step (0: not yet)
