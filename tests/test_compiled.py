@@ -148,9 +148,9 @@ COND_EDGE = 1e-6
 
 @pytest.mark.parametrize("name", ALL_MECHS)
 def test_kkt_condition_decision_at_the_bound(load_mechanism, name, rng):
-    """The compiled kkt solves by the Schur complement only where its upper bound of
-    cond_1(K) is below cond_max, else by the LU of K: at a cond_max just above the
-    LAPACK estimate (dgecon, numpy backend) it solves as numpy does, just below it
+    """The compiled kkt's condition decision (a cheap bound of cond_1(K) from the LU
+    factors, else the dgecon-style estimate) is LAPACK's: at a cond_max just above
+    the estimate of dgecon (numpy backend) it solves as numpy does, just below it
     raises with that estimate, as numpy does."""
     from closedchain.dynamics.kkt import solve_kkt
 

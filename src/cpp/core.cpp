@@ -192,10 +192,6 @@ class Core {
     tau_const_ = Vec::Zero(nv_);
     zero_v_ = Vec::Zero(nv_);
     kkt_.resize(nv_ + nc_);
-    kkt_m_.resize(nv_);
-    kkt_d_.resize(nc_);
-    kkt_y_ = Mat::Zero(nv_, nc_ + 1);
-    kkt_d_mat_ = Mat::Zero(nc_, nc_);
     x_ = Vec::Zero(nv_ + nc_);
     z_ = Vec::Zero(std::max(nv_ - nc_, 0));
     llt_m_ = Eigen::LLT<Mat>(nv_);
@@ -737,83 +733,7 @@ class Core {
                "the constraint Jacobian has lost rank or the configuration is a singularity", t);
   }
 
-  // The kkt method: first by the Schur complement (solve_kkt_schur), else (M or the
-  // Delassus matrix not numerically positive definite, or cond_1(K) not shown below
-  // cond_max by the bound) by the LU of K with its condition check.
   void solve_kkt(const RefV &q, const Vec &tau, double t) {
-    if (nc_ && nv_ + nc_ < DenseLU::BLOCKED_MIN && solve_kkt_schur(tau)) return;
-    solve_kkt_lu(q, tau, t);
-  }
-
-  // K [a; lam] = [tau - h; -gamma] through the Cholesky factors of M and of the
-  // Delassus matrix D = J M^-1 J^T (SmallLLT): Y = M^-1 [J^T, tau - h],
-  // D lam = J y0 + gamma, a = y0 - Y_J lam; the same solution as the LU of K to
-  // round-off (K is 5 x 5 on the 4-bar: about half the instructions of its LU and
-  // condition bound). Accepted only when cond_1(K) is shown <= cond_max by an upper
-  // bound of ||K^-1||_1 from the block inverse
-  //   K^-1 = [[M^-1 - Y D^-1 Y^T, Y D^-1], [D^-1 Y^T, -D^-1]]   (Y = M^-1 J^T),
-  //   ||K^-1||_1 <= max(bM + |Y|_1 bD |Y|_inf + bD |Y|_inf, |Y|_1 bD + bD),
-  // bM, bD the factors' bounds of ||M^-1||_1, ||D^-1||_1 (SmallLLT::inverse_norm_bound):
-  // then the LU path's estimate (a lower bound of cond_1(K)) could not exceed cond_max
-  // either. Returns false (nothing changed but scratch) otherwise.
-  bool solve_kkt_schur(const Vec &tau) {
-    const Eigen::Index nv = nv_, nc = nc_;
-    if (!kkt_m_.compute(M_)) return false;
-    double *y = kkt_y_.data();  // nv x (nc + 1), column-major
-    for (Eigen::Index r = 0; r < nc; ++r)
-      for (Eigen::Index i = 0; i < nv; ++i) y[i + r * nv] = J_(r, i);
-    for (Eigen::Index i = 0; i < nv; ++i) y[i + nc * nv] = tau[i] - h_[i];
-    for (Eigen::Index c = 0; c <= nc; ++c) {
-      Eigen::Map<Vec> col(y + c * nv, nv);
-      kkt_m_.solveInPlace(col);
-    }
-    double *d = kkt_d_mat_.data();
-    const double *y0 = y + nc * nv;
-    for (Eigen::Index i = 0; i < nc; ++i) {
-      for (Eigen::Index j = 0; j <= i; ++j) {
-        double s = 0.0;
-        for (Eigen::Index k = 0; k < nv; ++k) s += J_(i, k) * y[k + j * nv];
-        d[i + j * nc] = s;
-      }
-      double s = gamma_[i];
-      for (Eigen::Index k = 0; k < nv; ++k) s += J_(i, k) * y0[k];
-      lam_[i] = s;
-    }
-    if (!kkt_d_.compute(kkt_d_mat_)) return false;
-    double anorm = 0.0, y1 = 0.0, yinf = 0.0;  // ||K||_1, ||Y||_1, ||Y||_inf
-    for (Eigen::Index j = 0; j < nv; ++j) {
-      double c = 0.0, ri = 0.0;
-      for (Eigen::Index i = 0; i < nv; ++i) c += std::abs(M_(i, j));
-      for (Eigen::Index r = 0; r < nc; ++r) {
-        c += std::abs(J_(r, j));
-        ri += std::abs(y[j + r * nv]);
-      }
-      anorm = std::max(anorm, c);
-      yinf = std::max(yinf, ri);
-    }
-    for (Eigen::Index r = 0; r < nc; ++r) {
-      double c = 0.0, cy = 0.0;
-      for (Eigen::Index i = 0; i < nv; ++i) {
-        c += std::abs(J_(r, i));
-        cy += std::abs(y[i + r * nv]);
-      }
-      anorm = std::max(anorm, c);
-      y1 = std::max(y1, cy);
-    }
-    const double bM = kkt_m_.inverse_norm_bound(INVERSE_BOUND_MARGIN);
-    const double bD = kkt_d_.inverse_norm_bound(INVERSE_BOUND_MARGIN);
-    const double inv = std::max(bM + y1 * bD * yinf + bD * yinf, y1 * bD + bD);
-    if (!(anorm * inv * (1.0 + INVERSE_BOUND_MARGIN) <= cond_max_)) return false;
-    kkt_d_.solveInPlace(lam_);
-    for (Eigen::Index i = 0; i < nv; ++i) {
-      double s = y0[i];
-      for (Eigen::Index r = 0; r < nc; ++r) s -= y[i + r * nv] * lam_[r];
-      a_[i] = s;
-    }
-    return true;
-  }
-
-  void solve_kkt_lu(const RefV &q, const Vec &tau, double t) {
     // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
     // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
     const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
@@ -1291,10 +1211,11 @@ class Core {
           fid_s[i] >= static_cast<int>(model_.nframes) || loop[i] < 0 ||
           loop[i] >= static_cast<int>(align_names_.size()))
         throw BadArgument{"Core.set_alignment: frame or loop index out of range"};
-      align_.push_back({static_cast<pinocchio::FrameIndex>(fid_p[i]),
-                        static_cast<pinocchio::FrameIndex>(fid_s[i]), u.row(i).transpose(),
+      align_.push_back({frame_index(fid_p[i]), frame_index(fid_s[i]), u.row(i).transpose(),
                         loop[i]});
     }
+    if (R_.size() != fids_.size()) frame_buffers();  // a frame not among the rows' frames
+    J_at_valid_ = false;
   }
 
   void configure_partitioning(const bp::dict &s) {
@@ -1453,11 +1374,8 @@ class Core {
     int last = -1;
     for (const Align &al : align_) {
       if (al.loop == last) continue;  // that loop is already reported
-      const Eigen::Matrix3d Rp = (data_.oMi[model_.frames[al.p].parentJoint] *
-                                  model_.frames[al.p].placement).rotation();
-      const Eigen::Matrix3d Rs = (data_.oMi[model_.frames[al.s].parentJoint] *
-                                  model_.frames[al.s].placement).rotation();
-      if ((Rp * al.u).dot(Rs * al.u) <= 0.0) {
+      // the frames' rotations of placements() at q (the same products as oMi * placement)
+      if ((R_[al.p] * al.u).dot(R_[al.s] * al.u) <= 0.0) {
         bad += (bad.empty() ? "" : ", ") + align_names_[al.loop];
         last = al.loop;
       }
@@ -2575,9 +2493,7 @@ class Core {
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
   Mat M_, J_, Y_, D_, Mr_, JJt_;
   Vec z_;
-  DenseLU kkt_;  // K of the kkt method (the LU path)
-  SmallLLT kkt_m_, kkt_d_;  // the kkt method's Schur path: M, D = J M^-1 J^T
-  Mat kkt_y_, kkt_d_mat_;   // M^-1 [J^T, tau - h]; D (lower triangle)
+  DenseLU kkt_;  // K of the kkt method
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, x_, dq_, tmp_c_, tmp_v_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
   SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
@@ -2628,7 +2544,7 @@ class Core {
   long n_evals_ = 0;
   // the reduced method and coordinate partitioning
   struct Align {
-    pinocchio::FrameIndex p, s;
+    int p, s;  // indices into fids_ (R_, p_)
     Vector3d u;
     int loop;
   };
