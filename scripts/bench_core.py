@@ -2,7 +2,8 @@
 
 1. Per evaluation [us] on the 4-bar and the Agile Eye at a random consistent
    state: the compiled right-hand side called from Python, the same inside the
-   C++ loop (``Core.repeat``), the numpy method, and a tuned
+   C++ loop (``Core.repeat``; methods kkt and augmented-lagrangian, each
+   repetition a whole evaluation), the numpy method, and a tuned
    ``pinocchio.constraintDynamics`` call from Python (containers made once,
    ``ProximalSettings`` of the library's defaults). In-loop cost also as
    (CPU of a 10 s compiled run) / (its evaluations): DOP853 without
@@ -75,12 +76,15 @@ def per_evaluation(name: str, number: int, repeat: int) -> None:
     q, v = cc.random_consistent_state(mech, np.random.default_rng(0))
     tau = np.zeros(mech.nv)
     fd = compiled.compiled_dynamics(mech, "kkt")
+    fd_al = compiled.compiled_dynamics(mech, "augmented-lagrangian")
     cms, cds, pdata, prox = peer_setup(mech)
     kkt = get_method("kkt")
     n_loop = 20 * number
+    loops = {"compiled rhs in the C++ loop": fd, "same, augmented-lagrangian": fd_al}
     rows = {
         "compiled rhs from Python": lambda: fd.forward(q, v, tau),
         "compiled rhs in the C++ loop": None,
+        "same, augmented-lagrangian": None,
         "numpy rhs (method kkt)": lambda: kkt(mech, q, v, tau, DEFAULT_SETTINGS),
         "pin.constraintDynamics (tuned)": lambda: pin.constraintDynamics(
             mech.model, pdata, q, v, tau, cms, cds, prox
@@ -91,7 +95,7 @@ def per_evaluation(name: str, number: int, repeat: int) -> None:
         for label, fn in rows.items():
             if fn is None:
                 t0 = time.process_time()
-                fd.core.repeat(q, v, tau, n_loop)
+                loops[label].core.repeat(q, v, tau, n_loop)
                 res[label].append((time.process_time() - t0) / n_loop * 1e6)
             else:
                 res[label].append(per_call_us(fn, number, 1))

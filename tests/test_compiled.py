@@ -142,6 +142,40 @@ def test_forward_singular_raises(fourbar):
     assert exc.value.t is None
 
 
+#: cond_max just above / below the LAPACK estimate of cond_1(K) (relative).
+COND_EDGE = 1e-6
+
+
+@pytest.mark.parametrize("name", ALL_MECHS)
+def test_kkt_condition_decision_at_the_bound(load_mechanism, name, rng):
+    """The compiled kkt's condition decision (a cheap bound of cond_1(K) from the LU
+    factors, else the dgecon-style estimate) is LAPACK's: at a cond_max just above
+    the estimate of dgecon (numpy backend) it solves as numpy does, just below it
+    raises with that estimate, as numpy does."""
+    from closedchain.dynamics.kkt import solve_kkt
+
+    mech = load_mechanism(name)
+    for _ in range(3):
+        q, v = cc.random_consistent_state(mech, rng)
+        tau = rng.standard_normal(mech.nv)
+        ws = compute_terms(mech, q, v)
+        _, _, rcond, info = solve_kkt(ws.M, ws.J, tau - ws.h, ws.gamma)
+        assert info == 0 and rcond > 0
+        cond = 1.0 / rcond
+        above = cc.SolverSettings(cond_max=cond * (1 + COND_EDGE))
+        a, lam = compiled.compiled_dynamics(mech, "kkt", above).forward(q, v, tau)
+        ref = cc.forward_dynamics(mech, q, v, tau, method="kkt", settings=above)
+        rtol = max(EVAL_RTOL, ROUNDOFF_FACTOR * np.finfo(float).eps * _kappa(mech, q, v))
+        constraint_term = np.linalg.solve(ws.M, ws.J.T @ ref.lam)
+        scale = max(1.0, float(np.max(np.abs(ref.a))), float(np.max(np.abs(constraint_term))))
+        assert np.max(np.abs(a - ref.a)) <= rtol * scale
+        assert _close(lam, ref.lam, rtol)
+        below = cc.SolverSettings(cond_max=cond * (1 - COND_EDGE))
+        with pytest.raises(cc.SingularConfigurationError) as exc:
+            compiled.compiled_dynamics(mech, "kkt", below).forward(q, v, tau)
+        assert exc.value.condition_number == pytest.approx(cond, rel=COND_EDGE / 10)
+
+
 def test_bad_arguments_raise_library_errors(fourbar):
     fd = compiled.compiled_dynamics(fourbar, "kkt")
     with pytest.raises(cc.ClosedChainError, match="shape"):

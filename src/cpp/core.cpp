@@ -542,15 +542,29 @@ class Core {
   // accelerations), then the cut frames' placements, velocities and classical
   // accelerations, then the rows. `mark(stage)` is called after each stage
   // (0 tree, 1 frames, 2 rows): a no-op, or py_profile's clock.
+  //
+  // When the last kinematics pass was at q (eval_phi_J(q): the dependent solve of
+  // the partitioning stabilization ends there), data_ already holds the joints'
+  // placements and Jacobian columns and phi_, J_ and the frame placements are
+  // those of q: only the velocity-dependent part of the tree pass and gamma are
+  // computed (tree_terms_at_kinematics; the same arithmetic, the same results).
   template <class Mark>
   void eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
-    J_at_valid_ = false;
-    tree_terms(model_, data_, q, v, M_, h_);
-    mark(0);
-    placements();
-    frame_motion();
-    mark(1);
-    rows(true, true, true);
+    if (J_at_valid_ && q == J_at_) {
+      tree_terms_at_kinematics(model_, data_, q, v, M_, h_);
+      mark(0);
+      frame_motion();
+      mark(1);
+      rows(false, false, true);
+    } else {
+      J_at_valid_ = false;
+      tree_terms(model_, data_, q, v, M_, h_);
+      mark(0);
+      placements();
+      frame_motion();
+      mark(1);
+      rows(true, true, true);
+    }
     if (baumgarte_ && nc_) {
       tmp_c_.noalias() = J_ * v;
       gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
@@ -851,6 +865,7 @@ class Core {
   bp::tuple py_forward(const Vec &q, const Vec &v, const Vec &tau) {
     check_sizes(q, v);
     if (tau.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
+    J_at_valid_ = false;  // one whole evaluation per call
     solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
     return bp::make_tuple(Vec(a_), Vec(lam_));
   }
@@ -858,7 +873,10 @@ class Core {
   // a at (q, v) for n_eval repetitions inside C++ (the per-evaluation cost in the loop).
   Vec py_repeat(const Vec &q, const Vec &v, const Vec &tau, int n) {
     check_sizes(q, v);
-    for (int i = 0; i < n; ++i) solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    for (int i = 0; i < n; ++i) {
+      J_at_valid_ = false;  // a whole evaluation each time (not the kinematics' reuse)
+      solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    }
     return a_;
   }
 
@@ -875,6 +893,7 @@ class Core {
       last = now;
     };
     for (int i = 0; i < n; ++i) {
+      J_at_valid_ = false;
       last = clock::now();
       eval_terms(q, v, mark);
       dispatch(q, tau, std::numeric_limits<double>::quiet_NaN());
@@ -1192,10 +1211,11 @@ class Core {
           fid_s[i] >= static_cast<int>(model_.nframes) || loop[i] < 0 ||
           loop[i] >= static_cast<int>(align_names_.size()))
         throw BadArgument{"Core.set_alignment: frame or loop index out of range"};
-      align_.push_back({static_cast<pinocchio::FrameIndex>(fid_p[i]),
-                        static_cast<pinocchio::FrameIndex>(fid_s[i]), u.row(i).transpose(),
+      align_.push_back({frame_index(fid_p[i]), frame_index(fid_s[i]), u.row(i).transpose(),
                         loop[i]});
     }
+    if (R_.size() != fids_.size()) frame_buffers();  // a frame not among the rows' frames
+    J_at_valid_ = false;
   }
 
   void configure_partitioning(const bp::dict &s) {
@@ -1355,11 +1375,8 @@ class Core {
     int last = -1;
     for (const Align &al : align_) {
       if (al.loop == last) continue;  // that loop is already reported
-      const Eigen::Matrix3d Rp = (data_.oMi[model_.frames[al.p].parentJoint] *
-                                  model_.frames[al.p].placement).rotation();
-      const Eigen::Matrix3d Rs = (data_.oMi[model_.frames[al.s].parentJoint] *
-                                  model_.frames[al.s].placement).rotation();
-      if ((Rp * al.u).dot(Rs * al.u) <= 0.0) {
+      // the frames' rotations of placements() at q (the same products as oMi * placement)
+      if ((R_[al.p] * al.u).dot(R_[al.s] * al.u) <= 0.0) {
         bad += (bad.empty() ? "" : ", ") + align_names_[al.loop];
         last = al.loop;
       }
@@ -1493,13 +1510,17 @@ class Core {
   //
   // Two savings over the numpy loop, same solution to dependent_tol: the guess of q_D
   // follows the tangent, q_D = warm_D - (J_D^-1 J_I)(warm) (q_I - warm_I) (the numpy
-  // loop starts from warm_D: one Newton iteration more per evaluation), and the
+  // loop starts from warm_D: one Newton iteration more per evaluation; a dense
+  // output of run_adaptive passes q_D from the step's own interpolant instead,
+  // use_out_guess_: one iteration where the tangent took two to four), and the
   // state of the last call is reused when y and the warm start are the same (each
   // step unpacks its end state three times: checks, output, re-partitioning).
   // Returns false when the result came from that memo (J_ and lu_jd_ are then not
   // necessarily those of q).
   bool unpack(const Vec &y, double t, Vec &q, Vec &v) {
     const int m = static_cast<int>(ind_.size());
+    const bool guess = use_out_guess_;
+    use_out_guess_ = false;
     if (unpack_valid_ && y == unpack_y_ && warm_q_ == unpack_warm_) {
       q = unpack_q_;
       v = unpack_v_;
@@ -1511,7 +1532,9 @@ class Core {
       q[ind_[k]] = y[k];
       v[ind_[k]] = y[m + k];
     }
-    if (predictor_valid_ && nc_) {
+    if (guess) {  // a dense output's q_D (run_adaptive)
+      for (int i = 0; i < nc_; ++i) q[dep_[i]] = guess_qD_[i];
+    } else if (predictor_valid_ && nc_) {
       for (int k = 0; k < m; ++k) dqI_[k] = y[k] - warm_q_[ind_[k]];
       tmp_c_.noalias() = Xwarm_ * dqI_;
       for (int i = 0; i < nc_; ++i) q[dep_[i]] -= tmp_c_[i];
@@ -2082,6 +2105,9 @@ class Core {
     Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
     KD_ = Mat::Zero(nc_, K.cols());
     Mat F(n, dop853::INTERPOLATOR_POWER);
+    // partitioning: the same dense output of q_D from its rates v_D at the stages (KD_),
+    // the guess of the output's dependent solve (as stage_guess for the stages)
+    Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
     auto output = [&](double t, const Vec &yy) {
       if (partitions_) {
         unpack(yy, t, qc, vc);
@@ -2221,28 +2247,55 @@ class Core {
               if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
             F.col(3 + i) = h * tmp;
           }
+          if (partitions_ && nc_) {
+            FD.col(0) = qD_end_ - qD0_;
+            FD.col(1) = h * KD_.col(0) - FD.col(0);
+            FD.col(2) = 2 * FD.col(0) - h * (KD_.col(n_stages) + KD_.col(0));
+            for (int i = 0; i < 4; ++i) {
+              FD.col(3 + i).setZero();
+              for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+                if (dop853::D[i][j] != 0.0) FD.col(3 + i) += (h * dop853::D[i][j]) * KD_.col(j);
+            }
+          }
         } else {
           for (int i = 0; i < 4; ++i) {  // Q = K^T P
             tmp.setZero();
             for (int j = 0; j <= n_stages; ++j)
               if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
             F.col(i) = tmp;
+            if (partitions_ && nc_) {
+              FD.col(i).setZero();
+              for (int j = 0; j <= n_stages; ++j)
+                if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * KD_.col(j);
+            }
           }
         }
         while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
           double x = (pending[ip] - t_old) / h;
+          const bool guess = partitions_ && nc_;
           if (dop) {
             ye.setZero();
+            if (guess) guess_qD_.setZero();
             for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
               ye += F.col(i);
               ye *= (r % 2 == 0) ? x : 1 - x;
+              if (guess) {
+                guess_qD_ += FD.col(i);
+                guess_qD_ *= (r % 2 == 0) ? x : 1 - x;
+              }
             }
             ye += y;
+            if (guess) guess_qD_ += qD0_;
           } else {
             double p = x;
             ye = y;
-            for (int i = 0; i < 4; ++i, p *= x) ye += (h * p) * F.col(i);
+            if (guess) guess_qD_ = qD0_;
+            for (int i = 0; i < 4; ++i, p *= x) {
+              ye += (h * p) * F.col(i);
+              if (guess) guess_qD_ += (h * p) * FD.col(i);
+            }
           }
+          use_out_guess_ = guess;
           output(pending[ip], ye);
           ++ip;
         }
@@ -2494,7 +2547,7 @@ class Core {
   long n_evals_ = 0;
   // the reduced method and coordinate partitioning
   struct Align {
-    pinocchio::FrameIndex p, s;
+    int p, s;  // indices into fids_ (R_, p_)
     Vector3d u;
     int loop;
   };
@@ -2508,7 +2561,7 @@ class Core {
   Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
   Mat KD_;     // v_D at the stages of the current adaptive step
   Vec qD0_, KD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
-  bool use_guess_ = false;
+  bool use_guess_ = false, use_out_guess_ = false;
   Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
   bool predictor_valid_ = false, unpack_valid_ = false;
   double sign0_ = 0.0;  // sign of det(J_D) at the first step (0: not yet)

@@ -29,11 +29,28 @@
 #include <pinocchio/multibody/visitor.hpp>
 #include <pinocchio/spatial/act-on-set.hpp>
 
+#include <type_traits>
+
 namespace closedchain {
 namespace tree_terms_detail {
 
 using Model = pinocchio::Model;
 using Data = pinocchio::Data;
+
+// The velocity-dependent quantities of joint i (world frame) from its calc's v_J and
+// c_J and its placement data.oMi[i]: ov, oa, oYcrb, of (the formulas above).
+template <typename JointData>
+inline void forward_motion(const pinocchio::JointDataBase<JointData> &jdata, const Model &model,
+                           Data &data, pinocchio::JointIndex i) {
+  const pinocchio::JointIndex parent = model.parents[i];
+  const pinocchio::SE3 &oMi = data.oMi[i];
+  const pinocchio::Motion ovJ = oMi.act(jdata.v());
+  data.ov[i] = data.ov[parent] + ovJ;
+  data.oa[i] = data.oa[parent] + oMi.act(jdata.c()) + (data.ov[i] ^ ovJ);
+  data.oYcrb[i] = oMi.act(model.inertias[i]);
+  const pinocchio::Force oh = data.oYcrb[i] * data.ov[i];
+  data.of[i] = data.oYcrb[i] * (data.oa[i] - model.gravity) + data.ov[i].cross(oh);
+}
 
 template <typename ConfigVectorType, typename TangentVectorType>
 struct ForwardStep
@@ -59,15 +76,38 @@ struct ForwardStep
       data.oMi[i] = data.oMi[parent] * data.liMi[i];
     else
       data.oMi[i] = data.liMi[i];
-    const pinocchio::SE3 &oMi = data.oMi[i];
     ColsBlock J_cols = jmodel.jointCols(data.J);
-    J_cols = oMi.act(jdata.S());
-    const pinocchio::Motion ovJ = oMi.act(jdata.v());
-    data.ov[i] = data.ov[parent] + ovJ;
-    data.oa[i] = data.oa[parent] + oMi.act(jdata.c()) + (data.ov[i] ^ ovJ);
-    data.oYcrb[i] = oMi.act(model.inertias[i]);
-    const pinocchio::Force oh = data.oYcrb[i] * data.ov[i];
-    data.of[i] = data.oYcrb[i] * (data.oa[i] - model.gravity) + data.ov[i].cross(oh);
+    J_cols = data.oMi[i].act(jdata.S());
+    forward_motion(jdata, model, data, i);
+  }
+};
+
+// The velocity-dependent part of ForwardStep at (q, v) when the kinematics at q
+// (calc(q), liMi, oMi, J: pinocchio::computeJointJacobians(q)) are already in data:
+// the joint's velocity from calc(Blank, v) where its bias c is structurally zero
+// (revolute, prismatic, helical, planar, spherical, translation, free-flyer: v_J
+// = S qdot, the same arithmetic as calc(q, v)), else from the full calc(q, v) (c
+// depends on q and v: spherical-ZYX, universal, ellipsoid, composite).
+template <typename ConfigVectorType, typename TangentVectorType>
+struct MotionStep
+    : public pinocchio::fusion::JointUnaryVisitorBase<
+          MotionStep<ConfigVectorType, TangentVectorType>> {
+  typedef boost::fusion::vector<const Model &, Data &, const ConfigVectorType &,
+                                const TangentVectorType &>
+      ArgsType;
+
+  template <typename JointModel>
+  static void algo(const pinocchio::JointModelBase<JointModel> &jmodel,
+                   pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
+                   const Model &model, Data &data,
+                   const Eigen::MatrixBase<ConfigVectorType> &q,
+                   const Eigen::MatrixBase<TangentVectorType> &v) {
+    typedef typename pinocchio::traits<typename JointModel::JointDerived>::Bias_t Bias;
+    if constexpr (std::is_same<Bias, pinocchio::MotionZeroTpl<double, 0>>::value)
+      jmodel.calc(jdata.derived(), pinocchio::Blank(), v.derived());
+    else
+      jmodel.calc(jdata.derived(), q.derived(), v.derived());
+    forward_motion(jdata, model, data, jmodel.id());
   }
 };
 
@@ -93,6 +133,23 @@ struct BackwardStep : public pinocchio::fusion::JointUnaryVisitorBase<BackwardSt
   }
 };
 
+// The root's quantities before the forward pass.
+inline void start(Data &data) {
+  data.ov[0].setZero();
+  data.oa[0].setZero();
+  data.oYcrb[0].setZero();
+  data.of[0].setZero();
+}
+
+// The backward pass after the forward one: M (armature on the diagonal, both
+// triangles) and h.
+inline void backward(const Model &model, Data &data, Eigen::MatrixXd &M, Eigen::VectorXd &h) {
+  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i)
+    BackwardStep::run(model.joints[i], BackwardStep::ArgsType(model, data, M, h));
+  M.diagonal() += model.armature;
+  M.triangularView<Eigen::StrictlyLower>() = M.transpose();
+}
+
 }  // namespace tree_terms_detail
 
 // M (full, symmetric) and h = nonLinearEffects(q, v) into M, h; data.oMi, data.J
@@ -104,18 +161,30 @@ void tree_terms(const pinocchio::Model &model, pinocchio::Data &data,
                 const Eigen::MatrixBase<TangentVectorType> &v, Eigen::MatrixXd &M,
                 Eigen::VectorXd &h) {
   using namespace tree_terms_detail;
-  data.ov[0].setZero();
-  data.oa[0].setZero();
-  data.oYcrb[0].setZero();
-  data.of[0].setZero();
+  start(data);
   typedef ForwardStep<ConfigVectorType, TangentVectorType> Pass1;
   for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i)
     Pass1::run(model.joints[i], data.joints[i],
                typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
-  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i)
-    BackwardStep::run(model.joints[i], BackwardStep::ArgsType(model, data, M, h));
-  M.diagonal() += model.armature;
-  M.triangularView<Eigen::StrictlyLower>() = M.transpose();
+  backward(model, data, M, h);
+}
+
+// tree_terms(q, v) when data already holds the kinematics at q (calc(q), liMi,
+// oMi and J of pinocchio::computeJointJacobians(model, data, q), e.g. the last
+// Newton iterate of the dependent-coordinate solve): the velocity-dependent
+// forward quantities and the backward pass only; the same M, h, ov, oa.
+template <typename ConfigVectorType, typename TangentVectorType>
+void tree_terms_at_kinematics(const pinocchio::Model &model, pinocchio::Data &data,
+                              const Eigen::MatrixBase<ConfigVectorType> &q,
+                              const Eigen::MatrixBase<TangentVectorType> &v,
+                              Eigen::MatrixXd &M, Eigen::VectorXd &h) {
+  using namespace tree_terms_detail;
+  start(data);
+  typedef MotionStep<ConfigVectorType, TangentVectorType> Pass1;
+  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i)
+    Pass1::run(model.joints[i], data.joints[i],
+               typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
+  backward(model, data, M, h);
 }
 
 }  // namespace closedchain
