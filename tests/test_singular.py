@@ -349,6 +349,10 @@ ALI3P_LANDING_DT = ALI3P_DT
 #: 1.3e-2 and the other branch (crank angle off by 5.1 rad) at -1e-6 rad, Newton stalled
 #: at 1e-5 and 1e-7 rad).
 ALI3P_LANDING_RATE_TOL = 1e-8
+#: Compiled against numpy ALI3-P through a flat position (same splits) [rad; rad/s times
+#: dt]: the Newton tolerance ali3p_tol (a correction e left in the displacement is e in q
+#: and 2 e / h in v).
+ALI3P_LANDING_BACKEND_TOL = 1e-10
 
 
 @pytest.mark.parametrize("x", LANDINGS)
@@ -358,12 +362,20 @@ def test_ali3p_steps_through_a_flat_position_wherever_they_land(nfourbar_mech, x
     n, dt = 5, ALI3P_LANDING_DT
     mech = nfourbar_mech(n)
     q0, v0, (theta, rate) = _landing_case(mech, n, x, dt)
-    traj = simulate(
-        mech, q0, v0, 3 * dt, integrator="ali3p", dt=dt, t_eval=np.linspace(0.0, 3 * dt, 4)
-    )
-    assert abs(traj.v[-1, 0] - rate) <= ALI3P_LANDING_RATE_TOL
-    assert abs(traj.q[-1, 0] - theta) <= ALI3P_LANDING_RATE_TOL * dt
-    assert traj.max_constraint_residual <= RESIDUAL_TOL
+    grid = np.linspace(0.0, 3 * dt, 4)
+    runs = {
+        b: simulate(mech, q0, v0, 3 * dt, integrator="ali3p", dt=dt, t_eval=grid, backend=b)
+        for b in BACKENDS
+    }
+    for traj in runs.values():
+        assert abs(traj.v[-1, 0] - rate) <= ALI3P_LANDING_RATE_TOL
+        assert abs(traj.q[-1, 0] - theta) <= ALI3P_LANDING_RATE_TOL * dt
+        assert traj.max_constraint_residual <= RESIDUAL_TOL
+    if len(runs) == 2:
+        a, b = runs["compiled"], runs["numpy"]
+        assert a.info["singular_splits"] == b.info["singular_splits"]
+        assert np.max(np.abs(a.q - b.q)) <= ALI3P_LANDING_BACKEND_TOL
+        assert np.max(np.abs(a.v - b.v)) <= ALI3P_LANDING_BACKEND_TOL / dt
 
 
 #: ALI3-P (second order) at 1 ms over 2 s on N = 2: B0 error measured 2.4e-7 m.
