@@ -26,8 +26,12 @@ namespace closedchain {
 //: corrections stop shrinking by at least ALI3P_STALL per iteration (simulate/ali3p.py).
 constexpr double ALI3P_TOL_FLOOR = 1e-4;
 constexpr double ALI3P_STALL = 0.5;
-//: First substep of a step pair around a crossing, in steps (ALI3P_SPLIT of ali3p.py).
+//: First substep of a step pair around a crossing before the grid point, in steps
+//: (2 - ALI3P_SPLIT after it), and the zone rule's constants (ali3p.py: ALI3P_SPLIT,
+//: ALI3P_ENFORCED, ALI3P_ZONE_MAX).
 constexpr double ALI3P_SPLIT = 1.5;
+constexpr double ALI3P_ENFORCED = 10.0;
+constexpr double ALI3P_ZONE_MAX = 0.5;
 
 // The settings of one run (SimulationSettings.ali3p_*).
 struct Ali3pSettings {
@@ -146,24 +150,36 @@ class Ali3pLoop {
     // last two states (before the first step: q(-dt) by Taylor's expansion), and a step
     // that would end near it is taken with the next one as 1.5 + 0.5 steps.
     const double zone = c.singular_zone_;
+    const double sigma_min = std::sqrt(ALI3P_ENFORCED / s_.penalty);
     long splits = 0;
     lam_star = lam;
-    double rho_now = c.rank_indicator(q);
+    double rho_now = indicator(q);
     dq = -dt * v + (0.5 * dt * dt) * a;
     pinocchio::integrate(c.model_, q, dq, qn);
-    double rho_prev = c.rank_indicator(qn);
+    double rho_prev = indicator(qn);
     double gap = 1.0;
     for (long k = 1; k <= n_steps; ++k) {
-      const double tc = rho_now < rho_prev ? gap * rho_now / (rho_prev - rho_now)
-                                           : std::numeric_limits<double>::infinity();
+      // The crossing [steps after t] and the zone around it: singular_zone steps, or
+      // where the indicator is predicted below sigma_min.
+      double tc = std::numeric_limits<double>::infinity(), zone_k = zone;
+      if (rho_now < rho_prev) {
+        const double slope = (rho_prev - rho_now) / gap;
+        tc = rho_now / slope;
+        if (zone > 0.0) zone_k = std::max(zone, std::min(ALI3P_ZONE_MAX, sigma_min / slope));
+      }
       gap = 1.0;
-      if (std::abs(tc - 1.0) < zone) {
-        const double h1 = ALI3P_SPLIT * dt, h2 = (2.0 - ALI3P_SPLIT) * dt;
+      if (std::abs(tc - 1.0) < zone_k) {
+        const double h1 = (tc <= 1.0 ? ALI3P_SPLIT : 2.0 - ALI3P_SPLIT) * dt, h2 = 2.0 * dt - h1;
         advance(t + h1, q, v, a, lam_star, h1, q1, v1, a1, lam1);
         advance(t + 2 * dt, q1, v1, a1, lam_star, h2, qn, vn, an, lam);
         ++splits;
         gap = 2.0;
-        if (out[k]) record_hermite(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1, lam1);
+        if (out[k]) {
+          if (h1 > dt)
+            record_hermite(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1, lam1);
+          else
+            record_hermite(S, k * dt, (dt - h1) / h2, h2, q1, v1, a1, qn, vn, an, lam);
+        }
         c.poll(k, k * dt, progress);
         if (k == n_steps) break;  // the step beyond t_final only served the output
         ++k;
@@ -175,7 +191,7 @@ class Ali3pLoop {
       a.swap(an);
       t = k * dt;
       rho_prev = rho_now;
-      rho_now = c.rank_indicator(q);  // J at q from advance's last evaluation
+      rho_now = indicator(q);  // J at q from advance's last evaluation
       if (out[k]) {
         c.a_ = a;
         c.lam_ = lam;
@@ -191,6 +207,30 @@ class Ali3pLoop {
   }
 
  private:
+  // The rank indicator of J at q (Core::rank_indicator, fixed.rank_indicator): sqrt of
+  // the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations from
+  // the ones vector, relative to its mean eigenvalue, capped. With a narrow row band
+  // (set_band's banded_n) J J^T is factorized as a band, x^T J J^T x = |J^T x|^2: O(nc)
+  // instead of the dense product and Cholesky, O(nc^3) (the same quantity to round-off).
+  double indicator(const Vec &q) {
+    CoreT &c = c_;
+    const int nc = c.nc_;
+    if (!c.band_n_ || nc == 0) return c.rank_indicator(q);
+    c.eval_phi_J(q);
+    c.assemble_normal_band(0.0);
+    const double ref = c.bn_.A.row(0).sum() / nc;
+    if (!(ref > 0.0)) return 0.0;
+    if (!c.bn_.factor()) return 0.0;
+    wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc)));
+    for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
+      c.bn_.solve_in_place(wc_);
+      wc_ /= wc_.norm();
+    }
+    jt_mul(wc_, dqi_);
+    const double mu = dqi_.squaredNorm();
+    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+  }
+
   // f = M x (the band path: over M's structural hulls).
   void m_mul(const Vec &x, Vec &f) {
     if (c_.band_p_) {
