@@ -153,6 +153,12 @@ static const char *const PASSING_HINT =
 enum Method { KKT = 0, SCHUR = 1, NULLSPACE = 2, AUGMENTED_LAGRANGIAN = 3, REDUCED = 4 };
 enum Integrator { EULER = 0, SEMI_IMPLICIT = 1, RK4 = 2, RK45 = 3, DOP853 = 4 };
 
+}  // namespace closedchain
+
+#include "ali3p.hpp"  // after the errors and fmt it uses
+
+namespace closedchain {
+
 struct Row {
   int kind;  // 0 world translation, 1 translation along n in c1, 2 rotation
   int p, s;  // indices into the Core's frame list
@@ -161,6 +167,8 @@ struct Row {
 };
 
 class Core {
+  template <class> friend class Ali3pLoop;  // the ALI3-P loop (ali3p.hpp)
+
  public:
   Core(bp::object model_obj, const std::string &name, const Eigen::VectorXi &kinds,
        const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &vec1,
@@ -2004,6 +2012,28 @@ class Core {
     return samples_dict(S, n_steps);
   }
 
+  // The ALI3-P integrator (ali3p.hpp) at the fixed step dt for n_steps, recording at
+  // the steps in out_steps; settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter,
+  // ali3p_penalty).
+  bp::dict run_ali3p(const Vec &q0, const Vec &v0, double dt, long n_steps,
+                     const Eigen::VectorXi &out_steps, bp::tuple settings, bp::object progress) {
+    check_sizes(q0, v0);
+    if (bp::len(settings) != 4)
+      throw BadArgument{"run_ali3p: settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter, "
+                        "ali3p_penalty)"};
+    Ali3pSettings s;
+    s.tol = bp::extract<double>(settings[0]);
+    s.phi_tol = bp::extract<double>(settings[1]);
+    s.max_iter = bp::extract<int>(settings[2]);
+    s.penalty = bp::extract<double>(settings[3]);
+    if (!(dt > 0.0) || n_steps < 0 || s.max_iter < 1)
+      throw BadArgument{"run_ali3p: dt > 0, n_steps >= 0 and ali3p_max_iter >= 1 required"};
+    std::vector<char> out(n_steps + 1, 0);
+    for (Eigen::Index i = 0; i < out_steps.size(); ++i)
+      if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+    return Ali3pLoop<Core>(*this, s).run(q0, v0, dt, n_steps, out, progress);
+  }
+
   // -- adaptive explicit Runge-Kutta (scipy's RK45 / DOP853, same error control) --
 
   double rms(const Vec &x) const { return x.norm() / std::sqrt(static_cast<double>(x.size())); }
@@ -2620,6 +2650,10 @@ BOOST_PYTHON_MODULE(_core) {
       .def("run_fixed", &Core::run_fixed,
            bp::args("self", "integrator", "q0", "v0", "dt", "n_steps", "out_steps", "projects",
                     "progress"))
+      .def("run_ali3p", &Core::run_ali3p,
+           bp::args("self", "q0", "v0", "dt", "n_steps", "out_steps", "settings", "progress"),
+           "ALI3-P (index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal "
+           "projections); settings = (tol, phi_tol, max_iter, penalty).")
       .def("run_adaptive", &Core::run_adaptive,
            bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
                     "projects", "progress"))

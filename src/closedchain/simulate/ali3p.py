@@ -80,9 +80,20 @@ _BUFFERS = "augmented-lagrangian"  # shares the method's factorization buffers
 #: corrections stop shrinking by at least ALI3P_STALL per iteration (round-off floor).
 ALI3P_TOL_FLOOR = 1e-4
 ALI3P_STALL = 0.5
-#: First substep of a step pair around a crossing, in steps (its end is 0.5 step from
-#: the skipped grid point, where the crossing is).
+#: First substep of a step pair around a crossing that comes before the grid point, in
+#: steps (its end is 0.5 step from the skipped grid point, near which the crossing is);
+#: 2 - ALI3P_SPLIT when the crossing comes after it.
 ALI3P_SPLIT = 1.5
+#: The multiplier update enforces a row of relative singular value sigma at the rate
+#: 1 / (1 + rho sigma^2) per Newton iteration (rho = ali3p_penalty): no step ends where
+#: the rank indicator (about sigma) is predicted below sqrt(ALI3P_ENFORCED / rho), 1e-5
+#: at rho = 1e11, even beyond singular_zone steps from the crossing (N-four-bar N = 40,
+#: dt 0.2 ms: a step ending 0.095 step past the first flat position, indicator 2.9e-6,
+#: rho sigma^2 = 0.8, stalled at corrections of 4e-10 for 500 iterations).
+ALI3P_ENFORCED = 10.0
+#: ... within at most this many steps of the crossing (the ends of the 1.5 + 0.5 or
+#: 0.5 + 1.5 substeps then stay at least 0.5 step away from it).
+ALI3P_ZONE_MAX = 0.5
 
 
 def run_ali3p(
@@ -215,12 +226,16 @@ def run_ali3p(
     # sigma^2) per Newton iteration: a step ending within about sqrt(4 m / (h^2 alpha))
     # of the crossing leaves the row unenforced (N-four-bar N = 5, dt 0.2 ms, a step
     # ending 0.002 step before the crossing: 27 iterations, crank angle off by 2.7e-6
-    # rad). Steps therefore never end within singular_zone steps of a crossing: its
-    # time is extrapolated from the rank indicator at the last two states (before the
-    # first step: q(-dt) by Taylor's expansion), and a step that would end near it is
-    # taken with the next one as two unequal substeps, 1.5 and 0.5 steps (the skipped
-    # grid point's state is interpolated for the output only), as rk4 does.
+    # rad). Steps therefore never end within singular_zone steps of a crossing, nor
+    # where the rank indicator is predicted below sigma_min (ALI3P_ENFORCED; many loops
+    # make the indicator grow slowly with the distance): the crossing's time is
+    # extrapolated from the rank indicator at the last two states (before the first
+    # step: q(-dt) by Taylor's expansion), and a step that would end near it is taken
+    # with the next one as two unequal substeps, 1.5 and 0.5 steps (0.5 and 1.5 when
+    # the crossing comes after the grid point; the skipped grid point's state is
+    # interpolated for the output only), as rk4 does.
     zone = s.singular_zone
+    sigma_min = math.sqrt(ALI3P_ENFORCED / s.ali3p_penalty)
     splits = 0
     lam_star = lam.copy()
     rho_now = indicator()  # J at q from the first evaluation
@@ -230,17 +245,30 @@ def run_ali3p(
     gap = 1.0  # steps between the two indicators
     k = 1
     while k <= n_steps:
-        # Crossing time [steps after t], linear through the last two grid points.
-        tc = gap * rho_now / (rho_prev - rho_now) if rho_now < rho_prev else math.inf
+        # Crossing time [steps after t], linear through the last two grid points, and
+        # the zone around it: singular_zone steps, or where the indicator is predicted
+        # below sigma_min (slope: the indicator's change per step).
+        tc, zone_k = math.inf, zone
+        if rho_now < rho_prev:
+            slope = (rho_prev - rho_now) / gap
+            tc = rho_now / slope
+            if zone > 0.0:
+                zone_k = max(zone, min(ALI3P_ZONE_MAX, sigma_min / slope))
         gap = 1.0
-        if abs(tc - 1.0) < zone:
-            h1, h2 = ALI3P_SPLIT * dt, (2.0 - ALI3P_SPLIT) * dt
+        if abs(tc - 1.0) < zone_k:
+            h1 = (ALI3P_SPLIT if tc <= 1.0 else 2.0 - ALI3P_SPLIT) * dt
+            h2 = 2.0 * dt - h1
             q1, v1, a1, lam_star, lam1 = advance(t + h1, q, v, a, lam_star, h1)
             q_new, v_new, a_new, lam_star, lam = advance(t + 2 * dt, q1, v1, a1, lam_star, h2)
             splits += 1
             gap = 2.0
             if outputs.take(k):
-                _record_hermite(model, recorder, k * dt, dt / h1, h1, (q, v, a), (q1, v1, a1), lam1)
+                if h1 > dt:
+                    ends, s_k, h_k, lam_k = ((q, v, a), (q1, v1, a1)), dt / h1, h1, lam1
+                else:
+                    ends, s_k, h_k = ((q1, v1, a1), (q_new, v_new, a_new)), (dt - h1) / h2, h2
+                    lam_k = lam
+                _record_hermite(model, recorder, k * dt, s_k, h_k, *ends, lam_k)
             if progress is not None:
                 progress(k * dt)
             if k == n_steps:  # the step beyond t_final only served the output

@@ -1,6 +1,6 @@
 """Whole-trajectory integration in the compiled core (``backend="compiled"`` entries).
 
-The loops of :mod:`.fixed` and :mod:`.adaptive` (same output grid, projection,
+The loops of :mod:`.fixed`, :mod:`.adaptive` and :mod:`.ali3p` (same output grid, projection,
 stage projection, coordinate partitioning with re-partitioning, regularity
 check, drift limit, error control of scipy's RK45/DOP853 with the same dense
 output) run in C++; the right-hand side never
@@ -129,4 +129,30 @@ def run_adaptive_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
+    return _finish(problem, core, recorder, out, info)
+
+
+def run_ali3p_compiled(
+    problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
+) -> int:
+    """ALI3-P in C++ (src/cpp/ali3p.hpp, the algorithm of :mod:`.ali3p` step for step,
+    with the band Cholesky of M + alpha J^T J where the numpy backend uses one);
+    return the number of steps."""
+    core = _prepare(problem, info, stab)
+    s = problem.settings
+    dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
+    info["dt"] = dt
+    out = core.run_ali3p(
+        np.asarray(q, dtype=float),
+        np.asarray(v, dtype=float),
+        float(dt),
+        int(n_steps),
+        np.arange(n_steps + 1, dtype=np.int32)
+        if out_steps is None
+        else np.asarray(out_steps, dtype=np.int32),
+        (float(s.ali3p_tol), float(s.ali3p_phi_tol), int(s.ali3p_max_iter), float(s.ali3p_penalty)),
+        progress,
+    )
+    info["ali3p_alpha"] = float(out["ali3p_alpha"])
+    info["newton_iterations"] = int(out["newton_iterations"])
     return _finish(problem, core, recorder, out, info)

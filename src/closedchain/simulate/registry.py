@@ -220,3 +220,18 @@ if compiled.available():
                 description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
             )
         )
+    _ref = INTEGRATORS["ali3p"]
+    register_integrator(
+        IntegratorSpec(
+            "ali3p",
+            "fixed",
+            compiled_loops.run_ali3p_compiled,
+            _ref.order,
+            backend="compiled",
+            stabilizations=_ref.stabilizations,
+            default_stabilization=_ref.default_stabilization,
+            method_capabilities=_ref.method_capabilities,
+            singular_robust=True,
+            description="ALI3-P, loop in C++ (compiled core)",
+        )
+    )

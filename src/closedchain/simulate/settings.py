@@ -67,8 +67,10 @@ class SimulationSettings:
             this many steps away from a singular position (a crossing of assembly
             branches): a step whose end or midpoint is estimated closer to one is
             retaken in two unequal substeps (see ``closedchain.simulate.fixed``);
-            ALI3-P keeps its step ends this far away (a step estimated to end
-            closer is taken with the next as 1.5 + 0.5 steps; see
+            ALI3-P keeps its step ends this far away, and farther (up to half a
+            step) where J's rank indicator would be below sqrt(10 / ali3p_penalty)
+            there (many loops: N-four-bar N = 40), a step estimated to end
+            closer being taken with the next as 1.5 + 0.5 or 0.5 + 1.5 steps (see
             ``closedchain.simulate.ali3p``); 0 turns this off.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold

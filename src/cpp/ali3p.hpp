@@ -1,0 +1,356 @@
+// closedchain._core: the ALI3-P integrator (included by core.cpp).
+//
+// Index-3 augmented Lagrangian integrated by the implicit trapezoidal rule with
+// Newton iterations, then mass-orthogonal projections of the velocities and
+// accelerations (Bayo & Ledesma 1996; Cuadrado, Cardenal, Morer & Bayo 2000):
+// the algorithm of closedchain/simulate/ali3p.py, step for step (same predictor,
+// multiplier update, stopping rules, projections, singular-zone rule and output),
+// on the Core's pieces: the single tree pass (eval_terms), the rows, and the band
+// Cholesky of P = M + alpha J^T J (set_band) when the numpy backend uses one.
+//
+// Ali3pLoop<Core> is a friend of Core (it reads the Core's buffers); one object per
+// run owns the run's own vectors, sized once (no allocation inside the steps).
+
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <string>
+
+namespace closedchain {
+
+//: Newton stops below ali3p_tol once a correction is this fraction of it, or once the
+//: corrections stop shrinking by at least ALI3P_STALL per iteration (simulate/ali3p.py).
+constexpr double ALI3P_TOL_FLOOR = 1e-4;
+constexpr double ALI3P_STALL = 0.5;
+//: First substep of a step pair around a crossing before the grid point, in steps
+//: (2 - ALI3P_SPLIT after it), and the zone rule's constants (ali3p.py: ALI3P_SPLIT,
+//: ALI3P_ENFORCED, ALI3P_ZONE_MAX).
+constexpr double ALI3P_SPLIT = 1.5;
+constexpr double ALI3P_ENFORCED = 10.0;
+constexpr double ALI3P_ZONE_MAX = 0.5;
+
+// The settings of one run (SimulationSettings.ali3p_*).
+struct Ali3pSettings {
+  double tol = 1e-10;
+  double phi_tol = 1e-13;
+  int max_iter = 50;
+  double penalty = 1e11;
+};
+
+template <class CoreT>
+class Ali3pLoop {
+ public:
+  using Vec = Eigen::VectorXd;
+
+  Ali3pLoop(CoreT &core, const Ali3pSettings &s) : c_(core), s_(s) {
+    const int nq = c_.nq_, nv = c_.nv_, nc = c_.nc_;
+    delta_.setZero(nv);
+    step_.setZero(nv);
+    f_.setZero(nv);
+    w_.setZero(nv);
+    mu_.setZero(nc);
+    zc_.setZero(nc);
+    wc_.setZero(nc);
+    lp_.setZero(nc);
+    qi_.setZero(nq);
+    vi_.setZero(nv);
+    ai_.setZero(nv);
+    dqi_.setZero(nv);
+  }
+
+  // One trapezoidal step of length h ending at t_new from (q, v, a) with the
+  // multiplier estimate lam_star (updated in place): the end state into
+  // (qn, vn, an) and its multipliers into lam (ali3p.py, advance).
+  void advance(double t_new, const Vec &q, const Vec &v, const Vec &a, Vec &lam_star, double h,
+               Vec &qn, Vec &vn, Vec &an, Vec &lam) {
+    CoreT &c = c_;
+    const int nc = c.nc_;
+    w_ = c.tau_at(t_new, q, v);
+    const double hh = h * h / 4.0;
+    mu_ = hh * lam_star;
+    delta_ = h * v + (0.5 * h * h) * a;  // predictor: Taylor to second order
+    bool converged = false;
+    double last = std::numeric_limits<double>::infinity(), size = 0.0;
+    for (int it = 0; it < s_.max_iter; ++it) {
+      pinocchio::integrate(c.model_, q, delta_, qn);
+      vn = (2.0 / h) * delta_ - v;
+      an = (4.0 / (h * h)) * delta_ - (4.0 / h) * v - a;
+      c.eval_terms(qn, vn);
+      if (nc && it) mu_ += alpha_ * c.phi_;  // lambda*_{i+1} = lambda*_i + alpha phi(q_{i+1})
+      // f = h^2/4 (M a + h - tau) + J^T (mu + alpha phi)
+      m_mul(an, f_);
+      f_ += c.h_ - w_;
+      f_ *= hh;
+      if (nc) {
+        wc_ = mu_ + alpha_ * c.phi_;
+        jt_mul_add(wc_, f_);
+      }
+      factor(qn, t_new);
+      if (converged) break;
+      step_ = -f_;
+      solve(step_);
+      delta_ += step_;
+      ++newton_;
+      size = step_.cwiseAbs().maxCoeff();
+      // Below ali3p_tol, iterate on while the corrections still shrink (the approximate
+      // tangent converges linearly), and until J^T phi is below ali3p_phi_tol.
+      converged = size <= s_.tol && (size <= s_.tol * ALI3P_TOL_FLOOR || size > ALI3P_STALL * last);
+      if (converged && nc) {
+        jt_mul(c.phi_, f_);
+        converged = f_.cwiseAbs().maxCoeff() <= s_.phi_tol;
+      }
+      last = size;
+    }
+    if (!converged)
+      throw SimulationFailure{c.name_ + ": ALI3-P Newton iterations did not converge at t = " +
+                                  fmt("%.9g", t_new) + " s (last correction " + fmt("%.3e", size) +
+                                  " > ali3p_tol " + fmt("%.1e", s_.tol) + " after " +
+                                  std::to_string(s_.max_iter) +
+                                  " iterations); use a smaller dt",
+                              t_new};
+    c.check_finite(qn, vn, t_new);
+    if (!nc) {
+      lam.resize(0);
+      return;
+    }
+    lam = (4.0 / (h * h)) * (mu_ + alpha_ * c.phi_);
+    // Mass-orthogonal projections with the factorization of P at q_{n+1}.
+    m_mul(vn, f_);
+    project(f_, zc_, vn);
+    // gamma = Jdot v at (q_{n+1}, projected v): M and J at the same q are unchanged.
+    c.eval_terms(qn, vn);
+    m_mul(an, f_);
+    project(f_, c.gamma_, an);
+    lam_star = (4.0 / (h * h)) * mu_;
+  }
+
+  bp::dict run(const Vec &q0, const Vec &v0, double dt, long n_steps,
+               const std::vector<char> &out, bp::object progress) {
+    CoreT &c = c_;
+    const int nq = c.nq_, nv = c.nv_, nc = c.nc_;
+    typename CoreT::Samples S;
+    Vec q = q0, v = v0, a(nv), qn(nq), vn(nv), an(nv), q1(nq), v1(nv), a1(nv);
+    Vec lam_star(nc), lam(nc), lam1(nc), dq(nv);
+    double t = 0.0;
+    c.n_evals_ = 0;
+    c.accel(t, q, v);  // M_, J_ at q0 from its evaluation
+    a = c.a_;
+    alpha_ = nc ? s_.penalty * c.M_.trace() /
+                      std::max(c.J_.squaredNorm(), std::numeric_limits<double>::min())
+                : 0.0;
+    // The multiplier estimate, warm-started from the method's multipliers.
+    lam = c.lam_;
+    if (out[0]) c.record(S, t, q, v);
+    // Singular positions: steps never end within singular_zone steps of a crossing
+    // (ali3p.py, run_ali3p): its time is extrapolated from the rank indicator at the
+    // last two states (before the first step: q(-dt) by Taylor's expansion), and a step
+    // that would end near it is taken with the next one as 1.5 + 0.5 steps.
+    const double zone = c.singular_zone_;
+    const double sigma_min = std::sqrt(ALI3P_ENFORCED / s_.penalty);
+    long splits = 0;
+    lam_star = lam;
+    double rho_now = indicator(q);
+    dq = -dt * v + (0.5 * dt * dt) * a;
+    pinocchio::integrate(c.model_, q, dq, qn);
+    double rho_prev = indicator(qn);
+    double gap = 1.0;
+    for (long k = 1; k <= n_steps; ++k) {
+      // The crossing [steps after t] and the zone around it: singular_zone steps, or
+      // where the indicator is predicted below sigma_min.
+      double tc = std::numeric_limits<double>::infinity(), zone_k = zone;
+      if (rho_now < rho_prev) {
+        const double slope = (rho_prev - rho_now) / gap;
+        tc = rho_now / slope;
+        if (zone > 0.0) zone_k = std::max(zone, std::min(ALI3P_ZONE_MAX, sigma_min / slope));
+      }
+      gap = 1.0;
+      if (std::abs(tc - 1.0) < zone_k) {
+        const double h1 = (tc <= 1.0 ? ALI3P_SPLIT : 2.0 - ALI3P_SPLIT) * dt, h2 = 2.0 * dt - h1;
+        advance(t + h1, q, v, a, lam_star, h1, q1, v1, a1, lam1);
+        advance(t + 2 * dt, q1, v1, a1, lam_star, h2, qn, vn, an, lam);
+        ++splits;
+        gap = 2.0;
+        if (out[k]) {
+          if (h1 > dt)
+            record_hermite(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1, lam1);
+          else
+            record_hermite(S, k * dt, (dt - h1) / h2, h2, q1, v1, a1, qn, vn, an, lam);
+        }
+        c.poll(k, k * dt, progress);
+        if (k == n_steps) break;  // the step beyond t_final only served the output
+        ++k;
+      } else {
+        advance(k * dt, q, v, a, lam_star, dt, qn, vn, an, lam);
+      }
+      q.swap(qn);
+      v.swap(vn);
+      a.swap(an);
+      t = k * dt;
+      rho_prev = rho_now;
+      rho_now = indicator(q);  // J at q from advance's last evaluation
+      if (out[k]) {
+        c.a_ = a;
+        c.lam_ = lam;
+        c.record(S, t, q, v);
+      }
+      c.poll(k, t, progress);
+    }
+    bp::dict d = c.samples_dict(S, n_steps);
+    d["singular_splits"] = splits;
+    d["newton_iterations"] = newton_;
+    d["ali3p_alpha"] = alpha_;
+    return d;
+  }
+
+ private:
+  // The rank indicator of J at q (Core::rank_indicator, fixed.rank_indicator): sqrt of
+  // the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations from
+  // the ones vector, relative to its mean eigenvalue, capped. With a narrow row band
+  // (set_band's banded_n) J J^T is factorized as a band, x^T J J^T x = |J^T x|^2: O(nc)
+  // instead of the dense product and Cholesky, O(nc^3) (the same quantity to round-off).
+  double indicator(const Vec &q) {
+    CoreT &c = c_;
+    const int nc = c.nc_;
+    if (!c.band_n_ || nc == 0) return c.rank_indicator(q);
+    c.eval_phi_J(q);
+    c.assemble_normal_band(0.0);
+    const double ref = c.bn_.A.row(0).sum() / nc;
+    if (!(ref > 0.0)) return 0.0;
+    if (!c.bn_.factor()) return 0.0;
+    wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc)));
+    for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
+      c.bn_.solve_in_place(wc_);
+      wc_ /= wc_.norm();
+    }
+    jt_mul(wc_, dqi_);
+    const double mu = dqi_.squaredNorm();
+    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+  }
+
+  // f = M x (the band path: over M's structural hulls).
+  void m_mul(const Vec &x, Vec &f) {
+    if (c_.band_p_) {
+      f.setZero();
+      c_.m_mul_sub(x, f);
+      f = -f;
+    } else {
+      f.noalias() = c_.M_ * x;
+    }
+  }
+
+  // x += J^T y
+  void jt_mul_add(const Vec &y, Vec &x) {
+    if (c_.band_p_) {
+      for (int r = 0; r < c_.nc_; ++r) {
+        const int lo = c_.jlo_[r], len = c_.jhi_[r] - c_.jlo_[r] + 1;
+        if (len > 0) x.segment(lo, len) += y[r] * c_.J_.row(r).segment(lo, len).transpose();
+      }
+    } else {
+      x.noalias() += c_.J_.transpose() * y;
+    }
+  }
+
+  // x = J^T y
+  void jt_mul(const Vec &y, Vec &x) {
+    x.setZero();
+    jt_mul_add(y, x);
+  }
+
+  // y = J x
+  void j_mul(const Vec &x, Vec &y) {
+    if (c_.band_p_)
+      c_.j_mul(x, y);
+    else
+      y.noalias() = c_.J_ * x;
+  }
+
+  // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error).
+  void factor(const Vec &q, double t) {
+    bool ok;
+    if (c_.band_p_) {
+      ok = c_.factor_penalized_band(alpha_);
+    } else {
+      if (c_.nc_)
+        c_.P_.template triangularView<Eigen::Lower>() = c_.J_.transpose() * c_.J_;
+      else
+        c_.P_.setZero();
+      c_.P_.template triangularView<Eigen::Lower>() = alpha_ * c_.P_ + c_.M_;
+      ok = c_.llt_p_.compute(c_.P_);
+    }
+    if (!ok)
+      c_.singular(q, "the penalized mass matrix M + alpha J^T J",
+                  std::numeric_limits<double>::infinity(),
+                  "it is not positive definite (alpha = " + fmt("%.3g", alpha_) +
+                      "): M is singular (a massless subtree) or so ill-conditioned that alpha "
+                      "J^T J swamps it; lower SimulationSettings.ali3p_penalty",
+                  t);
+  }
+
+  // x <- P^-1 x
+  void solve(Vec &x) {
+    if (c_.band_p_)
+      c_.solve_penalized_band(x);
+    else
+      c_.llt_p_.solveInPlace(x);
+  }
+
+  // The mass-orthogonal projection min (x - x*)^T M (x - x*) s.t. J x + g = 0 with
+  // rhs = M x*, by the augmented-Lagrangian iteration with P in residual form until
+  // max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
+  void project(const Vec &rhs, const Vec &g, Vec &x) {
+    const double a = alpha_;
+    jt_mul(g, x);
+    x = rhs - a * x;
+    solve(x);
+    j_mul(x, lp_);
+    lp_ += g;
+    lp_ *= a;  // lam
+    for (int it = 1; it < c_.al_max_iter_; ++it) {
+      j_mul(x, wc_);
+      wc_ += g;  // r_c
+      wc_ *= a;
+      wc_ += lp_;
+      m_mul(x, step_);
+      step_ = rhs - step_;
+      jt_mul(wc_, dqi_);
+      step_ -= dqi_;
+      solve(step_);  // delta
+      x += step_;
+      j_mul(x, wc_);
+      wc_ += g;
+      lp_ += a * wc_;
+      if (step_.cwiseAbs().maxCoeff() <= c_.al_tol_ * (1.0 + x.cwiseAbs().maxCoeff())) break;
+    }
+  }
+
+  // Record the state at t = t0 + s h of the substep (q0, v0, a0) -> (q1, v1, a1) of
+  // length h by cubic Hermite interpolation, with the end's multipliers lam
+  // (ali3p.py, _record_hermite: not projected, a linear).
+  void record_hermite(typename CoreT::Samples &S, double t, double s, double h, const Vec &q0,
+                      const Vec &v0, const Vec &a0, const Vec &q1, const Vec &v1, const Vec &a1,
+                      const Vec &lam) {
+    const double h00 = 2 * s * s * s - 3 * s * s + 1, h10 = s * s * s - 2 * s * s + s;
+    const double h01 = -2 * s * s * s + 3 * s * s, h11 = s * s * s - s * s;
+    pinocchio::difference(c_.model_, q0, q1, dqi_);
+    dqi_ = h10 * h * v0 + h01 * dqi_ + h11 * h * v1;
+    pinocchio::integrate(c_.model_, q0, dqi_, qi_);
+    vi_ = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1;
+    ai_ = a0 + s * (a1 - a0);
+    c_.a_ = ai_;
+    c_.lam_ = lam;
+    c_.record(S, t, qi_, vi_);
+  }
+
+  CoreT &c_;
+  Ali3pSettings s_;
+  double alpha_ = 0.0;
+  long newton_ = 0;
+  Vec delta_, step_, f_, w_, mu_, zc_, wc_, lp_;
+  Vec qi_, vi_, ai_, dqi_;
+};
+
+}  // namespace closedchain
