@@ -1789,7 +1789,8 @@ class Core {
   // t - tau at the samples known in each; the fit in its interval with the smallest
   // residual is taken.
   static double crossing_estimate(double r0, double r1, double r2) {
-    if (std::max({r0, r1, r2}) >= RANK_INDICATOR_CAP) return std::numeric_limits<double>::infinity();
+    const double far = std::numeric_limits<double>::infinity();
+    if (std::max({r0, r1, r2}) >= RANK_INDICATOR_CAP) return far;
     const double t[3] = {0.0, 0.5, 1.0}, r[3] = {r0, r1, r2};
     const double lo[3] = {0.0, 0.5, 1.0};
     const double hi[3] = {0.5, 1.0, std::numeric_limits<double>::infinity()};

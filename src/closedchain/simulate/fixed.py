@@ -254,9 +254,7 @@ def run_fixed(
         if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
             raise SimulationError(f"{mech.name}: non-finite state at t = {t:.9g} s", t)
         if stab.projects:
-            q_new, v_new = project(
-                problem, q_new, v_new, t, mass_orthogonal=stab.projects_stages
-            )
+            q_new, v_new = project(problem, q_new, v_new, t, mass_orthogonal=stab.projects_stages)
         elif partition:
             q_new, v_new = problem.complete(q_new, v_new[problem.ind], t)
             if problem.cond_JD(q_new) > problem.settings.repartition_cond and problem.repartition(
