@@ -234,6 +234,7 @@ def configure(
             singular_cond=float(settings.singular_cond),
             drift_limit=float(settings.drift_limit),
             singular_zone=float(settings.singular_zone),
+            stage_singular_zone=float(settings.stage_singular_zone),
             dropped_row_tol=float(settings.dropped_row_tol),
             dropped_row_ratio=float(settings.dropped_row_ratio),
             dependent_tol=float(settings.dependent_tol),

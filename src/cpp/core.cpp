@@ -135,10 +135,11 @@ constexpr double AL_NORMAL_EQ_REG = 1e-14;
 constexpr double MIN_NORM_RCOND = 1e-8;
 
 //: rk4 with stage projection near singular positions: the constants of
-//: closedchain/simulate/fixed.py (RANK_INDICATOR_CAP,
-//: SPLIT_CANDIDATES k / 40 for k = 4..36, DOUBLE_SPLIT_MIN, RANK_INDICATOR_ITERS).
+//: closedchain/simulate/fixed.py (RANK_INDICATOR_CAP, RETAKE_GRID, CROSSING_FIT_RTOL,
+//: RANK_INDICATOR_ITERS).
 constexpr double RANK_INDICATOR_CAP = 1e-2;
-constexpr double DOUBLE_SPLIT_MIN = 0.5;
+constexpr int RETAKE_GRID = 40;
+constexpr double CROSSING_FIT_RTOL = 0.5;
 constexpr int RANK_INDICATOR_ITERS = 4;
 
 //: Relative margin of the Cholesky inverse-norm bound (min_norm) over its own round-off.
@@ -214,6 +215,7 @@ class Core {
     dq_ = Vec::Zero(nv_);
     tmp_c_ = Vec::Zero(nc_);
     tmp_v_ = Vec::Zero(nv_);
+    mv_ = Vec::Zero(nv_);
     rhs_v_ = Vec::Zero(nv_);
     P_ = Mat::Zero(nv_, nv_);
     llt_p_.resize(nv_);
@@ -478,6 +480,7 @@ class Core {
     al_max_iter_ = bp::extract<int>(s.get("al_max_iter", 30));
     stage_projects_ = bp::extract<bool>(s.get("stage_projects", false));
     singular_zone_ = bp::extract<double>(s.get("singular_zone", 0.0));
+    stage_zone_ = bp::extract<double>(s.get("stage_singular_zone", 0.0));
     singular_robust_ = bp::extract<bool>(s.get("singular_robust", false));
     dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
     dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
@@ -1102,7 +1105,11 @@ class Core {
   }
 
   // Gauss-Newton (minimum-norm) projection of q onto phi = 0, then v onto J v = 0.
-  void project(Vec &q, Vec &v) {
+  // With mass_orth (the stage projection; problem.project's mass_orthogonal) v is
+  // projected in the metric of M: the augmented-Lagrangian solve (solve_al) at q with
+  // right-hand side M v, h = 0 and gamma = 0. Leaves M_, h_, gamma_, a_ and lam_
+  // overwritten (an accel follows every projection).
+  void project(Vec &q, Vec &v, bool mass_orth = false) {
     if (nc_ == 0) return;
     for (int it = 0; it < projection_iters_; ++it) {
       eval_phi_J(q);
@@ -1112,7 +1119,15 @@ class Core {
       q_prev_ = q;
       pinocchio::integrate(model_, q_prev_, dq_, q);
     }
-    if (project_velocities_) {
+    if (project_velocities_ && mass_orth) {
+      eval_phi_J(q);
+      tree_terms(model_, data_, q, v, M_, h_);
+      mv_.noalias() = M_ * v;
+      h_.setZero();
+      gamma_.setZero();
+      solve_al(q, mv_, std::numeric_limits<double>::quiet_NaN());
+      v = a_;
+    } else if (project_velocities_) {
       eval_phi_J(q);
       if (band_n_)
         j_mul(v, vel_c_);
@@ -1800,29 +1815,77 @@ class Core {
     return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
   }
 
-  // The crossing time in steps from the start, extrapolated from the indicator at the
-  // start and the midpoint (fixed.crossing_estimate).
-  static double crossing_estimate(double rho_start, double rho_mid) {
-    if (!(rho_mid < rho_start)) return std::numeric_limits<double>::infinity();
-    return rho_start / (2.0 * (rho_start - rho_mid));
-  }
-
-  // The split fraction whose substeps' evaluation points are farthest from the crossing
-  // at tau steps from the start (fixed.best_split).
-  static double best_split(double tau, bool twice) {
-    double best = 4 / 40.0, best_d = -1.0;
-    for (int k = 4; k <= 36; ++k) {
-      const double f = k / 40.0;
-      if (twice && f < DOUBLE_SPLIT_MIN) continue;
-      const double pts[3] = {twice ? f : f / 2, twice ? 2 * f : f, twice ? 1 + f : (1 + f) / 2};
-      double d = std::numeric_limits<double>::infinity();
-      for (double p : pts) d = std::min(d, std::abs(p - tau));
-      if (d > best_d) {
-        best = f;
-        best_d = d;
+  // The crossing time in steps from the start that the indicator at the start, midpoint
+  // and end points to, inf when none is ahead (fixed.crossing_estimate): rho = s |t - tau|
+  // fitted by least squares for tau in [0, 0.5), [0.5, 1) and [1, inf), the signs of
+  // t - tau at the samples known in each; the fit in its interval with the smallest
+  // residual is taken.
+  static double crossing_estimate(double r0, double r1, double r2) {
+    const double far = std::numeric_limits<double>::infinity();
+    if (std::max({r0, r1, r2}) >= RANK_INDICATOR_CAP) return far;
+    const double t[3] = {0.0, 0.5, 1.0}, r[3] = {r0, r1, r2};
+    const double lo[3] = {0.0, 0.5, 1.0};
+    const double hi[3] = {0.5, 1.0, std::numeric_limits<double>::infinity()};
+    const double sg[3][3] = {{-1, 1, 1}, {-1, -1, 1}, {-1, -1, -1}};
+    double best = std::numeric_limits<double>::infinity(), best_res = best;
+    for (int h = 0; h < 3; ++h) {
+      // r_i = sg_i t_i x0 - sg_i x1 (x0 = s, x1 = s tau): 2 x 2 normal equations
+      double a00 = 0, a01 = 0, a11 = 0, b0 = 0, b1 = 0;
+      for (int i = 0; i < 3; ++i) {
+        const double c0 = sg[h][i] * t[i], c1 = -sg[h][i];
+        a00 += c0 * c0;
+        a01 += c0 * c1;
+        a11 += c1 * c1;
+        b0 += c0 * r[i];
+        b1 += c1 * r[i];
+      }
+      const double det = a00 * a11 - a01 * a01;
+      const double slope = (a11 * b0 - a01 * b1) / det, st = (a00 * b1 - a01 * b0) / det;
+      if (!(slope > 0.0)) continue;
+      const double tau = st / slope;
+      if (!(lo[h] <= tau && tau < hi[h])) continue;
+      double res = 0.0;
+      for (int i = 0; i < 3; ++i) {
+        const double e = sg[h][i] * t[i] * slope - sg[h][i] * st - r[i];
+        res += e * e;
+      }
+      if (res < best_res && std::sqrt(res) <= CROSSING_FIT_RTOL * std::max({r0, r1, r2})) {
+        best = tau;
+        best_res = res;
       }
     }
     return best;
+  }
+
+  // Distance [steps] of a crossing at tau from the evaluation points of a retake of one
+  // (double: two) grid steps split at h1 (h1 = span: one substep) (fixed._plan_points).
+  static double plan_distance(double tau, bool twice, double h1) {
+    const double end = twice ? 2.0 : 1.0;
+    if (h1 >= end) return std::min(std::abs(end / 2 - tau), std::abs(end - tau));
+    const double pts[4] = {h1 / 2, h1, (h1 + end) / 2, end};
+    double d = std::numeric_limits<double>::infinity();
+    for (double p : pts) d = std::min(d, std::abs(p - tau));
+    return d;
+  }
+
+  // false when the plain step keeps its points at least `zone` steps from a crossing at
+  // tau; else true with the retake (twice, h1) whose points are farthest from it, ties
+  // to the single step (fixed.retake_plan).
+  static bool retake_plan(double tau, double zone, bool &twice, double &h1) {
+    if (std::min(std::abs(0.5 - tau), std::abs(1.0 - tau)) >= zone) return false;
+    double best_d = -1.0;
+    for (int dbl = 0; dbl < 2; ++dbl) {
+      for (int k = 1; k < RETAKE_GRID + dbl; ++k) {
+        const double f = (dbl ? 2.0 : 1.0) * k / RETAKE_GRID;
+        const double d = plan_distance(tau, dbl != 0, f);
+        if (d > best_d) {
+          best_d = d;
+          twice = dbl != 0;
+          h1 = f;
+        }
+      }
+    }
+    return true;
   }
 
   // One rk4 step of length h from (q, v) with accelerations a0 at t, every stage and
@@ -1832,28 +1895,28 @@ class Core {
     dv_ = (h / 2) * v;
     pinocchio::integrate(model_, q, dv_, qm);
     vs_ = v + (h / 2) * a0;
-    project(qm, vs_);
+    project(qm, vs_, true);
     accel(t + h / 2, qm, vs_);
     chart_rate(q, dv_, vs_, k2v_);  // the stages' rates in the chart about q (run_fixed)
     k2a_ = a_;
     dv_ = (h / 2) * k2v_;
     pinocchio::integrate(model_, q, dv_, qs_);
     vs_ = v + (h / 2) * k2a_;
-    project(qs_, vs_);
+    project(qs_, vs_, true);
     accel(t + h / 2, qs_, vs_);
     chart_rate(q, dv_, vs_, k3v_);
     k3a_ = a_;
     dv_ = h * k3v_;
     pinocchio::integrate(model_, q, dv_, qs_);
     vs_ = v + h * k3a_;
-    project(qs_, vs_);
+    project(qs_, vs_, true);
     accel(t + h, qs_, vs_);
     chart_rate(q, dv_, vs_, k4v_);
     dv_ = (h / 6) * (v + 2 * k2v_ + 2 * k3v_ + k4v_);
     pinocchio::integrate(model_, q, dv_, qn);
     vn = v + (h / 6) * (a0 + 2 * k2a_ + 2 * k3a_ + a_);
     check_finite(qn, vn, t + h);
-    project(qn, vn);
+    project(qn, vn, true);
   }
 
   // The state at t = t0 + s h of the substep (q0, v0, a0) -> (q1, v1, a1) of length h
@@ -1887,6 +1950,7 @@ class Core {
     k3v_.resize(nv_);
     k3a_.resize(nv_);
     k4v_.resize(nv_);
+    a2_.resize(nv_);
     double t = 0.0;
     accel(t, q, v);
     a = a_;
@@ -1895,30 +1959,45 @@ class Core {
     double rho_start = rank_indicator(q);
     for (long k = 1; k <= n_steps; ++k) {
       rk4_projected(t, q, v, a, dt, qn, vn, qm);
-      const double tau = crossing_estimate(rho_start, rank_indicator(qm));
-      if (std::abs(tau - 1.0) < singular_zone_) {
-        // the crossing is near grid point k: two steps in two unequal substeps
-        const double f = best_split(tau, true);
-        const double h1 = 2 * f * dt, h2 = 2 * (1 - f) * dt;
-        rk4_projected(t, q, v, a, h1, q1, v1, qm);
-        check_regular(q1, t + h1);
-        accel(t + h1, q1, v1);
-        a1 = a_;
-        rk4_projected(t + h1, q1, v1, a1, h2, qn, vn, qm);
+      double rho_new = rank_indicator(qn);
+      bool twice = false;
+      double f = 0.0;
+      if (stage_zone_ > 0 &&
+          retake_plan(crossing_estimate(rho_start, rank_indicator(qm), rho_new), stage_zone_,
+                      twice, f)) {
+        const double span = twice ? 2.0 : 1.0;
+        double h1 = f * dt, h2 = span * dt - f * dt;
+        if (f < span) {
+          rk4_projected(t, q, v, a, h1, q1, v1, qm);
+          check_regular(q1, t + h1);
+          accel(t + h1, q1, v1);
+          a1 = a_;
+          rk4_projected(t + h1, q1, v1, a1, h2, qn, vn, qm);
+        } else {  // one substep of two grid steps
+          h1 = 0.0;
+          h2 = span * dt;
+          q1 = q;
+          v1 = v;
+          a1 = a;
+          rk4_projected(t, q, v, a, h2, qn, vn, qm);
+        }
+        rho_new = rank_indicator(qn);
         ++splits;
-        if (out[k]) record_interpolated(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1);
-        poll(k, k * dt, progress);
-        if (k == n_steps) break;  // the step beyond t_final only served the output
-        ++k;
-      } else if (std::abs(tau - 0.5) < singular_zone_) {
-        // the crossing is near the midpoint
-        const double f = best_split(tau, false);
-        rk4_projected(t, q, v, a, f * dt, q1, v1, qm);
-        check_regular(q1, t + f * dt);
-        accel(t + f * dt, q1, v1);
-        a1 = a_;
-        rk4_projected(t + f * dt, q1, v1, a1, (1 - f) * dt, qn, vn, qm);
-        ++splits;
+        if (twice) {
+          if (out[k]) {  // the skipped grid point, from the substep holding it
+            if (h1 >= dt) {
+              record_interpolated(S, k * dt, dt / h1, h1, q, v, a, q1, v1, a1);
+            } else {
+              check_regular(qn, t + 2 * dt);
+              accel(t + 2 * dt, qn, vn);
+              a2_ = a_;
+              record_interpolated(S, k * dt, (dt - h1) / h2, h2, q1, v1, a1, qn, vn, a2_);
+            }
+          }
+          poll(k, k * dt, progress);
+          if (k == n_steps) break;  // the step beyond t_final only served the output
+          ++k;
+        }
       }
       t = k * dt;
       check_regular(qn, t);
@@ -1926,7 +2005,7 @@ class Core {
       v = vn;
       accel(t, q, v);
       a = a_;
-      rho_start = rank_indicator(q);
+      rho_start = rho_new;
       if (out[k]) record(S, t, q, v);
       poll(k, t, progress);
     }
@@ -1973,7 +2052,7 @@ class Core {
         dv = (dt / 2) * k1v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k1a;
-        if (stage_projects_) project(qs, vs);
+        if (stage_projects_) project(qs, vs, true);
         else if (partitions_) complete(qs, vs, t + dt / 2);
         accel(t + dt / 2, qs, vs);
         chart_rate(q, dv, vs, k2v);  // the chart about q (simulate/chart.py)
@@ -1981,7 +2060,7 @@ class Core {
         dv = (dt / 2) * k2v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + (dt / 2) * k2a;
-        if (stage_projects_) project(qs, vs);
+        if (stage_projects_) project(qs, vs, true);
         else if (partitions_) complete(qs, vs, t + dt / 2);
         accel(t + dt / 2, qs, vs);
         chart_rate(q, dv, vs, k3v);
@@ -1989,7 +2068,7 @@ class Core {
         dv = dt * k3v;
         pinocchio::integrate(model_, q, dv, qs);
         vs = v + dt * k3a;
-        if (stage_projects_) project(qs, vs);
+        if (stage_projects_) project(qs, vs, true);
         else if (partitions_) complete(qs, vs, t + dt);
         accel(t + dt, qs, vs);
         chart_rate(q, dv, vs, k4v);
@@ -2000,7 +2079,7 @@ class Core {
       }
       t = k * dt;
       check_finite(qn, vn, t);
-      if (projects) project(qn, vn);
+      if (projects) project(qn, vn, stage_projects_);
       else if (partitions_) partition_step(qn, vn, t);
       check_regular(qn, t);  // partitioning: the rows only (Problem.check_rows)
       q = qn;
@@ -2533,6 +2612,8 @@ class Core {
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
+  Vec a2_;  // run_rk4_stage_projected: accelerations at a two-step retake's end
+  Vec mv_;  // project(mass_orth): M v
   // Structure (sparsity) and the band paths (set_band).
   std::vector<int> jcol_start_, jcols_, jlo_, jhi_, mlo_, mhi_;
   std::vector<int> perm_, pinv_;
@@ -2556,6 +2637,7 @@ class Core {
   int al_max_iter_ = 30;
   bool stage_projects_ = false, singular_robust_ = false;
   double singular_zone_ = 0.0;  // SimulationSettings.singular_zone
+  double stage_zone_ = 0.0;     // SimulationSettings.stage_singular_zone
   double dropped_tol_ = 1e-9, dropped_ratio_ = 100.0;
   std::vector<Row> drows_;  // every declared row
   std::vector<std::string> dlabels_;

@@ -52,31 +52,37 @@ def step_rk4(model, deriv, t, q, v, a, dt):
 #
 # Where the constraint manifold crosses itself (a flat position of the N-four-bar, the
 # change point of the 4-bar) the projection onto phi = 0, J v = 0 and the accelerations
-# are ill-conditioned at distance d from the crossing: a residual p of phi (within
-# projection_tol) leaves the state on the level set phi = p, which near the crossing is
-# a hyperbola p / d away from the branch, and the velocity projected onto it is off by
-# about p v / d^2; within about 3e-6 rad the augmented Lagrangian's penalty no longer
-# enforces the lost row at all (Gauss's accelerations there differ from the branch's
-# limit by O(g)). Which grid point lands how close to the crossing is chance (it depends
-# on the step and the period): on the N-four-bar at N = 5 the step ending 4.7e-5 rad from
-# a flat position turned a spread of 1.2e-10 rad between the cranks into a velocity error
-# of 1.3e-5 rad/s and an energy error of 1.5e-5. A step is therefore retaken when one of
-# its evaluation points would land within ``SimulationSettings.singular_zone`` steps of
-# the crossing: the crossing time is extrapolated from the rank indicator rho (about
-# linear in the distance to it) at the step's start and projected midpoint, and the step
-# is redone as two unequal substeps whose evaluation points keep away from it; when the
-# crossing is at the grid point, two steps are taken together and the state at the grid
-# point is interpolated (cubic Hermite) for the output only.
+# are ill-conditioned at distance d from the crossing: the position projection stops at a
+# residual p of phi (at most projection_tol, often a few 1e-15), which leaves the state
+# p / sigma ~ p / d off the branch (sigma the smallest singular value of J, linear in
+# d), and the velocity projected onto J v = 0 there is off by about p v / d^2 along the
+# branch-switch direction; the stage accelerations amplify that again by 1 / d, and the
+# next projection's correction (not mass-orthogonal) changes the energy. On the
+# N-four-bar at N = 1, a stage 0.085 steps (4.2e-4 rad) from a flat position with
+# abs(phi) = 2e-14 gave a crank spread of 1e-11 rad, a crank-rate spread of 1.2e-7
+# rad/s, a velocity correction of 4e-6 at the step's end and an energy error of 1.3e-7.
+# Steps are therefore retaken so that no evaluation point (stage or step end) lands
+# within ``SimulationSettings.stage_singular_zone`` steps of a crossing: its time is
+# estimated from the rank indicator rho (proportional to abs(d) near it) at the step's
+# start, projected midpoint and end (:func:`crossing_estimate`), and a step with a
+# point too close is retaken as two substeps of one grid step, or of two grid steps
+# together (the state at the skipped grid point interpolated, cubic Hermite, for the
+# output only), whichever keeps its points farthest away (:func:`retake_plan`; at 0.3
+# steps some plan always keeps them at least 0.3 steps away).
 
 #: Cap of the rank indicator (a regular configuration): see :func:`rank_indicator`.
 RANK_INDICATOR_CAP = 1e-2
-#: Candidate split fractions of a re-split step (k / 40): the one whose evaluation points
-#: are farthest from the estimated crossing is taken.
-SPLIT_CANDIDATES = tuple(k / 40 for k in range(4, 37))
-#: Smallest split of a double step (its first substep contains the skipped grid point).
-DOUBLE_SPLIT_MIN = 0.5
+#: Resolution of the retake plans: a single step split at k / RETAKE_GRID, two grid
+#: steps split at 2 k / RETAKE_GRID (k = RETAKE_GRID: one substep of two steps).
+RETAKE_GRID = 40
 #: Inverse iterations of :func:`rank_indicator`.
 RANK_INDICATOR_ITERS = 4
+#: Largest residual of the fit rho = s abs(t - tau) of :func:`crossing_estimate`,
+#: relative to the largest sample (a crossing behind the step, rho increasing, fits with
+#: a residual of about half of it).
+CROSSING_FIT_RTOL = 0.5
+#: Where the plain step's evaluation points are [steps from its start].
+PLAIN_POINTS = (0.5, 1.0)
 
 
 def rank_indicator(J: np.ndarray) -> float:
@@ -106,29 +112,63 @@ def rank_indicator(J: np.ndarray) -> float:
     return min(math.sqrt(max(mu, 0.0) / ref), RANK_INDICATOR_CAP)
 
 
-def crossing_estimate(rho_start: float, rho_mid: float) -> float:
-    """Return the time [steps from the step's start] at which the rank indicator,
-    linear between the start and the midpoint, reaches 0; inf when it does not decrease."""
-    if not rho_mid < rho_start:
-        return math.inf
-    return rho_start / (2.0 * (rho_start - rho_mid))
+def crossing_estimate(rho_start: float, rho_mid: float, rho_end: float) -> float:
+    """Return the time [steps from the step's start] of the crossing that the rank
+    indicator at the step's start, midpoint and end points to; inf when none is ahead.
 
-
-def best_split(tau: float, double: bool) -> float:
-    """Return the split fraction f keeping the substeps' evaluation points farthest from
-    the crossing at tau steps from the step's start.
-
-    A split step has evaluation points f/2, f, (1 + f)/2; a double step (two grid steps,
-    substeps 2 f and 2 (1 - f)) f, 2 f, 1 + f.
+    Near a crossing rho = s abs(t - tau): for tau in [0, 0.5), [0.5, 1) and [1, inf)
+    the signs of t - tau at the three samples are known, (s, s tau) follow by linear
+    least squares, and the hypothesis with tau in its interval and the smallest
+    residual is taken (and only when that residual is at most CROSSING_FIT_RTOL of the
+    largest sample). (A line through the start and the midpoint alone, the rule
+    before, put a crossing at 0.43 steps at 0.6 once the midpoint was past it.)
     """
-    best, best_d = SPLIT_CANDIDATES[0], -1.0
-    for f in SPLIT_CANDIDATES:
-        if double and f < DOUBLE_SPLIT_MIN:
+    r = np.array([rho_start, rho_mid, rho_end])
+    if np.max(r) >= RANK_INDICATOR_CAP:
+        return math.inf  # far from any crossing
+    t = np.array([0.0, 0.5, 1.0])
+    best, best_res = math.inf, math.inf
+    for lo, hi, signs in (
+        (0.0, 0.5, (-1.0, 1.0, 1.0)),
+        (0.5, 1.0, (-1.0, -1.0, 1.0)),
+        (1.0, math.inf, (-1.0, -1.0, -1.0)),
+    ):
+        sg = np.array(signs)
+        A = np.column_stack([sg * t, -sg])  # r = sg (s t - s tau)
+        (slope, st), *_ = np.linalg.lstsq(A, r, rcond=None)
+        if not slope > 0.0:
             continue
-        points = (f, 2 * f, 1 + f) if double else (f / 2, f, (1 + f) / 2)
-        d = min(abs(p - tau) for p in points)
-        if d > best_d:
-            best, best_d = f, d
+        tau = st / slope
+        if not lo <= tau < hi:
+            continue
+        res = float(np.linalg.norm(A @ [slope, st] - r))
+        if res < best_res and res <= CROSSING_FIT_RTOL * float(np.max(r)):
+            best, best_res = tau, res
+    return best
+
+
+def _plan_points(double: bool, h1: float) -> tuple[float, ...]:
+    """Evaluation points [steps] of a retake: substeps h1 and (2 if double else 1) - h1."""
+    end = 2.0 if double else 1.0
+    if h1 >= end:
+        return (end / 2, end)
+    return (h1 / 2, h1, (h1 + end) / 2, end)
+
+
+def retake_plan(tau: float, zone: float) -> tuple[bool, float] | None:
+    """Return None when the plain step keeps its evaluation points at least ``zone``
+    steps from a crossing at ``tau`` steps, else (double, h1): the retake (one grid step
+    split at h1, or two grid steps split at h1; h1 = 2 is one substep of two steps)
+    whose evaluation points are farthest from it (ties: the single step)."""
+    if min(abs(p - tau) for p in PLAIN_POINTS) >= zone:
+        return None
+    best, best_d = None, -1.0
+    for double in (False, True):
+        for k in range(1, RETAKE_GRID + (1 if double else 0)):
+            h1 = (2.0 if double else 1.0) * k / RETAKE_GRID
+            d = min(abs(p - tau) for p in _plan_points(double, h1))
+            if d > best_d:
+                best, best_d = (double, h1), d
     return best
 
 
@@ -200,7 +240,7 @@ def run_fixed(
         elif stab.projects_stages:
             # Accelerations only on phi = 0, J v = 0: off the manifold a nearly
             # rank-deficient J amplifies the inconsistency of J a + gamma = 0.
-            q, v = project(problem, q, v, t)
+            q, v = project(problem, q, v, t, mass_orthogonal=True)
         return v, problem.accel(t, q, v)
 
     if stab.projects_stages and spec.step is step_rk4 and mech.nc:
@@ -214,7 +254,7 @@ def run_fixed(
         if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
             raise SimulationError(f"{mech.name}: non-finite state at t = {t:.9g} s", t)
         if stab.projects:
-            q_new, v_new = project(problem, q_new, v_new, t)
+            q_new, v_new = project(problem, q_new, v_new, t, mass_orthogonal=stab.projects_stages)
         elif partition:
             q_new, v_new = problem.complete(q_new, v_new[problem.ind], t)
             if problem.cond_JD(q_new) > problem.settings.repartition_cond and problem.repartition(
@@ -245,7 +285,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
     model = mech.model
 
     def stage(t, q, v):
-        q, v = project(problem, q, v, t)
+        q, v = project(problem, q, v, t, mass_orthogonal=True)
         return q, v, problem.accel(t, q, v)
 
     def rk4(t, q, v, a, h):
@@ -262,7 +302,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
         t_new = t + h
         if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
             raise SimulationError(f"{mech.name}: non-finite state at t = {t_new:.9g} s", t_new)
-        q_new, v_new = project(problem, q_new, v_new, t_new)
+        q_new, v_new = project(problem, q_new, v_new, t_new, mass_orthogonal=True)
         return q_new, v_new, q2
 
     def settle(t, q, v):
@@ -274,41 +314,48 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
     def rho(q):
         return rank_indicator(problem.jacobian(q))
 
-    zone = problem.settings.singular_zone
+    zone = problem.settings.stage_singular_zone
     splits = 0
     t = 0.0
     rho_start = rho(q)
     k = 1
     while k <= n_steps:
         q_new, v_new, q_mid = rk4(t, q, v, a, dt)
-        tau = crossing_estimate(rho_start, rho(q_mid))
-        if abs(tau - 1.0) < zone:
-            # The crossing is near grid point k: two steps in two unequal substeps
-            # around it, the state at k interpolated for the output.
-            f = best_split(tau, double=True)
-            h1, h2 = 2 * f * dt, 2 * (1 - f) * dt
-            q1, v1, _ = rk4(t, q, v, a, h1)
-            a1 = settle(t + h1, q1, v1)
-            q_new, v_new, _ = rk4(t + h1, q1, v1, a1, h2)
+        rho_new = rho(q_new)
+        plan = None
+        if zone > 0:
+            plan = retake_plan(crossing_estimate(rho_start, rho(q_mid), rho_new), zone)
+        if plan is not None:
+            double, f = plan
+            span = 2 if double else 1
+            h1, h2 = f * dt, span * dt - f * dt
+            if f < span:
+                q1, v1, _ = rk4(t, q, v, a, h1)
+                a1 = settle(t + h1, q1, v1)
+                q_new, v_new, _ = rk4(t + h1, q1, v1, a1, h2)
+            else:  # one substep of two grid steps
+                h1, h2, q1, v1, a1 = 0.0, span * dt, q, v, a
+                q_new, v_new, _ = rk4(t, q, v, a, h2)
+            rho_new = rho(q_new)
             splits += 1
-            if outputs.take(k):
-                _record_interpolated(problem, recorder, k * dt, dt / h1, h1, q, v, a, q1, v1, a1)
-            if progress is not None:
-                progress(k * dt)
-            if k == n_steps:  # the step beyond t_final only served the output
-                break
-            k += 1
-        elif abs(tau - 0.5) < zone:
-            # The crossing is near the midpoint.
-            f = best_split(tau, double=False)
-            q1, v1, _ = rk4(t, q, v, a, f * dt)
-            a1 = settle(t + f * dt, q1, v1)
-            q_new, v_new, _ = rk4(t + f * dt, q1, v1, a1, (1 - f) * dt)
-            splits += 1
+            if double:
+                if outputs.take(k):  # the skipped grid point, from the substep holding it
+                    if h1 >= dt:
+                        sub = (t, h1, q, v, a, q1, v1, a1)
+                    else:
+                        a_end = settle(t + 2 * dt, q_new, v_new)
+                        sub = (t + h1, h2, q1, v1, a1, q_new, v_new, a_end)
+                    t0, h = sub[0], sub[1]
+                    _record_interpolated(problem, recorder, k * dt, (k * dt - t0) / h, h, *sub[2:])
+                if progress is not None:
+                    progress(k * dt)
+                if k == n_steps:  # the step beyond t_final only served the output
+                    break
+                k += 1
         t = k * dt
         a = settle(t, q_new, v_new)
         q, v = q_new, v_new
-        rho_start = rho(q)
+        rho_start = rho_new
         if outputs.take(k):
             recorder.add(t, q, v, a, problem.lam)
         if progress is not None:

@@ -17,7 +17,12 @@ import pinocchio as pin
 import scipy.linalg
 
 from ..closure import RowCheckSettings
-from ..dynamics.augmented_lagrangian import NormalSolver
+from ..dynamics.augmented_lagrangian import (
+    NormalSolver,
+    PenalizedSolver,
+    relative_penalty,
+    solve_augmented_lagrangian,
+)
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
@@ -59,6 +64,8 @@ class Problem:
         self._J_at: np.ndarray | None = None
         self._normal = None
         self._normal_layer = None
+        self._penalized = None
+        self._penalized_layer = None
         self._J: np.ndarray | None = None
         #: Row re-selections made during the run: [t, kept row labels, reason].
         self.reselections: list[list] = []
@@ -78,6 +85,15 @@ class Problem:
             self._normal = solver if solver is not None and solver.banded else None
             self._normal_layer = layer
         return self._normal
+
+    def penalized_solver(self) -> PenalizedSolver:
+        """Return the factorization buffers of M + alpha J^T J for the kept rows (banded
+        where the augmented-Lagrangian method's are)."""
+        layer = self.mech.constraints
+        if self._penalized_layer is not layer:  # first call, or rows re-selected
+            self._penalized = PenalizedSolver(self.mech)
+            self._penalized_layer = layer
+        return self._penalized
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Return J(q), reusing the last one when q is the same (each step asks several
@@ -254,13 +270,23 @@ def passing_hint() -> str:
     return text
 
 
-def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
+def project(
+    problem: Problem, q: np.ndarray, v: np.ndarray, t: float, *, mass_orthogonal: bool = False
+):
     """Seed-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0.
 
     The minimum-norm corrections are ``lstsq`` solves, or, when the rows couple in a
     narrow band (many loops in a chain: :class:`~closedchain.dynamics.augmented_lagrangian.
     NormalSolver`), J^T x with banded regularized normal equations (J J^T + eps I) x = r:
     cost linear in the number of loops instead of a dense SVD.
+
+    With ``mass_orthogonal`` (the stage projection) v is projected in the metric of M
+    instead: v+ = argmin (v+ - v)^T M (v+ - v) subject to J v+ = 0, by the
+    augmented-Lagrangian iteration on P = M + alpha J^T J (the acceleration solve with
+    right-hand side M v and gamma = 0, as ALI3-P's projections): the kinetic energy
+    changes only to second order in the correction, and a row that J nearly loses (near
+    a singular position) is enforced at the rate 1 / (1 + rho sigma^2) per iteration
+    instead of amplifying the position residual by 1 / sigma^2.
     """
     mech, s = problem.mech, problem.settings
     model, data, layer = mech.model, mech.data, mech.constraints
@@ -281,7 +307,26 @@ def project(problem: Problem, q: np.ndarray, v: np.ndarray, t: float):
         q = pin.integrate(model, q, min_norm(J, -phi))
     if s.project_velocities:
         J = problem.jacobian(q)
-        v = v - min_norm(J, J @ v)
+        if mass_orthogonal and mech.nc:
+            M = pin.crba(model, data, q)
+            M = np.triu(M) + np.triu(M, 1).T
+            ss = problem.solver_settings
+            solver = problem.penalized_solver()
+            alpha = relative_penalty(M, J, ss.al_penalty)
+            solver.factor(M, J, alpha, mech, q)
+            v, _, _ = solve_augmented_lagrangian(
+                solver,
+                M,
+                J,
+                M @ v,
+                np.zeros(mech.nc),
+                alpha,
+                tol=ss.al_tol,
+                max_iter=ss.al_max_iter,
+                polish=False,
+            )
+        else:
+            v = v - min_norm(J, J @ v)
     return q, v
 
 

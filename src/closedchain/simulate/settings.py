@@ -63,15 +63,18 @@ class SimulationSettings:
             partitioning steps across the 4-bar's change point (the continuation
             is the one Newton finds from the previous state; energy drift 2e-7
             with rk4 at dt 1e-3).
-        singular_zone: rk4 with stage projection keeps its evaluation points at least
-            this many steps away from a singular position (a crossing of assembly
-            branches): a step whose end or midpoint is estimated closer to one is
-            retaken in two unequal substeps (see ``closedchain.simulate.fixed``);
-            ALI3-P keeps its step ends this far away, and farther (up to half a
-            step) where J's rank indicator would be below sqrt(10 / ali3p_penalty)
-            there (many loops: N-four-bar N = 40), a step estimated to end
-            closer being taken with the next as 1.5 + 0.5 or 0.5 + 1.5 steps (see
+        singular_zone: ALI3-P keeps its step ends at least this many steps away
+            from a singular position (a crossing of assembly branches), and farther
+            (up to half a step) where J's rank indicator would be below
+            sqrt(10 / ali3p_penalty) there (many loops: N-four-bar N = 40), a step
+            estimated to end closer being taken with the next as 1.5 + 0.5 or
+            0.5 + 1.5 steps (see
             ``closedchain.simulate.ali3p``); 0 turns this off.
+        stage_singular_zone: rk4 with stage projection keeps its evaluation points
+            (stages and step ends) at least this many steps away from a singular
+            position: a step with a point estimated closer is retaken as two
+            substeps of one or of two grid steps (see ``closedchain.simulate.fixed``;
+            some split always reaches 0.3); 0 turns this off.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
@@ -130,6 +133,7 @@ class SimulationSettings:
     singular_cond: float = 1e3
     partition_singular_cond: float = 1e4
     singular_zone: float = 0.04
+    stage_singular_zone: float = 0.3
     drift_limit: float = 1e-2
     dropped_row_tol: float = 1e-9
     dropped_row_ratio: float = 100.0
