@@ -140,6 +140,8 @@ def core_calls(case: Case) -> dict:
         problem = Problem(mech, method, None, DEFAULT_SETTINGS, settings)
         problem.singular_robust = not seed
         core = compiled_loops._prepare(problem, {"method": method}, stab)
+        # A core of its own (simulate reconfigures the mechanism's shared one every call).
+        mech.__dict__.pop("_compiled_cores", None)
         code = compiled.INTEGRATOR_CODES["semi-implicit" if seed else "rk4"]
         dt, n, steps = output_grid(t_final, dt, t_eval)
         steps = np.arange(n + 1) if steps is None else steps

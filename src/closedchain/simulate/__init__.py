@@ -382,8 +382,8 @@ def simulate(
         stab.projects_stages or spec.singular_robust
     )
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
-    problem.check_start(q0)
-    check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.jacobian)
+    problem.check_start(q0, compiled_rows=spec.backend == "compiled")
+    check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.start_jacobian)
     info = {
         "mechanism": mech.name,
         "method": method,

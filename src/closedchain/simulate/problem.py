@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
+from .. import compiled
 from ..closure import RowCheckSettings
 from ..dynamics.augmented_lagrangian import NormalSolver
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
@@ -57,6 +58,7 @@ class Problem:
         self.dep = np.array(mech.dependent_idx_v)
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
         self._J_at: np.ndarray | None = None
+        self._start_J: np.ndarray | None = None  # J(q0) of check_start (compiled rows)
         self._normal = None
         self._normal_layer = None
         self._J: np.ndarray | None = None
@@ -171,21 +173,35 @@ class Problem:
         """Return the sign of det(J_D) at q (0 when singular)."""
         return float(np.linalg.slogdet(self.jacobian(q)[:, self.dep])[0])
 
-    def check_rows(self, q: np.ndarray, t: float, kept_cond: float | None = None) -> bool:
+    def check_rows(
+        self,
+        q: np.ndarray,
+        t: float,
+        kept_cond: float | None = None,
+        phi: np.ndarray | None = None,
+    ) -> bool:
         """Check every declared row at q; re-select the kept rows when they stop describing
-        the loops (:meth:`LoopClosure.check_rows`). Returns True when re-selected."""
+        the loops (:meth:`LoopClosure.check_rows`; ``phi``: the declared rows' phi(q) if
+        known). Returns True when re-selected."""
         mech = self.mech
         if self.singular_robust:
             kept_cond = None  # rank loss is passed through, not re-selected around
         try:
             changed = mech.closure.check_rows(
-                mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
+                mech.model,
+                mech.data,
+                q,
+                t=t,
+                kept_cond=kept_cond,
+                settings=self.row_check,
+                phi=phi,
             )
         except SingularConfigurationError as exc:
             raise exc.with_hint(passing_hint(), t=t) from None
         if not changed:
             return False
         self._J_at = None  # the memo holds the old rows
+        self._start_J = None
         self.reselections.append(
             [t, list(mech.closure.selection.kept), mech.closure.selection.reason]
         )
@@ -193,18 +209,36 @@ class Problem:
             self.repartition(q, t)
         return True
 
-    def check_start(self, q0: np.ndarray) -> None:
-        """Check every declared row at the initial configuration (re-select if needed)."""
+    def check_start(self, q0: np.ndarray, compiled_rows: bool = False) -> None:
+        """Check every declared row at the initial configuration (re-select if needed).
+
+        Args:
+            compiled_rows: evaluate phi and J in the compiled core
+                (:func:`closedchain.compiled.declared_rows`: the same rows, to round-off,
+                in microseconds) instead of the numpy layer; :meth:`start_jacobian` then
+                returns that J. For the compiled backend, whose loop evaluates them so.
+        """
         mech = self.mech
         if mech.nc == 0:
             return
+        phi = None
+        if compiled_rows:
+            phi, J_declared = compiled.declared_rows(mech, q0)
+            self._start_J = J_declared[list(mech.selected_rows)]
         kept_cond = None
         # The kept rows' condition number matters only where check_rows reads it: rows
         # were dropped (LoopClosure.check_rows) and rank loss is not passed through.
         if not self.singular_robust and mech.declared.nc != mech.nc:
-            s = np.linalg.svd(self.jacobian(q0), compute_uv=False)
+            s = np.linalg.svd(self.start_jacobian(q0), compute_uv=False)
             kept_cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
-        self.check_rows(q0, 0.0, kept_cond=kept_cond)
+        self.check_rows(q0, 0.0, kept_cond=kept_cond, phi=phi)
+
+    def start_jacobian(self, q0: np.ndarray) -> np.ndarray:
+        """Return J(q0) of the kept rows: :meth:`check_start`'s compiled one when it made
+        one (and kept the rows), else :meth:`jacobian`'s."""
+        if self._start_J is not None:
+            return self._start_J
+        return self.jacobian(q0)
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
