@@ -21,7 +21,8 @@ With ``--against REV`` the same calls run on the ``closedchain`` package of git
 revision REV (its ``src/closedchain`` exported to a temporary directory and
 imported beside this tree's, sharing the compiled core: the C++ is the same when
 only Python changed), interleaved with this tree's in every repeat; the table
-gives both and their ratio. CPU times (``time.process_time``), median over repeats.
+gives both and their ratio, and says whether every call's results (arrays and info)
+are identical to REV's. CPU times (``time.process_time``), median over repeats.
 
 Run: python scripts/simulate_overhead.py [--repeat 7] [--against c7d7625]
 """
@@ -189,6 +190,15 @@ def main() -> None:
     for fns in [core, *calls.values()]:  # warm up (cores built, caches filled)
         for fn in fns.values():
             fn()
+    if args.against:  # the same results: every array and the run's info, bit for bit
+        for name in core:
+            ta, tb = (calls[s][name]() for s in sides)
+            same = all(
+                np.array_equal(getattr(ta, k), getattr(tb, k))
+                for k in ("t", "q", "v", "a", "lam", "constraint_residual", "energy", "branch")
+            )
+            ia, ib = ({**t.info.to_dict(), "cpu_time": None} for t in (ta, tb))
+            print(f"{name}: results identical to {args.against}: {same and ia == ib}")
     times: dict[tuple[str, str], list[float]] = {}
     for _ in range(args.repeat):
         for name in core:  # interleaved: every side of a row in the same repeat
@@ -217,7 +227,7 @@ def main() -> None:
         fixed = med[(s, "4-bar, 1 step")] - med[("core", "4-bar, 1 step")]
         per = (med[(s, "4-bar 1 s, 1001 samples")] - med[(s, "4-bar 1 s, 2 samples")]) / 999
         print(f"{s}: fixed cost {fixed:.0f} us per call; {per:.2f} us per output sample")
-    core_per = (med[("core", "4-bar 1 s, 1001 samples")] - med[("core", "4-bar 1 s, 2 samples")])
+    core_per = med[("core", "4-bar 1 s, 1001 samples")] - med[("core", "4-bar 1 s, 2 samples")]
     print(f"core alone: {core_per / 999:.2f} us per output sample")
     for s in names:
         for dt in (0.05, 0.01):

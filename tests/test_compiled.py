@@ -138,9 +138,7 @@ def test_compiled_start_check_reselects_rows_as_numpy(mechanism_files):
     for compiled_rows in (True, False):
         mech = cc.load(mechanism_files["fourbar"])
         labels = [r.label for r in mech.declared.declared_rows]
-        mech.closure.active = mech.declared.restricted(
-            [labels.index("C.t1"), labels.index("C.ta")]
-        )
+        mech.closure.active = mech.declared.restricted([labels.index("C.t1"), labels.index("C.ta")])
         q = solve_closure(
             mech.model,
             mech.data,
