@@ -108,6 +108,58 @@ def test_rows_match_numpy(load_mechanism, name, baumgarte, rng):
         assert _close(gamma, ws.gamma)
 
 
+@pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])
+def test_declared_rows_match_numpy(mech_by_name, name, rng):
+    """compiled.declared_rows (simulate's start checks): phi and J of every declared row,
+    the dropped ones included, against the numpy layer at random states off phi = 0."""
+    from closedchain.closure import layer_jacobian, layer_phi
+
+    mech = mech_by_name(name)
+    for _ in range(5):
+        q, _ = cc.random_consistent_state(mech, rng)
+        q = pin.integrate(mech.model, q, 1e-2 * rng.standard_normal(mech.nv))  # phi != 0
+        phi, J = compiled.declared_rows(mech, q)
+        phi_ref = layer_phi(mech.model, mech.data, mech.declared, q)
+        assert np.max(np.abs(phi_ref)) > 1e-6  # an independent check that phi is exercised
+        assert _close(phi, phi_ref)
+        assert _close(J, layer_jacobian(mech.model, mech.data, mech.declared, q))
+        # the kept rows are the selected rows of the declared ones
+        assert _close(J[list(mech.selected_rows)], cc.compute_jacobian(mech, q))
+
+
+def test_compiled_start_check_reselects_rows_as_numpy(mechanism_files):
+    """The start check on compiled rows (Problem.check_start(compiled_rows=True)) finds an
+    open dropped row and re-selects the rows as the numpy check does (test_closure's case:
+    kept rows C.t1, C.ta, the dropped C.t2 open by more than 1e-2)."""
+    from closedchain.kinematics import solve_closure
+    from closedchain.simulate.problem import Problem
+
+    outcomes = []
+    for compiled_rows in (True, False):
+        mech = cc.load(mechanism_files["fourbar"])
+        labels = [r.label for r in mech.declared.declared_rows]
+        mech.closure.active = mech.declared.restricted([labels.index("C.t1"), labels.index("C.ta")])
+        q = solve_closure(
+            mech.model,
+            mech.data,
+            mech.declared.restricted([labels.index("C.t1")]),
+            np.radians([10.0, -65.0, -80.0]),
+            np.array([1]),
+            cc.AssemblySettings(),
+        )
+        problem = Problem(mech, "kkt", None, cc.SolverSettings(), cc.SimulationSettings())
+        problem.check_start(q, compiled_rows=compiled_rows)
+        J = problem.start_jacobian(q)
+        outcomes.append((mech.row_selection.kept, mech.row_selection.reason, J))
+    assert outcomes[0][0] == outcomes[1][0] == ("C.t1", "C.t2")
+    # the same reason, to the kept rows' residual (round-off: 1.1e-17 and 1.4e-17)
+    opened = [o[1].split(" (kept rows")[0] for o in outcomes]
+    assert opened[0] == opened[1] and opened[0].startswith("dropped row C.t2 open by ")
+    # after the re-selection, the start Jacobian is that of the new rows (not the compiled
+    # one of the old rows): the numpy layer's J of C.t1, C.t2
+    assert outcomes[0][2].shape == (2, 3) and np.array_equal(outcomes[0][2], outcomes[1][2])
+
+
 @pytest.mark.parametrize("baumgarte", [None, (10.0, 7.0)], ids=["exact", "baumgarte"])
 @pytest.mark.parametrize("method", COMPILED_METHODS)
 @pytest.mark.parametrize("name", ALL_MECHS)

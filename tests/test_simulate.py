@@ -1029,3 +1029,49 @@ def test_rtol_below_double_precision_is_refused(fourbar, q_crossed):
         match=r"rtol = 1e-30 is below what double precision resolves .*valid range: \[2\.22e-14",
     ):
         simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="DOP853", rtol=1e-30)
+
+
+def test_recorder_keeps_the_order_of_added_and_extended_samples(fourbar, q_crossed):
+    """Samples recorded one by one (numpy loops: Recorder.add) and as blocks (compiled
+    loops: Recorder.extend) come out in recording order with their residuals, energies
+    and branch signs; add recomputes them (Pinocchio's energies, the numpy rows) and must
+    agree with the compiled run's own to round-off."""
+    from closedchain.simulate.problem import Problem, Recorder
+
+    ref = simulate(fourbar, q_crossed, np.zeros(3), 0.01, dt=1e-3, backend="compiled")
+    assert len(ref.t) == 11
+    problem = Problem(fourbar, "kkt", None, cc.SolverSettings(), cc.SimulationSettings())
+    rec = Recorder(fourbar, 1e-3, problem.jacobian)
+
+    def add(i):
+        rec.add(ref.t[i], ref.q[i], ref.v[i], ref.a[i], ref.lam[i])
+
+    for i in range(3):
+        add(i)
+    block = slice(3, 8)
+    rec.extend(
+        {
+            "t": ref.t[block, None],
+            "q": ref.q[block],
+            "v": ref.v[block],
+            "a": ref.a[block],
+            "lam": ref.lam[block],
+            "res": ref.constraint_residual[block, None],
+            "vres": ref.velocity_residual[block, None],
+            "e": ref.energy[block, None],
+            "ke": ref.kinetic_energy[block, None],
+            "branch": ref.branch[block, None],
+        }
+    )
+    for i in range(8, 11):
+        add(i)
+    assert len(rec) == 11
+    traj = rec.trajectory({})
+    np.testing.assert_array_equal(traj.t, ref.t)
+    np.testing.assert_array_equal(traj.q, ref.q)
+    np.testing.assert_array_equal(traj.lam, ref.lam)
+    np.testing.assert_array_equal(traj.branch, ref.branch)
+    scale = max(1.0, float(np.max(np.abs(ref.energy))))
+    assert np.max(np.abs(traj.energy - ref.energy)) <= 1e-12 * scale
+    assert np.max(np.abs(traj.constraint_residual - ref.constraint_residual)) <= 1e-12
+    assert traj.q.flags["C_CONTIGUOUS"] and traj.q.shape == (11, fourbar.nq)

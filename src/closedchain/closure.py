@@ -595,6 +595,7 @@ class LoopClosure:
         t: float | None = None,
         kept_cond: float | None = None,
         settings: RowCheckSettings = DEFAULT_ROW_CHECK_SETTINGS,
+        phi: np.ndarray | None = None,
     ) -> bool:
         """Check that the kept rows still describe every loop at q; re-select if not.
 
@@ -611,6 +612,8 @@ class LoopClosure:
             t: simulation time [s] for messages, if any.
             kept_cond: condition number of the kept rows' J at q, if known.
             settings: tolerances (default :class:`RowCheckSettings`).
+            phi: phi(q) of every declared row, shape (n_declared,), if known (the
+                compiled core's, ``closedchain.compiled.declared_rows``); else computed.
 
         Returns:
             True when the rows were re-selected.
@@ -625,7 +628,8 @@ class LoopClosure:
         if self.declared.nc == self.active.nc:
             return False
         when = f" at t = {t:.9g} s" if t is not None else ""
-        phi = self.declared_residuals(model, data, q)
+        if phi is None:
+            phi = self.declared_residuals(model, data, q)
         sel = np.zeros(self.declared.nc, dtype=bool)
         sel[list(self.selected_rows)] = True
         kept_res = float(np.max(np.abs(phi[sel]), initial=0.0))

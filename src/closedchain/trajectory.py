@@ -40,6 +40,30 @@ class StopInfo:
     reason: str
 
 
+def _field_names(cls) -> frozenset[str]:
+    """The dataclass field names of ``cls`` (computed once per class)."""
+    names = cls.__dict__.get("_FIELD_NAMES")
+    if names is None:
+        names = frozenset(f.name for f in fields(cls))
+        cls._FIELD_NAMES = names  # a class attribute, not a field (no annotation)
+    return names
+
+
+def energy_scale(energy: np.ndarray, kinetic_energy: np.ndarray | None) -> float:
+    """:attr:`Trajectory.energy_scale` of the series ``energy`` and ``kinetic_energy`` [J]."""
+    kinetic = 0.0 if kinetic_energy is None else float(np.max(kinetic_energy))
+    return max(abs(float(energy[0])), kinetic)
+
+
+def energy_drift(energy: np.ndarray, kinetic_energy: np.ndarray | None) -> float:
+    """:attr:`Trajectory.energy_drift` of the series ``energy`` and ``kinetic_energy``."""
+    deviation = float(np.max(np.abs(energy - energy[0])))
+    scale = energy_scale(energy, kinetic_energy)
+    if scale == 0.0:
+        return 0.0 if deviation == 0.0 else float("inf")
+    return deviation / scale
+
+
 def _freeze(x):
     """Lists (as JSON gives them back) to tuples, recursively."""
     return tuple(_freeze(e) for e in x) if isinstance(x, (list, tuple)) else x
@@ -116,7 +140,7 @@ class SimulationInfo:
 
         Keys that are not fields go to :attr:`extra`.
         """
-        names = {f.name for f in fields(cls)}
+        names = _field_names(cls)
         kw = {k: v for k, v in d.items() if k in names and k != "extra"}
         extra = {**d.get("extra", {}), **{k: v for k, v in d.items() if k not in names}}
         for k, v in kw.items():
@@ -192,8 +216,7 @@ class Trajectory:
     @property
     def energy_scale(self) -> float:
         """max(|E(0)|, max_t T(t)) [J]: the energy the motion holds or exchanges."""
-        kinetic = 0.0 if self.kinetic_energy is None else float(np.max(self.kinetic_energy))
-        return max(abs(float(self.energy[0])), kinetic)
+        return energy_scale(self.energy, self.kinetic_energy)
 
     @property
     def energy_drift(self) -> float:
@@ -202,11 +225,7 @@ class Trajectory:
         The kinetic energy enters the scale so that the measure does not hinge
         on where the potential energy's zero is; 0 when E_s = 0 and E is constant.
         """
-        deviation = float(np.max(np.abs(self.energy - self.energy[0])))
-        scale = self.energy_scale
-        if scale == 0.0:
-            return 0.0 if deviation == 0.0 else float("inf")
-        return deviation / scale
+        return energy_drift(self.energy, self.kinetic_energy)
 
     @property
     def max_constraint_residual(self) -> float:

@@ -48,7 +48,7 @@ from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
-from ..trajectory import SimulationInfo, Trajectory
+from ..trajectory import SimulationInfo, Trajectory, energy_drift
 from .problem import Problem, Recorder
 from .registry import (
     COMPILED_INTEGRATORS,
@@ -103,14 +103,28 @@ __all__ = [
 MIN_RTOL = 100 * float(np.finfo(float).eps)
 
 
-def check_start_velocity(mech: Mechanism, q0: np.ndarray, v0: np.ndarray, tol: float) -> None:
+def check_start_velocity(
+    mech: Mechanism,
+    q0: np.ndarray,
+    v0: np.ndarray,
+    tol: float,
+    jacobian: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> None:
     """Raise InvalidArgumentError when v0 violates the loops' velocity constraint J(q0) v0 = 0.
 
     The residual is compared with ``tol * max(1, max |v0|)`` [m/s or rad/s per row].
-    """
-    from ..kinematics import compute_jacobian
 
-    residual = float(np.max(np.abs(compute_jacobian(mech, q0) @ v0), initial=0.0))
+    Args:
+        jacobian: J(q) of the kept rows (e.g. ``Problem.jacobian``, which reuses the J
+            its start check computed at q0); default: :func:`closedchain.compute_jacobian`.
+    """
+    if jacobian is None:
+        from ..kinematics import compute_jacobian
+
+        def jacobian(q):
+            return compute_jacobian(mech, q)
+
+    residual = float(np.max(np.abs(jacobian(q0) @ v0), initial=0.0))
     bound = tol * max(1.0, float(np.max(np.abs(v0), initial=0.0)))
     if residual > bound:
         raise InvalidArgumentError(
@@ -368,8 +382,8 @@ def simulate(
         stab.projects_stages or spec.singular_robust
     )
     recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
-    problem.check_start(q0)
-    check_start_velocity(mech, q0, v0, settings.start_velocity_tol)
+    problem.check_start(q0, compiled_rows=spec.backend == "compiled")
+    check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.start_jacobian)
     info = {
         "mechanism": mech.name,
         "method": method,
@@ -404,7 +418,7 @@ def simulate(
                 problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
             )
     except (SingularConfigurationError, SimulationError) as exc:
-        if spec.backend == "compiled" and not recorder.rows["t"]:
+        if spec.backend == "compiled" and not len(recorder):
             # The compiled loop hands its samples over at the end only: the
             # reference loop recovers the motion up to the stop (its error,
             # with exc.trajectory, is raised instead).
@@ -431,17 +445,17 @@ def simulate(
         info["stopped"] = {"t": exc.t, "reason": str(exc)}
         info["cpu_time"] = time.process_time() - cpu0
         info["evaluations"] = problem.n_evals
-        exc.trajectory = recorder.trajectory(info) if recorder.rows["t"] else None
+        exc.trajectory = recorder.trajectory(info) if len(recorder) else None
         raise
     info["cpu_time"] = time.process_time() - cpu0
     info["row_reselections"] = problem.reselections
     info["steps"] = steps
     info["evaluations"] = problem.n_evals
     info["branch_changes"] = recorder.branch_changes
-    traj = recorder.trajectory(info)
-    info["max_constraint_residual"] = traj.max_constraint_residual
-    info["energy_drift"] = traj.energy_drift
-    traj = replace(traj, info=SimulationInfo.from_dict(info))
+    series = recorder.series()
+    info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
+    info["energy_drift"] = energy_drift(series["e"], series["ke"])
+    traj = recorder.trajectory(SimulationInfo.from_dict(info))
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,

@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg
 
+from .. import compiled
 from ..closure import RowCheckSettings
 from ..dynamics.augmented_lagrangian import (
     NormalSolver,
@@ -62,6 +63,7 @@ class Problem:
         self.dep = np.array(mech.dependent_idx_v)
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
         self._J_at: np.ndarray | None = None
+        self._start_J: np.ndarray | None = None  # J(q0) of check_start (compiled rows)
         self._normal = None
         self._normal_layer = None
         self._penalized = None
@@ -187,21 +189,35 @@ class Problem:
         """Return the sign of det(J_D) at q (0 when singular)."""
         return float(np.linalg.slogdet(self.jacobian(q)[:, self.dep])[0])
 
-    def check_rows(self, q: np.ndarray, t: float, kept_cond: float | None = None) -> bool:
+    def check_rows(
+        self,
+        q: np.ndarray,
+        t: float,
+        kept_cond: float | None = None,
+        phi: np.ndarray | None = None,
+    ) -> bool:
         """Check every declared row at q; re-select the kept rows when they stop describing
-        the loops (:meth:`LoopClosure.check_rows`). Returns True when re-selected."""
+        the loops (:meth:`LoopClosure.check_rows`; ``phi``: the declared rows' phi(q) if
+        known). Returns True when re-selected."""
         mech = self.mech
         if self.singular_robust:
             kept_cond = None  # rank loss is passed through, not re-selected around
         try:
             changed = mech.closure.check_rows(
-                mech.model, mech.data, q, t=t, kept_cond=kept_cond, settings=self.row_check
+                mech.model,
+                mech.data,
+                q,
+                t=t,
+                kept_cond=kept_cond,
+                settings=self.row_check,
+                phi=phi,
             )
         except SingularConfigurationError as exc:
             raise exc.with_hint(passing_hint(), t=t) from None
         if not changed:
             return False
         self._J_at = None  # the memo holds the old rows
+        self._start_J = None
         self.reselections.append(
             [t, list(mech.closure.selection.kept), mech.closure.selection.reason]
         )
@@ -209,12 +225,36 @@ class Problem:
             self.repartition(q, t)
         return True
 
-    def check_start(self, q0: np.ndarray) -> None:
-        """Check every declared row at the initial configuration (re-select if needed)."""
-        if self.mech.nc == 0:
+    def check_start(self, q0: np.ndarray, compiled_rows: bool = False) -> None:
+        """Check every declared row at the initial configuration (re-select if needed).
+
+        Args:
+            compiled_rows: evaluate phi and J in the compiled core
+                (:func:`closedchain.compiled.declared_rows`: the same rows, to round-off,
+                in microseconds) instead of the numpy layer; :meth:`start_jacobian` then
+                returns that J. For the compiled backend, whose loop evaluates them so.
+        """
+        mech = self.mech
+        if mech.nc == 0:
             return
-        s = np.linalg.svd(self.jacobian(q0), compute_uv=False)
-        self.check_rows(q0, 0.0, kept_cond=float(s[0] / s[-1]) if s[-1] > 0 else math.inf)
+        phi = None
+        if compiled_rows:
+            phi, J_declared = compiled.declared_rows(mech, q0)
+            self._start_J = J_declared[list(mech.selected_rows)]
+        kept_cond = None
+        # The kept rows' condition number matters only where check_rows reads it: rows
+        # were dropped (LoopClosure.check_rows) and rank loss is not passed through.
+        if not self.singular_robust and mech.declared.nc != mech.nc:
+            s = np.linalg.svd(self.start_jacobian(q0), compute_uv=False)
+            kept_cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+        self.check_rows(q0, 0.0, kept_cond=kept_cond, phi=phi)
+
+    def start_jacobian(self, q0: np.ndarray) -> np.ndarray:
+        """Return J(q0) of the kept rows: :meth:`check_start`'s compiled one when it made
+        one (and kept the rows), else :meth:`jacobian`'s."""
+        if self._start_J is not None:
+            return self._start_J
+        return self.jacobian(q0)
 
     def check_regular(self, q: np.ndarray, t: float) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
@@ -333,14 +373,21 @@ def project(
 class Recorder:
     """Collects output samples and their residuals and energy."""
 
+    #: Per-sample series: t, res, vres, e, ke scalars; q, v, a, lam vectors.
+    _SERIES = ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke")
+
     def __init__(self, mech: Mechanism, drift_limit: float, jacobian) -> None:
         self.mech = mech
         self.drift_limit = drift_limit
         self.jacobian = jacobian  # J(q), shared with the problem's memo
-        self.rows: dict[str, list] = {
-            k: []
-            for k in ("t", "q", "v", "a", "lam", "res", "vres", "e", "ke", "branch", "branch_t")
-        }
+        #: Samples of :meth:`add` not yet moved into :attr:`_blocks` (one entry per sample).
+        self.rows: dict[str, list] = {k: [] for k in self._SERIES}
+        self.rows["branch"], self.rows["branch_t"] = [], []
+        #: Recorded segments in order, each a dict of arrays with one row per sample:
+        #: :meth:`extend`'s blocks as given (no per-sample Python objects), :meth:`add`'s
+        #: rows stacked when a block follows or at :meth:`trajectory`.
+        self._blocks: list[dict[str, np.ndarray]] = []
+        self._n = 0
         self._phi = np.zeros(mech.declared.nc)
         self.dep = np.array(mech.dependent_idx_v, dtype=int)
         #: Branch changes [t_before, t_after, from, to] (see Trajectory.branch).
@@ -384,7 +431,31 @@ class Recorder:
         r["vres"].append(vres)
         r["e"].append(energy)
         r["ke"].append(kinetic)
+        self._n += 1
         self._add_branch(t, J)
+
+    def __len__(self) -> int:
+        """Number of samples recorded."""
+        return self._n
+
+    def _widths(self) -> dict[str, int]:
+        m = self.mech
+        return {"q": m.nq, "v": m.nv, "a": m.nv, "lam": m.nc}
+
+    def _flush(self) -> None:
+        """Move the pending rows of :meth:`add` into one block (in recording order)."""
+        r = self.rows
+        if not r["t"]:
+            return
+        widths = self._widths()
+        block = {}
+        for key in self._SERIES:
+            if key in widths:
+                block[key] = np.array(r[key], dtype=float).reshape(-1, widths[key])
+            else:
+                block[key] = np.array(r[key], dtype=float)
+            r[key] = []
+        self._blocks.append(block)
 
     def _add_branch(self, t: float, J: np.ndarray) -> None:
         """Record the sign of det(J_D) at the sample just added (time t, Jacobian J)."""
@@ -416,15 +487,18 @@ class Recorder:
             jacobian: J(q) of the kept rows for the branch series when ``branch`` is
                 absent (default: the numpy layer's).
         """
-        r = self.rows
-        for key in ("t", "res", "vres", "e", "ke"):
-            r[key].extend(np.asarray(samples[key]).ravel().tolist())
-        for key in ("q", "v", "a", "lam"):
-            r[key].extend(np.asarray(samples[key]))
+        self._flush()
+        widths = self._widths()
+        times = np.asarray(samples["t"], dtype=float).ravel()
+        if not len(times):
+            return
+        block = {}
+        for key in self._SERIES:  # C order, as the rows of add (the core's are column-major)
+            a = np.ascontiguousarray(samples[key], dtype=float)
+            block[key] = a.reshape(-1, widths[key]) if key in widths else a.ravel()
+        self._blocks.append(block)
+        self._n += len(times)
         if self.mech.nc and len(self.dep) == self.mech.nc:  # the branch series, as in add
-            times = np.asarray(samples["t"], dtype=float).ravel()
-            if not len(times):
-                return
             if "branch" in samples:
                 signs = np.asarray(samples["branch"], dtype=float).ravel()
             else:
@@ -447,19 +521,38 @@ class Recorder:
         r["branch"].extend(signs.tolist())
         r["branch_t"].extend(times.tolist())
 
-    def trajectory(self, info: dict) -> Trajectory:
+    def series(self) -> dict[str, np.ndarray]:
+        """Return every recorded series as one array (one row per sample, in order)."""
+        self._flush()
+        widths = self._widths()
+        blocks = self._blocks
+        out = {}
+        for key in self._SERIES:
+            if len(blocks) == 1:
+                out[key] = blocks[0][key]
+            elif blocks:
+                out[key] = np.concatenate([b[key] for b in blocks])
+            else:
+                out[key] = np.zeros((0, widths[key]) if key in widths else 0)
+        if len(blocks) > 1:
+            self._blocks = [out]  # later calls reuse the concatenation
+        return out
+
+    def trajectory(self, info) -> Trajectory:
+        """Return the recorded samples as a Trajectory with ``info`` (a mapping or
+        :class:`~closedchain.trajectory.SimulationInfo`)."""
+        s = self.series()
         r = self.rows
-        nc = self.mech.nc
         return Trajectory(
-            t=np.array(r["t"]),
-            q=np.array(r["q"]).reshape(-1, self.mech.nq),
-            v=np.array(r["v"]).reshape(-1, self.mech.nv),
-            a=np.array(r["a"]).reshape(-1, self.mech.nv),
-            lam=np.array(r["lam"]).reshape(-1, nc),
-            constraint_residual=np.array(r["res"]),
-            velocity_residual=np.array(r["vres"]),
-            energy=np.array(r["e"]),
-            kinetic_energy=np.array(r["ke"]),
+            t=s["t"],
+            q=s["q"],
+            v=s["v"],
+            a=s["a"],
+            lam=s["lam"],
+            constraint_residual=s["res"],
+            velocity_residual=s["vres"],
+            energy=s["e"],
+            kinetic_energy=s["ke"],
             branch=np.array(r["branch"]) if r["branch"] else None,
             info=info,
         )
