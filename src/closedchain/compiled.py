@@ -102,16 +102,7 @@ def make_core(mech: Mechanism, *, shared: bool = True):
     key = id(mech.constraints)
     entry = cache.get(key) if shared else None
     if entry is None or entry[0] is not mech.constraints:
-        tab = mech.constraints.row_table()
-        core = _core.Core(
-            mech.model,
-            mech.name,
-            _CORE_KIND[tab.function].astype(np.int32),
-            tab.frame_p.astype(np.int32),
-            tab.frame_s.astype(np.int32),
-            tab.u,
-            tab.w,
-        )
+        core = _core_of_rows(mech, mech.constraints)
         # Every declared row, checked at every step of a compiled loop.
         kept = np.zeros(mech.declared.nc, dtype=np.int32)
         kept[list(mech.selected_rows)] = 1
@@ -129,6 +120,20 @@ def make_core(mech: Mechanism, *, shared: bool = True):
     return entry[1]
 
 
+def _core_of_rows(mech: Mechanism, layer) -> _core.Core:
+    """A new core on ``mech``'s model whose rows are those of the constraint ``layer``."""
+    tab = layer.row_table()
+    return _core.Core(
+        mech.model,
+        mech.name,
+        _CORE_KIND[tab.function].astype(np.int32),
+        tab.frame_p.astype(np.int32),
+        tab.frame_s.astype(np.int32),
+        tab.u,
+        tab.w,
+    )
+
+
 def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return phi(q), shape (n_declared,), and J(q), shape (n_declared, nv), of every
     declared row of ``mech`` (the dropped ones included), evaluated in C++.
@@ -143,17 +148,7 @@ def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarra
         raise ClosedChainError(f"the compiled core is not available: {IMPORT_ERROR}")
     entry = mech.__dict__.get("_compiled_declared_core")
     if entry is None or entry[0] is not mech.declared:
-        tab = mech.declared.row_table()
-        core = _core.Core(
-            mech.model,
-            mech.name,
-            _CORE_KIND[tab.function].astype(np.int32),
-            tab.frame_p.astype(np.int32),
-            tab.frame_s.astype(np.int32),
-            tab.u,
-            tab.w,
-        )
-        entry = (mech.declared, core, np.zeros(mech.nv))
+        entry = (mech.declared, _core_of_rows(mech, mech.declared), np.zeros(mech.nv))
         mech.__dict__["_compiled_declared_core"] = entry
     phi, J, _ = entry[1].rows(np.asarray(q, dtype=float), entry[2])
     return phi, J

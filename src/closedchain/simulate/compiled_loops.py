@@ -82,6 +82,13 @@ def _numpy_fallback(exc, problem, recorder, args, spec, info) -> int:
     return ref.run(problem, recorder, q0, v0, t_final, control, ref, stab, t_eval, progress, info)
 
 
+def _output_steps(n_steps: int, out_steps) -> np.ndarray:
+    """The steps a fixed-step loop records (``output_grid``'s; None: every step)."""
+    if out_steps is None:
+        return np.arange(n_steps + 1, dtype=np.int32)
+    return np.asarray(out_steps, dtype=np.int32)
+
+
 def run_fixed_compiled(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
@@ -96,10 +103,7 @@ def run_fixed_compiled(
             np.asarray(v, dtype=float),
             float(dt),
             int(n_steps),
-            # None: every step is an output.
-            np.arange(n_steps + 1, dtype=np.int32)
-            if out_steps is None
-            else np.asarray(out_steps, dtype=np.int32),
+            _output_steps(n_steps, out_steps),
             bool(stab.projects),
             progress,
         )
@@ -147,9 +151,7 @@ def run_ali3p_compiled(
         np.asarray(v, dtype=float),
         float(dt),
         int(n_steps),
-        np.arange(n_steps + 1, dtype=np.int32)
-        if out_steps is None
-        else np.asarray(out_steps, dtype=np.int32),
+        _output_steps(n_steps, out_steps),
         (float(s.ali3p_tol), float(s.ali3p_phi_tol), int(s.ali3p_max_iter), float(s.ali3p_penalty)),
         progress,
     )
