@@ -1108,8 +1108,10 @@ class Core {
   // With mass_orth (the stage projection; problem.project's mass_orthogonal) v is
   // projected in the metric of M: the augmented-Lagrangian solve (solve_al) at q with
   // right-hand side M v, h = 0 and gamma = 0. Leaves M_, h_, gamma_, a_ and lam_
-  // overwritten (an accel follows every projection).
+  // overwritten (an accel follows every projection). Only where the run passes singular
+  // positions (singular_robust_), as problem.project.
   void project(Vec &q, Vec &v, bool mass_orth = false) {
+    mass_orth = mass_orth && singular_robust_;
     if (nc_ == 0) return;
     for (int it = 0; it < projection_iters_; ++it) {
       eval_phi_J(q);

@@ -326,7 +326,11 @@ def project(
     right-hand side M v and gamma = 0, as ALI3-P's projections): the kinetic energy
     changes only to second order in the correction, and a row that J nearly loses (near
     a singular position) is enforced at the rate 1 / (1 + rho sigma^2) per iteration
-    instead of amplifying the position residual by 1 / sigma^2.
+    instead of amplifying the position residual by 1 / sigma^2. Only a run that passes
+    singular positions (``problem.singular_robust``: a singular-robust method with stage
+    projection) projects so; the other methods stop at singular positions, keep the
+    minimum-norm correction and need no M + alpha J^T J (which is indefinite for, e.g., a
+    1000-link chain, whose kkt runs it would refuse).
     """
     mech, s = problem.mech, problem.settings
     model, data, layer = mech.model, mech.data, mech.constraints
@@ -347,7 +351,7 @@ def project(
         q = pin.integrate(model, q, min_norm(J, -phi))
     if s.project_velocities:
         J = problem.jacobian(q)
-        if mass_orthogonal and mech.nc:
+        if mass_orthogonal and problem.singular_robust and mech.nc:
             M = pin.crba(model, data, q)
             M = np.triu(M) + np.triu(M, 1).T
             ss = problem.solver_settings
