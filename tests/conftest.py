@@ -390,3 +390,23 @@ def nfourbar_generator():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def nfourbar(tmp_path_factory):
+    """``get(n) -> Mechanism``: the N-four-bar, the shipped model when there is one
+    (models/nfourbar_2.urdf, nfourbar_40.urdf), else written by scripts/make_nfourbar.py;
+    each N loaded once per test module."""
+    cache: dict[int, cc.Mechanism] = {}
+    folder = tmp_path_factory.mktemp("nfourbar")
+
+    def get(n: int) -> cc.Mechanism:
+        if n not in cache:
+            path = MODELS / f"nfourbar_{n}.urdf"
+            if not path.exists():
+                path = folder / f"nfourbar_{n}.urdf"
+                path.write_text(nfourbar_generator().build(n))
+            cache[n] = cc.load(path)
+        return cache[n]
+
+    return get

@@ -20,7 +20,6 @@ import subprocess
 import nfourbar_reference as ref
 import numpy as np
 import pytest
-from conftest import MODELS, nfourbar_generator
 
 import closedchain as cc
 from closedchain import compiled
@@ -48,24 +47,6 @@ def _agile_eye_state(mech):
     v = np.zeros(mech.nv)
     v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
     return q, cc.project_velocity(mech, q, v, fixed="independent")
-
-
-@pytest.fixture(scope="module")
-def nfourbar(tmp_path_factory):
-    gen = nfourbar_generator()
-    folder = tmp_path_factory.mktemp("nfb")
-    cache: dict[int, cc.Mechanism] = {}
-
-    def get(n: int) -> cc.Mechanism:
-        if n not in cache:
-            path = MODELS / f"nfourbar_{n}.urdf"
-            if not path.exists():
-                path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(gen.build(n))
-            cache[n] = cc.load(path)
-        return cache[n]
-
-    return get
 
 
 def _both(mech, q0, v0, t_final, **kw):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import nfourbar_reference as ref
 import numpy as np
 import pytest
-from conftest import MODELS, nfourbar_generator
 
 import closedchain as cc
 from closedchain import compiled
@@ -35,24 +34,6 @@ FIXED_T = 0.05
 #: Through a flat position (J loses rank) round-off is amplified: the two paths agree to
 #: the integration error (as SINGULAR_PASSAGE_TOL of tests/test_compiled.py).
 SINGULAR_PASSAGE_TOL = 1e-6
-
-
-@pytest.fixture(scope="module")
-def nfourbar(tmp_path_factory):
-    """``get(n) -> Mechanism`` (shipped model when there is one, else generated)."""
-    cache: dict[int, cc.Mechanism] = {}
-    folder = tmp_path_factory.mktemp("band")
-
-    def get(n: int) -> cc.Mechanism:
-        if n not in cache:
-            path = MODELS / f"nfourbar_{n}.urdf"
-            if not path.exists():
-                path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(nfourbar_generator().build(n))
-            cache[n] = cc.load(path)
-        return cache[n]
-
-    return get
 
 
 def _dense_core(mech, method="augmented-lagrangian"):

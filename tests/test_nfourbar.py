@@ -32,24 +32,6 @@ def generator():
     return nfourbar_generator()
 
 
-@pytest.fixture(scope="module")
-def nfourbar(generator, tmp_path_factory):
-    """Return ``get(n) -> Mechanism``, writing and loading each N-four-bar once."""
-    cache: dict[int, cc.Mechanism] = {}
-    folder = tmp_path_factory.mktemp("nfourbar")
-
-    def get(n: int) -> cc.Mechanism:
-        if n not in cache:
-            path = MODELS / f"nfourbar_{n}.urdf"
-            if n not in SHIPPED:
-                path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(generator.build(n))
-            cache[n] = cc.load(path)
-        return cache[n]
-
-    return get
-
-
 @pytest.mark.parametrize("n", N_VALUES)
 def test_reference_two_ways(n):
     """scipy quad + brentq and 30-digit mpmath give the same crank angle at 20 s."""

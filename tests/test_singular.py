@@ -13,7 +13,7 @@ import math
 import nfourbar_reference as ref
 import numpy as np
 import pytest
-from conftest import MODELS, nfourbar_generator
+from conftest import MODELS
 
 import closedchain as cc
 from closedchain import compiled
@@ -152,24 +152,6 @@ def test_proximal_bias_at_and_near_the_flat_position():
 # -- the N-four-bar -----------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def nfourbar_mech(tmp_path_factory):
-    gen = nfourbar_generator()
-    folder = tmp_path_factory.mktemp("nfb")
-    cache: dict[int, cc.Mechanism] = {}
-
-    def get(n: int) -> cc.Mechanism:
-        if n not in cache:
-            path = MODELS / f"nfourbar_{n}.urdf"
-            if not path.exists():
-                path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(gen.build(n))
-            cache[n] = cc.load(path)
-        return cache[n]
-
-    return get
-
-
 def _b0_error_and_drift(mech, traj, n):
     theta = ref.crank_angle(n, T_BENCHMARK)
     # B0 is the tip of crank 0 (pivot at the origin): its position from the crank angle.
@@ -239,11 +221,11 @@ def _check_benchmark(mech, traj, n):
 
 
 @pytest.mark.parametrize("n", _nfourbar_params(NFOURBAR_IN_CI, DEFAULT_MISSES))
-def test_nfourbar_default_configuration(nfourbar_mech, n):
+def test_nfourbar_default_configuration(nfourbar, n):
     """20 s of the benchmark with simulate's default method, integrator, step and
     stabilization (augmented-lagrangian, rk4, 1 ms, stage-projection): see
     :func:`_check_benchmark`."""
-    mech = nfourbar_mech(n)
+    mech = nfourbar(n)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(mech, q0, v0, T_BENCHMARK, t_eval=np.linspace(0, T_BENCHMARK, 201))
     info = traj.info
@@ -266,10 +248,10 @@ V0_PERTURBATIONS = (-2, -1, 1, 2, 10)
 @pytest.mark.slow
 @pytest.mark.skipif(not compiled.available(), reason="the compiled core is not built")
 @pytest.mark.parametrize("k", V0_PERTURBATIONS)
-def test_nfourbar_default_is_insensitive_to_round_off(nfourbar_mech, k):
+def test_nfourbar_default_is_insensitive_to_round_off(nfourbar, k):
     """N = 1, 20 s, default configuration (compiled core: 0.3 s each) with v0 scaled by
     1 + k 1e-15: every run meets the bar of :func:`_check_benchmark`."""
-    mech = nfourbar_mech(1)
+    mech = nfourbar(1)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(
         mech,
@@ -283,10 +265,10 @@ def test_nfourbar_default_is_insensitive_to_round_off(nfourbar_mech, k):
 
 
 @pytest.mark.parametrize("n", _nfourbar_params(ALI3P_IN_CI, ALI3P_MISSES))
-def test_nfourbar_ali3p(nfourbar_mech, n):
+def test_nfourbar_ali3p(nfourbar, n):
     """20 s of the benchmark with ALI3-P (augmented-lagrangian, mass-orthogonal) at
     ALI3P_DT: see :func:`_check_benchmark`."""
-    mech = nfourbar_mech(n)
+    mech = nfourbar(n)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(
         mech,
@@ -395,12 +377,12 @@ def _landing_case(mech, n, x, dt):
 
 
 @pytest.mark.parametrize("x", LANDINGS)
-def test_default_steps_through_a_flat_position_wherever_they_land(nfourbar_mech, x):
+def test_default_steps_through_a_flat_position_wherever_they_land(nfourbar, x):
     """N = 5, three default steps whose first ends x rad before a flat position: the
     crank rate agrees with the reduced motion (scipy DOP853 at 1e-13) on both backends,
     and the two backends take the same substeps around the crossing."""
     n, dt = 5, SimulationSettings().dt
-    mech = nfourbar_mech(n)
+    mech = nfourbar(n)
     q0, v0, (theta, rate) = _landing_case(mech, n, x, dt)
     grid = np.linspace(0.0, 3 * dt, 4)
     runs = {b: simulate(mech, q0, v0, 3 * dt, t_eval=grid, backend=b) for b in BACKENDS}
@@ -430,11 +412,11 @@ ALI3P_LANDING_BACKEND_TOL = 1e-10
 
 
 @pytest.mark.parametrize("x", LANDINGS)
-def test_ali3p_steps_through_a_flat_position_wherever_they_land(nfourbar_mech, x):
+def test_ali3p_steps_through_a_flat_position_wherever_they_land(nfourbar, x):
     """N = 5, three ALI3-P steps whose first would end x rad before a flat position: the
     crank rate and angle agree with the reduced motion (scipy DOP853 at 1e-13)."""
     n, dt = 5, ALI3P_LANDING_DT
-    mech = nfourbar_mech(n)
+    mech = nfourbar(n)
     q0, v0, (theta, rate) = _landing_case(mech, n, x, dt)
     grid = np.linspace(0.0, 3 * dt, 4)
     runs = {
@@ -458,8 +440,8 @@ ALI3P_B0_TOL = 1e-6
 
 
 @pytest.mark.slow
-def test_ali3p_passes_the_flat_positions(nfourbar_mech):
-    mech = nfourbar_mech(2)
+def test_ali3p_passes_the_flat_positions(nfourbar):
+    mech = nfourbar(2)
     q0, v0 = ref.initial_state(mech)
     traj = simulate(mech, q0, v0, ALI3P_T, integrator="ali3p", dt=1e-3)
     assert traj.info.stabilization == "mass-orthogonal"
@@ -469,8 +451,8 @@ def test_ali3p_passes_the_flat_positions(nfourbar_mech):
     assert traj.max_constraint_residual <= RESIDUAL_TOL
 
 
-def test_ali3p_needs_a_singular_robust_method(nfourbar_mech):
-    mech = nfourbar_mech(2)
+def test_ali3p_needs_a_singular_robust_method(nfourbar):
+    mech = nfourbar(2)
     q0, v0 = ref.initial_state(mech)
     with pytest.raises(cc.ClosedChainError, match="needs a method with singular_robust"):
         simulate(mech, q0, v0, 0.1, integrator="ali3p", method="kkt")
@@ -567,13 +549,13 @@ BANDED_N = 10
 
 
 @pytest.mark.slow
-def test_banded_solves_agree_with_dense_ones(nfourbar_mech, rng):
+def test_banded_solves_agree_with_dense_ones(nfourbar, rng):
     """N = 10: the augmented Lagrangian on the banded factorization of M + alpha J^T J
     agrees with kkt (dense LU), and the banded normal equations give lstsq's minimum-norm
     correction (the projections' Gauss-Newton step)."""
     from closedchain.dynamics.augmented_lagrangian import NormalSolver, PenalizedSolver
 
-    mech = nfourbar_mech(BANDED_N)
+    mech = nfourbar(BANDED_N)
     assert PenalizedSolver(mech).banded
     normal = NormalSolver(mech)
     assert normal.banded and normal.bandwidth < mech.nc // 4
