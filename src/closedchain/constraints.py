@@ -137,6 +137,18 @@ def _cross3(a: list, b: list) -> list:
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
+def support_mask(model: pin.Model, joint: int) -> np.ndarray:
+    """Return the velocity columns of the joints supporting ``joint`` (itself included,
+    the universe excluded) as a bool mask, shape (nv,): where the joint's frames'
+    Jacobians can be nonzero."""
+    mask = np.zeros(model.nv, dtype=bool)
+    for s in model.supports[joint]:
+        if s:
+            jm = model.joints[s]
+            mask[jm.idx_v : jm.idx_v + jm.nv] = True
+    return mask
+
+
 def _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma) -> None:
     r"""Fill the translation rows ``(R_p n_i).(p_p - p_s)`` of one loop.
 
@@ -443,14 +455,22 @@ class ConstraintLayer:
         rows in :meth:`evaluate`.
 
         Translation rows, with U = R_p n (world) and d = p_p - p_s: phi = U.d,
-        J = U^T (J_{v,p} - J_{v,s}) + (U x d)^T J_{omega,p} (from U^T [d]_x y =
-        y^T (U x d)), gamma = U.(a_{b,p} - a_{b,s} + d x alpha_{b,p} + 2 ddot x omega_p
+        gamma = U.(a_{b,p} - a_{b,s} + d x alpha_{b,p} + 2 ddot x omega_p
         + (d x omega_p) x omega_p).
+
+        J from the joint Jacobians (``data.J``: world frame, column k the twist of joint k
+        at the world origin) in one product: every row's rate is b_r . (V_p - V_s), with
+        V_p, V_s the twists (at the world origin) of the bodies of c1 and c2,
+        b_r = (U, p_s x U) for a translation row (from U.(v_p - v_s) + (U x d).omega_p
+        with v = v_o + omega x p) and b_r = (0, U x W) for a rotation row; V_f is the sum
+        of the columns of the joints supporting frame f, so J = D o (B data.J), D_rk =
+        1 / -1 / 0 where joint column k supports c1 only / c2 only / both or neither.
         """
         fids = self._bfids
-        frames = [pin.updateFramePlacement(model, data, f) for f in fids]
-        R = np.array([M.rotation for M in frames])  # (2L, 3, 3): c1, c2 of each loop
-        P = np.array([M.translation for M in frames])  # (2L, 3)
+        # One array per frame (R and p in one homogeneous matrix): per-frame Python calls
+        # dominate this path.
+        H = np.array([pin.updateFramePlacement(model, data, f).homogeneous for f in fids])
+        R, P = H[:, :3, :3], H[:, :3, 3]  # (2L, 3, 3), (2L, 3): c1, c2 of each loop
         tt, tr = self._tt, self._btr
         U = np.einsum("rij,rj->ri", R[tt.pred], tt.n)
         d = P[tt.pred] - P[tt.succ]
@@ -463,14 +483,12 @@ class ConstraintLayer:
             if tr is not None:
                 phi[tr.rows] = UW
         if J is not None:
-            Jf = np.array([pin.getFrameJacobian(model, data, f, _LWA) for f in fids])
-            J[tt.rows] = np.einsum("ri,rin->rn", U, Jf[tt.pred, :3] - Jf[tt.succ, :3]) + np.einsum(
-                "ri,rin->rn", _cross(U, d), Jf[tt.pred, 3:]
-            )
+            B = np.zeros((self.nc, 6))
+            B[tt.rows, :3] = U
+            B[tt.rows, 3:] = _cross(P[tt.succ], U)
             if tr is not None:
-                J[tr.rows] = np.einsum(
-                    "ri,rin->rn", _cross(Wr, Ur), Jf[tr.succ, 3:] - Jf[tr.pred, 3:]
-                )
+                B[tr.rows, 3:] = _cross(Ur, Wr)
+            np.multiply(self._support_difference(model), B @ data.J, out=J)
         if gamma is None:
             return
         A = np.array([pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in fids])
@@ -515,6 +533,7 @@ class ConstraintLayer:
     def _build_batched_tables(self) -> None:
         """Tables of :meth:`_evaluate_batched` (``self._tt`` None: the per-loop path)."""
         self._tt = None
+        self._support_model = None  # the model _support_difference was made for
         with_trans = [b for b in self._active if b.nt]
         if not with_trans or len(with_trans) <= BATCH_LOOPS:
             return  # rotation rows alone are batched by the per-loop path already
@@ -534,6 +553,20 @@ class ConstraintLayer:
                 rot["w"].append(w)
         self._tt = _Table(trans)
         self._btr = _Table(rot) if rot["rows"] else None
+
+    def _support_difference(self, model: pin.Model) -> np.ndarray:
+        """Return D, shape (nc, nv), of :meth:`_evaluate_batched`: per row, 1 on the
+        velocity columns of the joints that support c1 but not c2, -1 on those that
+        support c2 but not c1, 0 elsewhere (made once per model)."""
+        if self._support_model is not model:
+            row_loop = np.zeros(self.nc, dtype=int)
+            row_loop[self._tt.rows] = self._tt.loop
+            if self._btr is not None:
+                row_loop[self._btr.rows] = self._btr.loop
+            S = np.array([support_mask(model, model.frames[f].parentJoint) for f in self._bfids])
+            self._support_diff = S[2 * row_loop].astype(float) - S[2 * row_loop + 1]
+            self._support_model = model
+        return self._support_diff
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:
         """Return the loops whose cut frames satisfy phi = 0 only spuriously.

@@ -42,13 +42,14 @@ import scipy.sparse
 import scipy.sparse.csgraph
 from scipy.linalg import lapack
 
+from ..constraints import support_mask
 from ..exceptions import SingularConfigurationError
 from .base import (
     MethodCapabilities,
     SolverSettings,
     compute_terms,
-    method_buffers,
     register,
+    workspace,
 )
 
 if TYPE_CHECKING:
@@ -89,20 +90,14 @@ def structure(mech: Mechanism) -> np.ndarray:
 
 
 def _support_columns(model, joint: int) -> np.ndarray:
-    cols: list[int] = []
-    for s in model.supports[joint]:
-        if s == 0:
-            continue
-        jm = model.joints[s]
-        cols += range(jm.idx_v, jm.idx_v + jm.nv)
-    return np.array(cols, dtype=int)
+    return np.flatnonzero(support_mask(model, joint))
 
 
 class PenalizedSolver:
     """Factorize and solve with P = M + alpha J^T J (symmetric positive definite).
 
-    Built once per mechanism. Chooses a banded Cholesky (``scipy.linalg.
-    cholesky_banded``, O(nv b^2)) in reverse Cuthill-McKee order when the
+    Built once per mechanism. Chooses a banded Cholesky (LAPACK ``dpbtrf``,
+    O(nv b^2)) in reverse Cuthill-McKee order when the
     structural half bandwidth b is small (:data:`BANDED_FRACTION`), else a dense
     LAPACK Cholesky.
 
@@ -125,7 +120,12 @@ class PenalizedSolver:
         if b_rcm < self.bandwidth:
             self.perm, self.bandwidth = np.asarray(perm), b_rcm
         self.banded = nv > 8 and self.bandwidth <= BANDED_FRACTION * nv
+        self._natural = bool(np.array_equal(self.perm, np.arange(nv)))
         self.nv = nv
+        #: The kept rows this solver is for (see :func:`penalized_solver`).
+        self.layer = mech.constraints
+        #: (M, J) of the current factorization (with :attr:`alpha`), or None.
+        self._factored: tuple[np.ndarray, np.ndarray] | None = None
         b = self.bandwidth
         if self.banded:
             # Upper band storage: ab[b + i - j, j] = P[i, j], i <= j.
@@ -145,9 +145,21 @@ class PenalizedSolver:
             alpha: penalty [same units as M / (J^T J)].
             mech, q: for the error message.
 
+        The factorization of the same M, J and alpha is kept (the stage projection and
+        the accelerations that follow it factorize P at the same q).
+
         Raises:
             SingularConfigurationError: P is not positive definite (M singular).
         """
+        done = self._factored
+        if (
+            done is not None
+            and alpha == self.alpha
+            and np.array_equal(M, done[0])
+            and np.array_equal(J, done[1])
+        ):
+            return
+        self._factored = None
         self.alpha = alpha
         if self.banded:
             # Only the band of P, diagonal by diagonal (never the dense J^T J).
@@ -159,18 +171,16 @@ class PenalizedSolver:
                 ab[b - k, k:] = np.diagonal(Mp, k) + alpha * np.einsum(
                     "ri,ri->i", Jp[:, :-k], Jp[:, k:]
                 )
-            try:
-                self._fac = scipy.linalg.cholesky_banded(self._ab, lower=False, check_finite=False)
-            except np.linalg.LinAlgError:
-                raise self._error(mech, q) from None
+            self._fac, info = lapack.dpbtrf(ab, lower=0)  # LAPACK directly: no wrappers
         else:
             P = self._P
             np.dot(J.T, J, out=P)
             P *= alpha
             P += M
             self._R, info = lapack.dpotrf(P, lower=0, clean=0)
-            if info != 0:
-                raise self._error(mech, q)
+        if info != 0:
+            raise self._error(mech, q)
+        self._factored = (M.copy(), J.copy())
 
     def _error(self, mech, q):
         return SingularConfigurationError.build(
@@ -188,13 +198,23 @@ class PenalizedSolver:
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Return P^-1 rhs for rhs of shape (nv,) or (nv, k)."""
         if self.banded:
-            x = scipy.linalg.cho_solve_banded(
-                (self._fac, False), rhs[self.perm], check_finite=False
-            )
+            if self._natural:
+                return lapack.dpbtrs(self._fac, rhs, lower=0)[0]
+            x = lapack.dpbtrs(self._fac, rhs[self.perm], lower=0)[0]
             out = np.empty_like(x)
             out[self.perm] = x
             return out
         return lapack.dpotrs(self._R, rhs)[0]
+
+
+def penalized_solver(mech: Mechanism) -> PenalizedSolver:
+    """Return the mechanism's :class:`PenalizedSolver` of its kept rows (made on first use
+    and after the rows are re-selected), shared by the method and the stage projection."""
+    buffers = workspace(mech).method_buffers
+    solver = buffers.get(_NAME)
+    if solver is None or solver.layer is not mech.constraints:
+        solver = buffers[_NAME] = PenalizedSolver(mech)
+    return solver
 
 
 def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
@@ -221,7 +241,7 @@ def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
 class NormalSolver:
     """Solve the regularized normal equations (J J^T + eps I) x = b of the kept rows.
 
-    Banded Cholesky (``scipy.linalg.solveh_banded``, O(nc b^2)) in the natural row
+    Banded Cholesky (LAPACK ``dpbsv``, O(nc b^2)) in the natural row
     order when the structural half bandwidth b of J J^T is at most
     :data:`BANDED_FRACTION` of nc (many loops in a chain, as the N-four-bar);
     dense LAPACK otherwise. eps = :data:`NORMAL_EQ_REG` tr(J J^T) / nc keeps the
@@ -264,7 +284,10 @@ class NormalSolver:
         for k in range(1, b + 1):
             ab[b - k, k:] = np.einsum("ij,ij->i", J[:-k], J[k:])
         ab[b] += NORMAL_EQ_REG * max(float(np.sum(ab[b])), 1.0) / nc
-        return scipy.linalg.solveh_banded(ab, rhs, lower=False, check_finite=False)
+        _, x, info = lapack.dpbsv(ab, rhs, lower=0)  # LAPACK directly: no wrappers
+        if info != 0:
+            raise np.linalg.LinAlgError(f"J J^T + eps I is not positive definite (info {info})")
+        return x
 
 
 def _bandwidth(pattern: np.ndarray) -> int:
@@ -361,7 +384,7 @@ def augmented_lagrangian(
     ws = compute_terms(mech, q, v, settings.baumgarte)
     if mech.nc == 0:
         return scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos"), np.zeros(0)
-    solver = method_buffers(ws, _NAME, lambda: PenalizedSolver(mech))
+    solver = penalized_solver(mech)
     alpha = relative_penalty(ws.M, ws.J, settings.al_penalty)
     solver.factor(ws.M, ws.J, alpha, mech, q)
     a, lam, it = solve_augmented_lagrangian(

@@ -187,7 +187,11 @@ class Workspace:
         self.K = np.zeros((nv + nc, nv + nc), order="F")  # LAPACK's layout
         self.rhs = np.zeros(nv + nc)
         self.phi = np.zeros(nc)
-        self.lower = np.tril_indices(nv, -1)  # CRBA fills the upper triangle only
+        self.lower_mask = np.tri(nv, k=-1, dtype=bool)  # CRBA fills the upper triangle only
+        self.zero_v = np.zeros(nv)
+        #: (layer, q) when M and J hold M(q) and the layer's J(q) from
+        #: :func:`position_terms`, for the next :func:`compute_terms` at that q only.
+        self.position_at: tuple | None = None
         #: Per-method buffers, keyed by method name, made on a method's first
         #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
         self.method_buffers: dict[str, object] = {}
@@ -251,6 +255,44 @@ def workspace(mech: Mechanism) -> Workspace:
     return ws
 
 
+def position_terms(mech: Mechanism, q: np.ndarray, phi: np.ndarray | None = None) -> Workspace:
+    """Fill J (and ``phi`` if given) at q in one pass; see :func:`mass_matrix` for M.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        phi: output of the kept rows' phi(q), shape (nc,), if wanted.
+
+    Returns:
+        The workspace, whose ``J`` is current.
+    """
+    ws = workspace(mech)
+    model, data = mech.model, mech.data
+    pin.computeJointJacobians(model, data, q)  # placements and joint Jacobians
+    mech.constraints.evaluate(model, data, phi=phi, J=ws.J)
+    ws.position_at = None
+    return ws
+
+
+def _symmetric_mass(ws: Workspace, upper: np.ndarray) -> None:
+    """Set ws.M to the symmetric matrix whose upper triangle is ``upper``'s (CRBA's)."""
+    np.copyto(ws.M, upper)
+    np.copyto(ws.M, upper.T, where=ws.lower_mask)
+
+
+def mass_matrix(mech: Mechanism, q: np.ndarray) -> Workspace:
+    """Fill M at q (CRBA) after :func:`position_terms` at the same q, and let the next
+    :func:`compute_terms` at that q reuse M and J (it then computes only h and gamma).
+
+    The stage projection of the simulator evaluates M and J at the projected q for the
+    mass-orthogonal velocity step; the accelerations that follow are at the same q.
+    """
+    ws = workspace(mech)
+    _symmetric_mass(ws, pin.crba(mech.model, mech.data, q))
+    ws.position_at = (mech.constraints, np.array(q))
+    return ws
+
+
 def compute_terms(
     mech: Mechanism,
     q: np.ndarray,
@@ -258,6 +300,9 @@ def compute_terms(
     baumgarte: tuple[float, float] | None = None,
 ) -> Workspace:
     """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
+
+    Right after :func:`mass_matrix` at the same q (and rows), M and J are kept and only
+    h (``nonLinearEffects``) and gamma (``forwardKinematics(q, v, 0)``) are computed.
 
     Args:
         mech: the mechanism.
@@ -271,18 +316,23 @@ def compute_terms(
     """
     ws = workspace(mech)
     model, data = mech.model, mech.data
-    # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians
-    # and forward kinematics with zero acceleration (the bias terms gamma needs).
-    pin.computeAllTerms(model, data, q, v)
-    M = ws.M
-    M[:] = data.M
-    M[ws.lower] = M.T[ws.lower]
+    at, ws.position_at = ws.position_at, None
+    known = at is not None and at[0] is mech.constraints and np.array_equal(at[1], q)
+    if known:
+        pin.nonLinearEffects(model, data, q, v)
+        pin.forwardKinematics(model, data, q, v, ws.zero_v)  # the bias terms gamma needs
+    else:
+        # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians
+        # and forward kinematics with zero acceleration (the bias terms gamma needs).
+        pin.computeAllTerms(model, data, q, v)
+        _symmetric_mass(ws, data.M)
     ws.h[:] = data.nle
     if mech.nc:
+        J = None if known else ws.J
         if baumgarte is None:
-            mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
+            mech.constraints.evaluate(model, data, J=J, gamma=ws.gamma)
         else:
             alpha, beta = baumgarte
-            mech.constraints.evaluate(model, data, phi=ws.phi, J=ws.J, gamma=ws.gamma)
+            mech.constraints.evaluate(model, data, phi=ws.phi, J=J, gamma=ws.gamma)
             ws.gamma += 2.0 * alpha * (ws.J @ v) + beta * beta * ws.phi
     return ws

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
+from scipy.linalg import lapack
 
 from .chart import tangent_rate
 from .problem import Problem, project
@@ -100,13 +100,12 @@ def rank_indicator(J: np.ndarray) -> float:
     ref = float(np.trace(A)) / nc
     if not ref > 0.0:
         return 0.0
-    try:
-        factor = scipy.linalg.cho_factor(A, lower=True, check_finite=False)
-    except np.linalg.LinAlgError:
+    factor, info = lapack.dpotrf(A, lower=1)  # LAPACK directly: no wrappers
+    if info != 0:
         return 0.0
     x = np.full(nc, 1.0 / math.sqrt(nc))
     for _ in range(RANK_INDICATOR_ITERS):
-        x = scipy.linalg.cho_solve(factor, x, check_finite=False)
+        x = lapack.dpotrs(factor, x, lower=1)[0]
         x /= np.linalg.norm(x)
     mu = float(x @ A @ x)
     return min(math.sqrt(max(mu, 0.0) / ref), RANK_INDICATOR_CAP)
@@ -261,11 +260,12 @@ def run_fixed(
                 q_new, t
             ):
                 info["repartitions"].append([t, [mech.coordinate_names[i] for i in problem.ind]])
+        phi = recorder.declared_phi(q_new)
         if not partition:
-            problem.check_regular(q_new, t)  # checks every declared row too
+            problem.check_regular(q_new, t, phi)  # checks every declared row too
         else:
-            problem.check_rows(q_new, t)
-        recorder.declared_residual(t, q_new)  # drift limit, every declared row, every step
+            problem.check_rows(q_new, t, phi=phi)
+        recorder.declared_residual(t, q_new, phi)  # drift limit, every declared row, every step
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
         if outputs.take(k):
@@ -289,26 +289,28 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
         return q, v, problem.accel(t, q, v)
 
     def rk4(t, q, v, a, h):
-        """One projected rk4 step; return (q+, v+) projected and the projected midpoint q."""
+        """One projected rk4 step; return (q+, v+) projected and J at the projected
+        midpoint q."""
         stages = []
 
         def deriv(ts, qs, vs):
             qs, vs, acc = stage(ts, qs, vs)
-            stages.append(qs)  # the first is the midpoint (stage 2)
+            stages.append(problem.jacobian(qs))  # the projection's; the first: stage 2's
             return vs, acc
 
         q_new, v_new = step_rk4(model, deriv, t, q, v, a, h)
-        q2 = stages[0]
+        J2 = stages[0]
         t_new = t + h
         if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
             raise SimulationError(f"{mech.name}: non-finite state at t = {t_new:.9g} s", t_new)
         q_new, v_new = project(problem, q_new, v_new, t_new, mass_orthogonal=True)
-        return q_new, v_new, q2
+        return q_new, v_new, J2
 
     def settle(t, q, v):
         """Check the state reached at t and return its accelerations."""
-        problem.check_regular(q, t)  # checks every declared row too
-        recorder.declared_residual(t, q)  # drift limit, every declared row, every step
+        phi = recorder.declared_phi(q)
+        problem.check_regular(q, t, phi)  # checks every declared row too
+        recorder.declared_residual(t, q, phi)  # drift limit, every declared row, every step
         return problem.accel(t, q, v)
 
     def rho(q):
@@ -320,11 +322,11 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
     rho_start = rho(q)
     k = 1
     while k <= n_steps:
-        q_new, v_new, q_mid = rk4(t, q, v, a, dt)
+        q_new, v_new, J_mid = rk4(t, q, v, a, dt)
         rho_new = rho(q_new)
         plan = None
         if zone > 0:
-            plan = retake_plan(crossing_estimate(rho_start, rho(q_mid), rho_new), zone)
+            plan = retake_plan(crossing_estimate(rho_start, rank_indicator(J_mid), rho_new), zone)
         if plan is not None:
             double, f = plan
             span = 2 if double else 1

@@ -21,10 +21,17 @@ from ..closure import RowCheckSettings
 from ..dynamics.augmented_lagrangian import (
     NormalSolver,
     PenalizedSolver,
+    penalized_solver,
     relative_penalty,
     solve_augmented_lagrangian,
 )
-from ..dynamics.base import METHOD_CAPABILITIES, METHODS, get_method
+from ..dynamics.base import (
+    METHOD_CAPABILITIES,
+    METHODS,
+    get_method,
+    mass_matrix,
+    position_terms,
+)
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory
@@ -66,8 +73,6 @@ class Problem:
         self._start_J: np.ndarray | None = None  # J(q0) of check_start (compiled rows)
         self._normal = None
         self._normal_layer = None
-        self._penalized = None
-        self._penalized_layer = None
         self._J: np.ndarray | None = None
         #: Row re-selections made during the run: [t, kept row labels, reason].
         self.reselections: list[list] = []
@@ -89,13 +94,9 @@ class Problem:
         return self._normal
 
     def penalized_solver(self) -> PenalizedSolver:
-        """Return the factorization buffers of M + alpha J^T J for the kept rows (banded
-        where the augmented-Lagrangian method's are)."""
-        layer = self.mech.constraints
-        if self._penalized_layer is not layer:  # first call, or rows re-selected
-            self._penalized = PenalizedSolver(self.mech)
-            self._penalized_layer = layer
-        return self._penalized
+        """Return the factorization of M + alpha J^T J for the kept rows: the
+        augmented-Lagrangian method's (banded where it is), shared with it."""
+        return penalized_solver(self.mech)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Return J(q), reusing the last one when q is the same (each step asks several
@@ -103,6 +104,14 @@ class Problem:
         if self._J_at is None or not np.array_equal(q, self._J_at):
             self._J = compute_jacobian(self.mech, q)
             self._J_at = np.array(q)
+        return self._J
+
+    def residual_and_jacobian(self, q: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        """Fill phi(q) of the kept rows and return J(q), in one pass over the loops (the
+        Jacobian memo of :meth:`jacobian` then holds it)."""
+        ws = position_terms(self.mech, q, phi)
+        self._J = ws.J.copy()
+        self._J_at = np.array(q)
         return self._J
 
     def torque(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -256,11 +265,12 @@ class Problem:
             return self._start_J
         return self.jacobian(q0)
 
-    def check_regular(self, q: np.ndarray, t: float) -> None:
+    def check_regular(self, q: np.ndarray, t: float, phi: np.ndarray | None = None) -> None:
         """Raise SingularConfigurationError when cond(J(q)) exceeds ``settings.singular_cond``.
 
-        Every declared row is checked first (:meth:`check_rows`): a kept set that
-        degenerates where the mechanism does not is re-selected, not reported singular.
+        Every declared row is checked first (:meth:`check_rows`; ``phi``: the declared
+        rows' phi(q) if known): a kept set that degenerates where the mechanism does
+        not is re-selected, not reported singular.
         When :attr:`singular_robust` (a singular-robust method with stage
         projection, or an index-3 integrator such as ALI3-P) only the dropped
         rows are checked: rank loss is passed through, never reported.
@@ -268,11 +278,11 @@ class Problem:
         if self.mech.nc == 0:
             return
         if self.singular_robust:
-            self.check_rows(q, t)
+            self.check_rows(q, t, phi=phi)
             return
         s = np.linalg.svd(self.jacobian(q), compute_uv=False)
         cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
-        if self.check_rows(q, t, kept_cond=cond):
+        if self.check_rows(q, t, kept_cond=cond, phi=phi):
             s = np.linalg.svd(self.jacobian(q), compute_uv=False)
             cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
         if cond > self.settings.singular_cond:
@@ -333,7 +343,7 @@ def project(
     1000-link chain, whose kkt runs it would refuse).
     """
     mech, s = problem.mech, problem.settings
-    model, data, layer = mech.model, mech.data, mech.constraints
+    model = mech.model
     normal = problem.normal_solver()
 
     def min_norm(J: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -342,18 +352,19 @@ def project(
         return J.T @ normal.solve(J, r)
 
     phi = np.zeros(mech.nc)
+    J = None
     for _ in range(s.projection_iters):
-        pin.forwardKinematics(model, data, q)
-        layer.evaluate(model, data, phi=phi)
+        J = problem.residual_and_jacobian(q, phi)  # J is needed at the last q too
         if np.max(np.abs(phi), initial=0.0) <= s.projection_tol:
             break
-        J = problem.jacobian(q)
         q = pin.integrate(model, q, min_norm(J, -phi))
+        J = None
     if s.project_velocities:
-        J = problem.jacobian(q)
+        if J is None:  # the iterations ran out (J of the last q not evaluated)
+            J = problem.residual_and_jacobian(q, phi)
         if mass_orthogonal and problem.singular_robust and mech.nc:
-            M = pin.crba(model, data, q)
-            M = np.triu(M) + np.triu(M, 1).T
+            # M at q; the accelerations that follow at this q reuse M, J and P's factor.
+            M = mass_matrix(mech, q).M
             ss = problem.solver_settings
             solver = problem.penalized_solver()
             alpha = relative_penalty(M, J, ss.al_penalty)
@@ -397,18 +408,26 @@ class Recorder:
         #: Branch changes [t_before, t_after, from, to] (see Trajectory.branch).
         self.branch_changes: list[list[float]] = []
 
-    def declared_residual(self, t: float, q: np.ndarray) -> float:
-        """Return max |phi| over every declared row at q, or raise beyond ``drift_limit``.
-
-        Dropped rows included: a loop is never reported closed while one of its
-        rows is open. Leaves ``mech.data``'s placements at q.
-        """
+    def declared_phi(self, q: np.ndarray) -> np.ndarray:
+        """Return phi(q) of every declared row (a buffer of the recorder, overwritten by
+        the next call). Leaves ``mech.data``'s placements at q."""
         mech = self.mech
         pin.forwardKinematics(mech.model, mech.data, q)
         mech.declared.evaluate(mech.model, mech.data, phi=self._phi)
-        res = float(np.max(np.abs(self._phi), initial=0.0))
+        return self._phi
+
+    def declared_residual(self, t: float, q: np.ndarray, phi: np.ndarray | None = None) -> float:
+        """Return max |phi| over every declared row at q, or raise beyond ``drift_limit``.
+
+        Dropped rows included: a loop is never reported closed while one of its
+        rows is open. ``phi``: :meth:`declared_phi` at q if known.
+        """
+        mech = self.mech
+        if phi is None:
+            phi = self.declared_phi(q)
+        res = float(np.max(np.abs(phi), initial=0.0))
         if not math.isfinite(res) or res > self.drift_limit:
-            label, _ = mech.closure.worst_row(np.nan_to_num(self._phi, nan=np.inf))
+            label, _ = mech.closure.worst_row(np.nan_to_num(phi, nan=np.inf))
             raise SimulationError(
                 f"{mech.name}: the state left the constraint manifold at t = {t:.9g} s "
                 f"(max |phi| = {res:.3e} > drift_limit {self.drift_limit:.1e}, row {label}); "
