@@ -164,8 +164,8 @@ class PenalizedSolver:
         if self.banded:
             # Only the band of P, diagonal by diagonal (never the dense J^T J).
             perm, b, ab = self.perm, self.bandwidth, self._ab
-            Jp = J[:, perm]
-            Mp = M[np.ix_(perm, perm)]
+            Jp = J if self._natural else J[:, perm]
+            Mp = M if self._natural else M[np.ix_(perm, perm)]
             ab[b] = np.diagonal(Mp) + alpha * np.einsum("ri,ri->i", Jp, Jp)
             for k in range(1, b + 1):
                 ab[b - k, k:] = np.diagonal(Mp, k) + alpha * np.einsum(
@@ -334,15 +334,15 @@ def solve_augmented_lagrangian(
     # - alpha J^T (J a_k + gamma)), the same iteration in exact arithmetic: the
     # right-hand side shrinks with the residuals, so round-off of the badly
     # conditioned P (about rho eps) is not left in a (iterative refinement).
-    lam = np.zeros(J.shape[0])
     a = solver.solve(rhs - alpha * (J.T @ gamma))
-    lam += alpha * (J @ a + gamma)
+    r_c = J @ a + gamma  # the constraint residual at a
+    lam = alpha * r_c
     it = 1
     while it < max_iter:
-        r_c = J @ a + gamma
         delta = solver.solve(rhs - M @ a - J.T @ (lam + alpha * r_c))
         a += delta
-        lam += alpha * (J @ a + gamma)
+        r_c = J @ a + gamma
+        lam += alpha * r_c
         it += 1
         if float(np.max(np.abs(delta))) <= tol * (1.0 + float(np.max(np.abs(a)))):
             break
