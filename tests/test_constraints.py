@@ -98,8 +98,9 @@ def layer_jacobian(mech, layer, q):
 
 def layer_gamma(mech, layer, q, v):
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
+    pin.computeJointJacobiansTimeVariation(mech.model, mech.data, q, v)  # many loops
     out = np.zeros(layer.nc)
-    layer.evaluate(mech.model, mech.data, gamma=out)
+    layer.evaluate(mech.model, mech.data, gamma=out, v=v)
     return out
 
 
@@ -350,7 +351,7 @@ TOL_BATCHED = 1e-13
 def _evaluate_all(mech, layer, q, v):
     pin.computeAllTerms(mech.model, mech.data, q, v)
     out = np.zeros(layer.nc), np.zeros((layer.nc, mech.nv)), np.zeros(layer.nc)
-    layer.evaluate(mech.model, mech.data, phi=out[0], J=out[1], gamma=out[2])
+    layer.evaluate(mech.model, mech.data, phi=out[0], J=out[1], gamma=out[2], v=v)
     return out
 
 

@@ -283,6 +283,46 @@ def test_nfourbar_ali3p(nfourbar, n):
     _check_benchmark(mech, traj, n)
 
 
+#: The largest step of the 0.1 s output grid at which the default configuration meets
+#: the bar for every N (compiled core, ``scripts/nfourbar_cost.py --full --dt X``: at
+#: 6.25 ms N = 1, 2 and 10 miss it with 3.6e-6, 1.8e-6 and 1.1e-6 m; at 5 ms the largest
+#: B0 error is 8.8e-7 m, N = 1). The numpy path at this step is the issue's cost figure.
+LARGE_DT = 5e-3
+
+
+def _large_step_params():
+    params = []
+    for n in NFOURBAR_N:
+        for backend in ("compiled", "numpy"):
+            marks = [pytest.mark.slow]
+            if backend == "numpy" or n not in NFOURBAR_IN_CI:
+                marks.append(pytest.mark.benchmark)
+            params.append(pytest.param(n, backend, marks=marks, id=f"{n}-{backend}"))
+    return params
+
+
+@pytest.mark.parametrize(("n", "backend"), _large_step_params())
+def test_nfourbar_default_at_large_step(nfourbar, n, backend):
+    """20 s of the benchmark with the default configuration at LARGE_DT on each backend
+    (numpy: the reference path whose cost the issue bounds): see :func:`_check_benchmark`."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("the compiled core is not built")
+    mech = nfourbar(n)
+    q0, v0 = ref.initial_state(mech)
+    traj = simulate(
+        mech,
+        q0,
+        v0,
+        T_BENCHMARK,
+        dt=LARGE_DT,
+        t_eval=np.linspace(0, T_BENCHMARK, 201),
+        backend=backend,
+    )
+    assert traj.info["backend"] == backend
+    assert traj.info["dt"] == pytest.approx(LARGE_DT, rel=1e-12)  # no shortening
+    _check_benchmark(mech, traj, n)
+
+
 #: Crossing times [steps from a step's start] ahead of the step, and behind it.
 CROSSINGS_AHEAD = (0.05, 0.3, 0.431, 0.6, 0.97, 1.2, 2.5)
 CROSSINGS_BEHIND = (-0.05, -0.5, -2.0)

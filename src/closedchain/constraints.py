@@ -113,9 +113,10 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (k, 3) arrays (or a (3,) vector against (k, 3)).
 
     numpy.cross spends ~30 us on axis handling; this is the same formula
-    without it, for the small arrays of the per-evaluation path.
+    without it (``take``: half the time of fancy indexing), for the small arrays of the
+    per-evaluation path.
     """
-    return a[..., _I1] * b[..., _I2] - a[..., _I2] * b[..., _I1]
+    return a.take(_I1, -1) * b.take(_I2, -1) - a.take(_I2, -1) * b.take(_I1, -1)
 
 
 def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -325,7 +326,9 @@ class ConstraintLayer:
 
     * phi needs ``forwardKinematics(q)``,
     * J needs ``computeJointJacobians(q)`` (or ``computeAllTerms``),
-    * gamma needs ``forwardKinematics(q, v, 0)`` (or ``computeAllTerms``).
+    * gamma needs ``forwardKinematics(q, v, 0)``, and when :attr:`batched` also
+      ``computeJointJacobiansTimeVariation(q, v)`` and ``v`` itself (``computeAllTerms``
+      does both).
     """
 
     def __init__(
@@ -410,6 +413,8 @@ class ConstraintLayer:
         phi: np.ndarray | None = None,
         J: np.ndarray | None = None,
         gamma: np.ndarray | None = None,
+        v: np.ndarray | None = None,
+        q: np.ndarray | None = None,
     ) -> None:
         """Fill the requested outputs from ``data``.
 
@@ -419,13 +424,23 @@ class ConstraintLayer:
             phi: output, shape (nc,), [m] or [-] per row.
             J: output, shape (nc, nv), d phi / d v along ``pin.integrate``.
             gamma: output, shape (nc,), Jdot v.
+            v: the velocity ``data`` was filled at, shape (nv,); required with gamma
+                when the layer evaluates all loops at once (:attr:`batched`).
+            q: the configuration ``data`` was filled at, if known: a batched layer then
+                reuses the frame placements of its last evaluation at the same q (the
+                simulator evaluates J and then gamma at each stage's q).
         """
         # Hot path (every dynamics evaluation). Translation rows: per loop, a few
         # 3 x 3 / k x 3 products (see _translation_rows). Rotation rows: all loops at
         # once, a fixed number of batched numpy calls (numpy's per-call overhead,
         # not arithmetic, dominates arrays this small).
         if self._tt is not None:
-            self._evaluate_batched(model, data, phi, J, gamma)
+            if gamma is not None and v is None:
+                raise ValueError(
+                    "gamma of a layer with many loops needs v (the velocity data was "
+                    "filled at); pass v=..."
+                )
+            self._evaluate_batched(model, data, phi, J, gamma, v, q)
             return
         for sl, fp, fs, N in self._trans:
             _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma)
@@ -449,7 +464,14 @@ class ConstraintLayer:
             V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in self._fids])
             gamma[tr.rows] = _rotation_gamma(V, A, tr, U, W, UW)
 
-    def _evaluate_batched(self, model, data, phi, J, gamma) -> None:
+    @property
+    def batched(self) -> bool:
+        """Whether every row of every loop is evaluated at once (more than
+        :data:`BATCH_LOOPS` loops with translation rows; gamma then needs v and the
+        joint Jacobians' time variation, see the class doc)."""
+        return self._tt is not None
+
+    def _evaluate_batched(self, model, data, phi, J, gamma, v, q) -> None:
         r"""Every row of every loop at once (many loops: numpy over all rows, one pass of
         frame queries), the formulas of :func:`_translation_rows` and of the rotation
         rows in :meth:`evaluate`.
@@ -466,10 +488,16 @@ class ConstraintLayer:
         of the columns of the joints supporting frame f, so J = D o (B data.J), D_rk =
         1 / -1 / 0 where joint column k supports c1 only / c2 only / both or neither.
         """
-        fids = self._bfids
         # One array per frame (R and p in one homogeneous matrix): per-frame Python calls
         # dominate this path.
-        H = np.array([pin.updateFramePlacement(model, data, f).homogeneous for f in fids])
+        if q is not None and self._placed_at is not None and np.array_equal(q, self._placed_at):
+            H = self._placements
+        else:
+            H = np.array(
+                [pin.updateFramePlacement(model, data, f).homogeneous for f in self._bfids]
+            )
+            self._placements = H
+            self._placed_at = None if q is None else np.array(q)
         R, P = H[:, :3, :3], H[:, :3, 3]  # (2L, 3, 3), (2L, 3): c1, c2 of each loop
         tt, tr = self._tt, self._btr
         U = np.einsum("rij,rj->ri", R[tt.pred], tt.n)
@@ -491,8 +519,18 @@ class ConstraintLayer:
             np.multiply(self._support_difference(model), B @ data.J, out=J)
         if gamma is None:
             return
-        A = np.array([pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in fids])
-        V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in fids])
+        # Every cut frame's velocity and classical bias acceleration (world-aligned, as
+        # getFrameVelocity / getFrameClassicalAcceleration) from the joint Jacobians and
+        # their time variation: its body's twist at the world origin is (v_o, w) =
+        # data.J (s o v) and its bias acceleration (a_o, alpha) = data.dJ (s o v), s the
+        # frame's support mask; at the frame's origin p the velocity is v_o + w x p and
+        # the classical acceleration a_o + alpha x p + w x (v_o + w x p).
+        Sv = self._frame_support(model) * v
+        twist, bias = Sv @ data.J.T, Sv @ data.dJ.T  # (2L, 6) each: linear, angular
+        w, alpha = twist[:, 3:], bias[:, 3:]
+        lin = twist[:, :3] + _cross(w, P)
+        V = np.concatenate([lin, w], axis=1)
+        A = np.concatenate([bias[:, :3] + _cross(alpha, P) + _cross(w, lin), alpha], axis=1)
         wp = V[tt.pred, 3:]
         dd = V[tt.pred, :3] - V[tt.succ, :3]
         x = (
@@ -534,6 +572,7 @@ class ConstraintLayer:
         """Tables of :meth:`_evaluate_batched` (``self._tt`` None: the per-loop path)."""
         self._tt = None
         self._support_model = None  # the model _support_difference was made for
+        self._placed_at = None  # the q of the frame placements kept by _evaluate_batched
         with_trans = [b for b in self._active if b.nt]
         if not with_trans or len(with_trans) <= BATCH_LOOPS:
             return  # rotation rows alone are batched by the per-loop path already
@@ -554,18 +593,25 @@ class ConstraintLayer:
         self._tt = _Table(trans)
         self._btr = _Table(rot) if rot["rows"] else None
 
-    def _support_difference(self, model: pin.Model) -> np.ndarray:
-        """Return D, shape (nc, nv), of :meth:`_evaluate_batched`: per row, 1 on the
-        velocity columns of the joints that support c1 but not c2, -1 on those that
-        support c2 but not c1, 0 elsewhere (made once per model)."""
+    def _frame_support(self, model: pin.Model) -> np.ndarray:
+        """Return the support masks of the frames of :meth:`_evaluate_batched` (c1, c2 of
+        each loop), shape (2L, nv), float (made once per model)."""
         if self._support_model is not model:
+            S = np.array([support_mask(model, model.frames[f].parentJoint) for f in self._bfids])
+            self._support = S.astype(float)
             row_loop = np.zeros(self.nc, dtype=int)
             row_loop[self._tt.rows] = self._tt.loop
             if self._btr is not None:
                 row_loop[self._btr.rows] = self._btr.loop
-            S = np.array([support_mask(model, model.frames[f].parentJoint) for f in self._bfids])
-            self._support_diff = S[2 * row_loop].astype(float) - S[2 * row_loop + 1]
+            self._support_diff = self._support[2 * row_loop] - self._support[2 * row_loop + 1]
             self._support_model = model
+        return self._support
+
+    def _support_difference(self, model: pin.Model) -> np.ndarray:
+        """Return D, shape (nc, nv), of :meth:`_evaluate_batched`: per row, 1 on the
+        velocity columns of the joints that support c1 but not c2, -1 on those that
+        support c2 but not c1, 0 elsewhere (made once per model)."""
+        self._frame_support(model)
         return self._support_diff
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:

@@ -344,7 +344,7 @@ def solve_augmented_lagrangian(
         r_c = J @ a + gamma
         lam += alpha * r_c
         it += 1
-        if float(np.max(np.abs(delta))) <= tol * (1.0 + float(np.max(np.abs(a)))):
+        if float(np.abs(delta).max()) <= tol * (1.0 + float(np.abs(a).max())):
             break
     # The update alpha (J a + gamma) carries the round-off of J a times alpha (1e-4 N
     # on the 4-bar with rho = 1e11): correct lam so that J^T lam matches the dynamics,

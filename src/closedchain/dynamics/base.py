@@ -188,10 +188,11 @@ class Workspace:
         self.rhs = np.zeros(nv + nc)
         self.phi = np.zeros(nc)
         self.lower_mask = np.tri(nv, k=-1, dtype=bool)  # CRBA fills the upper triangle only
-        self.zero_v = np.zeros(nv)
-        #: (layer, q) when M and J hold M(q) and the layer's J(q) from
-        #: :func:`position_terms`, for the next :func:`compute_terms` at that q only.
-        self.position_at: tuple | None = None
+        #: (layer, q) of J from :func:`position_terms` and q of M from
+        #: :func:`mass_matrix`: the next :func:`compute_terms` at that q (and layer)
+        #: keeps both, and clears them.
+        self.jacobian_at: tuple | None = None
+        self.mass_at: np.ndarray | None = None
         #: Per-method buffers, keyed by method name, made on a method's first
         #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
         self.method_buffers: dict[str, object] = {}
@@ -269,8 +270,8 @@ def position_terms(mech: Mechanism, q: np.ndarray, phi: np.ndarray | None = None
     ws = workspace(mech)
     model, data = mech.model, mech.data
     pin.computeJointJacobians(model, data, q)  # placements and joint Jacobians
-    mech.constraints.evaluate(model, data, phi=phi, J=ws.J)
-    ws.position_at = None
+    mech.constraints.evaluate(model, data, phi=phi, J=ws.J, q=q)
+    ws.jacobian_at, ws.mass_at = (mech.constraints, np.array(q)), None
     return ws
 
 
@@ -281,15 +282,15 @@ def _symmetric_mass(ws: Workspace, upper: np.ndarray) -> None:
 
 
 def mass_matrix(mech: Mechanism, q: np.ndarray) -> Workspace:
-    """Fill M at q (CRBA) after :func:`position_terms` at the same q, and let the next
-    :func:`compute_terms` at that q reuse M and J (it then computes only h and gamma).
+    """Fill M at q (CRBA); after :func:`position_terms` at the same q, the next
+    :func:`compute_terms` at that q reuses M and J (it then evaluates only h and gamma).
 
     The stage projection of the simulator evaluates M and J at the projected q for the
     mass-orthogonal velocity step; the accelerations that follow are at the same q.
     """
     ws = workspace(mech)
     _symmetric_mass(ws, pin.crba(mech.model, mech.data, q))
-    ws.position_at = (mech.constraints, np.array(q))
+    ws.mass_at = np.array(q)
     return ws
 
 
@@ -301,8 +302,8 @@ def compute_terms(
 ) -> Workspace:
     """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
 
-    Right after :func:`mass_matrix` at the same q (and rows), M and J are kept and only
-    h (``nonLinearEffects``) and gamma (``forwardKinematics(q, v, 0)``) are computed.
+    Right after :func:`position_terms` and :func:`mass_matrix` at the same q (and rows),
+    M and J are kept (only h and gamma are evaluated).
 
     Args:
         mech: the mechanism.
@@ -316,23 +317,28 @@ def compute_terms(
     """
     ws = workspace(mech)
     model, data = mech.model, mech.data
-    at, ws.position_at = ws.position_at, None
-    known = at is not None and at[0] is mech.constraints and np.array_equal(at[1], q)
-    if known:
-        pin.nonLinearEffects(model, data, q, v)
-        pin.forwardKinematics(model, data, q, v, ws.zero_v)  # the bias terms gamma needs
-    else:
-        # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians
-        # and forward kinematics with zero acceleration (the bias terms gamma needs).
-        pin.computeAllTerms(model, data, q, v)
+    at_J, at_M = ws.jacobian_at, ws.mass_at
+    ws.jacobian_at = ws.mass_at = None
+    known = (
+        at_J is not None
+        and at_M is not None
+        and at_J[0] is mech.constraints
+        and np.array_equal(at_J[1], q)
+        and np.array_equal(at_M, q)
+    )
+    # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians and
+    # their time variation, forward kinematics with zero acceleration (gamma's terms).
+    pin.computeAllTerms(model, data, q, v)
+    if not known:
         _symmetric_mass(ws, data.M)
     ws.h[:] = data.nle
     if mech.nc:
-        J = None if known else ws.J
+        # Right after position_terms at q: J is known, and so are the frame placements.
+        J, at_q = (None, q) if known else (ws.J, None)
         if baumgarte is None:
-            mech.constraints.evaluate(model, data, J=J, gamma=ws.gamma)
+            mech.constraints.evaluate(model, data, J=J, gamma=ws.gamma, v=v, q=at_q)
         else:
             alpha, beta = baumgarte
-            mech.constraints.evaluate(model, data, phi=ws.phi, J=J, gamma=ws.gamma)
+            mech.constraints.evaluate(model, data, phi=ws.phi, J=J, gamma=ws.gamma, v=v, q=at_q)
             ws.gamma += 2.0 * alpha * (ws.J @ v) + beta * beta * ws.phi
     return ws

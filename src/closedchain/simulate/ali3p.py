@@ -202,7 +202,9 @@ def run_ali3p(
             polish=False,
         )
         pin.forwardKinematics(model, data, q_new, v_new, zero_v)
-        layer.evaluate(model, data, gamma=gamma)
+        if layer.batched:
+            pin.computeJointJacobiansTimeVariation(model, data, q_new, v_new)
+        layer.evaluate(model, data, gamma=gamma, v=v_new)
         a_new, _, _ = solve_augmented_lagrangian(
             solver,
             M,
