@@ -67,6 +67,8 @@ BANDED_FRACTION = 0.25
 #: Relative regularization of the normal equations that polish the multipliers.
 NORMAL_EQ_REG = 1e-14
 
+_TINY = float(np.finfo(float).tiny)
+
 
 def structure(mech: Mechanism) -> np.ndarray:
     """Return the structural nonzero pattern of M + J^T J, shape (nv, nv), bool.
@@ -298,7 +300,7 @@ def _bandwidth(pattern: np.ndarray) -> int:
 def relative_penalty(M: np.ndarray, J: np.ndarray, rho: float) -> float:
     """Return alpha = rho tr(M) / tr(J^T J) (rho dimensionless; alpha in M's units per J^T J's)."""
     jj = float(np.einsum("ij,ij->", J, J))
-    return rho * float(np.trace(M)) / max(jj, np.finfo(float).tiny)
+    return rho * float(M.trace()) / max(jj, _TINY)
 
 
 def solve_augmented_lagrangian(
