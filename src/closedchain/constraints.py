@@ -473,12 +473,10 @@ class ConstraintLayer:
 
     def _evaluate_batched(self, model, data, phi, J, gamma, v, q) -> None:
         r"""Every row of every loop at once (many loops: numpy over all rows, one pass of
-        frame queries), the formulas of :func:`_translation_rows` and of the rotation
-        rows in :meth:`evaluate`.
+        frame placements), the rows of :func:`_translation_rows` and the rotation rows
+        of :meth:`evaluate` (the same functions; J and gamma written differently).
 
-        Translation rows, with U = R_p n (world) and d = p_p - p_s: phi = U.d,
-        gamma = U.(a_{b,p} - a_{b,s} + d x alpha_{b,p} + 2 ddot x omega_p
-        + (d x omega_p) x omega_p).
+        Translation rows, with U = R_p n (world) and d = p_p - p_s: phi = U.d.
 
         J from the joint Jacobians (``data.J``: world frame, column k the twist of joint k
         at the world origin) in one product: every row's rate is b_r . (V_p - V_s), with
@@ -519,29 +517,24 @@ class ConstraintLayer:
             np.multiply(self._support_difference(model), B @ data.J, out=J)
         if gamma is None:
             return
-        # Every cut frame's velocity and classical bias acceleration (world-aligned, as
-        # getFrameVelocity / getFrameClassicalAcceleration) from the joint Jacobians and
-        # their time variation: its body's twist at the world origin is (v_o, w) =
-        # data.J (s o v) and its bias acceleration (a_o, alpha) = data.dJ (s o v), s the
-        # frame's support mask; at the frame's origin p the velocity is v_o + w x p and
-        # the classical acceleration a_o + alpha x p + w x (v_o + w x p).
+        # gamma = d/dt(b_r) . (V_p - V_s) + b_r . (A_p - A_s), the derivative of the rate
+        # b_r . (V_p - V_s) of J above, with the bodies' twists V = data.J (s o v) and
+        # bias accelerations A = data.dJ (s o v) at the world origin (s: the frame's
+        # support mask; joint accelerations zero). Translation rows: b_r = (U, p_s x U),
+        # dU/dt = w_p x U, dp_s/dt = v_s + w_s x p_s (v_s the linear part of V_s).
         Sv = self._frame_support(model) * v
-        twist, bias = Sv @ data.J.T, Sv @ data.dJ.T  # (2L, 6) each: linear, angular
-        w, alpha = twist[:, 3:], bias[:, 3:]
-        lin = twist[:, :3] + _cross(w, P)
-        V = np.concatenate([lin, w], axis=1)
-        A = np.concatenate([bias[:, :3] + _cross(alpha, P) + _cross(w, lin), alpha], axis=1)
-        wp = V[tt.pred, 3:]
-        dd = V[tt.pred, :3] - V[tt.succ, :3]
-        x = (
-            A[tt.pred, :3]
-            - A[tt.succ, :3]
-            + _cross(d, A[tt.pred, 3:])
-            + 2.0 * _cross(dd, wp)
-            + _cross(_cross(d, wp), wp)
+        V, A = Sv @ data.J.T, Sv @ data.dJ.T  # (2L, 6) each: linear, angular
+        dV, dA = V[tt.pred] - V[tt.succ], A[tt.pred] - A[tt.succ]
+        ps, ws = P[tt.succ], V[tt.succ, 3:]
+        dU = _cross(V[tt.pred, 3:], U)
+        dps = V[tt.succ, :3] + _cross(ws, ps)
+        gamma[tt.rows] = (
+            np.einsum("ri,ri->r", dU, dV[:, :3])
+            + np.einsum("ri,ri->r", _cross(dps, U) + _cross(ps, dU), dV[:, 3:])
+            + np.einsum("ri,ri->r", U, dA[:, :3])
+            + np.einsum("ri,ri->r", _cross(ps, U), dA[:, 3:])
         )
-        gamma[tt.rows] = np.einsum("ri,ri->r", U, x)
-        if tr is not None:
+        if tr is not None:  # _rotation_gamma reads the angular parts only
             gamma[tr.rows] = _rotation_gamma(V, A, tr, Ur, Wr, UW)
 
     def _build_tables(self) -> None:
