@@ -60,6 +60,7 @@ class Ali3pLoop {
     vi_.setZero(nv);
     ai_.setZero(nv);
     dqi_.setZero(nv);
+    wj_.setZero(nc);
   }
 
   // One trapezoidal step of length h ending at t_new from (q, v, a) with the
@@ -268,8 +269,10 @@ class Ali3pLoop {
       y.noalias() = c_.J_ * x;
   }
 
-  // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error).
+  // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error); the
+  // Core's own factor (its solve_al's alpha) is gone.
   void factor(const Vec &q, double t) {
+    c_.p_fact_ = false;
     bool ok;
     if (c_.band_p_) {
       ok = c_.factor_penalized_band(alpha_);
@@ -298,32 +301,39 @@ class Ali3pLoop {
       c_.llt_p_.solveInPlace(x);
   }
 
+  // al_iterate's products (al_iteration.hpp) on the dense path: Eigen's matrix-vector
+  // kernels into the loop's own vectors (the band path: the Core's BandAlOps).
+  struct DenseOps {
+    Ali3pLoop &l;
+    void add_j(const Vec &x, Vec &y) {
+      l.j_mul(x, l.wj_);
+      y += l.wj_;
+    }
+    void sub_m(const Vec &x, Vec &y) {
+      l.m_mul(x, l.dqi_);
+      y -= l.dqi_;
+    }
+    void sub_jt(const Vec &y, Vec &x) {
+      l.jt_mul(y, l.dqi_);
+      x -= l.dqi_;
+    }
+    void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+      l.jt_mul(y, l.dqi_);
+      x -= s * l.dqi_;
+    }
+    void solve(Vec &x) { l.solve(x); }
+  };
+
   // The mass-orthogonal projection min (x - x*)^T M (x - x*) s.t. J x + g = 0 with
-  // rhs = M x*, by the augmented-Lagrangian iteration with P in residual form until
-  // max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
+  // rhs = M x*, by the augmented-Lagrangian iteration (al_iterate) with P at alpha_
+  // until max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
   void project(const Vec &rhs, const Vec &g, Vec &x) {
-    const double a = alpha_;
-    jt_mul(g, x);
-    x = rhs - a * x;
-    solve(x);
-    j_mul(x, lp_);
-    lp_ += g;
-    lp_ *= a;  // lam
-    for (int it = 1; it < c_.al_max_iter_; ++it) {
-      j_mul(x, wc_);
-      wc_ += g;  // r_c
-      wc_ *= a;
-      wc_ += lp_;
-      m_mul(x, step_);
-      step_ = rhs - step_;
-      jt_mul(wc_, dqi_);
-      step_ -= dqi_;
-      solve(step_);  // delta
-      x += step_;
-      j_mul(x, wc_);
-      wc_ += g;
-      lp_ += a * wc_;
-      if (step_.cwiseAbs().maxCoeff() <= c_.al_tol_ * (1.0 + x.cwiseAbs().maxCoeff())) break;
+    if (c_.band_p_) {
+      typename CoreT::BandAlOps ops{c_};
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
+    } else {
+      DenseOps ops{*this};
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
     }
   }
 
@@ -350,7 +360,7 @@ class Ali3pLoop {
   double alpha_ = 0.0;
   long newton_ = 0;
   Vec delta_, step_, f_, w_, mu_, zc_, wc_, lp_;
-  Vec qi_, vi_, ai_, dqi_;
+  Vec qi_, vi_, ai_, dqi_, wj_;
 };
 
 }  // namespace closedchain
