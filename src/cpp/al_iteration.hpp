@@ -27,7 +27,8 @@
 
 namespace closedchain {
 
-// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. Returns the
+// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
+// iterate is computed once (for lam and for the next correction's r_c). Returns the
 // number of iterates.
 template <class Ops>
 int al_iterate(Ops &ops, double alpha, const Eigen::VectorXd &rhs, const Eigen::VectorXd &g,
@@ -36,13 +37,11 @@ int al_iterate(Ops &ops, double alpha, const Eigen::VectorXd &rhs, const Eigen::
   x = rhs;
   ops.sub_scaled_jt(alpha, g, x);
   ops.solve(x);
-  lam = g;
-  ops.add_j(x, lam);
-  lam *= alpha;
+  rc = g;
+  ops.add_j(x, rc);  // r_c = J x + g, kept for the next iterate (the same bits)
+  lam = rc * alpha;
   int it = 1;
   for (; it < max_iter; ++it) {
-    rc = g;
-    ops.add_j(x, rc);  // r_c
     rc *= alpha;
     rc += lam;
     delta = rhs;

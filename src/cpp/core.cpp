@@ -1836,7 +1836,7 @@ class Core {
   double rank_indicator(const Vec &q) {
     if (nc_ == 0) return RANK_INDICATOR_CAP;
     eval_phi_J(q);
-    JJt_.noalias() = J_ * J_.transpose();
+    JJt_.noalias() = J_.lazyProduct(J_.transpose());  // small: coefficient-based
     const double ref = JJt_.trace() / nc_;
     if (!(ref > 0.0)) return 0.0;
     llt_c_.compute(JJt_);
