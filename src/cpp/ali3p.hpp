@@ -208,29 +208,9 @@ class Ali3pLoop {
   }
 
  private:
-  // The rank indicator of J at q (Core::rank_indicator, fixed.rank_indicator): sqrt of
-  // the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations from
-  // the ones vector, relative to its mean eigenvalue, capped. With a narrow row band
-  // (set_band's banded_n) J J^T is factorized as a band, x^T J J^T x = |J^T x|^2: O(nc)
-  // instead of the dense product and Cholesky, O(nc^3) (the same quantity to round-off).
-  double indicator(const Vec &q) {
-    CoreT &c = c_;
-    const int nc = c.nc_;
-    if (!c.band_n_ || nc == 0) return c.rank_indicator(q);
-    c.eval_phi_J(q);
-    c.assemble_normal_band(0.0);
-    const double ref = c.bn_.A.row(0).sum() / nc;
-    if (!(ref > 0.0)) return 0.0;
-    if (!c.bn_.factor()) return 0.0;
-    wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc)));
-    for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
-      c.bn_.solve_in_place(wc_);
-      wc_ /= wc_.norm();
-    }
-    jt_mul(wc_, dqi_);
-    const double mu = dqi_.squaredNorm();
-    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
-  }
+  // The rank indicator of J at q (Core::rank_indicator: on the band of J J^T where
+  // there is one).
+  double indicator(const Vec &q) { return c_.rank_indicator(q); }
 
   // f = M x (the band path: over M's structural hulls).
   void m_mul(const Vec &x, Vec &f) {
