@@ -490,6 +490,7 @@ class Core {
     dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
     dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
     configure_partitioning(s);
+    invalidate_kinematics();  // the kept factor of M + alpha J^T J has the old al_penalty
   }
 
   // Every declared row (the kept ones and those dropped as redundant), checked at
@@ -2075,6 +2076,7 @@ class Core {
   bp::dict run_fixed(int integrator, const Vec &q0, const Vec &v0, double dt, long n_steps,
                      const Eigen::VectorXi &out_steps, bool projects, bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (integrator < EULER || integrator > RK4) throw BadArgument{"run_fixed: unknown integrator"};
     n_evals_ = 0;
     Samples S;
@@ -2152,6 +2154,7 @@ class Core {
   bp::dict run_ali3p(const Vec &q0, const Vec &v0, double dt, long n_steps,
                      const Eigen::VectorXi &out_steps, bp::tuple settings, bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (bp::len(settings) != 4)
       throw BadArgument{"run_ali3p: settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter, "
                         "ali3p_penalty)"};
@@ -2229,6 +2232,7 @@ class Core {
                         double rtol, double atol, bp::object t_eval_obj, bool projects,
                         bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (integrator != RK45 && integrator != DOP853)
       throw BadArgument{"run_adaptive: unknown integrator"};
     const bool dop = integrator == DOP853;
