@@ -60,6 +60,7 @@ class Ali3pLoop {
     vi_.setZero(nv);
     ai_.setZero(nv);
     dqi_.setZero(nv);
+    wj_.setZero(nc);
   }
 
   // One trapezoidal step of length h ending at t_new from (q, v, a) with the
@@ -207,29 +208,9 @@ class Ali3pLoop {
   }
 
  private:
-  // The rank indicator of J at q (Core::rank_indicator, fixed.rank_indicator): sqrt of
-  // the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations from
-  // the ones vector, relative to its mean eigenvalue, capped. With a narrow row band
-  // (set_band's banded_n) J J^T is factorized as a band, x^T J J^T x = |J^T x|^2: O(nc)
-  // instead of the dense product and Cholesky, O(nc^3) (the same quantity to round-off).
-  double indicator(const Vec &q) {
-    CoreT &c = c_;
-    const int nc = c.nc_;
-    if (!c.band_n_ || nc == 0) return c.rank_indicator(q);
-    c.eval_phi_J(q);
-    c.assemble_normal_band(0.0);
-    const double ref = c.bn_.A.row(0).sum() / nc;
-    if (!(ref > 0.0)) return 0.0;
-    if (!c.bn_.factor()) return 0.0;
-    wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc)));
-    for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
-      c.bn_.solve_in_place(wc_);
-      wc_ /= wc_.norm();
-    }
-    jt_mul(wc_, dqi_);
-    const double mu = dqi_.squaredNorm();
-    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
-  }
+  // The rank indicator of J at q (Core::rank_indicator: on the band of J J^T where
+  // there is one).
+  double indicator(const Vec &q) { return c_.rank_indicator(q); }
 
   // f = M x (the band path: over M's structural hulls).
   void m_mul(const Vec &x, Vec &f) {
@@ -268,8 +249,10 @@ class Ali3pLoop {
       y.noalias() = c_.J_ * x;
   }
 
-  // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error).
+  // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error); the
+  // Core's own factor (its solve_al's alpha) is gone.
   void factor(const Vec &q, double t) {
+    c_.p_fact_ = false;
     bool ok;
     if (c_.band_p_) {
       ok = c_.factor_penalized_band(alpha_);
@@ -298,32 +281,39 @@ class Ali3pLoop {
       c_.llt_p_.solveInPlace(x);
   }
 
+  // al_iterate's products (al_iteration.hpp) on the dense path: Eigen's matrix-vector
+  // kernels into the loop's own vectors (the band path: the Core's BandAlOps).
+  struct DenseOps {
+    Ali3pLoop &l;
+    void add_j(const Vec &x, Vec &y) {
+      l.j_mul(x, l.wj_);
+      y += l.wj_;
+    }
+    void sub_m(const Vec &x, Vec &y) {
+      l.m_mul(x, l.dqi_);
+      y -= l.dqi_;
+    }
+    void sub_jt(const Vec &y, Vec &x) {
+      l.jt_mul(y, l.dqi_);
+      x -= l.dqi_;
+    }
+    void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+      l.jt_mul(y, l.dqi_);
+      x -= s * l.dqi_;
+    }
+    void solve(Vec &x) { l.solve(x); }
+  };
+
   // The mass-orthogonal projection min (x - x*)^T M (x - x*) s.t. J x + g = 0 with
-  // rhs = M x*, by the augmented-Lagrangian iteration with P in residual form until
-  // max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
+  // rhs = M x*, by the augmented-Lagrangian iteration (al_iterate) with P at alpha_
+  // until max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
   void project(const Vec &rhs, const Vec &g, Vec &x) {
-    const double a = alpha_;
-    jt_mul(g, x);
-    x = rhs - a * x;
-    solve(x);
-    j_mul(x, lp_);
-    lp_ += g;
-    lp_ *= a;  // lam
-    for (int it = 1; it < c_.al_max_iter_; ++it) {
-      j_mul(x, wc_);
-      wc_ += g;  // r_c
-      wc_ *= a;
-      wc_ += lp_;
-      m_mul(x, step_);
-      step_ = rhs - step_;
-      jt_mul(wc_, dqi_);
-      step_ -= dqi_;
-      solve(step_);  // delta
-      x += step_;
-      j_mul(x, wc_);
-      wc_ += g;
-      lp_ += a * wc_;
-      if (step_.cwiseAbs().maxCoeff() <= c_.al_tol_ * (1.0 + x.cwiseAbs().maxCoeff())) break;
+    if (c_.band_p_) {
+      typename CoreT::BandAlOps ops{c_};
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
+    } else {
+      DenseOps ops{*this};
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
     }
   }
 
@@ -350,7 +340,7 @@ class Ali3pLoop {
   double alpha_ = 0.0;
   long newton_ = 0;
   Vec delta_, step_, f_, w_, mu_, zc_, wc_, lp_;
-  Vec qi_, vi_, ai_, dqi_;
+  Vec qi_, vi_, ai_, dqi_, wj_;
 };
 
 }  // namespace closedchain

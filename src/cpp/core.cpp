@@ -40,6 +40,8 @@
 #include "rk_coefficients.hpp"
 #include "small_llt.hpp"
 #include "tree_terms.hpp"
+#include "stage_terms.hpp"
+#include "al_iteration.hpp"
 
 namespace bp = boost::python;
 
@@ -216,6 +218,9 @@ class Core {
     tmp_c_ = Vec::Zero(nc_);
     tmp_v_ = Vec::Zero(nv_);
     mv_ = Vec::Zero(nv_);
+    zero_c_ = Vec::Zero(nc_);
+    al_wc_ = Vec::Zero(nc_);
+    al_wv_ = Vec::Zero(nv_);
     rhs_v_ = Vec::Zero(nv_);
     P_ = Mat::Zero(nv_, nv_);
     llt_p_.resize(nv_);
@@ -323,7 +328,7 @@ class Core {
       pw_ = Vec::Zero(nv_);
     }
     if (band_n_) bn_.resize(nc_, b_n);
-    J_at_valid_ = false;
+    invalidate_kinematics();
     return bp::make_tuple(b_p, b_n);
   }
 
@@ -485,6 +490,7 @@ class Core {
     dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
     dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
     configure_partitioning(s);
+    invalidate_kinematics();  // the kept factor of M + alpha J^T J has the old al_penalty
   }
 
   // Every declared row (the kept ones and those dropped as redundant), checked at
@@ -506,7 +512,7 @@ class Core {
     dkept_ = kept;
     dphi_ = Vec::Zero(nd);
     frame_buffers();
-    J_at_valid_ = false;
+    invalidate_kinematics();
   }
 
   // tau: None, a constant (nv,) array or a callable tau(t, q, v).
@@ -528,9 +534,17 @@ class Core {
 
   // -- constraint rows ------------------------------------------------------
 
+  // data_'s kinematics, J_ and M_ no longer known to be at J_at_; the factor of
+  // M + alpha J^T J dropped.
+  void invalidate_kinematics() {
+    J_at_valid_ = false;
+    m_at_J_ = false;
+    p_fact_ = false;
+  }
+
   // phi only: placements from forwardKinematics(q).
   void eval_phi(const RefV &q) {
-    J_at_valid_ = false;
+    invalidate_kinematics();
     pinocchio::forwardKinematics(model_, data_, q);
     placements();
     rows(true, false, false);
@@ -541,6 +555,7 @@ class Core {
   // rows, output): the last evaluation is reused while q is the same.
   void eval_phi_J(const RefV &q) {
     if (J_at_valid_ && q == J_at_) return;
+    invalidate_kinematics();
     pinocchio::computeJointJacobians(model_, data_, q);
     placements();
     rows(true, true, false);
@@ -558,17 +573,26 @@ class Core {
   // the partitioning stabilization ends there), data_ already holds the joints'
   // placements and Jacobian columns and phi_, J_ and the frame placements are
   // those of q: only the velocity-dependent part of the tree pass and gamma are
-  // computed (tree_terms_at_kinematics; the same arithmetic, the same results).
+  // computed (tree_terms_at_kinematics; the same arithmetic, the same results); when
+  // M_ is at q too (m_at_J_: the stage projection's velocity step computed it, or an
+  // evaluation at q with another v), only h (bias_at_kinematics, stage_terms.hpp),
+  // and M_ and the factor of M + alpha J^T J (p_fact_) stay.
   template <class Mark>
   void eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
     if (J_at_valid_ && q == J_at_) {
-      tree_terms_at_kinematics(model_, data_, q, v, M_, h_);
+      if (m_at_J_) {
+        bias_at_kinematics(model_, data_, q, v, h_);
+      } else {
+        tree_terms_at_kinematics(model_, data_, q, v, M_, h_);
+        m_at_J_ = true;
+        p_fact_ = false;
+      }
       mark(0);
       frame_motion();
       mark(1);
       rows(false, false, true);
     } else {
-      J_at_valid_ = false;
+      invalidate_kinematics();
       tree_terms(model_, data_, q, v, M_, h_);
       mark(0);
       placements();
@@ -584,6 +608,7 @@ class Core {
     // potential energy (total mass and centre of mass in data_.oYcrb[0]) serve record().
     J_at_ = q;
     J_at_valid_ = true;
+    m_at_J_ = true;
     terms_q_ = q;
     terms_v_ = v;
     pe_ = -data_.oYcrb[0].mass() * model_.gravity.linear().dot(data_.oYcrb[0].lever());
@@ -631,38 +656,25 @@ class Core {
       llt_m_.solveInPlace(a_);
       return;
     }
-    if (band_p_) return solve_al_band(q, tau, t);
-    const double jj = J_.squaredNorm();
-    const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-    // Small dynamic sizes: coefficient-based products (lazyProduct) and SmallLLT,
-    // no BLAS-style kernels; only P's lower triangle is factored.
-    P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
-    P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
-    if (!llt_p_.compute(P_))
-      singular(q, "the penalized mass matrix M + alpha J^T J",
-               std::numeric_limits<double>::infinity(),
-               "it is not positive definite, so M itself is singular (a massless subtree)", t);
     rhs_v_ = tau - h_;
-    a_ = rhs_v_;
-    a_.noalias() -= alpha * J_.transpose().lazyProduct(gamma_);
-    llt_p_.solveInPlace(a_);
-    lam_ = gamma_;
-    lam_.noalias() += J_.lazyProduct(a_);
-    lam_ *= alpha;
-    for (int it = 1; it < al_max_iter_; ++it) {
-      tmp_c_ = gamma_;
-      tmp_c_.noalias() += J_.lazyProduct(a_);  // r_c
-      tmp_c_ *= alpha;
-      tmp_c_ += lam_;
-      dq_ = rhs_v_;
-      dq_.noalias() -= M_.lazyProduct(a_);
-      dq_.noalias() -= J_.transpose().lazyProduct(tmp_c_);
-      llt_p_.solveInPlace(dq_);  // delta
-      a_ += dq_;
-      tmp_c_ = gamma_;
-      tmp_c_.noalias() += J_.lazyProduct(a_);
-      lam_ += alpha * tmp_c_;
-      if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
+    al_solve(q, t, rhs_v_, gamma_, a_);
+    if (band_p_) {  // the multiplier polish on the band normal equations
+      tmp_v_ = rhs_v_;
+      m_mul_sub(a_, tmp_v_);
+      jt_mul(lam_, dq_);
+      tmp_v_ -= dq_;  // r_d
+      j_mul(tmp_v_, tmp_c_);
+      if (band_n_ && factor_normal_band(AL_NORMAL_EQ_REG)) {
+        bn_.solve_in_place(tmp_c_);
+      } else {  // dense normal equations (no narrow row band, or the band factor failed)
+        JJt_.noalias() = J_ * J_.transpose();
+        JJt_.diagonal().array() +=
+            AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
+        llt_c_.compute(JJt_);
+        llt_c_.solveInPlace(tmp_c_);
+      }
+      lam_ += tmp_c_;
+      return;
     }
     tmp_v_ = rhs_v_;
     tmp_v_.noalias() -= M_.lazyProduct(a_);
@@ -676,55 +688,73 @@ class Core {
     lam_ += tmp_c_;
   }
 
-  // solve_al on the band structure (set_band): P = M + alpha J^T J by a band
-  // Cholesky in the order perm_, the products over the structural hulls, the
-  // multiplier polish by the band normal equations; the same iteration and
-  // arithmetic order as the dense solve_al, O(nv) per iteration for a chain of loops.
-  void solve_al_band(const RefV &q, const Vec &tau, double t) {
-    const double jj = j_squared_norm();
+  // al_iterate's products (al_iteration.hpp) for the dense path: coefficient-based
+  // (lazyProduct; small dynamic sizes, no BLAS-style kernels) on P's SmallLLT.
+  struct DenseAlOps {
+    Core &c;
+    void add_j(const Vec &x, Vec &y) { y.noalias() += c.J_.lazyProduct(x); }
+    void sub_m(const Vec &x, Vec &y) { y.noalias() -= c.M_.lazyProduct(x); }
+    void sub_jt(const Vec &y, Vec &x) { x.noalias() -= c.J_.transpose().lazyProduct(y); }
+    void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+      x.noalias() -= s * c.J_.transpose().lazyProduct(y);
+    }
+    void solve(Vec &x) { c.llt_p_.solveInPlace(x); }
+  };
+
+  // ... and for the band path (set_band): the products over the structural hulls, P's
+  // band Cholesky in the order perm_ (O(nv) per iterate for a chain of loops).
+  struct BandAlOps {
+    Core &c;
+    void add_j(const Vec &x, Vec &y) {
+      c.j_mul(x, c.al_wc_);
+      y += c.al_wc_;
+    }
+    void sub_m(const Vec &x, Vec &y) { c.m_mul_sub(x, y); }
+    void sub_jt(const Vec &y, Vec &x) {
+      c.jt_mul(y, c.al_wv_);
+      x -= c.al_wv_;
+    }
+    void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+      c.jt_mul(y, c.al_wv_);
+      x -= s * c.al_wv_;
+    }
+    void solve(Vec &x) { c.solve_penalized_band(x); }
+  };
+
+  // P = M + alpha J^T J at the last evaluation with alpha = al_penalty tr(M) / tr(J^T J),
+  // factored (dense SmallLLT of P's lower triangle, or the band Cholesky) unless
+  // the factor of these M_ and J_ is kept (p_fact_); returns alpha.
+  double al_factor(const RefV &q, double t) {
+    const double jj = band_p_ ? j_squared_norm() : J_.squaredNorm();
     const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-    if (!factor_penalized_band(alpha))
+    if (p_fact_) return alpha;
+    bool ok;
+    if (band_p_) {
+      ok = factor_penalized_band(alpha);
+    } else {
+      P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
+      P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
+      ok = llt_p_.compute(P_);
+    }
+    if (!ok)
       singular(q, "the penalized mass matrix M + alpha J^T J",
                std::numeric_limits<double>::infinity(),
                "it is not positive definite, so M itself is singular (a massless subtree)", t);
-    rhs_v_ = tau - h_;
-    jt_mul(gamma_, tmp_v_);
-    a_ = rhs_v_ - alpha * tmp_v_;
-    solve_penalized_band(a_);
-    j_mul(a_, lam_);
-    lam_ += gamma_;
-    lam_ *= alpha;
-    for (int it = 1; it < al_max_iter_; ++it) {
-      j_mul(a_, tmp_c_);
-      tmp_c_ += gamma_;  // r_c
-      tmp_c_ *= alpha;
-      tmp_c_ += lam_;
-      dq_ = rhs_v_;
-      m_mul_sub(a_, dq_);
-      jt_mul(tmp_c_, tmp_v_);
-      dq_ -= tmp_v_;
-      solve_penalized_band(dq_);  // delta
-      a_ += dq_;
-      j_mul(a_, tmp_c_);
-      tmp_c_ += gamma_;
-      lam_ += alpha * tmp_c_;
-      if (dq_.cwiseAbs().maxCoeff() <= al_tol_ * (1.0 + a_.cwiseAbs().maxCoeff())) break;
+    p_fact_ = true;
+    return alpha;
+  }
+
+  // The augmented-Lagrangian iteration (al_iterate) at the last evaluation: x and
+  // lam_ with M x + J^T lam = rhs, J x + g = 0 (to al_tol), no multiplier polish.
+  void al_solve(const RefV &q, double t, const Vec &rhs, const Vec &g, Vec &x) {
+    const double alpha = al_factor(q, t);
+    if (band_p_) {
+      BandAlOps ops{*this};
+      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_);
+    } else {
+      DenseAlOps ops{*this};
+      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_);
     }
-    tmp_v_ = rhs_v_;
-    m_mul_sub(a_, tmp_v_);
-    jt_mul(lam_, dq_);
-    tmp_v_ -= dq_;  // r_d
-    j_mul(tmp_v_, tmp_c_);
-    if (band_n_ && factor_normal_band(AL_NORMAL_EQ_REG)) {
-      bn_.solve_in_place(tmp_c_);
-    } else {  // dense normal equations (no narrow row band, or the band factor failed)
-      JJt_.noalias() = J_ * J_.transpose();
-      JJt_.diagonal().array() +=
-          AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
-      llt_c_.compute(JJt_);
-      llt_c_.solveInPlace(tmp_c_);
-    }
-    lam_ += tmp_c_;
   }
 
   [[noreturn]] void singular(const RefV &q, const std::string &what, double cond,
@@ -876,7 +906,7 @@ class Core {
   bp::tuple py_forward(const Vec &q, const Vec &v, const Vec &tau) {
     check_sizes(q, v);
     if (tau.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
-    J_at_valid_ = false;  // one whole evaluation per call
+    invalidate_kinematics();  // one whole evaluation per call
     solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
     return bp::make_tuple(Vec(a_), Vec(lam_));
   }
@@ -885,7 +915,7 @@ class Core {
   Vec py_repeat(const Vec &q, const Vec &v, const Vec &tau, int n) {
     check_sizes(q, v);
     for (int i = 0; i < n; ++i) {
-      J_at_valid_ = false;  // a whole evaluation each time (not the kinematics' reuse)
+      invalidate_kinematics();  // a whole evaluation each time (not the kinematics' reuse)
       solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
     }
     return a_;
@@ -904,7 +934,7 @@ class Core {
       last = now;
     };
     for (int i = 0; i < n; ++i) {
-      J_at_valid_ = false;
+      invalidate_kinematics();
       last = clock::now();
       eval_terms(q, v, mark);
       dispatch(q, tau, std::numeric_limits<double>::quiet_NaN());
@@ -1106,10 +1136,12 @@ class Core {
 
   // Gauss-Newton (minimum-norm) projection of q onto phi = 0, then v onto J v = 0.
   // With mass_orth (the stage projection; problem.project's mass_orthogonal) v is
-  // projected in the metric of M: the augmented-Lagrangian solve (solve_al) at q with
-  // right-hand side M v, h = 0 and gamma = 0. Leaves M_, h_, gamma_, a_ and lam_
-  // overwritten (an accel follows every projection). Only where the run passes singular
-  // positions (singular_robust_), as problem.project.
+  // projected in the metric of M: the augmented-Lagrangian iteration (al_solve) at q
+  // with right-hand side M v and g = 0. Only where the run passes singular positions
+  // (singular_robust_), as problem.project. M_ (mass_at_kinematics: no velocity pass)
+  // and the factor of M + alpha J^T J are then those of q and stay for the evaluation
+  // at q that follows (eval_terms: the bias forces only; solve_al: no second
+  // factorization); lam_ is overwritten.
   void project(Vec &q, Vec &v, bool mass_orth = false) {
     mass_orth = mass_orth && singular_robust_;
     if (nc_ == 0) return;
@@ -1123,12 +1155,14 @@ class Core {
     }
     if (project_velocities_ && mass_orth) {
       eval_phi_J(q);
-      tree_terms(model_, data_, q, v, M_, h_);
+      if (!m_at_J_) {
+        mass_at_kinematics(model_, data_, M_);
+        m_at_J_ = true;
+        p_fact_ = false;
+        terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not pe_
+      }
       mv_.noalias() = M_ * v;
-      h_.setZero();
-      gamma_.setZero();
-      solve_al(q, mv_, std::numeric_limits<double>::quiet_NaN());
-      v = a_;
+      al_solve(q, std::numeric_limits<double>::quiet_NaN(), mv_, zero_c_, v);
     } else if (project_velocities_) {
       eval_phi_J(q);
       if (band_n_)
@@ -1240,7 +1274,7 @@ class Core {
                         loop[i]});
     }
     if (R_.size() != fids_.size()) frame_buffers();  // a frame not among the rows' frames
-    J_at_valid_ = false;
+    invalidate_kinematics();
   }
 
   void configure_partitioning(const bp::dict &s) {
@@ -1745,6 +1779,7 @@ class Core {
     } else {
       ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
       pe = pinocchio::computePotentialEnergy(model_, data_, q);
+      invalidate_kinematics();  // data_'s placements are now q's
     }
     out.t.push_back(t);
     out.res.push_back(res);
@@ -1799,10 +1834,27 @@ class Core {
 
   // sqrt(mu / mean eigenvalue of J J^T) at q, capped: mu the Rayleigh quotient after
   // RANK_INDICATOR_ITERS inverse iterations from the ones vector (fixed.rank_indicator).
+  // With a narrow row band (set_band's banded_n) J J^T is factorized as a band and
+  // x^T J J^T x = |J^T x|^2: O(nc) instead of the dense product and Cholesky, O(nc^3)
+  // (the same quantity to round-off; also the ALI3-P loop's indicator).
   double rank_indicator(const Vec &q) {
     if (nc_ == 0) return RANK_INDICATOR_CAP;
     eval_phi_J(q);
-    JJt_.noalias() = J_ * J_.transpose();
+    if (band_n_) {
+      assemble_normal_band(0.0);
+      const double ref = bn_.A.row(0).sum() / nc_;
+      if (!(ref > 0.0)) return 0.0;
+      if (!bn_.factor()) return 0.0;
+      al_wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc_)));
+      for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
+        bn_.solve_in_place(al_wc_);
+        al_wc_ /= al_wc_.norm();
+      }
+      jt_mul(al_wc_, al_wv_);
+      const double mu = al_wv_.squaredNorm();
+      return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+    }
+    JJt_.noalias() = J_.lazyProduct(J_.transpose());  // small (no row band): coefficient-based
     const double ref = JJt_.trace() / nc_;
     if (!(ref > 0.0)) return 0.0;
     llt_c_.compute(JJt_);
@@ -1898,6 +1950,8 @@ class Core {
     pinocchio::integrate(model_, q, dv_, qm);
     vs_ = v + (h / 2) * a0;
     project(qm, vs_, true);
+    // the retake rule's midpoint indicator, while J is at qm (no kinematics pass later)
+    if (stage_zone_ > 0) rho_m_ = rank_indicator(qm);
     accel(t + h / 2, qm, vs_);
     chart_rate(q, dv_, vs_, k2v_);  // the stages' rates in the chart about q (run_fixed)
     k2a_ = a_;
@@ -1965,7 +2019,7 @@ class Core {
       bool twice = false;
       double f = 0.0;
       if (stage_zone_ > 0 &&
-          retake_plan(crossing_estimate(rho_start, rank_indicator(qm), rho_new), stage_zone_,
+          retake_plan(crossing_estimate(rho_start, rho_m_, rho_new), stage_zone_,
                       twice, f)) {
         const double span = twice ? 2.0 : 1.0;
         double h1 = f * dt, h2 = span * dt - f * dt;
@@ -2022,6 +2076,7 @@ class Core {
   bp::dict run_fixed(int integrator, const Vec &q0, const Vec &v0, double dt, long n_steps,
                      const Eigen::VectorXi &out_steps, bool projects, bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (integrator < EULER || integrator > RK4) throw BadArgument{"run_fixed: unknown integrator"};
     n_evals_ = 0;
     Samples S;
@@ -2099,6 +2154,7 @@ class Core {
   bp::dict run_ali3p(const Vec &q0, const Vec &v0, double dt, long n_steps,
                      const Eigen::VectorXi &out_steps, bp::tuple settings, bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (bp::len(settings) != 4)
       throw BadArgument{"run_ali3p: settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter, "
                         "ali3p_penalty)"};
@@ -2176,6 +2232,7 @@ class Core {
                         double rtol, double atol, bp::object t_eval_obj, bool projects,
                         bp::object progress) {
     check_sizes(q0, v0);
+    invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
     if (integrator != RK45 && integrator != DOP853)
       throw BadArgument{"run_adaptive: unknown integrator"};
     const bool dop = integrator == DOP853;
@@ -2616,6 +2673,9 @@ class Core {
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
   Vec a2_;  // run_rk4_stage_projected: accelerations at a two-step retake's end
   Vec mv_;  // project(mass_orth): M v
+  Vec zero_c_;  // project(mass_orth): g = 0
+  Vec al_wc_, al_wv_;  // BandAlOps' products
+  double rho_m_ = 0.0;  // rk4_projected: rank indicator at the projected midpoint
   // Structure (sparsity) and the band paths (set_band).
   std::vector<int> jcol_start_, jcols_, jlo_, jhi_, mlo_, mhi_;
   std::vector<int> perm_, pinv_;
@@ -2652,6 +2712,8 @@ class Core {
   Mat D_chart_;
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
+  bool m_at_J_ = false;  // M_ at J_at_ too (with J_at_valid_)
+  bool p_fact_ = false;  // llt_p_ / bp_ hold P = M_ + alpha J_^T J_ (solve_al's alpha)
   Eigen::VectorXi branch_cols_;  // set_branch_columns
   DenseLU lu_branch_;  // branch_sign's LU of J's branch columns
   Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, pe_ valid there)

@@ -1,0 +1,60 @@
+// closedchain._core: the augmented-Lagrangian iteration (Bayo & Ledesma 1996), written
+// once for Core::solve_al (its dense and band paths), the mass-orthogonal velocity step
+// of the stage projection (Core::project) and the ALI3-P projections (ali3p.hpp);
+// included by core.cpp before ali3p.hpp.
+//
+// With P = M + alpha J^T J factored, from lam_0 = 0:
+//   x_1 = P^-1 (rhs - alpha J^T g),   lam_1 = alpha (J x_1 + g),
+//   x_{k+1} = x_k + P^-1 (rhs - M x_k - J^T (lam_k + alpha (J x_k + g))),
+//   lam_{k+1} = lam_k + alpha (J x_{k+1} + g),
+// until max |x_{k+1} - x_k| <= tol (1 + max |x_{k+1}|) or max_iter iterates:
+// min (x - x*)^T M (x - x*) s.t. J x + g = 0 for rhs = M x* (a projection), or the
+// accelerations for rhs = tau - h, g = gamma (the dynamics).
+//
+// The products are the Ops policy's, so that each caller keeps its own arithmetic to
+// the bit (the N-four-bar's trajectories through flat positions are round-off
+// sensitive): Core's dense path coefficient-based (lazyProduct), its band path over
+// the structural hulls, ALI3-P's dense path Eigen's matrix-vector kernels. Ops:
+//   add_j(x, y)             y += J x
+//   sub_m(x, y)             y -= M x
+//   sub_jt(y, x)            x -= J^T y
+//   sub_scaled_jt(s, y, x)  x -= s J^T y
+//   solve(x)                x <- P^-1 x
+
+#pragma once
+
+#include <Eigen/Dense>
+
+namespace closedchain {
+
+// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
+// iterate is computed once (for lam and for the next correction's r_c). Returns the
+// number of iterates.
+template <class Ops>
+int al_iterate(Ops &ops, double alpha, const Eigen::VectorXd &rhs, const Eigen::VectorXd &g,
+               int max_iter, double tol, Eigen::VectorXd &x, Eigen::VectorXd &lam,
+               Eigen::VectorXd &delta, Eigen::VectorXd &rc) {
+  x = rhs;
+  ops.sub_scaled_jt(alpha, g, x);
+  ops.solve(x);
+  rc = g;
+  ops.add_j(x, rc);  // r_c = J x + g, kept for the next iterate (the same bits)
+  lam = rc * alpha;
+  int it = 1;
+  for (; it < max_iter; ++it) {
+    rc *= alpha;
+    rc += lam;
+    delta = rhs;
+    ops.sub_m(x, delta);
+    ops.sub_jt(rc, delta);
+    ops.solve(delta);
+    x += delta;
+    rc = g;
+    ops.add_j(x, rc);
+    lam += alpha * rc;
+    if (delta.cwiseAbs().maxCoeff() <= tol * (1.0 + x.cwiseAbs().maxCoeff())) break;
+  }
+  return it;
+}
+
+}  // namespace closedchain
