@@ -558,6 +558,33 @@ class Core {
     J_at_valid_ = true;
   }
 
+  // eval_phi_J at a trial point of the dependent solve, which moves only the
+  // dependent coordinates dep_: when the kinematics in data_ (J_at_) agree with q on
+  // every independent coordinate, the joints whose supports hold no dependent
+  // coordinate keep their placements and Jacobian columns (the same values a full
+  // pass computes: same inputs, same arithmetic) and only the others are recomputed.
+  void eval_phi_J_trial(const Vec &q) {
+    bool same = J_at_valid_ && nq_ == nv_;  // coordinates are velocity indices
+    for (std::size_t k = 0; same && k < ind_.size(); ++k) same = J_at_[ind_[k]] == q[ind_[k]];
+    if (!same || q == J_at_) return eval_phi_J(q);
+    if (moved_for_ != dep_) {  // the joints moved by dep_ (allocates: once per partition)
+      moved_for_ = dep_;
+      moved_.assign(static_cast<std::size_t>(model_.njoints), 0);
+      std::vector<char> is_dep(static_cast<std::size_t>(nv_), 0);
+      for (int d : dep_) is_dep[static_cast<std::size_t>(d)] = 1;
+      for (std::size_t j = 1; j < static_cast<std::size_t>(model_.njoints); ++j) {
+        char m = moved_[model_.parents[j]];
+        for (int c = 0; c < model_.nvs[j]; ++c) m |= is_dep[model_.idx_vs[j] + c];
+        moved_[j] = m;
+      }
+    }
+    joint_kinematics(plan_, model_, data_, q, &moved_);
+    placements();
+    rows(true, true, false);
+    J_at_ = q;
+    J_at_valid_ = true;
+  }
+
   // M, h, phi, J, gamma at (q, v): one pass over the tree (tree_terms.hpp: M, h,
   // the joints' placements, world Jacobian columns, velocities and bias
   // accelerations), then the cut frames' placements, velocities and classical
@@ -1380,7 +1407,7 @@ class Core {
             q_try_ = q + dq_;  // pinocchio::integrate on revolute/prismatic joints: q + dq
           else
             pinocchio::integrate(model_, q, dq_, q_try_);
-          eval_phi_J(q_try_);
+          eval_phi_J_trial(q_try_);
           const double res_try = phi_.cwiseAbs().maxCoeff(), sq_try = phi_.squaredNorm();
           if (sq_try < sq || res_try <= tol) {
             if (!have || sq_try < best_sq) {
@@ -1758,6 +1785,7 @@ class Core {
     } else {
       ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
       pe = pinocchio::computePotentialEnergy(model_, data_, q);
+      J_at_valid_ = false;  // Pinocchio's passes moved data_'s placements to q
     }
     out.t.push_back(t);
     out.res.push_back(res);
@@ -2611,6 +2639,8 @@ class Core {
   Data data_;
   TreePlan plan_;  // which joints take tree_terms.hpp's revolute path
   bool vector_space_ = false;  // only revolute and prismatic joints: integrate is q + dq
+  std::vector<int> moved_for_;  // eval_phi_J_trial: the dep_ that moved_ was made for
+  std::vector<char> moved_;     // per joint: its support holds a coordinate of moved_for_
   std::string name_;
   int nq_ = 0, nv_ = 0, nc_ = 0;
   std::vector<Row> rows_;

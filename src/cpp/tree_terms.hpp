@@ -338,12 +338,17 @@ void tree_terms(const TreePlan &plan, const pinocchio::Model &model, pinocchio::
 // The kinematics at q: liMi, oMi and the world Jacobian columns data.J of every
 // joint (what pinocchio::computeJointJacobians(q) computes, the revolute joints by
 // the same arithmetic as tree_terms, so the two passes give the same placements).
+// only (optional, one flag per joint): recompute only the flagged joints, the others
+// keep what data holds (valid when data holds the kinematics at a q that agrees with
+// this q on every coordinate of the unflagged joints' supports: the caller's check).
 template <typename ConfigVectorType>
 void joint_kinematics(const TreePlan &plan, const pinocchio::Model &model,
-                      pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q) {
+                      pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q,
+                      const std::vector<char> *only = nullptr) {
   using namespace tree_terms_detail;
   typedef KinematicsStep<ConfigVectorType> Pass;
   for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i) {
+    if (only && !(*only)[i]) continue;
     if (plan.revolute(i))
       revolute_kinematics(plan.rev(i), model, data, i, q);
     else
