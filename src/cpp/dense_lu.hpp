@@ -14,6 +14,14 @@
 #include <cmath>
 #include <vector>
 
+// Full unrolling of the fixed-size loops (factor_n<N> etc. for N <= FIXED_MAX; no
+// effect on the generic N = 0 loops' results: the same operations in the same order).
+#if defined(__GNUC__) && !defined(__clang__)
+#define CLOSEDCHAIN_UNROLL _Pragma("GCC unroll 8")
+#else
+#define CLOSEDCHAIN_UNROLL
+#endif
+
 namespace closedchain {
 
 struct DenseLU {
@@ -127,8 +135,10 @@ struct DenseLU {
     const Eigen::Index n = size<N>();
     double *a = A.data();
     anorm = 0.0;
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       double s = 0.0;
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = 0; i < n; ++i) s += std::abs(a[i + j * n]);
       anorm = std::max(anorm, s);
     }
@@ -139,9 +149,11 @@ struct DenseLU {
       return regular;
     }
     regular = true;
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = 0; k < n; ++k) {
       Eigen::Index p = k;
       double big = std::abs(a[k + k * n]);
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = k + 1; i < n; ++i)
         if (std::abs(a[i + k * n]) > big) {
           big = std::abs(a[i + k * n]);
@@ -153,12 +165,16 @@ struct DenseLU {
         continue;
       }
       if (p != k)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index j = 0; j < n; ++j) std::swap(a[k + j * n], a[p + j * n]);
       const double inv = 1.0 / a[k + k * n];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = k + 1; i < n; ++i) a[i + k * n] *= inv;
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index j = k + 1; j < n; ++j) {
         const double akj = a[k + j * n];
         if (akj != 0.0)
+          CLOSEDCHAIN_UNROLL
           for (Eigen::Index i = k + 1; i < n; ++i) a[i + j * n] -= a[i + k * n] * akj;
       }
     }
@@ -169,17 +185,22 @@ struct DenseLU {
   void solve_n(V &x) const {
     const Eigen::Index n = size<N>();
     const double *a = A.data();
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = 0; k < n; ++k)
       if (piv[k] != k) std::swap(x[k], x[piv[k]]);
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       const double xj = x[j];
       if (xj != 0.0)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= a[i + j * n] * xj;
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       x[j] /= a[j + j * n];
       const double xj = x[j];
       if (xj != 0.0)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index i = 0; i < j; ++i) x[i] -= a[i + j * n] * xj;
     }
   }
@@ -188,16 +209,21 @@ struct DenseLU {
   void solve_transposed_n(V &z) const {
     const Eigen::Index n = size<N>();
     const double *a = A.data();
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       double s = z[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = 0; i < j; ++i) s -= a[i + j * n] * z[i];
       z[j] = s / a[j + j * n];
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       double s = z[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = j + 1; i < n; ++i) s -= a[i + j * n] * z[i];
       z[j] = s;
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = n - 1; k >= 0; --k)
       if (piv[k] != k) std::swap(z[k], z[piv[k]]);
   }
@@ -208,14 +234,18 @@ struct DenseLU {
     const double *a = A.data();
     double *ey_ = ey.data(), *ez_ = ez.data();
     double bu = 0.0, bl = 0.0;
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       double s = 1.0;
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = 0; i < j; ++i) s += std::abs(a[i + j * n]) * ey_[i];
       ey_[j] = s / std::abs(a[j + j * n]);
       bu = std::max(bu, ey_[j]);
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       double s = 1.0;
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(a[i + j * n]) * ez_[i];
       ez_[j] = s;
       bl = std::max(bl, s);
