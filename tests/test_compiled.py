@@ -113,11 +113,11 @@ def test_rows_match_numpy(load_mechanism, name, baumgarte, rng):
 #: that keep Pinocchio's visitor (prismatic, unbounded revolute, spherical, free
 #: flyer), with branches so that subtrees are not suffixes of the chain. Depth-first
 #: order, as every Pinocchio model the loader makes (the tree passes assume it).
+_MIXED_JOINTS = ["free", "RX", "unaligned", "PZ", "PX", "RY", "spherical", "RZ", "RUBZ"]
+_MIXED_PARENTS = [-1, 0, 1, 2, 3, 1, 5, 0, 7, 8, -1]
 TREES = {
-    "unaligned": [("unaligned", -1), ("unaligned", 0), ("unaligned", 1), ("unaligned", 2),
-                  ("unaligned", 3), ("unaligned", 4)],  # fmt: skip
-    "mixed": [("free", -1), ("RX", 0), ("unaligned", 1), ("PZ", 2), ("PX", 3), ("RY", 1),
-              ("spherical", 5), ("RZ", 0), ("RUBZ", 7), ("unaligned", 8), ("unaligned", -1)],  # fmt: skip
+    "unaligned": [("unaligned", -1), *[("unaligned", k) for k in range(5)]],
+    "mixed": list(zip([*_MIXED_JOINTS, "unaligned", "unaligned"], _MIXED_PARENTS, strict=True)),
 }
 REVOLUTE_KINDS = {"unaligned", "RX", "RY", "RZ"}
 
