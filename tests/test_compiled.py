@@ -108,6 +108,75 @@ def test_rows_match_numpy(load_mechanism, name, baumgarte, rng):
         assert _close(gamma, ws.gamma)
 
 
+#: Joint sequences of the random trees below: (joint, parent index in the list or -1).
+#: "unaligned": the shipped models' joint; "mixed": every revolute kind beside joints
+#: that keep Pinocchio's visitor (prismatic, unbounded revolute, spherical, free
+#: flyer), with branches so that subtrees are not suffixes of the chain. Depth-first
+#: order, as every Pinocchio model the loader makes (the tree passes assume it).
+_MIXED_JOINTS = ["free", "RX", "unaligned", "PZ", "PX", "RY", "spherical", "RZ", "RUBZ"]
+_MIXED_PARENTS = [-1, 0, 1, 2, 3, 1, 5, 0, 7, 8, -1]
+TREES = {
+    "unaligned": [("unaligned", -1), *[("unaligned", k) for k in range(5)]],
+    "mixed": list(zip([*_MIXED_JOINTS, "unaligned", "unaligned"], _MIXED_PARENTS, strict=True)),
+}
+REVOLUTE_KINDS = {"unaligned", "RX", "RY", "RZ"}
+
+
+def _random_tree(kinds, rng):
+    """A pinocchio.Model of the given joints with random placements, inertias, armature."""
+    model = pin.Model()
+    ids = []
+    for kind, parent in kinds:
+        if kind == "unaligned":
+            axis = rng.normal(size=3)
+            joint = pin.JointModelRevoluteUnaligned(axis / np.linalg.norm(axis))
+        else:
+            joint = {"RX": pin.JointModelRX, "RY": pin.JointModelRY, "RZ": pin.JointModelRZ,
+                     "PX": pin.JointModelPX, "PZ": pin.JointModelPZ,
+                     "RUBZ": pin.JointModelRUBZ, "spherical": pin.JointModelSpherical,
+                     "free": pin.JointModelFreeFlyer}[kind]()  # fmt: skip
+        placement = pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(size=3))
+        jid = model.addJoint(0 if parent < 0 else ids[parent], joint, placement, f"j{len(ids)}")
+        ids.append(jid)
+        a = rng.normal(size=(3, 3))
+        inertia = pin.Inertia(rng.uniform(0.5, 2.0), rng.normal(size=3), a @ a.T + np.eye(3))
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+    model.armature = rng.uniform(0.0, 0.1, model.nv)
+    return model
+
+
+@pytest.mark.parametrize("tree", sorted(TREES))
+def test_tree_pass_matches_pinocchio(tree, rng):
+    """tree_terms.hpp (revolute path + Pinocchio's visitor for the other joints) against
+    pinocchio.crba, nonLinearEffects, computeJointJacobians and forwardKinematics."""
+    from closedchain import _core
+
+    model = _random_tree(TREES[tree], rng)
+    expected = [False] + [k in REVOLUTE_KINDS for k, _ in TREES[tree]]
+    assert list(_core._revolute_joints(model)) == expected
+    data = model.createData()
+    for _ in range(5):
+        q = pin.randomConfiguration(model, -np.pi * np.ones(model.nq), np.pi * np.ones(model.nq))
+        v = rng.normal(size=model.nv)
+        M = pin.crba(model, data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        h = pin.nonLinearEffects(model, data, q, v)
+        J = pin.computeJointJacobians(model, data, q).copy()
+        oMi = [data.oMi[i].homogeneous.copy() for i in range(model.njoints)]
+        pin.forwardKinematics(model, data, q, v, np.zeros(model.nv))
+        ov = np.column_stack([data.oMi[i].act(data.v[i]).vector for i in range(model.njoints)])
+        oa = np.column_stack([data.oMi[i].act(data.a[i]).vector for i in range(model.njoints)])
+        for at_kinematics in (False, True):
+            got = _core._tree_terms(model, q, v, at_kinematics)
+            assert _close(got["M"], M) and _close(got["h"], h)
+            assert _close(got["J"], J)
+            assert all(_close(g, r) for g, r in zip(got["oMi"], oMi, strict=True))
+            assert _close(got["ov"], ov) and _close(got["oa"], oa)
+        kin = _core._joint_kinematics(model, q)
+        assert _close(kin["J"], J)
+        assert all(_close(g, r) for g, r in zip(kin["oMi"], oMi, strict=True))
+
+
 @pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])
 def test_declared_rows_match_numpy(mech_by_name, name, rng):
     """compiled.declared_rows (simulate's start checks): phi and J of every declared row,

@@ -179,6 +179,7 @@ class Core {
       : model_obj_(model_obj),
         model_(bp::extract<Model &>(model_obj)()),
         data_(lean_data(model_)),  // no nv^3 tensors: see lean_data.cpp
+        plan_(model_),
         name_(name) {
     const Model &model = model_;
     nq_ = model.nq;
@@ -239,6 +240,13 @@ class Core {
       }
     }
     D_chart_ = Mat::Zero(curved_.empty() ? 0 : nv_, curved_.empty() ? 0 : nv_);
+    vector_space_ = true;
+    for (std::size_t j = 1; j < model.joints.size(); ++j) {
+      const std::string jn = model.joints[j].shortname();
+      if (!(plan_.revolute(j) || jn == "JointModelPX" || jn == "JointModelPY" ||
+            jn == "JointModelPZ" || jn == "JointModelPrismaticUnaligned"))
+        vector_space_ = false;
+    }
     init_partitioning();
     sparsity();
   }
@@ -542,21 +550,51 @@ class Core {
     p_fact_ = false;
   }
 
-  // phi only: placements from forwardKinematics(q).
+  // phi only: placements from the kinematics pass (tree_terms.hpp's joint_kinematics,
+  // the same placements as eval_phi_J and eval_terms).
   void eval_phi(const RefV &q) {
     invalidate_kinematics();
-    pinocchio::forwardKinematics(model_, data_, q);
+    joint_kinematics(plan_, model_, data_, q);
     placements();
     rows(true, false, false);
   }
 
-  // phi and J: computeJointJacobians(q) (placements and world joint Jacobians).
+  // phi and J: joint_kinematics(q) (placements and world joint Jacobians, as
+  // pinocchio::computeJointJacobians; revolute joints by tree_terms.hpp's own path).
   // Each step asks several times at one q (projection, regularity check, declared
   // rows, output): the last evaluation is reused while q is the same.
   void eval_phi_J(const RefV &q) {
     if (J_at_valid_ && q == J_at_) return;
     invalidate_kinematics();
-    pinocchio::computeJointJacobians(model_, data_, q);
+    joint_kinematics(plan_, model_, data_, q);
+    placements();
+    rows(true, true, false);
+    J_at_ = q;
+    J_at_valid_ = true;
+  }
+
+  // eval_phi_J at a trial point of the dependent solve, which moves only the
+  // dependent coordinates dep_: when the kinematics in data_ (J_at_) agree with q on
+  // every independent coordinate, the joints whose supports hold no dependent
+  // coordinate keep their placements and Jacobian columns (the same values a full
+  // pass computes: same inputs, same arithmetic) and only the others are recomputed.
+  void eval_phi_J_trial(const Vec &q) {
+    bool same = J_at_valid_ && nq_ == nv_;  // coordinates are velocity indices
+    for (std::size_t k = 0; same && k < ind_.size(); ++k) same = J_at_[ind_[k]] == q[ind_[k]];
+    if (!same || q == J_at_) return eval_phi_J(q);
+    if (moved_for_ != dep_) {  // the joints moved by dep_ (allocates: once per partition)
+      moved_for_ = dep_;
+      moved_.assign(static_cast<std::size_t>(model_.njoints), 0);
+      std::vector<char> is_dep(static_cast<std::size_t>(nv_), 0);
+      for (int d : dep_) is_dep[static_cast<std::size_t>(d)] = 1;
+      for (std::size_t j = 1; j < static_cast<std::size_t>(model_.njoints); ++j) {
+        char m = moved_[model_.parents[j]];
+        for (int c = 0; c < model_.nvs[j]; ++c) m |= is_dep[model_.idx_vs[j] + c];
+        moved_[j] = m;
+      }
+    }
+    invalidate_kinematics();
+    joint_kinematics(plan_, model_, data_, q, &moved_);
     placements();
     rows(true, true, false);
     J_at_ = q;
@@ -581,9 +619,9 @@ class Core {
   void eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
     if (J_at_valid_ && q == J_at_) {
       if (m_at_J_) {
-        bias_at_kinematics(model_, data_, q, v, h_);
+        bias_at_kinematics(plan_, model_, data_, q, v, h_);
       } else {
-        tree_terms_at_kinematics(model_, data_, q, v, M_, h_);
+        tree_terms_at_kinematics(plan_, model_, data_, q, v, M_, h_);
         m_at_J_ = true;
         p_fact_ = false;
       }
@@ -593,7 +631,7 @@ class Core {
       rows(false, false, true);
     } else {
       invalidate_kinematics();
-      tree_terms(model_, data_, q, v, M_, h_);
+      tree_terms(plan_, model_, data_, q, v, M_, h_);
       mark(0);
       placements();
       frame_motion();
@@ -1156,7 +1194,7 @@ class Core {
     if (project_velocities_ && mass_orth) {
       eval_phi_J(q);
       if (!m_at_J_) {
-        mass_at_kinematics(model_, data_, M_);
+        mass_at_kinematics(plan_, model_, data_, M_);
         m_at_J_ = true;
         p_fact_ = false;
         terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not pe_
@@ -1400,8 +1438,11 @@ class Core {
         double alpha = 1.0;
         for (int k = 0; k < MAX_HALVINGS; ++k) {
           dq_ = alpha * dv_n_;
-          pinocchio::integrate(model_, q, dq_, q_try_);
-          eval_phi_J(q_try_);
+          if (vector_space_)
+            q_try_ = q + dq_;  // pinocchio::integrate on revolute/prismatic joints: q + dq
+          else
+            pinocchio::integrate(model_, q, dq_, q_try_);
+          eval_phi_J_trial(q_try_);
           const double res_try = phi_.cwiseAbs().maxCoeff(), sq_try = phi_.squaredNorm();
           if (sq_try < sq || res_try <= tol) {
             if (!have || sq_try < best_sq) {
@@ -1779,7 +1820,7 @@ class Core {
     } else {
       ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
       pe = pinocchio::computePotentialEnergy(model_, data_, q);
-      invalidate_kinematics();  // data_'s placements are now q's
+      invalidate_kinematics();  // Pinocchio's passes moved data_'s placements to q
     }
     out.t.push_back(t);
     out.res.push_back(res);
@@ -2653,6 +2694,10 @@ class Core {
   bp::object model_obj_;  // keeps the Python model alive
   const Model &model_;
   Data data_;
+  TreePlan plan_;  // which joints take tree_terms.hpp's revolute path
+  bool vector_space_ = false;  // only revolute and prismatic joints: integrate is q + dq
+  std::vector<int> moved_for_;  // eval_phi_J_trial: the dep_ that moved_ was made for
+  std::vector<char> moved_;     // per joint: its support holds a coordinate of moved_for_
   std::string name_;
   int nq_ = 0, nv_ = 0, nc_ = 0;
   std::vector<Row> rows_;
@@ -2751,6 +2796,68 @@ class Core {
   std::vector<int> rep_ind_;
 };
 
+// Test helpers of tree_terms.hpp (tests/test_compiled.py compares them with
+// pinocchio.crba, nonLinearEffects, computeJointJacobians and forwardKinematics).
+namespace tree_test {
+
+bp::dict results(const Model &model, const Data &data) {
+  bp::dict d;
+  bp::list oMi;
+  Mat ov(6, model.njoints), oa(6, model.njoints);
+  for (int i = 0; i < model.njoints; ++i) {
+    oMi.append(Mat(data.oMi[(std::size_t)i].toHomogeneousMatrix()));
+    ov.col(i) = data.ov[(std::size_t)i].toVector();
+    oa.col(i) = data.oa[(std::size_t)i].toVector();
+  }
+  d["oMi"] = oMi;
+  d["J"] = Mat(data.J);
+  d["ov"] = ov;
+  d["oa"] = oa;
+  return d;
+}
+
+// M, h, oMi, J (world columns), ov, oa (bias accelerations) by tree_terms(q, v);
+// at_kinematics: by joint_kinematics(q) then tree_terms_at_kinematics(q, v).
+bp::dict tree_terms_py(bp::object model_obj, const Vec &q, const Vec &v, bool at_kinematics) {
+  const Model &model = bp::extract<const Model &>(model_obj)();
+  if (q.size() != model.nq || v.size() != model.nv)
+    throw BadArgument{"_tree_terms: q must have shape (nq,) and v shape (nv,)"};
+  Data data = lean_data(model);
+  const TreePlan plan(model);
+  Mat M = Mat::Zero(model.nv, model.nv);
+  Vec h = Vec::Zero(model.nv);
+  if (at_kinematics) {
+    joint_kinematics(plan, model, data, q);
+    tree_terms_at_kinematics(plan, model, data, q, v, M, h);
+  } else {
+    tree_terms(plan, model, data, q, v, M, h);
+  }
+  bp::dict d = results(model, data);
+  d["M"] = M;
+  d["h"] = h;
+  return d;
+}
+
+// oMi and J by joint_kinematics(q) alone.
+bp::dict kinematics_py(bp::object model_obj, const Vec &q) {
+  const Model &model = bp::extract<const Model &>(model_obj)();
+  if (q.size() != model.nq) throw BadArgument{"_joint_kinematics: q must have shape (nq,)"};
+  Data data = lean_data(model);
+  joint_kinematics(TreePlan(model), model, data, q);
+  return results(model, data);
+}
+
+// Which joints (by index, the universe 0 included) take the revolute path.
+bp::list revolute_joints_py(bp::object model_obj) {
+  const Model &model = bp::extract<const Model &>(model_obj)();
+  const TreePlan plan(model);
+  bp::list out;
+  for (int i = 0; i < model.njoints; ++i) out.append(i > 0 && plan.revolute((std::size_t)i));
+  return out;
+}
+
+}  // namespace tree_test
+
 }  // namespace closedchain
 
 BOOST_PYTHON_MODULE(_core) {
@@ -2762,6 +2869,13 @@ BOOST_PYTHON_MODULE(_core) {
   bp::register_exception_translator<SimulationFailure>(&translate_simulation);
   bp::register_exception_translator<BadArgument>(&translate_bad);
   register_lean_data();
+  bp::def("_tree_terms", &tree_test::tree_terms_py,
+          (bp::arg("model"), bp::arg("q"), bp::arg("v"), bp::arg("at_kinematics") = false),
+          "Test helper: dict of M, h, oMi, J, ov, oa from tree_terms.hpp's pass.");
+  bp::def("_joint_kinematics", &tree_test::kinematics_py, bp::args("model", "q"),
+          "Test helper: dict of oMi, J (and zero ov, oa) from tree_terms.hpp's kinematics pass.");
+  bp::def("_revolute_joints", &tree_test::revolute_joints_py, bp::args("model"),
+          "Test helper: per joint, whether tree_terms.hpp's revolute path computes it.");
   bp::register_exception_translator<RowCheckRequired>(&translate_row_check);
   bp::scope().attr("EULER") = static_cast<int>(EULER);
   bp::scope().attr("SEMI_IMPLICIT") = static_cast<int>(SEMI_IMPLICIT);

@@ -14,6 +14,14 @@
 #include <cmath>
 #include <vector>
 
+// Full unrolling of the fixed-size loops (factor_n<N> etc. for N <= FIXED_MAX; no
+// effect on the generic N = 0 loops' results: the same operations in the same order).
+#if defined(__GNUC__) && !defined(__clang__)
+#define CLOSEDCHAIN_UNROLL _Pragma("GCC unroll 8")
+#else
+#define CLOSEDCHAIN_UNROLL
+#endif
+
 namespace closedchain {
 
 struct DenseLU {
@@ -47,21 +55,105 @@ struct DenseLU {
   // BLOCKED_MIN (trees of hundreds of joints) Eigen's blocked LU with GEMM updates and
   // the same row swaps in piv (its workspace may come from the heap, negligible against
   // the O(n^3) work; the loop is 4x slower at n = 1000).
+  // Sizes up to FIXED_MAX run the same loops with the size a compile-time constant
+  // (unrolled by the compiler: the kkt method's K of a small linkage, J_D): the
+  // same operations in the same order, so the same results as the generic loops.
+  static constexpr int FIXED_MAX = 8;
+
   bool factor_in_place() {
-    const Eigen::Index n = A.rows();
-    anorm = 0.0;
-    for (Eigen::Index j = 0; j < n; ++j) anorm = std::max(anorm, A.col(j).template lpNorm<1>());
+    switch (A.rows()) {
+      case 1: return factor_n<1>();
+      case 2: return factor_n<2>();
+      case 3: return factor_n<3>();
+      case 4: return factor_n<4>();
+      case 5: return factor_n<5>();
+      case 6: return factor_n<6>();
+      case 7: return factor_n<7>();
+      case 8: return factor_n<8>();
+      default: return factor_n<0>();
+    }
+  }
+
+  template <class V>
+  void solve(V &&x) const {
+    switch (A.rows()) {
+      case 1: return solve_n<1>(x);
+      case 2: return solve_n<2>(x);
+      case 3: return solve_n<3>(x);
+      case 4: return solve_n<4>(x);
+      case 5: return solve_n<5>(x);
+      case 6: return solve_n<6>(x);
+      case 7: return solve_n<7>(x);
+      case 8: return solve_n<8>(x);
+      default: return solve_n<0>(x);
+    }
+  }
+
+  template <class V>
+  void solve_transposed(V &&z) const {
+    switch (A.rows()) {
+      case 1: return solve_transposed_n<1>(z);
+      case 2: return solve_transposed_n<2>(z);
+      case 3: return solve_transposed_n<3>(z);
+      case 4: return solve_transposed_n<4>(z);
+      case 5: return solve_transposed_n<5>(z);
+      case 6: return solve_transposed_n<6>(z);
+      case 7: return solve_transposed_n<7>(z);
+      case 8: return solve_transposed_n<8>(z);
+      default: return solve_transposed_n<0>(z);
+    }
+  }
+
+  // Upper bound of ||A^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1 through
+  // the comparison matrices: |T^-1| <= M(T)^-1 elementwise for triangular T (Higham,
+  // Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so ||T^-1||_1 <=
+  // max(M(T)^-T e), one small triangular solve each; a relative margin of 1e-8 covers
+  // its own round-off. Cheaper than rcond().
+  double inverse_norm_bound() {
+    switch (A.rows()) {
+      case 1: return inverse_norm_bound_n<1>();
+      case 2: return inverse_norm_bound_n<2>();
+      case 3: return inverse_norm_bound_n<3>();
+      case 4: return inverse_norm_bound_n<4>();
+      case 5: return inverse_norm_bound_n<5>();
+      case 6: return inverse_norm_bound_n<6>();
+      case 7: return inverse_norm_bound_n<7>();
+      case 8: return inverse_norm_bound_n<8>();
+      default: return inverse_norm_bound_n<0>();
+    }
+  }
+
+ private:
+  // N > 0: the size as a compile-time constant (== A.rows()); N == 0: A.rows().
+  template <int N>
+  Eigen::Index size() const {
+    return N > 0 ? static_cast<Eigen::Index>(N) : A.rows();
+  }
+
+  template <int N>
+  bool factor_n() {
+    const Eigen::Index n = size<N>();
     double *a = A.data();
-    if (n >= BLOCKED_MIN) {
+    anorm = 0.0;
+    CLOSEDCHAIN_UNROLL
+    for (Eigen::Index j = 0; j < n; ++j) {
+      double s = 0.0;
+      CLOSEDCHAIN_UNROLL
+      for (Eigen::Index i = 0; i < n; ++i) s += std::abs(a[i + j * n]);
+      anorm = std::max(anorm, s);
+    }
+    if (N == 0 && n >= BLOCKED_MIN) {
       int swaps = 0;
       regular = Eigen::internal::partial_lu_impl<double, Eigen::ColMajor, int>::blocked_lu(
                     n, n, a, n, piv.data(), swaps) < 0;
       return regular;
     }
     regular = true;
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = 0; k < n; ++k) {
       Eigen::Index p = k;
       double big = std::abs(a[k + k * n]);
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = k + 1; i < n; ++i)
         if (std::abs(a[i + k * n]) > big) {
           big = std::abs(a[i + k * n]);
@@ -73,58 +165,95 @@ struct DenseLU {
         continue;
       }
       if (p != k)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index j = 0; j < n; ++j) std::swap(a[k + j * n], a[p + j * n]);
       const double inv = 1.0 / a[k + k * n];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = k + 1; i < n; ++i) a[i + k * n] *= inv;
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index j = k + 1; j < n; ++j) {
         const double akj = a[k + j * n];
         if (akj != 0.0)
+          CLOSEDCHAIN_UNROLL
           for (Eigen::Index i = k + 1; i < n; ++i) a[i + j * n] -= a[i + k * n] * akj;
       }
     }
     return regular;
   }
 
-  // x <- A^-1 x
-  template <class V>
-  void solve(V &&x) const {
-    const Eigen::Index n = A.rows();
+  template <int N, class V>
+  void solve_n(V &x) const {
+    const Eigen::Index n = size<N>();
     const double *a = A.data();
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = 0; k < n; ++k)
       if (piv[k] != k) std::swap(x[k], x[piv[k]]);
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       const double xj = x[j];
       if (xj != 0.0)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index i = j + 1; i < n; ++i) x[i] -= a[i + j * n] * xj;
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       x[j] /= a[j + j * n];
       const double xj = x[j];
       if (xj != 0.0)
+        CLOSEDCHAIN_UNROLL
         for (Eigen::Index i = 0; i < j; ++i) x[i] -= a[i + j * n] * xj;
     }
   }
 
-  // z <- A^-T z
-  template <class V>
-  void solve_transposed(V &&z) const {
-    const Eigen::Index n = A.rows();
+  template <int N, class V>
+  void solve_transposed_n(V &z) const {
+    const Eigen::Index n = size<N>();
     const double *a = A.data();
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       double s = z[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = 0; i < j; ++i) s -= a[i + j * n] * z[i];
       z[j] = s / a[j + j * n];
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       double s = z[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = j + 1; i < n; ++i) s -= a[i + j * n] * z[i];
       z[j] = s;
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = n - 1; k >= 0; --k)
       if (piv[k] != k) std::swap(z[k], z[piv[k]]);
   }
 
-  // Sign of det(A): +1, -1, or 0 when a pivot is zero.
+  template <int N>
+  double inverse_norm_bound_n() {
+    const Eigen::Index n = size<N>();
+    const double *a = A.data();
+    double *ey_ = ey.data(), *ez_ = ez.data();
+    double bu = 0.0, bl = 0.0;
+    CLOSEDCHAIN_UNROLL
+    for (Eigen::Index j = 0; j < n; ++j) {
+      double s = 1.0;
+      CLOSEDCHAIN_UNROLL
+      for (Eigen::Index i = 0; i < j; ++i) s += std::abs(a[i + j * n]) * ey_[i];
+      ey_[j] = s / std::abs(a[j + j * n]);
+      bu = std::max(bu, ey_[j]);
+    }
+    CLOSEDCHAIN_UNROLL
+    for (Eigen::Index j = n - 1; j >= 0; --j) {
+      double s = 1.0;
+      CLOSEDCHAIN_UNROLL
+      for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(a[i + j * n]) * ez_[i];
+      ez_[j] = s;
+      bl = std::max(bl, s);
+    }
+    return bu * bl * (1.0 + 1e-8);
+  }
+
+ public:
   double det_sign() const {
     if (!regular) return 0.0;
     double s = 1.0;
@@ -133,30 +262,6 @@ struct DenseLU {
       if (A(k, k) < 0) s = -s;
     }
     return s;
-  }
-
-  // Upper bound of ||A^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1 through
-  // the comparison matrices: |T^-1| <= M(T)^-1 elementwise for triangular T (Higham,
-  // Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so ||T^-1||_1 <=
-  // max(M(T)^-T e), one small triangular solve each; a relative margin of 1e-8 covers
-  // its own round-off. Cheaper than rcond().
-  double inverse_norm_bound() {
-    const Eigen::Index n = A.rows();
-    const double *a = A.data();
-    double bu = 0.0, bl = 0.0;
-    for (Eigen::Index j = 0; j < n; ++j) {
-      double s = 1.0;
-      for (Eigen::Index i = 0; i < j; ++i) s += std::abs(a[i + j * n]) * ey[i];
-      ey[j] = s / std::abs(a[j + j * n]);
-      bu = std::max(bu, ey[j]);
-    }
-    for (Eigen::Index j = n - 1; j >= 0; --j) {
-      double s = 1.0;
-      for (Eigen::Index i = j + 1; i < n; ++i) s += std::abs(a[i + j * n]) * ez[i];
-      ez[j] = s;
-      bl = std::max(bl, s);
-    }
-    return bu * bl * (1.0 + 1e-8);
   }
 
   // Reciprocal 1-norm condition estimate (dgecon; 0 when singular).

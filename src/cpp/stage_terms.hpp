@@ -6,8 +6,9 @@
 // q and the projected v: M is computed once (mass_at_kinematics) and the evaluation
 // runs the velocity-dependent part only (bias_at_kinematics), where the
 // tree_terms_at_kinematics of each would run the forward and backward passes twice.
-// Both need the kinematics at q in data (calc(q), liMi, oMi, J:
-// pinocchio::computeJointJacobians(model, data, q)). Every quantity is computed with
+// Both need the kinematics at q in data (liMi, oMi, J: joint_kinematics(plan, model,
+// data, q)); revolute joints take tree_terms' revolute path (plan), the others
+// Pinocchio's visitor. Every quantity is computed with
 // the arithmetic of tree_terms (the same forward_motion and backward formulas, in the
 // same order): M, h, ov, oa, of and the composite inertias are the same bits.
 
@@ -63,14 +64,24 @@ struct BiasBackwardStep : public pinocchio::fusion::JointUnaryVisitorBase<BiasBa
 
 // M (full, symmetric, armature included) at the kinematics in data: tree_terms' M
 // without the velocity pass; data.oYcrb left composite (as tree_terms leaves it).
-inline void mass_at_kinematics(const pinocchio::Model &model, pinocchio::Data &data,
-                               Eigen::MatrixXd &M) {
+inline void mass_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
+                               pinocchio::Data &data, Eigen::MatrixXd &M) {
   using namespace stage_terms_detail;
   data.oYcrb[0].setZero();
   for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i)
     data.oYcrb[i] = data.oMi[i].act(model.inertias[i]);
-  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i)
-    MassBackwardStep::run(model.joints[i], MassBackwardStep::ArgsType(model, data, M));
+  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i) {
+    if (plan.revolute(i)) {  // tree_terms_detail::revolute_backward without h
+      const pinocchio::JointIndex parent = model.parents[i];
+      const Eigen::Index k = plan.rev(i).idx_v, n = data.nvSubtree[i];
+      const Eigen::Matrix<double, 6, 1> Ji = data.J.col(k);
+      data.Ag.col(k) = (data.oYcrb[i] * pinocchio::Motion(Ji)).toVector();
+      for (Eigen::Index j = 0; j < n; ++j) M(k, k + j) = Ji.dot(data.Ag.col(k + j));
+      data.oYcrb[parent] += data.oYcrb[i];
+    } else {
+      MassBackwardStep::run(model.joints[i], MassBackwardStep::ArgsType(model, data, M));
+    }
+  }
   M.diagonal() += model.armature;
   M.triangularView<Eigen::StrictlyLower>() = M.transpose();
 }
@@ -78,18 +89,30 @@ inline void mass_at_kinematics(const pinocchio::Model &model, pinocchio::Data &d
 // h = nonLinearEffects(q, v) and data.ov, data.oa, data.of at the kinematics in data
 // (tree_terms_at_kinematics without M).
 template <typename ConfigVectorType, typename TangentVectorType>
-void bias_at_kinematics(const pinocchio::Model &model, pinocchio::Data &data,
-                        const Eigen::MatrixBase<ConfigVectorType> &q,
+void bias_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
+                        pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q,
                         const Eigen::MatrixBase<TangentVectorType> &v, Eigen::VectorXd &h) {
   using namespace tree_terms_detail;
   start(data);
   typedef MotionStep<ConfigVectorType, TangentVectorType> Pass1;
-  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i)
-    Pass1::run(model.joints[i], data.joints[i],
-               typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
-  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i)
-    stage_terms_detail::BiasBackwardStep::run(
-        model.joints[i], stage_terms_detail::BiasBackwardStep::ArgsType(model, data, h));
+  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i) {
+    if (plan.revolute(i))
+      revolute_motion(plan.rev(i), model, data, i, v);
+    else
+      Pass1::run(model.joints[i], data.joints[i],
+                 typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
+  }
+  for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i) {
+    if (plan.revolute(i)) {  // tree_terms_detail::revolute_backward without M
+      const pinocchio::JointIndex parent = model.parents[i];
+      h[plan.rev(i).idx_v] = data.J.col(plan.rev(i).idx_v).dot(data.of[i].toVector());
+      data.oYcrb[parent] += data.oYcrb[i];
+      data.of[parent] += data.of[i];
+    } else {
+      stage_terms_detail::BiasBackwardStep::run(
+          model.joints[i], stage_terms_detail::BiasBackwardStep::ArgsType(model, data, h));
+    }
+  }
 }
 
 }  // namespace closedchain
