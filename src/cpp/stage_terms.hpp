@@ -92,16 +92,7 @@ template <typename ConfigVectorType, typename TangentVectorType>
 void bias_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
                         pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q,
                         const Eigen::MatrixBase<TangentVectorType> &v, Eigen::VectorXd &h) {
-  using namespace tree_terms_detail;
-  start(data);
-  typedef MotionStep<ConfigVectorType, TangentVectorType> Pass1;
-  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i) {
-    if (plan.revolute(i))
-      revolute_motion(plan.rev(i), model, data, i, v);
-    else
-      Pass1::run(model.joints[i], data.joints[i],
-                 typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
-  }
+  tree_terms_detail::motion_pass(plan, model, data, q, v);
   for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i) {
     if (plan.revolute(i)) {  // tree_terms_detail::revolute_backward without M
       const pinocchio::JointIndex parent = model.parents[i];

@@ -295,6 +295,24 @@ inline void start(Data &data) {
   data.of[0].setZero();
 }
 
+// The velocity-dependent forward pass (ov, oa, oYcrb, of of every joint, from the
+// root) when data holds the kinematics at q (joint_kinematics): revolute joints by
+// their own path, the others by Pinocchio's visitor (MotionStep).
+template <typename ConfigVectorType, typename TangentVectorType>
+inline void motion_pass(const TreePlan &plan, const Model &model, Data &data,
+                        const Eigen::MatrixBase<ConfigVectorType> &q,
+                        const Eigen::MatrixBase<TangentVectorType> &v) {
+  start(data);
+  typedef MotionStep<ConfigVectorType, TangentVectorType> Pass1;
+  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i) {
+    if (plan.revolute(i))
+      revolute_motion(plan.rev(i), model, data, i, v);
+    else
+      Pass1::run(model.joints[i], data.joints[i],
+                 typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
+  }
+}
+
 // The backward pass after the forward one: M (armature on the diagonal, both
 // triangles) and h.
 inline void backward(const TreePlan &plan, const Model &model, Data &data, Eigen::MatrixXd &M,
@@ -367,17 +385,8 @@ void tree_terms_at_kinematics(const TreePlan &plan, const pinocchio::Model &mode
                               const Eigen::MatrixBase<ConfigVectorType> &q,
                               const Eigen::MatrixBase<TangentVectorType> &v,
                               Eigen::MatrixXd &M, Eigen::VectorXd &h) {
-  using namespace tree_terms_detail;
-  start(data);
-  typedef MotionStep<ConfigVectorType, TangentVectorType> Pass1;
-  for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.njoints; ++i) {
-    if (plan.revolute(i))
-      revolute_motion(plan.rev(i), model, data, i, v);
-    else
-      Pass1::run(model.joints[i], data.joints[i],
-                 typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
-  }
-  backward(plan, model, data, M, h);
+  tree_terms_detail::motion_pass(plan, model, data, q, v);
+  tree_terms_detail::backward(plan, model, data, M, h);
 }
 
 }  // namespace closedchain
