@@ -150,18 +150,21 @@ inline void revolute_motion(const TreePlan::Revolute &r, const Model &model, Dat
   data.of[i] = oY * (oa - model.gravity) + ov.cross(oh);
 }
 
-// Revolute joint i of the backward pass: Ag column, row i of M over its subtree,
-// h_i, and the parent's composite inertia and force.
+// Revolute joint i of the backward pass: Ag column and row i of M over its subtree
+// (WithM), h_i (WithH), and the parent's composite inertia (always) and force (WithH).
+template <bool WithM, bool WithH>
 inline void revolute_backward(const TreePlan::Revolute &r, const Model &model, Data &data,
                               pinocchio::JointIndex i, Eigen::MatrixXd &M, Eigen::VectorXd &h) {
   const pinocchio::JointIndex parent = model.parents[i];
   const Eigen::Index k = r.idx_v, n = data.nvSubtree[i];
   const Eigen::Matrix<double, 6, 1> Ji = data.J.col(k);
-  data.Ag.col(k) = (data.oYcrb[i] * pinocchio::Motion(Ji)).toVector();
-  for (Eigen::Index j = 0; j < n; ++j) M(k, k + j) = Ji.dot(data.Ag.col(k + j));
-  h[k] = Ji.dot(data.of[i].toVector());
+  if constexpr (WithM) {
+    data.Ag.col(k) = (data.oYcrb[i] * pinocchio::Motion(Ji)).toVector();
+    for (Eigen::Index j = 0; j < n; ++j) M(k, k + j) = Ji.dot(data.Ag.col(k + j));
+  }
+  if constexpr (WithH) h[k] = Ji.dot(data.of[i].toVector());
   data.oYcrb[parent] += data.oYcrb[i];
-  data.of[parent] += data.of[i];
+  if constexpr (WithH) data.of[parent] += data.of[i];
 }
 
 // The velocity-dependent quantities of joint i (world frame) from its calc's v_J and
@@ -179,6 +182,25 @@ inline void forward_motion(const pinocchio::JointDataBase<JointData> &jdata, con
   data.of[i] = data.oYcrb[i] * (data.oa[i] - model.gravity) + data.ov[i].cross(oh);
 }
 
+// Joint i's placements and world Jacobian columns from its calc (jdata.M(), S):
+// liMi, oMi = oMi_parent liMi, J_i = oMi S (after calc(q) or calc(q, v)).
+template <typename JointModel>
+inline void place_joint(const pinocchio::JointModelBase<JointModel> &jmodel,
+                        const pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
+                        const Model &model, Data &data) {
+  typedef typename pinocchio::SizeDepType<JointModel::NV>::template ColsReturn<
+      Data::Matrix6x>::Type ColsBlock;
+  const pinocchio::JointIndex i = jmodel.id();
+  const pinocchio::JointIndex parent = model.parents[i];
+  data.liMi[i] = model.jointPlacements[i] * jdata.M();
+  if (parent > 0)
+    data.oMi[i] = data.oMi[parent] * data.liMi[i];
+  else
+    data.oMi[i] = data.liMi[i];
+  ColsBlock J_cols = jmodel.jointCols(data.J);
+  J_cols = data.oMi[i].act(jdata.S());
+}
+
 template <typename ConfigVectorType, typename TangentVectorType>
 struct ForwardStep
     : public pinocchio::fusion::JointUnaryVisitorBase<
@@ -193,19 +215,9 @@ struct ForwardStep
                    const Model &model, Data &data,
                    const Eigen::MatrixBase<ConfigVectorType> &q,
                    const Eigen::MatrixBase<TangentVectorType> &v) {
-    typedef typename pinocchio::SizeDepType<JointModel::NV>::template ColsReturn<
-        Data::Matrix6x>::Type ColsBlock;
-    const pinocchio::JointIndex i = jmodel.id();
-    const pinocchio::JointIndex parent = model.parents[i];
     jmodel.calc(jdata.derived(), q.derived(), v.derived());
-    data.liMi[i] = model.jointPlacements[i] * jdata.M();
-    if (parent > 0)
-      data.oMi[i] = data.oMi[parent] * data.liMi[i];
-    else
-      data.oMi[i] = data.liMi[i];
-    ColsBlock J_cols = jmodel.jointCols(data.J);
-    J_cols = data.oMi[i].act(jdata.S());
-    forward_motion(jdata, model, data, i);
+    place_joint(jmodel, jdata, model, data);
+    forward_motion(jdata, model, data, jmodel.id());
   }
 };
 
@@ -221,18 +233,8 @@ struct KinematicsStep
                    pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
                    const Model &model, Data &data,
                    const Eigen::MatrixBase<ConfigVectorType> &q) {
-    typedef typename pinocchio::SizeDepType<JointModel::NV>::template ColsReturn<
-        Data::Matrix6x>::Type ColsBlock;
-    const pinocchio::JointIndex i = jmodel.id();
-    const pinocchio::JointIndex parent = model.parents[i];
     jmodel.calc(jdata.derived(), q.derived());
-    data.liMi[i] = model.jointPlacements[i] * jdata.M();
-    if (parent > 0)
-      data.oMi[i] = data.oMi[parent] * data.liMi[i];
-    else
-      data.oMi[i] = data.liMi[i];
-    ColsBlock J_cols = jmodel.jointCols(data.J);
-    J_cols = data.oMi[i].act(jdata.S());
+    place_joint(jmodel, jdata, model, data);
   }
 };
 
@@ -265,7 +267,9 @@ struct MotionStep
   }
 };
 
-struct BackwardStep : public pinocchio::fusion::JointUnaryVisitorBase<BackwardStep> {
+template <bool WithM, bool WithH>
+struct BackwardStep
+    : public pinocchio::fusion::JointUnaryVisitorBase<BackwardStep<WithM, WithH>> {
   typedef boost::fusion::vector<const Model &, Data &, Eigen::MatrixXd &, Eigen::VectorXd &>
       ArgsType;
 
@@ -277,13 +281,16 @@ struct BackwardStep : public pinocchio::fusion::JointUnaryVisitorBase<BackwardSt
     const pinocchio::JointIndex i = jmodel.id();
     const pinocchio::JointIndex parent = model.parents[i];
     ColsBlock J_cols = jmodel.jointCols(data.J);
-    ColsBlock Ag_cols = jmodel.jointCols(data.Ag);
-    pinocchio::motionSet::inertiaAction(data.oYcrb[i], J_cols, Ag_cols);
-    M.block(jmodel.idx_v(), jmodel.idx_v(), jmodel.nv(), data.nvSubtree[i]).noalias() =
-        J_cols.transpose() * data.Ag.middleCols(jmodel.idx_v(), data.nvSubtree[i]);
-    jmodel.jointVelocitySelector(h).noalias() = J_cols.transpose() * data.of[i].toVector();
+    if constexpr (WithM) {
+      ColsBlock Ag_cols = jmodel.jointCols(data.Ag);
+      pinocchio::motionSet::inertiaAction(data.oYcrb[i], J_cols, Ag_cols);
+      M.block(jmodel.idx_v(), jmodel.idx_v(), jmodel.nv(), data.nvSubtree[i]).noalias() =
+          J_cols.transpose() * data.Ag.middleCols(jmodel.idx_v(), data.nvSubtree[i]);
+    }
+    if constexpr (WithH)
+      jmodel.jointVelocitySelector(h).noalias() = J_cols.transpose() * data.of[i].toVector();
     data.oYcrb[parent] += data.oYcrb[i];
-    data.of[parent] += data.of[i];
+    if constexpr (WithH) data.of[parent] += data.of[i];
   }
 };
 
@@ -314,17 +321,22 @@ inline void motion_pass(const TreePlan &plan, const Model &model, Data &data,
 }
 
 // The backward pass after the forward one: M (armature on the diagonal, both
-// triangles) and h.
+// triangles; WithM) and h (WithH); the composite inertias always (the potential
+// energy reads data.oYcrb[0]). The argument not asked for is not touched.
+template <bool WithM = true, bool WithH = true>
 inline void backward(const TreePlan &plan, const Model &model, Data &data, Eigen::MatrixXd &M,
                      Eigen::VectorXd &h) {
+  typedef BackwardStep<WithM, WithH> Step;
   for (pinocchio::JointIndex i = (pinocchio::JointIndex)(model.njoints - 1); i > 0; --i) {
     if (plan.revolute(i))
-      revolute_backward(plan.rev(i), model, data, i, M, h);
+      revolute_backward<WithM, WithH>(plan.rev(i), model, data, i, M, h);
     else
-      BackwardStep::run(model.joints[i], BackwardStep::ArgsType(model, data, M, h));
+      Step::run(model.joints[i], typename Step::ArgsType(model, data, M, h));
   }
-  M.diagonal() += model.armature;
-  M.triangularView<Eigen::StrictlyLower>() = M.transpose();
+  if constexpr (WithM) {
+    M.diagonal() += model.armature;
+    M.triangularView<Eigen::StrictlyLower>() = M.transpose();
+  }
 }
 
 }  // namespace tree_terms_detail
