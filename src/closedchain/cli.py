@@ -92,8 +92,8 @@ def _load(args, path=None):
     return load(path, **options)
 
 
-def add_model_arguments(p: argparse.ArgumentParser) -> None:
-    """Add ``--root`` and ``--loops``, the options of :func:`closedchain.load`."""
+def add_model_arguments(p: argparse.ArgumentParser, gravity_note: str = "") -> None:
+    """Add ``--root``, ``--loops`` and ``--gravity``, the options of :func:`closedchain.load`."""
     p.add_argument(
         "--root",
         choices=("free", "planar"),
@@ -104,6 +104,13 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
         metavar="OVERLAY",
         help="URDF+ overlay whose links, joints, <loop> and <transmission> elements are"
         " merged into the tree",
+    )
+    p.add_argument(
+        "--gravity",
+        type=float,
+        nargs=3,
+        metavar=("GX", "GY", "GZ"),
+        help=f"gravity in the world frame [m/s^2] ({gravity_note}default 0 0 -9.81)",
     )
 
 
@@ -594,13 +601,6 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_, description=help_)
         p.add_argument("file", help="URDF file with <loop> elements, or erd:<name>")
         add_model_arguments(p)
-        p.add_argument(
-            "--gravity",
-            type=float,
-            nargs=3,
-            metavar=("GX", "GY", "GZ"),
-            help="gravity in the world frame [m/s^2] (default 0 0 -9.81)",
-        )
         _add_debug(p)
         p.set_defaults(handler=handler)
         return p
@@ -689,14 +689,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the mechanism of a .npz trajectory: gives joint types and units; needed"
         " when nq != nv (continuous joints)",
     )
-    add_model_arguments(p)
-    p.add_argument(
-        "--gravity",
-        type=float,
-        nargs=3,
-        metavar=("GX", "GY", "GZ"),
-        help="gravity in the world frame [m/s^2] (URDF input; default 0 0 -9.81)",
-    )
+    add_model_arguments(p, gravity_note="URDF input; ")
     add_simulation_arguments(p)
     p.add_argument(
         "--coordinates",
