@@ -1317,7 +1317,7 @@ class Core {
 
   void configure_partitioning(const bp::dict &s) {
     dependent_tol_ = bp::extract<double>(s.get("dependent_tol", 1e-13));
-    repartition_cond_ = bp::extract<double>(s.get("repartition_cond", 100.0));
+    repartition_cond_ = bp::extract<double>(s.get("repartition_cond", 10.0));
     partition_singular_cond_ = bp::extract<double>(s.get("partition_singular_cond", 1e4));
     partitions_ = bp::extract<bool>(s.get("partitions", false));
     rows_only_ = false;  // set by begin_partitioning for the run
@@ -2777,7 +2777,7 @@ class Core {
   std::vector<std::string> coordinate_names_;
   std::string red_what_ = "J_D";
   bool partitions_ = false, rows_only_ = false;
-  double dependent_tol_ = 1e-13, repartition_cond_ = 100.0, partition_singular_cond_ = 1e4;
+  double dependent_tol_ = 1e-13, repartition_cond_ = 10.0, partition_singular_cond_ = 1e4;
   double pivot_tie_rtol_ = 1e-9;
   Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
   Mat KD_;     // v_D at the stages of the current adaptive step

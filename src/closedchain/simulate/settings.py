@@ -46,7 +46,11 @@ class SimulationSettings:
             to max(1, max |v0|) [-]; beyond it simulate refuses v0 (an
             inconsistent start would be recorded as the motion's first sample).
         dependent_tol: max |phi| of the dependent-coordinate solve (partitioning).
-        repartition_cond: re-partition when cond(J_D) exceeds this.
+        repartition_cond: re-partition when cond(J_D) exceeds this. The error
+            control of the independent coordinates shrinks the steps well before
+            J_D is near singular (coasting Agile Eye, DOP853 at 1e-9: from
+            cond(J_D) = 10 on, 22 steps over 10 s with 100 here against 17 with
+            10 and without stabilization).
         singular_cond: stop with SingularConfigurationError when the 2-norm
             condition number of the constraint Jacobian J at a step exceeds this
             (every stabilization of adaptive integrators; fixed-step ones with
@@ -129,7 +133,7 @@ class SimulationSettings:
     projection_iters: int = 10
     project_velocities: bool = True
     dependent_tol: float = 1e-13
-    repartition_cond: float = 100.0
+    repartition_cond: float = 10.0
     singular_cond: float = 1e3
     partition_singular_cond: float = 1e4
     singular_zone: float = 0.04
