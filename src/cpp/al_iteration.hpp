@@ -13,8 +13,9 @@
 //
 // The products are the Ops policy's, so that each caller keeps its own arithmetic to
 // the bit (the N-four-bar's trajectories through flat positions are round-off
-// sensitive): Core's dense path coefficient-based (lazyProduct), its band path over
-// the structural hulls, ALI3-P's dense path Eigen's matrix-vector kernels. Ops:
+// sensitive): Core's dense path coefficient-based (lazyProduct) or, for nv <= 6 in
+// the dynamics, on fixed-size matrices, its band path over the structural hulls,
+// ALI3-P's dense path Eigen's matrix-vector kernels. Ops:
 //   add_j(x, y)             y += J x
 //   sub_m(x, y)             y -= M x
 //   sub_jt(y, x)            x -= J^T y
@@ -30,10 +31,11 @@ namespace closedchain {
 // The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
 // iterate is computed once (for lam and for the next correction's r_c). Returns the
 // number of iterates.
-template <class Ops>
-int al_iterate(Ops &ops, double alpha, const Eigen::VectorXd &rhs, const Eigen::VectorXd &g,
-               int max_iter, double tol, Eigen::VectorXd &x, Eigen::VectorXd &lam,
-               Eigen::VectorXd &delta, Eigen::VectorXd &rc) {
+// XV, CV: the nv- and nc-vectors (Eigen::VectorXd, or fixed-size for Core's small
+// dense path).
+template <class Ops, class XV, class CV>
+int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter, double tol,
+               XV &x, CV &lam, XV &delta, CV &rc) {
   x = rhs;
   ops.sub_scaled_jt(alpha, g, x);
   ops.solve(x);

@@ -695,6 +695,7 @@ class Core {
       return;
     }
     rhs_v_ = tau - h_;
+    if (!band_p_ && solve_al_small<1, 1>(q, t)) return;
     al_solve(q, t, rhs_v_, gamma_, a_);
     if (band_p_) {  // the multiplier polish on the band normal equations
       tmp_v_ = rhs_v_;
@@ -724,6 +725,74 @@ class Core {
     tmp_c_.noalias() = J_.lazyProduct(tmp_v_);
     llt_jj_.solveInPlace(tmp_c_);
     lam_ += tmp_c_;
+  }
+
+  // solve_al for nv <= AL_FIXED_MAX (the 4-bar: nv 3, nc 2) on fixed-size matrices:
+  // the same iteration (al_iterate), penalty, acceptance test of P's Cholesky and
+  // multiplier polish, with Eigen's unrolled fixed-size products and small_llt.hpp's
+  // FixedLDLT in place of the dynamic-size ones (in the C++ loop, 4-bar: about 4,300
+  // instructions of the dynamic path's 10,000 per evaluation are the solve). The results differ from the
+  // dynamic path by round-off. P is factored here each time (a few dozen operations);
+  // the factor kept for the stage projection (p_fact_, llt_p_) is left as it is.
+  // Returns false when (nv, nc) is not among the sizes compiled.
+  static constexpr int AL_FIXED_MAX = 6;
+
+  template <int NV, int NC>
+  bool solve_al_small(const RefV &q, double t) {
+    if constexpr (NV > AL_FIXED_MAX) {
+      return false;
+    } else {
+      if (nv_ != NV || nc_ != NC) {
+        if constexpr (NC < NV)
+          return solve_al_small<NV, NC + 1>(q, t);
+        else
+          return solve_al_small<NV + 1, 1>(q, t);
+      }
+      using MatN = Eigen::Matrix<double, NV, NV>;
+      using MatC = Eigen::Matrix<double, NC, NC>;
+      using MatJ = Eigen::Matrix<double, NC, NV>;
+      using VecN = Eigen::Matrix<double, NV, 1>;
+      using VecC = Eigen::Matrix<double, NC, 1>;
+      struct Ops {
+        const Eigen::Map<const MatN> &M;
+        const Eigen::Map<const MatJ> &J;
+        const FixedLDLT<NV> &llt;
+        void add_j(const VecN &x, VecC &y) { y.noalias() += J * x; }
+        void sub_m(const VecN &x, VecN &y) { y.noalias() -= M * x; }
+        void sub_jt(const VecC &y, VecN &x) { x.noalias() -= J.transpose() * y; }
+        void sub_scaled_jt(double s, const VecC &y, VecN &x) {
+          x.noalias() -= s * (J.transpose() * y);
+        }
+        void solve(VecN &x) { llt.solveInPlace(x); }
+      };
+      const Eigen::Map<const MatN> M(M_.data());
+      const Eigen::Map<const MatJ> J(J_.data());
+      const double alpha =
+          al_penalty_ * M.trace() / std::max(J.squaredNorm(), std::numeric_limits<double>::min());
+      FixedLDLT<NV> llt;
+      if (!llt.compute(M + alpha * (J.transpose() * J)))
+        singular(q, "the penalized mass matrix M + alpha J^T J",
+                 std::numeric_limits<double>::infinity(),
+                 "it is not positive definite, so M itself is singular (a massless subtree)", t);
+      Ops ops{M, J, llt};
+      const VecN rhs = rhs_v_;
+      const VecC g = gamma_;
+      VecN x, delta;
+      VecC lam, rc;
+      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam, delta, rc);
+      // the multiplier polish: J J^T dlam = J (rhs - M a - J^T lam), regularized
+      const VecN rd = rhs - M * x - J.transpose() * lam;
+      MatC JJt = J * J.transpose();
+      JJt.diagonal().array() += AL_NORMAL_EQ_REG * std::max(JJt.trace(), 1.0) / double(NC);
+      FixedLDLT<NC> llt_c;
+      if (!llt_c.compute(JJt)) return false;  // the dynamic path decides
+      VecC dlam = J * rd;
+      llt_c.solveInPlace(dlam);
+      lam += dlam;
+      a_ = x;
+      lam_ = lam;
+      return true;
+    }
   }
 
   // al_iterate's products (al_iteration.hpp) for the dense path: coefficient-based

@@ -117,4 +117,46 @@ class SmallLLT {
   bool ok_ = false;
 };
 
+// For a size N known at compile time (Core's fixed-size augmented-Lagrangian path,
+// nv <= 6): A = L D L^T (L unit lower triangular), without square roots, with the
+// reciprocals of D kept so that a solve multiplies instead of dividing; the loops
+// unroll. The square roots and the 2N divisions per solve of the factorization above
+// would be the longest dependency chains of the 4-bar's evaluation. Accepts A when
+// every pivot d_k > 0 (as LLT does); the results differ from SmallLLT's by round-off.
+template <int N>
+class FixedLDLT {
+ public:
+  using Mat = Eigen::Matrix<double, N, N>;
+
+  // Factor A from its lower triangle; false when a pivot is not positive.
+  bool compute(const Mat &A) {
+    L_ = A;  // L below the diagonal, D on it (overwritten column by column)
+    for (int k = 0; k < N; ++k) {
+      const double d = L_(k, k);
+      if (!(d > 0.0)) return false;
+      inv_[k] = 1.0 / d;
+      for (int j = k + 1; j < N; ++j) {
+        const double ljk = L_(j, k) * inv_[k];
+        for (int i = j; i < N; ++i) L_(i, j) -= L_(i, k) * ljk;
+      }
+      for (int i = k + 1; i < N; ++i) L_(i, k) *= inv_[k];
+    }
+    return true;
+  }
+
+  // x <- A^-1 x (after a successful compute).
+  template <typename Derived>
+  void solveInPlace(Eigen::MatrixBase<Derived> &x) const {
+    for (int j = 0; j < N; ++j)  // L y = x
+      for (int i = j + 1; i < N; ++i) x[i] -= L_(i, j) * x[j];
+    for (int j = 0; j < N; ++j) x[j] *= inv_[j];  // D z = y
+    for (int j = N - 1; j >= 0; --j)  // L^T x = z
+      for (int i = j + 1; i < N; ++i) x[j] -= L_(i, j) * x[i];
+  }
+
+ private:
+  Mat L_;
+  Eigen::Matrix<double, N, 1> inv_;
+};
+
 }  // namespace closedchain
