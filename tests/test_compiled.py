@@ -723,8 +723,9 @@ REPARTITION_T_TOL = 1e-3
 
 
 def _agile_eye_near_repartition(mech):
-    """The coasting Agile Eye (no gravity) 0.25 s before its partitioned run re-partitions
-    (test_simulate: at t = 9.49 s), from an accurate run."""
+    """The coasting Agile Eye (no gravity) at t = 9.25 s, from an accurate run: there the
+    partition chosen at load has cond(J_D) = 41, above repartition_cond, so a partitioned
+    run from it re-partitions at its first step."""
     q0 = mech.q_ref.copy()
     v = np.zeros(mech.nv)
     v[mech.independent_idx_v] = (0.3, -0.2, 0.1)
