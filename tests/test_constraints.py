@@ -395,3 +395,27 @@ def test_batched_evaluation_matches_finite_differences(tmp_path, rng):
             assert np.linalg.norm(J - fd_jacobian(mech, layer, q)) <= TOL_FD
             gamma = layer_gamma(mech, layer, q, v)
             assert np.linalg.norm(gamma - fd_gamma(mech, layer, q, v)) <= TOL_FD
+
+
+def test_declared_rows_reuse_the_kept_rows_placements_only_at_the_same_q(tmp_path, rng):
+    """The declared and kept layers of many loops share one frame-placement memo: the
+    declared rows evaluated with q=... right after the kept rows at the same q equal their
+    evaluation on a fresh model (own placements), and at another q they are not served
+    the memo's placements."""
+    from conftest import nfourbar_generator
+
+    path = tmp_path / "nfourbar_5.urdf"
+    path.write_text(nfourbar_generator().build(5))
+    mech, fresh = cc.load(path), cc.load(path)
+    assert mech.constraints._memo is mech.declared._memo  # one memo for both layers
+    (q1, _), (q2, _) = sample_states(mech, rng)[:2]
+    for q_kept, q_declared in ((q1, q1), (q1, q2)):
+        pin.computeJointJacobians(mech.model, mech.data, q_kept)
+        mech.constraints.evaluate(mech.model, mech.data, phi=np.zeros(mech.nc), q=q_kept)
+        pin.forwardKinematics(mech.model, mech.data, q_declared)
+        got = np.zeros(mech.declared.nc)
+        mech.declared.evaluate(mech.model, mech.data, phi=got, q=q_declared)
+        pin.forwardKinematics(fresh.model, fresh.data, q_declared)
+        want = np.zeros(fresh.declared.nc)
+        fresh.declared.evaluate(fresh.model, fresh.data, phi=want)
+        assert np.linalg.norm(got - want) <= TOL_BATCHED

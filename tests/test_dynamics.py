@@ -438,3 +438,56 @@ def test_singular_error_builder_format():
     assert "(condition number 3.000e+00, cond_max 1.0e+12)" in str(ok)
     later = ok.at_time(1.5)
     assert str(later).startswith("at t = 1.5 s: m: solver is singular") and later.t == 1.5
+
+
+# -- terms kept from the stage projection; the multiplier polish ---------------------------
+
+#: Pinocchio's bias forces and joint Jacobians by two routes (computeAllTerms against
+#: nonLinearEffects + computeJointJacobiansTimeVariation): round-off apart.
+TOL_TERMS = 1e-12
+
+
+@pytest.mark.parametrize("name", ["fourbar", "nfourbar_5"])
+def test_terms_after_the_projection_equal_a_fresh_evaluation(name, tmp_path, nfourbar):
+    """compute_terms right after position_terms and mass_matrix at the same q keeps M and J
+    and evaluates only h and gamma (for many loops by nonLinearEffects and the joint
+    Jacobians' time variation alone): the same M, h, J, gamma as computeAllTerms from
+    scratch on a second copy of the model."""
+    from closedchain.dynamics.base import mass_matrix, position_terms
+
+    if name == "fourbar":
+        mech, fresh = cc.load(MODELS_DIR / "fourbar.urdf"), cc.load(MODELS_DIR / "fourbar.urdf")
+    else:
+        mech, fresh = nfourbar(5), cc.load(nfourbar(5).path)
+    rng = np.random.default_rng(SEED)
+    for _ in range(5):
+        q, _ = cc.random_consistent_state(mech, rng)
+        v = rng.standard_normal(mech.nv)
+        position_terms(mech, q, np.zeros(mech.nc))
+        mass_matrix(mech, q)
+        got = compute_terms(mech, q, v)
+        want = compute_terms(fresh, q, v)
+        for key in ("M", "h", "J", "gamma"):
+            err = np.linalg.norm(getattr(got, key) - getattr(want, key))
+            assert err <= TOL_TERMS * (1.0 + np.linalg.norm(getattr(want, key))), key
+
+
+def test_polish_changes_the_multipliers_only(nfourbar):
+    """al_polish=False (rk4's inner stages) returns the same accelerations bit for bit;
+    the polished multipliers satisfy M a + h + J^T lam = tau to round-off, the
+    unpolished ones carry alpha times the round-off of J a."""
+    mech = nfourbar(5)
+    rng = np.random.default_rng(SEED)
+    q, v = cc.random_consistent_state(mech, rng)
+    tau = rng.standard_normal(mech.nv)
+    method = METHODS["augmented-lagrangian"]
+    a1, lam1 = method(mech, q, v, tau, SolverSettings())
+    a0, lam0 = method(mech, q, v, tau, SolverSettings(al_polish=False))
+    assert np.array_equal(a0, a1)
+    ws = compute_terms(mech, q, v)
+
+    def residual(lam):
+        return np.linalg.norm(ws.M @ a1 + ws.h + ws.J.T @ lam - tau)
+
+    assert residual(lam1) <= TOL_RESIDUAL * (1.0 + np.linalg.norm(tau))
+    assert residual(lam1) < residual(lam0)

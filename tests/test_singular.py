@@ -588,6 +588,38 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechani
 BANDED_N = 10
 
 
+#: Distances [rad of crank angle] from the N-four-bar's flat position of the rank checks.
+FLAT_DISTANCES = (1e-2, 1e-3, 1e-4, 1e-6)
+#: The banded and the dense rank indicator: round-off apart.
+RANK_INDICATOR_RTOL = 1e-12
+#: Spread of rank indicator / distance near a flat position (linear in the distance).
+RANK_INDICATOR_LINEAR_RTOL = 1e-4
+
+
+def test_banded_rank_indicator_is_the_dense_one(nfourbar):
+    """N = 10 on its parallelogram branch at crank angles delta from the flat position:
+    the rank indicator from the band of J J^T (dpbtrf, |J^T x|^2) equals the dense one,
+    is at least sqrt(lambda_min / mean eigenvalue) of J J^T (a Rayleigh quotient; eigvalsh
+    as the reference), and grows linearly with delta (what crossing_estimate fits)."""
+    from closedchain.dynamics.augmented_lagrangian import NormalSolver
+
+    mech = nfourbar(BANDED_N)
+    normal = NormalSolver(mech)
+    assert normal.banded
+    q0, v0 = ref.initial_state(mech)
+    direction = v0 / ref.OMEGA0  # the branch is a straight line in these coordinates
+    ratios = []
+    for delta in FLAT_DISTANCES:
+        J = cc.compute_jacobian(mech, q0 + (delta - math.pi / 2) * direction)
+        dense, banded = fixed.rank_indicator(J), fixed.rank_indicator(J, normal)
+        assert abs(banded - dense) <= RANK_INDICATOR_RTOL * dense
+        if delta >= 1e-4:  # eigvalsh resolves lambda_min ~ delta^2 to round-off
+            ev = np.linalg.eigvalsh(J @ J.T)
+            assert banded >= math.sqrt(ev[0] / ev.mean()) * (1.0 - RANK_INDICATOR_LINEAR_RTOL)
+        ratios.append(banded / delta)
+    assert np.ptp(ratios) <= RANK_INDICATOR_LINEAR_RTOL * np.mean(ratios)
+
+
 @pytest.mark.slow
 def test_banded_solves_agree_with_dense_ones(nfourbar, rng):
     """N = 10: the augmented Lagrangian on the banded factorization of M + alpha J^T J

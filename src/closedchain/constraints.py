@@ -316,6 +316,14 @@ class _Table:
                 setattr(self, key, np.array(columns[key], dtype=float).reshape(-1, 3))
 
 
+class _PlacementMemo:
+    """The world placements H, shape (2L, 4, 4), of a batched layer's frames at q."""
+
+    def __init__(self) -> None:
+        self.q: np.ndarray | None = None
+        self.H: np.ndarray | None = None
+
+
 class ConstraintLayer:
     """phi, J and gamma of a set of loops, evaluated from filled Pinocchio data.
 
@@ -336,7 +344,11 @@ class ConstraintLayer:
         loops: tuple[LoopSpec, ...],
         frame_ids: tuple[tuple[int, int], ...],
         keep: tuple[tuple[int, ...], ...] | None = None,
+        _memos: dict | None = None,
     ) -> None:
+        #: Frame-placement memos by frame list, shared with the layers :meth:`restricted`
+        #: makes (the same model and loops).
+        self._memos: dict[tuple[int, ...], _PlacementMemo] = {} if _memos is None else _memos
         self.loops = loops
         self.frame_ids = frame_ids
         self._blocks = [
@@ -380,7 +392,9 @@ class ConstraintLayer:
                 if offset <= r < offset + b.n_declared:
                     per_loop[i].append(r - offset)
             offset += b.n_declared
-        return ConstraintLayer(self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop))
+        return ConstraintLayer(
+            self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop), _memos=self._memos
+        )
 
     def row_table(self) -> RowTable:
         """Return the active rows as flat per-row arrays (see :class:`RowTable`)."""
@@ -488,32 +502,36 @@ class ConstraintLayer:
         """
         # One array per frame (R and p in one homogeneous matrix): per-frame Python calls
         # dominate this path.
-        if q is not None and self._placed_at is not None and np.array_equal(q, self._placed_at):
-            H = self._placements
+        memo = self._memo
+        if q is not None and memo.q is not None and np.array_equal(q, memo.q):
+            H = memo.H
         else:
             H = np.array(
                 [pin.updateFramePlacement(model, data, f).homogeneous for f in self._bfids]
             )
-            self._placements = H
-            self._placed_at = None if q is None else np.array(q)
-        R, P = H[:, :3, :3], H[:, :3, 3]  # (2L, 3, 3), (2L, 3): c1, c2 of each loop
+            memo.H, memo.q = H, None if q is None else np.array(q)
+        # ``take`` on the contiguous stack: a fraction of fancy indexing's cost here.
         tt, tr = self._tt, self._btr
-        U = np.einsum("rij,rj->ri", R[tt.pred], tt.n)
-        d = P[tt.pred] - P[tt.succ]
+        Hp = H.take(tt.pred, 0)
+        ps = H.take(tt.succ, 0)[:, :3, 3]  # p_s of each translation row
+        U = np.einsum("rij,rj->ri", Hp[:, :3, :3], tt.n)
         if tr is not None:
-            Ur = np.einsum("rij,rj->ri", R[tr.pred], tr.u)
-            Wr = np.einsum("rij,rj->ri", R[tr.succ], tr.w)
+            Ur = np.einsum("rij,rj->ri", H.take(tr.pred, 0)[:, :3, :3], tr.u)
+            Wr = np.einsum("rij,rj->ri", H.take(tr.succ, 0)[:, :3, :3], tr.w)
             UW = np.einsum("ri,ri->r", Ur, Wr)
         if phi is not None:
-            phi[tt.rows] = np.einsum("ri,ri->r", U, d)
+            phi[tt.rows] = np.einsum("ri,ri->r", U, Hp[:, :3, 3] - ps)
             if tr is not None:
                 phi[tr.rows] = UW
         if J is not None:
-            B = np.zeros((self.nc, 6))
-            B[tt.rows, :3] = U
-            B[tt.rows, 3:] = _cross(P[tt.succ], U)
-            if tr is not None:
-                B[tr.rows, 3:] = _cross(Ur, Wr)
+            if tr is None and self._tt_all:  # translation rows only, in table order
+                B = np.concatenate([U, _cross(ps, U)], axis=1)
+            else:
+                B = np.zeros((self.nc, 6))
+                B[tt.rows, :3] = U
+                B[tt.rows, 3:] = _cross(ps, U)
+                if tr is not None:
+                    B[tr.rows, 3:] = _cross(Ur, Wr)
             np.multiply(self._support_difference(model), B @ data.J, out=J)
         if gamma is None:
             return
@@ -521,19 +539,24 @@ class ConstraintLayer:
         # b_r . (V_p - V_s) of J above, with the bodies' twists V = data.J (s o v) and
         # bias accelerations A = data.dJ (s o v) at the world origin (s: the frame's
         # support mask; joint accelerations zero). Translation rows: b_r = (U, p_s x U),
-        # dU/dt = w_p x U, dp_s/dt = v_s + w_s x p_s (v_s the linear part of V_s).
+        # so b_r . (V_p - V_s) = U . dv, dv = (v_p - v_s) + (w_p - w_s) x p_s the
+        # relative velocity at the point p_s, and with dU/dt = w_p x U,
+        # dp_s/dt = v_s + w_s x p_s and the triple product rule (w x U) . x = U . (x x w):
+        # gamma = U . X, X = dv x w_p + (a_p - a_s) + (alpha_p - alpha_s) x p_s
+        # + (w_p - w_s) x dp_s/dt, one X per loop (frames 2 l and 2 l + 1).
         Sv = self._frame_support(model) * v
         V, A = Sv @ data.J.T, Sv @ data.dJ.T  # (2L, 6) each: linear, angular
-        dV, dA = V[tt.pred] - V[tt.succ], A[tt.pred] - A[tt.succ]
-        ps, ws = P[tt.succ], V[tt.succ, 3:]
-        dU = _cross(V[tt.pred, 3:], U)
-        dps = V[tt.succ, :3] + _cross(ws, ps)
-        gamma[tt.rows] = (
-            np.einsum("ri,ri->r", dU, dV[:, :3])
-            + np.einsum("ri,ri->r", _cross(dps, U) + _cross(ps, dU), dV[:, 3:])
-            + np.einsum("ri,ri->r", U, dA[:, :3])
-            + np.einsum("ri,ri->r", _cross(ps, U), dA[:, 3:])
-        )
+        Vp, Vs = V[0::2], V[1::2]
+        dV, dA = Vp - Vs, A[0::2] - A[1::2]
+        p = H[1::2, :3, 3]  # p_s of each loop
+        n = len(p)
+        # Three cross products with p_s at once: dw x p, dalpha x p, w_s x p.
+        C1 = _cross(np.concatenate([dV[:, 3:], dA[:, 3:], Vs[:, 3:]]), np.concatenate([p, p, p]))
+        dv = dV[:, :3] + C1[:n]
+        dps = Vs[:, :3] + C1[2 * n :]
+        C2 = _cross(np.concatenate([dv, dV[:, 3:]]), np.concatenate([Vp[:, 3:], dps]))
+        X = C2[:n] + C2[n:] + dA[:, :3] + C1[n : 2 * n]
+        gamma[tt.rows] = np.einsum("ri,ri->r", U, X.take(tt.loop, 0))
         if tr is not None:  # _rotation_gamma reads the angular parts only
             gamma[tr.rows] = _rotation_gamma(V, A, tr, Ur, Wr, UW)
 
@@ -565,7 +588,7 @@ class ConstraintLayer:
         """Tables of :meth:`_evaluate_batched` (``self._tt`` None: the per-loop path)."""
         self._tt = None
         self._support_model = None  # the model _support_difference was made for
-        self._placed_at = None  # the q of the frame placements kept by _evaluate_batched
+        self._memo = _PlacementMemo()  # placements of _bfids kept by _evaluate_batched
         with_trans = [b for b in self._active if b.nt]
         if not with_trans or len(with_trans) <= BATCH_LOOPS:
             return  # rotation rows alone are batched by the per-loop path already
@@ -585,6 +608,12 @@ class ConstraintLayer:
                 rot["w"].append(w)
         self._tt = _Table(trans)
         self._btr = _Table(rot) if rot["rows"] else None
+        # One memo for every layer of these loops with the same frames (the declared rows
+        # and the kept ones: the simulator evaluates both at each step's end).
+        self._memo = self._memos.setdefault(tuple(self._bfids), self._memo)
+        self._memo.q = None
+        #: The translation rows are every row, in order (J's rows are then B's as made).
+        self._tt_all = bool(np.array_equal(self._tt.rows, np.arange(self.nc)))
 
     def _frame_support(self, model: pin.Model) -> np.ndarray:
         """Return the support masks of the frames of :meth:`_evaluate_batched` (c1, c2 of

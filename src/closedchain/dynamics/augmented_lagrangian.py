@@ -279,17 +279,28 @@ class NormalSolver:
             if info != 0:
                 return scipy.linalg.lstsq(JJ, rhs, check_finite=False)[0]
             return x
-        ab = self._ab
-        # Upper band storage: ab[b - k, j] = (J J^T)[j - k, j].
+        ab = self.band(J)
         b = self.bandwidth
-        ab[b] = np.einsum("ij,ij->i", J, J)
-        for k in range(1, b + 1):
-            ab[b - k, k:] = np.einsum("ij,ij->i", J[:-k], J[k:])
         ab[b] += NORMAL_EQ_REG * max(float(np.sum(ab[b])), 1.0) / nc
         _, x, info = lapack.dpbsv(ab, rhs, lower=0)  # LAPACK directly: no wrappers
         if info != 0:
             raise np.linalg.LinAlgError(f"J J^T + eps I is not positive definite (info {info})")
         return x
+
+    def band(self, J: np.ndarray) -> np.ndarray:
+        """Return J J^T in LAPACK's upper band storage, shape (b + 1, nc): ab[b - k, j] =
+        (J J^T)[j - k, j] (a buffer of the solver, overwritten by the next call; banded
+        solvers only).
+
+        Args:
+            J: constraint Jacobian, shape (nc, nv).
+        """
+        ab = self._ab
+        b = self.bandwidth
+        ab[b] = np.einsum("ij,ij->i", J, J)
+        for k in range(1, b + 1):
+            ab[b - k, k:] = np.einsum("ij,ij->i", J[:-k], J[k:])
+        return ab
 
 
 def _bandwidth(pattern: np.ndarray) -> int:
@@ -336,15 +347,18 @@ def solve_augmented_lagrangian(
     # - alpha J^T (J a_k + gamma)), the same iteration in exact arithmetic: the
     # right-hand side shrinks with the residuals, so round-off of the badly
     # conditioned P (about rho eps) is not left in a (iterative refinement).
-    a = solver.solve(rhs - alpha * (J.T @ gamma))
+    solve = solver.solve
+    a = solve(rhs - alpha * (J.T @ gamma))
     r_c = J @ a + gamma  # the constraint residual at a
     lam = alpha * r_c
+    step = lam  # alpha r_c: the last update of lam
     it = 1
     while it < max_iter:
-        delta = solver.solve(rhs - M @ a - J.T @ (lam + alpha * r_c))
+        delta = solve(rhs - M @ a - J.T @ (lam + step))  # lam + alpha r_c
         a += delta
         r_c = J @ a + gamma
-        lam += alpha * r_c
+        step = alpha * r_c
+        lam += step
         it += 1
         if float(np.abs(delta).max()) <= tol * (1.0 + float(np.abs(a).max())):
             break
@@ -374,7 +388,7 @@ def augmented_lagrangian(
         q: configuration, shape (nq,).
         v: velocity, shape (nv,).
         tau: generalized forces, shape (nv,) [N m or N].
-        settings: ``al_penalty``, ``al_tol``, ``al_max_iter``; ``baumgarte``.
+        settings: ``al_penalty``, ``al_tol``, ``al_max_iter``, ``al_polish``; ``baumgarte``.
 
     Returns:
         ``(a, lam)``: accelerations, shape (nv,), and multipliers, shape (nc,),
@@ -398,5 +412,6 @@ def augmented_lagrangian(
         alpha,
         tol=settings.al_tol,
         max_iter=settings.al_max_iter,
+        polish=settings.al_polish,
     )
     return a, lam

@@ -56,6 +56,10 @@ class SolverSettings:
             change of an acceleration is below al_tol (1 + max |a|).
         al_max_iter: its iteration cap (reached only along directions where J
             is nearly rank-deficient; the result is then the best iterate).
+        al_polish: correct its multipliers by the normal equations of J^T lam (their
+            update alpha (J a + gamma) carries alpha times the round-off of J a); the
+            accelerations do not depend on it. The simulator turns it off where only
+            accelerations are used (rk4's inner stages).
         prox_mu: proximal regularization mu of the "proximal" method
             (dimensionless, relative to the Delassus matrix's diagonal scale).
         prox_tol: its convergence threshold on the change of the multipliers'
@@ -71,6 +75,7 @@ class SolverSettings:
     al_penalty: float = 1e11
     al_tol: float = 1e-13
     al_max_iter: int = 30
+    al_polish: bool = True
     prox_mu: float = 1e-8
     prox_tol: float = 1e-13
     prox_max_iter: int = 50
@@ -303,7 +308,8 @@ def compute_terms(
     """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
 
     Right after :func:`position_terms` and :func:`mass_matrix` at the same q (and rows),
-    M and J are kept (only h and gamma are evaluated).
+    M and J are kept (only h and gamma are evaluated; for a batched layer by
+    ``nonLinearEffects`` and ``computeJointJacobiansTimeVariation`` alone).
 
     Args:
         mech: the mechanism.
@@ -326,12 +332,20 @@ def compute_terms(
         and np.array_equal(at_J[1], q)
         and np.array_equal(at_M, q)
     )
-    # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians and
-    # their time variation, forward kinematics with zero acceleration (gamma's terms).
-    pin.computeAllTerms(model, data, q, v)
-    if not known:
-        _symmetric_mass(ws, data.M)
-    ws.h[:] = data.nle
+    if known and mech.constraints.batched:
+        # M and J are current: only the bias forces, and the joint Jacobians with their
+        # time variation for the batched gamma (about half of computeAllTerms' cost at
+        # N = 40; the per-loop gamma reads the frame accelerations of forwardKinematics(q,
+        # v, 0), which these two leave unset).
+        ws.h[:] = pin.nonLinearEffects(model, data, q, v)
+        pin.computeJointJacobiansTimeVariation(model, data, q, v)
+    else:
+        # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians and
+        # their time variation, forward kinematics with zero acceleration (gamma's terms).
+        pin.computeAllTerms(model, data, q, v)
+        if not known:
+            _symmetric_mass(ws, data.M)
+        ws.h[:] = data.nle
     if mech.nc:
         # Right after position_terms at q: J is known, and so are the frame placements.
         J, at_q = (None, q) if known else (ws.J, None)

@@ -220,7 +220,7 @@ def run_ali3p(
 
     def indicator():
         """The rank indicator of J (fixed.rank_indicator) at the last evaluation."""
-        return rank_indicator(J) if nc else RANK_INDICATOR_CAP
+        return rank_indicator(J, solver.normal) if nc else RANK_INDICATOR_CAP
 
     # Singular positions: near a flat position the smallest singular value sigma of J
     # goes to zero linearly with the distance d to it, and the augmented-Lagrangian

@@ -85,17 +85,39 @@ CROSSING_FIT_RTOL = 0.5
 PLAIN_POINTS = (0.5, 1.0)
 
 
-def rank_indicator(J: np.ndarray) -> float:
+def rank_indicator(J: np.ndarray, normal=None) -> float:
     """Return sqrt(mu / mean eigenvalue of J J^T), capped at RANK_INDICATOR_CAP.
 
     mu is the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations
     from the vector of ones: about the smallest eigenvalue, so the result is about
     sigma_min / sigma_rms of J, which near a crossing of branches grows linearly with the
     distance to it. 0 when J J^T is not positive definite (exactly singular).
+
+    Args:
+        J: constraint Jacobian, shape (nc, nv).
+        normal: the rows' :class:`~closedchain.dynamics.augmented_lagrangian.
+            NormalSolver`, or None (dense). A banded one factorizes J J^T as a band
+            (LAPACK ``dpbtrf``) and takes x^T J J^T x = |J^T x|^2: O(nc) instead of the
+            dense product and Cholesky, the same quantity to round-off (as the compiled
+            core).
     """
     nc = J.shape[0]
     if nc == 0:
         return RANK_INDICATOR_CAP
+    if normal is not None and normal.banded:
+        ab = normal.band(J)
+        ref = float(np.sum(ab[-1])) / nc
+        if not ref > 0.0:
+            return 0.0
+        factor, info = lapack.dpbtrf(ab, lower=0)
+        if info != 0:
+            return 0.0
+        x = np.full(nc, 1.0 / math.sqrt(nc))
+        for _ in range(RANK_INDICATOR_ITERS):
+            x = lapack.dpbtrs(factor, x, lower=0)[0]
+            x /= np.linalg.norm(x)
+        y = J.T @ x
+        return min(math.sqrt(max(float(y @ y), 0.0) / ref), RANK_INDICATOR_CAP)
     A = J @ J.T
     ref = float(np.trace(A)) / nc
     if not ref > 0.0:
@@ -286,7 +308,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
 
     def stage(t, q, v):
         q, v = project(problem, q, v, t, mass_orthogonal=True)
-        return q, v, problem.accel(t, q, v)
+        return q, v, problem.accel(t, q, v, multipliers=False)  # lam of stages: unread
 
     def rk4(t, q, v, a, h):
         """One projected rk4 step; return (q+, v+) projected and J at the projected
@@ -314,7 +336,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
         return problem.accel(t, q, v)
 
     def rho(q):
-        return rank_indicator(problem.jacobian(q))
+        return rank_indicator(problem.jacobian(q), problem.normal_solver())
 
     zone = problem.settings.stage_singular_zone
     splits = 0
@@ -326,7 +348,8 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
         rho_new = rho(q_new)
         plan = None
         if zone > 0:
-            plan = retake_plan(crossing_estimate(rho_start, rank_indicator(J_mid), rho_new), zone)
+            rho_mid = rank_indicator(J_mid, problem.normal_solver())
+            plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), zone)
         if plan is not None:
             double, f = plan
             span = 2 if double else 1

@@ -7,6 +7,7 @@ partition; :func:`project` is the seed's position/velocity projection;
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -54,6 +55,7 @@ class Problem:
         #: simulate from the method's, integrator's and stabilization's capabilities).
         self.singular_robust = False
         self.solver_settings = solver_settings
+        self._unpolished = dataclasses.replace(solver_settings, al_polish=False)
         self.settings = settings
         self.n_evals = 0
         self.lam = np.zeros(mech.nc)
@@ -125,10 +127,18 @@ class Problem:
             )
         return tau
 
-    def accel(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def accel(
+        self, t: float, q: np.ndarray, v: np.ndarray, *, multipliers: bool = True
+    ) -> np.ndarray:
+        """Return the accelerations at (t, q, v), shape (nv,); :attr:`lam` holds the
+        multipliers, polished only with ``multipliers`` (``SolverSettings.al_polish``:
+        off for evaluations whose multipliers nobody reads, such as rk4's inner stages)."""
         tau = self.torque(t, q, v)
+        settings = self.solver_settings
+        if not multipliers and settings.al_polish:
+            settings = self._unpolished
         try:
-            a, lam = self.func(self.mech, q, v, tau, self.solver_settings)
+            a, lam = self.func(self.mech, q, v, tau, settings)
         except SingularConfigurationError as exc:
             raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1
@@ -413,7 +423,8 @@ class Recorder:
         the next call). Leaves ``mech.data``'s placements at q."""
         mech = self.mech
         pin.forwardKinematics(mech.model, mech.data, q)
-        mech.declared.evaluate(mech.model, mech.data, phi=self._phi)
+        # q: a batched layer reuses the frame placements of the kept rows' evaluation at q.
+        mech.declared.evaluate(mech.model, mech.data, phi=self._phi, q=q)
         return self._phi
 
     def declared_residual(self, t: float, q: np.ndarray, phi: np.ndarray | None = None) -> float:
