@@ -58,8 +58,9 @@ class SolverSettings:
             is nearly rank-deficient; the result is then the best iterate).
         al_polish: correct its multipliers by the normal equations of J^T lam (their
             update alpha (J a + gamma) carries alpha times the round-off of J a); the
-            accelerations do not depend on it. The simulator turns it off where only
-            accelerations are used (rk4's inner stages).
+            accelerations do not depend on it. The numpy simulator turns it off where
+            only accelerations are used (rk4's inner stages); the compiled core ignores
+            it (it polishes every evaluation).
         prox_mu: proximal regularization mu of the "proximal" method
             (dimensionless, relative to the Delassus matrix's diagonal scale).
         prox_tol: its convergence threshold on the change of the multipliers'
@@ -305,7 +306,7 @@ def compute_terms(
     v: np.ndarray,
     baumgarte: tuple[float, float] | None = None,
 ) -> Workspace:
-    """Fill M, h, J and gamma at (q, v) with one ``computeAllTerms`` call.
+    """Fill M, h, J and gamma at (q, v) (one ``computeAllTerms`` call, or less; below).
 
     Right after :func:`position_terms` and :func:`mass_matrix` at the same q (and rows),
     M and J are kept (only h and gamma are evaluated; for a batched layer by

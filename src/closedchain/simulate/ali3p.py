@@ -59,11 +59,10 @@ import numpy as np
 import pinocchio as pin
 
 from ..dynamics.augmented_lagrangian import (
-    PenalizedSolver,
+    penalized_solver,
     relative_penalty,
     solve_augmented_lagrangian,
 )
-from ..dynamics.base import method_buffers, workspace
 from .fixed import (
     RANK_INDICATOR_CAP,
     OutputSteps,
@@ -75,7 +74,6 @@ from .settings import SimulationError
 
 logger = logging.getLogger(__name__)
 
-_BUFFERS = "augmented-lagrangian"  # shares the method's factorization buffers
 #: Newton stops below ali3p_tol once a correction is this fraction of it, or once the
 #: corrections stop shrinking by at least ALI3P_STALL per iteration (round-off floor).
 ALI3P_TOL_FLOOR = 1e-4
@@ -108,8 +106,8 @@ def run_ali3p(
     dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
     info["dt"] = dt
     nv, nc = mech.nv, mech.nc
-    ws = workspace(mech)
-    solver = method_buffers(ws, _BUFFERS, lambda: PenalizedSolver(mech))
+    # The method's factorization buffers, of the kept rows (made anew after a re-selection).
+    solver = penalized_solver(mech)
     M, J, phi, gamma = np.zeros((nv, nv)), np.zeros((nc, nv)), np.zeros(nc), np.zeros(nc)
     h_vec = np.zeros(nv)
     lower = np.tril_indices(nv, -1)

@@ -420,7 +420,8 @@ class Recorder:
 
     def declared_phi(self, q: np.ndarray) -> np.ndarray:
         """Return phi(q) of every declared row (a buffer of the recorder, overwritten by
-        the next call). Leaves ``mech.data``'s placements at q."""
+        the next call). Leaves ``mech.data``'s joint placements at q (the loop frames'
+        ``oMf`` too unless a batched layer reused the kept rows' placements at q)."""
         mech = self.mech
         pin.forwardKinematics(mech.model, mech.data, q)
         # q: a batched layer reuses the frame placements of the kept rows' evaluation at q.
