@@ -62,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from ._arrays import same_array
 from .exceptions import ValidationUnavailableError
 from .urdf import LoopSpec
 
@@ -503,7 +504,7 @@ class ConstraintLayer:
         # One array per frame (R and p in one homogeneous matrix): per-frame Python calls
         # dominate this path.
         memo = self._memo
-        if q is not None and memo.q is not None and np.array_equal(q, memo.q):
+        if q is not None and same_array(q, memo.q):
             H = memo.H
         else:
             H = np.array(
@@ -544,8 +545,9 @@ class ConstraintLayer:
         # dp_s/dt = v_s + w_s x p_s and the triple product rule (w x U) . x = U . (x x w):
         # gamma = U . X, X = dv x w_p + (a_p - a_s) + (alpha_p - alpha_s) x p_s
         # + (w_p - w_s) x dp_s/dt, one X per loop (frames 2 l and 2 l + 1).
-        Sv = self._frame_support(model) * v
-        V, A = Sv @ data.J.T, Sv @ data.dJ.T  # (2L, 6) each: linear, angular
+        # V and A in one product: S (J v, dJ v per column) with S the 0/1 support masks.
+        VA = self._frame_support(model) @ (np.concatenate([data.J, data.dJ]) * v).T
+        V, A = VA[:, :6], VA[:, 6:]  # (2L, 6) each: linear, angular
         Vp, Vs = V[0::2], V[1::2]
         dV, dA = Vp - Vs, A[0::2] - A[1::2]
         p = H[1::2, :3, 3]  # p_s of each loop

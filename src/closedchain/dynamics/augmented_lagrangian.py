@@ -42,6 +42,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 from scipy.linalg import lapack
 
+from .._arrays import same_array
 from ..constraints import support_mask
 from ..exceptions import SingularConfigurationError
 from .base import (
@@ -131,10 +132,15 @@ class PenalizedSolver:
         b = self.bandwidth
         if self.banded:
             # Upper band storage: ab[b + i - j, j] = P[i, j], i <= j.
-            self._ab = np.zeros((b + 1, nv))
             self._fac = None
+            self._jtj = _BandProducts.of_columns(_row_columns(mech), self.perm, b)
+            # M's band: ab.flat[m_target] = M.flat[m_source] (the order perm).
+            k, j = np.nonzero(np.arange(nv)[None, :] >= np.arange(b + 1)[:, None])
+            self._m_target = (b - k) * nv + j
+            self._m_source = self.perm[j - k] * nv + self.perm[j]
         self._P = np.zeros((nv, nv))
         self.alpha = 0.0
+        self._rho: float | None = None  # rho of factor_relative's factorization
         #: The normal equations of the kept rows (multiplier polish, projections).
         self.normal = NormalSolver(mech)
 
@@ -157,22 +163,19 @@ class PenalizedSolver:
         if (
             done is not None
             and alpha == self.alpha
-            and np.array_equal(M, done[0])
-            and np.array_equal(J, done[1])
+            and same_array(M, done[0])
+            and same_array(J, done[1])
         ):
             return
         self._factored = None
+        self._rho = None
         self.alpha = alpha
         if self.banded:
-            # Only the band of P, diagonal by diagonal (never the dense J^T J).
-            perm, b, ab = self.perm, self.bandwidth, self._ab
-            Jp = J if self._natural else J[:, perm]
-            Mp = M if self._natural else M[np.ix_(perm, perm)]
-            ab[b] = np.diagonal(Mp) + alpha * np.einsum("ri,ri->i", Jp, Jp)
-            for k in range(1, b + 1):
-                ab[b - k, k:] = np.diagonal(Mp, k) + alpha * np.einsum(
-                    "ri,ri->i", Jp[:, :-k], Jp[:, k:]
-                )
+            # Only the band of P (never the dense J^T J): alpha times the products of
+            # J's structurally nonzero entries, plus M's band.
+            ab = self._jtj(J)
+            ab *= alpha
+            ab.ravel()[self._m_target] += np.ravel(M).take(self._m_source)
             self._fac, info = lapack.dpbtrf(ab, lower=0)  # LAPACK directly: no wrappers
         else:
             P = self._P
@@ -183,6 +186,26 @@ class PenalizedSolver:
         if info != 0:
             raise self._error(mech, q)
         self._factored = (M.copy(), J.copy())
+
+    def factor_relative(self, M: np.ndarray, J: np.ndarray, rho: float, mech, q) -> float:
+        """Factorize P = M + alpha J^T J with alpha = :func:`relative_penalty` (M, J, rho)
+        and return alpha; the factorization of the same M, J and rho is kept (then alpha
+        is not recomputed either: the accelerations after a stage projection).
+
+        Args: as :meth:`factor`, with ``rho`` the dimensionless relative penalty.
+        """
+        done = self._factored
+        if (
+            done is not None
+            and rho == self._rho
+            and same_array(M, done[0])
+            and same_array(J, done[1])
+        ):
+            return self.alpha
+        alpha = relative_penalty(M, J, rho)
+        self.factor(M, J, alpha, mech, q)
+        self._rho = rho
+        return alpha
 
     def _error(self, mech, q):
         return SingularConfigurationError.build(
@@ -228,6 +251,14 @@ def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
         mech: the mechanism.
         layer: the constraint layer (default: the kept rows, ``mech.constraints``).
     """
+    cols = _row_columns(mech, layer)
+    return (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
+
+
+def _row_columns(mech: Mechanism, layer=None) -> np.ndarray:
+    """Return where each row of J can be nonzero, shape (nc, nv), bool: the velocity
+    columns of the joints supporting either cut frame of its loop (``layer``: default the
+    kept rows)."""
     model = mech.model
     layer = mech.constraints if layer is None else layer
     cols = np.zeros((layer.nc, mech.nv), dtype=bool)
@@ -237,7 +268,62 @@ def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
             _support_columns(model, model.frames[blk.fid_s].parentJoint),
         )
         cols[sl.start : sl.stop, support] = True
-    return (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
+    return cols
+
+
+class _BandProducts:
+    """J^T J or J J^T in LAPACK's upper band storage from J's structurally nonzero
+    entries: entry ``target[p]`` of the flat (b + 1, n) band is the sum over p of
+    J.flat[first[p]] J.flat[second[p]] (``np.bincount``: a fixed number of numpy calls,
+    where a dense product per diagonal costs O(nc nv) each)."""
+
+    def __init__(self, first, second, target, nc: int, shape: tuple[int, int]) -> None:
+        self.first = np.asarray(first, dtype=np.intp)
+        self.second = np.asarray(second, dtype=np.intp)
+        self.target = np.asarray(target, dtype=np.intp)
+        self.nc = nc
+        self.shape = shape
+
+    @classmethod
+    def of_columns(cls, cols: np.ndarray, perm: np.ndarray, b: int) -> _BandProducts:
+        """J^T J in the column order ``perm`` (half bandwidth b) from ``cols``, the rows'
+        structural columns, shape (nc, nv)."""
+        nc, nv = cols.shape
+        pos = np.empty(nv, dtype=np.intp)
+        pos[perm] = np.arange(nv)  # position of each column in the order perm
+        first, second, target = [], [], []
+        for r in range(nc):
+            c = np.flatnonzero(cols[r])
+            c = c[np.argsort(pos[c])]
+            i, j = np.triu_indices(len(c))
+            pi, pj = pos[c[i]], pos[c[j]]  # pi <= pj, pj - pi <= b (the band of M + J^T J)
+            first.append(r * nv + c[i])
+            second.append(r * nv + c[j])
+            target.append((b - (pj - pi)) * nv + pj)
+        return cls(*(np.concatenate(x or [[]]) for x in (first, second, target)), nc, (b + 1, nv))
+
+    @classmethod
+    def of_rows(cls, cols: np.ndarray, b: int) -> _BandProducts:
+        """J J^T (half bandwidth b, rows in their order) from ``cols``, the rows'
+        structural columns, shape (nc, nv)."""
+        nc, nv = cols.shape
+        first, second, target = [], [], []
+        for r in range(nc):
+            for s in range(r, min(r + b, nc - 1) + 1):
+                common = np.flatnonzero(cols[r] & cols[s])
+                first.append(r * nv + common)
+                second.append(s * nv + common)
+                target.append(np.full(len(common), (b - (s - r)) * nc + s))
+        return cls(*(np.concatenate(x or [[]]) for x in (first, second, target)), nc, (b + 1, nc))
+
+    def __call__(self, J: np.ndarray) -> np.ndarray:
+        """Return the band, shape (b + 1, n) (a new array; J: shape (nc, nv))."""
+        if J.shape[0] != self.nc:
+            raise ValueError(f"J has {J.shape[0]} rows; this band is for {self.nc}")
+        Jf = np.ravel(J)
+        products = Jf.take(self.first) * Jf.take(self.second)
+        size = self.shape[0] * self.shape[1]
+        return np.bincount(self.target, products, minlength=size).reshape(self.shape)
 
 
 class NormalSolver:
@@ -256,13 +342,13 @@ class NormalSolver:
     """
 
     def __init__(self, mech: Mechanism, layer=None) -> None:
-        pattern = row_structure(mech, layer)
+        cols = _row_columns(mech, layer)
+        pattern = (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
         self.nc = len(pattern)
         self.bandwidth = _bandwidth(pattern)
         self.banded = self.nc > 8 and self.bandwidth <= BANDED_FRACTION * self.nc
-        b = self.bandwidth
         if self.banded:
-            self._ab = np.zeros((b + 1, self.nc))
+            self._jjt = _BandProducts.of_rows(cols, self.bandwidth)
 
     def solve(self, J: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """Return x with (J J^T + eps I) x = rhs.
@@ -289,18 +375,12 @@ class NormalSolver:
 
     def band(self, J: np.ndarray) -> np.ndarray:
         """Return J J^T in LAPACK's upper band storage, shape (b + 1, nc): ab[b - k, j] =
-        (J J^T)[j - k, j] (a buffer of the solver, overwritten by the next call; banded
-        solvers only).
+        (J J^T)[j - k, j] (a new array; banded solvers only).
 
         Args:
             J: constraint Jacobian, shape (nc, nv).
         """
-        ab = self._ab
-        b = self.bandwidth
-        ab[b] = np.einsum("ij,ij->i", J, J)
-        for k in range(1, b + 1):
-            ab[b - k, k:] = np.einsum("ij,ij->i", J[:-k], J[k:])
-        return ab
+        return self._jjt(J)
 
 
 def _bandwidth(pattern: np.ndarray) -> int:
@@ -401,8 +481,7 @@ def augmented_lagrangian(
     if mech.nc == 0:
         return scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos"), np.zeros(0)
     solver = penalized_solver(mech)
-    alpha = relative_penalty(ws.M, ws.J, settings.al_penalty)
-    solver.factor(ws.M, ws.J, alpha, mech, q)
+    alpha = solver.factor_relative(ws.M, ws.J, settings.al_penalty, mech, q)
     a, lam, it = solve_augmented_lagrangian(
         solver,
         ws.M,

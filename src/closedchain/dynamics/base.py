@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from .._arrays import same_array
 from ..exceptions import SingularConfigurationError, resolve_choice
 
 if TYPE_CHECKING:
@@ -330,8 +331,8 @@ def compute_terms(
         at_J is not None
         and at_M is not None
         and at_J[0] is mech.constraints
-        and np.array_equal(at_J[1], q)
-        and np.array_equal(at_M, q)
+        and same_array(q, at_J[1])
+        and same_array(q, at_M)
     )
     if known and mech.constraints.batched:
         # M and J are current: only the bias forces, and the joint Jacobians with their

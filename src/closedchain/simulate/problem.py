@@ -18,12 +18,12 @@ import pinocchio as pin
 import scipy.linalg
 
 from .. import compiled
+from .._arrays import same_array
 from ..closure import RowCheckSettings
 from ..dynamics.augmented_lagrangian import (
     NormalSolver,
     PenalizedSolver,
     penalized_solver,
-    relative_penalty,
     solve_augmented_lagrangian,
 )
 from ..dynamics.base import (
@@ -103,7 +103,7 @@ class Problem:
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Return J(q), reusing the last one when q is the same (each step asks several
         times at one q: dependent solve, J_D checks, regularity check, projection)."""
-        if self._J_at is None or not np.array_equal(q, self._J_at):
+        if not same_array(q, self._J_at):
             self._J = compute_jacobian(self.mech, q)
             self._J_at = np.array(q)
         return self._J
@@ -377,8 +377,7 @@ def project(
             M = mass_matrix(mech, q).M
             ss = problem.solver_settings
             solver = problem.penalized_solver()
-            alpha = relative_penalty(M, J, ss.al_penalty)
-            solver.factor(M, J, alpha, mech, q)
+            alpha = solver.factor_relative(M, J, ss.al_penalty, mech, q)
             v, _, _ = solve_augmented_lagrangian(
                 solver,
                 M,
