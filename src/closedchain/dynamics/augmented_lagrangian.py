@@ -159,13 +159,7 @@ class PenalizedSolver:
         Raises:
             SingularConfigurationError: P is not positive definite (M singular).
         """
-        done = self._factored
-        if (
-            done is not None
-            and alpha == self.alpha
-            and same_array(M, done[0])
-            and same_array(J, done[1])
-        ):
+        if alpha == self.alpha and self._keeps(M, J):
             return
         self._factored = None
         self._rho = None
@@ -187,6 +181,11 @@ class PenalizedSolver:
             raise self._error(mech, q)
         self._factored = (M.copy(), J.copy())
 
+    def _keeps(self, M: np.ndarray, J: np.ndarray) -> bool:
+        """Whether the current factorization is of this M and J."""
+        done = self._factored
+        return done is not None and same_array(M, done[0]) and same_array(J, done[1])
+
     def factor_relative(self, M: np.ndarray, J: np.ndarray, rho: float, mech, q) -> float:
         """Factorize P = M + alpha J^T J with alpha = :func:`relative_penalty` (M, J, rho)
         and return alpha; the factorization of the same M, J and rho is kept (then alpha
@@ -194,13 +193,7 @@ class PenalizedSolver:
 
         Args: as :meth:`factor`, with ``rho`` the dimensionless relative penalty.
         """
-        done = self._factored
-        if (
-            done is not None
-            and rho == self._rho
-            and same_array(M, done[0])
-            and same_array(J, done[1])
-        ):
+        if rho == self._rho and self._keeps(M, J):
             return self.alpha
         alpha = relative_penalty(M, J, rho)
         self.factor(M, J, alpha, mech, q)

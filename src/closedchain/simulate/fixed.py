@@ -6,6 +6,7 @@ the start of the step and ``deriv(t, q, v) -> (v, a)`` for further stages.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -104,32 +105,28 @@ def rank_indicator(J: np.ndarray, normal=None) -> float:
     nc = J.shape[0]
     if nc == 0:
         return RANK_INDICATOR_CAP
-    if normal is not None and normal.banded:
-        ab = normal.band(J)
-        ref = float(np.sum(ab[-1])) / nc
-        if not ref > 0.0:
-            return 0.0
-        factor, info = lapack.dpbtrf(ab, lower=0)
-        if info != 0:
-            return 0.0
-        x = np.full(nc, 1.0 / math.sqrt(nc))
-        for _ in range(RANK_INDICATOR_ITERS):
-            x = lapack.dpbtrs(factor, x, lower=0)[0]
-            x /= np.linalg.norm(x)
-        y = J.T @ x
-        return min(math.sqrt(max(float(y @ y), 0.0) / ref), RANK_INDICATOR_CAP)
-    A = J @ J.T
-    ref = float(np.trace(A)) / nc
-    if not ref > 0.0:
-        return 0.0
-    factor, info = lapack.dpotrf(A, lower=1)  # LAPACK directly: no wrappers
-    if info != 0:
+    banded = normal is not None and normal.banded
+    if banded:
+        A = normal.band(J)  # upper band storage, diagonal last
+        ref = float(np.sum(A[-1])) / nc
+        factor, info = lapack.dpbtrf(A, lower=0)
+        solve = functools.partial(lapack.dpbtrs, factor, lower=0)
+    else:
+        A = J @ J.T
+        ref = float(np.trace(A)) / nc
+        factor, info = lapack.dpotrf(A, lower=1)  # LAPACK directly: no wrappers
+        solve = functools.partial(lapack.dpotrs, factor, lower=1)
+    if not ref > 0.0 or info != 0:
         return 0.0
     x = np.full(nc, 1.0 / math.sqrt(nc))
     for _ in range(RANK_INDICATOR_ITERS):
-        x = lapack.dpotrs(factor, x, lower=1)[0]
+        x = solve(x)[0]
         x /= np.linalg.norm(x)
-    mu = float(x @ A @ x)
+    if banded:
+        y = J.T @ x
+        mu = float(y @ y)
+    else:
+        mu = float(x @ A @ x)
     return min(math.sqrt(max(mu, 0.0) / ref), RANK_INDICATOR_CAP)
 
 
