@@ -491,3 +491,39 @@ def test_polish_changes_the_multipliers_only(nfourbar):
 
     assert residual(lam1) <= TOL_RESIDUAL * (1.0 + np.linalg.norm(tau))
     assert residual(lam1) < residual(lam0)
+
+
+#: Velocity projections from a cold and a warm start: the same fixed point, to the
+#: iteration's tolerance (al_tol relative to max |v|, with margin for P's round-off).
+TOL_WARM_START = 1e-12
+
+
+def test_velocity_projection_from_the_velocity_itself(nfourbar):
+    """The augmented-Lagrangian projection of v onto J v = 0 in the metric of M started
+    from v (a0) reaches the cold start's result, in fewer iterations when v is near the
+    constraint (a stage's velocity); both satisfy J v = 0 and are M-orthogonal
+    corrections (checked against the closed form v - M^-1 J^T (J M^-1 J^T)^-1 J v)."""
+    from closedchain.dynamics.augmented_lagrangian import (
+        penalized_solver,
+        solve_augmented_lagrangian,
+    )
+
+    mech = nfourbar(5)
+    rng = np.random.default_rng(SEED)
+    settings = SolverSettings()
+    q, v_ok = cc.random_consistent_state(mech, rng)
+    ws = compute_terms(mech, q, v_ok)
+    M, J = ws.M.copy(), ws.J.copy()
+    v = v_ok + 1e-4 * rng.standard_normal(mech.nv)  # off J v = 0 as an rk4 stage is
+    solver = penalized_solver(mech)
+    alpha = solver.factor_relative(M, J, settings.al_penalty, mech, q)
+    kw = dict(tol=settings.al_tol, max_iter=settings.al_max_iter, polish=False)
+    zero = np.zeros(mech.nc)
+    cold, _, it_cold = solve_augmented_lagrangian(solver, M, J, M @ v, zero, alpha, **kw)
+    warm, _, it_warm = solve_augmented_lagrangian(solver, M, J, M @ v, zero, alpha, a0=v, **kw)
+    Minv_Jt = np.linalg.solve(M, J.T)
+    exact = v - Minv_Jt @ np.linalg.solve(J @ Minv_Jt, J @ v)
+    scale = np.abs(v).max()
+    assert np.abs(warm - cold).max() <= TOL_WARM_START * scale
+    assert np.abs(warm - exact).max() <= TOL_WARM_START * scale
+    assert it_warm < it_cold

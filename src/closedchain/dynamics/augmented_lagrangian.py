@@ -398,6 +398,7 @@ def solve_augmented_lagrangian(
     tol: float,
     max_iter: int,
     polish: bool = True,
+    a0: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     r"""Iterate the augmented Lagrangian at the acceleration level (P already factorized).
 
@@ -412,6 +413,11 @@ def solve_augmented_lagrangian(
         max_iter: iteration cap.
         polish: correct the multipliers by the normal equations (below); off
             when only ``a`` is wanted (the projections of ALI3-P).
+        a0: where to start, shape (nv,), or None (from a = 0): the first iterate is
+            P^-1 (rhs - alpha J^T gamma) either way, computed from a0 as a correction
+            a0 + P^-1 (rhs - M a0 - alpha J^T (J a0 + gamma)), whose round-off (about
+            rho eps times its size) is small when a0 is near the solution (the velocity
+            projection from the velocity it projects).
 
     Returns:
         ``(a, lam, iterations)``.
@@ -421,7 +427,10 @@ def solve_augmented_lagrangian(
     # right-hand side shrinks with the residuals, so round-off of the badly
     # conditioned P (about rho eps) is not left in a (iterative refinement).
     solve = solver.solve
-    a = solve(rhs - alpha * (J.T @ gamma))
+    if a0 is None:
+        a = solve(rhs - alpha * (J.T @ gamma))
+    else:  # the same first iterate from (a0, lam 0), by a correction of a0
+        a = a0 + solve(rhs - M @ a0 - alpha * (J.T @ (J @ a0 + gamma)))
     r_c = J @ a + gamma  # the constraint residual at a
     lam = alpha * r_c
     step = lam  # alpha r_c: the last update of lam
