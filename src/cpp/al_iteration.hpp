@@ -33,12 +33,27 @@ namespace closedchain {
 // number of iterates.
 // XV, CV: the nv- and nc-vectors (Eigen::VectorXd, or fixed-size for Core's small
 // dense path).
+// from_x: x holds a start x_0 on entry, and x_1 (the same iterate) is computed as its
+// correction, x_1 = x_0 + P^-1 (rhs - M x_0 - alpha J^T (J x_0 + g)): P's round-off
+// (about rho eps) is then relative to the correction, not to x_1 (the stage
+// projection's velocity step from the velocity it projects: two iterates instead of
+// four on the N-four-bar; solve_augmented_lagrangian's a0).
 template <class Ops, class XV, class CV>
 int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter, double tol,
-               XV &x, CV &lam, XV &delta, CV &rc) {
-  x = rhs;
-  ops.sub_scaled_jt(alpha, g, x);
-  ops.solve(x);
+               XV &x, CV &lam, XV &delta, CV &rc, bool from_x = false) {
+  if (from_x) {
+    rc = g;
+    ops.add_j(x, rc);  // J x_0 + g
+    delta = rhs;
+    ops.sub_m(x, delta);
+    ops.sub_scaled_jt(alpha, rc, delta);
+    ops.solve(delta);
+    x += delta;
+  } else {
+    x = rhs;
+    ops.sub_scaled_jt(alpha, g, x);
+    ops.solve(x);
+  }
   rc = g;
   ops.add_j(x, rc);  // r_c = J x + g, kept for the next iterate (the same bits)
   lam = rc * alpha;

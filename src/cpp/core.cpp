@@ -852,15 +852,17 @@ class Core {
   }
 
   // The augmented-Lagrangian iteration (al_iterate) at the last evaluation: x and
-  // lam_ with M x + J^T lam = rhs, J x + g = 0 (to al_tol), no multiplier polish.
-  void al_solve(const RefV &q, double t, const Vec &rhs, const Vec &g, Vec &x) {
+  // lam_ with M x + J^T lam = rhs, J x + g = 0 (to al_tol), no multiplier polish;
+  // from_x: start from x as given (al_iterate).
+  void al_solve(const RefV &q, double t, const Vec &rhs, const Vec &g, Vec &x,
+                bool from_x = false) {
     const double alpha = al_factor(q, t);
     if (band_p_) {
       BandAlOps ops{*this};
-      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_);
+      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_, from_x);
     } else {
       DenseAlOps ops{*this};
-      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_);
+      al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_, from_x);
     }
   }
 
@@ -1269,7 +1271,8 @@ class Core {
         terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not pe_
       }
       mv_.noalias() = M_ * v;
-      al_solve(q, std::numeric_limits<double>::quiet_NaN(), mv_, zero_c_, v);
+      // From v itself (problem.project's a0): its correction is small here.
+      al_solve(q, std::numeric_limits<double>::quiet_NaN(), mv_, zero_c_, v, true);
     } else if (project_velocities_) {
       eval_phi_J(q);
       if (band_n_)
