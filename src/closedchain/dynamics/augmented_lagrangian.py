@@ -244,7 +244,11 @@ def row_structure(mech: Mechanism, layer=None) -> np.ndarray:
         mech: the mechanism.
         layer: the constraint layer (default: the kept rows, ``mech.constraints``).
     """
-    cols = _row_columns(mech, layer)
+    return _couplings(_row_columns(mech, layer))
+
+
+def _couplings(cols: np.ndarray) -> np.ndarray:
+    """Return which rows share a column, shape (nc, nc), bool (cols: shape (nc, nv))."""
     return (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
 
 
@@ -336,7 +340,7 @@ class NormalSolver:
 
     def __init__(self, mech: Mechanism, layer=None) -> None:
         cols = _row_columns(mech, layer)
-        pattern = (cols.astype(np.int64) @ cols.T.astype(np.int64)) > 0
+        pattern = _couplings(cols)
         self.nc = len(pattern)
         self.bandwidth = _bandwidth(pattern)
         self.banded = self.nc > 8 and self.bandwidth <= BANDED_FRACTION * self.nc
