@@ -448,7 +448,7 @@ TOL_TERMS = 1e-12
 
 
 @pytest.mark.parametrize("name", ["fourbar", "nfourbar_5"])
-def test_terms_after_the_projection_equal_a_fresh_evaluation(name, tmp_path, nfourbar):
+def test_terms_after_the_projection_equal_a_fresh_evaluation(name, nfourbar):
     """compute_terms right after position_terms and mass_matrix at the same q keeps M and J
     and evaluates only h and gamma (for many loops by nonLinearEffects and the joint
     Jacobians' time variation alone): the same M, h, J, gamma as computeAllTerms from
