@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ._locking import exclusive
 from .dynamics.base import DEFAULT_SETTINGS, SolverSettings
 from .exceptions import ClosedChainError
 from .inverse import _resolve_ordered, inverse_dynamics
@@ -43,6 +44,7 @@ __all__ = [
 Reference = Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
+@exclusive
 def computed_torque_controller(
     mech: Mechanism,
     reference: Reference,
@@ -102,6 +104,7 @@ def computed_torque_controller(
     return tau
 
 
+@exclusive
 def gravity_torque(
     mech: Mechanism, q: np.ndarray, *, settings: SolverSettings = DEFAULT_SETTINGS
 ) -> np.ndarray:

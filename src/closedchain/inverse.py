@@ -55,6 +55,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
+from ._locking import exclusive
 from .dynamics.base import (
     DEFAULT_SETTINGS,
     SolverSettings,
@@ -175,6 +176,7 @@ def _condition(s: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0.0 else float("inf")
 
 
+@exclusive
 def inverse_dynamics(
     mech: Mechanism,
     q: np.ndarray,
@@ -324,6 +326,7 @@ def inverse_dynamics(
     )
 
 
+@exclusive
 def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> list[LoopReaction]:
     """Return the wrench each loop joint transmits, from the multipliers.
 

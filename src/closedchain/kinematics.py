@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from ._locking import exclusive
 from .closure import DEFAULT_ASSEMBLY_SETTINGS, SelectionSettings, layer_jacobian, layer_phi
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
@@ -36,6 +37,7 @@ if TYPE_CHECKING:
 VELOCITY_TOL = 1e-12
 
 
+@exclusive
 def assemble(
     mech: Mechanism,
     q_guess: np.ndarray,
@@ -79,16 +81,19 @@ def assemble(
         ) from None
 
 
+@exclusive
 def compute_phi(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     """Return the loop-closure residual phi(q), shape (nc,), [m] or [-] per row."""
     return layer_phi(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
 
 
+@exclusive
 def compute_jacobian(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     """Return the constraint Jacobian J(q), shape (nc, nv)."""
     return layer_jacobian(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
 
 
+@exclusive
 def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Return gamma(q, v) = Jdot(q, v) v, shape (nc,), [m/s^2] or [1/s^2] per row."""
     q = mech.check_q(q, "q")
@@ -101,6 +106,7 @@ def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
+@exclusive
 def project_velocity(
     mech: Mechanism, q: np.ndarray, v: np.ndarray, *, fixed: Iterable[str | int] | str = ()
 ) -> np.ndarray:
@@ -164,6 +170,7 @@ class SingularityMeasures:
     cond_JD: float
 
 
+@exclusive
 def singularity_measures(mech: Mechanism, q: np.ndarray) -> SingularityMeasures:
     """Return the singular-value measures of J(q) and J_D(q).
 
@@ -181,6 +188,7 @@ def singularity_measures(mech: Mechanism, q: np.ndarray) -> SingularityMeasures:
     return SingularityMeasures(float(s[-1]), cond, cond_d)
 
 
+@exclusive
 def random_consistent_state(
     mech: Mechanism,
     rng: np.random.Generator,

@@ -9,6 +9,7 @@ and Pinocchio constraint models are built for validation.
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
+from ._locking import exclusive
 from .closure import (
     AssemblySettings,
     LoopClosure,
@@ -117,7 +119,11 @@ class Mechanism:
         name: robot name from the URDF.
         path: the URDF file.
         model: Pinocchio model (with one frame per loop side added).
-        data: Pinocchio data for single-threaded use by closedchain.
+        data: Pinocchio data of closedchain's own computations (use it under
+            ``lock``; closedchain's public functions do).
+        lock: re-entrant lock that serializes the public functions on this
+            mechanism: one Mechanism may be shared between threads, whose calls
+            on it then take turns (:mod:`closedchain._locking`).
         urdf: the parsed URDF+ extensions.
         closure: the loop rows, their independent subset and the coordinate
             partition (:class:`~closedchain.closure.LoopClosure`).
@@ -150,6 +156,9 @@ class Mechanism:
         self.name = urdf.robot_name
         self.path = urdf.path
         self.model = model
+        #: Re-entrant lock held by every public function working on this mechanism
+        #: (:mod:`closedchain._locking`): calls from several threads take turns.
+        self.lock = threading.RLock()
         self.data = new_data(model)
         self.closure = closure
         self.gravity = np.array(gravity, dtype=float)
@@ -316,6 +325,7 @@ class Mechanism:
         lo, hi = self.model.lowerPositionLimit, self.model.upperPositionLimit
         return bool(np.all((q >= lo) | ~np.isfinite(lo)) and np.all((q <= hi) | ~np.isfinite(hi)))
 
+    @exclusive
     def gravity_torque_scale(self) -> float:
         """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale.
 
@@ -355,6 +365,7 @@ class Mechanism:
         return pin.normalize(self.model, q)
 
     # -- Pinocchio constraint models (validation reference, "pinocchio" method)
+    @exclusive
     def pinocchio_constraints(self):
         """Return ``(models, datas, owners, data)`` of Pinocchio rigid constraints for the loops.
 
@@ -374,6 +385,7 @@ class Mechanism:
             self._pin_constraints = (cms, cds, owners, pdata)
         return self._pin_constraints
 
+    @exclusive
     def summary(self) -> dict:
         """Return a JSON-serialisable description (what ``closedchain info`` shows)."""
         loops = []

@@ -259,14 +259,26 @@ def plot_trajectory(
     if ax_q.lines:
         ax_q.legend(loc="best", fontsize="small")
 
-    for values, label in (
-        (trajectory.constraint_residual, r"max $|\phi(q)|$ [m, rad]"),
-        (trajectory.velocity_residual, r"max $|J(q)\,v|$ [m/s, rad/s]"),
-    ):
-        values = np.maximum(np.abs(np.asarray(values, dtype=float)), RESIDUAL_FLOOR)
-        ax_res.semilogy(t, values, label=label)
+    if np.asarray(trajectory.lam).ndim == 2 and trajectory.lam.shape[1] == 0:
+        # An open chain: no constraint rows, nothing that could drift.
+        ax_res.text(
+            0.5,
+            0.5,
+            "no loops: no constraint rows",
+            ha="center",
+            va="center",
+            transform=ax_res.transAxes,
+        )
+        ax_res.set_yticks([])
+    else:
+        for values, label in (
+            (trajectory.constraint_residual, r"max $|\phi(q)|$ [m, rad]"),
+            (trajectory.velocity_residual, r"max $|J(q)\,v|$ [m/s, rad/s]"),
+        ):
+            values = np.maximum(np.abs(np.asarray(values, dtype=float)), RESIDUAL_FLOOR)
+            ax_res.semilogy(t, values, label=label)
+        ax_res.legend(loc="best", fontsize="small")
     ax_res.set_ylabel("constraint residuals")
-    ax_res.legend(loc="best", fontsize="small")
     ax_res.grid(True, which="major", alpha=0.3)
 
     energy = np.asarray(trajectory.energy, dtype=float)

@@ -43,6 +43,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pinocchio as pin
 
+from ._locking import exclusive
 from .closure import AssemblySettings
 from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamics
 from .dynamics.base import method_name
@@ -181,6 +182,7 @@ def pinocchio_reference_dynamics(
     return a, force, a_raw
 
 
+@exclusive
 def validate(
     mech: Mechanism,
     *,

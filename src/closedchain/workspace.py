@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ._locking import exclusive
 from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
 from .kinematics import assemble, compute_jacobian
 from .mechanism import Mechanism
@@ -100,6 +101,7 @@ def _is_planar_fourbar(mech: Mechanism) -> bool:
     )
 
 
+@exclusive
 def analyze_fourbar(mech: Mechanism, *, points: int = SWEEP_POINTS) -> FourBarAnalysis:
     """Grashof class and crank range of a planar 4-bar, measured on the model."""
     if not _is_planar_fourbar(mech):
@@ -223,6 +225,7 @@ def default_outputs(mech: Mechanism) -> tuple[str, ...]:
     return tuple(names[: mech.mobility])
 
 
+@exclusive
 def singularity_map(
     mech: Mechanism,
     *,

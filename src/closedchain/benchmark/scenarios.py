@@ -156,6 +156,14 @@ SCENARIOS: dict[str, Scenario] = {
             description="N-four-bar N = 2 through its flat (singular) positions, 4 s",
         ),
         Scenario(
+            "pendulum3-passive",
+            "pendulum3.urdf",
+            t_final=5.0,
+            quick_t_final=1.0,
+            v_independent=(1.0, 0.0, 0.0),
+            description="triple pendulum (an open chain, no loops), passive under gravity, 5 s",
+        ),
+        Scenario(
             "ur5_crank-passive",
             "erd:ur5",
             loops="ur5_crank.urdf",

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._locking import exclusive
 from ..exceptions import NonFiniteError
 from . import augmented_lagrangian as _augmented_lagrangian  # noqa: F401  (registers it)
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
@@ -32,6 +33,7 @@ if TYPE_CHECKING:
 __all__ = ["METHODS", "ForwardDynamicsResult", "SolverSettings", "forward_dynamics"]
 
 
+@exclusive
 def forward_dynamics(
     mech: Mechanism,
     q: np.ndarray,

@@ -84,6 +84,8 @@ def solve_proximal(
         return np.full(M.shape[0], np.nan), np.zeros(J.shape[0]), 0, 0.0
     Y = lapack.dpotrs(R, np.column_stack([J.T, rhs]))[0]  # M^-1 [J^T | tau - h]
     X, y = Y[:, :-1], Y[:, -1]
+    if J.shape[0] == 0:  # no loop rows (an open chain): a = M^-1 (tau - h)
+        return y, np.zeros(0), 0, float(rcond)
     D = J @ X
     mu = mu_rel * max(float(np.max(np.diag(D), initial=0.0)), np.finfo(float).tiny)
     Dm = D + mu * np.eye(D.shape[0])

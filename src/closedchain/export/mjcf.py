@@ -40,6 +40,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import pinocchio as pin
 
+from .._locking import exclusive
 from ..exceptions import ClosedChainError
 
 if TYPE_CHECKING:
@@ -161,6 +162,7 @@ def _capsule_xml(p: np.ndarray, radius: float) -> str:
     )
 
 
+@exclusive
 def export_mjcf(
     mech: Mechanism,
     path: str | Path | None = None,

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .._locking import exclusive
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
@@ -216,6 +217,7 @@ def _select_backend(
     return spec
 
 
+@exclusive
 def simulate(
     mech: Mechanism,
     q0: np.ndarray,

@@ -165,6 +165,9 @@ class Problem:
         return q, v
 
     def cond_JD(self, q: np.ndarray) -> float:
+        """Return cond(J_D) at q (1 when there are no dependent coordinates)."""
+        if not len(self.dep):
+            return 1.0
         return float(np.linalg.cond(self.jacobian(q)[:, self.dep]))
 
     def repartition(self, q: np.ndarray, t: float) -> bool:
@@ -487,10 +490,12 @@ class Recorder:
         if not r["t"]:
             return
         widths = self._widths()
+        n = len(r["t"])
         block = {}
         for key in self._SERIES:
             if key in widths:
-                block[key] = np.array(r[key], dtype=float).reshape(-1, widths[key])
+                # n rows, not -1: a mechanism without loops has lam of width 0.
+                block[key] = np.array(r[key], dtype=float).reshape(n, widths[key])
             else:
                 block[key] = np.array(r[key], dtype=float)
             r[key] = []
@@ -534,7 +539,8 @@ class Recorder:
         block = {}
         for key in self._SERIES:  # C order, as the rows of add (the core's are column-major)
             a = np.ascontiguousarray(samples[key], dtype=float)
-            block[key] = a.reshape(-1, widths[key]) if key in widths else a.ravel()
+            # len(times) rows, not -1: a mechanism without loops has lam of width 0.
+            block[key] = a.reshape(len(times), widths[key]) if key in widths else a.ravel()
         self._blocks.append(block)
         self._n += len(times)
         if self.mech.nc and len(self.dep) == self.mech.nc:  # the branch series, as in add

@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .._locking import exclusive
 from ..exceptions import ClosedChainError
 from ..trajectory import Trajectory
 
@@ -186,6 +187,7 @@ def scene_html(
     )
 
 
+@exclusive
 def write_html(
     mech: Mechanism,
     trajectory: Trajectory,
