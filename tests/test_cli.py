@@ -12,6 +12,7 @@ from conftest import DATA_DIR, SHIPPED_MECHANISMS
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
+from closedchain.trajectory import Trajectory
 
 #: Samples for the CLI validation runs (the library test uses 100).
 CLI_SAMPLES = "20"
@@ -373,7 +374,9 @@ def test_simulation_stopped_at_a_singularity_exits_3(capsys, mechanism_files):
     argv = ["simulate", mechanism_files["fourbar"], "--t-final", "1", "--q0", *Q0_OPEN, *STOPPING]
     status, out, err = run(capsys, *argv)
     assert status == cli.EXIT_STOPPED == 3
-    assert out == ""
+    # The summary of the motion up to the stop is printed, then the one-line error.
+    assert out.startswith("fourbar: 1 s with method")
+    assert len(err.splitlines()) == 1
     assert re.match(r"closedchain: error: fourbar:? at t = 0\.39\d+ s.*singular", err)
 
 
@@ -490,3 +493,36 @@ def test_animate_default_scene_has_no_stop_banner(capsys, tmp_path, mechanism_fi
     )
     assert status == 0, err
     assert 'id="closedchain-stop"' not in out_file.read_text()
+
+
+def test_start_outside_the_limits_exits_2_unless_ignored(capsys, mechanism_files):
+    far = ("--q0", "1e17", "-1.13", "-1.81")
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.01"]
+    status, _, err = run(capsys, *argv, *far)
+    assert status == cli.EXIT_BAD_INPUT
+    assert len(err.splitlines()) == 1 and "'crank_joint' is at 1e+17, outside" in err
+    # --ignore-limits opens the URDF limits, never the bound a double can still resolve.
+    status, _, err = run(capsys, *argv, *far, "--ignore-limits")
+    assert status == cli.EXIT_BAD_INPUT and "[-1e+06, 1e+06]" in err
+    one_turn_on = ("--q0", str(0.17453292519943295 + 2 * math.pi), "-1.13", "-1.81")
+    status, _, err = run(capsys, *argv, *one_turn_on, "--ignore-limits")
+    assert status == 0, err
+
+
+def test_inaccurate_run_is_not_a_success(capsys, mechanism_files, tmp_path):
+    """Explicit Euler at 1 ms: 9 % energy drift in 2 s, reported with exit 3, output kept."""
+    out = tmp_path / "euler.npz"
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "2", "--integrator", "euler"]
+    status, stdout, err = run(capsys, *argv, "--dt", "1e-3", "--out", out)
+    assert status == cli.EXIT_STOPPED
+    assert len(err.splitlines()) == 1 and "energy drift" in err and "--energy-tol" not in stdout
+    assert Trajectory.load(out).t[-1] == pytest.approx(2.0)
+    status, _, err = run(capsys, *argv, "--dt", "1e-3", "--energy-tol", "0.5")
+    assert status == 0, err
+
+
+def test_rtol_without_integrator_runs_the_adaptive_default(capsys, mechanism_files):
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.05", "--rtol", "1e-9"]
+    status, out, err = run(capsys, *argv, "--json")
+    assert status == 0, err
+    assert json.loads(out)["integrator"] == "DOP853"

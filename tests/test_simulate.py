@@ -1097,3 +1097,59 @@ def test_recorder_keeps_the_order_of_added_and_extended_samples(fourbar, q_cross
     assert np.max(np.abs(traj.energy - ref.energy)) <= 1e-12 * scale
     assert np.max(np.abs(traj.constraint_residual - ref.constraint_residual)) <= 1e-12
     assert traj.q.flags["C_CONTIGUOUS"] and traj.q.shape == (11, fourbar.nq)
+
+
+# -- start within the joint limits; an inaccurate run is not a success ---------------
+
+
+def test_start_outside_the_joint_limits_is_refused(fourbar):
+    q0 = fourbar.q_ref.copy()
+    q0[0] = 7.0  # the crank's limits are +-2 pi
+    with pytest.raises(cc.InvalidArgumentError, match=r"q0: joint 'crank_joint' is at 7, outside"):
+        cc.simulate(fourbar, q0, np.zeros(3), 0.01)
+
+
+def test_limits_opt_out_keeps_the_coordinate_bound(fourbar):
+    from closedchain.mechanism import COORDINATE_BOUND
+
+    settings = cc.SimulationSettings(check_limits=False)
+    q0 = fourbar.q_ref.copy()
+    q0[0] += 2 * np.pi  # the same pose one turn on: outside the limits, allowed here
+    traj = cc.simulate(fourbar, q0, np.zeros(3), 0.01, settings=settings)
+    assert traj.max_constraint_residual < 1e-12
+    q0[0] = 10 * COORDINATE_BOUND  # where a double cannot resolve a step: never allowed
+    with pytest.raises(cc.InvalidArgumentError, match=r"outside its limits \[-1e\+06, 1e\+06\]"):
+        cc.simulate(fourbar, q0, np.zeros(3), 0.01, settings=settings)
+
+
+def test_scene_start_outside_the_limits_names_the_scene(tmp_path, mechanism_files):
+    from closedchain.control import default_scene
+
+    text = mechanism_files["fourbar"].read_text()
+    text = re.sub(r'(<initial joint="crank_joint" value=")[^"]*"', r'\g<1>1e300"', text)
+    path = tmp_path / "fourbar_far.urdf"
+    path.write_text(text)
+    with pytest.raises(cc.InvalidArgumentError, match=r"<scene> <initial>: joint 'crank_joint'"):
+        default_scene(cc.load(path))
+
+
+def test_energy_tol_stops_an_inaccurate_unforced_run_with_its_trajectory(fourbar):
+    """Explicit Euler at 1 ms drifts by about 10 % in 2 s; the default rk4 by 1e-9."""
+    settings = cc.SimulationSettings(energy_tol=1e-2)
+    q0, v0 = fourbar.q_ref, np.zeros(3)
+    accurate = cc.simulate(fourbar, q0, v0, 2.0, settings=settings)
+    assert accurate.energy_drift < 1e-6
+    with pytest.raises(cc.SimulationError, match=r"relative energy drift .* > energy_tol") as exc:
+        cc.simulate(fourbar, q0, v0, 2.0, integrator="euler", dt=1e-3, settings=settings)
+    assert exc.value.trajectory is not None
+    assert exc.value.trajectory.t[-1] == pytest.approx(2.0)
+    assert exc.value.trajectory.energy_drift > 1e-2
+
+
+def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
+    from closedchain.simulate import DEFAULT_ADAPTIVE_INTEGRATOR
+
+    traj = cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05, rtol=1e-9, atol=1e-11)
+    assert traj.info.integrator == DEFAULT_ADAPTIVE_INTEGRATOR == "DOP853"
+    assert traj.info.rtol == 1e-9 and traj.info.dt is None
+    assert cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05).info.integrator == "rk4"

@@ -179,6 +179,7 @@ def default_scene(mech: Mechanism) -> Scene:
     q = mech.q_ref.copy()
     for name, value in spec.initial.items():
         q[mech.model.joints[mech.model.getJointId(name)].idx_q] = value
+    mech.check_limits(q, "<scene> <initial>")
     if not spec.track:
         q0 = assemble(mech, q, fixed="independent")
         if not spec.velocity:

@@ -31,6 +31,7 @@ from .constraints import ConstraintLayer, RowInfo
 from .exceptions import (
     AssemblyError,
     ClosedChainError,
+    InvalidArgumentError,
     LoopClosureError,
     ModelTooLargeError,
     UnknownChoiceError,
@@ -45,6 +46,11 @@ logger = logging.getLogger(__name__)
 #: Largest accepted deviation from 1 of the norm of a continuous joint's
 #: (cos, sin) or a quaternion in a configuration passed to closedchain.
 NORMALIZATION_TOL = 1e-9
+
+#: Largest |q| [rad or m] of a 1-dof coordinate a configuration may hold: beyond it a
+#: double resolves the coordinate more coarsely than 1e-10 (its ulp), so an integrator's
+#: steps are lost in round-off (a crank at 1e17 rad does not move at all).
+COORDINATE_BOUND = 1e6
 
 #: Root joints :func:`load` can put between the world and the URDF's root link.
 ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointModelPlanar}
@@ -326,6 +332,38 @@ class Mechanism:
         return bool(np.all((q >= lo) | ~np.isfinite(lo)) and np.all((q <= hi) | ~np.isfinite(hi)))
 
     @exclusive
+    def check_limits(
+        self, q: np.ndarray, name: str = "q", *, urdf_limits: bool = True, opt_out: str = ""
+    ) -> None:
+        """Raise InvalidArgumentError when a coordinate of q is outside its joint limits.
+
+        Every 1-dof coordinate is checked against :data:`COORDINATE_BOUND` and, with
+        ``urdf_limits``, against its URDF ``<limit>`` where that is finite.
+
+        Args:
+            q: configuration, shape (nq,).
+            name: what q is called in the message (an argument or an option).
+            urdf_limits: also check the URDF limits (else only the bound).
+            opt_out: how to turn the URDF-limit check off, added to its message.
+        """
+        lo, hi = self.model.lowerPositionLimit, self.model.upperPositionLimit
+        for j in range(1, self.model.njoints):
+            jm = self.model.joints[j]
+            if jm.nq != 1:  # cos/sin pairs, quaternions, free flyers: no limits
+                continue
+            k = jm.idx_q
+            value = float(q[k])
+            low, high = -COORDINATE_BOUND, COORDINATE_BOUND
+            if urdf_limits:
+                low = max(low, lo[k]) if np.isfinite(lo[k]) else low
+                high = min(high, hi[k]) if np.isfinite(hi[k]) else high
+            if not low <= value <= high:
+                hint = f"; {opt_out}" if opt_out and urdf_limits else ""
+                raise InvalidArgumentError(
+                    f"{name}: joint {self.model.names[j]!r} is at {value:.6g}, outside its "
+                    f"limits [{low:.6g}, {high:.6g}] ({self.path}){hint}"
+                )
+
     def gravity_torque_scale(self) -> float:
         """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale.
 

@@ -76,6 +76,11 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+#: The integrator of ``simulate(integrator=None)``: fixed-step rk4 with stage projection.
+DEFAULT_INTEGRATOR = "rk4"
+#: The integrator of ``simulate(integrator=None, rtol=..., atol=...)``.
+DEFAULT_ADAPTIVE_INTEGRATOR = "DOP853"
+
 #: Values of ``simulate(backend=...)``.
 BACKENDS = ("auto", "compiled", "numpy")
 
@@ -133,6 +138,29 @@ def check_start_velocity(
             f"= {residual:.3g} > {bound:.3g} (SimulationSettings.start_velocity_tol x "
             "max(1, max |v0|)); project it first: v0 = closedchain.project_velocity(mech, q0, v0)"
         )
+
+
+def check_energy(traj: Trajectory, tau: TorqueInput, energy_tol: float) -> None:
+    """Raise SimulationError when an unforced run's relative energy drift exceeds ``energy_tol``.
+
+    A run with generalized forces (``tau`` a callable or a nonzero array) is not
+    checked: its energy changes by the forces' work.
+
+    Raises:
+        SimulationError: with ``trajectory`` the whole run.
+    """
+    if callable(tau) or (tau is not None and np.any(np.asarray(tau) != 0.0)):
+        return
+    drift = traj.energy_drift
+    if not drift <= energy_tol:
+        exc = SimulationError(
+            f"{traj.info.mechanism}: the relative energy drift of this unforced run is "
+            f"{drift:.3g} > energy_tol {energy_tol:.3g}: the integration is not accurate "
+            "(use a smaller step or tolerance, or another integrator)",
+            float(traj.t[-1]),
+        )
+        exc.trajectory = traj
+        raise exc
 
 
 def check_positive(name: str, value, what: str) -> None:
@@ -225,7 +253,7 @@ def simulate(
     t_final: float,
     *,
     method: str = "augmented-lagrangian",
-    integrator: str = "rk4",
+    integrator: str | None = None,
     dt: float | None = None,
     rtol: float | None = None,
     atol: float | None = None,
@@ -246,9 +274,11 @@ def simulate(
         t_final: duration [s].
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
             Default ``"augmented-lagrangian"``: well posed where J loses rank.
-        integrator: a name in :data:`INTEGRATORS`. Default ``"rk4"`` with
-            ``dt = settings.dt`` (1 ms) and stage projection: together they pass
-            singular positions (see the README, "Singular positions").
+        integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk4"``
+            with ``dt = settings.dt`` (1 ms) and stage projection, which together
+            pass singular positions (see the README, "Singular positions"); or,
+            when ``rtol`` or ``atol`` is given, :data:`DEFAULT_ADAPTIVE_INTEGRATOR`
+            (``"DOP853"``), the adaptive integrator those tolerances are for.
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
         rtol: relative tolerance (adaptive integrators; default ``settings.rtol``).
         atol: absolute tolerance (adaptive integrators; default ``settings.atol``).
@@ -285,6 +315,9 @@ def simulate(
         SimulationError: non-finite state, integrator failure, or drift
             beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
+    if integrator is None:
+        adaptive = rtol is not None or atol is not None
+        integrator = DEFAULT_ADAPTIVE_INTEGRATOR if adaptive else DEFAULT_INTEGRATOR
     spec = get_integrator(integrator)
     integrator = spec.name
     fixed = spec.kind == "fixed"
@@ -319,6 +352,12 @@ def simulate(
             f"method among {', '.join(with_terms)}"
         )
     q0 = mech.check_q(q0, "q0")
+    mech.check_limits(
+        q0,
+        "q0",
+        urdf_limits=settings.check_limits,
+        opt_out="SimulationSettings(check_limits=False) or --ignore-limits allows it",
+    )
     v0 = mech.check_v(v0, "v0")
     check_positive("t_final", t_final, "the duration [s]")
     t_final = float(t_final)
@@ -458,6 +497,8 @@ def simulate(
     info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
     info["energy_drift"] = energy_drift(series["e"], series["ke"])
     traj = recorder.trajectory(SimulationInfo.from_dict(info))
+    if settings.energy_tol is not None:
+        check_energy(traj, tau, settings.energy_tol)
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,

@@ -79,6 +79,14 @@ class SimulationSettings:
             position: a step with a point estimated closer is retaken as two
             substeps of one or of two grid steps (see ``closedchain.simulate.fixed``;
             some split always reaches 0.3); 0 turns this off.
+        check_limits: refuse a start q0 outside the joint limits (the URDF
+            ``<limit>`` elements, and |q| <= ``closedchain.mechanism.COORDINATE_BOUND``
+            for every 1-dof coordinate); False turns the first check off.
+        energy_tol: raise SimulationError (with the whole trajectory) at the end
+            of a run without generalized forces (``tau`` None or zero) whose
+            relative energy drift (``Trajectory.energy_drift``) exceeds this: the
+            integration was not accurate, whatever the closure says. None (the
+            default of the library; the command line sets ``--energy-tol``): no check.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
@@ -138,6 +146,8 @@ class SimulationSettings:
     partition_singular_cond: float = 1e4
     singular_zone: float = 0.04
     stage_singular_zone: float = 0.3
+    check_limits: bool = True
+    energy_tol: float | None = None
     drift_limit: float = 1e-2
     dropped_row_tol: float = 1e-9
     dropped_row_ratio: float = 100.0
