@@ -237,32 +237,41 @@ def _where(path: Path, element) -> str:
     return f"{path}: line {element.sourceline}: {_tag(element)}"
 
 
-def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
-    """Return an attribute of three finite numbers, shape (3,), or raise naming it."""
-    text = element.get(attribute, default)
+def _three(text: str) -> np.ndarray | None:
+    """Return the three numbers of an attribute's text, shape (3,), or None if it holds others."""
     try:
         values = [float(x) for x in text.split()]
     except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(x) for x in values):
+        return None
+    return np.array(values) if len(values) == 3 else None
+
+
+def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
+    """Return an attribute of three finite numbers, shape (3,), or raise naming it."""
+    text = element.get(attribute, default)
+    values = _three(text)
+    if values is None or not np.all(np.isfinite(values)):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
         raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
-    return np.array(values)
+    return values
 
 
 def _origin_values(path: Path, origin, where: str = "") -> tuple[np.ndarray, np.ndarray]:
     """Return (xyz [m], rpy [rad]) of an origin element, each finite and within its bound.
 
     Raises:
-        URDFError: a value is missing, not finite or beyond :data:`ORIGIN_XYZ_MAX`
-            or :data:`ORIGIN_RPY_MAX` (the message names the attribute and bound).
+        URDFError: an attribute is not three finite numbers, or is beyond
+            :data:`ORIGIN_XYZ_MAX` or :data:`ORIGIN_RPY_MAX` (the message names
+            the attribute and the bound).
     """
     prefix = f"{where} <{origin.tag}>" if where else _where(path, origin)
     out = []
-    for attribute, bound, unit in (("xyz", ORIGIN_XYZ_MAX, "m"), ("rpy", ORIGIN_RPY_MAX, "rad")):
+    for attribute, name, bound, unit in (
+        ("xyz", "ORIGIN_XYZ_MAX", ORIGIN_XYZ_MAX, "m"),
+        ("rpy", "ORIGIN_RPY_MAX", ORIGIN_RPY_MAX, "rad"),
+    ):
         values = _floats(path, origin, attribute, "0 0 0", where)
         if float(np.max(np.abs(values))) > bound:
-            name = "ORIGIN_XYZ_MAX" if attribute == "xyz" else "ORIGIN_RPY_MAX"
             raise URDFError(
                 f"{prefix}: attribute {attribute}={origin.get(attribute)!r} is beyond "
                 f"{name} = {bound:g} {unit}; valid: |components| <= {bound:g} {unit}"
@@ -283,13 +292,9 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
         URDFError: the attribute is not three numbers, is not finite or is zero.
     """
     text = axis.get("xyz", "1 0 0")
-    try:
-        values = [float(x) for x in text.split()]
-    except ValueError:
-        values = []
-    if len(values) != 3:
+    xyz = _three(text)
+    if xyz is None:
         raise URDFError(f"{where}: <axis xyz={text!r}> must be three numbers")
-    xyz = np.array(values)
     if not np.all(np.isfinite(xyz)):
         raise URDFError(f"{where}: <axis xyz={text!r}> is not finite; valid: three finite numbers")
     scale = float(np.max(np.abs(xyz)))
@@ -302,7 +307,7 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
 
 
 def _check_name(path: Path, element, kind: str) -> str:
-    """Return the ``name`` of a link, joint, loop or transmission, refusing control characters.
+    """Return the ``name`` of a robot, link, joint, loop or transmission, refusing control chars.
 
     Args:
         path: the file, for messages.
@@ -359,7 +364,7 @@ def _check_children(path: Path, element, known: tuple[str, ...], *, strict: bool
     for child in element:
         if not isinstance(child.tag, str) or child.tag in known:  # comments, PIs
             continue
-        where = f"{path}: line {child.sourceline}: <{child.tag}>"
+        where = _where(path, child)
         inside = "" if element.tag == "robot" else f" in <{element.tag}>"
         close = _near_miss(child.tag, known) if "}" not in child.tag else None
         if close is not None:
@@ -568,8 +573,8 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
       :data:`LOOP_CHILDREN`, :data:`SCENE_CHILDREN`, :data:`TRACK_CHILDREN`.
       Children of ``<transmission>``: :data:`TRANSMISSION_CHILDREN`; a near
       miss of them is refused, any other child warned about.
-    - Names of links, joints, loops and transmissions: present, without
-      control characters (:data:`NAME_REFUSED_CATEGORIES`); link and joint
+    - Names of links, joints, loops and transmissions (and of the robot, if
+      given): present, without control characters (:data:`NAME_REFUSED_CATEGORIES`); link and joint
       names unique (a duplicate names both lines). Messages quote names
       with ``repr``, so they stay one line.
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
@@ -596,6 +601,8 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
             max_nv=max_nv,
         )
     _check_layout(path, root)
+    if root.get("name") is not None:  # optional: the file's stem stands in
+        _check_name(path, root, "robot")
     links = _unique_names(path, link_elements, "link")
     _unique_names(path, joint_elements, "joint")
     joints = {e.get("name"): e.get("type") for e in joint_elements}
