@@ -380,6 +380,35 @@ def agile_eye_traj(agile_eye) -> cc.Trajectory:
     return agile_eye_sweep(agile_eye, np.linspace(0.0, 4.0, 401))
 
 
+@pytest.fixture(scope="session")
+def short_traj(fourbar) -> cc.Trajectory:
+    """0.2 s of the 4-bar released from rest at q_ref, simulated (rk4, 10 ms)."""
+    return cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.2, integrator="rk4", dt=1e-2)
+
+
+#: 4-bars of the 4-bar's nq that a 4-bar trajectory does not belong to: other joint
+#: names (the rocker's joint renamed), and the same joints with the rocker's loop pin
+#: 0.32 m from its pivot instead of 0.3 m.
+FOURBAR_LOOKALIKES = {
+    "renamed": ("rocker_joint", "rocker_pivot"),
+    "longer_rocker": ('<successor_origin xyz="0.3 0 0"', '<successor_origin xyz="0.32 0 0"'),
+}
+
+
+@pytest.fixture(scope="session")
+def fourbar_lookalikes(tmp_path_factory) -> dict[str, cc.Mechanism]:
+    """Name -> mechanism of :data:`FOURBAR_LOOKALIKES`, each written to its own file."""
+    text = (MODELS / "fourbar.urdf").read_text()
+    folder = tmp_path_factory.mktemp("lookalikes")
+    out = {}
+    for name, (old, new) in FOURBAR_LOOKALIKES.items():
+        assert old in text
+        path = folder / f"{name}.urdf"
+        path.write_text(text.replace(old, new))
+        out[name] = cc.load(path)
+    return out
+
+
 def nfourbar_generator():
     """The module ``scripts/make_nfourbar.py`` (``build(n)`` writes the N-four-bar)."""
     import importlib.util

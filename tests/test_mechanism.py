@@ -9,6 +9,8 @@ against the numerical rank of the declared rows; the gravity test uses the
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pinocchio as pin
@@ -312,6 +314,54 @@ def test_configuration_off_the_unit_circle_is_refused(load_mechanism):
     q[jm.idx_q : jm.idx_q + 2] *= 3.0
     with pytest.raises(cc.ClosedChainError, match=r"joint 'crank_joint'.*has norm 3"):
         cc.forward_dynamics(mech, q, np.zeros(mech.nv))
+
+
+# -- digest: the model a trajectory depends on ----------------------------------------------
+
+
+def test_digest_is_the_same_in_a_fresh_process(fourbar):
+    code = f"import closedchain as cc; print(cc.load({str(fourbar.path)!r}).digest())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == fourbar.digest()
+
+
+def test_digest_ignores_path_comments_visuals_actuation_and_gravity(fourbar, tmp_path):
+    text = fourbar.path.read_text()
+    text = text.replace("<robot ", "<!-- a copy -->\n<robot ").replace(
+        '<box size="0.2 0.012 0.02"/>', '<box size="0.2 0.05 0.05"/>'
+    )
+    text = text.replace(' effort="50"', ' effort="10"')
+    path = tmp_path / "elsewhere" / "copy.urdf"
+    path.parent.mkdir()
+    path.write_text(text)
+    copy = cc.load(path, gravity=(0.0, 0.0, -1.62))
+    assert copy.digest() == fourbar.digest()
+
+
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [
+        ('<successor_origin xyz="0.3 0 0"', '<successor_origin xyz="0.32 0 0"'),  # loop
+        ('<origin xyz="0.5 0 0" rpy="0 0 0"/>', '<origin xyz="0.51 0 0" rpy="0 0 0"/>'),  # joint
+        ('<mass value="1.0"/>\n      <!-- m c^2', '<mass value="1.1"/>\n      <!-- m c^2'),
+        ('ixx="0" ixy="0" ixz="0" iyy="0.0075"', 'ixx="0.001" ixy="0" ixz="0" iyy="0.0075"'),
+        ('<loop name="C"', '<loop name="D"'),
+    ],
+)
+def test_digest_changes_with_dimensions_masses_and_loops(fourbar, tmp_path, old, new):
+    text = fourbar.path.read_text()
+    assert text.count(old) == 1
+    path = tmp_path / "changed.urdf"
+    path.write_text(text.replace(old, new))
+    assert cc.load(path).digest() != fourbar.digest()
+
+
+def test_digest_ignores_the_last_bits(fourbar, tmp_path):
+    """A different libm's last bit in sin/cos must not make another mechanism."""
+    text = fourbar.path.read_text()
+    path = tmp_path / "last_bit.urdf"
+    path.write_text(text.replace('<mass value="1.0"/>', '<mass value="1.0000000000000002"/>'))
+    assert cc.load(path).digest() == fourbar.digest()
 
 
 # -- size limits (a tree too large is refused before any work) -----------------------------

@@ -138,6 +138,31 @@ def test_cli_plot_of_a_missing_file(tmp_path, capsys):
     assert "none.npz" in capsys.readouterr().err
 
 
+def test_cli_plot_refuses_a_trajectory_of_another_mechanism(
+    short_traj, fourbar_lookalikes, tmp_path, capsys
+):
+    from closedchain.cli import main
+
+    npz = short_traj.save(tmp_path / "run.npz")
+    png = tmp_path / "x.png"
+    other = fourbar_lookalikes["renamed"]
+    assert main(["plot", str(npz), "--urdf", str(other.path), "-o", str(png)]) == 2
+    err = capsys.readouterr().err
+    assert f"does not fit mechanism 'fourbar' ({other.path}): its joint 2 is 'rocker_joint'" in err
+    assert not png.exists()
+
+
+@pytest.mark.parametrize(
+    ("lookalike", "message"),
+    [("renamed", r"its joint 2 is 'rocker_joint'"), ("longer_rocker", r"model digest")],
+)
+def test_plot_refuses_a_trajectory_of_another_mechanism(
+    short_traj, fourbar_lookalikes, lookalike, message
+):
+    with pytest.raises(ClosedChainError, match=message):
+        plot_trajectory(short_traj, mech=fourbar_lookalikes[lookalike])
+
+
 # -- coordinates of joints with nq != nv ---------------------------------------------------
 
 

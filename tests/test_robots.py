@@ -15,6 +15,7 @@ References, none computed by the code under test:
 from __future__ import annotations
 
 import json
+import warnings
 from importlib import metadata
 
 import numpy as np
@@ -212,6 +213,16 @@ def test_overlay_weld_to_world_makes_the_free_fourbar_the_fixed_one(by_root, tmp
             '<successor link="nope"/></loop></robot>',
             r"<successor link='nope'> names an unknown link",
         ),
+        (  # the overlay goes through the same checks as a URDF (closedchain.urdf)
+            '<robot name="o"><link name="x">\n<loop name="L" type="spherical">'
+            '<predecessor link="world"/><successor link="x"/></loop></link></robot>',
+            r"line 2: <loop name='L'>: inside <link name='x'>: a <loop> is read only as a child",
+        ),
+        (
+            '<robot name="o"><loop name="L&#10;M" type="spherical"><predecessor link="world"/>'
+            '<successor link="crank"/></loop></robot>',
+            r"<loop name='L\\nM'>: the loop name contains the control character",
+        ),
     ],
 )
 def test_bad_overlay_is_refused_naming_file_and_element(tmp_path, text, match):
@@ -220,6 +231,23 @@ def test_bad_overlay_is_refused_naming_file_and_element(tmp_path, text, match):
     with pytest.raises(cc.URDFError, match=match) as info:
         cc.load(MODELS / "fourbar.urdf", loops=overlay)
     assert "bad_overlay.urdf" in str(info.value)
+
+
+def test_overlay_on_a_robot_is_checked_before_its_stick_figure_is_drawn(tmp_path):
+    """primitive_visuals reads the overlay's joint origins only once they are checked."""
+    overlay = tmp_path / "far.urdf"
+    overlay.write_text(
+        '<robot name="o"><link name="x"/><joint name="j" type="revolute"><parent link="world"/>'
+        '<child link="x"/><origin xyz="1e200 0 0"/><axis xyz="0 0 1e308"/></joint></robot>'
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow in the stick figure's lengths
+        with pytest.raises(
+            cc.URDFError,
+            match=r"far.urdf: line 1: <joint name='j'> <origin>: attribute xyz='1e200 0 0' "
+            r"is beyond ORIGIN_XYZ_MAX",
+        ):
+            cc.load("erd:ur5", loops=overlay)
 
 
 # -- example-robot-data --------------------------------------------------------------

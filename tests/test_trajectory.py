@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+import logging
+import re
 import zipfile
 
 import numpy as np
@@ -13,11 +16,6 @@ import closedchain as cc
 from closedchain.trajectory import FORMULA_PREFIXES, neutralize_formula
 
 ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
-
-
-@pytest.fixture(scope="module")
-def short_traj(fourbar) -> cc.Trajectory:
-    return cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.2, integrator="rk4", dt=1e-2)
 
 
 def read_csv(path) -> tuple[list[str], np.ndarray]:
@@ -168,3 +166,81 @@ def test_csv_names_configuration_entries_when_nq_differs_from_nv(load_mechanism,
     header, _ = read_csv(traj.save(tmp_path / "t.csv"))
     assert header[1:3] == ["q:crank_joint[0]", "q:crank_joint[1]"]
     assert len([h for h in header if h.startswith("q:")]) == mech.nq
+
+
+# -- identity: the mechanism a trajectory was simulated on --------------------------------
+
+
+def test_simulation_records_joint_names_and_model_digest(short_traj, fourbar, tmp_path):
+    info = short_traj.info
+    assert info.joint_names == ("crank_joint", "coupler_joint", "rocker_joint")
+    assert info.joint_names == fourbar.joint_names
+    assert info.model_digest == fourbar.digest()
+    back = cc.Trajectory.load(short_traj.save(tmp_path / "t.npz")).info
+    assert (back.joint_names, back.model_digest) == (info.joint_names, info.model_digest)
+
+
+def test_check_mechanism_accepts_the_mechanism_it_was_simulated_on(short_traj, fourbar, caplog):
+    with caplog.at_level(logging.WARNING):
+        short_traj.check_mechanism(fourbar)
+    assert caplog.records == []
+
+
+def test_other_joints_of_the_same_nq_are_refused(short_traj, fourbar_lookalikes):
+    other = fourbar_lookalikes["renamed"]
+    assert (other.nq, other.nv) == short_traj.q.shape[1:] + short_traj.v.shape[1:]
+    with pytest.raises(
+        cc.ClosedChainError,
+        match=re.escape(
+            f"trajectory of 'fourbar' does not fit mechanism 'fourbar' ({other.path}): its joint 2 "
+            "is 'rocker_joint', the mechanism's is 'rocker_pivot' (3 against 3 joints)"
+        ),
+    ):
+        short_traj.check_mechanism(other)
+
+
+def test_missing_joint_is_named(short_traj, fourbar):
+    info = dataclasses.replace(short_traj.info, joint_names=short_traj.info.joint_names[:2])
+    with pytest.raises(
+        cc.ClosedChainError,
+        match=r"its joint 2 is missing, the mechanism's is 'rocker_joint' \(2 against 3 joints\)",
+    ):
+        dataclasses.replace(short_traj, info=info).check_mechanism(fourbar)
+
+
+def test_same_joints_other_dimensions_are_refused_by_the_digest(short_traj, fourbar_lookalikes):
+    other = fourbar_lookalikes["longer_rocker"]
+    assert other.joint_names == short_traj.info.joint_names
+    with pytest.raises(
+        cc.ClosedChainError,
+        match=re.escape("trajectory of 'fourbar' was simulated on another model than mechanism ")
+        + r".*same joints, model digest [0-9a-f]{12} != [0-9a-f]{12}",
+    ):
+        short_traj.check_mechanism(other)
+
+
+@pytest.fixture
+def old_npz(short_traj, tmp_path):
+    """The trajectory as a closedchain without joint names and digest saved it."""
+    path = short_traj.save(tmp_path / "old.npz")
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    info = json.loads(str(arrays.pop("info")))
+    del info["joint_names"], info["model_digest"]
+    np.savez_compressed(path, **arrays, info=json.dumps(info))
+    return path
+
+
+def test_old_npz_loads_and_is_checked_by_its_configuration_names(
+    old_npz, fourbar, fourbar_lookalikes, caplog
+):
+    old = cc.Trajectory.load(old_npz)
+    assert (old.info.joint_names, old.info.model_digest) == ((), None)
+    with caplog.at_level(logging.WARNING, logger="closedchain.trajectory"):
+        old.check_mechanism(fourbar)
+    assert [r.levelname for r in caplog.records] == ["WARNING"]
+    assert "records no model digest" in caplog.text
+    with pytest.raises(
+        cc.ClosedChainError, match=r"its configuration 2 is 'rocker_joint', the mechanism's is"
+    ):
+        old.check_mechanism(fourbar_lookalikes["renamed"])

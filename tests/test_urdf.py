@@ -7,12 +7,15 @@ element and, where there is a finite set, the valid choices.
 
 from __future__ import annotations
 
+import logging
 import re
 import socket
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+from lxml import etree
 
 import closedchain as cc
 from closedchain.urdf import LOOP_TYPES, parse_urdf
@@ -256,7 +259,7 @@ def test_unknown_loop_type_lists_the_valid_types(fourbar_text, write):
     assert LOOP_TYPES == ("revolute", "prismatic", "spherical", "fixed")
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<loop name="C">')
+        match=where(path, "<loop name='C'>")
         + r": unknown loop type 'ball'; valid choices: revolute, prismatic, spherical, fixed",
     ):
         cc.load(path)
@@ -266,17 +269,17 @@ def test_unknown_link_lists_the_links(fourbar_text, write):
     path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"rocker"', '"roker"')))
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<loop name="C">') + r": <successor link='roker'> names an unknown link; "
+        match=where(path, "<loop name='C'>") + r": <successor link='roker'> names an unknown link; "
         r"links: coupler, crank, ground, rocker",
     ):
         cc.load(path)
 
 
-@pytest.mark.parametrize("axis", ["0 0 0", "0 1e-12 0"])
+@pytest.mark.parametrize("axis", ["0 0 0", "0 -0 0.0"])
 def test_zero_axis(fourbar_text, write, axis):
     path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"0 -1 0"', f'"{axis}"')))
     with pytest.raises(
-        cc.URDFError, match=where(path, '<loop name="C">') + rf": <axis xyz='{axis}'> is zero"
+        cc.URDFError, match=where(path, "<loop name='C'>") + rf": <axis xyz='{axis}'> is zero"
     ):
         cc.load(path)
 
@@ -312,7 +315,7 @@ def test_bad_rpy_attribute(fourbar_text, write):
 def test_duplicate_loop_names(fourbar_text, write):
     path = write(with_loop(fourbar_text, FOURBAR_LOOP + "\n" + FOURBAR_LOOP))
     with pytest.raises(
-        cc.URDFError, match=re.escape(str(path)) + r': loop name "C" is used more than once'
+        cc.URDFError, match=re.escape(str(path)) + r": loop name 'C' is used more than once"
     ):
         cc.load(path)
 
@@ -327,7 +330,7 @@ def test_loop_needs_a_name(fourbar_text, write):
 def test_loop_needs_both_links(fourbar_text, write, tag):
     loop = "\n".join(ln for ln in FOURBAR_LOOP.split("\n") if f"<{tag} " not in ln)
     path = write(with_loop(fourbar_text, loop))
-    with pytest.raises(cc.URDFError, match=where(path, '<loop name="C">') + f": missing <{tag}>"):
+    with pytest.raises(cc.URDFError, match=where(path, "<loop name='C'>") + f": missing <{tag}>"):
         cc.load(path)
 
 
@@ -337,7 +340,7 @@ def test_revolute_and_prismatic_loops_need_an_axis(fourbar_text, write, loop_typ
         '    <axis xyz="0 -1 0"/>\n', ""
     )
     path = write(with_loop(fourbar_text, loop))
-    with pytest.raises(cc.URDFError, match=where(path, '<loop name="C">') + ": missing <axis>"):
+    with pytest.raises(cc.URDFError, match=where(path, "<loop name='C'>") + ": missing <axis>"):
         cc.load(path)
 
 
@@ -345,7 +348,7 @@ def test_loop_with_two_axes(fourbar_text, write):
     loop = FOURBAR_LOOP.replace('<axis xyz="0 -1 0"/>', '<axis xyz="0 -1 0"/><axis xyz="1 0 0"/>')
     path = write(with_loop(fourbar_text, loop))
     with pytest.raises(
-        cc.URDFError, match=where(path, '<loop name="C">') + ": more than one <axis>"
+        cc.URDFError, match=where(path, "<loop name='C'>") + ": more than one <axis>"
     ):
         cc.load(path)
 
@@ -354,7 +357,7 @@ def test_loop_between_a_link_and_itself(fourbar_text, write):
     path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"rocker"', '"coupler"')))
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<loop name="C">') + ": predecessor and successor are the same link",
+        match=where(path, "<loop name='C'>") + ": predecessor and successor are the same link",
     ):
         cc.load(path)
 
@@ -425,7 +428,7 @@ def test_transmission_naming_a_missing_joint(fourbar_text, write):
     )
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<transmission name="crank_transmission">')
+        match=where(path, "<transmission name='crank_transmission'>")
         + r": names joint 'crank_jont', which is not a <joint> of this file; "
         r"joints: coupler_joint, crank_joint, rocker_joint",
     ):
@@ -441,7 +444,7 @@ def test_transmission_without_joint(fourbar_text, write):
     )
     path = write(text)
     with pytest.raises(
-        cc.URDFError, match=where(path, '<transmission name="empty">') + ": has no <joint> child"
+        cc.URDFError, match=where(path, "<transmission name='empty'>") + ": has no <joint> child"
     ):
         cc.load(path)
 
@@ -456,7 +459,7 @@ def test_transmission_on_a_fixed_joint(fourbar_text, write):
     path = write(text)
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<transmission name="crank_transmission">')
+        match=where(path, "<transmission name='crank_transmission'>")
         + ": joint 'crank_tip_joint' is fixed and cannot be actuated",
     ):
         cc.load(path)
@@ -471,8 +474,8 @@ def test_independent_must_be_true_or_false(fourbar_text, write):
     path = write(text)
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<joint name="rocker_joint">')
-        + ': independent="yes" must be "true" or "false"',
+        match=where(path, "<joint name='rocker_joint'>")
+        + ': independent=\'yes\' must be "true" or "false"',
     ):
         cc.load(path)
 
@@ -482,7 +485,7 @@ def test_fixed_joint_cannot_be_independent(fourbar_text, write):
     path = write(replaced(fourbar_text, FOURBAR_LOOP, tip + FOURBAR_LOOP))
     with pytest.raises(
         cc.URDFError,
-        match=where(path, '<joint name="crank_tip_joint">')
+        match=where(path, "<joint name='crank_tip_joint'>")
         + ": a fixed joint cannot be independent",
     ):
         cc.load(path)
@@ -515,7 +518,7 @@ CRANK_JOINT_AXIS = """  <joint name="crank_joint" type="revolute">
 
 
 def crank_link_where(path: Path) -> str:
-    return re.escape(str(path)) + r": line \d+: " + re.escape('<link name="crank"> <inertial>')
+    return re.escape(str(path)) + r": line \d+: " + re.escape("<link name='crank'> <inertial>")
 
 
 @pytest.mark.parametrize("mass", ["nan", "abc", "-1", "inf", ""])
@@ -560,7 +563,7 @@ def test_inertial_without_mass(fourbar_text, write):
 
 
 def joint_where(path: Path, name: str) -> str:
-    return re.escape(str(path)) + r": line \d+: " + re.escape(f'<joint name="{name}">')
+    return re.escape(str(path)) + r": line \d+: " + re.escape(f"<joint name={name!r}>")
 
 
 @pytest.mark.parametrize(
@@ -576,12 +579,10 @@ def joint_where(path: Path, name: str) -> str:
             '<origin xyz="0 0 0" rpy="inf 0 0"/>',
             r" <origin>: attribute rpy='inf 0 0' must be three finite",
         ),
-        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 0 0"/>', r" <axis xyz='0 0 0'>: has zero length"),
-        (
-            '<axis xyz="0 -1 0"/>',
-            '<axis xyz="0 nan 0"/>',
-            r" <axis>: attribute xyz='0 nan 0' must be three finite",
-        ),
+        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 0 0"/>', r": <axis xyz='0 0 0'> is zero; valid: "),
+        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 nan 0"/>', r": <axis xyz='0 nan 0'> is not finite"),
+        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 1e309 0"/>', r": <axis xyz='0 1e309 0'> is not fin"),
+        ('<axis xyz="0 -1 0"/>', '<axis xyz="0 1"/>', r": <axis xyz='0 1'> must be three numbers"),
         (
             'lower="-6.283185307179586"',
             'lower="nan"',
@@ -654,4 +655,308 @@ def test_bad_scene(fourbar_text, write, scene, message):
     end = fourbar_text.index("</scene>") + len("</scene>")
     path = write(fourbar_text[:start] + scene + fourbar_text[end:])
     with pytest.raises(cc.URDFError, match=re.escape(str(path)) + r": line \d+: .*" + message):
+        cc.load(path)
+
+
+# -- numbers that overflow: axes scaled before their norm, origins within a bound ------------
+
+
+def line_of(text: str, marker: str) -> int:
+    """Return the 1-based line of the first occurrence of ``marker`` in ``text``."""
+    return text[: text.index(marker)].count("\n") + 1
+
+
+@pytest.mark.parametrize("y", ["-1e200", "-1e308", "-1.7976931348623157e308", "-1e-12", "-5e-324"])
+def test_joint_axis_is_normalized_without_overflow(fourbar, fourbar_text, write, y):
+    """Any finite non-zero axis is a direction: Pinocchio gets the same unit axis as written."""
+    path = write(
+        replaced(fourbar_text, CRANK_JOINT_AXIS, CRANK_JOINT_AXIS.replace('"0 -1 0"', f'"0 {y} 0"'))
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning (overflow in the norm)
+        mech = cc.load(path)
+    crank = mech.model.joints[mech.model.getJointId("crank_joint")]
+    assert np.array_equal(crank.extract().axis, [0.0, -1.0, 0.0])
+    assert mech.mobility == 1
+    # The axis Pinocchio read is the one written back into the XML.
+    axis = etree.fromstring(mech.urdf.xml.encode()).find("joint[@name='crank_joint']/axis")
+    assert axis.get("xyz") == "0.0 -1.0 0.0"
+    assert mech.digest() == fourbar.digest()
+
+
+@pytest.mark.parametrize("y", ["-1e308", "-5e-324"])
+def test_loop_axis_is_normalized_without_overflow(fourbar_text, write, y):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"0 -1 0"', f'"0 {y} 0"')))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        (spec,) = parse_urdf(path).loops
+    assert np.array_equal(spec.axis, [0.0, -1.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    ("axis", "what"),
+    [("0 -1e309 0", "is not finite"), ("nan 0 0", "is not finite"), ("0 0 -0", "is zero")],
+)
+def test_loop_axis_that_is_not_finite_or_zero_says_which(fourbar_text, write, axis, what):
+    path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"0 -1 0"', f'"{axis}"')))
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(f"{path}: line {line_of(fourbar_text, '<loop ')}: <loop name='C'>: ")
+        + re.escape(f"<axis xyz={axis!r}> {what}"),
+    ):
+        parse_urdf(path)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (  # joint origin
+            '<origin xyz="0.5 0 0" rpy="0 0 0"/>',
+            '<origin xyz="1e308 0 0" rpy="0 0 0"/>',
+            "<joint name='rocker_joint'> <origin>: attribute xyz='1e308 0 0' is beyond "
+            "ORIGIN_XYZ_MAX = 1e+06 m",
+        ),
+        (
+            '<origin xyz="0.5 0 0" rpy="0 0 0"/>',
+            '<origin xyz="0.5 0 0" rpy="0 1e300 0"/>',
+            "<joint name='rocker_joint'> <origin>: attribute rpy='0 1e300 0' is beyond "
+            "ORIGIN_RPY_MAX = 1000 rad",
+        ),
+        (  # loop origin
+            '<successor_origin xyz="0.3 0 0" rpy="0 0 0"/>',
+            '<successor_origin xyz="0.3 -2e6 0" rpy="0 0 0"/>',
+            "<successor_origin>: attribute xyz='0.3 -2e6 0' is beyond ORIGIN_XYZ_MAX",
+        ),
+        (  # inertial origin
+            '<origin xyz="0.15 0 0" rpy="0 0 0"/>\n      <mass',
+            '<origin xyz="1e200 0 0" rpy="0 0 0"/>\n      <mass',
+            "<link name='rocker'> <inertial> <origin>: attribute xyz='1e200 0 0' is beyond",
+        ),
+        (  # visual origin
+            '<origin xyz="0.15 0 0" rpy="0 0 0"/>\n      <geometry>',
+            '<origin xyz="0.15 0 0" rpy="-1e4 0 0"/>\n      <geometry>',
+            "<link name='rocker'> <visual> <origin>: attribute rpy='-1e4 0 0' is beyond",
+        ),
+    ],
+)
+def test_origins_beyond_their_bound_are_refused_without_warnings(
+    fourbar_text, write, old, new, message
+):
+    path = write(replaced(fourbar_text, old, new))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(
+            cc.URDFError, match=re.escape(str(path)) + r": line \d+: .*" + re.escape(message)
+        ):
+            cc.load(path)
+
+
+# -- unknown and misplaced elements ---------------------------------------------------------
+
+
+def test_loop_inside_a_link_is_refused(fourbar_text, write):
+    """Ignored, it would leave the mechanism open (the Agile Eye would report mobility 5)."""
+    text = replaced(
+        with_loop(fourbar_text, ""), "</link>\n\n  <joint", FOURBAR_LOOP + "\n  </link>\n\n  <joint"
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(
+            f"{path}: line {line_of(text, '<loop ')}: <loop name='C'>: inside <link name='rocker'>:"
+            " a <loop> is read only as a child of <robot>"
+        ),
+    ):
+        cc.load(path)
+
+
+def test_loop_inside_the_agile_eye_link_is_refused(mechanism_files, write):
+    text = mechanism_files["agile_eye"].read_text()
+    start = text.index('  <loop name="leg1_platform"')
+    end = text.index("</loop>", start) + len("</loop>")
+    loop = text[start:end]
+    text = text[:start] + text[end:]
+    text = replaced(text, '<link name="euler_link_z"/>', f'<link name="euler_link_z">{loop}</link>')
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=rf"line {line_of(text, loop)}: <loop name='leg1_platform'>: "
+        r"inside <link name='euler_link_z'>",
+    ):
+        cc.load(path)
+
+
+def test_scene_inside_a_joint_is_refused(fourbar_text, write):
+    start, end = fourbar_text.index("  <scene>"), fourbar_text.index("</scene>") + len("</scene>")
+    scene = fourbar_text[start:end]
+    text = replaced(
+        fourbar_text[:start] + fourbar_text[end:],
+        '<child link="rocker"/>',
+        '<child link="rocker"/>' + scene,
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(
+            f"line {line_of(text, '<scene>')}: <scene>: inside <joint name='rocker_joint'>"
+        ),
+    ):
+        cc.load(path)
+
+
+def test_loop_inside_gazebo_is_not_urdf_and_is_left_alone(fourbar_text, write):
+    # SDF (in <gazebo>) has its own <loop> (audio sources); URDF tools skip <gazebo>.
+    text = replaced(
+        fourbar_text,
+        "</robot>",
+        "<gazebo><audio_source><loop>true</loop></audio_source></gazebo></robot>",
+    )
+    assert cc.load(write(text)).mobility == 1
+
+
+@pytest.mark.parametrize(
+    ("tag", "typo"),
+    [("loop", "Loop"), ("transmission", "transmision"), ("scene", "scnee"), ("joint", "joints")],
+)
+def test_misspelled_top_level_element_is_refused(fourbar_text, write, tag, typo):
+    """Ignored, it would change the mechanism (or its actuation, or its scene) silently."""
+    start = fourbar_text.index(f"<{tag}>" if tag == "scene" else f"<{tag} ")
+    end = fourbar_text.index(f"</{tag}>", start)
+    text = (
+        fourbar_text[:start]
+        + f"<{typo}"
+        + fourbar_text[start + len(tag) + 1 : end]
+        + f"</{typo}>"
+        + fourbar_text[end + len(tag) + 3 :]
+    )
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(f"{path}: line {line_of(text, f'<{typo}')}: <{typo}")
+        + r"( name='\w+')?>"
+        + re.escape(f": unknown element (it would be ignored); did you mean <{tag}>?"),
+    ):
+        cc.load(path)
+
+
+def test_unknown_top_level_element_is_a_warning_naming_file_and_line(fourbar_text, write, caplog):
+    text = replaced(fourbar_text, "</robot>", '<sensor name="cam"/>\n  <gazebo/>\n</robot>')
+    path = write(text)
+    with caplog.at_level(logging.WARNING, logger="closedchain.urdf"):
+        mech = cc.load(path)
+    assert mech.mobility == 1
+    assert [r.getMessage() for r in caplog.records if r.name == "closedchain.urdf"] == [
+        f"{path}: line {line_of(text, '<sensor')}: <sensor name='cam'>: not a URDF or URDF+ "
+        "element; ignored"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            '<axis xyz="0 -1 0"/>\n  </loop>',
+            '<axsi xyz="0 -1 0"/>\n  </loop>',
+            "<axsi>: unknown element in <loop> (it would be ignored); did you mean <axis>?",
+        ),
+        (
+            '<predecessor_origin xyz="0.4 0 0" rpy="0 0 0"/>',
+            '<origin xyz="0.4 0 0" rpy="0 0 0"/>',
+            "<origin>: unknown element in <loop>; valid: <predecessor>, <successor>, "
+            "<predecessor_origin>, <successor_origin>, <axis>",
+        ),
+        (
+            '<initial joint="rocker_joint"',
+            '<intial joint="rocker_joint"',
+            "<intial>: unknown element in <scene> (it would be ignored); did you mean <initial>?",
+        ),
+        (
+            "<scene>",
+            "<scene><track kp='1' kd='1'><sine joint='crank_joint'/></track>",
+            "<sine>: unknown element in <track>; valid: <sinusoid>",
+        ),
+        (
+            "<actuator name=",
+            "<jiont name='crank_joint'/><actuator name=",
+            "<jiont name='crank_joint'>: unknown element in <transmission> (it would be "
+            "ignored); did you mean "
+            "<joint>?",
+        ),
+    ],
+)
+def test_unknown_child_of_a_closedchain_element_is_refused(fourbar_text, write, old, new, message):
+    text = replaced(fourbar_text, old, new)
+    path = write(text)
+    with pytest.raises(
+        cc.URDFError, match=re.escape(f"{path}: line {line_of(fourbar_text, old)}: {message}")
+    ):
+        cc.load(path)
+
+
+def test_unknown_child_of_a_transmission_is_a_warning(fourbar_text, write, caplog):
+    # Older transmissions (pr2_mechanism_model) hold <mechanicalReduction> directly.
+    text = replaced(
+        fourbar_text,
+        "<actuator name=",
+        "<mechanicalReduction>1</mechanicalReduction><actuator name=",
+    )
+    path = write(text)
+    with caplog.at_level(logging.WARNING, logger="closedchain.urdf"):
+        assert cc.load(path).actuated_joints == ("crank_joint",)
+    assert f"{path}: line {line_of(text, '<mechanicalReduction>')}: <mechanicalReduction>: " in (
+        caplog.text
+    )
+
+
+# -- names --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "element"),
+    [
+        ('<loop name="C"', '<loop name="C&#10;D"', "<loop name='C\\nD'>: the loop name"),
+        (
+            '<joint name="rocker_joint"',
+            '<joint name="rocker&#9;joint"',
+            "<joint name='rocker\\tjoint'>: the joint name",
+        ),
+        ('<link name="ground">', '<link name="gro&#13;und">', "<link name='gro\\rund'>: the link"),
+        ('<robot name="fourbar">', '<robot name="four&#133;bar">', "<robot name='four\\x85bar'>: "),
+        (
+            '<transmission name="crank_transmission"',
+            '<transmission name="crank&#x2028;transmission"',
+            "<transmission name='crank\\u2028transmission'>: the transmission name",
+        ),
+    ],
+)
+def test_names_with_control_characters_are_refused_on_one_line(
+    fourbar_text, write, old, new, element
+):
+    text = replaced(fourbar_text, old, new)
+    path = write(text)
+    with pytest.raises(cc.URDFError, match=re.escape(element)) as info:
+        cc.load(path)
+    message = str(info.value)
+    assert len(message.splitlines()) == 1, message
+    assert message.startswith(f"{path}: line {line_of(text, new)}: ")
+
+
+@pytest.mark.parametrize("kind", ["joint", "link"])
+def test_duplicate_joint_or_link_name_names_both_lines(fourbar_text, write, kind):
+    """Reported as such, not blamed on the <scene> that names the lost joint."""
+    duplicate, renamed = {
+        "joint": ('<joint name="coupler_joint"', '<joint name="rocker_joint"'),
+        "link": ('<link name="coupler">', '<link name="rocker">'),
+    }[kind]
+    text = replaced(fourbar_text, renamed, duplicate)
+    path = write(text)
+    lines = [i + 1 for i, ln in enumerate(text.splitlines()) if duplicate in ln]
+    name = re.search(r'name="(\w+)"', duplicate)[1]
+    with pytest.raises(
+        cc.URDFError,
+        match=re.escape(
+            f"{path}: line {lines[1]}: <{kind} name={name!r}>: duplicate {kind} name, first used "
+            f"at line {lines[0]}"
+        ),
+    ):
         cc.load(path)

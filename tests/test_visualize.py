@@ -508,6 +508,26 @@ def test_trajectory_of_another_mechanism_is_refused(fourbar, agile_eye_traj):
         vz.build_scene(fourbar, agile_eye_traj)
 
 
+@pytest.mark.parametrize(
+    ("lookalike", "message"),
+    [
+        ("renamed", r"its joint 2 is 'rocker_joint', the mechanism's is 'rocker_pivot'"),
+        ("longer_rocker", r"same joints, model digest [0-9a-f]{12} != [0-9a-f]{12}"),
+    ],
+)
+def test_trajectory_of_a_mechanism_of_the_same_nq_is_refused(
+    short_traj, fourbar_lookalikes, tmp_path, lookalike, message
+):
+    path = tmp_path / "x.html"
+    with pytest.raises(ClosedChainError, match=message):
+        vz.write_html(fourbar_lookalikes[lookalike], short_traj, path)
+    assert not path.exists()
+
+
+def test_trajectory_of_its_own_mechanism_is_drawn(fourbar, short_traj, tmp_path):
+    assert vz.write_html(fourbar, short_traj, tmp_path / "x.html").n_keyframes >= 2
+
+
 def test_times_must_increase(fourbar, fourbar_traj):
     t = fourbar_traj.t.copy()
     t[5] = t[4]

@@ -8,6 +8,8 @@ and Pinocchio constraint models are built for validation.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import threading
 from collections.abc import Iterable, Sequence
@@ -57,6 +59,15 @@ ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointM
 
 #: Standard gravity along world -z [m/s^2].
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
+
+#: Significant digits of each number in :meth:`Mechanism.digest`: fewer than a
+#: double holds, so that a last-bit difference of sin/cos between two machines'
+#: math libraries (placements from rpy) leaves the digest as it is.
+DIGEST_DIGITS = 12
+
+#: Magnitude [SI] below which a number enters :meth:`Mechanism.digest` as 0
+#: (round-off such as cos(pi/2) = 6e-17, and -0.0).
+DIGEST_ZERO = 1e-12
 
 
 def max_nv(settings: LoadSettings) -> int:
@@ -146,6 +157,8 @@ class Mechanism:
         root_joint: the root joint :func:`load` added (None, ``"free"``, ``"planar"``).
         independent_source: ``"urdf"``, ``"actuated"`` or ``"automatic"``.
         q_ref: an assembled configuration, shape (nq,).
+        joint_names: the tree's joint names in tree order (Pinocchio's
+            ``model.names`` without the universe; a root joint included).
         coordinate_names: one name per velocity coordinate.
         configuration_names: one name per configuration entry (``joint[k]`` for
             joints with several entries, e.g. a continuous joint's cos, sin).
@@ -169,6 +182,7 @@ class Mechanism:
         self.closure = closure
         self.gravity = np.array(gravity, dtype=float)
         self.nq, self.nv = model.nq, model.nv
+        self.joint_names: tuple[str, ...] = tuple(model.names[1:])
         names = []
         for j in range(1, model.njoints):
             jn = model.names[j]
@@ -422,6 +436,58 @@ class Mechanism:
             pin.initConstraintDynamics(self.model, pdata, cms, cds)
             self._pin_constraints = (cms, cds, owners, pdata)
         return self._pin_constraints
+
+    def digest(self) -> str:
+        """Return a SHA-256 hex digest of the model a motion of this mechanism depends on.
+
+        It covers, per joint in tree order: name, type, parent, placement in the
+        parent joint's frame, motion subspace S at the neutral configuration
+        (the axis), and the inertia of its body (mass, centre of mass,
+        rotational inertia: fixed links folded in); per loop: name, type,
+        links, both origins and axis. Numbers enter rounded to
+        :data:`DIGEST_DIGITS` significant digits (below :data:`DIGEST_ZERO`:
+        0), so the digest is the same in every process and on every machine
+        for the same model, and changes with any dimension, mass or axis.
+        It does not depend on the file's path, comments, names of links,
+        visuals, actuation or gravity (a load, not the mechanism).
+        """
+
+        def numbers(a) -> list[str]:
+            return [
+                "0" if abs(x) < DIGEST_ZERO else f"{x:.{DIGEST_DIGITS}g}"
+                for x in np.ravel(np.asarray(a, dtype=float)).tolist()
+            ]
+
+        model, q0 = self.model, pin.neutral(self.model)
+        joints = []
+        for j in range(1, model.njoints):
+            jm, body = model.joints[j], model.inertias[j]
+            jdata = jm.createData()
+            jm.calc(jdata, q0)
+            joints.append(
+                [
+                    model.names[j],
+                    jm.shortname(),
+                    int(model.parents[j]),
+                    numbers(model.jointPlacements[j].homogeneous[:3]),
+                    numbers(jdata.S),
+                    numbers([body.mass, *body.lever, *body.inertia.ravel()]),
+                ]
+            )
+        loops = [
+            [
+                spec.name,
+                spec.type,
+                spec.predecessor,
+                spec.successor,
+                numbers(spec.predecessor_origin.homogeneous[:3]),
+                numbers(spec.successor_origin.homogeneous[:3]),
+                numbers(spec.axis),
+            ]
+            for spec in self.urdf.loops
+        ]
+        text = json.dumps({"joints": joints, "loops": loops}, separators=(",", ":"))
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
     @exclusive
     def summary(self) -> dict:

@@ -168,6 +168,7 @@ def _coordinates(mech: Mechanism | None, trajectory: Trajectory, coordinates):
                 f"trajectory has nq = {nq}, nv = {nv} but mechanism {mech.name!r} has"
                 f" nq = {mech.nq}, nv = {mech.nv}"
             )
+        trajectory.check_mechanism(mech)
         names = list(mech.coordinate_names)
         if coordinates is None:
             idx = np.asarray(mech.independent_idx_v, dtype=int)
@@ -243,8 +244,10 @@ def plot_trajectory(
 
     Raises:
         ClosedChainError: a coordinate name or index is unknown, the info or
-            the mechanism does not match the trajectory, or nq != nv and no
-            mechanism is given.
+            the mechanism does not match the trajectory (its shape, or it was
+            simulated on another mechanism:
+            :meth:`~closedchain.trajectory.Trajectory.check_mechanism`), or
+            nq != nv and no mechanism is given.
     """
     from matplotlib.figure import Figure
 

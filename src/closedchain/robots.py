@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import metadata
 from pathlib import Path
 
@@ -214,9 +214,12 @@ def merge_overlay(
             root.append(copy.deepcopy(element))
         root.set("name", extra.get("name", root.get("name", path.stem)))
         _check_world_joints(path, root)
+    urdf = parse_urdf(path, element=root, max_nv=max_nv)
     if primitive:
+        # After the checks: the joint origins it reads are finite and bounded.
         primitive_visuals(root)
-    return parse_urdf(path, element=root, max_nv=max_nv)
+        urdf = replace(urdf, xml=etree.tostring(root, encoding="unicode"))
+    return urdf
 
 
 def _check_world_joints(path: Path, root) -> None:

@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .exceptions import ClosedChainError
+
+if TYPE_CHECKING:
+    from .mechanism import Mechanism
+
+logger = logging.getLogger(__name__)
 
 _ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
 
@@ -64,6 +70,22 @@ def energy_drift(energy: np.ndarray, kinetic_energy: np.ndarray | None) -> float
     return deviation / scale
 
 
+def _check_names(of: str, target: str, kind: str, names: Sequence[str], valid: Sequence[str]):
+    """Raise naming the first difference of two name lists (``kind``: ``"joint"``, ...)."""
+    if tuple(names) == tuple(valid):
+        return
+    k = next(
+        (i for i, (a, b) in enumerate(zip(names, valid, strict=False)) if a != b),
+        min(len(names), len(valid)),
+    )
+    ours = repr(names[k]) if k < len(names) else "missing"
+    theirs = repr(valid[k]) if k < len(valid) else "missing"
+    raise ClosedChainError(
+        f"{of} does not fit {target}: its {kind} {k} is {ours}, the mechanism's is {theirs} "
+        f"({len(names)} against {len(valid)} {kind}s); give the mechanism it was simulated on"
+    )
+
+
 def _freeze(x):
     """Lists (as JSON gives them back) to tuples, recursively."""
     return tuple(_freeze(e) for e in x) if isinstance(x, (list, tuple)) else x
@@ -85,6 +107,10 @@ class SimulationInfo:
         dt: fixed step [s] (fixed-step integrators), else None.
         rtol, atol: tolerances (adaptive integrators), else None.
         t_final: requested duration [s].
+        joint_names: the mechanism's joint names (``Mechanism.joint_names``);
+            empty in trajectories saved before they were recorded.
+        model_digest: ``Mechanism.digest()`` of the mechanism simulated, or
+            None (saved before it was recorded).
         coordinate_names: one name per coordinate when nq == nv, else None.
         configuration_names: one name per entry of q (nq).
         velocity_names: one name per entry of v (nv).
@@ -118,6 +144,8 @@ class SimulationInfo:
     rtol: float | None = None
     atol: float | None = None
     t_final: float | None = None
+    joint_names: tuple[str, ...] = ()
+    model_digest: str | None = None
     coordinate_names: tuple[str, ...] | None = None
     configuration_names: tuple[str, ...] = ()
     velocity_names: tuple[str, ...] = ()
@@ -145,7 +173,13 @@ class SimulationInfo:
         extra = {**d.get("extra", {}), **{k: v for k, v in d.items() if k not in names}}
         for k, v in kw.items():
             kw[k] = _freeze(v)
-        for k in ("configuration_names", "velocity_names", "independent", "repartitions"):
+        for k in (
+            "joint_names",
+            "configuration_names",
+            "velocity_names",
+            "independent",
+            "repartitions",
+        ):
             kw[k] = kw.get(k) or ()
         for k in ("branch_changes", "row_reselections"):
             kw[k] = kw.get(k) or ()
@@ -231,6 +265,50 @@ class Trajectory:
     def max_constraint_residual(self) -> float:
         """max over time of max |phi(q)|."""
         return float(np.max(self.constraint_residual, initial=0.0))
+
+    def check_mechanism(self, mech: Mechanism) -> None:
+        """Raise unless this trajectory was simulated on ``mech``.
+
+        The joint names recorded in :attr:`info` must be the mechanism's, and
+        so must the model digest (:meth:`Mechanism.digest`): same joints with
+        other dimensions, masses, axes or loops are another mechanism. A
+        trajectory saved before the digest was recorded is checked by its
+        joint names, else its configuration names, with a logged warning; one
+        that records neither (built by hand) is not checked.
+
+        Args:
+            mech: the mechanism the trajectory is to be drawn or replayed on.
+
+        Raises:
+            ClosedChainError: the names differ (the message gives the first
+                difference) or the digests differ.
+        """
+        info = self.info
+        of = f"trajectory{' of ' + repr(info.mechanism) if info.mechanism else ''}"
+        target = f"mechanism {mech.name!r} ({mech.path})"
+        if info.joint_names:
+            _check_names(of, target, "joint", info.joint_names, mech.joint_names)
+        elif info.configuration_names:
+            _check_names(
+                of, target, "configuration", info.configuration_names, mech.configuration_names
+            )
+        else:
+            return
+        if info.model_digest is None:
+            logger.warning(
+                "%s records no model digest (saved by an older closedchain): only its names "
+                "were checked against %s",
+                of,
+                target,
+            )
+            return
+        digest = mech.digest()
+        if info.model_digest != digest:
+            raise ClosedChainError(
+                f"{of} was simulated on another model than {target}: same joints, model digest "
+                f"{info.model_digest[:12]} != {digest[:12]} (dimensions, masses, axes or loops "
+                "differ); give the URDF it was simulated on"
+            )
 
     def save(self, path: str | Path) -> Path:
         """Write the trajectory as ``.npz`` (all arrays, info) or ``.csv`` (t, q, v, residuals, E).

@@ -14,13 +14,17 @@ parser, what Pinocchio ignores (URDF+, Chignoli et al. 2024):
     </loop>
 
 Parsing is safe: no DTD is accepted (so no entity expansion and no external
-entities), no network access, no huge trees.
+entities), no network access, no huge trees. What the parser accepts, refuses
+and warns about is stated in :func:`parse_urdf`.
 """
 
 from __future__ import annotations
 
+import difflib
+import logging
 import math
 import re
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +34,8 @@ from lxml import etree
 
 from .exceptions import ModelTooLargeError, URDFError
 
+logger = logging.getLogger(__name__)
+
 #: Loop-joint types and the relative motion each allows.
 LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
 
@@ -38,8 +44,42 @@ LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
 #: planar root the URDF's root link moves, and this is what stays put.
 WORLD_LINK = "world"
 
-#: Norm below which an ``<axis>`` is rejected as zero.
-AXIS_NORM_MIN = 1e-9
+#: Largest |component| [m] of an ``xyz`` origin: far beyond any mechanism, far
+#: below where the squares of lengths overflow (1e154 m).
+ORIGIN_XYZ_MAX = 1e6
+
+#: Largest |angle| [rad] of an ``rpy`` origin: a few hundred turns, where the
+#: angle still has all the digits a rotation needs.
+ORIGIN_RPY_MAX = 1e3
+
+#: Top-level elements of standard URDF (other top-level elements get a warning).
+URDF_ELEMENTS = ("link", "joint", "material", "transmission", "gazebo")
+
+#: Top-level elements URDF+ and closedchain add.
+URDF_PLUS_ELEMENTS = ("loop", "scene")
+
+#: Elements that are read only as children of ``<robot>`` (anywhere else they are refused).
+TOP_LEVEL_ONLY = URDF_PLUS_ELEMENTS
+
+#: Elements whose content is not URDF (SDF for Gazebo): nothing inside them is checked.
+FOREIGN_ELEMENTS = ("gazebo",)
+
+#: Children of the closedchain elements (any other child is refused).
+LOOP_CHILDREN = ("predecessor", "successor", "predecessor_origin", "successor_origin", "axis")
+SCENE_CHILDREN = ("initial", "track")
+TRACK_CHILDREN = ("sinusoid",)
+
+#: Children of a standard ``<transmission>`` (others get a warning, near misses are refused).
+TRANSMISSION_CHILDREN = ("type", "joint", "actuator")
+
+#: Similarity (difflib ratio, case folded) from which an unknown element name is
+#: taken for a misspelling of a known one and refused: ``<Loop>``, ``<transmision>``
+#: and ``<scnee>`` are, ``<plugin>`` (0.6 to ``link``) and ``<sensor>`` are not.
+NEAR_MISS_CUTOFF = 0.75
+
+#: Unicode categories refused in names: control characters (newline, tab, ...)
+#: and line and paragraph separators, which would split a message.
+NAME_REFUSED_CATEGORIES = ("Cc", "Zl", "Zp")
 
 #: Relative tolerance of the positive-definiteness check of an ``<inertia>``:
 #: its smallest eigenvalue must exceed ``-INERTIA_REL_TOL * max |eigenvalue|``
@@ -186,22 +226,172 @@ def _safe_parser() -> etree.XMLParser:
     )
 
 
-def _where(path: Path, element) -> str:
+def _tag(element) -> str:
+    """Return ``<tag name='...'>`` (the name with ``repr``: one line), or ``<tag>``."""
     name = element.get("name")
-    tag = f'<{element.tag} name="{name}">' if name is not None else f"<{element.tag}>"
-    return f"{path}: line {element.sourceline}: {tag}"
+    return f"<{element.tag} name={name!r}>" if name is not None else f"<{element.tag}>"
 
 
-def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
-    text = element.get(attribute, default)
+def _where(path: Path, element) -> str:
+    """Return ``"{path}: line {n}: <tag name='...'>"``: where a message is about (one line)."""
+    return f"{path}: line {element.sourceline}: {_tag(element)}"
+
+
+def _three(text: str) -> np.ndarray | None:
+    """Return the three numbers of an attribute's text, shape (3,), or None if it holds others."""
     try:
         values = [float(x) for x in text.split()]
     except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(x) for x in values):
+        return None
+    return np.array(values) if len(values) == 3 else None
+
+
+def _floats(path: Path, element, attribute: str, default: str, where: str = "") -> np.ndarray:
+    """Return an attribute of three finite numbers, shape (3,), or raise naming it."""
+    text = element.get(attribute, default)
+    values = _three(text)
+    if values is None or not np.all(np.isfinite(values)):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
         raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
-    return np.array(values)
+    return values
+
+
+def _origin_values(path: Path, origin, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """Return (xyz [m], rpy [rad]) of an origin element, each finite and within its bound.
+
+    Raises:
+        URDFError: an attribute is not three finite numbers, or is beyond
+            :data:`ORIGIN_XYZ_MAX` or :data:`ORIGIN_RPY_MAX` (the message names
+            the attribute and the bound).
+    """
+    prefix = f"{where} <{origin.tag}>" if where else _where(path, origin)
+    out = []
+    for attribute, name, bound, unit in (
+        ("xyz", "ORIGIN_XYZ_MAX", ORIGIN_XYZ_MAX, "m"),
+        ("rpy", "ORIGIN_RPY_MAX", ORIGIN_RPY_MAX, "rad"),
+    ):
+        values = _floats(path, origin, attribute, "0 0 0", where)
+        if float(np.max(np.abs(values))) > bound:
+            raise URDFError(
+                f"{prefix}: attribute {attribute}={origin.get(attribute)!r} is beyond "
+                f"{name} = {bound:g} {unit}; valid: |components| <= {bound:g} {unit}"
+            )
+        out.append(values)
+    return out[0], out[1]
+
+
+def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
+    """Return the unit vector of an ``<axis xyz=...>``, shape (3,), without overflow.
+
+    The components are scaled by the largest |component| before the norm is
+    taken, so every finite non-zero axis (1e308 or 1e-320 included) gives its
+    direction; numpy's plain norm overflows to inf past 1e154 and the axis
+    becomes zero.
+
+    Raises:
+        URDFError: the attribute is not three numbers, is not finite or is zero.
+    """
+    text = axis.get("xyz", "1 0 0")
+    xyz = _three(text)
+    if xyz is None:
+        raise URDFError(f"{where}: <axis xyz={text!r}> must be three numbers")
+    if not np.all(np.isfinite(xyz)):
+        raise URDFError(f"{where}: <axis xyz={text!r}> is not finite; valid: three finite numbers")
+    scale = float(np.max(np.abs(xyz)))
+    if scale == 0.0:
+        raise URDFError(
+            f"{where}: <axis xyz={text!r}> is zero; valid: a direction with a non-zero component"
+        )
+    unit = xyz / scale  # largest |component| is 1: the norm below is in [1, sqrt(3)]
+    return unit / math.sqrt(float(unit @ unit))
+
+
+def _check_name(path: Path, element, kind: str) -> str:
+    """Return the ``name`` of a robot, link, joint, loop or transmission, refusing control chars.
+
+    Args:
+        path: the file, for messages.
+        element: the element.
+        kind: what it is (``"joint"``), for messages.
+
+    Raises:
+        URDFError: no name, or a name holding a character of
+            :data:`NAME_REFUSED_CATEGORIES` (shown with ``repr``, on one line).
+    """
+    name = element.get("name")
+    if not name:
+        raise URDFError(f"{_where(path, element)}: <{element.tag}> needs a name attribute")
+    bad = [c for c in name if unicodedata.category(c) in NAME_REFUSED_CATEGORIES]
+    if bad:
+        raise URDFError(
+            f"{_where(path, element)}: the {kind} name contains the control character "
+            f"{bad[0]!r} (U+{ord(bad[0]):04X}); valid: names of printable characters"
+        )
+    return name
+
+
+def _unique_names(path: Path, elements, kind: str) -> tuple[str, ...]:
+    """Return the checked names of ``elements``, refusing one used twice (naming both lines)."""
+    first: dict[str, int] = {}
+    for e in elements:
+        name = _check_name(path, e, kind)
+        if name in first:
+            raise URDFError(
+                f"{_where(path, e)}: duplicate {kind} name, first used at line {first[name]}; "
+                f"every {kind} needs its own name"
+            )
+        first[name] = e.sourceline or 0
+    return tuple(first)
+
+
+def _near_miss(tag: str, known: tuple[str, ...]) -> str | None:
+    """Return the known element name ``tag`` misspells (:data:`NEAR_MISS_CUTOFF`), or None."""
+    match = difflib.get_close_matches(tag.casefold(), known, n=1, cutoff=NEAR_MISS_CUTOFF)
+    return match[0] if match else None
+
+
+def _check_children(path: Path, element, known: tuple[str, ...], *, strict: bool) -> None:
+    """Refuse a child of ``element`` that misspells a known one; refuse or warn on others.
+
+    Args:
+        path: the file, for messages.
+        element: the parent element.
+        known: the valid child element names.
+        strict: refuse every unknown child (closedchain's own elements), else
+            warn about the ones that are not near misses (standard URDF
+            elements, which tools may extend).
+    """
+    for child in element:
+        if not isinstance(child.tag, str) or child.tag in known:  # comments, PIs
+            continue
+        where = _where(path, child)
+        inside = "" if element.tag == "robot" else f" in <{element.tag}>"
+        close = _near_miss(child.tag, known) if "}" not in child.tag else None
+        if close is not None:
+            raise URDFError(
+                f"{where}: unknown element{inside} (it would be ignored); did you mean <{close}>?"
+            )
+        if strict:
+            raise URDFError(
+                f"{where}: unknown element{inside}; valid: {', '.join(f'<{k}>' for k in known)}"
+            )
+        logger.warning("%s: not a URDF or URDF+ element%s; ignored", where, inside)
+
+
+def _check_layout(path: Path, root) -> None:
+    """Refuse misplaced or misspelled URDF+ elements; warn about unknown top-level ones.
+
+    See :func:`parse_urdf` for the rule.
+    """
+    _check_children(path, root, URDF_ELEMENTS + URDF_PLUS_ELEMENTS, strict=False)
+    for e in root.iter(*TOP_LEVEL_ONLY):
+        parent = e.getparent()
+        if parent is root or any(a.tag in FOREIGN_ELEMENTS for a in e.iterancestors()):
+            continue
+        raise URDFError(
+            f"{_where(path, e)}: inside {_tag(parent)}: a <{e.tag}> "
+            "is read only as a child of <robot> (here it would be ignored)"
+        )
 
 
 def _number(where: str, element, attribute: str, *, minimum: float | None = None) -> float | None:
@@ -235,11 +425,10 @@ def _check_inertial(path: Path, link) -> None:
     inertial = link.find("inertial")
     if inertial is None:
         return
-    where = f'{path}: line {inertial.sourceline}: <link name="{link.get("name")}"> <inertial>'
+    where = f"{path}: line {inertial.sourceline}: <link name={link.get('name')!r}> <inertial>"
     origin = inertial.find("origin")
     if origin is not None:
-        _floats(path, origin, "xyz", "0 0 0", where)
-        _floats(path, origin, "rpy", "0 0 0", where)
+        _origin_values(path, origin, where)
     mass = inertial.find("mass")
     if mass is None or mass.get("value") is None:
         raise URDFError(f"{where}: missing <mass value=...>")
@@ -277,21 +466,23 @@ AXIS_JOINT_TYPES = ("revolute", "continuous", "prismatic", "planar")
 
 
 def _check_joint(path: Path, joint) -> None:
-    """Refuse a ``<joint>`` with a non-finite origin, a zero or non-finite axis or NaN limits."""
+    """Refuse a ``<joint>`` with a bad origin, a zero or non-finite axis or NaN limits.
+
+    The axis of a joint that has one is written back as its unit vector (all
+    digits): Pinocchio's reader then normalizes a unit vector, where its own
+    norm of e.g. ``0 -1e200 0`` overflows and leaves the axis zero.
+    """
     where = _where(path, joint)
     origin = joint.find("origin")
     if origin is not None:
-        _floats(path, origin, "xyz", "0 0 0", where)
-        _floats(path, origin, "rpy", "0 0 0", where)
+        _origin_values(path, origin, where)
     axis = joint.find("axis")
-    if axis is not None:
-        xyz = _floats(path, axis, "xyz", "1 0 0", where)
-        # URDF ignores the axis of fixed and floating joints (Talos writes 0 0 0 there).
-        if joint.get("type") in AXIS_JOINT_TYPES and not float(np.linalg.norm(xyz)) > AXIS_NORM_MIN:
-            raise URDFError(
-                f"{where} <axis xyz={axis.get('xyz')!r}>: has zero length "
-                f"(norm must exceed {AXIS_NORM_MIN:g})"
-            )
+    # URDF ignores the axis of fixed and floating joints (Talos writes 0 0 0 there).
+    if axis is not None and joint.get("type") in AXIS_JOINT_TYPES:
+        unit = _unit_axis(path, axis, where)
+        axis.set("xyz", " ".join(repr(float(x)) for x in unit))
+    elif axis is not None:
+        _floats(path, axis, "xyz", "1 0 0", where)
     limit = joint.find("limit")
     if limit is not None:
         bounds = {
@@ -304,8 +495,7 @@ def _check_joint(path: Path, joint) -> None:
 
 
 def _origin(path: Path, element) -> pin.SE3:
-    xyz = _floats(path, element, "xyz", "0 0 0")
-    rpy = _floats(path, element, "rpy", "0 0 0")
+    xyz, rpy = _origin_values(path, element)
     return pin.SE3(pin.rpy.rpyToMatrix(rpy), xyz)
 
 
@@ -359,34 +549,68 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
             refused right after the XML is read, before any per-element work.
 
     Returns:
-        The parsed extensions, with the checked XML text.
+        The parsed extensions, with the checked XML text (joint axes written
+        as unit vectors, see below).
 
     Raises:
         URDFError: the file is missing, is not well-formed XML, declares a DTD,
-            or an extension element is invalid (unknown loop type, unknown
-            link, zero axis, transmission naming a missing joint, ...). The
-            message names the file, line and element and the valid choices.
+            or an element is invalid (unknown loop type, unknown link, zero
+            axis, transmission naming a missing joint, ...). The message names
+            the file, line and element and the valid choices.
+
+    Which elements are read, refused or warned about:
+
+    - Top level (children of ``<robot>``): the URDF elements
+      :data:`URDF_ELEMENTS` and the URDF+ ones :data:`URDF_PLUS_ELEMENTS`.
+      An unknown name that misspells one of them (:data:`NEAR_MISS_CUTOFF`,
+      case folded: ``<Loop>``, ``<transmision>``, ``<scnee>``) is refused with
+      "did you mean"; any other unknown name gets a ``logging`` warning naming
+      file and line, and is ignored (as URDF tools ignore it).
+    - A ``<loop>`` or ``<scene>`` anywhere but as a child of ``<robot>`` is
+      refused: ignoring it would silently change the mechanism. The content of
+      ``<gazebo>`` (SDF) is not looked at.
+    - Children of ``<loop>``, ``<scene>`` and ``<track>``: only
+      :data:`LOOP_CHILDREN`, :data:`SCENE_CHILDREN`, :data:`TRACK_CHILDREN`.
+      Children of ``<transmission>``: :data:`TRANSMISSION_CHILDREN`; a near
+      miss of them is refused, any other child warned about.
+    - Names of links, joints, loops and transmissions (and of the robot, if
+      given): present, without control characters (:data:`NAME_REFUSED_CATEGORIES`); link and joint
+      names unique (a duplicate names both lines). Messages quote names
+      with ``repr``, so they stay one line.
+    - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
+      :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
+      scaling first (an axis of 1e308 is a direction). The axis of a
+      revolute, continuous, prismatic or planar ``<joint>`` is written back
+      into the XML as its unit vector, so Pinocchio and closedchain see the
+      same axis.
     """
     path = Path(path)
     root = read_xml(path) if element is None else element
     if root.tag != "robot":
         raise URDFError(f"{path}: root element is <{root.tag}>, expected <robot>")
 
-    links = tuple(e.get("name") for e in root.findall("link"))
-    if not links:
+    link_elements, joint_elements = root.findall("link"), root.findall("joint")
+    if not link_elements:
         raise URDFError(f"{path}: <robot> has no <link> elements")
-    joints = {e.get("name"): e.get("type") for e in root.findall("joint")}
-    nv = sum(URDF_JOINT_NV.get(t, 0) for t in joints.values())
+    nv = sum(URDF_JOINT_NV.get(e.get("type"), 0) for e in joint_elements)
     if max_nv is not None and nv > max_nv:
         raise ModelTooLargeError(
-            f"{path}: {len(joints)} joints with nv = {nv} degrees of freedom are beyond the "
-            f"supported size; valid: nv <= {max_nv}",
+            f"{path}: {len(joint_elements)} joints with nv = {nv} degrees of freedom are beyond "
+            f"the supported size; valid: nv <= {max_nv}",
             nv=nv,
             max_nv=max_nv,
         )
-    for link in root.findall("link"):
+    _check_layout(path, root)
+    if root.get("name") is not None:  # optional: the file's stem stands in
+        _check_name(path, root, "robot")
+    links = _unique_names(path, link_elements, "link")
+    _unique_names(path, joint_elements, "joint")
+    joints = {e.get("name"): e.get("type") for e in joint_elements}
+    for link in link_elements:
         _check_inertial(path, link)
-    for joint in root.findall("joint"):
+        for origin in (*link.findall("visual/origin"), *link.findall("collision/origin")):
+            _origin_values(path, origin, f"{_where(path, link)} <{origin.getparent().tag}>")
+    for joint in joint_elements:
         _check_joint(path, joint)
 
     # A loop may name the world (WORLD_LINK) even when no link has that name.
@@ -395,14 +619,16 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:
-            raise URDFError(f'{path}: loop name "{name}" is used more than once')
+            raise URDFError(f"{path}: loop name {name!r} is used more than once")
 
     actuated: list[str] = []
     for trans in root.findall("transmission"):
-        joint_elements = trans.findall("joint")
-        if not joint_elements:
+        _check_name(path, trans, "transmission")
+        _check_children(path, trans, TRANSMISSION_CHILDREN, strict=False)
+        trans_joints = trans.findall("joint")
+        if not trans_joints:
             raise URDFError(f"{_where(path, trans)}: has no <joint> child")
-        for je in joint_elements:
+        for je in trans_joints:
             jname = je.get("name")
             if jname not in joints:
                 raise URDFError(
@@ -422,7 +648,7 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
         if flag is None:
             continue
         if flag not in ("true", "false"):
-            raise URDFError(f'{_where(path, je)}: independent="{flag}" must be "true" or "false"')
+            raise URDFError(f'{_where(path, je)}: independent={flag!r} must be "true" or "false"')
         if flag == "true":
             if je.get("type") == "fixed":
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
@@ -449,9 +675,8 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
 
 def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
     where = _where(path, element)
-    name = element.get("name")
-    if not name:
-        raise URDFError(f"{where}: <loop> needs a name attribute")
+    name = _check_name(path, element, "loop")
+    _check_children(path, element, LOOP_CHILDREN, strict=True)
     ltype = element.get("type")
     if ltype not in LOOP_TYPES:
         raise URDFError(
@@ -486,11 +711,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
     axis_el = child("axis", required=ltype in ("revolute", "prismatic"))
     axis = np.array([1.0, 0.0, 0.0])
     if axis_el is not None:
-        axis = _floats(path, axis_el, "xyz", "1 0 0")
-        norm = float(np.linalg.norm(axis))
-        if not norm > AXIS_NORM_MIN or not math.isfinite(norm):
-            raise URDFError(f"{where}: <axis xyz={axis_el.get('xyz')!r}> is zero")
-        axis = axis / norm
+        axis = _unit_axis(path, axis_el, where)
 
     return LoopSpec(
         name=name,
@@ -522,6 +743,7 @@ def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
 def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
     """Read the ``<scene>`` element (see :class:`SceneSpec`)."""
     where = _where(path, element)
+    _check_children(path, element, SCENE_CHILDREN, strict=True)
     initial: dict[str, float] = {}
     velocity: dict[str, float] = {}
     for e in element.findall("initial"):
@@ -544,6 +766,7 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
             "from its references' velocity (leave out velocity= or the <track>)"
         )
     track = tracks[0]
+    _check_children(path, track, TRACK_CHILDREN, strict=True)
     gains = {}
     for gain in ("kp", "kd"):
         value = _number(_where(path, track), track, gain, minimum=0.0)

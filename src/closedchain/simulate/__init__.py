@@ -435,6 +435,8 @@ def simulate(
         "rtol": rtol,
         "atol": atol,
         "t_final": float(t_final),
+        "joint_names": list(mech.joint_names),
+        "model_digest": mech.digest(),
         "coordinate_names": list(mech.coordinate_names) if mech.nq == mech.nv else None,
         "configuration_names": list(mech.configuration_names),
         "velocity_names": list(mech.coordinate_names),

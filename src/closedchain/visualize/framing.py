@@ -29,7 +29,11 @@ logger = logging.getLogger(__name__)
 
 
 def check_trajectory(mech: Mechanism, trajectory: Trajectory) -> None:
-    """Raise ClosedChainError unless the trajectory fits the mechanism and its times increase."""
+    """Raise ClosedChainError unless the trajectory fits the mechanism and its times increase.
+
+    Fits: q has nq columns, and the trajectory was simulated on this mechanism
+    (:meth:`~closedchain.trajectory.Trajectory.check_mechanism`).
+    """
     t = np.asarray(trajectory.t, dtype=float)
     q = np.asarray(trajectory.q, dtype=float)
     if t.ndim != 1 or t.size == 0:
@@ -38,6 +42,7 @@ def check_trajectory(mech: Mechanism, trajectory: Trajectory) -> None:
         raise ClosedChainError(
             f"trajectory.q has shape {q.shape}, expected ({t.size}, {mech.nq}) for {mech.name}"
         )
+    trajectory.check_mechanism(mech)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise ClosedChainError("trajectory.t or trajectory.q contains non-finite values")
     if np.any(np.diff(t) <= TIME_EPS):

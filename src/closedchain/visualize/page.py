@@ -218,8 +218,10 @@ def write_html(
         What was written: path, size [bytes], duration [s], keyframes, tracks.
 
     Raises:
-        ClosedChainError: the trajectory does not fit the mechanism, its times
-            do not increase, or fps is not positive.
+        ClosedChainError: the trajectory does not fit the mechanism (its shape,
+            or it was simulated on another:
+            :meth:`~closedchain.trajectory.Trajectory.check_mechanism`), its
+            times do not increase, or fps is not positive.
     """
     scene = build_scene(mech, trajectory, fps=fps, settings=settings)
     text = scene_html(scene, settings, stop=stop)
