@@ -1102,11 +1102,26 @@ def test_recorder_keeps_the_order_of_added_and_extended_samples(fourbar, q_cross
 # -- start within the joint limits; an inaccurate run is not a success ---------------
 
 
-def test_start_outside_the_joint_limits_is_refused(fourbar):
+def test_start_outside_the_joint_limits_is_refused(agile_eye):
+    q0 = agile_eye.q_ref.copy()
+    pitch = agile_eye.model.joints[agile_eye.model.getJointId("platform_pitch")].idx_q
+    q0[pitch] = 1.5  # limits +-1.2 rad
+    match = r"q0: joint 'platform_pitch' is at 1.5, outside its limits \[-1.2, 1.2\]"
+    with pytest.raises(cc.InvalidArgumentError, match=match):
+        cc.simulate(agile_eye, q0, np.zeros(agile_eye.nv), 0.01)
+    settings = cc.SimulationSettings(check_limits=False)
+    with pytest.raises(cc.InvalidArgumentError, match="v0 violates|not assembled|phi"):
+        # past the limit check: refused later only because this q0 is not assembled
+        cc.simulate(agile_eye, q0, np.ones(agile_eye.nv), 0.01, settings=settings)
+
+
+def test_full_turn_limits_accept_the_same_orientation_a_turn_on(fourbar):
+    """The crank's limits span two turns (+-2 pi): 7 rad is the pose of 7 - 2 pi."""
     q0 = fourbar.q_ref.copy()
-    q0[0] = 7.0  # the crank's limits are +-2 pi
-    with pytest.raises(cc.InvalidArgumentError, match=r"q0: joint 'crank_joint' is at 7, outside"):
-        cc.simulate(fourbar, q0, np.zeros(3), 0.01)
+    q0[0] += 2 * np.pi
+    assert q0[0] > 2 * np.pi
+    traj = cc.simulate(fourbar, q0, np.zeros(3), 0.01)
+    assert traj.max_constraint_residual < 1e-12
 
 
 def test_limits_opt_out_keeps_the_coordinate_bound(fourbar):
@@ -1114,9 +1129,6 @@ def test_limits_opt_out_keeps_the_coordinate_bound(fourbar):
 
     settings = cc.SimulationSettings(check_limits=False)
     q0 = fourbar.q_ref.copy()
-    q0[0] += 2 * np.pi  # the same pose one turn on: outside the limits, allowed here
-    traj = cc.simulate(fourbar, q0, np.zeros(3), 0.01, settings=settings)
-    assert traj.max_constraint_residual < 1e-12
     q0[0] = 10 * COORDINATE_BOUND  # where a double cannot resolve a step: never allowed
     with pytest.raises(cc.InvalidArgumentError, match=r"outside its limits \[-1e\+06, 1e\+06\]"):
         cc.simulate(fourbar, q0, np.zeros(3), 0.01, settings=settings)

@@ -54,6 +54,9 @@ NORMALIZATION_TOL = 1e-9
 #: steps are lost in round-off (a crank at 1e17 rad does not move at all).
 COORDINATE_BOUND = 1e6
 
+#: One turn [rad], less the round-off of limits written with 11 digits of pi.
+FULL_TURN = 2.0 * np.pi - 1e-9
+
 #: Root joints :func:`load` can put between the world and the URDF's root link.
 ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointModelPlanar}
 
@@ -352,7 +355,10 @@ class Mechanism:
         """Raise InvalidArgumentError when a coordinate of q is outside its joint limits.
 
         Every 1-dof coordinate is checked against :data:`COORDINATE_BOUND` and, with
-        ``urdf_limits``, against its URDF ``<limit>`` where that is finite.
+        ``urdf_limits``, against its URDF ``<limit>`` where that is finite. A revolute
+        joint whose limits span a full turn or more limits no orientation: an angle
+        outside them is accepted when a whole number of turns brings it inside (the
+        same pose; a run that turned the Agile Eye's platform past pi continues).
 
         Args:
             q: configuration, shape (nq,).
@@ -371,6 +377,13 @@ class Mechanism:
             if urdf_limits:
                 low = max(low, lo[k]) if np.isfinite(lo[k]) else low
                 high = min(high, hi[k]) if np.isfinite(hi[k]) else high
+            if (
+                abs(value) <= COORDINATE_BOUND
+                and k in self._revolute_idx_q
+                and high - low >= FULL_TURN
+                and low <= low + (value - low) % FULL_TURN <= high
+            ):
+                continue  # the same orientation as an angle within a full-turn range
             if not low <= value <= high:
                 hint = f"; {opt_out}" if opt_out and urdf_limits else ""
                 raise InvalidArgumentError(
