@@ -138,7 +138,8 @@ class Problem:
         if not multipliers and settings.al_polish:
             settings = self._unpolished
         try:
-            a, lam = self.func(self.mech, q, v, tau, settings)
+            with np.errstate(over="ignore", invalid="ignore"):  # non-finite a: checked below
+                a, lam = self.func(self.mech, q, v, tau, settings)
         except SingularConfigurationError as exc:
             raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1
