@@ -20,6 +20,7 @@ import numpy as np
 import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
+from ._io import captured_stderr
 from ._locking import exclusive
 from .closure import (
     AssemblySettings,
@@ -564,6 +565,12 @@ class Mechanism:
         )
 
 
+def _urdfdom_errors(text: str) -> list[str]:
+    """Return the reasons of urdfdom's ``Error:`` lines in ``text``, the root cause first."""
+    lines = (line.strip() for line in text.splitlines())
+    return [line.removeprefix("Error:").strip() for line in lines if line.startswith("Error:")]
+
+
 def load(
     path: str | Path,
     *,
@@ -618,13 +625,20 @@ def load(
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
     try:
         root = ROOT_JOINTS[root_joint]
-        model = (
-            pin.buildModelFromXML(urdf.xml)
-            if root is None
-            else pin.buildModelFromXML(urdf.xml, root())
-        )
+        # urdfdom prints its reasons on fd 2: fold them into the one-line message.
+        with captured_stderr() as urdfdom:
+            model = (
+                pin.buildModelFromXML(urdf.xml)
+                if root is None
+                else pin.buildModelFromXML(urdf.xml, root())
+            )
     except (RuntimeError, ValueError) as exc:
-        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
+        errors = _urdfdom_errors(urdfdom.text)
+        reason = f"urdfdom: {errors[0]}" if errors else str(exc)
+        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {reason}") from exc
+    if urdfdom.text.strip():
+        reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
+        logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
     if model.nv == 0:
         raise URDFError(
             f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._io import atomic_write, check_npz
 from .exceptions import ClosedChainError
 
 if TYPE_CHECKING:
@@ -317,8 +318,12 @@ class Trajectory:
         spreadsheet would read as formulas prefixed with ``'`` (see
         :func:`neutralize_formula`), numbers unquoted with all digits.
 
+        The file is written atomically (:func:`closedchain._io.atomic_write`):
+        an error leaves a previous file at ``path`` as it was.
+
         Raises:
             ClosedChainError: the suffix is neither .npz nor .csv.
+            OSError: the file cannot be written (its ``filename`` is ``path``).
         """
         path = Path(path)
         if path.suffix == ".npz":
@@ -327,12 +332,13 @@ class Trajectory:
                 for k in ("kinetic_energy", "branch")
                 if getattr(self, k) is not None
             }
-            np.savez_compressed(
-                path,
-                **{k: getattr(self, k) for k in _ARRAYS},
-                **extra,
-                info=json.dumps(self.info.to_dict()),
-            )
+            with atomic_write(path) as f:
+                np.savez_compressed(
+                    f,
+                    **{k: getattr(self, k) for k in _ARRAYS},
+                    **extra,
+                    info=json.dumps(self.info.to_dict()),
+                )
         elif path.suffix == ".csv":
             names = (
                 self.info.configuration_names
@@ -358,7 +364,7 @@ class Trajectory:
             )
             # csv module, every text cell quoted: names with commas, quotes or
             # newlines keep their column; numbers stay numbers (repr round-trips).
-            with path.open("w", newline="") as f:
+            with atomic_write(path, "w", newline="") as f:
                 writer = csv.writer(f, quoting=csv.QUOTE_NONNUMERIC)
                 writer.writerow([neutralize_formula(str(h)) for h in header])
                 writer.writerows(table.tolist())
@@ -373,13 +379,16 @@ class Trajectory:
         """Read a trajectory written by :meth:`save` as ``.npz``.
 
         Raises:
-            ClosedChainError: not an .npz file, unreadable or truncated, or an
+            ClosedChainError: not an .npz file, not a regular file, larger than
+                :data:`closedchain._io.MAX_NPZ_BYTES` (checked before inflating
+                anything), unreadable or truncated, or an
                 archive without the trajectory's arrays (the message names the
                 file and what is missing) or with inconsistent shapes.
         """
         path = Path(path)
         if path.suffix != ".npz":
             raise ClosedChainError(f"{path}: only .npz trajectories can be loaded")
+        check_npz(path, what="trajectory")
         try:
             archive = np.load(path, allow_pickle=False)
             if isinstance(archive, np.ndarray):  # a .npy file renamed
