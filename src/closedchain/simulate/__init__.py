@@ -386,7 +386,8 @@ def simulate(
         dt = settings.dt if dt is None else dt
         check_positive("dt", dt, "the fixed step [s]")
         dt = float(dt)
-        n_steps = math.ceil(t_final / dt - 1e-9)
+        ratio = t_final / dt  # a float: inf when it overflows (dt near the underflow)
+        n_steps = math.ceil(ratio - 1e-9) if math.isfinite(ratio) else math.inf
         if n_steps > settings.max_steps:
             raise InvalidArgumentError(
                 f"dt = {dt:g} s over t_final = {t_final:g} s is {n_steps:.3g} steps, more than "
