@@ -40,6 +40,10 @@ MAX_NPZ_BYTES = 2**31
 #: the full benchmark writes about 0.1 MB.
 MAX_CSV_BYTES = 256 * 2**20
 
+#: Largest mesh file drawn by an animation [bytes]: the page embeds it
+#: (base64, a third more); the largest example-robot-data mesh (go1 trunk.dae) is 29 MB.
+MAX_MESH_BYTES = 128 * 2**20
+
 #: Largest ``.npy`` header accepted [bytes] (numpy's own default of ``np.load``).
 NPY_MAX_HEADER_BYTES = 10_000
 
