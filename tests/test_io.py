@@ -230,3 +230,27 @@ def test_captured_stderr_restores_fd_2_after_an_exception(capfd):
     os.write(2, b"after\n")
     assert captured.text == "partial\n"
     assert capfd.readouterr().err == "after\n"
+
+
+def test_an_inconsistent_trajectory_is_refused_before_any_array_is_inflated(
+    tmp_path, fourbar_traj, monkeypatch
+):
+    """All members present, q a deflate bomb with the wrong rows: no array is read."""
+    path = tmp_path / "bomb.npz"
+    good = tmp_path / "good.npz"
+    fourbar_traj.save(good)
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as dst:
+        for name in src.namelist():
+            if name != "q.npy":
+                dst.writestr(name, src.read(name))
+        dst.writestr("q.npy", npy_bytes((2**17,), b"\0" * 2**20))
+    reads = []
+    read_array = np.lib.format.read_array
+    monkeypatch.setattr(
+        np.lib.format, "read_array", lambda *a, **k: reads.append(1) or read_array(*a, **k)
+    )
+    with pytest.raises(cc.ClosedChainError, match=r"bomb.npz: .* q do not have one row per time"):
+        cc.Trajectory.load(path)
+    assert reads == []
+    assert cc.Trajectory.load(good).q.shape == fourbar_traj.q.shape
+    assert len(reads) >= 8  # the arrays of a good file are read by np.lib.format.read_array

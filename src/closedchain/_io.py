@@ -142,7 +142,7 @@ def check_npz(
     limit: int | None = None,
     what: str = "archive",
     error: type[ClosedChainError] = ClosedChainError,
-) -> None:
+) -> dict[str, tuple[int, ...]]:
     """Refuse an ``.npz`` archive (or ``.npy`` file) that would take more than ``limit`` bytes.
 
     The file is checked by :func:`check_input_file`; then, without inflating
@@ -159,6 +159,11 @@ def check_npz(
         what: what the file is, for the message ("trajectory").
         error: the ClosedChainError subclass raised.
 
+    Returns:
+        The shape each ``.npy`` member's header declares, by the name
+        ``np.load`` gives it (without ``.npy``); empty for an ``.npy`` file or
+        what is not a zip archive. A reader checks them before loading.
+
     Raises:
         ClosedChainError: (of class ``error``) the file is not a regular file
             or is too large, or a member is too large or claims more data than
@@ -166,6 +171,7 @@ def check_npz(
     """
     limit = MAX_NPZ_BYTES if limit is None else limit
     size = check_input_file(path, limit=limit, what=what, error=error)
+    shapes: dict[str, tuple[int, ...]] = {}
     try:
         if zipfile.is_zipfile(path):
             with zipfile.ZipFile(path) as archive:
@@ -179,7 +185,7 @@ def check_npz(
                 for m in members:
                     if m.filename.endswith(".npy"):
                         with archive.open(m) as f:
-                            _check_npy_header(
+                            shapes[m.filename.removesuffix(".npy")] = _check_npy_header(
                                 f, m.file_size, f"{path}: {what} member {m.filename!r}", error
                             )
         else:
@@ -198,10 +204,12 @@ def check_npz(
         zipfile.BadZipFile,
     ) as exc:
         raise error(f"{path}: {what} is unreadable: {type(exc).__name__}: {exc}") from None
+    return shapes
 
 
-def _check_npy_header(f: IO[bytes], size: int, where: str, error) -> None:
-    """Refuse an ``.npy`` stream whose header claims more than its ``size`` bytes."""
+def _check_npy_header(f: IO[bytes], size: int, where: str, error) -> tuple[int, ...]:
+    """Return the shape of an ``.npy`` stream, refusing a header that claims more than
+    its ``size`` bytes."""
     fmt = np.lib.format
     version = fmt.read_magic(f)
     # Versions 2 and 3 share the header layout (3 only allows UTF-8 in field names).
@@ -212,6 +220,7 @@ def _check_npy_header(f: IO[bytes], size: int, where: str, error) -> None:
         raise error(
             f"{where} claims an array of shape {shape} ({claimed:.4g} bytes) in {size} bytes"
         )
+    return shape
 
 
 def _open_temporary(path: Path) -> tuple[int, Path]:
