@@ -657,24 +657,22 @@ def test_an_output_that_is_the_overlay_is_refused(capsys, tmp_path, mechanism_fi
     assert overlay.read_text() == '<robot name="o"></robot>'
 
 
-#: A loop pinning the 4-bar's crank tip to the ground: mobility 0.
-RIGID_LOOP = """  <loop name="D" type="revolute">
-    <predecessor link="ground"/>
-    <successor link="crank"/>
-    <predecessor_origin xyz="0.2 0 0" rpy="0 0 0"/>
-    <successor_origin xyz="0.2 0 0" rpy="0 0 0"/>
-    <axis xyz="0 -1 0"/>
-  </loop>
-"""
-
-
 def test_gravity_torque_with_mobility_0_says_there_is_nothing_to_hold(
     capfd, tmp_path, mechanism_files
 ):
     text = mechanism_files["fourbar"].read_text()
     text = re.sub(r"<scene>.*?</scene>", "", text, flags=re.S)
+    # A second loop, D, pins the crank's tip (0.2 m out) to the ground: mobility 0.
+    loop_c = re.search(r'  <loop name="C".*?</loop>\n', text, flags=re.S).group(0)
+    loop_d = (
+        loop_c.replace('name="C"', 'name="D"')
+        .replace('link="coupler"', 'link="ground"')
+        .replace('link="rocker"', 'link="crank"')
+        .replace('xyz="0.4 0 0"', 'xyz="0.2 0 0"')
+        .replace('xyz="0.3 0 0"', 'xyz="0.2 0 0"')
+    )
     path = tmp_path / "rigid.urdf"
-    path.write_text(text.replace("  <transmission", RIGID_LOOP + "  <transmission", 1))
+    path.write_text(text.replace(loop_c, loop_c + loop_d, 1))
     status = cli.main(["simulate", str(path), "--t-final", "0.01", "--torque", "gravity"])
     out, err = capfd.readouterr()
     one_line_error(status, err)
