@@ -108,6 +108,11 @@ __all__ = [
 #: solvers silently raise a smaller rtol to.
 MIN_RTOL = 100 * float(np.finfo(float).eps)
 
+#: Smallest absolute tolerance accepted: scipy's error norm squares
+#: error / (atol + rtol |y|), and below 1e-150 the square of an O(1) error over
+#: atol overflows double precision (1e300 against the largest double, 1.8e308).
+MIN_ATOL = 1e-150
+
 
 def check_start_velocity(
     mech: Mechanism,
@@ -410,6 +415,11 @@ def simulate(
             raise InvalidArgumentError(
                 f"rtol = {rtol:g} is below what double precision resolves (scipy would raise it "
                 f"to {MIN_RTOL:.3g} without a word); valid range: [{MIN_RTOL:.3g}, inf)"
+            )
+        if atol < MIN_ATOL:
+            raise InvalidArgumentError(
+                f"atol = {atol:g} is so small that scipy's error norm overflows; "
+                f"valid range: [{MIN_ATOL:.3g}, inf)"
             )
 
     original_solver_settings = solver_settings
