@@ -10,8 +10,11 @@ import argparse
 import json
 import logging
 import math
+import os
 import re
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Sequence
 from dataclasses import replace
@@ -271,8 +274,6 @@ def _check_outputs_are_not_inputs(args: argparse.Namespace, outputs: dict[str, s
     Raises:
         ClosedChainError: an output and an input are the same file.
     """
-    import os
-
     for out_flag, out in outputs.items():
         if not os.path.exists(out):
             continue
@@ -689,8 +690,6 @@ def _cmd_export_mjcf(args) -> int:
 
 
 def _default_cache() -> Path:
-    import os
-
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "closedchain" / "bench-references"
 
@@ -927,9 +926,6 @@ def _raise_terminated(signum, frame) -> None:
 
 def _handle_sigterm():
     """Make SIGTERM raise :class:`_Terminated` (main thread only); return the previous handler."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return None
     return signal.signal(signal.SIGTERM, _raise_terminated)
@@ -965,8 +961,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return status
     finally:
         if previous is not None:
-            import signal
-
             signal.signal(signal.SIGTERM, previous)
 
 
