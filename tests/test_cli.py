@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import os
 import re
+import signal
 
 import numpy as np
 import pytest
@@ -222,12 +225,13 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
         ),
         (
             ["simulate", "{fourbar}", "--fps", "1e9"],
-            "--fps 1e+09 over --t-final 5 s is 5e+09 output samples, more than the limit 1e+07"
-            " (SimulationSettings.max_outputs); valid --fps: (0, 2e+06]",
+            "--fps 1e+09 over --t-final 5 s is 5000000001 output samples, more than the limit"
+            " 10000000 (SimulationSettings.max_outputs); valid --fps: (0, 1999999.8]",
         ),
         (
             ["animate", "{fourbar}", "--fps", "1e9", "-o", "{tmp}/a.html"],
-            "--fps 1e+09 over --t-final 5 s is 5e+09 output samples",
+            "--fps 1e+09 over --t-final 5 s is 5000000001 keyframes, more than the limit 100000"
+            " (AnimationSettings.max_keyframes); valid --fps: (0, 19999.8]",
         ),
         (
             ["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "1e-12"],
@@ -248,7 +252,7 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
         ),
         (
             ["plot", "{fourbar}", "-o", "{tmp}/x.xyz"],
-            "cannot write an image as 'x.xyz'; supported suffixes: .",
+            "cannot write an image as 'x.xyz'; valid suffixes: .",
         ),
         (["plot", "{fourbar}", "-o", "{tmp}/noext"], "cannot write an image as 'noext'"),
         (
@@ -267,13 +271,13 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
             ["export-mjcf", "{fourbar}", "-o", "{tmp}/nodir/x.xml"],
             "{tmp}/nodir/x.xml: directory {tmp}/nodir does not exist",
         ),
-        (["export-mjcf", "{fourbar}", "-o", "{tmp}"], "{tmp}: Is a directory"),
+        (["export-mjcf", "{fourbar}", "-o", "{tmp}"], "cannot write MJCF as '"),
         (["info", "erd:nonexistent"], "unknown example-robot-data model 'erd:nonexistent'; valid"),
         (["info", "{fourbar}", "--loops", "{tmp}/none.urdf"], "{tmp}/none.urdf: cannot read"),
         (["info", "{fourbar}", "--gravity", "nan", "0", "0"], "gravity must be 3 finite numbers"),
         (
             ["workspace", "{fourbar}", "-o", "{tmp}/w.xyz"],
-            "cannot write an image as 'w.xyz'; supported suffixes: .",
+            "cannot write an image as 'w.xyz'; valid suffixes: .",
         ),
         (["workspace", "{fourbar}", "-o", "{tmp}/w.png", "--points", "0"], "points must be in [2,"),
         (
@@ -298,6 +302,51 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
             ["workspace", "{eye}", "-o", "{tmp}/w.png", "--outputs", "nosuch"],
             "a singularity map needs two output coordinates, got ('nosuch',); valid: two of "
             "actuator_1,",
+        ),
+        (
+            ["workspace", "{eye}", "-o", "{tmp}/w.png", "--outputs", "actuator_1", "actuator_1"],
+            "--outputs names actuator_1 more than once; valid: distinct joints",
+        ),
+        (["validate", "{fourbar}", "--seed", "-1"], "--seed must be at least 0, got -1"),
+        (
+            ["validate", "{fourbar}", "--samples", "1000000000"],
+            "--samples must be at most 100000, got 1000000000",
+        ),
+        (
+            ["bench", "--workers", "100000", "--out", "{tmp}/b"],
+            "--workers must be at most 256, got 100000",
+        ),
+        (
+            ["bench", "--repeats", "1000000", "--out", "{tmp}/b"],
+            "--repeats must be at most 1000, got 1000000",
+        ),
+        (
+            ["animate", "{fourbar}", "-o", "{tmp}/a.htm"],
+            "cannot write an HTML animation as 'a.htm'; valid suffixes: .html",
+        ),
+        (
+            ["animate", "{fourbar}", "-o", "{fourbar}"],
+            "cannot write an HTML animation as 'fourbar.urdf'; valid suffixes: .html",
+        ),
+        (
+            ["export-mjcf", "{fourbar}", "-o", "{tmp}/m.urdf"],
+            "cannot write MJCF as 'm.urdf'; valid suffixes: .xml",
+        ),
+        (
+            ["simulate", "{fourbar}", "--t-final", "1e308"],
+            "--fps 30 over --t-final 1e+308 s is inf output samples, more than the limit",
+        ),
+        (
+            ["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "1e-320", "--t-final", "1"],
+            "dt = 9.99989e-321 s over t_final = 1 s is inf steps, more than",
+        ),
+        (["simulate", "{fourbar}", "--q0", "1", "2"], "--q0 has shape (2,), expected (3,)"),
+        (["simulate", "{fourbar}", "--q0", "nan", "0", "0"], "--q0 contains non-finite values"),
+        (["info", "/dev/zero"], "/dev/zero: URDF file is a character device; valid: a regular"),
+        (["info", "{tmp}"], "{tmp}: URDF file is a directory; valid: a regular file"),
+        (
+            ["info", "{fourbar}", "--loops", "/dev/zero"],
+            "/dev/zero: overlay file is a character device; valid: a regular file",
         ),
     ],
 )
@@ -365,7 +414,7 @@ def test_help_documents_every_exit_status(capsys):
         cli.main(["--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    for status in range(5):
+    for status in (*range(5), 130, 143):
         assert re.search(rf"^  {status}  \S", out, re.M), status
     assert "--debug" in out
 
@@ -526,3 +575,246 @@ def test_rtol_without_integrator_runs_the_adaptive_default(capsys, mechanism_fil
     status, out, err = run(capsys, *argv, "--json")
     assert status == 0, err
     assert json.loads(out)["integrator"] == "DOP853"
+
+
+# -- files, bounds and one-line messages ----------------------------------------------------
+
+
+def one_line_error(status: int, err: str, expected_status: int = cli.EXIT_BAD_INPUT) -> str:
+    """Check the exit status and that stderr is exactly one ``closedchain: error:`` line."""
+    assert status == expected_status, err
+    assert err.startswith("closedchain: error: ") and err.count("\n") == 1, err
+    return err
+
+
+def test_a_fifo_input_is_refused_without_blocking(capsys, tmp_path):
+    fifo = tmp_path / "pipe.urdf"
+    os.mkfifo(fifo)
+    err = one_line_error(*run(capsys, "info", fifo)[::2])
+    assert f"{fifo}: URDF file is a named pipe (FIFO); valid: a regular file" in err
+    fifo_npz = tmp_path / "pipe.npz"
+    os.mkfifo(fifo_npz)
+    err = one_line_error(*run(capsys, "plot", fifo_npz, "-o", tmp_path / "p.png")[::2])
+    assert f"{fifo_npz}: trajectory is a named pipe (FIFO)" in err
+
+
+def test_a_urdf_over_the_size_limit_is_refused_unread(capsys, tmp_path):
+    from closedchain._io import MAX_XML_BYTES
+
+    path = tmp_path / "huge.urdf"
+    with path.open("wb") as f:
+        f.truncate(MAX_XML_BYTES + 1)  # sparse: no disk space used
+    err = one_line_error(*run(capsys, "info", path)[::2])
+    assert f"{path}: URDF file of 6.711e+07 bytes is larger than the limit of 6.711e+07" in err
+
+
+def test_an_npz_claiming_4_5_gb_is_refused_before_loading(capsys, tmp_path):
+    import zipfile
+
+    path = tmp_path / "huge.npz"
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<f8", "fortran_order": False, "shape": (562_500_000,)}
+    )
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("t.npy", header.getvalue() + b"\0" * 64)
+    err = one_line_error(*run(capsys, "plot", path, "-o", tmp_path / "p.png")[::2])
+    assert "huge.npz: trajectory member 't.npy' claims an array of shape (562500000,)" in err
+    assert not (tmp_path / "p.png").exists()
+
+
+@pytest.fixture
+def fourbar_as_xml(tmp_path, mechanism_files):
+    """A copy of the 4-bar URDF named ``v.xml``, the suffix export-mjcf writes."""
+    path = tmp_path / "v.xml"
+    path.write_bytes(mechanism_files["fourbar"].read_bytes())
+    return path
+
+
+@pytest.mark.parametrize("same", ["path", "hard link", "symbolic link"])
+def test_an_output_that_is_the_input_is_refused(capsys, tmp_path, fourbar_as_xml, same):
+    original = fourbar_as_xml.read_bytes()
+    out = {
+        "path": fourbar_as_xml,
+        "hard link": tmp_path / "h.xml",
+        "symbolic link": tmp_path / "s.xml",
+    }[same]
+    if same == "hard link":
+        os.link(fourbar_as_xml, out)
+    elif same == "symbolic link":
+        out.symlink_to(fourbar_as_xml)
+    err = one_line_error(*run(capsys, "export-mjcf", fourbar_as_xml, "-o", out)[::2])
+    assert f"-o/--output {out} is the input file FILE {fourbar_as_xml}; writing it would" in err
+    assert fourbar_as_xml.read_bytes() == original
+
+
+def test_an_output_that_is_the_overlay_is_refused(capsys, tmp_path, mechanism_files):
+    overlay = tmp_path / "overlay.xml"
+    overlay.write_text('<robot name="o"></robot>')
+    argv = ["export-mjcf", mechanism_files["fourbar"], "--loops", overlay, "-o", overlay]
+    err = one_line_error(*run(capsys, *argv)[::2])
+    assert f"is the input file --loops {overlay}" in err
+    assert overlay.read_text() == '<robot name="o"></robot>'
+
+
+def test_gravity_torque_with_mobility_0_says_there_is_nothing_to_hold(
+    capfd, tmp_path, mechanism_files
+):
+    text = mechanism_files["fourbar"].read_text()
+    text = re.sub(r"<scene>.*?</scene>", "", text, flags=re.S)
+    # A second loop, D, pins the crank's tip (0.2 m out) to the ground: mobility 0.
+    loop_c = re.search(r'  <loop name="C".*?</loop>\n', text, flags=re.S).group(0)
+    loop_d = (
+        loop_c.replace('name="C"', 'name="D"')
+        .replace('link="coupler"', 'link="ground"')
+        .replace('link="rocker"', 'link="crank"')
+        .replace('xyz="0.4 0 0"', 'xyz="0.2 0 0"')
+        .replace('xyz="0.3 0 0"', 'xyz="0.2 0 0"')
+    )
+    path = tmp_path / "rigid.urdf"
+    path.write_text(text.replace(loop_c, loop_c + loop_d, 1))
+    status = cli.main(["simulate", str(path), "--t-final", "0.01", "--torque", "gravity"])
+    out, err = capfd.readouterr()
+    one_line_error(status, err)
+    assert "--torque gravity: fourbar has no degree of freedom (mobility 0): nothing to hold" in err
+    assert out == ""  # no LAPACK "** On entry to DGESDD" line
+
+
+def test_urdfdom_error_lines_are_folded_into_the_one_line_message(capfd, tmp_path, mechanism_files):
+    path = tmp_path / "orphan.urdf"
+    text = mechanism_files["fourbar"].read_text()
+    path.write_text(text.replace('<parent link="crank"/>', '<parent link="nosuch"/>', 1))
+    status = cli.main(["info", str(path)])
+    err = one_line_error(status, capfd.readouterr().err)
+    assert (
+        f"{path}: Pinocchio cannot build the tree: urdfdom: Failed to build tree: parent link "
+        "[nosuch] of joint [coupler_joint] not found." in err
+    )
+
+
+@pytest.mark.parametrize(
+    ("model", "argv", "status", "message"),
+    [
+        ("eye_1e308_hz", [], 2, "frequency 1e+308 Hz overflow the reference's position"),
+        (
+            "fourbar",
+            ["--gravity", "1e308", "0", "0"],
+            2,
+            "gravity [1.e+308 0.e+000 0.e+000] m/s^2 is beyond the limit; valid: a norm of at "
+            "most 1e+06 m/s^2",
+        ),
+        (
+            "fourbar",
+            ["--integrator", "dop853", "--atol", "1e-320"],
+            2,
+            "atol = 9.99989e-321 is so small that scipy's error norm overflows; valid range: "
+            "[1e-150, inf)",
+        ),
+    ],
+)
+def test_overflows_give_one_line_and_no_runtime_warning(
+    capfd, tmp_path, mechanism_files, model, argv, status, message
+):
+    import warnings
+
+    if model == "eye_1e308_hz":
+        path = tmp_path / "eye.urdf"
+        text = mechanism_files["agile_eye"].read_text()
+        path.write_text(text.replace('frequency="0.1"', 'frequency="1e308"', 1))
+    else:
+        path = mechanism_files[model]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = cli.main(["simulate", str(path), "--t-final", "0.01", *argv])
+    err = one_line_error(code, capfd.readouterr().err, status)
+    assert message in err
+    assert [str(w.message) for w in caught] == []
+
+
+def test_a_multi_line_message_is_printed_on_one_line():
+    from closedchain.exceptions import ClosedChainError
+
+    exc = ClosedChainError("v contains non-finite values: [0. 0.\n 0. inf]")
+    assert cli.error_message(exc) == "v contains non-finite values: [0. 0. 0. inf]"
+
+
+@pytest.fixture
+def info_handler(monkeypatch):
+    """Replace the handler of ``info`` with a given function."""
+
+    def install(handler):
+        parser = cli.build_parser
+
+        def build():
+            p = parser()
+            sub = next(a for a in p._actions if isinstance(a, cli.argparse._SubParsersAction))
+            sub.choices["info"].set_defaults(handler=handler)
+            return p
+
+        monkeypatch.setattr(cli, "build_parser", build)
+
+    return install
+
+
+def test_memory_error_is_a_one_line_bad_input_naming_the_command(
+    capsys, mechanism_files, info_handler
+):
+    def exhaust(args):
+        raise MemoryError("Unable to allocate 4.5 GiB for an array with shape (562500000,)")
+
+    info_handler(exhaust)
+    err = one_line_error(*run(capsys, "info", mechanism_files["fourbar"])[::2])
+    assert f"not enough memory for info {mechanism_files['fourbar']} (Unable to allocate" in err
+
+
+@pytest.mark.parametrize(
+    ("signum", "status", "word"),
+    [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")],
+)
+def test_a_signal_during_a_write_keeps_the_previous_file(
+    capsys, tmp_path, mechanism_files, info_handler, signum, status, word
+):
+    from closedchain._io import atomic_write
+
+    target = tmp_path / "out.html"
+    target.write_bytes(b"previous")
+
+    def write_and_die(args):
+        with atomic_write(target) as f:
+            f.write(b"half of the new ")
+            os.kill(os.getpid(), signum)
+            f.write(b"page")  # not reached: the handler raises
+        return 0
+
+    info_handler(write_and_die)
+    code, out, err = run(capsys, "info", mechanism_files["fourbar"])
+    assert (code, err) == (status, f"closedchain: {word}\n")
+    assert target.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.html"]
+    assert signal.getsignal(signal.SIGTERM) is not cli._raise_terminated  # restored
+
+
+def test_a_full_disk_names_the_file_and_keeps_the_previous_one(tmp_path, mechanism_files):
+    """RLIMIT_FSIZE (``ulimit -f``) makes the write fail with EFBIG (Python ignores SIGXFSZ)."""
+    import resource
+    import subprocess
+    import sys
+
+    target = tmp_path / "t.csv"
+    target.write_bytes(b"previous")
+
+    def limit_file_size():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
+
+    argv = ["simulate", str(mechanism_files["fourbar"]), "--t-final", "1", "--out", str(target)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "closedchain", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=limit_file_size,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == f"closedchain: error: {target}: File too large\n"
+    assert target.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.csv"]

@@ -217,6 +217,20 @@ def test_gravity_must_be_three_finite_numbers(mechanism_files, g):
         cc.load(mechanism_files["fourbar"], gravity=g)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("g", [(1e308, 0.0, 0.0), (0.0, 6e5, 9e5)])
+def test_gravity_norm_is_bounded(mechanism_files, g):
+    """1e308 overflowed into numpy warnings and NaN torques; the norm is checked overflow-free."""
+    from closedchain.mechanism import MAX_GRAVITY_NORM
+
+    with pytest.raises(
+        cc.ClosedChainError,
+        match=r"is beyond the limit; valid: a norm of at most 1e\+06 m/s\^2",
+    ):
+        cc.load(mechanism_files["fourbar"], gravity=g)
+    assert cc.load(mechanism_files["fourbar"], gravity=(0.0, 0.0, -MAX_GRAVITY_NORM)).nv == 3
+
+
 # -- the files stay plain URDF for other tools ----------------------------------------------
 
 

@@ -706,6 +706,7 @@ def test_every_step_beyond_max_outputs_is_refused(fourbar, q_crossed):
         simulate(fourbar, q_crossed, np.zeros(3), 0.2, integrator="rk4", settings=settings)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # the CLI prints one line
 @pytest.mark.parametrize(("v_scale", "tau_scale"), [(1e200, 0.0), (0.0, 1e308), (1e160, 0.0)])
 @pytest.mark.parametrize("integrator", ["DOP853", "rk4"])
 def test_huge_velocity_or_torque_is_an_error_never_nan(
@@ -1051,6 +1052,16 @@ def test_rtol_below_double_precision_is_refused(fourbar, q_crossed):
         match=r"rtol = 1e-30 is below what double precision resolves .*valid range: \[2\.22e-14",
     ):
         simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="DOP853", rtol=1e-30)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_atol_whose_error_norm_overflows_is_refused(fourbar, q_crossed):
+    """scipy squares error / atol: 1e-320 overflowed in its first step's selection."""
+    with pytest.raises(
+        cc.InvalidArgumentError, match=r"atol = 1e-200 is so small .*valid range: \[1e-150, inf\)"
+    ):
+        simulate(fourbar, q_crossed, np.zeros(3), 0.1, integrator="DOP853", atol=1e-200)
+    simulate(fourbar, q_crossed, np.zeros(3), 0.01, integrator="DOP853", atol=1e-150)
 
 
 def test_recorder_keeps_the_order_of_added_and_extended_samples(fourbar, q_crossed):

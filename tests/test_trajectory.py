@@ -79,7 +79,7 @@ def test_npz_with_inconsistent_rows(short_traj, tmp_path):
 @pytest.mark.parametrize(
     ("name", "content", "pattern"),
     [
-        ("missing.npz", None, r"missing.npz: no such file"),
+        ("missing.npz", None, r"missing.npz: cannot read trajectory: no such file"),
         ("text.npz", b"hello", r"text.npz: not a readable closedchain trajectory"),
         ("t.csv", b"t\n0\n", r"t.csv: only .npz trajectories can be loaded"),
     ],

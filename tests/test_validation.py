@@ -20,6 +20,7 @@ from conftest import SHIPPED_MECHANISMS, VALIDATABLE_MECHANISMS
 
 import closedchain as cc
 from closedchain.dynamics import base as dynamics_base
+from closedchain.validation import MAX_VALIDATION_SAMPLES
 
 #: Mechanisms with a Pinocchio reference (no prismatic loops).
 VALIDATABLE = list(VALIDATABLE_MECHANISMS)
@@ -276,11 +277,20 @@ def test_validate_refuses_to_compare_pinocchio_with_itself(fourbar):
         cc.validate(fourbar, n_samples=1, method="pinocchio")
 
 
-@pytest.mark.parametrize("n_samples", [0, -5, 2.5, True, "10"])
-def test_validate_refuses_no_samples(fourbar, n_samples):
-    """A check on no states would report PASSED having compared nothing."""
-    with pytest.raises(cc.InvalidArgumentError, match=r"n_samples must be an integer >= 1 .*got"):
+@pytest.mark.parametrize("n_samples", [0, -5, 2.5, True, "10", MAX_VALIDATION_SAMPLES + 1, 10**30])
+def test_validate_refuses_no_samples_and_too_many(fourbar, n_samples):
+    """A check on no states would report PASSED having compared nothing; too many never ends."""
+    with pytest.raises(
+        cc.InvalidArgumentError,
+        match=rf"n_samples must be an integer in \[1, {MAX_VALIDATION_SAMPLES}\] .*got",
+    ):
         cc.validate(fourbar, n_samples=n_samples)
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True, "3"])
+def test_validate_refuses_a_negative_or_non_integer_seed(fourbar, seed):
+    with pytest.raises(cc.InvalidArgumentError, match=r"seed must be an integer >= 0 .*got"):
+        cc.validate(fourbar, n_samples=1, seed=seed)
 
 
 def test_validate_method_in_any_case(fourbar):

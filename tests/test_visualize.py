@@ -566,3 +566,31 @@ def test_cli_needs_an_output(capsys):
     with pytest.raises(SystemExit):
         main(["animate", str(MODELS / "fourbar.urdf")])
     assert "-o/--output" in capsys.readouterr().err
+
+
+def test_mesh_files_over_the_size_limit_are_skipped(tmp_path, caplog, monkeypatch):
+    """The page embeds each mesh: one over MAX_MESH_BYTES is left out, unread, with a warning."""
+    from closedchain.visualize import shapes
+
+    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
+    write_binary_stl(
+        tmp_path / "tetra.stl", tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    )
+    size = (tmp_path / "tetra.stl").stat().st_size  # 84 + 4 x 50 bytes
+    urdf = (MODELS / "fourbar.urdf").read_text()
+    urdf = urdf.replace(
+        '<geometry><box size="0.4 0.012 0.02"/></geometry>',
+        '<geometry><mesh filename="tetra.stl"/></geometry>',
+    )
+    (tmp_path / "mesh.urdf").write_text(urdf)
+    mech = cc.load(tmp_path / "mesh.urdf")
+    monkeypatch.setattr(shapes, "MAX_MESH_BYTES", size - 1)
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        visuals = vz.read_visuals(mech)
+    assert [v for v in visuals if v.kind == "mesh"] == []
+    assert (
+        f"link 'coupler' visual 0: {(tmp_path / 'tetra.stl').resolve()}: mesh file of {size} "
+        f"bytes is larger than the limit of {size - 1} bytes; not drawn" in caplog.text
+    )
+    monkeypatch.setattr(shapes, "MAX_MESH_BYTES", size)
+    assert [v.link for v in vz.read_visuals(mech) if v.kind == "mesh"] == ["coupler"]

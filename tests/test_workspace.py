@@ -46,6 +46,8 @@ def test_agile_eye_map_is_regular_at_home(agile_eye):
     assert m.serial[centre, centre] > 0.1
     with pytest.raises(ClosedChainError, match="two output coordinates"):
         singularity_map(agile_eye, outputs=("platform_yaw",))
+    with pytest.raises(ClosedChainError, match="outputs names platform_yaw more than once"):
+        singularity_map(agile_eye, outputs=("platform_yaw", "platform_yaw"))
 
 
 def test_cli_workspace(tmp_path, mechanism_files, capsys):

@@ -10,8 +10,11 @@ import argparse
 import json
 import logging
 import math
+import os
 import re
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Sequence
 from dataclasses import replace
@@ -24,6 +27,7 @@ from .exceptions import (
     NonFiniteError,
     SingularConfigurationError,
     UnknownChoiceError,
+    format_upper_bound,
     resolve_choice,
 )
 
@@ -37,6 +41,10 @@ EXIT_BAD_INPUT = 2
 EXIT_STOPPED = 3
 #: An internal error (a bug): the traceback is printed with ``--debug``.
 EXIT_INTERNAL = 4
+#: Interrupted by SIGINT (Ctrl-C): 128 + 2, as shells report it.
+EXIT_INTERRUPTED = 130
+#: Terminated by SIGTERM: 128 + 15, as shells report it.
+EXIT_TERMINATED = 143
 
 EXIT_STATUS_HELP = f"""exit status:
   {EXIT_OK}  success
@@ -44,7 +52,9 @@ EXIT_STATUS_HELP = f"""exit status:
   {EXIT_BAD_INPUT}  bad input (options, files, values); one-line message
   {EXIT_STOPPED}  a simulation stopped: singular configuration, non-finite state or
      drift beyond the limit (animate still writes the animation up to the stop)
-  {EXIT_INTERNAL}  internal error (a bug; add --debug for the traceback)"""
+  {EXIT_INTERNAL}  internal error (a bug; add --debug for the traceback)
+  {EXIT_INTERRUPTED}  interrupted (SIGINT, Ctrl-C); a file being written is left as it was
+  {EXIT_TERMINATED}  terminated (SIGTERM); likewise"""
 
 #: Options that must be finite and positive, by argparse attribute.
 POSITIVE_OPTIONS = {
@@ -75,6 +85,22 @@ TORQUES = ("zero", "gravity")
 
 #: Suffixes ``simulate --out`` can write (Trajectory.save).
 TRAJECTORY_SUFFIXES = (".npz", ".csv")
+
+#: What each command writes and its valid suffixes (None: the image formats
+#: matplotlib writes, :func:`closedchain.plotting.image_formats`).
+OUTPUT_SUFFIXES = {
+    "simulate": ("save a trajectory", TRAJECTORY_SUFFIXES),
+    "animate": ("write an HTML animation", (".html",)),
+    "export-mjcf": ("write MJCF", (".xml",)),
+    "plot": ("write an image", None),
+    "workspace": ("write an image", None),
+}
+
+#: Options naming input files, by argparse attribute (an output must not be one of them).
+INPUT_OPTIONS = {"file": "FILE", "loops": "--loops", "urdf": "--urdf"}
+
+#: Options naming output files, by argparse attribute.
+OUTPUT_OPTIONS = {"out": "--out", "output": "-o/--output"}
 
 
 def _fmt(x: float) -> str:
@@ -158,29 +184,35 @@ def check_args(args: argparse.Namespace) -> None:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ClosedChainError(f"{flag} must be a positive number, got {value:g}")
+    for attr, (flag, low, high) in _count_options().items():
+        value = getattr(args, attr, None)
+        if value is not None and value < low:
+            raise ClosedChainError(f"{flag} must be at least {low}, got {value}")
+        if value is not None and high is not None and value > high:
+            raise ClosedChainError(f"{flag} must be at most {high}, got {value}")
     if getattr(args, "fps", None) is not None and getattr(args, "t_final", None) is not None:
-        output_times(args.t_final, args.fps)  # checks the sample count before any work
-    samples = getattr(args, "samples", None)
-    if samples is not None and samples < 1:
-        raise ClosedChainError(f"--samples must be at least 1, got {samples}")
-    out = getattr(args, "out", None)
-    if out is not None and Path(out).suffix not in TRAJECTORY_SUFFIXES:
-        raise ClosedChainError(
-            f"cannot save a trajectory as {Path(out).name!r}; valid suffixes: "
-            + ", ".join(TRAJECTORY_SUFFIXES)
-        )
-    for path in (out, getattr(args, "output", None)):
-        if path is not None and not Path(path).parent.is_dir():
-            raise ClosedChainError(f"{path}: directory {Path(path).parent} does not exist")
-    if args.command in ("plot", "workspace"):
-        from .plotting import image_formats
+        if args.command == "animate":  # the tighter bound first
+            from .visualize.settings import DEFAULT_SETTINGS
 
-        suffix = Path(args.output).suffix.lower().removeprefix(".")
-        if suffix not in image_formats():
-            raise ClosedChainError(
-                f"cannot write an image as {Path(args.output).name!r}; supported suffixes: "
-                + ", ".join("." + f for f in image_formats())
+            _check_sample_count(
+                args.t_final,
+                args.fps,
+                DEFAULT_SETTINGS.max_keyframes,
+                "keyframes",
+                "AnimationSettings.max_keyframes",
             )
+        output_times(args.t_final, args.fps)  # checks the sample count before any work
+    outputs = _check_output_suffix(args)
+    for path in outputs.values():
+        if not Path(path).parent.is_dir():
+            raise ClosedChainError(f"{path}: directory {Path(path).parent} does not exist")
+    _check_outputs_are_not_inputs(args, outputs)
+    outputs_option = getattr(args, "outputs", None) or ()
+    repeated = sorted({name for name in outputs_option if outputs_option.count(name) > 1})
+    if repeated:
+        raise ClosedChainError(
+            f"--outputs names {', '.join(repeated)} more than once; valid: distinct joints"
+        )
     scheduler = getattr(args, "scheduler", None)
     if scheduler is not None and not SCHEDULER_ADDRESS.fullmatch(scheduler):
         raise ClosedChainError(
@@ -195,6 +227,65 @@ def check_args(args: argparse.Namespace) -> None:
             )
         if args.urdf is not None and Path(args.file).suffix != ".npz":
             raise ClosedChainError("--urdf is for a .npz trajectory; FILE is already a URDF")
+
+
+def _count_options() -> dict[str, tuple[str, int, int | None]]:
+    """Integer options by argparse attribute: (flag, smallest, largest or None)."""
+    from .benchmark.runner import MAX_REPEATS, MAX_WORKERS
+    from .validation import MAX_VALIDATION_SAMPLES
+
+    return {
+        "samples": ("--samples", 1, MAX_VALIDATION_SAMPLES),
+        "seed": ("--seed", 0, None),  # numpy's generators take no negative seed
+        "workers": ("--workers", 1, MAX_WORKERS),
+        "repeats": ("--repeats", 1, MAX_REPEATS),
+    }
+
+
+def _check_output_suffix(args: argparse.Namespace) -> dict[str, str]:
+    """Refuse an output file whose suffix the command cannot write; return the outputs by flag.
+
+    Raises:
+        ClosedChainError: the suffix is not one the command writes (lists the valid ones).
+    """
+    outputs = {
+        flag: getattr(args, attr)
+        for attr, flag in OUTPUT_OPTIONS.items()
+        if getattr(args, attr, None) is not None
+    }
+    for path in outputs.values():
+        action, valid = OUTPUT_SUFFIXES[args.command]
+        suffix = Path(path).suffix
+        if valid is None:
+            from .plotting import image_formats
+
+            valid = tuple("." + f for f in image_formats())
+            suffix = suffix.lower()
+        if suffix not in valid:
+            raise ClosedChainError(
+                f"cannot {action} as {Path(path).name!r}; valid suffixes: {', '.join(valid)}"
+            )
+    return outputs
+
+
+def _check_outputs_are_not_inputs(args: argparse.Namespace, outputs: dict[str, str]) -> None:
+    """Refuse an output file that is one of the command's input files (same file on disk).
+
+    Raises:
+        ClosedChainError: an output and an input are the same file.
+    """
+    for out_flag, out in outputs.items():
+        if not os.path.exists(out):
+            continue
+        for attr, in_flag in INPUT_OPTIONS.items():
+            path = getattr(args, attr, None)
+            if path is None or not os.path.exists(path):
+                continue  # erd:<name>, or a missing file (reported when it is read)
+            if os.path.samefile(out, path):
+                raise ClosedChainError(
+                    f"{out_flag} {out} is the input file {in_flag} {path}; writing it would "
+                    "destroy the input: give another output file"
+                )
 
 
 def _cmd_info(args) -> int:
@@ -338,6 +429,7 @@ def _cmd_animate(args) -> int:
 
 
 def _cmd_plot(args) -> int:
+    from ._io import save_figure
     from .plotting import plot_trajectory
     from .trajectory import Trajectory
 
@@ -349,7 +441,7 @@ def _cmd_plot(args) -> int:
         mech = _load(args)
         traj, stopped = run_or_stop(args, mech)
     fig = plot_trajectory(traj, mech=mech, coordinates=args.coordinates)
-    fig.savefig(args.output)
+    save_figure(fig, args.output)
     print(f"wrote {args.output}")
     return report_stop(stopped, traj, "plot written")
 
@@ -435,15 +527,31 @@ def output_times(t_final: float, fps: float) -> np.ndarray:
     """
     from .simulate.settings import DEFAULT_SIMULATION_SETTINGS
 
-    limit = DEFAULT_SIMULATION_SETTINGS.max_outputs
-    n = math.ceil(t_final * fps - 1e-9) + 1
+    n = _check_sample_count(
+        t_final,
+        fps,
+        DEFAULT_SIMULATION_SETTINGS.max_outputs,
+        "output samples",
+        "SimulationSettings.max_outputs",
+    )
+    return np.linspace(0.0, t_final, max(n, 2))
+
+
+def _check_sample_count(t_final: float, fps: float, limit: int, what: str, setting: str) -> int:
+    """Return the samples of ``t_final`` s at ``fps`` (start and end included), at most ``limit``.
+
+    Raises:
+        ClosedChainError: more than ``limit`` samples (the message names
+            ``setting`` and the valid ``--fps``).
+    """
+    frames = t_final * fps  # a float: inf when it overflows
+    n = math.ceil(frames - 1e-9) + 1 if math.isfinite(frames) else math.inf
     if n > limit:
         raise ClosedChainError(
-            f"--fps {fps:g} over --t-final {t_final:g} s is {n:.3g} output samples, more than "
-            f"the limit {limit:.3g} (SimulationSettings.max_outputs); valid --fps: "
-            f"(0, {(limit - 1) / t_final:.6g}]"
+            f"--fps {fps:g} over --t-final {t_final:g} s is {n} {what}, more than the limit "
+            f"{limit} ({setting}); valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
         )
-    return np.linspace(0.0, t_final, max(n, 2))
+    return n
 
 
 def simulate_from_args(args, mech):
@@ -457,10 +565,16 @@ def simulate_from_args(args, mech):
         q0, v0, tau = scene.q0, scene.v0, scene.tau
         logging.getLogger(__name__).info("%s: default scene: %s", mech.name, scene.description)
     else:
-        q0 = assemble(mech, np.array(args.q0), fixed="independent")
+        q0 = assemble(mech, mech.check_q(args.q0, "--q0"), fixed="independent")
         v0, tau = np.zeros(mech.nv), None
     if getattr(args, "torque", "zero") == "gravity":
         from .control import gravity_torque
+
+        if mech.mobility == 0:
+            raise ClosedChainError(
+                f"--torque gravity: {mech.name} has no degree of freedom (mobility 0): nothing "
+                "to hold, the loops carry the load; valid: --torque zero"
+            )
 
         tau = gravity_torque(mech, q0)
     t_eval = output_times(args.t_final, args.fps)
@@ -576,8 +690,6 @@ def _cmd_export_mjcf(args) -> int:
 
 
 def _default_cache() -> Path:
-    import os
-
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "closedchain" / "bench-references"
 
@@ -587,12 +699,8 @@ def _cmd_bench(args) -> int:
 
     from .benchmark import QUICK, BenchSettings, run_work_precision
 
-    if args.workers < 1:
-        raise ClosedChainError(f"--workers must be at least 1, got {args.workers}")
     settings = QUICK if args.quick else BenchSettings()
     if args.repeats is not None:
-        if args.repeats < 1:
-            raise ClosedChainError(f"--repeats must be at least 1, got {args.repeats}")
         settings = replace(settings, repeats=args.repeats)
     bar = tqdm(total=1, unit="run", disable=args.no_progress)
 
@@ -766,28 +874,61 @@ def exit_status(exc: BaseException) -> int:
     """Return the exit status for an exception that ended a command.
 
     A simulation stopped by a singular configuration or a non-finite or
-    drifting state is :data:`EXIT_STOPPED`; any other closedchain error and a
-    file that cannot be written (OSError) is bad input, :data:`EXIT_BAD_INPUT`;
-    anything else is a bug, :data:`EXIT_INTERNAL`.
+    drifting state is :data:`EXIT_STOPPED`; any other closedchain error, a
+    file that cannot be written (OSError) and a problem too large for the
+    memory (MemoryError) is bad input, :data:`EXIT_BAD_INPUT`; anything else
+    is a bug, :data:`EXIT_INTERNAL`.
     """
     from .simulate import SimulationError
 
     if isinstance(exc, SingularConfigurationError | SimulationError | NonFiniteError):
         return EXIT_STOPPED
-    if isinstance(exc, ClosedChainError | OSError):
+    if isinstance(exc, ClosedChainError | OSError | MemoryError):
         return EXIT_BAD_INPUT
     return EXIT_INTERNAL
 
 
-def error_message(exc: BaseException) -> str:
+def error_message(exc: BaseException, args: argparse.Namespace | None = None) -> str:
     """Return the one-line message of a bad-input or stopped-run error.
 
     An OSError names its file first (``"/x/y.html: Permission denied"``), as
     closedchain's own errors do, instead of Python's ``[Errno 13] ...`` form.
+    A MemoryError names the command and its input (``args``) as what was too
+    large. Line breaks (a numpy array printed over several lines) become spaces.
     """
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
-        return f"{exc.filename}: {exc.strerror}"
-    return str(exc)
+        message = f"{exc.filename}: {exc.strerror}"
+    elif isinstance(exc, MemoryError):
+        what = " ".join(
+            str(x) for x in (getattr(args, "command", None), getattr(args, "file", None)) if x
+        )
+        message = (
+            f"not enough memory for {what or 'the command'}"
+            + (f" ({exc})" if str(exc) else "")
+            + ": the problem is too large for this machine (lower --t-final, --fps, "
+            "--samples, --points or the model's size)"
+        )
+    else:
+        message = str(exc)
+    return " ".join(line.strip() for line in message.splitlines() if line.strip())
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that files being written are cleaned up.
+
+    A BaseException, like KeyboardInterrupt: ``except Exception`` blocks let it pass.
+    """
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise _Terminated
+
+
+def _handle_sigterm():
+    """Make SIGTERM raise :class:`_Terminated` (main thread only); return the previous handler."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -795,25 +936,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING)
+    previous = _handle_sigterm()
     try:
         check_args(args)
         return int(args.handler(args))
     except KeyboardInterrupt:
         print("closedchain: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:
+        return EXIT_INTERRUPTED
+    except _Terminated:
+        print("closedchain: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    except Exception as exc:  # MemoryError included: exit_status makes it bad input
         status = exit_status(exc)
         if status == EXIT_INTERNAL:
             if args.debug:
                 traceback.print_exc()
             print(
-                f"closedchain: internal error: {type(exc).__name__}: {exc}"
+                f"closedchain: internal error: {type(exc).__name__}: {error_message(exc)}"
                 + ("" if args.debug else " (run with --debug for the traceback)"),
                 file=sys.stderr,
             )
         else:
-            print(f"closedchain: error: {error_message(exc)}", file=sys.stderr)
+            print(f"closedchain: error: {error_message(exc, args)}", file=sys.stderr)
         return status
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -17,6 +17,7 @@ so it stays at the level of the integration error.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -97,9 +98,12 @@ def computed_torque_controller(
     kp, kd = float(kp), float(kd)
 
     def tau(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        q_ref, v_ref, a_ref = (np.asarray(x, dtype=float) for x in reference(t))
-        a_cmd = a_ref + kd * (v_ref - v[idx_v]) + kp * (q_ref - q[idx_q])
-        return inverse_dynamics(mech, q, v, a_cmd, coordinates=names, settings=settings).tau
+        # An overflow at a runaway state is reported by inverse_dynamics' finiteness
+        # checks (NonFiniteError naming v and a_cmd), not as a RuntimeWarning.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            q_ref, v_ref, a_ref = (np.asarray(x, dtype=float) for x in reference(t))
+            a_cmd = a_ref + kd * (v_ref - v[idx_v]) + kp * (q_ref - q[idx_q])
+            return inverse_dynamics(mech, q, v, a_cmd, coordinates=names, settings=settings).tau
 
     return tau
 
@@ -168,8 +172,9 @@ def default_scene(mech: Mechanism) -> Scene:
     sinusoids from a matching initial velocity.
 
     Raises:
-        ClosedChainError: the scene cannot be assembled, or its tracked joints
-            are not ``mobility`` many (the message names the file).
+        ClosedChainError: the scene cannot be assembled, its tracked joints
+            are not ``mobility`` many, or a sinusoid's peak position, velocity or
+            acceleration overflows (the message names the file).
     """
     from .kinematics import assemble, project_velocity
 
@@ -196,6 +201,17 @@ def default_scene(mech: Mechanism) -> Scene:
             f"{mech.path}: line {spec.line}: <scene> <track> drives {len(names)} joints "
             f"({', '.join(names)}); it needs the mobility, {mech.mobility}"
         )
+    for s in spec.track:
+        # Python floats: an overflow gives inf here, not a numpy RuntimeWarning later.
+        w = 2.0 * math.pi * s.frequency
+        peaks = (abs(s.offset) + abs(s.amplitude), abs(s.amplitude) * w, abs(s.amplitude) * w * w)
+        if not all(math.isfinite(x) for x in peaks):
+            raise ClosedChainError(
+                f"{mech.path}: line {spec.line}: <scene> <sinusoid joint={s.joint!r}>: "
+                f"offset {s.offset:g}, amplitude {s.amplitude:g}, frequency {s.frequency:g} Hz "
+                "overflow the reference's position, velocity or acceleration; valid: values "
+                "whose amplitude (2 pi frequency)^2 is a finite number"
+            )
     reference = sinusoid_reference(spec.track)
     q_ref0, v_ref0, _ = reference(0.0)
     idx = [mech.model.joints[mech.model.getJointId(n)] for n in names]

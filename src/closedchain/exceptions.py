@@ -7,6 +7,7 @@ valid choices, lists them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 
@@ -179,3 +180,17 @@ def resolve_choice(what: str, value: object, choices: Iterable[str]) -> str:
         if match is not None:
             return match
     raise UnknownChoiceError(what, value, choices)
+
+
+def format_upper_bound(x: float, digits: int = 6) -> str:
+    """Return ``x`` with at least ``digits`` significant digits, never above ``x``.
+
+    For "valid: (0, x]" messages: rounding to nearest could print a bound that
+    is itself refused (1999999.8 as 2e+06); more digits are added until the
+    printed number is at most ``x`` (17 always are).
+    """
+    for d in range(digits, 18):
+        text = f"{x:.{d}g}"
+        if not (math.isfinite(x) and float(text) > x):
+            return text
+    return repr(x)

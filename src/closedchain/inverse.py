@@ -208,8 +208,9 @@ def inverse_dynamics(
         multipliers and residuals.
 
     Raises:
-        ClosedChainError: wrong number of prescribed coordinates or
-            accelerations, or fewer actuators than degrees of freedom (names both).
+        ClosedChainError: the mechanism has no degree of freedom (mobility 0),
+            wrong number of prescribed coordinates or accelerations, or fewer
+            actuators than degrees of freedom (names both).
         SingularConfigurationError: the prescribed coordinates do not determine
             the motion (J_F singular), J has lost rank, or the actuators cannot
             produce every motion at q (N^T B singular, an actuation singularity).
@@ -217,6 +218,11 @@ def inverse_dynamics(
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     nv, nc, mob = mech.nv, mech.nc, mech.mobility
+    if mob == 0:
+        raise ClosedChainError(
+            f"{mech.name}: the mechanism has no degree of freedom (mobility 0): no actuator "
+            "torque moves or holds it, the loops carry every load; valid: mobility >= 1"
+        )
     P, F, A = _cached_indices(mech, coordinates, actuated)
     if len(P) != mob:
         raise ClosedChainError(

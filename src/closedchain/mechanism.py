@@ -20,6 +20,7 @@ import numpy as np
 import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
+from ._io import captured_stderr
 from ._locking import exclusive
 from .closure import (
     AssemblySettings,
@@ -71,6 +72,11 @@ DIGEST_DIGITS = 12
 #: Magnitude [SI] below which a number enters :meth:`Mechanism.digest` as 0
 #: (round-off such as cos(pi/2) = 6e-17, and -0.0).
 DIGEST_ZERO = 1e-12
+
+#: Largest norm of the gravity vector accepted [m/s^2] (1e5 g, far beyond any
+#: physical use): torques, energies and their squares of ordinary models stay
+#: finite (--gravity 1e308 overflowed into numpy warnings and NaN).
+MAX_GRAVITY_NORM = 1e6
 
 
 def max_nv(settings: LoadSettings) -> int:
@@ -564,6 +570,12 @@ class Mechanism:
         )
 
 
+def _urdfdom_errors(text: str) -> list[str]:
+    """Return the reasons of urdfdom's ``Error:`` lines in ``text``, the root cause first."""
+    lines = (line.strip() for line in text.splitlines())
+    return [line.removeprefix("Error:").strip() for line in lines if line.startswith("Error:")]
+
+
 def load(
     path: str | Path,
     *,
@@ -584,7 +596,8 @@ def load(
             ``"planar"`` (x, y [m], cos, sin of the angle about world z).
         loops: overlay file in URDF+ syntax whose links, joints, loops and
             transmissions are merged into the tree (see :mod:`closedchain.robots`).
-        gravity: gravity vector in the world frame [m/s^2], shape (3,).
+        gravity: gravity vector in the world frame [m/s^2], shape (3,), of
+            norm at most :data:`MAX_GRAVITY_NORM`.
         settings: row-selection settings (defaults: :class:`LoadSettings`).
 
     Returns:
@@ -593,6 +606,8 @@ def load(
     Raises:
         URDFError: invalid file or extension element, or a tree beyond
             ``settings.max_data_bytes`` (refused before any work).
+        ClosedChainError: gravity is not 3 finite numbers of norm at most
+            :data:`MAX_GRAVITY_NORM`.
         LoopClosureError: a loop's frames cannot be brought together.
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
@@ -616,15 +631,28 @@ def load(
     gravity = np.asarray(gravity, dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
+    # The largest component first: the norm of 1e308 overflows while squaring.
+    if np.max(np.abs(gravity)) > MAX_GRAVITY_NORM or np.linalg.norm(gravity) > MAX_GRAVITY_NORM:
+        raise ClosedChainError(
+            f"gravity {gravity} m/s^2 is beyond the limit; valid: a norm of at most "
+            f"{MAX_GRAVITY_NORM:g} m/s^2 (MAX_GRAVITY_NORM)"
+        )
     try:
         root = ROOT_JOINTS[root_joint]
-        model = (
-            pin.buildModelFromXML(urdf.xml)
-            if root is None
-            else pin.buildModelFromXML(urdf.xml, root())
-        )
+        # urdfdom prints its reasons on fd 2: fold them into the one-line message.
+        with captured_stderr() as urdfdom:
+            model = (
+                pin.buildModelFromXML(urdf.xml)
+                if root is None
+                else pin.buildModelFromXML(urdf.xml, root())
+            )
     except (RuntimeError, ValueError) as exc:
-        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {exc}") from exc
+        errors = _urdfdom_errors(urdfdom.text)
+        reason = f"urdfdom: {errors[0]}" if errors else str(exc)
+        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {reason}") from exc
+    if urdfdom.text.strip():
+        reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
+        logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
     if model.nv == 0:
         raise URDFError(
             f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "

@@ -191,7 +191,7 @@ def merge_overlay(
     path = base
     if overlay is not None:
         path = Path(overlay)
-        extra = read_xml(path)
+        extra = read_xml(path, what="overlay file")
         if extra.tag != "robot":
             raise URDFError(f"{path}: root element is <{extra.tag}>, expected <robot>")
         taken = {

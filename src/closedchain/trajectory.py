@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._io import atomic_write, check_npz
 from .exceptions import ClosedChainError
 
 if TYPE_CHECKING:
@@ -317,8 +318,12 @@ class Trajectory:
         spreadsheet would read as formulas prefixed with ``'`` (see
         :func:`neutralize_formula`), numbers unquoted with all digits.
 
+        The file is written atomically (:func:`closedchain._io.atomic_write`):
+        an error leaves a previous file at ``path`` as it was.
+
         Raises:
             ClosedChainError: the suffix is neither .npz nor .csv.
+            OSError: the file cannot be written (its ``filename`` is ``path``).
         """
         path = Path(path)
         if path.suffix == ".npz":
@@ -327,12 +332,13 @@ class Trajectory:
                 for k in ("kinetic_energy", "branch")
                 if getattr(self, k) is not None
             }
-            np.savez_compressed(
-                path,
-                **{k: getattr(self, k) for k in _ARRAYS},
-                **extra,
-                info=json.dumps(self.info.to_dict()),
-            )
+            with atomic_write(path) as f:
+                np.savez_compressed(
+                    f,
+                    **{k: getattr(self, k) for k in _ARRAYS},
+                    **extra,
+                    info=json.dumps(self.info.to_dict()),
+                )
         elif path.suffix == ".csv":
             names = (
                 self.info.configuration_names
@@ -358,7 +364,7 @@ class Trajectory:
             )
             # csv module, every text cell quoted: names with commas, quotes or
             # newlines keep their column; numbers stay numbers (repr round-trips).
-            with path.open("w", newline="") as f:
+            with atomic_write(path, "w", newline="") as f:
                 writer = csv.writer(f, quoting=csv.QUOTE_NONNUMERIC)
                 writer.writerow([neutralize_formula(str(h)) for h in header])
                 writer.writerows(table.tolist())
@@ -373,13 +379,16 @@ class Trajectory:
         """Read a trajectory written by :meth:`save` as ``.npz``.
 
         Raises:
-            ClosedChainError: not an .npz file, unreadable or truncated, or an
+            ClosedChainError: not an .npz file, not a regular file, larger than
+                :data:`closedchain._io.MAX_NPZ_BYTES` (checked before inflating
+                anything), unreadable or truncated, or an
                 archive without the trajectory's arrays (the message names the
                 file and what is missing) or with inconsistent shapes.
         """
         path = Path(path)
         if path.suffix != ".npz":
             raise ClosedChainError(f"{path}: only .npz trajectories can be loaded")
+        shapes = check_npz(path, what="trajectory")
         try:
             archive = np.load(path, allow_pickle=False)
             if isinstance(archive, np.ndarray):  # a .npy file renamed
@@ -394,10 +403,10 @@ class Trajectory:
                         + ", ".join(missing)
                         + f" (it holds: {', '.join(f.files) or 'nothing'})"
                     )
-                arrays = {k: f[k] for k in _ARRAYS}
-                for k in ("kinetic_energy", "branch"):
-                    if k in f.files:
-                        arrays[k] = f[k]
+                keys = [*_ARRAYS, *(k for k in ("kinetic_energy", "branch") if k in f.files)]
+                # The rows from the headers, before any array is inflated.
+                _check_rows(path, {k: shapes[k] for k in keys if k in shapes})
+                arrays = {k: f[k] for k in keys}
                 info = json.loads(str(f["info"]))
         except ClosedChainError:
             raise
@@ -408,12 +417,10 @@ class Trajectory:
                 f"{path}: not a readable closedchain trajectory (truncated or not an .npz "
                 f"archive): {type(exc).__name__}: {exc}"
             ) from exc
-        n = arrays["t"].shape[0] if arrays["t"].ndim == 1 else -1
-        bad = [k for k, a in arrays.items() if a.ndim == 0 or a.shape[0] != n]
-        if n < 1 or bad or not isinstance(info, dict):
+        _check_rows(path, {k: a.shape for k, a in arrays.items()})
+        if not isinstance(info, dict):
             raise ClosedChainError(
-                f"{path}: not a closedchain trajectory: t has shape {arrays['t'].shape} and "
-                f"{', '.join(bad) or 'info'} do not have one row per time"
+                f"{path}: not a closedchain trajectory: its info is not a JSON object"
             )
         try:
             info = SimulationInfo.from_dict(info)
@@ -423,3 +430,25 @@ class Trajectory:
                 f"({type(exc).__name__}: {exc})"
             ) from exc
         return cls(**arrays, info=info)
+
+
+def _check_rows(path: Path, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Refuse arrays (by shape) that do not all have one row per time of ``t``.
+
+    Raises:
+        ClosedChainError: t is not 1-D and non-empty, or another array's first
+            dimension differs from len(t) (the message names them).
+    """
+    t = shapes.get("t")
+    if t is None:
+        return
+    if len(t) != 1 or t[0] < 1:
+        raise ClosedChainError(
+            f"{path}: not a closedchain trajectory: t has shape {t}; valid: (N,), N >= 1"
+        )
+    bad = [k for k, s in shapes.items() if len(s) == 0 or s[0] != t[0]]
+    if bad:
+        raise ClosedChainError(
+            f"{path}: not a closedchain trajectory: t has shape {t} and "
+            f"{', '.join(bad)} do not have one row per time"
+        )

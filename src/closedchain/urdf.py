@@ -32,6 +32,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
+from ._io import MAX_XML_BYTES, read_input_bytes
 from .exceptions import ModelTooLargeError, URDFError
 
 logger = logging.getLogger(__name__)
@@ -510,16 +511,19 @@ URDF_JOINT_NV = {
 }
 
 
-def read_xml(path: Path):
+def read_xml(path: Path, *, what: str = "URDF file"):
     """Parse an XML file safely and return its root element.
 
+    Args:
+        path: the file.
+        what: what the file is, for messages ("URDF file", "overlay file").
+
     Raises:
-        URDFError: the file is missing, is not well-formed XML or declares a DTD.
+        URDFError: the file is missing, is not a regular file, is larger than
+            :data:`closedchain._io.MAX_XML_BYTES`, is not well-formed XML or
+            declares a DTD.
     """
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise URDFError(f"{path}: cannot read URDF file: {exc.strerror}") from exc
+    raw = read_input_bytes(path, limit=MAX_XML_BYTES, what=what, error=URDFError)
     if _declares_doctype(raw):
         raise URDFError(
             f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"

@@ -67,6 +67,10 @@ REFERENCE_REFINEMENT_STEPS = 1
 #: planar loop has zero rows), and the round-off in r_c along their near-zero
 #: singular directions (~1e-16 of the largest) is not a correction to apply.
 REFINEMENT_RCOND = 1e-9
+#: Largest ``n_samples`` of :func:`validate`: each state is an assembly and two
+#: dynamics solves (about 2 ms on the 4-bar, so 1e5 states take some 4 minutes;
+#: seconds to minutes per state on the largest models).
+MAX_VALIDATION_SAMPLES = 100_000
 
 
 @dataclass(frozen=True)
@@ -220,13 +224,22 @@ def validate(
         The report; ``report.passed`` says whether both tolerances hold.
 
     Raises:
-        InvalidArgumentError: ``n_samples`` is not an integer >= 1.
+        InvalidArgumentError: ``n_samples`` is not an integer in [1,
+            :data:`MAX_VALIDATION_SAMPLES`], or ``seed`` not an integer >= 0.
         UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
     """
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int | np.integer) or n_samples < 1:
+    if (
+        isinstance(n_samples, bool)
+        or not isinstance(n_samples, int | np.integer)
+        or not 1 <= n_samples <= MAX_VALIDATION_SAMPLES
+    ):
         raise InvalidArgumentError(
-            f"n_samples must be an integer >= 1 (a check on no states proves nothing), "
-            f"got {n_samples!r}"
+            f"n_samples must be an integer in [1, {MAX_VALIDATION_SAMPLES}] (a check on no "
+            f"states proves nothing), got {n_samples!r}"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise InvalidArgumentError(
+            f"seed must be an integer >= 0 (numpy's generators take no negative seed), got {seed!r}"
         )
     method = method_name(method)
     if method == "pinocchio":

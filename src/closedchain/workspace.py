@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ._io import save_figure
 from ._locking import exclusive
 from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
 from .kinematics import assemble, compute_jacobian
@@ -239,6 +240,11 @@ def singularity_map(
     if not (math.isfinite(span) and span > 0):
         raise InvalidArgumentError(f"span must be a positive number [rad], got {span}")
     outputs = tuple(outputs or default_outputs(mech))
+    repeated = sorted({name for name in outputs if outputs.count(name) > 1})
+    if repeated:
+        raise InvalidArgumentError(
+            f"outputs names {', '.join(map(str, repeated))} more than once; valid: distinct joints"
+        )
     if len(outputs) < 2:
         raise ClosedChainError(
             f"a singularity map needs two output coordinates, got {outputs}; valid: two of "
@@ -306,7 +312,7 @@ def plot_workspace(
         for axis in ax:
             axis.grid(True, alpha=0.3)
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         plt.close(fig)
         return (
             f"{a.grashof}: ground {a.ground:.4g}, crank {a.crank:.4g}, coupler "
@@ -330,7 +336,7 @@ def plot_workspace(
         axis.set_ylabel(f"{m.outputs[1]} [rad]")
     fig.suptitle(f"{mech.name}: outputs {', '.join(m.outputs)} (others at q_ref); red: 1e-2")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return (
         f"singularity map over {m.outputs[0]}, {m.outputs[1]}: min sigma parallel "

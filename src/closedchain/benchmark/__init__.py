@@ -22,6 +22,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from .._io import MAX_CSV_BYTES, atomic_write, check_input_file
 from .analysis import TARGET_ERRORS, pareto_front, ratio_markdown, ratio_table
 from .runner import (
     COLUMNS,
@@ -68,7 +69,7 @@ def _mujoco_available() -> bool:
 
 def write_rows(rows: list[dict], path: str | Path, columns: tuple[str, ...] = COLUMNS) -> None:
     """Write tidy rows as CSV with ``columns`` in order."""
-    with open(path, "w", newline="") as f:
+    with atomic_write(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         w.writeheader()
         for r in rows:
@@ -77,6 +78,7 @@ def write_rows(rows: list[dict], path: str | Path, columns: tuple[str, ...] = CO
 
 def read_rows(path: str | Path) -> list[dict]:
     """Read a CSV written by :func:`write_rows` (numbers back to float)."""
+    check_input_file(path, limit=MAX_CSV_BYTES, what="benchmark table")
     out = []
     with open(path, newline="") as f:
         for r in csv.DictReader(f):
@@ -196,7 +198,8 @@ def run_work_precision(
     )
     agreements = {c.scenario: c.agreement for c in checks}
     table = ratio_table(rows, agreements)
-    (out / "ratios.md").write_text(ratio_markdown(table))
+    with atomic_write(out / "ratios.md", "w", encoding="utf-8") as f:
+        f.write(ratio_markdown(table))
     from .plots import plot_work_precision
 
     for sc in scenarios:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from .._io import save_figure
 from .analysis import pareto_front
 
 #: Colours per family (others get matplotlib's cycle).
@@ -73,7 +74,7 @@ def plot_work_precision(
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -106,7 +107,7 @@ def plot_stability_map(rows: list[dict], path: str | Path) -> None:
     fig.legend(handles, states, loc="upper right", ncol=4, fontsize=8)
     axes[-1, 0].set_xlabel("step [s]")
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -139,5 +140,5 @@ def plot_scaling(rows: list[dict], path: str | Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from .._io import MAX_XML_BYTES, atomic_write, check_npz, read_input_bytes
 from ..exceptions import ClosedChainError
 
 logger = logging.getLogger(__name__)
@@ -198,7 +199,7 @@ def cache_key(job: dict, scenario) -> str:
         if name and not name.startswith("erd:"):
             path = Path(job["models_dir"]) / name
             if path.exists():
-                model_bytes += path.read_bytes()
+                model_bytes += read_input_bytes(path, limit=MAX_XML_BYTES, what="model file")
     text = repr(
         (
             job["family"],
@@ -222,9 +223,10 @@ def cache_load(cache_dir: str | Path | None, key: str) -> dict | None:
     if not path.exists():
         return None
     try:
+        check_npz(path, what="reference cache file")
         with np.load(path, allow_pickle=False) as z:
             return dict(q=z["q"], v=z["v"], cpu_s=float(z["cpu_s"]), status="ok", message="cached")
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, ClosedChainError) as exc:
         logger.warning("reference cache %s unreadable (%s): recomputing", path, exc)
         return None
 
@@ -235,6 +237,5 @@ def cache_store(cache_dir: str | Path | None, key: str, result: dict) -> None:
         return
     path = Path(cache_dir)
     path.mkdir(parents=True, exist_ok=True)
-    tmp = path / f"{key}.tmp.npz"
-    np.savez(tmp, q=result["q"], v=result["v"], cpu_s=result["cpu_s"])
-    tmp.replace(path / f"{key}.npz")
+    with atomic_write(path / f"{key}.npz") as f:
+        np.savez(f, q=result["q"], v=result["v"], cpu_s=result["cpu_s"])

@@ -54,6 +54,14 @@ COLUMNS = (
     "message",
 )
 
+#: Largest number of local worker processes (``closedchain bench --workers``):
+#: each holds the models and Pinocchio, some 100 MB.
+MAX_WORKERS = 256
+
+#: Largest number of runs per configuration (``closedchain bench --repeats``):
+#: the full benchmark takes minutes per repeat.
+MAX_REPEATS = 1000
+
 
 @dataclass(frozen=True)
 class BenchSettings:

@@ -67,7 +67,8 @@ def forward_dynamics(
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
-    with np.errstate(over="ignore", invalid="ignore"):  # checked just below: no warning
+    # An overflow is reported by the finiteness check below, not as a warning.
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         a, lam = func(mech, q, v, tau, settings)
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(lam))):
         raise NonFiniteError(

@@ -40,6 +40,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import pinocchio as pin
 
+from .._io import atomic_write
 from .._locking import exclusive
 from ..exceptions import ClosedChainError
 
@@ -276,7 +277,8 @@ def export_mjcf(
         ]
     )
     if path is not None:
-        Path(path).write_text(text)
+        with atomic_write(path, "w", encoding="utf-8") as f:
+            f.write(text)
         logger.info("wrote %s (%d bodies, %d equalities)", path, model.njoints - 1, len(equalities))
     return text
 

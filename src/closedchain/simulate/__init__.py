@@ -108,6 +108,11 @@ __all__ = [
 #: solvers silently raise a smaller rtol to.
 MIN_RTOL = 100 * float(np.finfo(float).eps)
 
+#: Smallest absolute tolerance accepted: scipy's error norm squares
+#: error / (atol + rtol |y|), and below 1e-150 the square of an O(1) error over
+#: atol overflows double precision (1e300 against the largest double, 1.8e308).
+MIN_ATOL = 1e-150
+
 
 def check_start_velocity(
     mech: Mechanism,
@@ -386,7 +391,8 @@ def simulate(
         dt = settings.dt if dt is None else dt
         check_positive("dt", dt, "the fixed step [s]")
         dt = float(dt)
-        n_steps = math.ceil(t_final / dt - 1e-9)
+        ratio = t_final / dt  # a float: inf when it overflows (dt near the underflow)
+        n_steps = math.ceil(ratio - 1e-9) if math.isfinite(ratio) else math.inf
         if n_steps > settings.max_steps:
             raise InvalidArgumentError(
                 f"dt = {dt:g} s over t_final = {t_final:g} s is {n_steps:.3g} steps, more than "
@@ -409,6 +415,11 @@ def simulate(
             raise InvalidArgumentError(
                 f"rtol = {rtol:g} is below what double precision resolves (scipy would raise it "
                 f"to {MIN_RTOL:.3g} without a word); valid range: [{MIN_RTOL:.3g}, inf)"
+            )
+        if atol < MIN_ATOL:
+            raise InvalidArgumentError(
+                f"atol = {atol:g} is so small that scipy's error norm overflows; "
+                f"valid range: [{MIN_ATOL:.3g}, inf)"
             )
 
     original_solver_settings = solver_settings

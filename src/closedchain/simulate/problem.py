@@ -133,15 +133,17 @@ class Problem:
         """Return the accelerations at (t, q, v), shape (nv,); :attr:`lam` holds the
         multipliers, polished only with ``multipliers`` (``SolverSettings.al_polish``:
         off for evaluations whose multipliers nobody reads, such as rk4's inner stages)."""
-        tau = self.torque(t, q, v)
         settings = self.solver_settings
         if not multipliers and settings.al_polish:
             settings = self._unpolished
-        try:
-            with np.errstate(over="ignore", invalid="ignore"):  # non-finite a: checked below
+        # An overflow is reported by the finiteness checks of tau (in torque), of the
+        # inverse dynamics of a controller and of a below, not as a RuntimeWarning.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            tau = self.torque(t, q, v)
+            try:
                 a, lam = self.func(self.mech, q, v, tau, settings)
-        except SingularConfigurationError as exc:
-            raise exc.at_time(t, hint=passing_hint()) from None
+            except SingularConfigurationError as exc:
+                raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1
         if not np.all(np.isfinite(a)):
             raise SimulationError(f"non-finite acceleration at t = {t:.9g} s, q = {q}", t)

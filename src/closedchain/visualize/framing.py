@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from ..exceptions import ClosedChainError
+from ..exceptions import ClosedChainError, format_upper_bound
 from ..trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -52,7 +52,9 @@ def check_trajectory(mech: Mechanism, trajectory: Trajectory) -> None:
         )
 
 
-def resample(mech: Mechanism, trajectory: Trajectory, fps: float) -> tuple[np.ndarray, np.ndarray]:
+def resample(
+    mech: Mechanism, trajectory: Trajectory, fps: float, *, max_keyframes: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Resample a trajectory at the display rate.
 
     Keyframes fall at k / fps for k = 0, 1, ... from the first sample, plus one
@@ -65,9 +67,15 @@ def resample(mech: Mechanism, trajectory: Trajectory, fps: float) -> tuple[np.nd
         mech: the mechanism.
         trajectory: times shape (N,) [s] and configurations shape (N, nq).
         fps: display rate [frames/s].
+        max_keyframes: largest K accepted (None: no limit); more is refused
+            before any keyframe is computed.
 
     Returns:
         (times [s] from 0, shape (K,); configurations, shape (K, nq)).
+
+    Raises:
+        ClosedChainError: the trajectory does not fit the mechanism, fps is not
+            positive, or the keyframes would be more than ``max_keyframes``.
     """
     check_trajectory(mech, trajectory)
     if not (math.isfinite(fps) and fps > 0):
@@ -75,7 +83,14 @@ def resample(mech: Mechanism, trajectory: Trajectory, fps: float) -> tuple[np.nd
     t = np.asarray(trajectory.t, dtype=float) - float(trajectory.t[0])
     q = np.asarray(trajectory.q, dtype=float)
     T = float(t[-1])
-    n = int(math.floor(T * fps * (1.0 + FRAME_EPS))) + 1
+    frames = T * fps * (1.0 + FRAME_EPS)  # a float: inf when it overflows
+    if max_keyframes is not None and not frames + 1 <= max_keyframes:
+        raise ClosedChainError(
+            f"{fps:g} fps over {T:g} s is {frames + 1:.3g} keyframes, more than "
+            f"AnimationSettings.max_keyframes = {max_keyframes:.3g}; valid fps: "
+            f"(0, {format_upper_bound((max_keyframes - 1) / T)}]"
+        )
+    n = int(math.floor(frames)) + 1
     times = np.arange(n, dtype=float) / fps
     if T - times[-1] > TIME_EPS:
         times = np.append(times, T)

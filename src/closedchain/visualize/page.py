@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .._io import atomic_write
 from .._locking import exclusive
 from ..exceptions import ClosedChainError
 from ..trajectory import Trajectory
@@ -226,7 +227,8 @@ def write_html(
     scene = build_scene(mech, trajectory, fps=fps, settings=settings)
     text = scene_html(scene, settings, stop=stop)
     path = Path(path)
-    path.write_bytes(text.encode("utf-8"))
+    with atomic_write(path) as f:
+        f.write(text.encode("utf-8"))
     size = path.stat().st_size
     logger.info("wrote %s (%d bytes, %.3g s at %g fps)", path, size, scene.duration, fps)
     return HTMLAnimation(

@@ -161,11 +161,12 @@ def build_scene(
 
     Raises:
         ClosedChainError: the trajectory does not fit the mechanism, its times
-            do not increase, or fps is not positive.
+            do not increase, fps is not positive, or the keyframes would be more
+            than ``settings.max_keyframes``.
     """
     mc = _meshcat()
     mg = mc.geometry
-    times, qs = resample(mech, trajectory, fps)
+    times, qs = resample(mech, trajectory, fps, max_keyframes=settings.max_keyframes)
     visuals = read_visuals(mech, settings=settings)
     markers = joint_markers(mech, visuals, settings=settings)
     if not visuals:

@@ -11,7 +11,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from .._io import MAX_MESH_BYTES, check_input_file
 from ..constraints import axis_basis
+from ..exceptions import ClosedChainError
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -95,8 +97,9 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
     ``<material>`` elements. Mesh files are looked up relative to the URDF
     (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub``); only files
     under the URDF's directory are drawn (the page embeds them, so a URDF must
-    not reach other local files): a mesh outside it, or whose file is not
-    found, is skipped with a warning naming the file and the link.
+    not reach other local files): a mesh outside it, whose file is not found,
+    or larger than :data:`closedchain._io.MAX_MESH_BYTES`, is skipped with a
+    warning naming the file and the link.
 
     Args:
         mech: the mechanism.
@@ -154,6 +157,13 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
                         link.name,
                         i,
                         g.mesh.filename,
+                    )
+                    continue
+                try:  # the page embeds the mesh: bound it (a FIFO is not is_file())
+                    check_input_file(found, limit=MAX_MESH_BYTES, what="mesh file")
+                except ClosedChainError as exc:
+                    logger.warning(
+                        "%s: link %r visual %d: %s; not drawn", mech.path, link.name, i, exc
                     )
                     continue
                 scale = g.mesh.scale
