@@ -70,7 +70,7 @@ DEFAULT_ENERGY_TOL = 1e-2
 #: Default of ``--closure-tol`` [m or rad]: SimulationSettings.drift_limit on the command line.
 DEFAULT_CLOSURE_TOL = 1e-6
 
-#: Choices of ``--torque``.
+#: Named choices of ``--torque`` (numbers, one per actuated joint, are accepted too).
 TORQUES = ("zero", "gravity")
 
 #: Suffixes ``simulate --out`` can write (Trajectory.save).
@@ -160,6 +160,8 @@ def check_args(args: argparse.Namespace) -> None:
             raise ClosedChainError(f"{flag} must be a positive number, got {value:g}")
     if getattr(args, "fps", None) is not None and getattr(args, "t_final", None) is not None:
         output_times(args.t_final, args.fps)  # checks the sample count before any work
+    if getattr(args, "torque", None) is not None:
+        torque_values(args.torque)
     samples = getattr(args, "samples", None)
     if samples is not None and samples < 1:
         raise ClosedChainError(f"--samples must be at least 1, got {samples}")
@@ -396,10 +398,12 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--torque",
-        choices=TORQUES,
-        default="zero",
-        help="actuator torque: zero, or the constant torque that holds q0 at rest against"
-        " gravity (closed-chain inverse dynamics; needs actuators for every degree of freedom)",
+        nargs="+",
+        default=["zero"],
+        metavar="TAU",
+        help="actuator torque: zero; gravity, the constant torque that holds q0 at rest against"
+        " gravity (closed-chain inverse dynamics; needs actuators for every degree of freedom);"
+        " or constant torques [N m or N], one number per actuated joint (as `info` lists them)",
     )
     p.add_argument(
         "--energy-tol",
@@ -446,12 +450,58 @@ def output_times(t_final: float, fps: float) -> np.ndarray:
     return np.linspace(0.0, t_final, max(n, 2))
 
 
+def torque_values(tokens: Sequence[str]) -> np.ndarray | None:
+    """Return the numbers of ``--torque`` [N m or N], or None for a name in :data:`TORQUES`.
+
+    Raises:
+        ClosedChainError: neither one name of :data:`TORQUES` nor finite numbers.
+    """
+    if len(tokens) == 1 and tokens[0] in TORQUES:
+        return None
+    try:
+        values = np.array([float(x) for x in tokens])
+    except ValueError:
+        values = np.array([np.nan])
+    if not np.all(np.isfinite(values)):
+        raise ClosedChainError(
+            f"--torque {' '.join(tokens)}: valid: {' or '.join(TORQUES)}, or finite numbers "
+            "[N m or N], one per actuated joint"
+        )
+    return values
+
+
+def actuator_torque(mech, values: np.ndarray) -> np.ndarray:
+    """Return the generalized force tau, shape (nv,), of constant actuator torques.
+
+    Args:
+        mech: the mechanism.
+        values: one torque [N m or N] per actuated coordinate, in the order of
+            ``Mechanism.actuated_idx_v``.
+
+    Raises:
+        ClosedChainError: not one value per actuated coordinate (names them).
+    """
+    idx = mech.actuated_idx_v
+    if len(values) != len(idx):
+        names = ", ".join(mech.coordinate_names[i] for i in idx) or "none"
+        raise ClosedChainError(
+            f"--torque takes {len(idx)} number(s) for {mech.name}, got {len(values)}; "
+            f"actuated joints (<transmission>): {names}"
+        )
+    tau = np.zeros(mech.nv)
+    tau[idx] = values
+    return tau
+
+
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
     from .control import default_scene
     from .kinematics import assemble
     from .simulate import SimulationSettings, simulate
 
+    torque = getattr(args, "torque", ["zero"])
+    values = torque_values(torque)
+    constant = None if values is None else actuator_torque(mech, values)  # before any work
     if args.q0 is None:
         scene = default_scene(mech)  # the <scene> element of the URDF, or rest at q_ref
         q0, v0, tau = scene.q0, scene.v0, scene.tau
@@ -459,10 +509,12 @@ def simulate_from_args(args, mech):
     else:
         q0 = assemble(mech, np.array(args.q0), fixed="independent")
         v0, tau = np.zeros(mech.nv), None
-    if getattr(args, "torque", "zero") == "gravity":
+    if torque == ["gravity"]:
         from .control import gravity_torque
 
         tau = gravity_torque(mech, q0)
+    elif constant is not None:
+        tau = constant
     t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
