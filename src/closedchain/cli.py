@@ -358,13 +358,13 @@ def _cmd_plot(args) -> int:
 
 def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of ``closedchain simulate`` (shared by ``animate`` and ``plot``)."""
-    from .dynamics import METHODS
+    from .dynamics import DEFAULT_METHOD, METHODS
     from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
     p.add_argument(
         "--method",
-        default="augmented-lagrangian",
+        default=DEFAULT_METHOD,
         type=_choice(METHODS),
         choices=sorted(METHODS),
         help="dynamics method, any case (default augmented-lagrangian: passes singular positions)",

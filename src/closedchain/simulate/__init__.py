@@ -47,7 +47,7 @@ from threadpoolctl import threadpool_limits
 from .._locking import exclusive
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
-from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
+from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
 from ..trajectory import SimulationInfo, Trajectory, energy_drift
 from .problem import Problem, Recorder
@@ -252,7 +252,7 @@ def simulate(
     v0: np.ndarray,
     t_final: float,
     *,
-    method: str = "augmented-lagrangian",
+    method: str = DEFAULT_METHOD,
     integrator: str | None = None,
     dt: float | None = None,
     rtol: float | None = None,
@@ -273,7 +273,8 @@ def simulate(
         v0: initial velocity, shape (nv,), with J v0 = 0 (see :func:`project_velocity`).
         t_final: duration [s].
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
-            Default ``"augmented-lagrangian"``: well posed where J loses rank.
+            Default ``DEFAULT_METHOD`` (``"augmented-lagrangian"``, as
+            :func:`~closedchain.forward_dynamics`): well posed where J loses rank.
         integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk4"``
             with ``dt = settings.dt`` (1 ms) and stage projection, which together
             pass singular positions (see the README, "Singular positions"); or,
