@@ -756,7 +756,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-o", "--output", required=True, help="image file to write")
     p.add_argument("--points", type=int, help="sweep / grid points per axis")
-    p.add_argument("--outputs", nargs="+", metavar="JOINT", help="output coordinates (map)")
+    p.add_argument(
+        "--outputs",
+        nargs="+",
+        metavar="JOINT",
+        help="output coordinates of the map (default: the joints of the link every loop closes"
+        " on, e.g. a platform; else the independent coordinates)",
+    )
     p.add_argument(
         "--span", type=float, default=1.5, help="half-width of the map around q_ref [rad]"
     )
