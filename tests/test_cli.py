@@ -224,6 +224,17 @@ def test_simulate_constant_torque_per_actuated_joint(capsys, tmp_path, mechanism
     assert np.linalg.norm(free.q[-1] - ref.q[-1]) > 1e-3  # the torque moved it
 
 
+def test_simulate_reports_a_joint_past_its_limit(capsys, mechanism_files):
+    """A negative --torque spins the 4-bar's crank past its <limit> of -2 pi: the summary
+    lists it (joint, first time, value, limit)."""
+    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.5", "--fps", "100"]
+    status, out, err = run(capsys, *argv, "--torque", "-3", "--json")
+    assert status == 0, err
+    found = {v[0]: v[1:] for v in json.loads(out)["limit_violations"]}
+    t_first, value, limit = found["crank_joint"]
+    assert limit == -2 * math.pi and value < limit and 0 < t_first <= 0.5
+
+
 # -- bad arguments --------------------------------------------------------------------------
 
 

@@ -1165,3 +1165,51 @@ def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
     assert traj.info.integrator == DEFAULT_ADAPTIVE_INTEGRATOR == "DOP853"
     assert traj.info.rtol == 1e-9 and traj.info.dt is None
     assert cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05).info.integrator == "rk4"
+
+
+# -- joint limits ---------------------------------------------------------------------------
+
+#: The 4-bar's URDF limits of every joint [rad].
+FOURBAR_LIMIT = 2 * math.pi
+#: Crank torque that spins the 4-bar's crank past -2 pi within LIMIT_RUN_T [N m].
+LIMIT_TORQUE = -3.0
+LIMIT_RUN_T = 0.5
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_a_crank_past_its_limit_is_reported(fourbar, caplog, backend):
+    """Driven by -3 N m the crank passes its <limit> of -2 pi near t = 0.48 s (the coupler its
+    +2 pi just before): a warning names each joint and time, info.limit_violations has the
+    first sample beyond each; SimulationSettings.stop_at_limits turns the first into an
+    error with the motion before it."""
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    tau = np.array([LIMIT_TORQUE, 0.0, 0.0])
+    t_eval = np.linspace(0.0, LIMIT_RUN_T, 51)
+    run = dict(tau=tau, t_eval=t_eval, backend=backend)
+    with caplog.at_level("WARNING", logger="closedchain.simulate.problem"):
+        traj = simulate(fourbar, q0, np.zeros(3), LIMIT_RUN_T, **run)
+    expected = []
+    for i, joint in enumerate(fourbar.coordinate_names):
+        beyond = np.flatnonzero(np.abs(traj.q[:, i]) > FOURBAR_LIMIT)
+        if beyond.size:
+            k = beyond[0]
+            limit = math.copysign(FOURBAR_LIMIT, traj.q[k, i])
+            expected.append((joint, traj.t[k], traj.q[k, i], limit))
+    assert "crank_joint" in [e[0] for e in expected]  # the run does pass the limit
+    assert [tuple(v) for v in traj.info.limit_violations] == expected
+    for joint, t, _, _ in expected:
+        assert f"joint {joint!r} left its <limit> at t = {t:.6g} s" in caplog.text
+    joint, t_first = min(expected, key=lambda e: e[1])[:2]
+    stop = SimulationSettings(stop_at_limits=True)
+    with pytest.raises(
+        SimulationError, match=rf"joint {joint!r} left its <limit> at t = {t_first:.6g} s"
+    ) as exc:
+        simulate(fourbar, q0, np.zeros(3), LIMIT_RUN_T, settings=stop, **run)
+    np.testing.assert_array_equal(exc.value.trajectory.t, traj.t[traj.t < t_first])
+    assert exc.value.t == t_first
+
+
+def test_runs_within_limits_report_none(fourbar):
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    traj = simulate(fourbar, q0, np.zeros(3), 0.1, settings=SimulationSettings(stop_at_limits=True))
+    assert traj.info.limit_violations == ()

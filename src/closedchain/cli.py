@@ -576,6 +576,7 @@ def _cmd_simulate(args) -> int:
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
         "repartitions": len(info.repartitions),
+        "limit_violations": [list(v) for v in info.limit_violations],
         "final_independent": {
             mech.coordinate_names[i]: float(coordinate_series(mech, traj.q[-1], i))
             for i in mech.independent_idx_v
@@ -602,6 +603,10 @@ def _cmd_simulate(args) -> int:
             ("max velocity residual |J v|", _fmt(summary["max_velocity_residual"])),
             ("relative energy drift", _fmt(summary["energy_drift"])),
             ("re-partitions", str(summary["repartitions"])),
+            *(
+                (f"left its <limit>: {joint}", f"t = {t:.6g} s, q = {value:.6g}")
+                for joint, t, value, _ in summary["limit_violations"]
+            ),
         ],
         ("quantity", "value"),
     )

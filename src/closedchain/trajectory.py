@@ -7,7 +7,7 @@ import json
 import logging
 import zipfile
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +21,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 _ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
+#: Per-sample arrays that may be None (not recorded); an .npz file without them loads.
+_OPTIONAL = ("kinetic_energy", "branch")
 
 #: First characters that make a spreadsheet read a cell as a formula (CSV injection,
 #: OWASP): a cell starting with one gets a leading apostrophe.
@@ -127,6 +129,9 @@ class SimulationInfo:
             assembly branch (see ``Trajectory.branch``).
         max_constraint_residual: max over time of max |phi(q)|.
         energy_drift: ``Trajectory.energy_drift`` of the run.
+        limit_violations: ``(joint, t_first, value, limit)`` for each joint whose
+            coordinate left its URDF ``<limit>`` at a recorded sample: the first
+            such time [s], the coordinate there and the limit it passed [rad or m].
         extra: integrator-specific entries (e.g. ``ali3p_alpha``,
             ``newton_iterations``), JSON-serialisable.
 
@@ -160,6 +165,7 @@ class SimulationInfo:
     branch_changes: tuple = ()
     max_constraint_residual: float | None = None
     energy_drift: float | None = None
+    limit_violations: tuple = ()
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     @classmethod
@@ -181,7 +187,7 @@ class SimulationInfo:
             "repartitions",
         ):
             kw[k] = kw.get(k) or ()
-        for k in ("branch_changes", "row_reselections"):
+        for k in ("branch_changes", "row_reselections", "limit_violations"):
             kw[k] = kw.get(k) or ()
         stopped = kw.get("stopped")
         if isinstance(stopped, Mapping):
@@ -322,11 +328,7 @@ class Trajectory:
         """
         path = Path(path)
         if path.suffix == ".npz":
-            extra = {
-                k: getattr(self, k)
-                for k in ("kinetic_energy", "branch")
-                if getattr(self, k) is not None
-            }
+            extra = {k: getattr(self, k) for k in _OPTIONAL if getattr(self, k) is not None}
             np.savez_compressed(
                 path,
                 **{k: getattr(self, k) for k in _ARRAYS},
@@ -395,7 +397,7 @@ class Trajectory:
                         + f" (it holds: {', '.join(f.files) or 'nothing'})"
                     )
                 arrays = {k: f[k] for k in _ARRAYS}
-                for k in ("kinetic_energy", "branch"):
+                for k in _OPTIONAL:
                     if k in f.files:
                         arrays[k] = f[k]
                 info = json.loads(str(f["info"]))
@@ -423,3 +425,9 @@ class Trajectory:
                 f"({type(exc).__name__}: {exc})"
             ) from exc
         return cls(**arrays, info=info)
+
+
+def first_samples(traj: Trajectory, n: int) -> Trajectory:
+    """Return the first ``n`` samples of ``traj`` (every per-sample array cut), same info."""
+    cut = {k: getattr(traj, k)[:n] for k in (*_ARRAYS, *_OPTIONAL) if getattr(traj, k) is not None}
+    return replace(traj, **cut)

@@ -50,7 +50,7 @@ from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
 from ..trajectory import SimulationInfo, Trajectory, energy_drift
-from .problem import Problem, Recorder
+from .problem import Problem, Recorder, check_limits
 from .registry import (
     COMPILED_INTEGRATORS,
     INTEGRATORS,
@@ -499,6 +499,7 @@ def simulate(
     series = recorder.series()
     info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
     info["energy_drift"] = energy_drift(series["e"], series["ke"])
+    check_limits(mech, recorder, info, settings)  # warns; raises with stop_at_limits
     traj = recorder.trajectory(SimulationInfo.from_dict(info))
     if settings.energy_tol is not None:
         check_energy(traj, tau, settings.energy_tol)

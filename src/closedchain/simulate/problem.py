@@ -35,7 +35,7 @@ from ..dynamics.base import (
 )
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, first_samples
 from .settings import SimulationError
 
 if TYPE_CHECKING:
@@ -601,3 +601,74 @@ class Recorder:
             branch=np.array(r["branch"]) if r["branch"] else None,
             info=info,
         )
+
+
+def limit_violations(mech: Mechanism, t: np.ndarray, q: np.ndarray) -> list[list]:
+    """Return ``[joint, t_first, value, limit]`` for each joint whose coordinate leaves its
+    URDF ``<limit>`` in the samples (t, q).
+
+    Only 1-dof joints (revolute, prismatic) with finite limits are checked: Pinocchio
+    gives an unlimited joint +-max float and a continuous joint's (cos, sin) +-1.01.
+
+    Args:
+        mech: the mechanism.
+        t: sample times [s], shape (N,).
+        q: configurations, shape (N, nq).
+
+    Returns:
+        One entry per joint, in tree order: the first time it is beyond a limit [s], its
+        coordinate there and the limit passed [rad or m].
+    """
+    model = mech.model
+    big = np.finfo(float).max
+    out = []
+    for j in range(1, model.njoints):
+        jm = model.joints[j]
+        if jm.nq != 1 or jm.nv != 1:
+            continue
+        lo, hi = (
+            float(model.lowerPositionLimit[jm.idx_q]),
+            float(model.upperPositionLimit[jm.idx_q]),
+        )
+        x = q[:, jm.idx_q]
+        below = x < lo if math.isfinite(lo) and abs(lo) < big else np.zeros(len(x), bool)
+        above = x > hi if math.isfinite(hi) and abs(hi) < big else np.zeros(len(x), bool)
+        outside = below | above
+        if np.any(outside):
+            k = int(np.argmax(outside))
+            out.append([model.names[j], float(t[k]), float(x[k]), lo if below[k] else hi])
+    return out
+
+
+def check_limits(mech: Mechanism, recorder: Recorder, info: dict, settings) -> None:
+    """Record the joint-limit violations of a finished run in ``info["limit_violations"]``.
+
+    Each is logged as a warning; with ``settings.stop_at_limits`` the first one stops
+    the run: SimulationError naming the joint and the time, ``exc.trajectory`` holding
+    the samples before it.
+    """
+    s = recorder.series()
+    found = limit_violations(mech, s["t"], s["q"])
+    info["limit_violations"] = found
+    for joint, t, value, limit in found:
+        logger.warning(
+            "%s: joint %r left its <limit> at t = %.6g s: q = %.6g beyond %.6g",
+            mech.name,
+            joint,
+            t,
+            value,
+            limit,
+        )
+    if found and settings.stop_at_limits:
+        joint, t, value, limit = min(found, key=lambda v: v[1])
+        exc = SimulationError(
+            f"{mech.name}: joint {joint!r} left its <limit> at t = {t:.6g} s (q = {value:.6g} "
+            f"beyond {limit:.6g}); SimulationSettings.stop_at_limits is set",
+            t,
+        )
+        keep = s["t"] < t
+        info["stopped"] = {"t": t, "reason": str(exc)}
+        if np.any(keep):
+            traj = recorder.trajectory(info)
+            exc.trajectory = first_samples(traj, int(np.count_nonzero(keep)))
+        raise exc

@@ -130,6 +130,13 @@ class SimulationSettings:
             sent the next ones off the branch (the tangent is then indefinite).
             Round-off of the factorization (about rho eps) is removed by the
             residual form of the iterations.
+        stop_at_limits: a recorded sample with a coordinate beyond its URDF
+            ``<limit>`` (1-dof joints with finite limits) ends the run with
+            SimulationError naming the joint and the time (``exc.trajectory``:
+            the samples before it); when False (default) the run goes on and
+            each such joint is logged as a warning and listed in
+            ``info.limit_violations``. Checked on the recorded samples (the
+            output times): an excursion between two outputs is not seen.
     """
 
     dt: float = 1e-3
@@ -159,6 +166,7 @@ class SimulationSettings:
     ali3p_phi_tol: float = 1e-13
     ali3p_max_iter: int = 50
     ali3p_penalty: float = 1e11
+    stop_at_limits: bool = False
 
 
 #: The default settings of :func:`simulate`, shared (settings are frozen).
