@@ -220,6 +220,7 @@ def test_simulate_constant_torque_per_actuated_joint(capsys, tmp_path, mechanism
         mech, scene.q0, scene.v0, 0.2, dt=0.005, tau=tau, t_eval=cli.output_times(0.2, 10)
     )
     np.testing.assert_allclose(np.load(out)["q"], ref.q, rtol=0, atol=EXACT_TOL)
+    np.testing.assert_allclose(np.load(out)["work"], ref.work, rtol=0, atol=EXACT_TOL)
     free = simulate(mech, scene.q0, scene.v0, 0.2, dt=0.005, t_eval=cli.output_times(0.2, 10))
     assert np.linalg.norm(free.q[-1] - ref.q[-1]) > 1e-3  # the torque moved it
 
@@ -230,7 +231,10 @@ def test_simulate_reports_a_joint_past_its_limit(capsys, mechanism_files):
     argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.5", "--fps", "100"]
     status, out, err = run(capsys, *argv, "--torque", "-3", "--json")
     assert status == 0, err
-    found = {v[0]: v[1:] for v in json.loads(out)["limit_violations"]}
+    summary = json.loads(out)
+    found = {v[0]: v[1:] for v in summary["limit_violations"]}
+    # the torque's work is most of E - E0: the balance is far below the drift
+    assert summary["energy_balance"] < 1e-6 * summary["energy_drift"]
     t_first, value, limit = found["crank_joint"]
     assert limit == -2 * math.pi and value < limit and 0 < t_first <= 0.5
 

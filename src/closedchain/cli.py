@@ -575,6 +575,7 @@ def _cmd_simulate(args) -> int:
         "max_constraint_residual": traj.max_constraint_residual,
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
+        "energy_balance": traj.energy_balance,
         "repartitions": len(info.repartitions),
         "limit_violations": [list(v) for v in info.limit_violations],
         "final_independent": {
@@ -602,6 +603,7 @@ def _cmd_simulate(args) -> int:
             ("max constraint residual |phi|", _fmt(summary["max_constraint_residual"])),
             ("max velocity residual |J v|", _fmt(summary["max_velocity_residual"])),
             ("relative energy drift", _fmt(summary["energy_drift"])),
+            ("relative energy balance (E - E0 - work of tau)", _fmt(summary["energy_balance"])),
             ("re-partitions", str(summary["repartitions"])),
             *(
                 (f"left its <limit>: {joint}", f"t = {t:.6g} s, q = {value:.6g}")

@@ -159,6 +159,8 @@ class JointReaction:
         type: Pinocchio's joint model (``JointModelRY``, ``JointModelPX``, ...).
         frame: name of the model frame the components are given in: the joint frame
             (at the joint's origin, moving with the child).
+        tau: the components along the joint's motion subspace, S^T f, shape (nv_j,)
+            [N m or N]: the joint's generalized force (actuator torque, 0 if passive).
         force: force on the child, applied at the joint's origin, shape (3,) [N], in
             the joint frame.
         torque: couple on the child about the joint's origin, shape (3,) [N m], in the
@@ -166,18 +168,16 @@ class JointReaction:
         force_world: the same force in world axes, shape (3,) [N].
         torque_world: the same couple (about the joint's origin) in world axes, shape
             (3,) [N m].
-        tau: the components along the joint's motion subspace, S^T f, shape (nv_j,)
-            [N m or N]: the joint's generalized force (actuator torque, 0 if passive).
     """
 
     joint: str
     type: str
     frame: str
+    tau: np.ndarray
     force: np.ndarray
     torque: np.ndarray
     force_world: np.ndarray
     torque_world: np.ndarray
-    tau: np.ndarray
 
 
 def _resolve_ordered(mech: Mechanism, spec: Iterable[str | int] | str, what: str) -> np.ndarray:

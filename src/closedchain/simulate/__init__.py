@@ -49,7 +49,7 @@ from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
-from ..trajectory import SimulationInfo, Trajectory, energy_drift
+from ..trajectory import SimulationInfo, Trajectory, energy_balance, energy_drift
 from .problem import Problem, Recorder, check_limits
 from .registry import (
     COMPILED_INTEGRATORS,
@@ -423,7 +423,7 @@ def simulate(
     problem.singular_robust = caps.singular_robust and (
         stab.projects_stages or spec.singular_robust
     )
-    recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
+    recorder = Recorder(mech, settings.drift_limit, problem.jacobian, problem.meter)
     problem.check_start(q0, compiled_rows=spec.backend == "compiled")
     check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.start_jacobian)
     info = {
@@ -499,6 +499,8 @@ def simulate(
     series = recorder.series()
     info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
     info["energy_drift"] = energy_drift(series["e"], series["ke"])
+    work = None if recorder.meter is None else series["w"]
+    info["energy_balance"] = energy_balance(series["e"], series["ke"], work)
     check_limits(mech, recorder, info, settings)  # warns; raises with stop_at_limits
     traj = recorder.trajectory(SimulationInfo.from_dict(info))
     if settings.energy_tol is not None:
