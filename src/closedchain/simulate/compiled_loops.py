@@ -146,10 +146,17 @@ def run_fixed_compiled(
 def run_adaptive_compiled(
     problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
-    """Adaptive Dormand-Prince loop in C++ (RK45, DOP853); return the number of steps."""
+    """Adaptive Dormand-Prince loop in C++ (RK45, DOP853); return the number of steps.
+
+    With tau and ``t_eval`` the work of tau needs the step ends, which the core returns
+    only as samples: a first run finds them (t_eval None), the run proper records at
+    them and at ``t_eval`` (dense output: the same steps), W is computed on all of them
+    and the outputs kept (:func:`_keep`); twice the cost of the integration.
+    """
     _start_work(problem, q0, v0)
-    core = _prepare(problem, info, stab)
-    try:
+
+    def run(times, report):
+        core = _prepare(problem, info, stab)  # configured anew: each run from the start
         out = core.run_adaptive(
             compiled.INTEGRATOR_CODES[spec.name],
             np.asarray(q0, dtype=float),
@@ -157,14 +164,26 @@ def run_adaptive_compiled(
             float(t_final),
             float(control.rtol),
             float(control.atol),
-            None if t_eval is None else np.asarray(t_eval, dtype=float),
+            None if times is None else np.asarray(times, dtype=float),
             bool(stab.projects),
-            progress,
+            report,
         )
+        return core, out
+
+    keep = None
+    times = t_eval
+    try:
+        if problem.meter is not None and t_eval is not None:
+            _, steps = run(None, None)
+            problem.n_evals += int(steps["evaluations"])
+            grid = np.union1d(t_eval, np.asarray(steps["t"], dtype=float).ravel())
+            if len(grid) <= problem.settings.max_outputs:
+                times, keep = grid, np.searchsorted(grid, t_eval)
+        core, out = run(times, progress)
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out, info)
+    return _finish(problem, core, recorder, _keep(problem, recorder, out, keep), info)
 
 
 def run_ali3p_compiled(
