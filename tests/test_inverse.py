@@ -170,6 +170,36 @@ def test_fourbar_tree_joint_reactions_by_hand(mechs, theta2):
         np.testing.assert_allclose(oMj.rotation @ r.force, r.force_world, atol=1e-14)
 
 
+#: tests/data/slider_crank_tree.urdf: crank and rod lengths [m], rod and slider masses [kg].
+SLIDER_CRANK_R, SLIDER_CRANK_L = 0.1, 0.3
+ROD_MASS, SLIDER_MASS = 0.7, 0.9
+
+
+@pytest.mark.parametrize("theta", CRANK_ANGLES)
+def test_slider_normal_force_by_hand(theta):
+    """A slider on a tree prismatic joint, held still by the crank: its free body (passive
+    guide along x: no force along it; the rod pinned at its origin) and the rod's moment
+    balance about the crank tip B give the rod's push on the slider -m_rod g / 2 (z) and
+    the guide's normal force N = (m_slider + m_rod / 2) g, whatever the crank angle."""
+    mech = cc.load(Path(__file__).parent / "data" / "slider_crank_tree.urdf")
+    r, l_ = SLIDER_CRANK_R, SLIDER_CRANK_L
+    B = r * np.array([np.cos(theta), np.sin(theta)])
+    s = B[0] + np.sqrt(l_**2 - B[1] ** 2)  # the slider on the x axis at distance l from B
+    phi = np.arctan2(-B[1], s - B[0]) - theta
+    q = cc.assemble(mech, np.array([theta, phi, s]), fixed=["crank_joint"])
+    np.testing.assert_allclose(q, [theta, phi, s], atol=1e-12)  # the hand geometry
+    v = np.zeros(mech.nv)
+    res = inverse_dynamics(mech, q, v, [0.0])
+    loop, *tree = joint_reactions(mech, q, v, res, tree=True)
+    slider = next(r for r in tree if r.joint == "slider_joint")
+    normal = (SLIDER_MASS + ROD_MASS / 2) * G
+    assert np.linalg.norm(slider.force_world - [0.0, 0.0, normal]) <= TOL_STATICS
+    assert np.linalg.norm(slider.torque_world) <= TOL_STATICS
+    assert abs(slider.tau[0]) <= TOL_STATICS  # passive: nothing along the guide
+    # the rod's push on the slider (the loop's successor)
+    assert np.linalg.norm(loop.force_world - [0.0, 0.0, -ROD_MASS * G / 2]) <= TOL_STATICS
+
+
 @pytest.mark.parametrize("name", MODEL_NAMES)
 def test_ground_reactions_move_the_centre_of_mass(mechs, states, name):
     """Newton's law for the whole mechanism (the loop forces are internal): the forces the
