@@ -8,7 +8,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR, SHIPPED_MECHANISMS
+from conftest import DATA_DIR, SHIPPED_MECHANISMS, fourbar_with_crank_limits
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -225,10 +225,11 @@ def test_simulate_constant_torque_per_actuated_joint(capsys, tmp_path, mechanism
     assert np.linalg.norm(free.q[-1] - ref.q[-1]) > 1e-3  # the torque moved it
 
 
-def test_simulate_reports_a_joint_past_its_limit(capsys, mechanism_files):
-    """A negative --torque spins the 4-bar's crank past its <limit> of -2 pi: the summary
+def test_simulate_reports_a_joint_past_its_limit(capsys, tmp_path):
+    """A negative --torque spins the 4-bar's crank past a <limit> of -3 rad: the summary
     lists it (joint, first time, value, limit)."""
-    argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.5", "--fps", "100"]
+    urdf = fourbar_with_crank_limits(tmp_path, -3.0, 3.0)
+    argv = ["simulate", urdf, "--t-final", "0.5", "--fps", "100"]
     status, out, err = run(capsys, *argv, "--torque", "-3", "--json")
     assert status == 0, err
     summary = json.loads(out)
@@ -236,7 +237,7 @@ def test_simulate_reports_a_joint_past_its_limit(capsys, mechanism_files):
     # the torque's work is most of E - E0: the balance is far below the drift
     assert summary["energy_balance"] < 1e-6 * summary["energy_drift"]
     t_first, value, limit = found["crank_joint"]
-    assert limit == -2 * math.pi and value < limit and 0 < t_first <= 0.5
+    assert limit == -3.0 and value < limit and 0 < t_first <= 0.5
 
 
 # -- bad arguments --------------------------------------------------------------------------

@@ -22,7 +22,7 @@ import pinocchio as pin
 import pytest
 import scipy.integrate
 import scipy.linalg
-from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS, MODELS
+from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS, MODELS, fourbar_with_crank_limits
 
 import closedchain as cc
 from closedchain import cli
@@ -1159,6 +1159,23 @@ def test_energy_tol_stops_an_inaccurate_unforced_run_with_its_trajectory(fourbar
     assert exc.value.trajectory.energy_drift > 1e-2
 
 
+def test_energy_tol_checks_the_energy_balance_of_a_driven_run(fourbar):
+    """With tau the check is on E - E0 - W: the accurate driven run passes although its
+    drift (the torque's work) is far above the tolerance; explicit Euler at 10 ms (balance
+    1e-2) does not."""
+    settings = cc.SimulationSettings(energy_tol=1e-3)
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    tau = BALANCE_TORQUES["constant"]
+    accurate = cc.simulate(fourbar, q0, np.zeros(3), 1.0, tau=tau, settings=settings)
+    assert accurate.energy_drift > DRIVEN_DRIFT_MIN > settings.energy_tol
+    match = r"relative energy balance of this driven run \(E - E0 - the work of tau\) is"
+    with pytest.raises(cc.SimulationError, match=match) as exc:
+        cc.simulate(
+            fourbar, q0, np.zeros(3), 1.0, tau=tau, integrator="euler", dt=1e-2, settings=settings
+        )
+    assert exc.value.trajectory.energy_balance > settings.energy_tol
+
+
 def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
     from closedchain.simulate import DEFAULT_ADAPTIVE_INTEGRATOR
 
@@ -1170,44 +1187,51 @@ def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
 
 # -- joint limits ---------------------------------------------------------------------------
 
-#: The 4-bar's URDF limits of every joint [rad].
-FOURBAR_LIMIT = 2 * math.pi
-#: Crank torque that spins the 4-bar's crank past -2 pi within LIMIT_RUN_T [N m].
+#: Crank limits of the limited 4-bar [rad]: less than a full turn, so they limit the pose.
+CRANK_LIMITS = (-3.0, 3.0)
+#: Crank torque that spins the crank past -3 rad within LIMIT_RUN_T [N m] (near 0.33 s).
 LIMIT_TORQUE = -3.0
 LIMIT_RUN_T = 0.5
 
 
+@pytest.fixture(scope="module")
+def limited_fourbar(tmp_path_factory) -> cc.Mechanism:
+    return cc.load(fourbar_with_crank_limits(tmp_path_factory.mktemp("limits"), *CRANK_LIMITS))
+
+
 @pytest.mark.parametrize("backend", ["numpy", "compiled"])
-def test_a_crank_past_its_limit_is_reported(fourbar, caplog, backend):
-    """Driven by -3 N m the crank passes its <limit> of -2 pi near t = 0.48 s (the coupler its
-    +2 pi just before): a warning names each joint and time, info.limit_violations has the
-    first sample beyond each; SimulationSettings.stop_at_limits turns the first into an
-    error with the motion before it."""
-    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+def test_a_crank_past_its_limit_is_reported(limited_fourbar, caplog, backend):
+    """Driven by -3 N m the crank passes its <limit> of -3 rad near t = 0.33 s: a warning
+    names the joint and time, info.limit_violations has the first sample beyond it (the
+    coupler and rocker, whose +-2 pi limits span a full turn, limit no pose: never);
+    SimulationSettings.stop_at_limits turns it into an error with the motion before it."""
+    mech = limited_fourbar
+    q0 = cc.assemble(mech, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
     tau = np.array([LIMIT_TORQUE, 0.0, 0.0])
     t_eval = np.linspace(0.0, LIMIT_RUN_T, 51)
     run = dict(tau=tau, t_eval=t_eval, backend=backend)
     with caplog.at_level("WARNING", logger="closedchain.simulate.problem"):
-        traj = simulate(fourbar, q0, np.zeros(3), LIMIT_RUN_T, **run)
-    expected = []
-    for i, joint in enumerate(fourbar.coordinate_names):
-        beyond = np.flatnonzero(np.abs(traj.q[:, i]) > FOURBAR_LIMIT)
-        if beyond.size:
-            k = beyond[0]
-            limit = math.copysign(FOURBAR_LIMIT, traj.q[k, i])
-            expected.append((joint, traj.t[k], traj.q[k, i], limit))
-    assert "crank_joint" in [e[0] for e in expected]  # the run does pass the limit
+        traj = simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, **run)
+    k = np.flatnonzero(traj.q[:, 0] < CRANK_LIMITS[0])[0]  # the first sample beyond
+    expected = [("crank_joint", traj.t[k], traj.q[k, 0], CRANK_LIMITS[0])]
     assert [tuple(v) for v in traj.info.limit_violations] == expected
-    for joint, t, _, _ in expected:
-        assert f"joint {joint!r} left its <limit> at t = {t:.6g} s" in caplog.text
-    joint, t_first = min(expected, key=lambda e: e[1])[:2]
+    assert np.max(np.abs(traj.q[:, 1])) > 2 * np.pi  # the coupler passed its full turn
+    assert f"joint 'crank_joint' left its <limit> at t = {traj.t[k]:.6g} s" in caplog.text
     stop = SimulationSettings(stop_at_limits=True)
     with pytest.raises(
-        SimulationError, match=rf"joint {joint!r} left its <limit> at t = {t_first:.6g} s"
+        SimulationError, match=rf"joint 'crank_joint' left its <limit> at t = {traj.t[k]:.6g} s"
     ) as exc:
-        simulate(fourbar, q0, np.zeros(3), LIMIT_RUN_T, settings=stop, **run)
-    np.testing.assert_array_equal(exc.value.trajectory.t, traj.t[traj.t < t_first])
-    assert exc.value.t == t_first
+        simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, settings=stop, **run)
+    np.testing.assert_array_equal(exc.value.trajectory.t, traj.t[:k])
+    assert exc.value.t == traj.t[k]
+    # The start check's opt-out turns the URDF limits off here too.
+    ignore = SimulationSettings(check_limits=False)
+    assert (
+        simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, settings=ignore, **run).info[
+            "limit_violations"
+        ]
+        == ()
+    )
 
 
 def test_runs_within_limits_report_none(fourbar):

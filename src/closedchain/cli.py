@@ -63,9 +63,9 @@ SCHEDULER_ADDRESS = re.compile(
     r"(?:[a-z][a-z0-9+.-]*://)?(?:\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+):\d{1,5}"
 )
 
-#: Default of ``--energy-tol``: an unforced run that loses or gains more than 1 % of its
-#: energy is not reported as a success (the 4-bar's default run drifts by 2e-9; explicit
-#: Euler at 1 ms by 0.23).
+#: Default of ``--energy-tol``: a run whose energy balance (the drift without tau, E - E0
+#: - the work of tau with it) exceeds 1 % is not reported as a success (the 4-bar's default
+#: run drifts by 2e-9; explicit Euler at 1 ms by 0.23).
 DEFAULT_ENERGY_TOL = 1e-2
 #: Default of ``--closure-tol`` [m or rad]: SimulationSettings.drift_limit on the command line.
 DEFAULT_CLOSURE_TOL = 1e-6
@@ -409,8 +409,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         "--energy-tol",
         type=float,
         default=DEFAULT_ENERGY_TOL,
-        help="largest relative energy drift of an unforced run before it is reported as "
-        f"inaccurate (exit {EXIT_STOPPED}; default %(default)g)",
+        help="largest relative energy balance (the energy drift, less the work of the torque)"
+        f" before a run is reported as inaccurate (exit {EXIT_STOPPED}; default %(default)g)",
     )
     p.add_argument(
         "--closure-tol",

@@ -50,7 +50,7 @@ from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
 from ..trajectory import SimulationInfo, Trajectory, energy_balance, energy_drift
-from .problem import Problem, Recorder, check_limits
+from .problem import Problem, Recorder, report_limit_violations
 from .registry import (
     COMPILED_INTEGRATORS,
     INTEGRATORS,
@@ -140,23 +140,27 @@ def check_start_velocity(
         )
 
 
-def check_energy(traj: Trajectory, tau: TorqueInput, energy_tol: float) -> None:
-    """Raise SimulationError when an unforced run's relative energy drift exceeds ``energy_tol``.
+def check_energy(traj: Trajectory, energy_tol: float) -> None:
+    """Raise SimulationError when the run's relative energy balance exceeds ``energy_tol``.
 
-    A run with generalized forces (``tau`` a callable or a nonzero array) is not
-    checked: its energy changes by the forces' work.
+    ``Trajectory.energy_balance``: the energy drift E - E0 of an unforced run, and
+    E - E0 - W of a run driven by tau (W its work), which is zero for an exact solution
+    whatever drives it.
 
     Raises:
         SimulationError: with ``trajectory`` the whole run.
     """
-    if callable(tau) or (tau is not None and np.any(np.asarray(tau) != 0.0)):
-        return
-    drift = traj.energy_drift
-    if not drift <= energy_tol:
+    balance = traj.energy_balance
+    if not balance <= energy_tol:
+        what = (
+            "energy drift of this unforced run"
+            if traj.work is None
+            else "energy balance of this driven run (E - E0 - the work of tau)"
+        )
         exc = SimulationError(
-            f"{traj.info.mechanism}: the relative energy drift of this unforced run is "
-            f"{drift:.3g} > energy_tol {energy_tol:.3g}: the integration is not accurate "
-            "(use a smaller step or tolerance, or another integrator)",
+            f"{traj.info.mechanism}: the relative {what} is {balance:.3g} > energy_tol "
+            f"{energy_tol:.3g}: the integration is not accurate (use a smaller step or "
+            "tolerance, or another integrator)",
             float(traj.t[-1]),
         )
         exc.trajectory = traj
@@ -501,10 +505,10 @@ def simulate(
     info["energy_drift"] = energy_drift(series["e"], series["ke"])
     work = None if recorder.meter is None else series["w"]
     info["energy_balance"] = energy_balance(series["e"], series["ke"], work)
-    check_limits(mech, recorder, info, settings)  # warns; raises with stop_at_limits
+    report_limit_violations(mech, recorder, info, settings)  # warns; raises: stop_at_limits
     traj = recorder.trajectory(SimulationInfo.from_dict(info))
     if settings.energy_tol is not None:
-        check_energy(traj, tau, settings.energy_tol)
+        check_energy(traj, settings.energy_tol)
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,

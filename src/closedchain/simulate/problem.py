@@ -865,52 +865,45 @@ def sample_work_increments(t: np.ndarray, power: np.ndarray, rate: np.ndarray) -
     return h * (coeffs @ (1.0 / (powers + 1.0)))
 
 
-def limit_violations(mech: Mechanism, t: np.ndarray, q: np.ndarray) -> list[list]:
+def limit_violations(
+    mech: Mechanism, t: np.ndarray, q: np.ndarray, *, urdf_limits: bool = True
+) -> list[list]:
     """Return ``[joint, t_first, value, limit]`` for each joint whose coordinate leaves its
-    URDF ``<limit>`` in the samples (t, q).
+    limits in the samples (t, q).
 
-    Only 1-dof joints (revolute, prismatic) with finite limits are checked: Pinocchio
-    gives an unlimited joint +-max float and a continuous joint's (cos, sin) +-1.01.
+    The rules of the start check (:meth:`~closedchain.Mechanism.limit_checks`): 1-dof
+    joints, their finite URDF ``<limit>`` (with ``urdf_limits``) and the coordinate
+    bound; a revolute joint whose limits span a full turn limits no orientation.
 
     Args:
         mech: the mechanism.
         t: sample times [s], shape (N,).
         q: configurations, shape (N, nq).
+        urdf_limits: check the URDF limits (else only the coordinate bound).
 
     Returns:
         One entry per joint, in tree order: the first time it is beyond a limit [s], its
         coordinate there and the limit passed [rad or m].
     """
-    model = mech.model
-    big = np.finfo(float).max
     out = []
-    for j in range(1, model.njoints):
-        jm = model.joints[j]
-        if jm.nq != 1 or jm.nv != 1:
-            continue
-        lo, hi = (
-            float(model.lowerPositionLimit[jm.idx_q]),
-            float(model.upperPositionLimit[jm.idx_q]),
-        )
-        x = q[:, jm.idx_q]
-        below = x < lo if math.isfinite(lo) and abs(lo) < big else np.zeros(len(x), bool)
-        above = x > hi if math.isfinite(hi) and abs(hi) < big else np.zeros(len(x), bool)
-        outside = below | above
+    for j, outside, low, high in mech.limit_checks(q, urdf_limits=urdf_limits):
         if np.any(outside):
             k = int(np.argmax(outside))
-            out.append([model.names[j], float(t[k]), float(x[k]), lo if below[k] else hi])
+            value = float(q[k, mech.model.joints[j].idx_q])
+            out.append([mech.model.names[j], float(t[k]), value, low if value < low else high])
     return out
 
 
-def check_limits(mech: Mechanism, recorder: Recorder, info: dict, settings) -> None:
+def report_limit_violations(mech: Mechanism, recorder: Recorder, info: dict, settings) -> None:
     """Record the joint-limit violations of a finished run in ``info["limit_violations"]``.
 
+    URDF limits count unless ``settings.check_limits`` is off (as for the start).
     Each is logged as a warning; with ``settings.stop_at_limits`` the first one stops
     the run: SimulationError naming the joint and the time, ``exc.trajectory`` holding
     the samples before it.
     """
     s = recorder.series()
-    found = limit_violations(mech, s["t"], s["q"])
+    found = limit_violations(mech, s["t"], s["q"], urdf_limits=settings.check_limits)
     info["limit_violations"] = found
     for joint, t, value, limit in found:
         logger.warning(
