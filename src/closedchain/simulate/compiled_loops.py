@@ -108,7 +108,7 @@ def _recorded_steps(problem: Problem, n_steps: int, out_steps):
     return _output_steps(n_steps, None), np.asarray(out_steps, dtype=np.intp)
 
 
-def _keep(problem: Problem, recorder, out: dict, keep: np.ndarray | None) -> dict:
+def _keep(recorder, out: dict, keep: np.ndarray | None) -> dict:
     """Return the samples ``out`` of every step with W, cut to the output steps ``keep``."""
     if keep is None:
         return out
@@ -140,7 +140,7 @@ def run_fixed_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, _keep(problem, recorder, out, keep), info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
 
 
 def run_adaptive_compiled(
@@ -183,7 +183,7 @@ def run_adaptive_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, _keep(problem, recorder, out, keep), info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
 
 
 def run_ali3p_compiled(
@@ -209,4 +209,4 @@ def run_ali3p_compiled(
     )
     info["ali3p_alpha"] = float(out["ali3p_alpha"])
     info["newton_iterations"] = int(out["newton_iterations"])
-    return _finish(problem, core, recorder, _keep(problem, recorder, out, keep), info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
