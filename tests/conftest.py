@@ -439,3 +439,20 @@ def nfourbar(tmp_path_factory):
         return cache[n]
 
     return get
+
+
+#: The crank's <limit> of models/fourbar.urdf (+-2 pi: a full turn, which limits no pose).
+FOURBAR_CRANK_LIMIT = '<limit lower="-6.283185307179586" upper="6.283185307179586" effort="50"'
+
+
+def fourbar_with_crank_limits(directory: Path, lower: float, upper: float) -> Path:
+    """Write models/fourbar.urdf with the crank's <limit> set to [lower, upper] [rad] into
+    ``directory``; return the file's path."""
+    text = (MODELS / "fourbar.urdf").read_text()
+    assert text.count(FOURBAR_CRANK_LIMIT) == 1
+    text = text.replace(
+        FOURBAR_CRANK_LIMIT, f'<limit lower="{lower!r}" upper="{upper!r}" effort="50"'
+    )
+    path = directory / "fourbar_limited.urdf"
+    path.write_text(text)
+    return path

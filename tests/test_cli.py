@@ -11,7 +11,7 @@ import signal
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR, SHIPPED_MECHANISMS
+from conftest import DATA_DIR, SHIPPED_MECHANISMS, fourbar_with_crank_limits
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -204,6 +204,45 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
     assert abs(theta - q_final[0]) > 0.1  # the crank has moved away from cos(theta) = theta
 
 
+def test_simulate_constant_torque_per_actuated_joint(capsys, tmp_path, mechanism_files):
+    """``--torque 0.7`` on the 4-bar is tau = 0.7 N m on its actuated crank (and 0 elsewhere):
+    the same run as the library's with that tau."""
+    from closedchain import load, simulate
+    from closedchain.control import default_scene
+
+    out = tmp_path / "run.npz"
+    run_args = ("--t-final", "0.2", "--integrator", "rk4", "--dt", "0.005", "--fps", "10")
+    argv = ["simulate", mechanism_files["fourbar"], *run_args, "--torque", "0.7", "--out", out]
+    status, _, err = run(capsys, *argv)
+    assert status == 0, err
+    mech = load(mechanism_files["fourbar"])
+    scene = default_scene(mech)
+    tau = np.zeros(mech.nv)
+    tau[mech.actuated_idx_v] = 0.7
+    ref = simulate(
+        mech, scene.q0, scene.v0, 0.2, dt=0.005, tau=tau, t_eval=cli.output_times(0.2, 10)
+    )
+    np.testing.assert_allclose(np.load(out)["q"], ref.q, rtol=0, atol=EXACT_TOL)
+    np.testing.assert_allclose(np.load(out)["work"], ref.work, rtol=0, atol=EXACT_TOL)
+    free = simulate(mech, scene.q0, scene.v0, 0.2, dt=0.005, t_eval=cli.output_times(0.2, 10))
+    assert np.linalg.norm(free.q[-1] - ref.q[-1]) > 1e-3  # the torque moved it
+
+
+def test_simulate_reports_a_joint_past_its_limit(capsys, tmp_path):
+    """A negative --torque spins the 4-bar's crank past a <limit> of -3 rad: the summary
+    lists it (joint, first time, value, limit)."""
+    urdf = fourbar_with_crank_limits(tmp_path, -3.0, 3.0)
+    argv = ["simulate", urdf, "--t-final", "0.5", "--fps", "100"]
+    status, out, err = run(capsys, *argv, "--torque", "-3", "--json")
+    assert status == 0, err
+    summary = json.loads(out)
+    found = {v[0]: v[1:] for v in summary["limit_violations"]}
+    # the torque's work is most of E - E0: the balance is far below the drift
+    assert summary["energy_balance"] < 1e-6 * summary["energy_drift"]
+    t_first, value, limit = found["crank_joint"]
+    assert limit == -3.0 and value < limit and 0 < t_first <= 0.5
+
+
 # -- bad arguments --------------------------------------------------------------------------
 
 
@@ -298,6 +337,17 @@ def test_simulate_reports_the_angle_of_a_continuous_joint(capsys, tmp_path, mech
             ["plot", "{tmp}/t.csv", "-o", "{tmp}/p.png"],
             "{tmp}/t.csv: plot reads a .npz trajectory or a URDF file to simulate",
         ),
+        (
+            ["simulate", "{fourbar}", "--torque", "1", "2"],
+            "--torque takes 1 number(s) for fourbar, got 2; actuated joints (<transmission>): "
+            "crank_joint",
+        ),
+        (
+            ["simulate", "{fourbar}", "--torque", "strong"],
+            "--torque strong: valid: zero or gravity, or finite numbers [N m or N], one per "
+            "actuated joint",
+        ),
+        (["simulate", "{fourbar}", "--torque", "1", "nan"], "--torque 1 nan: valid: zero or"),
         (
             ["workspace", "{eye}", "-o", "{tmp}/w.png", "--outputs", "nosuch"],
             "a singularity map needs two output coordinates, got ('nosuch',); valid: two of "

@@ -529,3 +529,26 @@ def test_velocity_projection_from_the_velocity_itself(nfourbar):
     assert np.abs(warm - cold).max() <= TOL_WARM_START * scale
     assert np.abs(warm - exact).max() <= TOL_WARM_START * scale
     assert it_warm < it_cold
+
+
+def test_one_default_method_for_forward_dynamics_and_simulate(mechs, near_singular):
+    """forward_dynamics, simulate and the CLI share DEFAULT_METHOD, the singular-robust one:
+    at the exactly singular change point the default answers where "kkt" raises."""
+    import inspect
+
+    from closedchain import cli
+    from closedchain.dynamics import DEFAULT_METHOD
+    from closedchain.dynamics.base import METHOD_CAPABILITIES
+
+    for func in (forward_dynamics, cc.simulate):
+        assert inspect.signature(func).parameters["method"].default == DEFAULT_METHOD
+    args = cli.build_parser().parse_args(["simulate", "x.urdf"])
+    assert args.method == DEFAULT_METHOD
+    assert METHOD_CAPABILITIES[DEFAULT_METHOD].singular_robust
+    mech = mechs["fourbar"]
+    q, [(v, tau, _), _] = near_singular[0.0]
+    with pytest.raises(cc.SingularConfigurationError, match="condition number"):
+        forward_dynamics(mech, q, v, tau, method="kkt")
+    res = forward_dynamics(mech, q, v, tau)
+    assert res.method == DEFAULT_METHOD
+    assert np.all(np.isfinite(res.a))

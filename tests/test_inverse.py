@@ -20,6 +20,7 @@ import closedchain as cc
 from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
 from closedchain.inverse import (
     InverseDynamicsResult,
+    JointReaction,
     LoopReaction,
     inverse_dynamics,
     joint_reactions,
@@ -140,6 +141,91 @@ def test_fourbar_static_equilibrium_by_hand(mechs, theta2):
     np.testing.assert_allclose(
         rx.force[[0, 2]], [c * fx + s * fz, -s * fx + c * fz], atol=TOL_STATICS
     )
+
+
+@pytest.mark.parametrize("theta2", CRANK_ANGLES)
+def test_fourbar_tree_joint_reactions_by_hand(mechs, theta2):
+    """The pin forces at A, B and D from the free bodies of the static 4-bar: the crank
+    pushes the coupler at B with f_B = f_C - m g (coupler balance), the ground holds the
+    crank at A with f_B - m g and the rocker at D with -f_C - m g; each pin carries the
+    couple tau about its axis (-y) only."""
+    mech = mechs["fourbar"]
+    q = cc.assemble(mech, np.array([theta2, 0.6, 1.6]), fixed=["crank_joint"])
+    v = np.zeros(mech.nv)
+    res = inverse_dynamics(mech, q, v, [0.0])
+    loop, *tree = joint_reactions(mech, q, v, res, tree=True)
+    assert isinstance(loop, LoopReaction) and loop.loop == "C"
+    assert all(isinstance(r, JointReaction) for r in tree)
+    assert [r.joint for r in tree] == ["crank_joint", "coupler_joint", "rocker_joint"]
+    _, f_C = fourbar_statics_by_hand(q)
+    w = np.array([0.0, -MASS * G])
+    f_B = f_C - w
+    hand = {"crank_joint": f_B - w, "coupler_joint": f_B, "rocker_joint": -f_C - w}
+    for r, tau in zip(tree, res.tau, strict=True):
+        assert np.linalg.norm(r.force_world[[0, 2]] - hand[r.joint]) <= TOL_STATICS
+        assert abs(r.force_world[1]) <= TOL_STATICS
+        assert np.linalg.norm(r.torque_world - [0.0, -tau, 0.0]) <= TOL_STATICS
+        assert r.tau == pytest.approx([tau], abs=TOL_STATICS)
+        oMj = mech.data.oMi[mech.model.getJointId(r.joint)]
+        np.testing.assert_allclose(oMj.rotation @ r.force, r.force_world, atol=1e-14)
+
+
+#: tests/data/slider_crank_tree.urdf: crank and rod lengths [m], rod and slider masses [kg].
+SLIDER_CRANK_R, SLIDER_CRANK_L = 0.1, 0.3
+ROD_MASS, SLIDER_MASS = 0.7, 0.9
+
+
+@pytest.mark.parametrize("theta", CRANK_ANGLES)
+def test_slider_normal_force_by_hand(theta):
+    """A slider on a tree prismatic joint, held still by the crank: its free body (passive
+    guide along x: no force along it; the rod pinned at its origin) and the rod's moment
+    balance about the crank tip B give the rod's push on the slider -m_rod g / 2 (z) and
+    the guide's normal force N = (m_slider + m_rod / 2) g, whatever the crank angle."""
+    mech = cc.load(Path(__file__).parent / "data" / "slider_crank_tree.urdf")
+    r, l_ = SLIDER_CRANK_R, SLIDER_CRANK_L
+    B = r * np.array([np.cos(theta), np.sin(theta)])
+    s = B[0] + np.sqrt(l_**2 - B[1] ** 2)  # the slider on the x axis at distance l from B
+    phi = np.arctan2(-B[1], s - B[0]) - theta
+    q = cc.assemble(mech, np.array([theta, phi, s]), fixed=["crank_joint"])
+    np.testing.assert_allclose(q, [theta, phi, s], atol=1e-12)  # the hand geometry
+    v = np.zeros(mech.nv)
+    res = inverse_dynamics(mech, q, v, [0.0])
+    loop, *tree = joint_reactions(mech, q, v, res, tree=True)
+    slider = next(r for r in tree if r.joint == "slider_joint")
+    normal = (SLIDER_MASS + ROD_MASS / 2) * G
+    assert np.linalg.norm(slider.force_world - [0.0, 0.0, normal]) <= TOL_STATICS
+    assert np.linalg.norm(slider.torque_world) <= TOL_STATICS
+    assert abs(slider.tau[0]) <= TOL_STATICS  # passive: nothing along the guide
+    # the rod's push on the slider (the loop's successor)
+    assert np.linalg.norm(loop.force_world - [0.0, 0.0, -ROD_MASS * G / 2]) <= TOL_STATICS
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_ground_reactions_move_the_centre_of_mass(mechs, states, name):
+    """Newton's law for the whole mechanism (the loop forces are internal): the forces the
+    ground transmits through its joints sum to m_total (a_com - g), a_com from Pinocchio's
+    centre-of-mass kinematics; each joint's motion-subspace component is its tau."""
+    mech = mechs[name]
+    model = mech.model
+    for q, v, a_ind in states[name][:5]:
+        inv = inverse_dynamics(mech, q, v, a_ind)
+        tree = [
+            r for r in joint_reactions(mech, q, v, inv, tree=True) if isinstance(r, JointReaction)
+        ]
+        ground = sum(r.force_world for r in tree if model.parents[model.getJointId(r.joint)] == 0)
+        data = model.createData()
+        pin.centerOfMass(model, data, q, v, inv.a)
+        newton = pin.computeTotalMass(model) * (data.acom[0] - model.gravity.linear)
+        assert np.linalg.norm(ground - newton) <= TOL_ROUND_TRIP * max(1.0, np.linalg.norm(newton))
+        np.testing.assert_allclose(
+            np.concatenate([r.tau for r in tree]), inv.tau, rtol=0, atol=TOL_ROUND_TRIP
+        )
+
+
+def test_tree_reactions_need_the_accelerations(mechs):
+    mech = mechs["fourbar"]
+    with pytest.raises(cc.ClosedChainError, match=r"tree=True\) needs the accelerations"):
+        joint_reactions(mech, mech.q_ref, np.zeros(3), np.zeros(mech.nc), tree=True)
 
 
 @pytest.mark.parametrize("theta2", CRANK_ANGLES)

@@ -65,6 +65,23 @@ def test_three_panels_against_time(fourbar, fourbar_run):
     assert fig._suptitle.get_text() == "fourbar / kkt / DOP853 / none"
 
 
+def test_a_driven_run_plots_its_energy_balance(fourbar, fourbar_run):
+    """With the work W of tau recorded the energy panel is E - E(0) - W, labelled so;
+    without it, E - E(0)."""
+    rng = np.random.default_rng(2)
+    work = 1e-3 * np.cumsum(rng.standard_normal(len(fourbar_run.t)))
+    driven = dataclasses.replace(fourbar_run, work=work)
+    ax_e = plot_trajectory(driven, mech=fourbar).axes[2]
+    (balance,) = ax_e.get_lines()
+    energy = driven.energy
+    assert np.linalg.norm(balance.get_ydata() - (energy - energy[0] - work)) <= EXACT_TOL
+    assert ax_e.get_ylabel().startswith("energy balance")
+    assert r"\int_0^t \tau \cdot v" in ax_e.get_ylabel()
+    assert (
+        plot_trajectory(fourbar_run, mech=fourbar).axes[2].get_ylabel().startswith("energy drift")
+    )
+
+
 def test_agile_eye_plots_its_three_independent_coordinates(agile_eye, agile_eye_traj):
     fig = plot_trajectory(agile_eye_traj, mech=agile_eye)
     labels = [ln.get_label() for ln in fig.axes[0].get_lines()]

@@ -20,8 +20,9 @@ import re
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.integrate
 import scipy.linalg
-from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS, MODELS
+from conftest import ALL_INTEGRATORS, FIXED_STEP_INTEGRATORS, MODELS, fourbar_with_crank_limits
 
 import closedchain as cc
 from closedchain import cli
@@ -1169,6 +1170,23 @@ def test_energy_tol_stops_an_inaccurate_unforced_run_with_its_trajectory(fourbar
     assert exc.value.trajectory.energy_drift > 1e-2
 
 
+def test_energy_tol_checks_the_energy_balance_of_a_driven_run(fourbar):
+    """With tau the check is on E - E0 - W: the accurate driven run passes although its
+    drift (the torque's work) is far above the tolerance; explicit Euler at 10 ms (balance
+    1e-2) does not."""
+    settings = cc.SimulationSettings(energy_tol=1e-3)
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    tau = BALANCE_TORQUES["constant"]
+    accurate = cc.simulate(fourbar, q0, np.zeros(3), 1.0, tau=tau, settings=settings)
+    assert accurate.energy_drift > DRIVEN_DRIFT_MIN > settings.energy_tol
+    match = r"relative energy balance of this driven run \(E - E0 - the work of tau\) is"
+    with pytest.raises(cc.SimulationError, match=match) as exc:
+        cc.simulate(
+            fourbar, q0, np.zeros(3), 1.0, tau=tau, integrator="euler", dt=1e-2, settings=settings
+        )
+    assert exc.value.trajectory.energy_balance > settings.energy_tol
+
+
 def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
     from closedchain.simulate import DEFAULT_ADAPTIVE_INTEGRATOR
 
@@ -1176,3 +1194,142 @@ def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
     assert traj.info.integrator == DEFAULT_ADAPTIVE_INTEGRATOR == "DOP853"
     assert traj.info.rtol == 1e-9 and traj.info.dt is None
     assert cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05).info.integrator == "rk4"
+
+
+# -- joint limits ---------------------------------------------------------------------------
+
+#: Crank limits of the limited 4-bar [rad]: less than a full turn, so they limit the pose.
+CRANK_LIMITS = (-3.0, 3.0)
+#: Crank torque that spins the crank past -3 rad within LIMIT_RUN_T [N m] (near 0.33 s).
+LIMIT_TORQUE = -3.0
+LIMIT_RUN_T = 0.5
+
+
+@pytest.fixture(scope="module")
+def limited_fourbar(tmp_path_factory) -> cc.Mechanism:
+    return cc.load(fourbar_with_crank_limits(tmp_path_factory.mktemp("limits"), *CRANK_LIMITS))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_a_crank_past_its_limit_is_reported(limited_fourbar, caplog, backend):
+    """Driven by -3 N m the crank passes its <limit> of -3 rad near t = 0.33 s: a warning
+    names the joint and time, info.limit_violations has the first sample beyond it (the
+    coupler and rocker, whose +-2 pi limits span a full turn, limit no pose: never);
+    SimulationSettings.stop_at_limits turns it into an error with the motion before it."""
+    mech = limited_fourbar
+    q0 = cc.assemble(mech, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    tau = np.array([LIMIT_TORQUE, 0.0, 0.0])
+    t_eval = np.linspace(0.0, LIMIT_RUN_T, 51)
+    run = dict(tau=tau, t_eval=t_eval, backend=backend)
+    with caplog.at_level("WARNING", logger="closedchain.simulate.problem"):
+        traj = simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, **run)
+    k = np.flatnonzero(traj.q[:, 0] < CRANK_LIMITS[0])[0]  # the first sample beyond
+    expected = [("crank_joint", traj.t[k], traj.q[k, 0], CRANK_LIMITS[0])]
+    assert [tuple(v) for v in traj.info.limit_violations] == expected
+    assert np.max(np.abs(traj.q[:, 1])) > 2 * np.pi  # the coupler passed its full turn
+    assert f"joint 'crank_joint' left its <limit> at t = {traj.t[k]:.6g} s" in caplog.text
+    stop = SimulationSettings(stop_at_limits=True)
+    with pytest.raises(
+        SimulationError, match=rf"joint 'crank_joint' left its <limit> at t = {traj.t[k]:.6g} s"
+    ) as exc:
+        simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, settings=stop, **run)
+    np.testing.assert_array_equal(exc.value.trajectory.t, traj.t[:k])
+    assert exc.value.t == traj.t[k]
+    # The start check's opt-out turns the URDF limits off here too.
+    ignore = SimulationSettings(check_limits=False)
+    assert (
+        simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, settings=ignore, **run).info[
+            "limit_violations"
+        ]
+        == ()
+    )
+
+
+def test_runs_within_limits_report_none(fourbar):
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    traj = simulate(fourbar, q0, np.zeros(3), 0.1, settings=SimulationSettings(stop_at_limits=True))
+    assert traj.info.limit_violations == ()
+
+
+# -- energy balance: E - E0 - W, W the work of tau ------------------------------------------
+
+#: Duration of the energy-balance runs [s] and their sparse outputs: W is accumulated
+#: along the steps, never over the output spacing (0.1 s here).
+BALANCE_T = 1.0
+BALANCE_T_EVAL = np.linspace(0.0, BALANCE_T, 11)
+#: The torques on the crank [N m]: constant, and a callable varying in time.
+BALANCE_TORQUES = {
+    "constant": np.array([2.0, 0.0, 0.0]),
+    "callable": lambda t, q, v: np.array([1.0 + 1.5 * np.sin(5.0 * t), 0.0, 0.0]),
+}
+#: Runs and bounds: (relative energy balance, |W - W_ref| [J]). Measured (constant /
+#: callable): rk4 1 ms numpy 2.9e-12 / 1.6e-9 and 1.9e-11 / 3.8e-9 J; compiled (every
+#: step recorded for W) 3.5e-12 / 1.4e-10 and 1.8e-11 / 7.1e-11 J; DOP853 1e-10 numpy
+#: (Gauss on each step's dense output) 5.9e-10 / 2.4e-10 and 1.6e-9 / 6.4e-10 J;
+#: compiled (the sixth-order sample rule on the step ends and outputs) 7.9e-8 / 6.8e-8
+#: and 2.0e-7 / 1.7e-7 J.
+BALANCE_RUNS = {
+    "rk4-numpy": (dict(integrator="rk4", dt=1e-3, backend="numpy"), 1e-8, 5e-8),
+    "rk4-compiled": (dict(integrator="rk4", dt=1e-3, backend="compiled"), 1e-8, 5e-8),
+    "DOP853-numpy": (
+        dict(integrator="DOP853", rtol=1e-10, atol=1e-10, backend="numpy"),
+        1e-8,
+        5e-8,
+    ),
+    "DOP853-compiled": (
+        dict(integrator="DOP853", rtol=1e-10, atol=1e-10, backend="compiled"),
+        1e-6,
+        2e-6,
+    ),
+}
+#: The energy drift E - E0 of the same runs is the work of tau: far from zero.
+DRIVEN_DRIFT_MIN = 0.1
+
+
+@pytest.fixture(scope="module")
+def work_reference(fourbar):
+    """Per torque: dense W_ref(t) from an independent integration of (q, v, W) with
+    dW/dt = tau . v (scipy DOP853 at 1e-12, kkt accelerations, no closedchain loop)."""
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    out = {}
+    for name, tau in BALANCE_TORQUES.items():
+        tau_fn = tau if callable(tau) else (lambda t, q, v, c=tau: c)
+
+        def rhs(t, y, tau_fn=tau_fn):
+            q, v = y[:3], y[3:6]
+            tau_t = tau_fn(t, q, v)
+            a = cc.forward_dynamics(fourbar, q, v, tau_t, method="kkt").a
+            return np.concatenate([v, a, [tau_t @ v]])
+
+        y0 = np.concatenate([q0, np.zeros(3), [0.0]])
+        sol = scipy.integrate.solve_ivp(
+            rhs, (0.0, BALANCE_T), y0, method="DOP853", rtol=1e-12, atol=1e-12, dense_output=True
+        )
+        out[name] = lambda t, sol=sol: sol.sol(t)[6]
+    return q0, out
+
+
+@pytest.mark.parametrize("torque", list(BALANCE_TORQUES))
+@pytest.mark.parametrize("run", list(BALANCE_RUNS))
+def test_energy_balance_of_a_driven_run(fourbar, work_reference, run, torque):
+    """The 4-bar driven by a crank torque: E - E0 is the torque's work (drift >> 0), and
+    E - E0 - W is ~0; W agrees with an independent integration of tau . v."""
+    q0, reference = work_reference
+    config, balance_tol, work_tol = BALANCE_RUNS[run]
+    tau = BALANCE_TORQUES[torque]
+    traj = simulate(fourbar, q0, np.zeros(3), BALANCE_T, tau=tau, t_eval=BALANCE_T_EVAL, **config)
+    assert traj.info.backend == config["backend"]
+    assert traj.energy_drift > DRIVEN_DRIFT_MIN
+    assert traj.energy_balance <= balance_tol
+    assert traj.info.energy_balance == traj.energy_balance
+    assert np.max(np.abs(traj.work - reference[torque](traj.t))) <= work_tol
+    if torque == "constant":  # exactly: W = tau_crank (q_crank(t) - q_crank(0))
+        exact = BALANCE_TORQUES["constant"][0] * (traj.q[:, 0] - traj.q[0, 0])
+        assert np.max(np.abs(traj.work - exact)) <= work_tol
+
+
+def test_an_unforced_run_records_no_work(fourbar):
+    q0 = cc.assemble(fourbar, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
+    traj = simulate(fourbar, q0, np.zeros(3), 0.1)
+    assert traj.work is None
+    assert traj.energy_balance == traj.energy_drift == traj.info.energy_balance

@@ -35,6 +35,37 @@ def test_npz_round_trip_is_exact(short_traj, tmp_path):
     assert back.info == short_traj.info
 
 
+@pytest.fixture(scope="module")
+def driven_traj(fourbar) -> cc.Trajectory:
+    """A run with a constant crank torque: it records the work W of tau."""
+    tau = np.array([0.5, 0.0, 0.0])
+    return cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.2, dt=1e-2, tau=tau)
+
+
+def test_work_round_trips_and_files_without_it_still_load(driven_traj, tmp_path):
+    """npz keeps W (and the energy balance); an npz written before W was recorded (no
+    ``work`` array) loads with work None, whose balance is the drift (W = 0)."""
+    assert driven_traj.work is not None
+    back = cc.Trajectory.load(driven_traj.save(tmp_path / "t.npz"))
+    np.testing.assert_array_equal(back.work, driven_traj.work)
+    assert back.energy_balance == driven_traj.energy_balance
+    assert back.info.energy_balance == driven_traj.info.energy_balance
+    with np.load(tmp_path / "t.npz") as f:
+        old = {k: f[k] for k in f.files if k != "work"}
+    np.savez(tmp_path / "old.npz", **old)
+    legacy = cc.Trajectory.load(tmp_path / "old.npz")
+    assert legacy.work is None
+    assert legacy.energy_balance == legacy.energy_drift
+
+
+def test_csv_has_the_work_column_when_recorded(driven_traj, short_traj, tmp_path):
+    header, table = read_csv(driven_traj.save(tmp_path / "d.csv"))
+    assert header[-1] == "work"
+    np.testing.assert_array_equal(table[:, -1], driven_traj.work)
+    header, _ = read_csv(short_traj.save(tmp_path / "s.csv"))
+    assert header[-1] == "energy"
+
+
 def test_truncated_npz_names_the_file(short_traj, tmp_path):
     path = short_traj.save(tmp_path / "t.npz")
     data = path.read_bytes()

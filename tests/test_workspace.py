@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import DATA_DIR
 
+import closedchain as cc
 from closedchain import cli
 from closedchain.exceptions import ClosedChainError
 from closedchain.workspace import analyze_fourbar, default_outputs, singularity_map
@@ -48,6 +50,37 @@ def test_agile_eye_map_is_regular_at_home(agile_eye):
         singularity_map(agile_eye, outputs=("platform_yaw",))
     with pytest.raises(ClosedChainError, match="outputs names platform_yaw more than once"):
         singularity_map(agile_eye, outputs=("platform_yaw", "platform_yaw"))
+
+
+#: The map's smallest singular values are those of J at the assembled grid points.
+SIGMA_TOL = 1e-12
+
+
+def test_five_bar_maps_its_independent_coordinates():
+    """A five-bar's loop joins two distal links (no platform link): the map's outputs are
+    its independent coordinates, the actuated cranks (before: the passive distal joints),
+    and its values are sigma_min of J_D at the assembled configurations."""
+    mech = cc.load(DATA_DIR / "five_bar.urdf")
+    cranks = ("left_crank_joint", "right_crank_joint")
+    assert tuple(mech.coordinate_names[i] for i in mech.independent_idx_v) == cranks
+    assert default_outputs(mech) == cranks
+    m = singularity_map(mech, points=GRID, span=0.2)
+    assert m.outputs == cranks
+    centre = GRID // 2
+    q = cc.assemble(mech, mech.q_ref, fixed=list(cranks))
+    J = cc.compute_jacobian(mech, q)
+    sigma = np.linalg.svd(J[:, mech.dependent_idx_v], compute_uv=False)[-1]
+    assert abs(m.parallel[centre, centre] - sigma) <= SIGMA_TOL
+    np.testing.assert_array_equal(m.serial, m.parallel)  # outputs = actuators
+
+
+def test_cli_workspace_five_bar(tmp_path, capsys):
+    out = tmp_path / "w.png"
+    argv = ["workspace", str(DATA_DIR / "five_bar.urdf"), "-o", str(out), "--points", "5"]
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "singularity map over left_crank_joint, right_crank_joint" in text
+    assert "serial = parallel" in text
 
 
 def test_cli_workspace(tmp_path, mechanism_files, capsys):

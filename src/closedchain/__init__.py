@@ -27,7 +27,13 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
-from .inverse import InverseDynamicsResult, LoopReaction, inverse_dynamics, joint_reactions
+from .inverse import (
+    InverseDynamicsResult,
+    JointReaction,
+    LoopReaction,
+    inverse_dynamics,
+    joint_reactions,
+)
 from .kinematics import (
     AssemblySettings,
     assemble,
@@ -70,6 +76,7 @@ __all__ = [
     "InverseDynamicsResult",
     "LoadSettings",
     "LoopClosureError",
+    "JointReaction",
     "LoopReaction",
     "Mechanism",
     "ModelTooLargeError",

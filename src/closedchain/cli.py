@@ -73,14 +73,14 @@ SCHEDULER_ADDRESS = re.compile(
     r"(?:[a-z][a-z0-9+.-]*://)?(?:\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+):\d{1,5}"
 )
 
-#: Default of ``--energy-tol``: an unforced run that loses or gains more than 1 % of its
-#: energy is not reported as a success (the 4-bar's default run drifts by 2e-9; explicit
-#: Euler at 1 ms by 0.23).
+#: Default of ``--energy-tol``: a run whose energy balance (the drift without tau, E - E0
+#: - the work of tau with it) exceeds 1 % is not reported as a success (the 4-bar's default
+#: run drifts by 2e-9; explicit Euler at 1 ms by 0.23).
 DEFAULT_ENERGY_TOL = 1e-2
 #: Default of ``--closure-tol`` [m or rad]: SimulationSettings.drift_limit on the command line.
 DEFAULT_CLOSURE_TOL = 1e-6
 
-#: Choices of ``--torque``.
+#: Named choices of ``--torque`` (numbers, one per actuated joint, are accepted too).
 TORQUES = ("zero", "gravity")
 
 #: Suffixes ``simulate --out`` can write (Trajectory.save).
@@ -202,6 +202,8 @@ def check_args(args: argparse.Namespace) -> None:
                 "AnimationSettings.max_keyframes",
             )
         output_times(args.t_final, args.fps)  # checks the sample count before any work
+    if getattr(args, "torque", None) is not None:
+        torque_values(args.torque)
     outputs = _check_output_suffix(args)
     for path in outputs.values():
         if not Path(path).parent.is_dir():
@@ -448,13 +450,13 @@ def _cmd_plot(args) -> int:
 
 def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     """Add the options of ``closedchain simulate`` (shared by ``animate`` and ``plot``)."""
-    from .dynamics import METHODS
+    from .dynamics import DEFAULT_METHOD, METHODS
     from .simulate import INTEGRATORS, STABILIZATIONS
 
     p.add_argument("--t-final", type=float, default=5.0, help="duration [s] (default 5)")
     p.add_argument(
         "--method",
-        default="augmented-lagrangian",
+        default=DEFAULT_METHOD,
         type=_choice(METHODS),
         choices=sorted(METHODS),
         help="dynamics method, any case (default augmented-lagrangian: passes singular positions)",
@@ -488,17 +490,19 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--torque",
-        choices=TORQUES,
-        default="zero",
-        help="actuator torque: zero, or the constant torque that holds q0 at rest against"
-        " gravity (closed-chain inverse dynamics; needs actuators for every degree of freedom)",
+        nargs="+",
+        default=["zero"],
+        metavar="TAU",
+        help="actuator torque: zero; gravity, the constant torque that holds q0 at rest against"
+        " gravity (closed-chain inverse dynamics; needs actuators for every degree of freedom);"
+        " or constant torques [N m or N], one number per actuated joint (as `info` lists them)",
     )
     p.add_argument(
         "--energy-tol",
         type=float,
         default=DEFAULT_ENERGY_TOL,
-        help="largest relative energy drift of an unforced run before it is reported as "
-        f"inaccurate (exit {EXIT_STOPPED}; default %(default)g)",
+        help="largest relative energy balance (the energy drift, less the work of the torque)"
+        f" before a run is reported as inaccurate (exit {EXIT_STOPPED}; default %(default)g)",
     )
     p.add_argument(
         "--closure-tol",
@@ -554,12 +558,58 @@ def _check_sample_count(t_final: float, fps: float, limit: int, what: str, setti
     return n
 
 
+def torque_values(tokens: Sequence[str]) -> np.ndarray | None:
+    """Return the numbers of ``--torque`` [N m or N], or None for a name in :data:`TORQUES`.
+
+    Raises:
+        ClosedChainError: neither one name of :data:`TORQUES` nor finite numbers.
+    """
+    if len(tokens) == 1 and tokens[0] in TORQUES:
+        return None
+    try:
+        values = np.array([float(x) for x in tokens])
+    except ValueError:
+        values = np.array([np.nan])
+    if not np.all(np.isfinite(values)):
+        raise ClosedChainError(
+            f"--torque {' '.join(tokens)}: valid: {' or '.join(TORQUES)}, or finite numbers "
+            "[N m or N], one per actuated joint"
+        )
+    return values
+
+
+def actuator_torque(mech, values: np.ndarray) -> np.ndarray:
+    """Return the generalized force tau, shape (nv,), of constant actuator torques.
+
+    Args:
+        mech: the mechanism.
+        values: one torque [N m or N] per actuated coordinate, in the order of
+            ``Mechanism.actuated_idx_v``.
+
+    Raises:
+        ClosedChainError: not one value per actuated coordinate (names them).
+    """
+    idx = mech.actuated_idx_v
+    if len(values) != len(idx):
+        names = ", ".join(mech.coordinate_names[i] for i in idx) or "none"
+        raise ClosedChainError(
+            f"--torque takes {len(idx)} number(s) for {mech.name}, got {len(values)}; "
+            f"actuated joints (<transmission>): {names}"
+        )
+    tau = np.zeros(mech.nv)
+    tau[idx] = values
+    return tau
+
+
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
     from .control import default_scene
     from .kinematics import assemble
     from .simulate import SimulationSettings, simulate
 
+    torque = getattr(args, "torque", ["zero"])
+    values = torque_values(torque)
+    constant = None if values is None else actuator_torque(mech, values)  # before any work
     if args.q0 is None:
         scene = default_scene(mech)  # the <scene> element of the URDF, or rest at q_ref
         q0, v0, tau = scene.q0, scene.v0, scene.tau
@@ -567,7 +617,7 @@ def simulate_from_args(args, mech):
     else:
         q0 = assemble(mech, mech.check_q(args.q0, "--q0"), fixed="independent")
         v0, tau = np.zeros(mech.nv), None
-    if getattr(args, "torque", "zero") == "gravity":
+    if torque == ["gravity"]:
         from .control import gravity_torque
 
         if mech.mobility == 0:
@@ -577,6 +627,8 @@ def simulate_from_args(args, mech):
             )
 
         tau = gravity_torque(mech, q0)
+    elif constant is not None:
+        tau = constant
     t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():
@@ -637,7 +689,9 @@ def _cmd_simulate(args) -> int:
         "max_constraint_residual": traj.max_constraint_residual,
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
+        "energy_balance": traj.energy_balance,
         "repartitions": len(info.repartitions),
+        "limit_violations": [list(v) for v in info.limit_violations],
         "final_independent": {
             mech.coordinate_names[i]: float(coordinate_series(mech, traj.q[-1], i))
             for i in mech.independent_idx_v
@@ -663,7 +717,12 @@ def _cmd_simulate(args) -> int:
             ("max constraint residual |phi|", _fmt(summary["max_constraint_residual"])),
             ("max velocity residual |J v|", _fmt(summary["max_velocity_residual"])),
             ("relative energy drift", _fmt(summary["energy_drift"])),
+            ("relative energy balance (E - E0 - work of tau)", _fmt(summary["energy_balance"])),
             ("re-partitions", str(summary["repartitions"])),
+            *(
+                (f"left its <limit>: {joint}", f"t = {t:.6g} s, q = {value:.6g}")
+                for joint, t, value, _ in summary["limit_violations"]
+            ),
         ],
         ("quantity", "value"),
     )
@@ -812,7 +871,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-o", "--output", required=True, help="image file to write")
     p.add_argument("--points", type=int, help="sweep / grid points per axis")
-    p.add_argument("--outputs", nargs="+", metavar="JOINT", help="output coordinates (map)")
+    p.add_argument(
+        "--outputs",
+        nargs="+",
+        metavar="JOINT",
+        help="output coordinates of the map (default: the joints of the link every loop closes"
+        " on, e.g. a platform; else the independent coordinates)",
+    )
     p.add_argument(
         "--span", type=float, default=1.5, help="half-width of the map around q_ref [rad]"
     )

@@ -43,6 +43,21 @@ row selection dropped as redundant carry no force: where a closure is
 statically indeterminate (a planar loop's out-of-plane components, a spherical
 wrist's forces along the legs) the reported wrench is the one carried by the
 independent rows.
+
+Tree joints (``joint_reactions(..., tree=True)``): with the loop wrenches applied to
+their links as external forces, the recursive Newton-Euler algorithm (Pinocchio's
+``rnea``, Featherstone 2008, Section 5.3) gives for every joint j the spatial force
+:math:`f_j` its parent transmits to the subtree of j,
+
+.. math::
+
+    f_j = I_j a_j + v_j \times^* I_j v_j - f^{ext}_j + \sum_{c \in \text{children}(j)}
+    {}^{j}X_{c}^{*} f_c, \qquad \tau_j = S_j^\top f_j,
+
+in the joint's frame (``data.f[j]``, gravity included); its component along the motion
+subspace S_j is the joint's generalized force tau_j (actuator torque, or zero on a
+passive joint), the rest is the reaction the joint's structure carries (e.g. the normal
+force of a slider on a prismatic joint).
 """
 
 from __future__ import annotations
@@ -68,7 +83,13 @@ from .exceptions import ClosedChainError, NonFiniteError
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 
-__all__ = ["InverseDynamicsResult", "LoopReaction", "inverse_dynamics", "joint_reactions"]
+__all__ = [
+    "InverseDynamicsResult",
+    "JointReaction",
+    "LoopReaction",
+    "inverse_dynamics",
+    "joint_reactions",
+]
 
 
 @dataclass(frozen=True)
@@ -123,6 +144,36 @@ class LoopReaction:
     loop: str
     type: str
     frame: str
+    force: np.ndarray
+    torque: np.ndarray
+    force_world: np.ndarray
+    torque_world: np.ndarray
+
+
+@dataclass(frozen=True)
+class JointReaction:
+    """The wrench a tree joint transmits from its parent link to its child's subtree.
+
+    Attributes:
+        joint: joint name (the URDF ``<joint name=...>``).
+        type: Pinocchio's joint model (``JointModelRY``, ``JointModelPX``, ...).
+        frame: name of the model frame the components are given in: the joint frame
+            (at the joint's origin, moving with the child).
+        tau: the components along the joint's motion subspace, S^T f, shape (nv_j,)
+            [N m or N]: the joint's generalized force (actuator torque, 0 if passive).
+        force: force on the child, applied at the joint's origin, shape (3,) [N], in
+            the joint frame.
+        torque: couple on the child about the joint's origin, shape (3,) [N m], in the
+            joint frame.
+        force_world: the same force in world axes, shape (3,) [N].
+        torque_world: the same couple (about the joint's origin) in world axes, shape
+            (3,) [N m].
+    """
+
+    joint: str
+    type: str
+    frame: str
+    tau: np.ndarray
     force: np.ndarray
     torque: np.ndarray
     force_world: np.ndarray
@@ -333,35 +384,57 @@ def inverse_dynamics(
 
 
 @exclusive
-def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> list[LoopReaction]:
-    """Return the wrench each loop joint transmits, from the multipliers.
+def joint_reactions(
+    mech: Mechanism, q: np.ndarray, v: np.ndarray, result, *, tree: bool = False
+) -> list[LoopReaction | JointReaction]:
+    """Return the wrench each loop joint (and, with ``tree``, each tree joint) transmits.
 
-    Convention: the wrench acts on the loop's successor link, the force
+    Loop joints: the wrench acts on the loop's successor link, the force
     applied at the origin of the successor-side frame c2 (which coincides with
     the predecessor-side frame c1's origin when the loop is closed, except
     along a prismatic axis); components in c1. The predecessor receives the
     opposite wrench. See the module docstring for the formula.
 
+    Tree joints (``tree=True``): the wrench the parent transmits to the child's
+    subtree through the joint, in the joint frame, from the recursive Newton-Euler
+    algorithm with the loop wrenches as external forces (module docstring); it needs
+    the accelerations, so ``result`` must carry ``a``.
+
     Args:
         mech: the mechanism.
         q: configuration, shape (nq,), the one the multipliers belong to.
-        v: velocity, shape (nv,); the reactions follow from q and lam alone,
-            it is only checked, so that calls mirror the dynamics functions.
+        v: velocity, shape (nv,) [rad/s or m/s]; the loop reactions follow from q and
+            lam alone, the tree joints' from (q, v, a, lam).
         result: a :class:`InverseDynamicsResult` or
-            :class:`~closedchain.dynamics.ForwardDynamicsResult` (its ``lam``),
-            or the multipliers themselves, shape (nc,).
+            :class:`~closedchain.dynamics.ForwardDynamicsResult` (its ``lam``, and
+            ``a`` for ``tree``), or the multipliers themselves, shape (nc,).
+        tree: also report every tree joint (default False: the loops only).
 
     Returns:
-        One :class:`LoopReaction` per loop, in the URDF's order.
+        One :class:`LoopReaction` per loop, in the URDF's order; with ``tree``, then
+        one :class:`JointReaction` per tree joint, in tree order.
+
+    Raises:
+        ClosedChainError: lam of the wrong shape, or ``tree`` without accelerations.
     """
     q = mech.check_q(q, "q")
-    mech.check_v(v, "v")
+    v = mech.check_v(v, "v")
     lam = np.asarray(getattr(result, "lam", result), dtype=float)
     if lam.shape != (mech.nc,):
         raise ClosedChainError(f"lam has shape {lam.shape}, expected ({mech.nc},)")
+    a = getattr(result, "a", None)
+    if tree and a is None:
+        raise ClosedChainError(
+            "joint_reactions(tree=True) needs the accelerations: pass the "
+            "InverseDynamicsResult or ForwardDynamicsResult, not lam alone"
+        )
     model, data = mech.model, mech.data
     pin.forwardKinematics(model, data, q)
-    out = []
+    out: list[LoopReaction | JointReaction] = []
+    # Loop wrenches as external forces on their links (Pinocchio's fext: per joint, in
+    # the joint's local frame, about its origin): on the successor at c2's origin, the
+    # opposite on the predecessor.
+    fext = [pin.Force.Zero() for _ in range(model.njoints)]
     for blk, sl in mech.constraints.per_loop():
         oMp = pin.updateFramePlacement(model, data, blk.fid_p)
         oMs = pin.updateFramePlacement(model, data, blk.fid_s)
@@ -381,6 +454,31 @@ def joint_reactions(mech: Mechanism, q: np.ndarray, v: np.ndarray, result) -> li
                 torque=Rp.T @ torque,
                 force_world=force,
                 torque_world=torque,
+            )
+        )
+        # The wrench about the world origin, then into each link's joint frame.
+        wrench = pin.Force(force, torque + np.cross(oMs.translation, force))
+        js, jp = model.frames[blk.fid_s].parentJoint, model.frames[blk.fid_p].parentJoint
+        fext[js] += data.oMi[js].actInv(wrench)
+        fext[jp] -= data.oMi[jp].actInv(wrench)
+    if not tree:
+        return out
+    a = mech.check_v(a, "result.a")
+    pin.rnea(model, data, q, v, a, fext)
+    for j in range(1, model.njoints):
+        jm = model.joints[j]
+        f = data.f[j]
+        R = data.oMi[j].rotation
+        out.append(
+            JointReaction(
+                joint=model.names[j],
+                type=jm.shortname(),
+                frame=model.names[j],
+                force=f.linear.copy(),
+                torque=f.angular.copy(),
+                force_world=R @ f.linear,
+                torque_world=R @ f.angular,
+                tau=data.tau[jm.idx_v : jm.idx_v + jm.nv].copy(),
             )
         )
     return out

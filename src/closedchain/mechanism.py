@@ -372,30 +372,47 @@ class Mechanism:
             urdf_limits: also check the URDF limits (else only the bound).
             opt_out: how to turn the URDF-limit check off, added to its message.
         """
+        for j, outside, low, high in self.limit_checks(q[None, :], urdf_limits=urdf_limits):
+            if outside[0]:
+                value = float(q[self.model.joints[j].idx_q])
+                hint = f"; {opt_out}" if opt_out and urdf_limits else ""
+                raise InvalidArgumentError(
+                    f"{name}: joint {self.model.names[j]!r} is at {value:.6g}, outside its "
+                    f"limits [{low:.6g}, {high:.6g}] ({self.path}){hint}"
+                )
+
+    def limit_checks(self, qs: np.ndarray, *, urdf_limits: bool = True):
+        """Yield ``(joint id, outside, low, high)`` for every 1-dof joint: which of the
+        configurations ``qs`` put it outside its limits [low, high] [rad or m].
+
+        The rules of :meth:`check_limits`: :data:`COORDINATE_BOUND`, the finite URDF
+        ``<limit>`` with ``urdf_limits``, and a revolute joint whose limits span a full
+        turn or more accepts any angle within the bound (a whole number of turns brings
+        it inside: the same pose).
+
+        Args:
+            qs: configurations, shape (N, nq).
+            urdf_limits: also check the URDF limits (else only the bound).
+
+        Yields:
+            The joint's id, a bool array of shape (N,), and its limits.
+        """
         lo, hi = self.model.lowerPositionLimit, self.model.upperPositionLimit
         for j in range(1, self.model.njoints):
             jm = self.model.joints[j]
             if jm.nq != 1:  # cos/sin pairs, quaternions, free flyers: no limits
                 continue
             k = jm.idx_q
-            value = float(q[k])
+            x = qs[:, k]
             low, high = -COORDINATE_BOUND, COORDINATE_BOUND
             if urdf_limits:
                 low = max(low, lo[k]) if np.isfinite(lo[k]) else low
                 high = min(high, hi[k]) if np.isfinite(hi[k]) else high
-            if (
-                abs(value) <= COORDINATE_BOUND
-                and k in self._revolute_idx_q
-                and high - low >= FULL_TURN
-                and low <= low + (value - low) % FULL_TURN <= high
-            ):
-                continue  # the same orientation as an angle within a full-turn range
-            if not low <= value <= high:
-                hint = f"; {opt_out}" if opt_out and urdf_limits else ""
-                raise InvalidArgumentError(
-                    f"{name}: joint {self.model.names[j]!r} is at {value:.6g}, outside its "
-                    f"limits [{low:.6g}, {high:.6g}] ({self.path}){hint}"
-                )
+            outside = ~((low <= x) & (x <= high))
+            if k in self._revolute_idx_q and high - low >= FULL_TURN:
+                # The same orientation as an angle within the full-turn range.
+                outside &= ~(np.abs(x) <= COORDINATE_BOUND)
+            yield j, outside, float(low), float(high)
 
     def gravity_torque_scale(self) -> float:
         """Return the RMS generalized gravity force at ``q_ref`` [N m]: a natural torque scale.

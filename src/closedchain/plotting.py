@@ -1,7 +1,8 @@
 """Time plots of a Trajectory with matplotlib (headless: no pyplot, no GUI backend).
 
 :func:`plot_trajectory` draws three panels against time: the independent
-coordinates, the constraint residuals (log scale), and the energy drift. The
+coordinates, the constraint residuals (log scale), and the energy drift (the energy
+balance for a run driven by tau). The
 figure is a plain :class:`matplotlib.figure.Figure`, so building and saving it
 changes no global matplotlib state (``fig.savefig(path)`` renders with Agg).
 :func:`coordinate_series` gives the scalar position of a velocity coordinate
@@ -222,7 +223,9 @@ def plot_trajectory(
     1. the independent coordinates q_I(t) [rad or m] (or ``coordinates``);
     2. the constraint residual max |phi(q)| and the velocity residual
        max |J(q) v| (log scale; exact zeros drawn at :data:`RESIDUAL_FLOOR`);
-    3. the energy drift E(t) - E(0) [J].
+    3. the energy drift E(t) - E(0) [J], or, for a run driven by tau (its
+       ``trajectory.work`` recorded), the energy balance E(t) - E(0) - W(t), W the
+       work of tau: zero for an exact solution whatever drives it.
 
     Args:
         trajectory: the motion: t shape (N,), q shape (N, nq), residuals and
@@ -286,8 +289,12 @@ def plot_trajectory(
 
     energy = np.asarray(trajectory.energy, dtype=float)
     drift = energy - energy[0] if energy.size else energy
-    ax_e.plot(t, drift, color="C3")
-    ax_e.set_ylabel("energy drift\n$E(t) - E(0)$ [J]")
+    if trajectory.work is None:
+        ax_e.plot(t, drift, color="C3")
+        ax_e.set_ylabel("energy drift\n$E(t) - E(0)$ [J]")
+    else:
+        ax_e.plot(t, drift - np.asarray(trajectory.work, dtype=float), color="C3")
+        ax_e.set_ylabel("energy balance\n" + r"$E - E(0) - \int_0^t \tau \cdot v\,dt$ [J]")
     ax_e.set_xlabel("time [s]")
     ax_e.ticklabel_format(axis="y", style="sci", scilimits=(-3, 3))
     for ax in (ax_q, ax_e):

@@ -7,7 +7,7 @@ import json
 import logging
 import zipfile
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +22,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 _ARRAYS = ("t", "q", "v", "a", "lam", "constraint_residual", "velocity_residual", "energy")
+#: Per-sample arrays that may be None (not recorded); an .npz file without them loads.
+_OPTIONAL = ("kinetic_energy", "branch", "work")
 
 #: First characters that make a spreadsheet read a cell as a formula (CSV injection,
 #: OWASP): a cell starting with one gets a leading apostrophe.
@@ -64,11 +66,20 @@ def energy_scale(energy: np.ndarray, kinetic_energy: np.ndarray | None) -> float
 
 def energy_drift(energy: np.ndarray, kinetic_energy: np.ndarray | None) -> float:
     """:attr:`Trajectory.energy_drift` of the series ``energy`` and ``kinetic_energy``."""
-    deviation = float(np.max(np.abs(energy - energy[0])))
+    return energy_balance(energy, kinetic_energy, None)
+
+
+def energy_balance(
+    energy: np.ndarray, kinetic_energy: np.ndarray | None, work: np.ndarray | None
+) -> float:
+    """:attr:`Trajectory.energy_balance` of the series ``energy``, ``kinetic_energy`` and
+    ``work`` (None: no work, W = 0)."""
+    deviation = energy - energy[0] if work is None else energy - energy[0] - work
+    largest = float(np.max(np.abs(deviation)))
     scale = energy_scale(energy, kinetic_energy)
     if scale == 0.0:
-        return 0.0 if deviation == 0.0 else float("inf")
-    return deviation / scale
+        return 0.0 if largest == 0.0 else float("inf")
+    return largest / scale
 
 
 def _check_names(of: str, target: str, kind: str, names: Sequence[str], valid: Sequence[str]):
@@ -128,6 +139,11 @@ class SimulationInfo:
             assembly branch (see ``Trajectory.branch``).
         max_constraint_residual: max over time of max |phi(q)|.
         energy_drift: ``Trajectory.energy_drift`` of the run.
+        energy_balance: ``Trajectory.energy_balance`` of the run (equal to
+            ``energy_drift`` when the run has no tau).
+        limit_violations: ``(joint, t_first, value, limit)`` for each joint whose
+            coordinate left its URDF ``<limit>`` at a recorded sample: the first
+            such time [s], the coordinate there and the limit it passed [rad or m].
         extra: integrator-specific entries (e.g. ``ali3p_alpha``,
             ``newton_iterations``), JSON-serialisable.
 
@@ -161,6 +177,8 @@ class SimulationInfo:
     branch_changes: tuple = ()
     max_constraint_residual: float | None = None
     energy_drift: float | None = None
+    energy_balance: float | None = None
+    limit_violations: tuple = ()
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     @classmethod
@@ -182,7 +200,7 @@ class SimulationInfo:
             "repartitions",
         ):
             kw[k] = kw.get(k) or ()
-        for k in ("branch_changes", "row_reselections"):
+        for k in ("branch_changes", "row_reselections", "limit_violations"):
             kw[k] = kw.get(k) or ()
         stopped = kw.get("stopped")
         if isinstance(stopped, Mapping):
@@ -228,6 +246,11 @@ class Trajectory:
             on (the 4-bar: open +1 / crossed -1 assembly); ``info.branch_changes``
             lists the changes as [t_before, t_after, from, to]. None when not
             recorded (no loops).
+        work: the work of the generalized forces tau since t = 0, W(t) =
+            integral of tau . v dt [J], shape (N,), or None when the run had no tau
+            (or was saved before it was recorded). Accumulated along the integration
+            by a fourth-order rule (``closedchain.simulate.problem.WorkMeter``, which
+            states its accuracy).
         info: what the run was and what it cost (:class:`SimulationInfo`); a
             mapping passed here is converted with :meth:`SimulationInfo.from_dict`.
     """
@@ -242,6 +265,7 @@ class Trajectory:
     energy: np.ndarray
     kinetic_energy: np.ndarray | None = None
     branch: np.ndarray | None = None
+    work: np.ndarray | None = None
     info: SimulationInfo = field(default_factory=SimulationInfo)
 
     def __post_init__(self) -> None:
@@ -261,6 +285,16 @@ class Trajectory:
         on where the potential energy's zero is; 0 when E_s = 0 and E is constant.
         """
         return energy_drift(self.energy, self.kinetic_energy)
+
+    @property
+    def energy_balance(self) -> float:
+        r"""Relative energy balance :math:`\max_t |E(t) - E(0) - W(t)| / E_s`, W = :attr:`work`.
+
+        Zero for an exact solution whatever drives it: the mechanical energy changes by
+        the work of tau alone (the ideal loop joints do none). Equal to
+        :attr:`energy_drift` when :attr:`work` is None (W = 0: no tau).
+        """
+        return energy_balance(self.energy, self.kinetic_energy, self.work)
 
     @property
     def max_constraint_residual(self) -> float:
@@ -312,7 +346,8 @@ class Trajectory:
             )
 
     def save(self, path: str | Path) -> Path:
-        """Write the trajectory as ``.npz`` (all arrays, info) or ``.csv`` (t, q, v, residuals, E).
+        """Write the trajectory as ``.npz`` (all arrays, info) or ``.csv`` (t, q, v, residuals,
+        E, and the work W of tau when recorded).
 
         The CSV is written by the csv module: header cells quoted, names that a
         spreadsheet would read as formulas prefixed with ``'`` (see
@@ -327,11 +362,7 @@ class Trajectory:
         """
         path = Path(path)
         if path.suffix == ".npz":
-            extra = {
-                k: getattr(self, k)
-                for k in ("kinetic_energy", "branch")
-                if getattr(self, k) is not None
-            }
+            extra = {k: getattr(self, k) for k in _OPTIONAL if getattr(self, k) is not None}
             with atomic_write(path) as f:
                 np.savez_compressed(
                     f,
@@ -351,6 +382,7 @@ class Trajectory:
                 + [f"q:{n}" for n in names]
                 + [f"v:{n}" for n in vnames]
                 + ["constraint_residual", "velocity_residual", "energy"]
+                + ([] if self.work is None else ["work"])
             )
             table = np.column_stack(
                 [
@@ -360,6 +392,7 @@ class Trajectory:
                     self.constraint_residual,
                     self.velocity_residual,
                     self.energy,
+                    *([] if self.work is None else [self.work]),
                 ]
             )
             # csv module, every text cell quoted: names with commas, quotes or
@@ -403,7 +436,7 @@ class Trajectory:
                         + ", ".join(missing)
                         + f" (it holds: {', '.join(f.files) or 'nothing'})"
                     )
-                keys = [*_ARRAYS, *(k for k in ("kinetic_energy", "branch") if k in f.files)]
+                keys = [*_ARRAYS, *(k for k in _OPTIONAL if k in f.files)]
                 # The rows from the headers, before any array is inflated.
                 _check_rows(path, {k: shapes[k] for k in keys if k in shapes})
                 arrays = {k: f[k] for k in keys}
@@ -452,3 +485,9 @@ def _check_rows(path: Path, shapes: dict[str, tuple[int, ...]]) -> None:
             f"{path}: not a closedchain trajectory: t has shape {t} and "
             f"{', '.join(bad)} do not have one row per time"
         )
+
+
+def first_samples(traj: Trajectory, n: int) -> Trajectory:
+    """Return the first ``n`` samples of ``traj`` (every per-sample array cut), same info."""
+    cut = {k: getattr(traj, k)[:n] for k in (*_ARRAYS, *_OPTIONAL) if getattr(traj, k) is not None}
+    return replace(traj, **cut)

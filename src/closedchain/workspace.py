@@ -24,8 +24,16 @@ coordinates (the third and following held at their reference value) of
 * the columns of the non-output coordinates: zero on *serial* (type I)
   singularities, where the output no longer determines the actuators.
 
-Output coordinates default to the first ``mobility`` non-actuated joints in
-tree order (for ``models/agile_eye.urdf``: the platform's yaw, pitch, roll).
+Output coordinates default to the joints from the ground to the link that every loop
+closes on, when there is one (a parallel mechanism's platform: for
+``models/agile_eye.urdf`` its yaw, pitch, roll): the map is then over the task space,
+and the serial map says where the platform no longer determines the actuators.
+Without such a link (a five-bar: its loop joins two distal links) they are the
+independent coordinates (``Mechanism.independent_idx_v``, the actuated ones when they
+suffice): the map is over the coordinates that the motion is given in, where the
+assembly with them held is unique on a branch. (Before, the fallback was the first
+non-actuated joints in tree order: a five-bar's two passive distal joints.) When the
+outputs are the actuated coordinates the serial map is the parallel one.
 """
 
 from __future__ import annotations
@@ -203,7 +211,7 @@ class SingularityMap:
 def default_outputs(mech: Mechanism) -> tuple[str, ...]:
     """The output (platform) coordinates: the joints from the ground to the link that every
     loop closes on (e.g. a parallel mechanism's platform), first ``mobility`` of them; without
-    such a link, the first ``mobility`` non-actuated joints in tree order."""
+    such a link, the independent coordinates (``Mechanism.independent_idx_v``)."""
     model = mech.model
     common = None
     for spec in mech.declared.loops:
@@ -220,10 +228,7 @@ def default_outputs(mech: Mechanism) -> tuple[str, ...]:
         chain.reverse()
         if len(chain) >= mech.mobility:
             return tuple(chain[: mech.mobility])
-    names = [n for n in mech.coordinate_names if n not in mech.actuated_joints]
-    if len(names) < mech.mobility:
-        raise ClosedChainError(f"{mech.name}: fewer non-actuated joints than its mobility")
-    return tuple(names[: mech.mobility])
+    return tuple(mech.coordinate_names[i] for i in mech.independent_idx_v)
 
 
 @exclusive
@@ -338,7 +343,9 @@ def plot_workspace(
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
     plt.close(fig)
+    same = set(m.outputs) == {mech.coordinate_names[i] for i in mech.actuated_idx_v}
     return (
         f"singularity map over {m.outputs[0]}, {m.outputs[1]}: min sigma parallel "
         f"{np.nanmin(m.parallel):.2e}, serial {np.nanmin(m.serial):.2e}"
+        + (" (the outputs are the actuated coordinates: serial = parallel)" if same else "")
     )

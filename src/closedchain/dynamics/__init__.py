@@ -19,6 +19,7 @@ from . import proximal as _proximal  # noqa: F401  (registers "proximal")
 from . import reduced as _reduced  # noqa: F401  (registers "reduced")
 from . import schur as _schur  # noqa: F401  (registers "schur")
 from .base import (
+    DEFAULT_METHOD,
     DEFAULT_SETTINGS,
     METHODS,
     ForwardDynamicsResult,
@@ -30,7 +31,13 @@ from .base import (
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
-__all__ = ["METHODS", "ForwardDynamicsResult", "SolverSettings", "forward_dynamics"]
+__all__ = [
+    "DEFAULT_METHOD",
+    "METHODS",
+    "ForwardDynamicsResult",
+    "SolverSettings",
+    "forward_dynamics",
+]
 
 
 @exclusive
@@ -40,7 +47,7 @@ def forward_dynamics(
     v: np.ndarray,
     tau: np.ndarray | None = None,
     *,
-    method: str = "kkt",
+    method: str = DEFAULT_METHOD,
     settings: SolverSettings = DEFAULT_SETTINGS,
 ) -> ForwardDynamicsResult:
     """Compute the constrained accelerations and multipliers.
@@ -50,7 +57,9 @@ def forward_dynamics(
         q: configuration, shape (nq,), on the constraint manifold.
         v: velocity, shape (nv,), with J v = 0.
         tau: generalized forces, shape (nv,) [N m or N]; zeros when None.
-        method: a name in :data:`METHODS` (any case).
+        method: a name in :data:`METHODS` (any case); default :data:`DEFAULT_METHOD`
+            (``"augmented-lagrangian"``, as :func:`~closedchain.simulate`: well posed
+            where J loses rank; ``"kkt"`` is the seed's block system).
         settings: numerical settings.
 
     Returns:

@@ -133,6 +133,13 @@ MethodFunction = Callable[
 #: name -> method function ``f(mech, q, v, tau, settings) -> (a, lam)``.
 METHODS: dict[str, MethodFunction] = {}
 
+#: The default method of :func:`~closedchain.forward_dynamics`, :func:`~closedchain.simulate`
+#: and the CLI: the augmented-Lagrangian iteration on the positive definite
+#: M + alpha J^T J stays well posed where J loses rank (singular positions, redundant rows),
+#: where ``kkt``'s block system is singular; on regular configurations it agrees with
+#: ``kkt`` to its tolerance ``SolverSettings.al_tol``.
+DEFAULT_METHOD = "augmented-lagrangian"
+
 
 @dataclass(frozen=True)
 class MethodCapabilities:

@@ -47,10 +47,10 @@ from threadpoolctl import threadpool_limits
 from .._locking import exclusive
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
-from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
+from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
-from ..trajectory import SimulationInfo, Trajectory, energy_drift
-from .problem import Problem, Recorder
+from ..trajectory import SimulationInfo, Trajectory, energy_balance, energy_drift
+from .problem import Problem, Recorder, report_limit_violations
 from .registry import (
     COMPILED_INTEGRATORS,
     INTEGRATORS,
@@ -145,23 +145,27 @@ def check_start_velocity(
         )
 
 
-def check_energy(traj: Trajectory, tau: TorqueInput, energy_tol: float) -> None:
-    """Raise SimulationError when an unforced run's relative energy drift exceeds ``energy_tol``.
+def check_energy(traj: Trajectory, energy_tol: float) -> None:
+    """Raise SimulationError when the run's relative energy balance exceeds ``energy_tol``.
 
-    A run with generalized forces (``tau`` a callable or a nonzero array) is not
-    checked: its energy changes by the forces' work.
+    ``Trajectory.energy_balance``: the energy drift E - E0 of an unforced run, and
+    E - E0 - W of a run driven by tau (W its work), which is zero for an exact solution
+    whatever drives it.
 
     Raises:
         SimulationError: with ``trajectory`` the whole run.
     """
-    if callable(tau) or (tau is not None and np.any(np.asarray(tau) != 0.0)):
-        return
-    drift = traj.energy_drift
-    if not drift <= energy_tol:
+    balance = traj.energy_balance
+    if not balance <= energy_tol:
+        what = (
+            "energy drift of this unforced run"
+            if traj.work is None
+            else "energy balance of this driven run (E - E0 - the work of tau)"
+        )
         exc = SimulationError(
-            f"{traj.info.mechanism}: the relative energy drift of this unforced run is "
-            f"{drift:.3g} > energy_tol {energy_tol:.3g}: the integration is not accurate "
-            "(use a smaller step or tolerance, or another integrator)",
+            f"{traj.info.mechanism}: the relative {what} is {balance:.3g} > energy_tol "
+            f"{energy_tol:.3g}: the integration is not accurate (use a smaller step or "
+            "tolerance, or another integrator)",
             float(traj.t[-1]),
         )
         exc.trajectory = traj
@@ -257,7 +261,7 @@ def simulate(
     v0: np.ndarray,
     t_final: float,
     *,
-    method: str = "augmented-lagrangian",
+    method: str = DEFAULT_METHOD,
     integrator: str | None = None,
     dt: float | None = None,
     rtol: float | None = None,
@@ -278,7 +282,8 @@ def simulate(
         v0: initial velocity, shape (nv,), with J v0 = 0 (see :func:`project_velocity`).
         t_final: duration [s].
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
-            Default ``"augmented-lagrangian"``: well posed where J loses rank.
+            Default ``DEFAULT_METHOD`` (``"augmented-lagrangian"``, as
+            :func:`~closedchain.forward_dynamics`): well posed where J loses rank.
         integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk4"``
             with ``dt = settings.dt`` (1 ms) and stage projection, which together
             pass singular positions (see the README, "Singular positions"); or,
@@ -433,7 +438,7 @@ def simulate(
     problem.singular_robust = caps.singular_robust and (
         stab.projects_stages or spec.singular_robust
     )
-    recorder = Recorder(mech, settings.drift_limit, problem.jacobian)
+    recorder = Recorder(mech, settings.drift_limit, problem.jacobian, problem.meter)
     problem.check_start(q0, compiled_rows=spec.backend == "compiled")
     check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.start_jacobian)
     info = {
@@ -509,9 +514,12 @@ def simulate(
     series = recorder.series()
     info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
     info["energy_drift"] = energy_drift(series["e"], series["ke"])
+    work = None if recorder.meter is None else series["w"]
+    info["energy_balance"] = energy_balance(series["e"], series["ke"], work)
+    report_limit_violations(mech, recorder, info, settings)  # warns; raises: stop_at_limits
     traj = recorder.trajectory(SimulationInfo.from_dict(info))
     if settings.energy_tol is not None:
-        check_energy(traj, tau, settings.energy_tol)
+        check_energy(traj, settings.energy_tol)
     logger.info(
         "%s: %d steps, %d evaluations, %.3f s CPU",
         mech.name,

@@ -7,7 +7,7 @@ import scipy.integrate
 
 from ..exceptions import SingularConfigurationError
 from .chart import Chart
-from .problem import Problem, passing_hint, project
+from .problem import Problem, gauss_work, passing_hint, project
 from .settings import SimulationError
 
 
@@ -76,6 +76,7 @@ def run_adaptive(
 
     t0 = 0.0
     y = pack(q, v)
+    problem.step_end(0.0, q, v, None)  # the work of tau: Gauss on each step (WorkMeter)
     pending = list(t_eval) if t_eval is not None else None
     if pending is None or (pending and pending[0] <= 0.0):
         output(0.0, y)
@@ -104,6 +105,11 @@ def run_adaptive(
                 )
             steps += 1
             t_new = solver.t
+            if problem.meter is not None:  # before the dense outputs within the step
+                dense = solver.dense_output()
+                state = lambda s, d=dense: unpack(d(s), s)  # noqa: E731
+                work = gauss_work(problem.torque, state, solver.t_old)
+                problem.step_end(t_new, *unpack(solver.y, t_new), None, work)
             if pending is not None:
                 if pending and pending[0] <= t_new:
                     sol = solver.dense_output()

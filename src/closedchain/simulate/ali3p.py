@@ -123,6 +123,7 @@ def run_ali3p(
 
     t = 0.0
     a = problem.accel(t, q, v)
+    problem.step_end(t, q, v, a)
     evaluate(q, v)
     alpha = relative_penalty(M, J, rho) if nc else 0.0
     info["ali3p_alpha"] = alpha
@@ -259,6 +260,7 @@ def run_ali3p(
             h1 = (ALI3P_SPLIT if tc <= 1.0 else 2.0 - ALI3P_SPLIT) * dt
             h2 = 2.0 * dt - h1
             q1, v1, a1, lam_star, lam1 = advance(t + h1, q, v, a, lam_star, h1)
+            problem.step_end(t + h1, q1, v1, a1)
             q_new, v_new, a_new, lam_star, lam = advance(t + 2 * dt, q1, v1, a1, lam_star, h2)
             splits += 1
             gap = 2.0
@@ -278,6 +280,7 @@ def run_ali3p(
             q_new, v_new, a_new, lam_star, lam = advance(k * dt, q, v, a, lam_star, dt)
         q, v, a = q_new, v_new, a_new
         t = k * dt
+        problem.step_end(t, q, v, a)  # after the output between the substeps (split)
         rho_prev, rho_now = rho_now, indicator()  # J at q from advance's last evaluation
         if outputs.take(k):
             recorder.add(t, q, v, a, lam)

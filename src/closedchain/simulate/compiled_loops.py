@@ -29,6 +29,13 @@ from .problem import Problem
 logger = logging.getLogger(__name__)
 
 
+def _start_work(problem: Problem, q0: np.ndarray, v0: np.ndarray) -> None:
+    """Start the work of tau at (q0, v0) (the core records samples only; W is integrated
+    on them by :meth:`~.problem.Recorder.sample_work`, from this point)."""
+    if problem.meter is not None:
+        problem.step_end(0.0, q0, v0, problem.accel(0.0, q0, v0))
+
+
 def _prepare(problem: Problem, info: dict, stab):
     core = compiled.make_core(problem.mech)
     compiled.configure(
@@ -89,13 +96,36 @@ def _output_steps(n_steps: int, out_steps) -> np.ndarray:
     return np.asarray(out_steps, dtype=np.int32)
 
 
+def _recorded_steps(problem: Problem, n_steps: int, out_steps):
+    """Return (the steps the fixed-step loop records, the outputs among them or None).
+
+    The work of tau (:class:`~.problem.WorkMeter`) needs the step ends, which the core
+    returns as samples only: with tau and sparse outputs every step is recorded (while
+    that fits ``max_outputs``), W computed on them, the outputs kept (:func:`_keep`).
+    """
+    if problem.meter is None or out_steps is None or n_steps + 1 > problem.settings.max_outputs:
+        return _output_steps(n_steps, out_steps), None
+    return _output_steps(n_steps, None), np.asarray(out_steps, dtype=np.intp)
+
+
+def _keep(recorder, out: dict, keep: np.ndarray | None) -> dict:
+    """Return the samples ``out`` of every step with W, cut to the output steps ``keep``."""
+    if keep is None:
+        return out
+    work = recorder.sample_work(out)
+    kept = {k: np.asarray(out[k])[keep] for k in (*recorder.SERIES, "branch") if k in out}
+    return {**out, **kept, "w": work[keep]}
+
+
 def run_fixed_compiled(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
     """Fixed-step loop in C++ (euler, semi-implicit, rk4); return the number of steps."""
+    _start_work(problem, q, v)
     core = _prepare(problem, info, stab)
     dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
     info["dt"] = dt
+    recorded, keep = _recorded_steps(problem, n_steps, out_steps)
     try:
         out = core.run_fixed(
             compiled.INTEGRATOR_CODES[spec.name],
@@ -103,22 +133,30 @@ def run_fixed_compiled(
             np.asarray(v, dtype=float),
             float(dt),
             int(n_steps),
-            _output_steps(n_steps, out_steps),
+            recorded,
             bool(stab.projects),
             progress,
         )
     except compiled.RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out, info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
 
 
 def run_adaptive_compiled(
     problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
-    """Adaptive Dormand-Prince loop in C++ (RK45, DOP853); return the number of steps."""
-    core = _prepare(problem, info, stab)
-    try:
+    """Adaptive Dormand-Prince loop in C++ (RK45, DOP853); return the number of steps.
+
+    With tau and ``t_eval`` the work of tau needs the step ends, which the core returns
+    only as samples: a first run finds them (t_eval None), the run proper records at
+    them and at ``t_eval`` (dense output: the same steps), W is computed on all of them
+    and the outputs kept (:func:`_keep`); twice the cost of the integration.
+    """
+    _start_work(problem, q0, v0)
+
+    def run(times, report):
+        core = _prepare(problem, info, stab)  # configured anew: each run from the start
         out = core.run_adaptive(
             compiled.INTEGRATOR_CODES[spec.name],
             np.asarray(q0, dtype=float),
@@ -126,14 +164,26 @@ def run_adaptive_compiled(
             float(t_final),
             float(control.rtol),
             float(control.atol),
-            None if t_eval is None else np.asarray(t_eval, dtype=float),
+            None if times is None else np.asarray(times, dtype=float),
             bool(stab.projects),
-            progress,
+            report,
         )
+        return core, out
+
+    keep = None
+    times = t_eval
+    try:
+        if problem.meter is not None and t_eval is not None:
+            _, steps = run(None, None)
+            problem.n_evals += int(steps["evaluations"])
+            grid = np.union1d(t_eval, np.asarray(steps["t"], dtype=float).ravel())
+            if len(grid) <= problem.settings.max_outputs:
+                times, keep = grid, np.searchsorted(grid, t_eval)
+        core, out = run(times, progress)
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
-    return _finish(problem, core, recorder, out, info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
 
 
 def run_ali3p_compiled(
@@ -142,19 +192,21 @@ def run_ali3p_compiled(
     """ALI3-P in C++ (src/cpp/ali3p.hpp, the algorithm of :mod:`.ali3p` step for step,
     with the band Cholesky of M + alpha J^T J where the numpy backend uses one);
     return the number of steps."""
+    _start_work(problem, q, v)
     core = _prepare(problem, info, stab)
     s = problem.settings
     dt, n_steps, out_steps = output_grid(t_final, control.dt, t_eval)
     info["dt"] = dt
+    recorded, keep = _recorded_steps(problem, n_steps, out_steps)
     out = core.run_ali3p(
         np.asarray(q, dtype=float),
         np.asarray(v, dtype=float),
         float(dt),
         int(n_steps),
-        _output_steps(n_steps, out_steps),
+        recorded,
         (float(s.ali3p_tol), float(s.ali3p_phi_tol), int(s.ali3p_max_iter), float(s.ali3p_penalty)),
         progress,
     )
     info["ali3p_alpha"] = float(out["ali3p_alpha"])
     info["newton_iterations"] = int(out["newton_iterations"])
-    return _finish(problem, core, recorder, out, info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)

@@ -248,6 +248,7 @@ def run_fixed(
         q, v = problem.complete(q, v[problem.ind], 0.0)
     t = 0.0
     a = problem.accel(t, q, v)
+    problem.step_end(t, q, v, a)
     outputs = OutputSteps(out_steps)
     if outputs.take(0):
         recorder.add(t, q, v, a, problem.lam)
@@ -287,6 +288,7 @@ def run_fixed(
         recorder.declared_residual(t, q_new, phi)  # drift limit, every declared row, every step
         q, v = q_new, v_new
         a = problem.accel(t, q, v)
+        problem.step_end(t, q, v, a)
         if outputs.take(k):
             recorder.add(t, q, v, a, problem.lam)
         if progress is not None:
@@ -326,11 +328,14 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
         return q_new, v_new, J2
 
     def settle(t, q, v):
-        """Check the state reached at t and return its accelerations."""
+        """Check the state reached at t (a step's or substep's end) and return its
+        accelerations (the work of tau advanced to it)."""
         phi = recorder.declared_phi(q)
         problem.check_regular(q, t, phi)  # checks every declared row too
         recorder.declared_residual(t, q, phi)  # drift limit, every declared row, every step
-        return problem.accel(t, q, v)
+        a = problem.accel(t, q, v)
+        problem.step_end(t, q, v, a)
+        return a
 
     def rho(q):
         return rank_indicator(problem.jacobian(q), problem.normal_solver())

@@ -83,10 +83,11 @@ class SimulationSettings:
             ``<limit>`` elements, and |q| <= ``closedchain.mechanism.COORDINATE_BOUND``
             for every 1-dof coordinate); False turns the first check off.
         energy_tol: raise SimulationError (with the whole trajectory) at the end
-            of a run without generalized forces (``tau`` None or zero) whose
-            relative energy drift (``Trajectory.energy_drift``) exceeds this: the
-            integration was not accurate, whatever the closure says. None (the
-            default of the library; the command line sets ``--energy-tol``): no check.
+            of a run whose relative energy balance (``Trajectory.energy_balance``:
+            the energy drift without tau, E - E0 - the work of tau with it) exceeds
+            this: the integration was not accurate, whatever the closure says. None
+            (the default of the library; the command line sets ``--energy-tol``):
+            no check.
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
@@ -130,6 +131,15 @@ class SimulationSettings:
             sent the next ones off the branch (the tangent is then indefinite).
             Round-off of the factorization (about rho eps) is removed by the
             residual form of the iterations.
+        stop_at_limits: a recorded sample with a coordinate outside its limits
+            (the rules of the start check, ``Mechanism.limit_checks``: URDF
+            ``<limit>`` unless ``check_limits`` is off, a full-turn revolute range
+            limits no pose) ends the run with SimulationError naming the joint and
+            the time (``exc.trajectory``: the samples before it); when False
+            (default) the run goes on and each such joint is logged as a warning
+            and listed in ``info.limit_violations``. Checked on the recorded
+            samples (the output times): an excursion between two outputs is not
+            seen.
     """
 
     dt: float = 1e-3
@@ -159,6 +169,7 @@ class SimulationSettings:
     ali3p_phi_tol: float = 1e-13
     ali3p_max_iter: int = 50
     ali3p_penalty: float = 1e11
+    stop_at_limits: bool = False
 
 
 #: The default settings of :func:`simulate`, shared (settings are frozen).
