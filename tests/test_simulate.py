@@ -1127,13 +1127,21 @@ def test_start_outside_the_joint_limits_is_refused(agile_eye):
         cc.simulate(agile_eye, q0, np.ones(agile_eye.nv), 0.01, settings=settings)
 
 
-def test_full_turn_limits_accept_the_same_orientation_a_turn_on(fourbar):
-    """The crank's limits span two turns (+-2 pi): 7 rad is the pose of 7 - 2 pi."""
+def test_limits_bound_the_coordinate_not_the_pose(fourbar):
+    """The crank's limits are +-2 pi: one more turn is the same pose but outside them
+    (URDF limits bound the coordinate); the opt-out runs it, as wrap_angles' pose does."""
     q0 = fourbar.q_ref.copy()
     q0[0] += 2 * np.pi
-    assert q0[0] > 2 * np.pi
-    traj = cc.simulate(fourbar, q0, np.zeros(3), 0.01)
-    assert traj.max_constraint_residual < 1e-12
+    if q0[0] <= 2 * np.pi:
+        q0[0] += 2 * np.pi
+    with pytest.raises(cc.InvalidArgumentError, match=r"'crank_joint' is at .*, outside"):
+        cc.simulate(fourbar, q0, np.zeros(3), 0.01)
+    settings = cc.SimulationSettings(check_limits=False)
+    turned = cc.simulate(fourbar, q0, np.zeros(3), 0.01, settings=settings)
+    wrapped = cc.simulate(fourbar, fourbar.wrap_angles(q0), np.zeros(3), 0.01)
+    np.testing.assert_allclose(
+        fourbar.wrap_angles(turned.q[-1]), fourbar.wrap_angles(wrapped.q[-1]), atol=1e-12
+    )
 
 
 def test_limits_opt_out_keeps_the_coordinate_bound(fourbar):
@@ -1213,8 +1221,8 @@ def limited_fourbar(tmp_path_factory) -> cc.Mechanism:
 @pytest.mark.parametrize("backend", ["numpy", "compiled"])
 def test_a_crank_past_its_limit_is_reported(limited_fourbar, caplog, backend):
     """Driven by -3 N m the crank passes its <limit> of -3 rad near t = 0.33 s: a warning
-    names the joint and time, info.limit_violations has the first sample beyond it (the
-    coupler and rocker, whose +-2 pi limits span a full turn, limit no pose: never);
+    names the joint and time, info.limit_violations has the first sample beyond it (and the
+    coupler's, which later winds past its +-2 pi);
     SimulationSettings.stop_at_limits turns it into an error with the motion before it."""
     mech = limited_fourbar
     q0 = cc.assemble(mech, np.radians(CROSSED_GUESS_DEG), fixed=["crank_joint"])
@@ -1225,8 +1233,15 @@ def test_a_crank_past_its_limit_is_reported(limited_fourbar, caplog, backend):
         traj = simulate(mech, q0, np.zeros(3), LIMIT_RUN_T, **run)
     k = np.flatnonzero(traj.q[:, 0] < CRANK_LIMITS[0])[0]  # the first sample beyond
     expected = [("crank_joint", traj.t[k], traj.q[k, 0], CRANK_LIMITS[0])]
-    assert [tuple(v) for v in traj.info.limit_violations] == expected
-    assert np.max(np.abs(traj.q[:, 1])) > 2 * np.pi  # the coupler passed its full turn
+    # The coupler's limits are +-2 pi: it winds past them later (limits bound the
+    # coordinate, not the pose).
+    c = np.flatnonzero(np.abs(traj.q[:, 1]) > 2 * np.pi)[0]
+    assert c > k
+    bound = float(np.sign(traj.q[c, 1]) * 2 * np.pi)
+    expected.append(("coupler_joint", traj.t[c], traj.q[c, 1], bound))
+    got = [tuple(v) for v in traj.info.limit_violations]
+    assert [g[0] for g in got] == [e[0] for e in expected]
+    np.testing.assert_allclose([g[1:] for g in got], [e[1:] for e in expected], atol=1e-15)
     assert f"joint 'crank_joint' left its <limit> at t = {traj.t[k]:.6g} s" in caplog.text
     stop = SimulationSettings(stop_at_limits=True)
     with pytest.raises(

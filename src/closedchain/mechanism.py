@@ -55,9 +55,6 @@ NORMALIZATION_TOL = 1e-9
 #: steps are lost in round-off (a crank at 1e17 rad does not move at all).
 COORDINATE_BOUND = 1e6
 
-#: One turn [rad], less the round-off of limits written with 11 digits of pi.
-FULL_TURN = 2.0 * np.pi - 1e-9
-
 #: Root joints :func:`load` can put between the world and the URDF's root link.
 ROOT_JOINTS = {None: None, "free": pin.JointModelFreeFlyer, "planar": pin.JointModelPlanar}
 
@@ -361,10 +358,10 @@ class Mechanism:
         """Raise InvalidArgumentError when a coordinate of q is outside its joint limits.
 
         Every 1-dof coordinate is checked against :data:`COORDINATE_BOUND` and, with
-        ``urdf_limits``, against its URDF ``<limit>`` where that is finite. A revolute
-        joint whose limits span a full turn or more limits no orientation: an angle
-        outside them is accepted when a whole number of turns brings it inside (the
-        same pose; a run that turned the Agile Eye's platform past pi continues).
+        ``urdf_limits``, against its URDF ``<limit>`` where that is finite. The limits
+        bound the coordinate, as in URDF, not the pose: a revolute joint with limits
+        [-pi, pi] at 3.2 rad is outside them (a joint that turns freely is
+        ``continuous``); :meth:`wrap_angles` gives the same pose within one turn.
 
         Args:
             q: configuration, shape (nq,).
@@ -385,10 +382,8 @@ class Mechanism:
         """Yield ``(joint id, outside, low, high)`` for every 1-dof joint: which of the
         configurations ``qs`` put it outside its limits [low, high] [rad or m].
 
-        The rules of :meth:`check_limits`: :data:`COORDINATE_BOUND`, the finite URDF
-        ``<limit>`` with ``urdf_limits``, and a revolute joint whose limits span a full
-        turn or more accepts any angle within the bound (a whole number of turns brings
-        it inside: the same pose).
+        The rules of :meth:`check_limits`: :data:`COORDINATE_BOUND`, and the finite
+        URDF ``<limit>`` with ``urdf_limits``.
 
         Args:
             qs: configurations, shape (N, nq).
@@ -409,9 +404,6 @@ class Mechanism:
                 low = max(low, lo[k]) if np.isfinite(lo[k]) else low
                 high = min(high, hi[k]) if np.isfinite(hi[k]) else high
             outside = ~((low <= x) & (x <= high))
-            if k in self._revolute_idx_q and high - low >= FULL_TURN:
-                # The same orientation as an angle within the full-turn range.
-                outside &= ~(np.abs(x) <= COORDINATE_BOUND)
             yield j, outside, float(low), float(high)
 
     def gravity_torque_scale(self) -> float:
