@@ -441,7 +441,7 @@ def nfourbar(tmp_path_factory):
     return get
 
 
-#: The crank's <limit> of models/fourbar.urdf (+-2 pi: a full turn, which limits no pose).
+#: The crank's <limit> of models/fourbar.urdf (+-2 pi).
 FOURBAR_CRANK_LIMIT = '<limit lower="-6.283185307179586" upper="6.283185307179586" effort="50"'
 
 

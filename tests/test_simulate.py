@@ -1206,7 +1206,7 @@ def test_tolerances_without_an_integrator_choose_the_adaptive_default(fourbar):
 
 # -- joint limits ---------------------------------------------------------------------------
 
-#: Crank limits of the limited 4-bar [rad]: less than a full turn, so they limit the pose.
+#: Crank limits of the limited 4-bar [rad].
 CRANK_LIMITS = (-3.0, 3.0)
 #: Crank torque that spins the crank past -3 rad within LIMIT_RUN_T [N m] (near 0.33 s).
 LIMIT_TORQUE = -3.0

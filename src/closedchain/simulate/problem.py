@@ -876,7 +876,7 @@ def limit_violations(
 
     The rules of the start check (:meth:`~closedchain.Mechanism.limit_checks`): 1-dof
     joints, their finite URDF ``<limit>`` (with ``urdf_limits``) and the coordinate
-    bound; a revolute joint whose limits span a full turn limits no orientation.
+    bound (limits bound the coordinate, not the pose).
 
     Args:
         mech: the mechanism.

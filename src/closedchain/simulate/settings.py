@@ -133,8 +133,8 @@ class SimulationSettings:
             residual form of the iterations.
         stop_at_limits: a recorded sample with a coordinate outside its limits
             (the rules of the start check, ``Mechanism.limit_checks``: URDF
-            ``<limit>`` unless ``check_limits`` is off, a full-turn revolute range
-            limits no pose) ends the run with SimulationError naming the joint and
+            ``<limit>`` unless ``check_limits`` is off, and the coordinate bound)
+            ends the run with SimulationError naming the joint and
             the time (``exc.trajectory``: the samples before it); when False
             (default) the run goes on and each such joint is logged as a warning
             and listed in ``info.limit_violations``. Checked on the recorded
