@@ -220,3 +220,15 @@ def test_notebook_patterns_catch_what_they_name():
     assert not any(
         p.search("the load-time row sampling, 2 issues") for p in NOTEBOOK_PATTERNS.values()
     )
+
+
+def test_sphinx_roles_become_markdown():
+    spec = importlib.util.spec_from_file_location("sphinx_roles", DOCS / "_ext" / "sphinx_roles.py")
+    if importlib.util.find_spec("griffe") is None:
+        pytest.skip("griffe is not installed (pip install '.[test]')")
+    roles = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(roles)
+    text = (
+        "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M a`.\n\n.. math::\n\n    x = 1\n"
+    )
+    assert roles.markdown(text) == "Use `load` or `METHODS`, `M a`.\n\n\n\n    x = 1\n"
