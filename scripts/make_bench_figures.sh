@@ -16,13 +16,7 @@ mkdir -p "$OUT"
 START=$(date +%s)
 COMMAND="bash scripts/make_bench_figures.sh $WORKERS"
 LOAD_BEFORE=$(cut -d' ' -f1-3 /proc/loadavg)
-{
-  lscpu | grep -E "Model name|^CPU\(s\)" | sed 's/  */ /g' || true
-  $PY -c "import platform, pinocchio, numpy, scipy; print(platform.platform(), 'python', platform.python_version(), 'pin', pinocchio.__version__, 'numpy', numpy.__version__, 'scipy', scipy.__version__, end='')"
-  $PY -c "import mujoco; print(' mujoco', mujoco.__version__)" 2>/dev/null || echo
-  git rev-parse --short HEAD 2>/dev/null | sed 's/^/commit /'
-  date -u '+date %Y-%m-%d %H:%M UTC'
-} > "$OUT/machine.txt"
+$PY scripts/bench_page.py machine > "$OUT/machine.txt"  # CPU, versions, commit, date
 $PY -m closedchain.cli bench --out "$OUT/wp" --workers "$WORKERS"
 $PY scripts/bench_extras.py --out "$OUT" --workers "$WORKERS"
 $PY -m closedchain.cli workspace models/fourbar.urdf -o "$OUT/workspace_fourbar.png"
