@@ -68,6 +68,14 @@ def code_version() -> str:
     return (head + (" +changes" if dirty else "")) if head else "not recorded"
 
 
+def load_average() -> str:
+    """The 1, 5 and 15 min load averages (CPU times move with them on a shared machine)."""
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "not recorded"
+
+
 def today() -> str:
     """The date and time of a run, UTC."""
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")

@@ -126,17 +126,8 @@ def growth_exponent(rows: list[dict], key: str = "us_per_step") -> float:
 def write_page(args, command: str) -> None:
     """Run every configuration of :data:`PAGE_CONFIGS` over ``args.n`` with the 20 s
     reference runs and write the generated page ``args.page``."""
-    date = bench_page.today()
-    lines = bench_page.header(
-        "N-four-bar: accuracy and cost against N",
-        command=command,
-        date=date,
-        machine=bench_page.machine_description(),
-        code=bench_page.code_version(),
-        about="The benchmark and the methods: "
-        "[Singular positions](../guide/singular-positions.md).",
-    )
-    lines += [
+    date, load_before = bench_page.today(), bench_page.load_average()
+    lines = [
         "The IFToMM benchmark A02 over 20 s from its start (every crank at 1 rad/s), against "
         "the quadrature of its energy integral (`tests/nfourbar_reference.py`). B0 error: "
         "distance of B0 (the tip of crank 0) from its reference position at t = 20 s; the "
@@ -166,7 +157,21 @@ def write_page(args, command: str) -> None:
             exponents[label] = growth_exponent(rows, "us_per_step_20s")
     lines += ["", "Growth exponent p of the cost per step (cost ~ N^p):", ""]
     lines += [f"- {label}: {p:.2f}" for label, p in exponents.items()]
-    args.page.write_text("\n".join(lines) + "\n")
+    head = bench_page.header(
+        "N-four-bar: accuracy and cost against N",
+        command=command,
+        date=date,
+        machine=bench_page.machine_description(),
+        code=bench_page.code_version(),
+        extra={
+            "load average (1, 5, 15 min) before / after": (
+                f"{load_before} / {bench_page.load_average()}"
+            )
+        },
+        about="The benchmark and the methods: "
+        "[Singular positions](../guide/singular-positions.md).",
+    )
+    args.page.write_text("\n".join(head + lines) + "\n")
     logger.info("wrote %s", args.page)
 
 

@@ -29,8 +29,9 @@ DOCS = ROOT / "docs"
 CONFIG = ROOT / "mkdocs.yml"
 README = ROOT / "README.md"
 CHANGELOG = ROOT / "CHANGELOG.md"
-#: The generated results page (scripts/bench_extras.py --report).
-RESULTS_PAGE = DOCS / "bench" / "results.md"
+#: Pages written by the scripts that measure (scripts/bench_extras.py --report,
+#: scripts/nfourbar_cost.py --page), each with its run in the header (scripts/bench_page.py).
+GENERATED_PAGES = (DOCS / "bench" / "results.md", DOCS / "bench" / "nfourbar.md")
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300
 #: The site's build takes about 10 s; more means something hangs (a fetch).
@@ -178,7 +179,7 @@ def test_readme_is_a_front_door():
 def test_prose_carries_no_lab_notebook():
     """Commit hashes, load averages and issue numbers live in generated pages (whose
     header names the run) and in CHANGELOG.md, never in the README or the manual."""
-    generated = {RESULTS_PAGE}
+    generated = set(GENERATED_PAGES)
     documents = [README, *sorted(DOCS.rglob("*.md"))]
     for doc in documents:
         if doc in generated:
@@ -189,13 +190,15 @@ def test_prose_carries_no_lab_notebook():
             assert not found, f"{doc.relative_to(ROOT)} carries {what}: {found[0]!r}"
 
 
-def test_generated_results_page_names_its_run():
-    text = RESULTS_PAGE.read_text()
-    assert text.startswith("# "), "docs/bench/results.md needs a title"
+@pytest.mark.parametrize("page", GENERATED_PAGES, ids=lambda p: p.name)
+def test_generated_pages_name_their_run(page):
+    text = page.read_text()
+    name = page.relative_to(ROOT).as_posix()
+    assert text.startswith("# "), f"{name} needs a title"
     for field in ("command", "date", "machine"):
         row = re.search(rf"^\| {field} \| (.+) \|$", text, re.M)
-        assert row, f"docs/bench/results.md: no {field} row in its header"
-        assert row[1].strip() not in ("", "not recorded"), f"results.md: {field} not recorded"
+        assert row, f"{name}: no {field} row in its header"
+        assert row[1].strip() not in ("", "not recorded"), f"{name}: {field} not recorded"
 
 
 def test_changelog_has_the_package_version():
