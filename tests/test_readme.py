@@ -4,7 +4,8 @@ The contract: README.md has a "Quick start" section with exactly two shell
 commands in fenced code blocks; every ``closedchain <subcommand>`` the README
 and the documentation pages (docs/) show exists in
 :func:`closedchain.cli.build_parser` and parses; the files its commands name
-exist; and the CI script ``.ci/run`` runs the second quick-start command.
+exist; the Python examples of the README and of the self-contained docs pages
+run as written; and the CI script ``.ci/run`` runs the second quick-start command.
 """
 
 from __future__ import annotations
@@ -223,3 +224,25 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch):
     for block in blocks:
         exec(compile(block, "README.md", "exec"), {"__name__": "readme_example"})
     assert (tmp_path / "fourbar.html").is_file()
+
+
+#: Pages of the site whose ```python blocks run as written, in order (the others show
+#: fragments that continue an example).
+RUNNABLE_PAGES = (
+    "docs/index.md",
+    "docs/guide/mechanisms-and-loops.md",
+    "docs/guide/dynamics-methods.md",
+    "docs/guide/simulation.md",
+)
+
+
+@pytest.mark.parametrize("page", RUNNABLE_PAGES)
+def test_docs_python_examples_run(page, tmp_path, monkeypatch):
+    text = (ROOT / page).read_text()
+    blocks = [m[3] for m in FENCE.finditer(text) if m[2].lower() == "python"]
+    assert blocks, f"{page} shows no Python example"
+    (tmp_path / "models").symlink_to(ROOT / "models")
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "docs_example"}
+    for block in blocks:
+        exec(compile(block, page, "exec"), namespace)
