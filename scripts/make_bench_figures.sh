@@ -1,31 +1,27 @@
 #!/usr/bin/env bash
-# Regenerate every benchmark figure and table of the README into docs/bench/, and splice
-# the numbers into README.md (between the bench-results markers): the single source of
-# the README's benchmark numbers. Run from the repository root:
+# Regenerate every benchmark figure and table into docs/bench/ and write the documentation
+# site's generated results page, docs/bench/results.md: the single source of the
+# benchmark numbers (no prose carries them). Run from the repository root:
 #   bash scripts/make_bench_figures.sh [WORKERS]
 # Steps: one `closedchain bench` run over all work-precision scenarios (references from
 # the on-disk cache when the code that computes them is unchanged), then the
 # per-evaluation table, the stability map and the N-four-bar scaling
-# (scripts/bench_extras.py), then the report. The machine, the load average before and
-# after, and the wall time go into docs/bench/results.md.
+# (scripts/bench_extras.py), then the report. The command, the machine, the date, the
+# load average before and after, and the wall time go into the header of results.md.
 set -euo pipefail
 WORKERS=${1:-2}
 PY=${PYTHON:-python}
 OUT=docs/bench
 mkdir -p "$OUT"
 START=$(date +%s)
+COMMAND="bash scripts/make_bench_figures.sh $WORKERS"
 LOAD_BEFORE=$(cut -d' ' -f1-3 /proc/loadavg)
-{
-  lscpu | grep -E "Model name|^CPU\(s\)" | sed 's/  */ /g' || true
-  $PY -c "import platform, pinocchio, numpy, scipy; print(platform.platform(), 'python', platform.python_version(), 'pin', pinocchio.__version__, 'numpy', numpy.__version__, 'scipy', scipy.__version__, end='')"
-  $PY -c "import mujoco; print(' mujoco', mujoco.__version__)" 2>/dev/null || echo
-  git rev-parse --short HEAD 2>/dev/null | sed 's/^/commit /'
-} > "$OUT/machine.txt"
+$PY scripts/bench_page.py machine > "$OUT/machine.txt"  # CPU, versions, commit, date
 $PY -m closedchain.cli bench --out "$OUT/wp" --workers "$WORKERS"
 $PY scripts/bench_extras.py --out "$OUT" --workers "$WORKERS"
 $PY -m closedchain.cli workspace models/fourbar.urdf -o "$OUT/workspace_fourbar.png"
 $PY -m closedchain.cli workspace models/agile_eye.urdf -o "$OUT/workspace_agile_eye.png"
 LOAD_AFTER=$(cut -d' ' -f1-3 /proc/loadavg)
 $PY scripts/bench_extras.py --out "$OUT" --report --wall $(( $(date +%s) - START )) \
-  --load "$LOAD_BEFORE / $LOAD_AFTER"
+  --load "$LOAD_BEFORE / $LOAD_AFTER" --command "$COMMAND"
 echo "wall time $(( $(date +%s) - START )) s; see $OUT/results.md"

@@ -17,7 +17,9 @@ Run:
     python scripts/nfourbar_cost.py [--n 1 2 5 10 20 40] [--t 0.2]
         [--integrator ali3p] [--dt 2.5e-4] [--method proximal] [--full] [--json]
 
-Prints tidy rows (one per N), then the exponent.
+Prints tidy rows (one per N), then the exponent. With ``--page docs/bench/nfourbar.md``
+it runs the page's configurations (:data:`PAGE_CONFIGS`, each with ``--full``) instead
+and writes the documentation site's generated N-four-bar page, its run in the header.
 """
 
 from __future__ import annotations
@@ -40,11 +42,22 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
+import bench_page  # noqa: E402  (scripts/bench_page.py: the generated pages' header)
 import nfourbar_reference as ref  # noqa: E402
 
 import closedchain as cc  # noqa: E402
 
 logger = logging.getLogger("nfourbar_cost")
+
+#: The configurations of the generated page (``--page``): label -> options of this script.
+PAGE_CONFIGS = {
+    "default: augmented-lagrangian, rk4 1 ms, stage-projection (compiled)": {},
+    "rk4 5 ms (compiled)": {"dt": 5e-3},
+    "rk4 5 ms (numpy)": {"dt": 5e-3, "backend": "numpy"},
+    "ali3p 0.2 ms (compiled)": {"integrator": "ali3p", "dt": 2e-4},
+}
+#: The benchmark's accuracy bar: B0 within this of the reference after 20 s [m].
+B0_BAR_M = 1e-6
 
 
 def _generator():
@@ -101,6 +114,67 @@ def measure(n: int, args, folder: Path) -> dict:
     return row
 
 
+def growth_exponent(rows: list[dict], key: str = "us_per_step") -> float:
+    """Slope of log(cost per step) against log(N), least squares (NaN for one N)."""
+    if len(rows) < 2:
+        return float("nan")
+    ns = np.array([r["N"] for r in rows], dtype=float)
+    cost = np.array([r[key] for r in rows])
+    return float(np.polyfit(np.log(ns), np.log(cost), 1)[0])
+
+
+def write_page(args, command: str) -> None:
+    """Run every configuration of :data:`PAGE_CONFIGS` over ``args.n`` with the 20 s
+    reference runs and write the generated page ``args.page``."""
+    date, load_before = bench_page.today(), bench_page.load_average()
+    lines = [
+        "The IFToMM benchmark A02 over 20 s from its start (every crank at 1 rad/s), against "
+        "the quadrature of its energy integral (`tests/nfourbar_reference.py`). B0 error: "
+        "distance of B0 (the tip of crank 0) from its reference position at t = 20 s; the "
+        f"benchmark's bar is {B0_BAR_M:g} m. Energy drift: max |E - E0| over 201 samples "
+        "relative to the largest kinetic energy. CPU: process time of the 20 s run, and "
+        "per step of it. BLAS on one thread.",
+        "",
+        "| configuration | N | B0 error [m] | meets the bar | energy drift "
+        "| CPU for 20 s [s] | us per step |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    exponents = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, options in PAGE_CONFIGS.items():
+            run = argparse.Namespace(**{**vars(args), **options, "full": True})
+            rows = []
+            for n in args.n:
+                row = measure(n, run, Path(tmp))
+                logger.info("%s N=%d: %s", label, n, row)
+                rows.append(row)
+                lines.append(
+                    f"| {label} | {n} | {row['b0_error_m']:.1e} "
+                    f"| {'yes' if row['b0_error_m'] <= B0_BAR_M else '**no**'} "
+                    f"| {row['energy_drift']:.1e} | {row['cpu_20s']:.3g} "
+                    f"| {row['us_per_step_20s']:.3g} |"
+                )
+            exponents[label] = growth_exponent(rows, "us_per_step_20s")
+    lines += ["", "Growth exponent p of the cost per step (cost ~ N^p):", ""]
+    lines += [f"- {label}: {p:.2f}" for label, p in exponents.items()]
+    head = bench_page.header(
+        "N-four-bar: accuracy and cost against N",
+        command=command,
+        date=date,
+        machine=bench_page.machine_description(),
+        code=bench_page.code_version(),
+        extra={
+            "load average (1, 5, 15 min) before / after": (
+                f"{load_before} / {bench_page.load_average()}"
+            )
+        },
+        about="The benchmark and the methods: "
+        "[Singular positions](../guide/singular-positions.md).",
+    )
+    args.page.write_text("\n".join(head + lines) + "\n")
+    logger.info("wrote %s", args.page)
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 5, 10, 20, 40])
@@ -114,13 +188,19 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--full", action="store_true", help="also run 20 s against the reference")
     p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--page",
+        type=Path,
+        help="run PAGE_CONFIGS over --n and write the generated page (docs/bench/nfourbar.md)",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.page:
+        write_page(args, " ".join(["python scripts/nfourbar_cost.py", *(argv or sys.argv[1:])]))
+        return
     with tempfile.TemporaryDirectory() as tmp:
         rows = [measure(n, args, Path(tmp)) for n in args.n]
-    ns = np.array([r["N"] for r in rows], dtype=float)
-    cost = np.array([r["us_per_step"] for r in rows])
-    exponent = float(np.polyfit(np.log(ns), np.log(cost), 1)[0]) if len(rows) > 1 else float("nan")
+    exponent = growth_exponent(rows)
     if args.json:
         logger.info(json.dumps({"rows": rows, "growth_exponent": exponent}, indent=1))
         return

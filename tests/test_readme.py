@@ -2,9 +2,10 @@
 
 The contract: README.md has a "Quick start" section with exactly two shell
 commands in fenced code blocks; every ``closedchain <subcommand>`` the README
-shows exists in :func:`closedchain.cli.build_parser` and parses; the files
-its commands name exist; and the CI script ``.ci/run`` runs the second
-quick-start command.
+and the documentation pages (docs/) show exists in
+:func:`closedchain.cli.build_parser` and parses; the files its commands name
+exist; the Python examples of the README and of the self-contained docs pages
+run as written; and the CI script ``.ci/run`` runs the second quick-start command.
 """
 
 from __future__ import annotations
@@ -14,10 +15,14 @@ import re
 import shlex
 from pathlib import Path
 
+import pytest
+
 from closedchain import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+#: The documents whose commands are checked: the README and the site's pages.
+DOCUMENTS = [README, *sorted((ROOT / "docs").rglob("*.md"))]
 CI_SCRIPT = ROOT / ".ci" / "run"
 
 #: Info strings of fenced blocks that hold shell commands.
@@ -113,29 +118,37 @@ def test_quick_start_has_exactly_two_commands():
     assert len(quick_start) == 2, quick_start
 
 
-def test_every_closedchain_subcommand_in_the_readme_exists():
-    readme = read_readme()
+def document_id(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=document_id)
+def test_every_closedchain_subcommand_shown_exists(document):
+    text = document.read_text()
+    name = document_id(document)
     known = subcommands()
     mentioned: list[tuple[str, list[str]]] = []
-    for block in shell_blocks(readme):
+    for block in shell_blocks(text):
         for cmd in shell_commands(block):
             argv = closedchain_argv(cmd)
             if argv:
                 mentioned.append((cmd, argv))
-    for span in INLINE_CODE.findall(readme):
+    for span in INLINE_CODE.findall(text):
         argv = closedchain_argv(span)
         if argv and not argv[0].startswith("-") and "<" not in span:
             mentioned.append((span, argv))
-    assert mentioned, "README.md shows no closedchain command"
-    for text, argv in mentioned:
+    if document == README:
+        assert mentioned, "README.md shows no closedchain command"
+    for shown, argv in mentioned:
         sub = next((a for a in argv if not a.startswith("-")), None)
-        assert sub in known, f"README.md shows {text!r}: no subcommand {sub!r} in {sorted(known)}"
+        assert sub in known, f"{name} shows {shown!r}: no subcommand {sub!r} in {sorted(known)}"
 
 
-def test_readme_commands_parse_and_name_existing_files():
-    readme = read_readme()
+@pytest.mark.parametrize("document", DOCUMENTS, ids=document_id)
+def test_commands_shown_parse_and_name_existing_files(document):
+    name = document_id(document)
     parser = cli.build_parser()
-    for block in shell_blocks(readme):
+    for block in shell_blocks(document.read_text()):
         for cmd in shell_commands(block):
             argv = closedchain_argv(cmd)
             if not argv or argv[0] in ("-h", "--help") or "--help" in argv or "-h" in argv:
@@ -143,10 +156,10 @@ def test_readme_commands_parse_and_name_existing_files():
             try:
                 parser.parse_args(argv)
             except SystemExit as exc:
-                raise AssertionError(f"README.md command does not parse: {cmd!r}") from exc
+                raise AssertionError(f"{name}: command does not parse: {cmd!r}") from exc
             for arg in argv:
                 if arg.endswith(".urdf") and not Path(arg).is_absolute():
-                    assert (ROOT / arg).is_file(), f"README.md command {cmd!r}: no file {arg}"
+                    assert (ROOT / arg).is_file(), f"{name}: command {cmd!r}: no file {arg}"
 
 
 def test_ci_runs_the_second_quick_start_command():
@@ -211,3 +224,25 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch):
     for block in blocks:
         exec(compile(block, "README.md", "exec"), {"__name__": "readme_example"})
     assert (tmp_path / "fourbar.html").is_file()
+
+
+#: Pages of the site whose ```python blocks run as written, in order (the others show
+#: fragments that continue an example).
+RUNNABLE_PAGES = (
+    "docs/index.md",
+    "docs/guide/mechanisms-and-loops.md",
+    "docs/guide/dynamics-methods.md",
+    "docs/guide/simulation.md",
+)
+
+
+@pytest.mark.parametrize("page", RUNNABLE_PAGES)
+def test_docs_python_examples_run(page, tmp_path, monkeypatch):
+    text = (ROOT / page).read_text()
+    blocks = [m[3] for m in FENCE.finditer(text) if m[2].lower() == "python"]
+    assert blocks, f"{page} shows no Python example"
+    (tmp_path / "models").symlink_to(ROOT / "models")
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "docs_example"}
+    for block in blocks:
+        exec(compile(block, page, "exec"), namespace)

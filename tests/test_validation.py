@@ -41,7 +41,7 @@ MP_DIGITS = 40
 TOL_HIGH_PRECISION = 1e-11
 N_HIGH_PRECISION_STATES = 15
 
-#: Pinocchio proximal settings of the independent reference (PINOCCHIO.md: mu > 0
+#: Pinocchio proximal settings of the independent reference (mu > 0
 #: copes with redundant rows; the iterations converge to the exact solution).
 PIN_MU = 1e-8
 PIN_ACCURACY = 1e-13

@@ -487,7 +487,8 @@ class LoopClosure:
         """Choose the independent rows from the declared Jacobian at ``samples``.
 
         Args:
-            model, data: the mechanism's Pinocchio model (with loop frames) and data.
+            model: the mechanism's Pinocchio model (with loop frames).
+            data: its data.
             samples: assembled configurations, shape (nq,) each.
             rank_tol: relative rank threshold (see :class:`SelectionSettings`).
             margin_min: below this worst-case margin the choice is logged as weak.
@@ -607,7 +608,8 @@ class LoopClosure:
         (logged, recorded in :attr:`history`).
 
         Args:
-            model, data: the mechanism's model and data (data is overwritten).
+            model: the mechanism's Pinocchio model.
+            data: its data (overwritten).
             q: configuration, shape (nq,).
             t: simulation time [s] for messages, if any.
             kept_cond: condition number of the kept rows' J at q, if known.

@@ -240,7 +240,7 @@ def singularity_map(
     span: float = SPAN,
 ) -> SingularityMap:
     """sigma_min of J_D (parallel, type II) and of the output map (serial, type I) over the
-    first two output coordinates in [ref - span, ref + span] [rad], the others held."""
+    first two output coordinates, each within +- span [rad] of its reference, the others held."""
     points = _check_points(points, MAX_MAP_POINTS)
     if not (math.isfinite(span) and span > 0):
         raise InvalidArgumentError(f"span must be a positive number [rad], got {span}")

@@ -33,7 +33,7 @@ logger = logging.getLogger(__name__)
 EXACT_TOL = 1e-9
 #: Proximal iteration caps tried for the cheapest exact settings.
 MAX_ITER_CANDIDATES = (1, 2, 3, 5, 10, 20, 50)
-#: Regularizations tried (PINOCCHIO.md: mu = 0 fails on redundant rows).
+#: Regularizations tried (mu = 0 fails on redundant rows).
 MU_CANDIDATES = (1e-12, 1e-10, 1e-8, 1e-6)
 
 EVALUATION_COLUMNS = ("mechanism", "nv", "nc", "call", "backend", "us", "note")

@@ -40,7 +40,7 @@ class PeerSettings:
 
     Attributes:
         proximal_accuracy: absolute accuracy of ``constraintDynamics`` (scipy peer).
-        proximal_mu: proximal regularization (scipy peer; PINOCCHIO.md: mu = 0
+        proximal_mu: proximal regularization (scipy peer; mu = 0
             returns NaN on redundant rows).
         proximal_max_iter: proximal iteration cap.
         euler_mu: regularization of the Euler loop.

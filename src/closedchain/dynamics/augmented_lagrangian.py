@@ -151,7 +151,8 @@ class PenalizedSolver:
             M: mass matrix, shape (nv, nv), symmetric (full).
             J: constraint Jacobian, shape (nc, nv).
             alpha: penalty [same units as M / (J^T J)].
-            mech, q: for the error message.
+            mech: the mechanism, for the error message.
+            q: configuration, shape (nq,), for the error message.
 
         The factorization of the same M, J and alpha is kept (the stage projection and
         the accelerations that follow it factorize P at the same q).

@@ -41,7 +41,7 @@ class SolverSettings:
             J a + gamma + 2 alpha J v + beta^2 phi = 0. None (default): exact
             J a + gamma = 0. The simulator sets it for ``stabilization="baumgarte"``.
         pinocchio_mu: proximal regularization of pinocchio.constraintDynamics
-            (mu = 0 returns NaN with redundant rows, see PINOCCHIO.md).
+            (mu = 0 returns NaN with redundant rows).
         pinocchio_accuracy: absolute accuracy of its proximal iterations.
         pinocchio_max_iter: its iteration cap.
         al_penalty: relative penalty rho of the augmented-Lagrangian method,

@@ -85,7 +85,7 @@ class MjcfSettings:
 #: The defaults, shared (frozen).
 DEFAULT_MJCF_SETTINGS = MjcfSettings()
 
-#: Stiff equality settings (PINOCCHIO.md: ~1.5e-5 relative on the 4-bar).
+#: Stiff equality settings (tests/test_export.py compares accelerations with them).
 STIFF = MjcfSettings(solref=(0.002, 1.0), solimp=(0.9999, 0.9999, 0.001))
 
 _JOINT_KIND = {
