@@ -380,7 +380,7 @@ class Mechanism:
 
     def limit_checks(self, qs: np.ndarray, *, urdf_limits: bool = True):
         """Yield ``(joint id, outside, low, high)`` for every 1-dof joint: which of the
-        configurations ``qs`` put it outside its limits [low, high] [rad or m].
+        configurations ``qs`` put it outside its limits (low, high) [rad or m], inclusive.
 
         The rules of :meth:`check_limits`: :data:`COORDINATE_BOUND`, and the finite
         URDF ``<limit>`` with ``urdf_limits``.
