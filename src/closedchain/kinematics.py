@@ -23,7 +23,13 @@ import numpy as np
 import pinocchio as pin
 
 from ._locking import exclusive
-from .closure import DEFAULT_ASSEMBLY_SETTINGS, SelectionSettings, layer_jacobian, layer_phi
+from .closure import (
+    DEFAULT_ASSEMBLY_SETTINGS,
+    SelectionSettings,
+    assemble_closure,
+    layer_jacobian,
+    layer_phi,
+)
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
@@ -71,7 +77,7 @@ def assemble(
         # another solution branch of the kept rows with a dropped row open is
         # never returned as closed (redundant rows do no harm to the
         # minimum-norm Gauss-Newton step).
-        return solve_closure(mech.model, mech.data, mech.declared, q_guess, free, settings)
+        return assemble_closure(mech.model, mech.data, mech.declared, q_guess, free, settings)
     except AssemblyError as exc:
         raise AssemblyError(
             f"{mech.name}: {exc} (holding {len(held)} coordinates: "
