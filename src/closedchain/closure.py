@@ -26,8 +26,10 @@ not at one pose); when there are few subsets of r rows (at most
 :data:`MAX_EXHAUSTIVE_SUBSETS`, e.g. one loop) the max-min is taken over all of them.
 
 It also holds the model-level tools both it and :mod:`kinematics` need: the
-Gauss-Newton solve onto phi = 0 (:func:`solve_closure`) and the pivoted-QR
-partition (:func:`partition_coordinates`). Module dependencies:
+Gauss-Newton solve onto phi = 0 (:func:`solve_closure`), the assembly that also
+closes loops from far away (:func:`assemble_closure`: least squares on the
+closure residual, zero exactly at the closure) and the pivoted-QR partition
+(:func:`partition_coordinates`). Module dependencies:
 :mod:`constraints` only; :mod:`mechanism` builds the object and
 :mod:`kinematics` (the Mechanism-level functions) builds on it: no cycle.
 """
@@ -347,6 +349,8 @@ def closure_error(model, data, layer: ConstraintLayer, q: np.ndarray) -> float:
 
 def _least_squares(model, data, layer, q0, free, settings, lower, upper) -> np.ndarray:
     """The least-squares minimum of the closure residual from q0 (chart q0 + x)."""
+    if len(free) == 0:
+        return q0
     held_q = _held_q(model, free)
     q_held = q0[held_q].copy()
     dv = np.zeros(model.nv)
@@ -1057,5 +1061,7 @@ __all__ = [
     "partition_coordinates",
     "solve_closure",
     "AssemblySettings",
+    "assemble_closure",
+    "closure_error",
     "sample_configurations",
 ]

@@ -10,7 +10,10 @@ configurations:
 
 where F are the free (not held) velocity coordinates, ``+`` the minimum-norm
 least-squares pseudo-inverse (so redundant rows do no harm) and
-:math:`\oplus` is ``pin.integrate``.
+:math:`\oplus` is ``pin.integrate``; where it fails (far from the closure),
+a trust-region least-squares solve on the closure residual, zero exactly at the
+closure, then the same Gauss-Newton to polish
+(:func:`closedchain.closure.assemble_closure`).
 """
 
 from __future__ import annotations
@@ -66,8 +69,8 @@ def assemble(
         independent ones and those dropped as redundant), shape (nq,).
 
     Raises:
-        AssemblyError: Newton did not converge (message gives the residual),
-            or converged onto a flipped (180 degree) closure.
+        AssemblyError: no closure found from q_guess (the message gives the
+            smallest closure residual reached, ``exc.q`` its configuration).
     """
     q_guess = mech.check_q(q_guess, "q_guess")
     held = mech.coordinate_indices(fixed)

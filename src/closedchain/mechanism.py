@@ -1,9 +1,10 @@
 """The Mechanism: Pinocchio tree, loops, row selection, coordinates; :func:`load`.
 
 Everything that depends only on the mechanism is done here, once: loop frames
-are added to the model, the independent constraint rows are selected over
-several random assembled configurations, independent coordinates are chosen,
-and Pinocchio constraint models are built for validation.
+are added to the model, a closed configuration ``q_ref`` is found (within the
+joint limits where one exists), the independent constraint rows are selected
+over configurations along the motion from it, independent coordinates are
+chosen, and Pinocchio constraint models are built for validation.
 """
 
 from __future__ import annotations
