@@ -192,6 +192,14 @@ def test_rounded_cad_weld_loads_with_a_warning(tmp_path, caplog):
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= AssemblySettings().tol
     residual = closure_error(mech.model, mech.data, mech.declared, mech.q_ref)
     assert residual == pytest.approx(ROUNDING, rel=1e-6)
+    # Usable after load: assembly closes the kept rows, a run keeps the rounding.
+    guess = pin.integrate(mech.model, mech.q_ref, np.full(mech.nv, 0.3))
+    q = cc.assemble(mech, guess, fixed=["crank_joint"])
+    assert q[0] == guess[0]
+    assert np.max(np.abs(cc.compute_phi(mech, q))) <= AssemblySettings().tol
+    for backend in ("compiled", "numpy"):
+        traj = cc.simulate(mech, q, np.zeros(mech.nv), 0.5, backend=backend)
+        assert traj.max_constraint_residual == pytest.approx(ROUNDING, rel=1e-3)
 
 
 def test_rounding_beyond_the_mismatch_tolerance_is_refused(tmp_path):

@@ -274,6 +274,7 @@ def assemble_closure(
     settings: AssemblySettings,
     *,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    polish: ConstraintLayer | None = None,
 ) -> np.ndarray:
     r"""Close every loop from a guess, also far from the closure.
 
@@ -298,11 +299,14 @@ def assemble_closure(
         bounds: ``(lower, upper)`` configuration limits, shape (nq,) each, kept on
             the 1-dof coordinates where finite (the start is clipped into them),
             or None.
+        polish: with ``settings.mismatch_tol``, the consistent rows (the kept ones)
+            that Gauss-Newton closes from a least-squares minimum below it, or None.
 
     Returns:
         A closed configuration, shape (nq,): max |phi| <= ``settings.tol`` and max
-        |e| <= ``settings.closure_tol`` (or, with ``settings.mismatch_tol``, the
-        least-squares minimum when it is below that).
+        |e| <= ``settings.closure_tol``; or, with ``settings.mismatch_tol``, where the
+        least-squares minimum of e is below that, the minimum (``polish``'s rows closed
+        from it to ``settings.tol`` when given).
 
     Raises:
         AssemblyError: no closure found; carries the smallest max |e| reached and
@@ -332,6 +336,13 @@ def assemble_closure(
     except AssemblyError:
         pass
     if res <= settings.mismatch_tol:
+        # Redundant rows that disagree: the consistent rows (the kept ones) close exactly.
+        try:
+            q = solve_closure(model, data, polish, q_ls, free, settings) if polish else q_ls
+            if closure_error(model, data, layer, q) <= settings.mismatch_tol:
+                return q
+        except AssemblyError:
+            pass
         return q_ls
     raise AssemblyError(
         f"assembly did not converge: max |phi| = {res:.3e} > tol {settings.tol:.1e}",
@@ -684,6 +695,10 @@ class LoopClosure:
         self._Js: list[np.ndarray] = []  # declared J at the regular samples
         self._tol = 0.0
         self._n_singular = 0
+        #: Closure residual [m or rad] accepted where the declared rows disagree (a
+        #: rounded model loaded with a warning: ``LoadSettings.mismatch_tol``); 0 when
+        #: every loop closes exactly.
+        self.mismatch_tol = 0.0
 
     # -- row selection ---------------------------------------------------------------
     @property
@@ -797,6 +812,12 @@ class LoopClosure:
         return sorted(keep)
 
     # -- run-time checks -------------------------------------------------------------
+    def dropped_row_tol(self, tol: float) -> float:
+        """Return the residual [m or -] above which a dropped row counts as open: ``tol``,
+        or the disagreement accepted at load (:attr:`mismatch_tol`) when larger (the
+        dropped rows of a rounded model stay open by it)."""
+        return max(tol, self.mismatch_tol)
+
     def declared_residuals(self, model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
         """Return phi(q) of every declared row, shape (n_declared,) [m or -]."""
         return layer_phi(model, data, self.declared, q)

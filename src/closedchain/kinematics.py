@@ -19,7 +19,7 @@ closure, then the same Gauss-Newton to polish
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -66,7 +66,9 @@ def assemble(
 
     Returns:
         q with max |phi(q)| <= settings.tol over every declared row (the
-        independent ones and those dropped as redundant), shape (nq,).
+        independent ones and those dropped as redundant), shape (nq,); on a model
+        loaded with redundant rows that disagree (``mech.closure.mismatch_tol``),
+        the least-squares minimum of the closure residual with the kept rows closed.
 
     Raises:
         AssemblyError: no closure found from q_guess (the message gives the
@@ -80,7 +82,15 @@ def assemble(
         # another solution branch of the kept rows with a dropped row open is
         # never returned as closed (redundant rows do no harm to the
         # minimum-norm Gauss-Newton step).
-        return assemble_closure(mech.model, mech.data, mech.declared, q_guess, free, settings)
+        polish = None
+        if mech.closure.mismatch_tol > settings.mismatch_tol:
+            # A model whose redundant rows disagree (loaded with a warning): the least-squares
+            # minimum, with the kept rows closed.
+            settings = replace(settings, mismatch_tol=mech.closure.mismatch_tol)
+            polish = mech.constraints
+        return assemble_closure(
+            mech.model, mech.data, mech.declared, q_guess, free, settings, polish=polish
+        )
     except AssemblyError as exc:
         raise AssemblyError(
             f"{mech.name}: {exc} (holding {len(held)} coordinates: "

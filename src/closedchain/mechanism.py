@@ -585,12 +585,16 @@ def load(
         settings: row-selection settings (defaults: :class:`LoadSettings`).
 
     Returns:
-        The mechanism, with independent rows selected and an assembled ``q_ref``.
+        The mechanism, with independent rows selected and a closed ``q_ref``, within
+        the joint limits where a closed configuration within them is found (else a
+        logged warning names the joints outside); a model whose redundant rows
+        disagree by less than ``settings.mismatch_tol`` loads with a logged warning.
 
     Raises:
         URDFError: invalid file or extension element, or a tree beyond
             ``settings.max_data_bytes`` (refused before any work).
-        LoopClosureError: a loop's frames cannot be brought together.
+        LoopClosureError: no start closes the loops (the message gives the closure
+            residual reached per loop).
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
 
@@ -732,6 +736,7 @@ def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -
         samples = samples + extra
     closure.select_rows(model, data, samples, rank_tol=settings.rank_tol)
     if mismatch:
+        closure.mismatch_tol = settings.mismatch_tol
         # The kept rows are consistent: q_ref closes them exactly (the dynamics' rows).
         try:
             q_ref = solve_closure(
