@@ -67,6 +67,7 @@ from .exceptions import ValidationUnavailableError
 from .urdf import LoopSpec
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_LOCAL = pin.ReferenceFrame.LOCAL
 
 #: Distance [m] between the two points on the axis that stand for a revolute
 #: loop in Pinocchio's CONTACT_3D constraint models (any nonzero value works:
@@ -674,13 +675,118 @@ class ConstraintLayer:
         return out
 
     def loop_residuals(self, model: pin.Model, data: pin.Data) -> dict[str, float]:
-        """Return max |phi| per loop over its active rows (placements must be current)."""
-        phi = np.zeros(self.nc)
-        self.evaluate(model, data, phi=phi)
+        """Return max |e| per loop of its closure residual (:func:`closure_residual`), zero
+        exactly where the loop is closed [m or rad] (joint placements must be current)."""
+        e, _ = self.closure_residuals(model, data)
         return {
-            b.spec.name: float(np.max(np.abs(phi[sl]), initial=0.0))
-            for b, sl in zip(self._blocks, self._slices, strict=True)
+            name: float(np.max(np.abs(e[sl]), initial=0.0)) for name, sl in self.closure_slices()
         }
+
+    def closure_slices(self) -> list[tuple[str, slice]]:
+        """Return each loop's name and its slice of :meth:`closure_residuals`, in URDF order."""
+        out, start = [], 0
+        for blk in self._blocks:
+            k = CLOSURE_SIZES[blk.spec.type]
+            out.append((blk.spec.name, slice(start, start + k)))
+            start += k
+        return out
+
+    def closure_residuals(
+        self, model: pin.Model, data: pin.Data, *, jacobian: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        r"""Return the closure residual e of every loop and, optionally, its Jacobian.
+
+        e is zero exactly where every loop is closed (:func:`closure_residual`),
+        unlike the rows phi, whose rotation rows also vanish on a 180-degree flip.
+        With ``c1Mc2`` the placement of c2 in c1 and LOCAL frame Jacobians J1, J2 of
+        c1 and c2, a displacement dq = dv along ``pin.integrate`` moves c1Mc2 to
+        ``c1Mc2 exp(xi)`` with
+
+        .. math::
+
+            \xi = \bigl(J_2 - \mathrm{Ad}(c_1M_{c_2}^{-1}) J_1\bigr)\, dv,
+
+        so :math:`E = D\,(J_2 - \mathrm{Ad}(c_1M_{c_2}^{-1}) J_1)` with D the
+        derivative of :func:`closure_residual` along xi.
+
+        Args:
+            model, data: the model (with the loop frames) and its data, filled by
+                ``forwardKinematics(q)`` (e) or ``computeJointJacobians(q)`` (e and E).
+            jacobian: also return E.
+
+        Returns:
+            ``(e, E)``: e of every declared loop (all its entries, whichever rows
+            are kept), shape (ne,) [m or rad] (:meth:`closure_slices`); E = de/dv,
+            shape (ne, nv), or None.
+        """
+        es, Es = [], []
+        for blk in self._blocks:
+            oMp = pin.updateFramePlacement(model, data, blk.fid_p)
+            oMs = pin.updateFramePlacement(model, data, blk.fid_s)
+            c1Mc2 = oMp.actInv(oMs)
+            e, D = closure_residual(blk.spec, c1Mc2)
+            es.append(e)
+            if jacobian:
+                J1 = pin.getFrameJacobian(model, data, blk.fid_p, _LOCAL)
+                J2 = pin.getFrameJacobian(model, data, blk.fid_s, _LOCAL)
+                Es.append(D @ (J2 - c1Mc2.inverse().action @ J1))
+        e = np.concatenate(es) if es else np.zeros(0)
+        if not jacobian:
+            return e, None
+        return e, np.concatenate(Es) if Es else np.zeros((0, model.nv))
+
+
+#: Entries of :func:`closure_residual` per loop type.
+CLOSURE_SIZES = {"fixed": 6, "spherical": 3, "revolute": 6, "prismatic": 5}
+
+
+def closure_residual(spec: LoopSpec, c1Mc2: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
+    r"""Return a loop's closure residual e, zero exactly where the loop is closed, and de/dxi.
+
+    With ``c1Mc2 = (R, p)`` the placement of c2 in c1, a the loop axis and
+    (n1, n2, a) its basis (:func:`axis_basis`):
+
+    ========= ======================================== =====
+    type      e                                        size
+    ========= ======================================== =====
+    fixed     log6(c1Mc2) (translation, rotation)      6
+    spherical p                                        3
+    revolute  p, R a - a                               3 + 3
+    prismatic n1.p, n2.p, log3(R)                      2 + 3
+    ========= ======================================== =====
+
+    The revolute loop's rotation part is the chord between the axis and its
+    image: smooth everywhere, zero only when the axes coincide, of length
+    2 sin(theta / 2) for a tilt theta (2 on the 180-degree flip, where the rows
+    phi vanish). log3 and log6 have their cut at a half turn, as far from the
+    closure as can be. The rows phi are a local chart of the same set: at a
+    closure, e and phi vanish together.
+
+    Args:
+        spec: the loop (its type and axis, in c1).
+        c1Mc2: placement of the successor's cut frame c2 in the predecessor's c1.
+
+    Returns:
+        ``(e, D)``: e, shape (k,) [m or rad] (k from :data:`CLOSURE_SIZES`), and D,
+        shape (k, 6), the derivative of e along ``c1Mc2 exp(xi)`` at xi = 0 (xi:
+        linear, angular).
+    """
+    R, p = c1Mc2.rotation, c1Mc2.translation
+    if spec.type == "fixed":
+        return pin.log6(c1Mc2).vector, pin.Jlog6(c1Mc2)
+    D = np.zeros((CLOSURE_SIZES[spec.type], 6))
+    if spec.type == "spherical":
+        D[:, :3] = R
+        return p.copy(), D
+    a = np.asarray(spec.axis, dtype=float)
+    if spec.type == "revolute":
+        D[:3, :3] = R
+        D[3:, 3:] = -R @ pin.skew(a)  # d(R a) = R (dw x a)
+        return np.concatenate([p, R @ a - a]), D
+    n = np.array(axis_basis(a))  # prismatic: translation across the axis
+    D[:2, :3] = n @ R
+    D[2:, 3:] = pin.Jlog3(R)
+    return np.concatenate([n @ p, pin.log3(R)]), D
 
 
 def build_pinocchio_constraints(

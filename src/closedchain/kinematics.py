@@ -10,20 +10,29 @@ configurations:
 
 where F are the free (not held) velocity coordinates, ``+`` the minimum-norm
 least-squares pseudo-inverse (so redundant rows do no harm) and
-:math:`\oplus` is ``pin.integrate``.
+:math:`\oplus` is ``pin.integrate``; where it fails (far from the closure),
+a trust-region least-squares solve on the closure residual, zero exactly at the
+closure, then the same Gauss-Newton to polish
+(:func:`closedchain.closure.assemble_closure`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
 from ._locking import exclusive
-from .closure import DEFAULT_ASSEMBLY_SETTINGS, SelectionSettings, layer_jacobian, layer_phi
+from .closure import (
+    DEFAULT_ASSEMBLY_SETTINGS,
+    SelectionSettings,
+    assemble_closure,
+    layer_jacobian,
+    layer_phi,
+)
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
@@ -57,11 +66,13 @@ def assemble(
 
     Returns:
         q with max |phi(q)| <= settings.tol over every declared row (the
-        independent ones and those dropped as redundant), shape (nq,).
+        independent ones and those dropped as redundant), shape (nq,); on a model
+        loaded with redundant rows that disagree (``mech.closure.mismatch_tol``),
+        the least-squares minimum of the closure residual with the kept rows closed.
 
     Raises:
-        AssemblyError: Newton did not converge (message gives the residual),
-            or converged onto a flipped (180 degree) closure.
+        AssemblyError: no closure found from q_guess (the message gives the
+            smallest closure residual reached, ``exc.q`` its configuration).
     """
     q_guess = mech.check_q(q_guess, "q_guess")
     held = mech.coordinate_indices(fixed)
@@ -71,7 +82,15 @@ def assemble(
         # another solution branch of the kept rows with a dropped row open is
         # never returned as closed (redundant rows do no harm to the
         # minimum-norm Gauss-Newton step).
-        return solve_closure(mech.model, mech.data, mech.declared, q_guess, free, settings)
+        polish = None
+        if mech.closure.mismatch_tol > settings.mismatch_tol:
+            # A model whose redundant rows disagree (loaded with a warning): the least-squares
+            # minimum, with the kept rows closed.
+            settings = replace(settings, mismatch_tol=mech.closure.mismatch_tol)
+            polish = mech.constraints
+        return assemble_closure(
+            mech.model, mech.data, mech.declared, q_guess, free, settings, polish=polish
+        )
     except AssemblyError as exc:
         raise AssemblyError(
             f"{mech.name}: {exc} (holding {len(held)} coordinates: "

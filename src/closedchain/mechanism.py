@@ -1,9 +1,10 @@
 """The Mechanism: Pinocchio tree, loops, row selection, coordinates; :func:`load`.
 
 Everything that depends only on the mechanism is done here, once: loop frames
-are added to the model, the independent constraint rows are selected over
-several random assembled configurations, independent coordinates are chosen,
-and Pinocchio constraint models are built for validation.
+are added to the model, a closed configuration ``q_ref`` is found (within the
+joint limits where one exists), the independent constraint rows are selected
+over configurations along the motion from it, independent coordinates are
+chosen, and Pinocchio constraint models are built for validation.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from .closure import (
     LoopClosure,
     RowSelection,
     SelectionSettings,
+    assemble_closure,
     sample_configurations,
     solve_closure,
 )
@@ -86,11 +88,14 @@ class LoadSettings:
     """Settings of the work :func:`load` does once per mechanism.
 
     Attributes:
-        n_samples: random assembled configurations used for row selection
-            (every joint random: base joints take random poses).
-        max_attempts: random starts tried to get them.
+        n_samples: closed configurations the row selection starts walks from:
+            q_ref, then random starts (every joint random: base joints take
+            random poses) closed by Gauss-Newton.
+        max_attempts: random starts tried for them, and for q_ref when none of
+            the given starts closes (:func:`load`).
         walk_steps: from each, steps along the motion (null space of J),
-            each assembled and added to the samples.
+            each assembled and added to the samples; with fewer roots, the walk
+            goes on until ``n_samples * (1 + walk_steps)`` samples.
         walk_step: length of one such step [rad or m].
         rank_tol: a singular value counts towards the rank of J when it
             exceeds ``rank_tol`` times max(1, the largest singular value).
@@ -104,6 +109,10 @@ class LoadSettings:
             second-order tensors; 33 nv^3 without it). 2 GB is nv <= 1796
             (nv <= 392 without the compiled core). A larger tree is refused
             before Pinocchio builds anything.
+        mismatch_tol: a model whose loops close only to a least-squares residual
+            at most this large [m or rad] (redundant rows that disagree: a rounded
+            CAD export) is loaded at the least-squares minimum with a logged
+            warning naming the loops; above it, :func:`load` refuses the model.
     """
 
     n_samples: int = 8
@@ -115,6 +124,7 @@ class LoadSettings:
     prismatic_range: float = 1.0
     seed: int = 0
     max_data_bytes: float = 2e9
+    mismatch_tol: float = 1e-4
 
     def selection(self) -> SelectionSettings:
         """The row-selection part of these settings."""
@@ -610,14 +620,18 @@ def load(
         settings: row-selection settings (defaults: :class:`LoadSettings`).
 
     Returns:
-        The mechanism, with independent rows selected and an assembled ``q_ref``.
+        The mechanism, with independent rows selected and a closed ``q_ref``, within
+        the joint limits where a closed configuration within them is found (else a
+        logged warning names the joints outside); a model whose redundant rows
+        disagree by less than ``settings.mismatch_tol`` loads with a logged warning.
 
     Raises:
         URDFError: invalid file or extension element, or a tree beyond
             ``settings.max_data_bytes`` (refused before any work).
         ClosedChainError: gravity is not 3 finite numbers of norm at most
             :data:`MAX_GRAVITY_NORM`.
-        LoopClosureError: a loop's frames cannot be brought together.
+        LoopClosureError: no start closes the loops (the message gives the closure
+            residual reached per loop).
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
 
@@ -748,48 +762,39 @@ def _select_rows_and_coordinates(
 def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -> None:
     model, data, closure = mech.model, mech.data, mech.closure
     sel = settings.selection()
-    samples, best = sample_configurations(
-        model,
-        data,
-        closure.declared,
-        lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
-        sel,
-        first=[pin.neutral(model) if q_guess is None else q_guess],
+    q_ref, mismatch = _first_closure(mech, settings, q_guess, extra_starts)
+    asm = AssemblySettings(mismatch_tol=settings.mismatch_tol if mismatch else 0.0)
+
+    def draw(rng):
+        return mech.random_configuration(rng, prismatic_range=sel.prismatic_range)
+
+    samples, _ = sample_configurations(
+        model, data, closure.declared, draw, sel, first=[q_ref], assembly=asm
     )
     if extra_starts:
-        # Sampled apart and appended: q_ref, its fallback (the first sample) and the
-        # random samples stay what they are without the extra starts.
+        # Sampled apart and appended: the random samples stay what they are without the
+        # extra starts.
         extra, _ = sample_configurations(
             model,
             data,
             closure.declared,
-            lambda rng: mech.random_configuration(rng, prismatic_range=sel.prismatic_range),
+            draw,
             replace(sel, n_samples=len(extra_starts), max_attempts=len(extra_starts)),
             first=list(extra_starts),
+            assembly=asm,
         )
         samples = samples + extra
-    if not samples:
-        assert best is not None
-        pin.forwardKinematics(model, data, best.q)
-        per_loop = closure.declared.loop_residuals(model, data)
-        worst = ", ".join(f"{k}: {v:.3g}" for k, v in per_loop.items())
-        raise LoopClosureError(
-            f"{mech.path}: the loop frames cannot be brought together from "
-            f"{settings.max_attempts} random starts; smallest max |phi| reached "
-            f"{best.residual:.3g} (per loop: {worst}). Check the <loop> origins and link lengths."
-        )
     closure.select_rows(model, data, samples, rank_tol=settings.rank_tol)
-    try:
-        mech.q_ref = solve_closure(
-            model,
-            data,
-            closure.declared,
-            pin.neutral(model) if q_guess is None else q_guess,
-            np.arange(mech.nv),
-            AssemblySettings(),
-        )
-    except AssemblyError:
-        mech.q_ref = samples[0]
+    if mismatch:
+        closure.mismatch_tol = settings.mismatch_tol
+        # The kept rows are consistent: q_ref closes them exactly (the dynamics' rows).
+        try:
+            q_ref = solve_closure(
+                model, data, closure.active, q_ref, np.arange(mech.nv), AssemblySettings()
+            )
+        except AssemblyError:
+            pass
+    mech.q_ref = q_ref
     pin.computeJointJacobians(model, data, mech.q_ref)
     J_ref = np.zeros((mech.nc, mech.nv))
     mech.constraints.evaluate(model, data, J=J_ref)
@@ -802,3 +807,117 @@ def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -
         where=str(mech.path),
         marked_names=mech.urdf.independent,
     )
+
+
+def _assembly_starts(mech: Mechanism, q_guess, extra_starts) -> list[np.ndarray]:
+    """The starts of q_ref's assembly, in order: the given guess (the SRDF reference
+    state), the neutral configuration, the middle of the joint limits where the neutral
+    configuration is outside them, the default scene's start."""
+    model = mech.model
+    neutral = pin.neutral(model)
+    mid = neutral.copy()
+    lo, hi = model.lowerPositionLimit, model.upperPositionLimit
+    for j in range(1, model.njoints):
+        k = model.joints[j].idx_q
+        if model.joints[j].nq == 1 and not lo[k] <= neutral[k] <= hi[k]:
+            mid[k] = 0.5 * (lo[k] + hi[k])
+    starts = [] if q_guess is None else [np.asarray(q_guess, dtype=float)]
+    starts.append(neutral)
+    if not np.array_equal(mid, neutral):
+        starts.append(mid)
+    return starts + [np.asarray(q, dtype=float) for q in extra_starts]
+
+
+def _first_closure(mech: Mechanism, settings: LoadSettings, q_guess, extra_starts):
+    """Return ``(q_ref, mismatch)``: the configuration the mechanism is loaded in, and
+    whether its loops close only by least squares (redundant rows that disagree).
+
+    The starts of :func:`_assembly_starts` are closed by
+    :func:`~closedchain.closure.assemble_closure` within the joint limits, then (when
+    none closes within them: logged) without; then ``settings.max_attempts`` random
+    starts within the limits. A least-squares minimum below ``settings.mismatch_tol``
+    is accepted with a logged warning naming the loops.
+
+    Raises:
+        LoopClosureError: no start closes the loops (names the residual per loop).
+    """
+    model, data, declared = mech.model, mech.data, mech.closure.declared
+    limits = (model.lowerPositionLimit, model.upperPositionLimit)
+    free = np.arange(mech.nv)
+    asm = AssemblySettings()
+    starts = _assembly_starts(mech, q_guess, extra_starts)
+    best: AssemblyError | None = None
+    outside = None  # the first closure found outside the limits
+
+    def close(q0, bounds):
+        nonlocal best
+        try:
+            return assemble_closure(model, data, declared, q0, free, asm, bounds=bounds)
+        except AssemblyError as exc:
+            if best is None or exc.residual < best.residual:
+                best = exc
+            return None
+
+    for bounds in (limits, None):
+        for q0 in starts:
+            if bounds is None and outside is not None:
+                break
+            q = close(q0, bounds)
+            if q is not None and mech.within_limits(q):
+                return q, False
+            if q is not None and outside is None:
+                outside = q
+    rng = np.random.default_rng(settings.seed)
+    for _ in range(0 if outside is not None else settings.max_attempts):
+        if best is not None and best.residual <= settings.mismatch_tol:
+            break
+        q = close(mech.random_configuration(rng, prismatic_range=settings.prismatic_range), limits)
+        if q is not None:
+            if mech.within_limits(q):
+                return q, False
+            outside = q
+            break
+    if outside is not None:
+        logger.warning(
+            "%s: no closed configuration within the joint limits found from %d starts; "
+            "q_ref has %s",
+            mech.path,
+            len(starts),
+            _outside_limits(mech, outside),
+        )
+        return outside, False
+    assert best is not None
+    pin.forwardKinematics(model, data, best.q)
+    per_loop = declared.loop_residuals(model, data)
+    if best.residual <= settings.mismatch_tol:
+        open_loops = {k: v for k, v in per_loop.items() if v > asm.closure_tol}
+        logger.warning(
+            "%s: loop(s) %s close only to a least-squares residual of %s [m or rad] "
+            "(redundant rows that disagree, such as a rounded CAD export; "
+            "LoadSettings.mismatch_tol = %.1e): loaded at the least-squares minimum, "
+            "the kept rows closed",
+            mech.path,
+            ", ".join(open_loops),
+            ", ".join(f"{v:.3g}" for v in open_loops.values()),
+            settings.mismatch_tol,
+        )
+        return best.q, True
+    worst = ", ".join(f"{k}: {v:.3g}" for k, v in per_loop.items())
+    raise LoopClosureError(
+        f"{mech.path}: the loop frames cannot be brought together from {len(starts)} starts "
+        f"and {settings.max_attempts} random ones; smallest max |phi| reached "
+        f"{best.residual:.3g} (per loop: {worst}; the closure residual, m or rad). Check the "
+        "<loop> origins and "
+        "link lengths."
+    )
+
+
+def _outside_limits(mech: Mechanism, q: np.ndarray) -> str:
+    """Name the 1-dof joints of q outside their limits, with value and limits."""
+    lo, hi = mech.model.lowerPositionLimit, mech.model.upperPositionLimit
+    out = []
+    for j in range(1, mech.model.njoints):
+        k = mech.model.joints[j].idx_q
+        if mech.model.joints[j].nq == 1 and not lo[k] <= q[k] <= hi[k]:
+            out.append(f"{mech.model.names[j]} at {q[k]:.6g} outside [{lo[k]:.6g}, {hi[k]:.6g}]")
+    return "; ".join(out)

@@ -19,6 +19,7 @@ the start (logged; ``info.backend_fallback`` says why).
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 
@@ -42,7 +43,9 @@ def _prepare(problem: Problem, info: dict, stab):
         core,
         info["method"],
         problem.solver_settings,
-        problem.settings,
+        # The dropped-row threshold of the numpy checks (floored by a rounded model's
+        # accepted disagreement: LoopClosure.dropped_row_tol).
+        replace(problem.settings, dropped_row_tol=problem.row_check.dropped_tol),
         stage_projects=stab.projects_stages,
         singular_robust=problem.singular_robust,
         partitions=stab.partitions,

@@ -235,7 +235,7 @@ class Problem:
         #: Row re-selections made during the run: [t, kept row labels, reason].
         self.reselections: list[list] = []
         self.row_check = RowCheckSettings(
-            dropped_tol=settings.dropped_row_tol,
+            dropped_tol=mech.closure.dropped_row_tol(settings.dropped_row_tol),
             dropped_ratio=settings.dropped_row_ratio,
             cond_max=settings.singular_cond,
             open_tol=settings.open_row_tol,
