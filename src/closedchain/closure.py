@@ -608,7 +608,8 @@ def sample_configurations(
     is enough.
 
     Args:
-        model, data: the model with the loop frames and its data (overwritten).
+        model: the model with the loop frames.
+        data: its data (overwritten).
         declared: every declared row.
         draw: random start, ``draw(rng)`` -> q, shape (nq,).
         settings: sampling settings.

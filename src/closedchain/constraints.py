@@ -710,8 +710,9 @@ class ConstraintLayer:
         derivative of :func:`closure_residual` along xi.
 
         Args:
-            model, data: the model (with the loop frames) and its data, filled by
-                ``forwardKinematics(q)`` (e) or ``computeJointJacobians(q)`` (e and E).
+            model: the model (with the loop frames).
+            data: its data, filled by ``forwardKinematics(q)`` (e) or
+                ``computeJointJacobians(q)`` (e and E).
             jacobian: also return E.
 
         Returns:
