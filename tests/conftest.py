@@ -179,6 +179,12 @@ class FourBarClosedForms:
             ]
         )
 
+    def det_dependent(self, theta: np.ndarray) -> float:
+        """Seed Section 2: det of J_c's coupler and rocker columns, b c sin(theta3 - theta4)
+        [m^2]. Its sign names the assembly branch (open or crossed); it changes only where
+        coupler and rocker align (for this linkage: at its change point, theta2 = 180 deg)."""
+        return self.b * self.c * math.sin(theta[1] - theta[2])
+
     def jacobian_dot(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
         """Seed Problem 2: dJ_c/dt, shape (2, 3) [m/s], with the seed's sign error corrected.
 

@@ -562,16 +562,17 @@ def test_change_point_configurations(load_mechanism, q_open, config):
 
 
 @pytest.mark.slow
-def test_branch_series_says_which_branch_the_change_point_leaves_on(load_mechanism, q_open):
+def test_branch_series_says_which_branch_the_change_point_leaves_on(
+    load_mechanism, fourbar_closed_forms, q_open
+):
     """The open-branch 4-bar passes its change point at t = 0.393 s: the branch series
     (sign of det(J_D), J_D = coupler and rocker columns) starts +1 (open) and the
     trajectory reports each change, independently checked with the seed's closed form
-    det(J_D) = b c sin(theta4 - theta3) (theta3 = q0 + q1, theta4 = q2)."""
+    det(J_D) = b c sin(theta3 - theta4) (theta3 = q0 + q1, theta4 = q2)."""
     mech = load_mechanism("fourbar")
     traj = simulate(mech, q_open, np.zeros(mech.nv), 0.6, t_eval=np.linspace(0, 0.6, 61))
-    b, c = 0.4, 0.3
-    theta3 = traj.q[:, 0] + traj.q[:, 1]
-    closed_form = np.sign(b * c * np.sin(traj.q[:, 2] - theta3))
+    cf = fourbar_closed_forms
+    closed_form = np.sign([cf.det_dependent(cf.theta(q)) for q in traj.q])
     assert traj.branch is not None
     assert np.array_equal(np.abs(traj.branch), np.ones(len(traj.t)))
     # Up to one global sign (the orientation of the URDF axes).
