@@ -329,6 +329,10 @@ def test_simulate_reports_a_joint_past_its_limit(capsys, tmp_path):
         ),
         (["workspace", "{eye}", "-o", "{tmp}/w.png", "--span", "nan"], "--span must be a positive"),
         (
+            ["workspace", "{eye}", "-o", "{tmp}/w.png", "--span", "1e308"],
+            "span must be a positive number [rad] of at most 1e+06",
+        ),
+        (
             ["simulate", "{no_joint}", "--t-final", "0.1"],
             "{no_joint}: the tree has no movable joint (nv = 0), so there is nothing to simulate",
         ),

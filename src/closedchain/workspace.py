@@ -50,7 +50,7 @@ from ._io import save_figure
 from ._locking import exclusive
 from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
 from .kinematics import assemble, compute_jacobian
-from .mechanism import Mechanism
+from .mechanism import COORDINATE_BOUND, Mechanism
 from .pindata import new_data
 
 logger = logging.getLogger(__name__)
@@ -242,8 +242,11 @@ def singularity_map(
     """sigma_min of J_D (parallel, type II) and of the output map (serial, type I) over the
     first two output coordinates, each within +- span [rad] of its reference, the others held."""
     points = _check_points(points, MAX_MAP_POINTS)
-    if not (math.isfinite(span) and span > 0):
-        raise InvalidArgumentError(f"span must be a positive number [rad], got {span}")
+    if not (math.isfinite(span) and 0 < span <= COORDINATE_BOUND):
+        raise InvalidArgumentError(
+            f"span must be a positive number [rad] of at most {COORDINATE_BOUND:g} "
+            f"(closedchain.mechanism.COORDINATE_BOUND), got {span}"
+        )
     outputs = tuple(outputs or default_outputs(mech))
     repeated = sorted({name for name in outputs if outputs.count(name) > 1})
     if repeated:
