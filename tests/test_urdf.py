@@ -631,6 +631,10 @@ def test_zero_axis_of_a_fixed_joint_is_ignored(fourbar_text, write):
         ),
         ('<scene><initial joint="crank_joint"/></scene>', r"<initial>: missing value="),
         (
+            '<scene><initial joint="crank_joint" value="0.2" velocity="1e200"/></scene>',
+            r"<initial velocity='1e200'>: must be within \+-1e\+06",
+        ),
+        (
             '<scene><track kp="1"><sinusoid joint="crank_joint"/></track></scene>',
             r"<track>: missing kd= \(a gain >= 0\)",
         ),

@@ -88,6 +88,10 @@ NAME_REFUSED_CATEGORIES = ("Cc", "Zl", "Zp")
 INERTIA_REL_TOL = 1e-12
 
 #: ``<limit>`` attributes and whether each must be non-negative.
+#: Largest |velocity=| [rad/s or m/s] of a ``<scene>`` ``<initial>``: beyond it the
+#: kinetic terms (quadratic in v) leave the range where a step resolves anything.
+SCENE_RATE_BOUND = 1e6
+
 LIMIT_ATTRIBUTES = {"lower": False, "upper": False, "effort": True, "velocity": True}
 
 
@@ -395,7 +399,14 @@ def _check_layout(path: Path, root) -> None:
         )
 
 
-def _number(where: str, element, attribute: str, *, minimum: float | None = None) -> float | None:
+def _number(
+    where: str,
+    element,
+    attribute: str,
+    *,
+    minimum: float | None = None,
+    bound: float | None = None,
+) -> float | None:
     """Return a finite float attribute (None when absent), or raise naming where and attribute.
 
     Args:
@@ -403,6 +414,7 @@ def _number(where: str, element, attribute: str, *, minimum: float | None = None
         element: the element holding the attribute.
         attribute: attribute name.
         minimum: smallest valid value, or None.
+        bound: largest valid absolute value, or None.
     """
     text = element.get(attribute)
     if text is None:
@@ -414,6 +426,8 @@ def _number(where: str, element, attribute: str, *, minimum: float | None = None
     if not math.isfinite(value) or (minimum is not None and value < minimum):
         valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
         raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be {valid}")
+    if bound is not None and abs(value) > bound:
+        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be within +-{bound:g}")
     return value
 
 
@@ -756,7 +770,7 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
         if value is None:
             raise URDFError(f"{_where(path, e)}: missing value=")
         initial[name] = value
-        rate = _number(_where(path, e), e, "velocity")
+        rate = _number(_where(path, e), e, "velocity", bound=SCENE_RATE_BOUND)
         if rate is not None:
             velocity[name] = rate
     tracks = element.findall("track")
