@@ -233,9 +233,7 @@ def _numbers(path: Path, element, count: int) -> np.ndarray:
     except ValueError:
         values = np.array([])
     if values.shape != (count,) or not np.all(np.isfinite(values)):
-        raise URDFError(
-            f"{_where(path, element)}: {text.strip()!r} must be {count} finite numbers"
-        )
+        raise URDFError(f"{_where(path, element)}: {text.strip()!r} must be {count} finite numbers")
     return values
 
 
@@ -297,7 +295,10 @@ class _Reader:
         values = _numbers(self.path, element, 6)
         if element.get("degrees") == "true":
             values[3:] = np.deg2rad(values[3:])
-        for part, bound, unit in ((values[:3], ORIGIN_XYZ_MAX, "m"), (values[3:], ORIGIN_RPY_MAX, "rad")):
+        for part, bound, unit in (
+            (values[:3], ORIGIN_XYZ_MAX, "m"),
+            (values[3:], ORIGIN_RPY_MAX, "rad"),
+        ):
             if float(np.max(np.abs(part))) > bound:
                 raise URDFError(
                     f"{_where(self.path, element)}: {element.text.strip()!r} is beyond "
@@ -373,7 +374,15 @@ class _Reader:
         oMj = self.frame(element.get("name"), where=where)
         axes = []
         for tag in ("axis", "axis2"):
-            axes.append(self._axis(element, tag, oMj, required=jtype in ("revolute", "continuous", "prismatic", "universal") and tag == "axis"))
+            axes.append(
+                self._axis(
+                    element,
+                    tag,
+                    oMj,
+                    required=jtype in ("revolute", "continuous", "prismatic", "universal")
+                    and tag == "axis",
+                )
+            )
         if jtype == "universal" and element.find("axis2") is None:
             raise URDFError(f"{where}: a universal joint needs <axis2>")
         limit = element.find("axis/limit")
@@ -382,7 +391,9 @@ class _Reader:
             lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
             upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
             if lower > upper:
-                raise URDFError(f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}")
+                raise URDFError(
+                    f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}"
+                )
             effort = _scalar(self.path, limit, "effort", -1.0)
             velocity = _scalar(self.path, limit, "velocity", -1.0)
             limits = (
@@ -479,9 +490,7 @@ class _Reader:
                 queue.append(other)
         missing = [name for name in self.links if name not in seen]
         if missing:
-            through = [
-                j.name for j in self.joints if j.type == "gearbox" and j.child in missing
-            ]
+            through = [j.name for j in self.joints if j.type == "gearbox" and j.child in missing]
             hint = (
                 f"; it hangs only on gearbox joints ({', '.join(through)}), which closedchain "
                 "does not support yet"
@@ -489,8 +498,7 @@ class _Reader:
                 else "; join it with a <joint> or remove it"
             )
             raise URDFError(
-                f"{self.path}: link {missing[0]!r} is not connected to the root link "
-                f"{root!r}{hint}"
+                f"{self.path}: link {missing[0]!r} is not connected to the root link {root!r}{hint}"
             )
         for j in cut:
             if j.type == "universal":
@@ -592,9 +600,15 @@ class _Reader:
         _origin(out, inverse * self.placed(element, link))
         urdf_geometry = etree.SubElement(out, "geometry")
         if g.tag == "box":
-            etree.SubElement(urdf_geometry, "box", size=_vector(_numbers(self.path, g.find("size"), 3)))
+            etree.SubElement(
+                urdf_geometry, "box", size=_vector(_numbers(self.path, g.find("size"), 3))
+            )
         elif g.tag == "sphere":
-            etree.SubElement(urdf_geometry, "sphere", radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)))
+            etree.SubElement(
+                urdf_geometry,
+                "sphere",
+                radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)),
+            )
         elif g.tag == "cylinder":
             etree.SubElement(
                 urdf_geometry,
@@ -683,4 +697,3 @@ class _Reader:
 def is_sdf(path: str | Path) -> bool:
     """Return whether a model path names an SDF file (by its suffix)."""
     return Path(path).suffix.lower() == ".sdf"
-
