@@ -20,10 +20,12 @@ from importlib import metadata
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import DATA_DIR
+from conftest import DATA_DIR, MODELS
+from lxml import etree
 
 import closedchain as cc
 from closedchain import robots
+from closedchain.cli import main
 from closedchain.dynamics import SolverSettings
 from closedchain.sdf import read_sdf
 from closedchain.validation import pinocchio_reference_dynamics
@@ -44,6 +46,9 @@ TOL_A_REL = 1e-9
 TOL_FORCE = 1e-8
 #: Size [rad or m] of the random steps along the motion from Cassie's reference.
 STEP = 0.05
+#: Largest |a| [rad/s^2, m/s^2] the holding torque leaves at Cassie's standing reference:
+#: the augmented-Lagrangian answer where cond(J) ~ 4e6 (the knee-spring loops).
+TOL_HOLD = 1e-3
 #: Pinocchio's proximal solver needs many iterations where sigma_min(J)^2 << mu (Cassie).
 PIN_SETTINGS = SolverSettings(pinocchio_mu=1e-10, pinocchio_max_iter=2000)
 
@@ -290,3 +295,28 @@ def test_cassie_simulates_from_rest(cassie):
     traj = cc.simulate(cassie, cassie.q_ref, np.zeros(cassie.nv), 0.2)
     assert traj.t[-1] == pytest.approx(0.2)
     assert traj.info.max_constraint_residual < TOL_CLOSED
+
+
+@needs_erd
+def test_cassie_animates_with_primitive_visuals(cassie, tmp_path):
+    shapes = etree.fromstring(cassie.urdf.xml.encode()).findall("link/visual/geometry/*")
+    assert shapes
+    assert {s.tag for s in shapes} <= {"box", "cylinder", "sphere"}
+    out = tmp_path / "cassie.html"
+    assert main(["animate", "erd:cassie", "--t-final", "0.1", "-o", str(out)]) == 0
+    assert out.stat().st_size > 0
+    assert b"package://" not in out.read_bytes()
+
+
+@needs_erd
+def test_cassie_standing_is_held_at_rest_by_the_gravity_torque():
+    mech = cc.load("erd:cassie", root_joint="free", loops=MODELS / "cassie_standing.urdf")
+    # Two welded feet add 12 rows: 40 - 26 = 14 (4 of the pelvis on its legs, 10 rotors).
+    assert (mech.nv, mech.nc, mech.mobility) == (40, 26, 14)
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+    tau = cc.gravity_torque(mech, mech.q_ref)
+    rest = np.zeros(mech.nv)
+    held = cc.forward_dynamics(mech, mech.q_ref, rest, tau, method="augmented-lagrangian")
+    assert np.max(np.abs(held.a)) < TOL_HOLD
+    falls = cc.forward_dynamics(mech, mech.q_ref, rest, 0 * tau, method="augmented-lagrangian")
+    assert np.max(np.abs(falls.a)) > 1.0

@@ -248,7 +248,8 @@ def merge_overlay(
         root.set("name", extra.get("name", root.get("name", path.stem)))
         _check_world_joints(path, root)
     # The SDF reader has warned about SDF inertias that violate the triangle inequality.
-    urdf = parse_urdf(path, element=root, max_nv=max_nv, triangle=not is_sdf(base))
+    triangle = "pass" if is_sdf(base) else "refuse"
+    urdf = parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle)
     if primitive:
         # After the checks: the joint origins it reads are finite and bounded.
         primitive_visuals(root)

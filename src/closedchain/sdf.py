@@ -73,12 +73,10 @@ from .exceptions import URDFError
 from .urdf import (
     ORIGIN_RPY_MAX,
     ORIGIN_XYZ_MAX,
-    URDFPlus,
     _check_name,
     _unique_names,
     _where,
     check_inertia,
-    parse_urdf,
     read_xml,
     unit_vector,
 )
@@ -171,23 +169,6 @@ class SDFTree:
     reversed_joints: tuple[str, ...]
     cut_joints: tuple[str, ...]
     gearboxes: tuple[str, ...]
-
-
-def parse_sdf(
-    path: str | Path, *, cut_joints: tuple[str, ...] = (), max_nv: int | None = None
-) -> URDFPlus:
-    """Read an SDF file as a URDF+ mechanism (see :func:`read_sdf`).
-
-    Args:
-        path: the SDF file.
-        cut_joints: joints to cut in preference (see the module doc).
-        max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
-
-    Returns:
-        The URDF+ document, its ``path`` the SDF file.
-    """
-    robot, _ = read_sdf(path, cut_joints=cut_joints)
-    return parse_urdf(path, element=robot, max_nv=max_nv, triangle=False)
 
 
 def read_sdf(path: str | Path, *, cut_joints: tuple[str, ...] = ()) -> tuple[object, SDFTree]:
@@ -578,7 +559,7 @@ class _Reader:
             if inertia is not None:
                 values = {n: _scalar(self.path, inertia, n, values[n]) for n in names}
             where = f"{self.path}: line {inertial.sourceline}: <link name={name!r}> <inertial>"
-            check_inertia(where, values, triangle=False)
+            check_inertia(where, values, triangle="warn")
         _origin(out, inverse * M)
         etree.SubElement(out, "mass", value=repr(mass))
         etree.SubElement(out, "inertia", **{n: repr(v) for n, v in values.items()})

@@ -430,7 +430,7 @@ def _number(where: str, element, attribute: str, *, minimum: float | None = None
     return value
 
 
-def _check_inertial(path: Path, link, *, triangle: bool = True) -> None:
+def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
     """Refuse an ``<inertial>`` whose mass or inertia is not a physical one.
 
     urdfdom only warns about these and Pinocchio then builds a massless or
@@ -455,15 +455,20 @@ def _check_inertial(path: Path, link, *, triangle: bool = True) -> None:
     check_inertia(where, values, triangle=triangle)
 
 
-def check_inertia(where: str, values: dict[str, float], *, triangle: bool = True) -> None:
+#: What :func:`check_inertia` does with a violated triangle inequality.
+TRIANGLE_CHOICES = ("refuse", "warn", "pass")
+
+
+def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refuse") -> None:
     """Refuse a rotational inertia that no mass distribution has.
 
     Args:
         where: the start of every message (file, line, element).
         values: ``ixx, ixy, ixz, iyy, iyz, izz`` [kg m^2], finite.
-        triangle: refuse a violated triangle inequality (else log a warning:
-            the mass matrix stays positive definite, as for SDF models that ship
-            such rotors).
+        triangle: a violated triangle inequality is refused, logged as a
+            warning, or passed (one of :data:`TRIANGLE_CHOICES`). The mass
+            matrix stays positive definite either way: the SDF reader warns
+            (Cassie ships such rotors) and its URDF+ is then passed.
 
     Raises:
         URDFError: not positive semi-definite, or principal moments that
@@ -490,9 +495,10 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: bool = True
             f"{where}: <inertia> principal moments {np.array2string(eig, precision=6)} kg m^2 "
             "violate the triangle inequality I1 + I2 >= I3 (no mass distribution has them)"
         )
-        if triangle:
+        if triangle == "refuse":
             raise URDFError(message)
-        logger.warning("%s; kept", message)
+        if triangle == "warn":
+            logger.warning("%s; kept", message)
 
 
 #: Joint types whose motion is defined by ``<axis>`` (its length must not vanish).
@@ -574,7 +580,7 @@ def read_xml(path: Path, *, what: str = "URDF file"):
 
 
 def parse_urdf(
-    path: str | Path, *, element=None, max_nv: int | None = None, triangle: bool = True
+    path: str | Path, *, element=None, max_nv: int | None = None, triangle: str = "refuse"
 ) -> URDFPlus:
     """Read a URDF file and its URDF+ extension elements.
 
@@ -586,8 +592,9 @@ def parse_urdf(
         max_nv: largest supported number of degrees of freedom of the tree
             (sum over joints of :data:`URDF_JOINT_NV`); a larger tree is
             refused right after the XML is read, before any per-element work.
-        triangle: refuse inertias that violate the triangle inequality (else
-            warn: SDF models, see :func:`check_inertia`).
+        triangle: what to do with inertias that violate the triangle
+            inequality (see :func:`check_inertia`; ``"pass"`` for SDF models,
+            whose reader has warned).
 
     Returns:
         The parsed extensions, with the checked XML text (joint axes written
