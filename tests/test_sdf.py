@@ -218,6 +218,58 @@ def test_a_ball_joint_is_cut_first_into_a_spherical_loop(tmp_path):
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
 
 
+def test_a_reversed_joint_keeps_the_sign_of_its_sdf_coordinate(tmp_path):
+    # With a ball crank joint cut, the crank hangs from the coupler: coupler_joint is
+    # reversed, yet +q still turns its SDF child (coupler) by +q about z from its parent.
+    text = _edit(
+        '<joint name="crank_joint" type="revolute">', '<joint name="crank_joint" type="ball">'
+    )
+    path = _write(tmp_path, text)
+    _, tree = read_sdf(path)
+    assert tree.cut_joints == ("crank_joint",)
+    assert "coupler_joint" in tree.reversed_joints
+    mech = cc.load(path)
+    model, data = mech.model, mech.data
+
+    def relative_yaw(q) -> float:
+        pin.framesForwardKinematics(model, data, q)
+        crank, coupler = (
+            data.oMf[model.getFrameId(name, pin.FrameType.BODY)] for name in ("crank", "coupler")
+        )
+        R = crank.rotation.T @ coupler.rotation
+        return math.atan2(R[1, 0], R[0, 0])
+
+    q = pin.neutral(model)
+    at_zero = relative_yaw(q)  # URDF link frames differ from SDF ones by constant turns
+    q[model.joints[model.getJointId("coupler_joint")].idx_q] = 0.1
+    assert abs(math.remainder(relative_yaw(q) - at_zero - 0.1, 2 * math.pi)) < TOL_FRAME
+
+
+def test_a_universal_joint_is_kept_as_two_revolute_joints(tmp_path):
+    text = _edit(
+        '<joint name="coupler_joint" type="revolute">',
+        '<joint name="coupler_joint" type="universal">',
+    ).replace(
+        "<use_parent_model_frame>1</use_parent_model_frame></axis>",
+        "<use_parent_model_frame>1</use_parent_model_frame></axis><axis2><xyz>1 0 0</xyz></axis2>",
+    )
+    path = _write(tmp_path, text)
+    mech = cc.load(path)
+    assert {"coupler_joint", "coupler_joint::axis2"} <= set(mech.joint_names)
+    assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
+    # The second axis is the coupler's x at the reference: B -> C.
+    model, data = mech.model, mech.data
+    pin.computeJointJacobians(model, data, mech.q_ref)
+    joint = model.getJointId("coupler_joint::axis2")
+    J = pin.getJointJacobian(model, data, joint, pin.ReferenceFrame.WORLD)
+    axis = J[3:, model.joints[joint].idx_v]
+    assert np.linalg.norm(axis - np.array([3.0, 1.0, 0.0]) / math.sqrt(10.0)) < TOL_FRAME
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+    assert cc.validate(mech, n_samples=10).passed
+    with pytest.raises(cc.URDFError, match=r"'coupler_joint'>: a universal joint cannot be cut"):
+        cc.load(path, cut_joints=["coupler_joint"])
+
+
 # -- Cassie -----------------------------------------------------------------------
 
 

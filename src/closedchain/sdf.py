@@ -31,10 +31,12 @@ close a cycle; the joints left out are cut and become ``<loop>`` elements.
 
 1. joints named in ``cut_joints`` come last (the user's choice, as the
    ``parent_guidance`` of Pinocchio's SDF reader);
-2. by type, :data:`KEEP_ORDER`: ``fixed``, ``prismatic``, ``revolute``,
-   ``continuous``, ``universal``, ``ball``: a ball joint is cut first (it
-   closes with 3 rows and a URDF tree cannot hold it), a prismatic joint last
-   (Pinocchio has no prismatic constraint to validate against);
+2. by type, :data:`KEEP_ORDER`: ``universal``, ``fixed``, ``prismatic``,
+   ``revolute``, ``continuous``, ``ball``: a ball joint is cut first (it
+   closes with 3 rows and a URDF tree cannot hold it), a prismatic joint after
+   the revolute ones (Pinocchio has no prismatic constraint to validate
+   against), a universal joint never while another joint of its cycle can be
+   (URDF+ has no universal loop);
 3. joints whose child link has one parent joint before joints whose child has
    several (the link keeps its own joint: Pinocchio's SDF rule);
 4. file order.
@@ -97,7 +99,7 @@ SDF_VERSIONS = ("1.5", "1.6", "1.7", "1.8", "1.9", "1.10", "1.11")
 SDF_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "universal", "ball", "gearbox")
 
 #: Joint types in the order they are kept in the spanning tree (see the module doc).
-KEEP_ORDER = ("fixed", "prismatic", "revolute", "continuous", "universal", "ball")
+KEEP_ORDER = ("universal", "fixed", "prismatic", "revolute", "continuous", "ball")
 
 #: URDF+ loop type of each cut joint type (``universal`` cannot be cut).
 LOOP_TYPE_OF = {
@@ -486,7 +488,8 @@ class _Reader:
                 raise URDFError(
                     f"{_where(self.path, self.joint_elements[j.name])}: a universal joint "
                     "cannot be cut (URDF+ loops are revolute, prismatic, spherical or "
-                    "fixed); name another joint of its cycle in cut_joints"
+                    "fixed); keep it out of cut_joints, or give its cycle a joint of another "
+                    "type"
                 )
         for j in order:
             if j.type == "ball":
