@@ -103,6 +103,10 @@ def test_fourbar_bodies_sit_where_the_sdf_puts_them(fourbar):
     com = data.oMi[joint].act(model.inertias[joint].lever)
     assert np.linalg.norm(com - [0.15, 0.15, 0]) < TOL_FRAME
     assert abs(model.inertias[joint].mass - 0.3) < TOL_FRAME
+    # Its principal axes are turned 0.3 rad about the coupler's y (the <inertial><pose>).
+    R = pin.rpy.rpyToMatrix(0.0, 0.3, 0.0)
+    expected = R @ np.diag([1e-4, 3e-3, 3e-3]) @ R.T
+    assert np.max(np.abs(model.inertias[joint].inertia - expected)) < TOL_FRAME
     assert np.max(np.abs(cc.compute_phi(fourbar, fourbar.q_ref))) < TOL_CLOSED
 
 

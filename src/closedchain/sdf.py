@@ -231,14 +231,15 @@ def _scalar(path: Path, parent, tag: str, default: float, *, minimum: float | No
     return value
 
 
-def _origin(element, M: pin.SE3) -> None:
-    """Add ``<origin xyz rpy>`` of placement ``M`` to a URDF element (all digits)."""
-    origin = etree.SubElement(element, "origin")
-    origin.set("xyz", " ".join(repr(float(x)) for x in M.translation))
-    origin.set("rpy", " ".join(repr(float(x)) for x in pin.rpy.matrixToRpy(M.rotation)))
+def _origin(element, M: pin.SE3, tag: str = "origin") -> None:
+    """Add ``<origin xyz rpy>`` (or another ``tag``) of placement ``M`` to a URDF element."""
+    origin = etree.SubElement(element, tag)
+    origin.set("xyz", _vector(M.translation))
+    origin.set("rpy", _vector(pin.rpy.matrixToRpy(M.rotation)))
 
 
 def _vector(values) -> str:
+    """Return numbers as URDF attribute text, all digits."""
     return " ".join(repr(float(x)) for x in values)
 
 
@@ -669,10 +670,7 @@ class _Reader:
         etree.SubElement(loop, "predecessor", link=j.parent)
         etree.SubElement(loop, "successor", link=j.child)
         for tag, link in (("predecessor_origin", j.parent), ("successor_origin", j.child)):
-            M = frames[link].inverse() * j.oMj
-            element = etree.SubElement(loop, tag)
-            element.set("xyz", _vector(M.translation))
-            element.set("rpy", _vector(pin.rpy.matrixToRpy(M.rotation)))
+            _origin(loop, frames[link].inverse() * j.oMj, tag)
         if j.type in ("revolute", "continuous", "prismatic"):
             etree.SubElement(loop, "axis", xyz=_vector(j.axis))
         return loop
