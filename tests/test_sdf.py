@@ -135,6 +135,27 @@ def test_cut_joints_chooses_the_cut(tmp_path):
         cc.load(FOURBAR, cut_joints=["nope"])
 
 
+def test_cut_joints_is_refused_for_a_urdf():
+    with pytest.raises(cc.URDFError, match=r"cut_joints=\['crank_joint'\] is for SDF models"):
+        cc.load(MODELS / "fourbar.urdf", cut_joints=["crank_joint"])
+
+
+def test_visuals_keep_their_geometry_colour_and_mesh_uri(fourbar, tmp_path):
+    robot = etree.fromstring(fourbar.urdf.xml.encode())
+    (visual,) = robot.findall("link[@name='crank']/visual")
+    assert visual.find("geometry/cylinder").attrib == {"radius": "0.01", "length": "0.1"}
+    name = visual.find("material").get("name")
+    assert robot.find(f"material[@name='{name}']/color").get("rgba") == "0.8 0.2 0.2 1.0"
+    # model://name/sub is looked up as a URDF's package://name/sub.
+    text = _edit(
+        "<cylinder><radius>0.01</radius><length>0.1</length></cylinder>",
+        "<mesh><uri>model://fourbar/meshes/crank.stl</uri></mesh>",
+    )
+    robot, _ = read_sdf(_write(tmp_path, text))
+    mesh = robot.find("link[@name='crank']/visual/geometry/mesh")
+    assert mesh.get("filename") == "package://fourbar/meshes/crank.stl"
+
+
 def _write(tmp_path, text: str, name: str = "m.sdf"):
     path = tmp_path / name
     path.write_text(text)

@@ -2,7 +2,8 @@
 
 Models of the installed ``example-robot-data`` package (the optional
 ``robots`` extra) are named ``erd:<name>``; :data:`ERD_MODELS` maps each name
-to its URDF and SRDF inside the package (nothing is copied into closedchain).
+to its URDF (or SDF, read by :mod:`closedchain.sdf`) and SRDF inside the
+package (nothing is copied into closedchain).
 
 An *overlay* is a file in URDF+ syntax whose ``<link>``, ``<joint>``,
 ``<material>``, ``<loop>`` and ``<transmission>`` elements are merged into the
