@@ -602,13 +602,16 @@ def load(
     loops: str | Path | None = None,
     gravity: Sequence[float] = DEFAULT_GRAVITY,
     settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
+    cut_joints: Sequence[str] = (),
 ) -> Mechanism:
     """Load a URDF+ mechanism.
 
     Args:
         path: URDF file with optional ``<loop>`` / ``<transmission>`` elements,
-            or ``erd:<name>``, a model of the installed example-robot-data
-            (:data:`closedchain.robots.ERD_MODELS`; drawn with primitive geometry).
+            an SDF file (``.sdf``, cut into a tree and loops by
+            :mod:`closedchain.sdf`), or ``erd:<name>``, a model of the
+            installed example-robot-data (:data:`closedchain.robots.ERD_MODELS`;
+            drawn with primitive geometry).
         root_joint: joint between the world and the URDF's root link: None
             (fixed), ``"free"`` (free flyer, 7 entries of q: x, y, z [m] and a
             unit quaternion x, y, z, w; 6 of v in the root link frame) or
@@ -618,6 +621,8 @@ def load(
         gravity: gravity vector in the world frame [m/s^2], shape (3,), of
             norm at most :data:`MAX_GRAVITY_NORM`.
         settings: row-selection settings (defaults: :class:`LoadSettings`).
+        cut_joints: SDF only: joints to cut into loops in preference to the
+            rule of :mod:`closedchain.sdf` (default: the registry entry's).
 
     Returns:
         The mechanism, with independent rows selected and a closed ``q_ref``, within
@@ -634,15 +639,23 @@ def load(
             residual reached per loop).
     """
     from .robots import merge_overlay, reference_configuration, resolve_model
+    from .sdf import is_sdf
 
     if root_joint not in ROOT_JOINTS:
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
+    cut = tuple(cut_joints) or (entry.cut_joints if entry is not None else ())
     try:
-        if loops is None and entry is None:
+        if loops is None and entry is None and not cut and not is_sdf(base):
             urdf = parse_urdf(base, max_nv=max_nv(settings))
         else:
-            urdf = merge_overlay(base, loops, primitive=entry is not None, max_nv=max_nv(settings))
+            urdf = merge_overlay(
+                base,
+                loops,
+                primitive=entry is not None,
+                max_nv=max_nv(settings),
+                cut_joints=cut,
+            )
     except ModelTooLargeError as exc:
         raise ModelTooLargeError(
             f"{exc}: one Pinocchio Data takes {data_cost_formula()}, "

@@ -2,7 +2,8 @@
 
 Models of the installed ``example-robot-data`` package (the optional
 ``robots`` extra) are named ``erd:<name>``; :data:`ERD_MODELS` maps each name
-to its URDF and SRDF inside the package (nothing is copied into closedchain).
+to its URDF (or SDF, read by :mod:`closedchain.sdf`) and SRDF inside the
+package (nothing is copied into closedchain).
 
 An *overlay* is a file in URDF+ syntax whose ``<link>``, ``<joint>``,
 ``<material>``, ``<loop>`` and ``<transmission>`` elements are merged into the
@@ -37,6 +38,7 @@ import numpy as np
 from lxml import etree
 
 from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
+from .sdf import is_sdf, read_sdf
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
 
 logger = logging.getLogger(__name__)
@@ -67,15 +69,18 @@ class RobotEntry:
     """One model of example-robot-data.
 
     Attributes:
-        urdf: URDF path relative to the package's robots directory.
+        urdf: URDF (or SDF) path relative to the package's robots directory.
         srdf: SRDF path (reference configurations), or None.
         reference: name of the SRDF ``<group_state>`` used as the assembly
             start of ``q_ref``, or None (then Pinocchio's neutral configuration).
+        cut_joints: for an SDF model, joints to cut in preference (see
+            :mod:`closedchain.sdf`).
     """
 
     urdf: str
     srdf: str | None = None
     reference: str | None = None
+    cut_joints: tuple[str, ...] = ()
 
 
 #: Models found by ``erd:<name>``.
@@ -87,6 +92,12 @@ ERD_MODELS: dict[str, RobotEntry] = {
         "solo_description/robots/solo12.urdf", "solo_description/srdf/solo.srdf", "standing"
     ),
     "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
+    # SDF: the achilles and plantar rods close with ball joints, the knee spring with a
+    # revolute one; its gearbox joints (motor rotors) are left out (closedchain.sdf).
+    # The SRDF of cassie_v2 names the same joints with the same signs.
+    "cassie": RobotEntry(
+        "cassie_description/robots/cassie.sdf", "cassie_description/srdf/cassie_v2.srdf", "standing"
+    ),
 }
 
 
@@ -161,12 +172,34 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
     return np.array(probe.referenceConfigurations[entry.reference], dtype=float)
 
 
+def read_base(base: Path, *, cut_joints: tuple[str, ...] = ()):
+    """Return the ``<robot>`` element of a base model: a URDF, or an SDF read as URDF+.
+
+    Args:
+        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`).
+        cut_joints: SDF only: joints to cut in preference.
+
+    Raises:
+        URDFError: see :func:`closedchain.urdf.read_xml` and :func:`closedchain.sdf.read_sdf`;
+            ``cut_joints`` given for a URDF.
+    """
+    if is_sdf(base):
+        return read_sdf(base, cut_joints=cut_joints)[0]
+    if cut_joints:
+        raise URDFError(
+            f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
+            "loops with <loop> elements"
+        )
+    return read_xml(base)
+
+
 def merge_overlay(
     base: Path,
     overlay: str | Path | None,
     *,
     primitive: bool = False,
     max_nv: int | None = None,
+    cut_joints: tuple[str, ...] = (),
 ) -> URDFPlus:
     """Merge an overlay's elements into a base URDF and parse the result.
 
@@ -177,6 +210,7 @@ def merge_overlay(
         primitive: replace mesh visuals by primitive geometry (see
             :func:`primitive_visuals`).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
+        cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
 
     Returns:
         The parsed, merged model. Its ``path`` is the overlay (messages about
@@ -187,7 +221,7 @@ def merge_overlay(
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
             (lists the valid ones), or a link or joint name the base already uses.
     """
-    root = read_xml(base)
+    root = read_base(base, cut_joints=cut_joints)
     path = base
     if overlay is not None:
         path = Path(overlay)
@@ -214,7 +248,9 @@ def merge_overlay(
             root.append(copy.deepcopy(element))
         root.set("name", extra.get("name", root.get("name", path.stem)))
         _check_world_joints(path, root)
-    urdf = parse_urdf(path, element=root, max_nv=max_nv)
+    # The SDF reader has warned about SDF inertias that violate the triangle inequality.
+    triangle = "pass" if is_sdf(base) else "refuse"
+    urdf = parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle)
     if primitive:
         # After the checks: the joint origins it reads are finite and bounded.
         primitive_visuals(root)

@@ -297,16 +297,29 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
         URDFError: the attribute is not three numbers, is not finite or is zero.
     """
     text = axis.get("xyz", "1 0 0")
+    return unit_vector(text, f"{where}: <axis xyz={text!r}>")
+
+
+def unit_vector(text: str, what: str) -> np.ndarray:
+    """Return the unit vector of a text of three numbers, shape (3,), without overflow.
+
+    See :func:`_unit_axis`; shared with the SDF reader (:mod:`closedchain.sdf`).
+
+    Args:
+        text: three numbers separated by white space.
+        what: where the text is, the start of every message (file, line, element).
+
+    Raises:
+        URDFError: the text is not three numbers, is not finite or is zero.
+    """
     xyz = _three(text)
     if xyz is None:
-        raise URDFError(f"{where}: <axis xyz={text!r}> must be three numbers")
+        raise URDFError(f"{what} must be three numbers")
     if not np.all(np.isfinite(xyz)):
-        raise URDFError(f"{where}: <axis xyz={text!r}> is not finite; valid: three finite numbers")
+        raise URDFError(f"{what} is not finite; valid: three finite numbers")
     scale = float(np.max(np.abs(xyz)))
     if scale == 0.0:
-        raise URDFError(
-            f"{where}: <axis xyz={text!r}> is zero; valid: a direction with a non-zero component"
-        )
+        raise URDFError(f"{what} is zero; valid: a direction with a non-zero component")
     unit = xyz / scale  # largest |component| is 1: the norm below is in [1, sqrt(3)]
     return unit / math.sqrt(float(unit @ unit))
 
@@ -431,7 +444,7 @@ def _number(
     return value
 
 
-def _check_inertial(path: Path, link) -> None:
+def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
     """Refuse an ``<inertial>`` whose mass or inertia is not a physical one.
 
     urdfdom only warns about these and Pinocchio then builds a massless or
@@ -453,6 +466,28 @@ def _check_inertial(path: Path, link) -> None:
         raise URDFError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
     names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
     values = {n: _number(where, inertia, n) or 0.0 for n in names}
+    check_inertia(where, values, triangle=triangle)
+
+
+#: What :func:`check_inertia` does with a violated triangle inequality.
+TRIANGLE_CHOICES = ("refuse", "warn", "pass")
+
+
+def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refuse") -> None:
+    """Refuse a rotational inertia that no mass distribution has.
+
+    Args:
+        where: the start of every message (file, line, element).
+        values: ``ixx, ixy, ixz, iyy, iyz, izz`` [kg m^2], finite.
+        triangle: a violated triangle inequality is refused, logged as a
+            warning, or passed (one of :data:`TRIANGLE_CHOICES`). The mass
+            matrix stays positive definite either way: the SDF reader warns
+            (Cassie ships such rotors) and its URDF+ is then passed.
+
+    Raises:
+        URDFError: not positive semi-definite, or principal moments that
+            violate the triangle inequality (both within :data:`INERTIA_REL_TOL`).
+    """
     inertia_matrix = np.array(
         [
             [values["ixx"], values["ixy"], values["ixz"]],
@@ -470,10 +505,14 @@ def _check_inertial(path: Path, link) -> None:
     # Triangle inequality of principal moments (a real mass distribution).
     tol = INERTIA_REL_TOL * max(1.0, float(eig[-1]))
     if eig[0] + eig[1] < eig[2] - tol:
-        raise URDFError(
+        message = (
             f"{where}: <inertia> principal moments {np.array2string(eig, precision=6)} kg m^2 "
             "violate the triangle inequality I1 + I2 >= I3 (no mass distribution has them)"
         )
+        if triangle == "refuse":
+            raise URDFError(message)
+        if triangle == "warn":
+            logger.warning("%s; kept", message)
 
 
 #: Joint types whose motion is defined by ``<axis>`` (its length must not vanish).
@@ -540,7 +579,7 @@ def read_xml(path: Path, *, what: str = "URDF file"):
     raw = read_input_bytes(path, limit=MAX_XML_BYTES, what=what, error=URDFError)
     if _declares_doctype(raw):
         raise URDFError(
-            f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"
+            f"{path}: a DOCTYPE/DTD is not allowed in the {what} (entity expansion is refused)"
         )
     try:
         root = etree.fromstring(raw, _safe_parser(), base_url=str(path))
@@ -549,12 +588,14 @@ def read_xml(path: Path, *, what: str = "URDF file"):
     docinfo = root.getroottree().docinfo
     if docinfo.internalDTD is not None or docinfo.doctype:
         raise URDFError(
-            f"{path}: a DOCTYPE/DTD is not allowed in a URDF file (entity expansion is refused)"
+            f"{path}: a DOCTYPE/DTD is not allowed in the {what} (entity expansion is refused)"
         )
     return root
 
 
-def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> URDFPlus:
+def parse_urdf(
+    path: str | Path, *, element=None, max_nv: int | None = None, triangle: str = "refuse"
+) -> URDFPlus:
     """Read a URDF file and its URDF+ extension elements.
 
     Args:
@@ -565,6 +606,9 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
         max_nv: largest supported number of degrees of freedom of the tree
             (sum over joints of :data:`URDF_JOINT_NV`); a larger tree is
             refused right after the XML is read, before any per-element work.
+        triangle: what to do with inertias that violate the triangle
+            inequality (see :func:`check_inertia`; ``"pass"`` for SDF models,
+            whose reader has warned).
 
     Returns:
         The parsed extensions, with the checked XML text (joint axes written
@@ -625,7 +669,7 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
     _unique_names(path, joint_elements, "joint")
     joints = {e.get("name"): e.get("type") for e in joint_elements}
     for link in link_elements:
-        _check_inertial(path, link)
+        _check_inertial(path, link, triangle=triangle)
         for origin in (*link.findall("visual/origin"), *link.findall("collision/origin")):
             _origin_values(path, origin, f"{_where(path, link)} <{origin.getparent().tag}>")
     for joint in joint_elements:

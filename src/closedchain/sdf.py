@@ -1,0 +1,681 @@
+"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
+
+An SDF ``<model>`` is a graph of links and joints that may hold cycles; URDF
+holds a tree. :func:`read_sdf` cuts the graph into a spanning tree plus loop
+joints and writes the URDF+ document closedchain loads (``<link>``,
+``<joint>`` and one ``<loop>`` per cut joint), so ``load("robot.sdf")`` works
+as ``load("robot.urdf")`` does.
+
+Frames (SDFormat 1.6, with the 1.7 ``relative_to`` attribute where present):
+
+- a link's ``<pose>`` is in the model frame; a joint's ``<pose>`` is in its
+  child link's frame; the ``<pose>`` of an inertial, visual or collision is
+  in its link's frame; ``relative_to`` (or the 1.6 ``frame`` attribute, when
+  not empty) names another link or joint frame, ``__model__`` the model;
+- a joint axis ``<xyz>`` is in the joint frame, or in the model frame with
+  ``<use_parent_model_frame>1`` (1.6) or ``expressed_in="__model__"`` (1.7).
+
+The URDF frame of each tree link is the frame of its tree joint (as URDF
+wants); inertials, visuals, joint origins and loop origins are re-expressed
+in those frames, so every body sits where the SDF puts it when all joint
+coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
+Pinocchio's universe or moves with its root joint, is (as in Pinocchio's SDF
+reader) the model's first ``<link>``: its frame is the world frame, its own
+``<pose>`` (and the model's) only place it. When joints have ``world`` as
+parent, the root is instead a massless link ``world`` (the model frame, as in
+URDFs that have one) from which those joints hang.
+
+Which joints are cut (a minimum spanning tree, Kruskal's algorithm): the joints
+are taken in the order below and each is kept in the tree unless it would
+close a cycle; the joints left out are cut and become ``<loop>`` elements.
+
+1. joints named in ``cut_joints`` come last (the user's choice, as the
+   ``parent_guidance`` of Pinocchio's SDF reader);
+2. by type, :data:`KEEP_ORDER`: ``universal``, ``fixed``, ``prismatic``,
+   ``revolute``, ``continuous``, ``ball``: a ball joint is cut first (it
+   closes with 3 rows and a URDF tree cannot hold it), a prismatic joint after
+   the revolute ones (Pinocchio has no prismatic constraint to validate
+   against), a universal joint never while another joint of its cycle can be
+   (URDF+ has no universal loop);
+3. joints whose child link has one parent joint before joints whose child has
+   several (the link keeps its own joint: Pinocchio's SDF rule);
+4. file order.
+
+The tree is then oriented from the root: a kept joint met from its child
+side is *reversed* (the SDF child becomes the URDF parent; the axis is negated,
+so its coordinate keeps the SDF's sign, and its limits are kept).
+
+Joint types: ``revolute`` (URDF ``revolute``; without ``<limit>`` its range
+is :data:`SDF_UNLIMITED`, SDF's own default), ``continuous``, ``prismatic``,
+``fixed``, ``universal`` (in the tree: two revolute joints ``J`` and
+``J::axis2`` through a massless link ``J::cross``; cut: refused), ``ball``
+(cut: a ``spherical`` loop; in the tree: refused). ``gearbox`` joints
+(``q_child = gearbox_ratio * q_parent`` about the ``gearbox_reference_body``)
+couple a motor's rotor to its output: closedchain has no coupling loop yet, so
+they are left out with a logged warning (the rotor link then turns freely on
+its own joint) and listed in :attr:`SDFTree.gearboxes`; a model that needs a
+gearbox to hold a link at all is refused.
+
+Parsing is as safe as for URDF (:func:`closedchain.urdf.read_xml`: no DTD, no
+network, bounded size). Mesh ``model://name/sub`` URIs become
+``package://name/sub`` and are then looked up as URDF meshes are.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+from lxml import etree
+
+from .exceptions import URDFError
+from .urdf import (
+    ORIGIN_RPY_MAX,
+    ORIGIN_XYZ_MAX,
+    _check_name,
+    _unique_names,
+    _where,
+    check_inertia,
+    read_xml,
+    unit_vector,
+)
+
+logger = logging.getLogger(__name__)
+
+#: The SDF name of the world, as a joint's parent (and the URDF root link then).
+SDF_WORLD = "world"
+
+#: The SDF name of the model frame, in ``relative_to`` and ``expressed_in``.
+SDF_MODEL_FRAME = "__model__"
+
+#: SDF versions read: 1.5 introduced ``use_parent_model_frame`` (1.4 wrote axes
+#: in the model frame), 1.7 ``relative_to``; 1.6 is what robots ship in.
+SDF_VERSIONS = ("1.5", "1.6", "1.7", "1.8", "1.9", "1.10", "1.11")
+
+#: Joint types read (others, e.g. ``revolute2`` and ``screw``, are refused).
+SDF_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "universal", "ball", "gearbox")
+
+#: Joint types in the order they are kept in the spanning tree (see the module doc).
+KEEP_ORDER = ("universal", "fixed", "prismatic", "revolute", "continuous", "ball")
+
+#: URDF+ loop type of each cut joint type (``universal`` cannot be cut).
+LOOP_TYPE_OF = {
+    "revolute": "revolute",
+    "continuous": "revolute",
+    "prismatic": "prismatic",
+    "fixed": "fixed",
+    "ball": "spherical",
+}
+
+#: SDF's default joint limits (``lower``, ``upper`` [rad or m], ``effort`` [N m
+#: or N], ``velocity`` [rad/s or m/s]) when ``<limit>`` leaves them out or
+#: gives SDF's "unlimited" (-1 for effort and velocity).
+SDF_UNLIMITED = 1e16
+
+#: Model children that cannot be read (they would change the mechanism if ignored).
+SDF_REFUSED_ELEMENTS = ("model", "include", "frame")
+
+#: Default ``<inertial>`` of SDF: mass 1 kg, inertia the identity [kg m^2].
+SDF_DEFAULT_MASS = 1.0
+
+
+@dataclass(frozen=True)
+class SDFJoint:
+    """One SDF joint, with its frame at the reference configuration.
+
+    Attributes:
+        name: joint name.
+        type: one of :data:`SDF_JOINT_TYPES`.
+        parent: parent link name (``world`` for the SDF world).
+        child: child link name.
+        oMj: joint frame in the world frame, all coordinates zero.
+        axis: unit axis in the joint frame, shape (3,) (``<axis>``).
+        axis2: unit second axis in the joint frame, shape (3,) (``<axis2>``, universal).
+        limits: ``(lower, upper, effort, velocity)`` (see :data:`SDF_UNLIMITED`).
+        index: position in the file among the joints.
+        line: source line of the ``<joint>``.
+    """
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    oMj: pin.SE3
+    axis: np.ndarray
+    axis2: np.ndarray
+    limits: tuple[float, float, float, float]
+    index: int
+    line: int
+
+
+@dataclass(frozen=True)
+class SDFTree:
+    """How an SDF model's joint graph was cut (see the module doc for the rule).
+
+    Attributes:
+        model_name: the ``<model name>``.
+        root: the URDF root link: the model's first link, or ``world`` when
+            joints hang from it.
+        tree_joints: joints kept in the spanning tree, in URDF order.
+        reversed_joints: tree joints whose SDF child is their URDF parent.
+        cut_joints: joints cut, each a ``<loop>`` of the same name.
+        gearboxes: gearbox joints left out (no coupling loop yet).
+    """
+
+    model_name: str
+    root: str
+    tree_joints: tuple[str, ...]
+    reversed_joints: tuple[str, ...]
+    cut_joints: tuple[str, ...]
+    gearboxes: tuple[str, ...]
+
+
+def read_sdf(path: str | Path, *, cut_joints: tuple[str, ...] = ()) -> tuple[object, SDFTree]:
+    """Read an SDF file and write its URDF+ ``<robot>`` element.
+
+    Args:
+        path: the SDF file (one ``<model>``, under ``<sdf>`` or ``<sdf><world>``).
+        cut_joints: joints to cut in preference to the rule's choice (see the
+            module doc); each must be a joint of the model.
+
+    Returns:
+        ``(robot, tree)``: the URDF+ ``<robot>`` element (lxml) and how the
+        graph was cut.
+
+    Raises:
+        URDFError: unsafe or malformed XML, an unsupported version, element or
+            joint type, a bad number, a link not connected to the root, a
+            ``cut_joints`` name that is not a joint, a ball joint the tree
+            needs or a universal joint that has to be cut. The message names
+            the file, line and element and the valid choices.
+    """
+    path = Path(path)
+    root = read_xml(path, what="SDF file")
+    if root.tag != "sdf":
+        raise URDFError(f"{path}: root element is <{root.tag}>, expected <sdf>")
+    version = root.get("version")
+    if version not in SDF_VERSIONS:
+        raise URDFError(
+            f"{path}: <sdf version={version!r}> is not read; valid: {', '.join(SDF_VERSIONS)}"
+        )
+    models = root.findall("model") + root.findall("world/model")
+    if len(models) != 1:
+        raise URDFError(f"{path}: {len(models)} <model> elements; valid: exactly one")
+    reader = _Reader(path, models[0])
+    return reader.robot(tuple(cut_joints))
+
+
+def _numbers(path: Path, element, count: int) -> np.ndarray:
+    """Return the ``count`` finite numbers of an element's text, or raise naming it."""
+    text = element.text or ""
+    try:
+        values = np.array([float(x) for x in text.split()])
+    except ValueError:
+        values = np.array([])
+    if values.shape != (count,) or not np.all(np.isfinite(values)):
+        raise URDFError(f"{_where(path, element)}: {text.strip()!r} must be {count} finite numbers")
+    return values
+
+
+def _scalar(path: Path, parent, tag: str, default: float, *, minimum: float | None = None):
+    """Return the number held by child ``tag`` of ``parent`` (``default`` when absent)."""
+    element = parent.find(tag)
+    if element is None:
+        return default
+    value = float(_numbers(path, element, 1)[0])
+    if minimum is not None and value < minimum:
+        raise URDFError(f"{_where(path, element)}: {value:g} must be >= {minimum:g}")
+    return value
+
+
+def _origin(element, M: pin.SE3, tag: str = "origin") -> None:
+    """Add ``<origin xyz rpy>`` (or another ``tag``) of placement ``M`` to a URDF element."""
+    origin = etree.SubElement(element, tag)
+    origin.set("xyz", _vector(M.translation))
+    origin.set("rpy", _vector(pin.rpy.matrixToRpy(M.rotation)))
+
+
+def _vector(values) -> str:
+    """Return numbers as URDF attribute text, all digits."""
+    return " ".join(repr(float(x)) for x in values)
+
+
+class _Reader:
+    """One SDF ``<model>``: its frames, joint graph, spanning tree and URDF+ text."""
+
+    def __init__(self, path: Path, model) -> None:
+        self.path = path
+        self.model = model
+        self.name = _check_name(path, model, "model")
+        for child in model:
+            if isinstance(child.tag, str) and child.tag in SDF_REFUSED_ELEMENTS:
+                raise URDFError(
+                    f"{_where(path, child)}: <{child.tag}> inside <model> is not supported; "
+                    "valid: <link> and <joint> (write the model out flat)"
+                )
+        self.link_elements = model.findall("link")
+        if not self.link_elements:
+            raise URDFError(f"{_where(path, model)}: has no <link> elements")
+        self.links = {e.get("name"): e for e in self.link_elements}
+        _unique_names(path, self.link_elements, "link")
+        joint_elements = model.findall("joint")
+        _unique_names(path, joint_elements, "joint")
+        self.joint_elements = {e.get("name"): e for e in joint_elements}
+        self._poses: dict[str, pin.SE3] = {}
+        self._resolving: list[str] = []
+        self.joints = [self._joint(i, e) for i, e in enumerate(joint_elements)]
+
+    # -- frames ----------------------------------------------------------------
+    def _pose_value(self, element) -> pin.SE3:
+        """Return the placement written in a ``<pose>`` element (x y z roll pitch yaw)."""
+        if element.get("rotation_format", "euler_rpy") != "euler_rpy":
+            raise URDFError(
+                f"{_where(self.path, element)}: rotation_format="
+                f"{element.get('rotation_format')!r} is not read; valid: euler_rpy"
+            )
+        values = _numbers(self.path, element, 6)
+        if element.get("degrees") == "true":
+            values[3:] = np.deg2rad(values[3:])
+        for part, bound, unit in (
+            (values[:3], ORIGIN_XYZ_MAX, "m"),
+            (values[3:], ORIGIN_RPY_MAX, "rad"),
+        ):
+            if float(np.max(np.abs(part))) > bound:
+                raise URDFError(
+                    f"{_where(self.path, element)}: {element.text.strip()!r} is beyond "
+                    f"{bound:g} {unit}; valid: |components| <= {bound:g} {unit}"
+                )
+        return pin.SE3(pin.rpy.rpyToMatrix(values[3:]), values[:3])
+
+    def _relative(self, element, default: str) -> pin.SE3:
+        """Return the world placement of the frame a ``<pose>`` is relative to."""
+        pose = element.find("pose")
+        name = default
+        if pose is not None:
+            name = pose.get("relative_to") or pose.get("frame") or default
+        if name in ("", SDF_MODEL_FRAME):
+            return pin.SE3.Identity()
+        return self.frame(name, where=_where(self.path, element))
+
+    def placed(self, element, default: str) -> pin.SE3:
+        """Return the world placement of an element with an optional ``<pose>``.
+
+        Args:
+            element: a link, joint, inertial, visual or collision element.
+            default: the frame its pose is relative to without ``relative_to``.
+        """
+        pose = element.find("pose")
+        M = self._relative(element, default)
+        return M if pose is None else M * self._pose_value(pose)
+
+    def frame(self, name: str, *, where: str) -> pin.SE3:
+        """Return the world placement of a link or joint frame, all coordinates zero.
+
+        Raises:
+            URDFError: unknown frame name (lists the valid ones), or poses
+                relative to each other in a cycle.
+        """
+        if name in self._poses:
+            return self._poses[name]
+        if name in self._resolving:
+            cycle = " -> ".join([*self._resolving, name])
+            raise URDFError(f"{where}: poses are relative to each other in a cycle: {cycle}")
+        self._resolving.append(name)
+        if name in self.links:
+            M = self.placed(self.links[name], SDF_MODEL_FRAME)
+        elif name in self.joint_elements:
+            joint = self.joint_elements[name]
+            M = self.placed(joint, joint.findtext("child", "").strip())
+        else:
+            valid = [SDF_MODEL_FRAME, *self.links, *self.joint_elements]
+            raise URDFError(f"{where}: unknown frame {name!r}; valid: {', '.join(valid)}")
+        self._resolving.pop()
+        self._poses[name] = M
+        return M
+
+    # -- joints ------------------------------------------------------------------
+    def _joint(self, index: int, element) -> SDFJoint:
+        where = _where(self.path, element)
+        jtype = element.get("type")
+        if jtype not in SDF_JOINT_TYPES:
+            raise URDFError(
+                f"{where}: joint type {jtype!r} is not read; valid: {', '.join(SDF_JOINT_TYPES)}"
+            )
+        ends = {}
+        for tag in ("parent", "child"):
+            link = (element.findtext(tag) or "").strip()
+            valid = (*self.links, SDF_WORLD) if tag == "parent" else tuple(self.links)
+            if link not in valid:
+                raise URDFError(
+                    f"{where}: <{tag}>{link}</{tag}> is not a link; valid: {', '.join(valid)}"
+                )
+            ends[tag] = link
+        if ends["parent"] == ends["child"]:
+            raise URDFError(f"{where}: parent and child are the same link {ends['child']!r}")
+        oMj = self.frame(element.get("name"), where=where)
+        axes = []
+        for tag in ("axis", "axis2"):
+            axes.append(
+                self._axis(
+                    element,
+                    tag,
+                    oMj,
+                    required=jtype in ("revolute", "continuous", "prismatic", "universal")
+                    and tag == "axis",
+                )
+            )
+        if jtype == "universal" and element.find("axis2") is None:
+            raise URDFError(f"{where}: a universal joint needs <axis2>")
+        limit = element.find("axis/limit")
+        limits = (-SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED)
+        if limit is not None:
+            lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
+            upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
+            if lower > upper:
+                raise URDFError(
+                    f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}"
+                )
+            effort = _scalar(self.path, limit, "effort", -1.0)
+            velocity = _scalar(self.path, limit, "velocity", -1.0)
+            limits = (
+                lower,
+                upper,
+                effort if effort >= 0 else SDF_UNLIMITED,
+                velocity if velocity >= 0 else SDF_UNLIMITED,
+            )
+        return SDFJoint(
+            name=element.get("name"),
+            type=jtype,
+            parent=ends["parent"],
+            child=ends["child"],
+            oMj=oMj,
+            axis=axes[0],
+            axis2=axes[1],
+            limits=limits,
+            index=index,
+            line=element.sourceline or 0,
+        )
+
+    def _axis(self, joint, tag: str, oMj: pin.SE3, *, required: bool) -> np.ndarray:
+        """Return the unit axis ``tag`` of a joint in the joint frame, shape (3,)."""
+        axis = joint.find(tag)
+        if axis is None or axis.find("xyz") is None:
+            if required:
+                raise URDFError(f"{_where(self.path, joint)}: missing <{tag}><xyz>")
+            return np.array([0.0, 0.0, 1.0])
+        xyz = axis.find("xyz")
+        vec = unit_vector(xyz.text or "", f"{_where(self.path, xyz)} in <{tag}>")
+        expressed = xyz.get("expressed_in")
+        in_model = (axis.findtext("use_parent_model_frame") or "").strip() in ("1", "true")
+        if in_model or expressed == SDF_MODEL_FRAME:
+            R = np.eye(3)
+        elif expressed:
+            R = self.frame(expressed, where=_where(self.path, xyz)).rotation
+        else:
+            return vec
+        return oMj.rotation.T @ R @ vec
+
+    # -- the spanning tree ---------------------------------------------------------
+    def spanning_tree(self, cut_joints: tuple[str, ...]) -> SDFTree:
+        """Cut the joint graph into a spanning tree (the rule of the module doc)."""
+        for name in cut_joints:
+            if name not in self.joint_elements:
+                raise URDFError(
+                    f"{self.path}: cut_joints names {name!r}, which is not a joint; joints: "
+                    + ", ".join(self.joint_elements)
+                )
+        graph = [j for j in self.joints if j.type != "gearbox"]
+        gearboxes = tuple(j.name for j in self.joints if j.type == "gearbox")
+        parents: dict[str, int] = {}
+        for j in graph:
+            parents[j.child] = parents.get(j.child, 0) + 1
+        from_world = any(j.parent == SDF_WORLD for j in graph)
+        root = SDF_WORLD if from_world else self.link_elements[0].get("name")
+
+        def key(j: SDFJoint):
+            return (j.name in cut_joints, KEEP_ORDER.index(j.type), parents[j.child] > 1, j.index)
+
+        group = {name: name for name in (*self.links, SDF_WORLD)}
+
+        def find(x: str) -> str:
+            while group[x] != x:
+                group[x] = group[group[x]]
+                x = group[x]
+            return x
+
+        kept, cut = [], []
+        for j in sorted(graph, key=key):
+            a, b = find(j.parent), find(j.child)
+            if a == b:
+                cut.append(j)
+            else:
+                group[a] = b
+                kept.append(j)
+        # Orient from the root, breadth first.
+        adjacent: dict[str, list[SDFJoint]] = {}
+        for j in kept:
+            adjacent.setdefault(j.parent, []).append(j)
+            adjacent.setdefault(j.child, []).append(j)
+        order, reversed_, seen = [], [], {root}
+        queue = [root]
+        while queue:
+            link = queue.pop(0)
+            for j in sorted(adjacent.get(link, []), key=lambda j: j.index):
+                other = j.child if j.parent == link else j.parent
+                if other in seen:
+                    continue
+                seen.add(other)
+                order.append(j)
+                if other != j.child:
+                    reversed_.append(j.name)
+                queue.append(other)
+        missing = [name for name in self.links if name not in seen]
+        if missing:
+            through = [j.name for j in self.joints if j.type == "gearbox" and j.child in missing]
+            hint = (
+                f"; it hangs only on gearbox joints ({', '.join(through)}), which closedchain "
+                "does not support yet"
+                if through
+                else "; join it with a <joint> or remove it"
+            )
+            raise URDFError(
+                f"{self.path}: link {missing[0]!r} is not connected to the root link {root!r}{hint}"
+            )
+        for j in cut:
+            if j.type == "universal":
+                raise URDFError(
+                    f"{_where(self.path, self.joint_elements[j.name])}: a universal joint "
+                    "cannot be cut (URDF+ loops are revolute, prismatic, spherical or "
+                    "fixed); keep it out of cut_joints, or give its cycle a joint of another "
+                    "type"
+                )
+        for j in order:
+            if j.type == "ball":
+                raise URDFError(
+                    f"{_where(self.path, self.joint_elements[j.name])}: the spanning tree "
+                    "needs this ball joint (it closes no cycle) and a URDF tree cannot hold "
+                    "one; valid: ball joints that close a cycle"
+                )
+        return SDFTree(
+            model_name=self.name,
+            root=root,
+            tree_joints=tuple(j.name for j in order),
+            reversed_joints=tuple(reversed_),
+            cut_joints=tuple(j.name for j in sorted(cut, key=lambda j: j.index)),
+            gearboxes=gearboxes,
+        )
+
+    # -- the URDF+ document ----------------------------------------------------
+    def robot(self, cut_joints: tuple[str, ...]):
+        """Return the URDF+ ``<robot>`` element and the :class:`SDFTree`."""
+        tree = self.spanning_tree(cut_joints)
+        if tree.gearboxes:
+            logger.warning(
+                "%s: gearbox joints %s are left out (closedchain has no coupling loop yet): "
+                "the links they drive from turn freely on their own joints",
+                self.path,
+                ", ".join(tree.gearboxes),
+            )
+        joints = {j.name: j for j in self.joints}
+        # URDF frame of each link: the frame of the joint that holds it in the tree.
+        if tree.root == SDF_WORLD:
+            frames = {SDF_WORLD: pin.SE3.Identity()}
+        else:
+            frames = {tree.root: self.frame(tree.root, where=str(self.path))}
+        for name in tree.tree_joints:
+            j = joints[name]
+            frames[j.parent if name in tree.reversed_joints else j.child] = j.oMj
+
+        robot = etree.Element("robot", name=self.name)
+        if tree.root == SDF_WORLD:
+            etree.SubElement(robot, "link", name=SDF_WORLD)
+        materials: list = []
+        for element in self.link_elements:
+            robot.append(self._link(element, frames[element.get("name")], materials))
+        for material in materials:
+            robot.insert(0, material)
+        for name in tree.tree_joints:
+            for joint in self._tree_joint(joints[name], name in tree.reversed_joints, frames):
+                robot.append(joint)
+        for name in tree.cut_joints:
+            robot.append(self._loop(joints[name], frames))
+        return robot, tree
+
+    def _link(self, element, oMl_urdf: pin.SE3, materials: list):
+        """Return the URDF ``<link>`` of an SDF link whose URDF frame is ``oMl_urdf``."""
+        name = element.get("name")
+        link = etree.Element("link", name=name)
+        inverse = oMl_urdf.inverse()
+        inertial = element.find("inertial")
+        out = etree.SubElement(link, "inertial")
+        names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+        # SDF's defaults: 1 kg, identity inertia [kg m^2], at the link frame.
+        values = {n: 1.0 if n[1] == n[2] else 0.0 for n in names}
+        if inertial is None:
+            M, mass = self.frame(name, where=_where(self.path, element)), SDF_DEFAULT_MASS
+        else:
+            M = self.placed(inertial, name)
+            mass = _scalar(self.path, inertial, "mass", SDF_DEFAULT_MASS, minimum=0.0)
+            inertia = inertial.find("inertia")
+            if inertia is not None:
+                values = {n: _scalar(self.path, inertia, n, values[n]) for n in names}
+            where = f"{self.path}: line {inertial.sourceline}: <link name={name!r}> <inertial>"
+            check_inertia(where, values, triangle="warn")
+        _origin(out, inverse * M)
+        etree.SubElement(out, "mass", value=repr(mass))
+        etree.SubElement(out, "inertia", **{n: repr(v) for n, v in values.items()})
+        for kind in ("visual", "collision"):
+            for i, shape in enumerate(element.findall(kind)):
+                urdf_shape = self._shape(shape, name, inverse, f"{name}_{kind}_{i}", materials)
+                if urdf_shape is not None:
+                    link.append(urdf_shape)
+        return link
+
+    def _shape(self, element, link: str, inverse: pin.SE3, label: str, materials: list):
+        """Return the URDF ``<visual>``/``<collision>`` of an SDF one (None: no URDF shape)."""
+        geometry = element.find("geometry")
+        kinds = [g for g in (geometry if geometry is not None else []) if isinstance(g.tag, str)]
+        if not kinds:
+            return None
+        g = kinds[0]
+        out = etree.Element(element.tag)
+        _origin(out, inverse * self.placed(element, link))
+        urdf_geometry = etree.SubElement(out, "geometry")
+        if g.tag == "box":
+            etree.SubElement(
+                urdf_geometry, "box", size=_vector(_numbers(self.path, g.find("size"), 3))
+            )
+        elif g.tag == "sphere":
+            etree.SubElement(
+                urdf_geometry,
+                "sphere",
+                radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)),
+            )
+        elif g.tag == "cylinder":
+            etree.SubElement(
+                urdf_geometry,
+                "cylinder",
+                radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)),
+                length=repr(_scalar(self.path, g, "length", 1.0, minimum=0.0)),
+            )
+        elif g.tag == "mesh":
+            uri = (g.findtext("uri") or "").strip()
+            scheme, sep, rest = uri.partition("://")
+            if sep and scheme == "model":
+                uri = "package://" + rest
+            mesh = etree.SubElement(urdf_geometry, "mesh", filename=uri)
+            if g.find("scale") is not None:
+                mesh.set("scale", _vector(_numbers(self.path, g.find("scale"), 3)))
+        else:
+            logger.warning(
+                "%s: <%s> geometry has no URDF counterpart; not drawn", _where(self.path, g), g.tag
+            )
+            return None
+        colour = element.find("material/diffuse")
+        if colour is None:
+            colour = element.find("material/ambient")
+        if element.tag == "visual" and colour is not None:
+            rgba = _numbers(self.path, colour, 4)
+            material = etree.Element("material", name=label)
+            etree.SubElement(material, "color", rgba=_vector(np.clip(rgba, 0.0, 1.0)))
+            materials.append(material)
+            etree.SubElement(out, "material", name=label)
+        return out
+
+    def _tree_joint(self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]):
+        """Return the URDF ``<joint>`` elements of a tree joint (two for a universal one)."""
+        parent, child = j.parent, j.child
+        sign = 1.0
+        if reverse:
+            parent, child, sign = child, parent, -1.0
+        origin = frames[parent].inverse() * j.oMj
+        steps = [(j.name, j.type, j.axis, parent, child, origin)]
+        if j.type == "universal":
+            cross = f"{j.name}::cross"
+            first, second = (j.axis, j.axis2) if not reverse else (j.axis2, j.axis)
+            steps = [
+                (j.name, "revolute", first, parent, cross, origin),
+                (f"{j.name}::axis2", "revolute", second, cross, child, pin.SE3.Identity()),
+            ]
+        out = []
+        for name, jtype, axis, p, c, M in steps:
+            if c.endswith("::cross"):
+                link = etree.Element("link", name=c)
+                out.append(link)
+            joint = etree.Element("joint", name=name, type=jtype)
+            etree.SubElement(joint, "parent", link=p)
+            etree.SubElement(joint, "child", link=c)
+            _origin(joint, M)
+            if jtype != "fixed":
+                etree.SubElement(joint, "axis", xyz=_vector(sign * axis))
+            if jtype in ("revolute", "prismatic"):
+                lower, upper, effort, velocity = j.limits
+                etree.SubElement(
+                    joint,
+                    "limit",
+                    lower=repr(lower),
+                    upper=repr(upper),
+                    effort=repr(effort),
+                    velocity=repr(velocity),
+                )
+            out.append(joint)
+        return out
+
+    def _loop(self, j: SDFJoint, frames: dict[str, pin.SE3]):
+        """Return the URDF+ ``<loop>`` of a cut joint (its frame seen from both links)."""
+        loop = etree.Element("loop", name=j.name, type=LOOP_TYPE_OF[j.type])
+        etree.SubElement(loop, "predecessor", link=j.parent)
+        etree.SubElement(loop, "successor", link=j.child)
+        for tag, link in (("predecessor_origin", j.parent), ("successor_origin", j.child)):
+            _origin(loop, frames[link].inverse() * j.oMj, tag)
+        if j.type in ("revolute", "continuous", "prismatic"):
+            etree.SubElement(loop, "axis", xyz=_vector(j.axis))
+        return loop
+
+
+def is_sdf(path: str | Path) -> bool:
+    """Return whether a model path names an SDF file (by its suffix)."""
+    return Path(path).suffix.lower() == ".sdf"

@@ -1,0 +1,399 @@
+"""SDF models: the frames, the spanning tree and its loops, safe parsing, and Cassie.
+
+References, none computed by the code under test:
+
+* frames worked out by hand from the numbers of ``tests/data/fourbar.sdf``
+  (its header states the 4-bar's pivots);
+* pinocchio.constraintDynamics on the same tree and loops (``validate`` on the
+  4-bar; on Cassie at states near its reference, with enough proximal
+  iterations for its ill-conditioned knee-spring loops);
+* the ``standing`` configuration of example-robot-data's cassie_v2.srdf,
+  written for Pinocchio's own SDF reader: our loops close on it before assembly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from importlib import metadata
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import DATA_DIR, MODELS
+from lxml import etree
+
+import closedchain as cc
+from closedchain import robots
+from closedchain.cli import main
+from closedchain.dynamics import SolverSettings
+from closedchain.sdf import read_sdf
+from closedchain.validation import pinocchio_reference_dynamics
+
+FOURBAR = DATA_DIR / "fourbar.sdf"
+
+#: Placements computed by hand agree to this [m or rad] (round-off of rpy <-> matrix).
+TOL_FRAME = 1e-12
+#: Loops closed at the reference configuration [m or -].
+TOL_CLOSED = 1e-12
+#: cassie_v2.srdf's "standing" values close our loops to this before assembly (they
+#: are printed with 8 digits) [m or -].
+TOL_SRDF_CLOSURE = 1e-7
+#: Accelerations agree with pinocchio.constraintDynamics to this, relative to max |a|
+#: (Cassie's J has condition ~1e6 at its reference: absolute round-off is ~1e-9 there).
+TOL_A_REL = 1e-9
+#: Generalized constraint forces agree to this (absolute below 1, relative above).
+TOL_FORCE = 1e-8
+#: Size [rad or m] of the random steps along the motion from Cassie's reference.
+STEP = 0.05
+#: Largest |a| [rad/s^2, m/s^2] the holding torque leaves at Cassie's standing reference:
+#: the augmented-Lagrangian answer where cond(J) ~ 4e6 (the knee-spring loops).
+TOL_HOLD = 1e-3
+#: Pinocchio's proximal solver needs many iterations where sigma_min(J)^2 << mu (Cassie).
+PIN_SETTINGS = SolverSettings(pinocchio_mu=1e-10, pinocchio_max_iter=2000)
+
+
+def _se3(xyz, rpy) -> pin.SE3:
+    return pin.SE3(pin.rpy.rpyToMatrix(np.array(rpy, dtype=float)), np.array(xyz, dtype=float))
+
+
+def _close(A: pin.SE3, B: pin.SE3) -> bool:
+    return float(np.max(np.abs(A.homogeneous - B.homogeneous))) < TOL_FRAME
+
+
+@pytest.fixture(scope="module")
+def fourbar():
+    return cc.load(FOURBAR)
+
+
+def test_fourbar_tree_cuts_the_joint_whose_child_has_two_parents():
+    _, tree = read_sdf(FOURBAR)
+    assert tree.root == "ground"
+    assert set(tree.tree_joints) == {"crank_joint", "coupler_joint", "rocker_joint", "motor_joint"}
+    assert tree.cut_joints == ("coupler_rocker",)
+    assert tree.reversed_joints == ()
+    assert tree.gearboxes == ("crank_gear",)
+
+
+def test_fourbar_loop_frames_equal_the_hand_computed_ones(fourbar):
+    (loop,) = fourbar.urdf.loops
+    assert (loop.name, loop.type, loop.predecessor, loop.successor) == (
+        "coupler_rocker",
+        "revolute",
+        "coupler",
+        "rocker",
+    )
+    # Coupler frame: at B = (0, 0.1, 0), turned by atan2(0.1, 0.3); C = (0.3, 0.2, 0) lies
+    # |BC| = sqrt(0.1) along its x. The joint frame: the rocker's (pi/2) turned by 0.7.
+    yaw_coupler = math.atan2(0.1, 0.3)
+    expected_p = _se3([math.sqrt(0.1), 0, 0], [0, 0, math.pi / 2 + 0.7 - yaw_coupler])
+    assert _close(loop.predecessor_origin, expected_p)
+    assert _close(loop.successor_origin, _se3([0.2, 0, 0], [0, 0, 0.7]))
+    assert np.linalg.norm(loop.axis - [0, 0, 1]) < TOL_FRAME
+
+
+def test_fourbar_bodies_sit_where_the_sdf_puts_them(fourbar):
+    model, data = fourbar.model, fourbar.data
+    pin.forwardKinematics(model, data, pin.neutral(model))
+    pin.updateFramePlacements(model, data)
+    coupler = data.oMf[model.getFrameId("coupler", pin.FrameType.BODY)]
+    assert _close(coupler, _se3([0, 0.1, 0], [0, 0, math.atan2(0.1, 0.3)]))
+    # Centre of mass of the coupler: its <inertial><pose> is sqrt(0.1)/2 along its x.
+    joint = model.getJointId("coupler_joint")
+    com = data.oMi[joint].act(model.inertias[joint].lever)
+    assert np.linalg.norm(com - [0.15, 0.15, 0]) < TOL_FRAME
+    assert abs(model.inertias[joint].mass - 0.3) < TOL_FRAME
+    # Its principal axes are turned 0.3 rad about the coupler's y (the <inertial><pose>).
+    R = pin.rpy.rpyToMatrix(0.0, 0.3, 0.0)
+    expected = R @ np.diag([1e-4, 3e-3, 3e-3]) @ R.T
+    assert np.max(np.abs(model.inertias[joint].inertia - expected)) < TOL_FRAME
+    assert np.max(np.abs(cc.compute_phi(fourbar, fourbar.q_ref))) < TOL_CLOSED
+
+
+def test_fourbar_mobility_counts_the_free_rotor_of_its_gearbox(fourbar, caplog):
+    # The crank's one degree of freedom and the motor rotor the gearbox no longer ties.
+    assert (fourbar.nv, fourbar.nc, fourbar.mobility) == (4, 2, 2)
+    with caplog.at_level(logging.WARNING, logger="closedchain.sdf"):
+        read_sdf(FOURBAR)
+    assert "gearbox joints crank_gear are left out" in caplog.text
+
+
+def test_fourbar_validates_against_pinocchio(fourbar):
+    report = cc.validate(fourbar, n_samples=20)
+    assert report.passed, report
+
+
+def test_cut_joints_chooses_the_cut(tmp_path):
+    mech = cc.load(FOURBAR, cut_joints=["rocker_joint"])
+    (loop,) = mech.urdf.loops
+    assert (loop.name, loop.predecessor, loop.successor) == ("rocker_joint", "ground", "rocker")
+    # The rocker pivot D = (0.3, 0, 0) seen from the ground, with the rocker's turn.
+    assert _close(loop.predecessor_origin, _se3([0.3, 0, 0], [0, 0, math.pi / 2]))
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+    assert cc.validate(mech, n_samples=10).passed
+    with pytest.raises(cc.URDFError, match=r"cut_joints names 'nope', which is not a joint"):
+        cc.load(FOURBAR, cut_joints=["nope"])
+
+
+def test_cut_joints_is_refused_for_a_urdf():
+    with pytest.raises(cc.URDFError, match=r"cut_joints=\['crank_joint'\] is for SDF models"):
+        cc.load(MODELS / "fourbar.urdf", cut_joints=["crank_joint"])
+
+
+def test_visuals_keep_their_geometry_colour_and_mesh_uri(fourbar, tmp_path):
+    robot = etree.fromstring(fourbar.urdf.xml.encode())
+    (visual,) = robot.findall("link[@name='crank']/visual")
+    assert visual.find("geometry/cylinder").attrib == {"radius": "0.01", "length": "0.1"}
+    name = visual.find("material").get("name")
+    assert robot.find(f"material[@name='{name}']/color").get("rgba") == "0.8 0.2 0.2 1.0"
+    # model://name/sub is looked up as a URDF's package://name/sub.
+    text = _edit(
+        "<cylinder><radius>0.01</radius><length>0.1</length></cylinder>",
+        "<mesh><uri>model://fourbar/meshes/crank.stl</uri></mesh>",
+    )
+    robot, _ = read_sdf(_write(tmp_path, text))
+    mesh = robot.find("link[@name='crank']/visual/geometry/mesh")
+    assert mesh.get("filename") == "package://fourbar/meshes/crank.stl"
+
+
+def _write(tmp_path, text: str, name: str = "m.sdf"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _edit(old: str, new: str) -> str:
+    text = FOURBAR.read_text()
+    assert old in text
+    return text.replace(old, new)
+
+
+@pytest.mark.parametrize(
+    ("prolog", "match"),
+    [
+        ('<!DOCTYPE sdf [<!ENTITY a "b">]>\n', r"DOCTYPE/DTD is not allowed in the SDF file"),
+        ('<!DOCTYPE sdf [<!ENTITY x SYSTEM "file:///etc/passwd">]>\n', r"DOCTYPE/DTD"),
+    ],
+)
+def test_unsafe_sdf_is_refused(tmp_path, prolog, match):
+    text = FOURBAR.read_text().replace(
+        '<?xml version="1.0"?>\n', '<?xml version="1.0"?>\n' + prolog
+    )
+    with pytest.raises(cc.URDFError, match=match):
+        cc.load(_write(tmp_path, text))
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        ('version="1.6"', 'version="1.4"', r"<sdf version='1.4'> is not read; valid: 1.5, 1.6"),
+        ('type="gearbox"', 'type="screw"', r"joint type 'screw' is not read; valid: revolute"),
+        (
+            "<parent>crank</parent><child>coupler</child>",
+            "<parent>crank</parent><child>nowhere</child>",
+            r"<child>nowhere</child> is not a link; valid: ground, crank",
+        ),
+        (
+            "<pose>0.2 0 0 0 0 0.7</pose>",
+            "<pose>0.2 0 0 0 0 nan</pose>",
+            r"line \d+: <pose>: '0.2 0 0 0 0 nan' must be 6 finite numbers",
+        ),
+        (
+            "<pose>0.2 0 0 0 0 0.7</pose>",
+            '<pose relative_to="elsewhere">0.2 0 0 0 0 0.7</pose>',
+            r"unknown frame 'elsewhere'; valid: __model__, ground",
+        ),
+        (
+            '<joint name="coupler_rocker" type="revolute">',
+            '<joint name="coupler_rocker" type="universal">',
+            r"a universal joint needs <axis2>",
+        ),
+        (
+            '<joint name="motor_joint" type="revolute">',
+            '<joint name="motor_joint" type="ball">',
+            r"'motor_joint'>: the spanning tree needs this ball joint",
+        ),
+        (
+            '<xyz>0 0 1</xyz></axis>\n    </joint>\n    <joint name="coupler_joint"',
+            '<xyz>0 0 0</xyz></axis>\n    </joint>\n    <joint name="coupler_joint"',
+            r"<xyz> in <axis> is zero",
+        ),
+    ],
+)
+def test_invalid_sdf_is_refused_naming_the_element(tmp_path, old, new, match):
+    with pytest.raises(cc.URDFError, match=match):
+        cc.load(_write(tmp_path, _edit(old, new)))
+
+
+def test_a_ball_joint_is_cut_first_into_a_spherical_loop(tmp_path):
+    # A ball joint anywhere on the cycle is cut, whichever link has two parents.
+    text = _edit(
+        '<joint name="coupler_joint" type="revolute">',
+        '<joint name="coupler_joint" type="ball">',
+    )
+    mech = cc.load(_write(tmp_path, text))
+    (loop,) = mech.urdf.loops
+    assert (loop.name, loop.type, loop.predecessor, loop.successor) == (
+        "coupler_joint",
+        "spherical",
+        "crank",
+        "coupler",
+    )
+    assert "coupler_rocker" in mech.joint_names
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+
+
+def test_a_reversed_joint_keeps_the_sign_of_its_sdf_coordinate(tmp_path):
+    # With a ball crank joint cut, the crank hangs from the coupler: coupler_joint is
+    # reversed, yet +q still turns its SDF child (coupler) by +q about z from its parent.
+    text = _edit(
+        '<joint name="crank_joint" type="revolute">', '<joint name="crank_joint" type="ball">'
+    )
+    path = _write(tmp_path, text)
+    _, tree = read_sdf(path)
+    assert tree.cut_joints == ("crank_joint",)
+    assert "coupler_joint" in tree.reversed_joints
+    mech = cc.load(path)
+    model, data = mech.model, mech.data
+
+    def relative_yaw(q) -> float:
+        pin.framesForwardKinematics(model, data, q)
+        crank, coupler = (
+            data.oMf[model.getFrameId(name, pin.FrameType.BODY)] for name in ("crank", "coupler")
+        )
+        R = crank.rotation.T @ coupler.rotation
+        return math.atan2(R[1, 0], R[0, 0])
+
+    q = pin.neutral(model)
+    at_zero = relative_yaw(q)  # URDF link frames differ from SDF ones by constant turns
+    q[model.joints[model.getJointId("coupler_joint")].idx_q] = 0.1
+    assert abs(math.remainder(relative_yaw(q) - at_zero - 0.1, 2 * math.pi)) < TOL_FRAME
+
+
+def test_a_universal_joint_is_kept_as_two_revolute_joints(tmp_path):
+    text = _edit(
+        '<joint name="coupler_joint" type="revolute">',
+        '<joint name="coupler_joint" type="universal">',
+    ).replace(
+        "<use_parent_model_frame>1</use_parent_model_frame></axis>",
+        "<use_parent_model_frame>1</use_parent_model_frame></axis><axis2><xyz>1 0 0</xyz></axis2>",
+    )
+    path = _write(tmp_path, text)
+    mech = cc.load(path)
+    assert {"coupler_joint", "coupler_joint::axis2"} <= set(mech.joint_names)
+    assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
+    # The second axis is the coupler's x at the reference: B -> C.
+    model, data = mech.model, mech.data
+    pin.computeJointJacobians(model, data, mech.q_ref)
+    joint = model.getJointId("coupler_joint::axis2")
+    J = pin.getJointJacobian(model, data, joint, pin.ReferenceFrame.WORLD)
+    axis = J[3:, model.joints[joint].idx_v]
+    assert np.linalg.norm(axis - np.array([3.0, 1.0, 0.0]) / math.sqrt(10.0)) < TOL_FRAME
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+    assert cc.validate(mech, n_samples=10).passed
+    with pytest.raises(cc.URDFError, match=r"'coupler_joint'>: a universal joint cannot be cut"):
+        cc.load(path, cut_joints=["coupler_joint"])
+
+
+# -- Cassie -----------------------------------------------------------------------
+
+
+def _have_erd() -> bool:
+    try:
+        metadata.distribution(robots.ERD_DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+needs_erd = pytest.mark.skipif(
+    not _have_erd(), reason=f"example-robot-data is not installed ({robots.INSTALL_HINT})"
+)
+
+
+@pytest.fixture(scope="module")
+def cassie():
+    return cc.load("erd:cassie")
+
+
+@needs_erd
+def test_cassie_tree_and_loops():
+    _, tree = read_sdf(robots.resolve_model("erd:cassie")[0])
+    assert tree.root == "pelvis"
+    assert set(tree.cut_joints) == {
+        f"{side}-{name}"
+        for side in ("left", "right")
+        for name in ("pitch-rod-joint", "knee-spring-joint", "plantar-foot-joint")
+    }
+    assert set(tree.reversed_joints) == {
+        "left-achilles-spring-joint",
+        "right-achilles-spring-joint",
+    }
+    assert len(tree.gearboxes) == 10
+
+
+@needs_erd
+def test_cassie_mobility_and_closure(cassie):
+    # 34 tree joints; 14 independent rows of 22 (per leg: achilles 3, plantar 2, knee
+    # spring 2); mobility 20: per leg the 5 motors' outputs and their 5 free rotors.
+    assert (cassie.nv, cassie.declared.nc, cassie.nc, cassie.mobility) == (34, 22, 14, 20)
+    assert np.max(np.abs(cc.compute_phi(cassie, cassie.q_ref))) < TOL_CLOSED
+    assert cassie.within_limits(cassie.q_ref)
+
+
+@needs_erd
+def test_cassie_srdf_standing_closes_our_loops_before_assembly(cassie):
+    probe = cassie.model.copy()
+    srdf = robots.erd_robots_dir() / "cassie_description/srdf/cassie_v2.srdf"
+    pin.loadReferenceConfigurations(probe, str(srdf), False)
+    q = np.array(probe.referenceConfigurations["standing"])
+    assert np.max(np.abs(cc.compute_phi(cassie, q))) < TOL_SRDF_CLOSURE
+
+
+@needs_erd
+def test_cassie_validates_against_pinocchio(cassie):
+    # States along the motion from q_ref (its tangent space), assembled.
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        dq = cc.project_velocity(cassie, cassie.q_ref, STEP * rng.standard_normal(cassie.nv))
+        q = cc.assemble(cassie, pin.integrate(cassie.model, cassie.q_ref, dq))
+        v = cc.project_velocity(cassie, q, rng.standard_normal(cassie.nv))
+        tau = cassie.gravity_torque_scale() * rng.standard_normal(cassie.nv)
+        a_pin, f_pin = pinocchio_reference_dynamics(cassie, q, v, tau, settings=PIN_SETTINGS)[:2]
+        res = cc.forward_dynamics(cassie, q, v, tau, method="kkt")
+        da = np.max(np.abs(res.a - a_pin))
+        assert da < TOL_A_REL * max(1.0, np.max(np.abs(a_pin))), da
+        df = np.max(np.abs(res.generalized_constraint_force() - f_pin))
+        assert df < TOL_FORCE * max(1.0, np.max(np.abs(f_pin))), df
+
+
+@needs_erd
+def test_cassie_simulates_from_rest(cassie):
+    traj = cc.simulate(cassie, cassie.q_ref, np.zeros(cassie.nv), 0.2)
+    assert traj.t[-1] == pytest.approx(0.2)
+    assert traj.info.max_constraint_residual < TOL_CLOSED
+
+
+@needs_erd
+def test_cassie_animates_with_primitive_visuals(cassie, tmp_path):
+    shapes = etree.fromstring(cassie.urdf.xml.encode()).findall("link/visual/geometry/*")
+    assert shapes
+    assert {s.tag for s in shapes} <= {"box", "cylinder", "sphere"}
+    out = tmp_path / "cassie.html"
+    assert main(["animate", "erd:cassie", "--t-final", "0.1", "-o", str(out)]) == 0
+    assert out.stat().st_size > 0
+    assert b"package://" not in out.read_bytes()
+
+
+@needs_erd
+def test_cassie_standing_is_held_at_rest_by_the_gravity_torque():
+    mech = cc.load("erd:cassie", root_joint="free", loops=MODELS / "cassie_standing.urdf")
+    # Two welded feet add 12 rows: 40 - 26 = 14 (4 of the pelvis on its legs, 10 rotors).
+    assert (mech.nv, mech.nc, mech.mobility) == (40, 26, 14)
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+    tau = cc.gravity_torque(mech, mech.q_ref)
+    rest = np.zeros(mech.nv)
+    held = cc.forward_dynamics(mech, mech.q_ref, rest, tau, method="augmented-lagrangian")
+    assert np.max(np.abs(held.a)) < TOL_HOLD
+    falls = cc.forward_dynamics(mech, mech.q_ref, rest, 0 * tau, method="augmented-lagrangian")
+    assert np.max(np.abs(falls.a)) > 1.0
