@@ -501,6 +501,8 @@ def simulate(
                 backend="numpy",
             )
         # Nothing is lost: the caller gets the motion up to the stop (e.g. to animate it).
+        if getattr(exc, "t", None) is None:  # raised outside a timed evaluation
+            exc.t = float(recorder.series()["t"][-1]) if len(recorder) else 0.0
         info["stopped"] = {"t": exc.t, "reason": str(exc)}
         info["cpu_time"] = time.process_time() - cpu0
         info["evaluations"] = problem.n_evals
