@@ -45,6 +45,14 @@ from .kinematics import (
     singularity_measures,
 )
 from .mechanism import LoadSettings, Mechanism, load
+from .parallel import (
+    ActuationSingularities,
+    ForwardKinematicsResult,
+    InverseKinematicsResult,
+    actuation_singularities,
+    forward_kinematics,
+    inverse_kinematics,
+)
 from .plotting import coordinate_series, plot_trajectory
 from .simulate import (
     INTEGRATORS,
@@ -68,12 +76,15 @@ __all__ = [
     "seed_settings",
     "simulate",
     "METHODS",
+    "ActuationSingularities",
     "AssemblyError",
     "AssemblySettings",
     "ClosedChainError",
     "ForwardDynamicsResult",
+    "ForwardKinematicsResult",
     "InvalidArgumentError",
     "InverseDynamicsResult",
+    "InverseKinematicsResult",
     "LoadSettings",
     "LoopClosureError",
     "JointReaction",
@@ -90,6 +101,7 @@ __all__ = [
     "UnknownChoiceError",
     "ValidationReport",
     "ValidationUnavailableError",
+    "actuation_singularities",
     "assemble",
     "compute_gamma",
     "computed_torque_controller",
@@ -97,7 +109,9 @@ __all__ = [
     "compute_jacobian",
     "compute_phi",
     "forward_dynamics",
+    "forward_kinematics",
     "inverse_dynamics",
+    "inverse_kinematics",
     "joint_reactions",
     "load",
     "coordinate_series",

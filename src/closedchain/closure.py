@@ -358,8 +358,13 @@ def closure_error(model, data, layer: ConstraintLayer, q: np.ndarray) -> float:
     return float(np.max(np.abs(e), initial=0.0))
 
 
-def _least_squares(model, data, layer, q0, free, settings, lower, upper) -> np.ndarray:
-    """The least-squares minimum of the closure residual from q0 (chart q0 + x)."""
+def _least_squares(model, data, layer, q0, free, settings, lower, upper, task=None) -> np.ndarray:
+    """The least-squares minimum of the closure residual from q0 (chart q0 + x).
+
+    ``task(model, data, jacobian)``, when given, returns more residual rows and, with
+    ``jacobian``, their derivative along v (data current at q, as for the closure rows),
+    appended to the closure's: :func:`closedchain.parallel.inverse_kinematics`.
+    """
     if len(free) == 0:
         return q0
     held_q = _held_q(model, free)
@@ -374,11 +379,14 @@ def _least_squares(model, data, layer, q0, free, settings, lower, upper) -> np.n
 
     def fun(x):
         pin.forwardKinematics(model, data, config(x))
-        return layer.closure_residuals(model, data)[0]
+        e = layer.closure_residuals(model, data)[0]
+        return e if task is None else np.concatenate([e, task(model, data, False)[0]])
 
     def jac(x):
         pin.computeJointJacobians(model, data, config(x))
         _, E = layer.closure_residuals(model, data, jacobian=True)
+        if task is not None:
+            E = np.vstack([E, task(model, data, True)[1]])
         return E @ pin.dIntegrate(model, q0, dv, pin.ArgumentPosition.ARG1)[:, free]
 
     k = _q_of_v(model, free)

@@ -207,6 +207,53 @@ def singularity_measures(mech: Mechanism, q: np.ndarray) -> SingularityMeasures:
     return SingularityMeasures(float(s[-1]), cond, cond_d)
 
 
+def actuation_sigma_min(
+    J: np.ndarray,
+    actuated_idx_v: np.ndarray,
+    *,
+    output_idx_v: np.ndarray | None = None,
+    J_output: np.ndarray | None = None,
+) -> tuple[float, float]:
+    r"""Return the smallest singular values of the two actuation maps (seed Problem 4).
+
+    * parallel (type II): :math:`J_D`, the columns of J of the non-actuated
+      coordinates; zero where the actuators no longer determine the motion.
+    * serial (type I): the columns of the non-output coordinates of the closure
+      written with the outputs as coordinates; zero where the output no longer
+      determines the actuators. With output *coordinates* that is
+      ``J[:, non-output]``; with an output *frame* of velocity
+      :math:`\dot x = J_{out} v`, its coordinates x join q through the rows
+      :math:`J_{out} v - \dot x = 0`, and the non-output columns are
+      :math:`[J; J_{out}]`.
+
+    Args:
+        J: constraint Jacobian, shape (nc, nv).
+        actuated_idx_v: velocity indices of the actuated coordinates, shape (na,).
+        output_idx_v: velocity indices of output coordinates, or None.
+        J_output: Jacobian of an output frame, shape (m, nv), or None.
+
+    Returns:
+        ``(parallel, serial)``: each the last of the min(rows, columns) singular values
+        [m or -]; serial is NaN without an output.
+    """
+    nv = J.shape[1]
+    parallel = _last_singular_value(J[:, np.setdiff1d(np.arange(nv), actuated_idx_v)])
+    if J_output is not None:
+        serial = _last_singular_value(np.vstack([J, J_output]))
+    elif output_idx_v is not None:
+        serial = _last_singular_value(J[:, np.setdiff1d(np.arange(nv), output_idx_v)])
+    else:
+        serial = float("nan")
+    return parallel, serial
+
+
+def _last_singular_value(A: np.ndarray) -> float:
+    """Return the smallest of A's min(rows, columns) singular values (inf when empty)."""
+    if A.size == 0:
+        return float("inf")
+    return float(np.linalg.svd(A, compute_uv=False)[-1])
+
+
 @exclusive
 def random_consistent_state(
     mech: Mechanism,

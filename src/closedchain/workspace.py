@@ -49,7 +49,7 @@ import pinocchio as pin
 from ._io import save_figure
 from ._locking import exclusive
 from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
-from .kinematics import assemble, compute_jacobian
+from .kinematics import actuation_sigma_min, assemble, compute_jacobian
 from .mechanism import COORDINATE_BOUND, Mechanism
 from .pindata import new_data
 
@@ -259,8 +259,6 @@ def singularity_map(
             + ", ".join(mech.coordinate_names)
         )
     out_idx = mech.coordinate_indices(list(outputs))
-    dep_act = np.setdiff1d(np.arange(mech.nv), mech.actuated_idx_v)
-    non_out = np.setdiff1d(np.arange(mech.nv), out_idx)
     x0, y0 = mech.q_ref[out_idx[0]], mech.q_ref[out_idx[1]]
     x = np.linspace(x0 - span, x0 + span, points)
     y = np.linspace(y0 - span, y0 + span, points)
@@ -275,9 +273,9 @@ def singularity_map(
                 q = assemble(mech, guess, fixed=list(outputs))
             except AssemblyError:
                 continue
-            J = compute_jacobian(mech, q)
-            par[i, k] = np.linalg.svd(J[:, dep_act], compute_uv=False)[-1]
-            ser[i, k] = np.linalg.svd(J[:, non_out], compute_uv=False)[-1]
+            par[i, k], ser[i, k] = actuation_sigma_min(
+                compute_jacobian(mech, q), mech.actuated_idx_v, output_idx_v=out_idx
+            )
     return SingularityMap(outputs, x, y, par, ser)
 
 

@@ -1,0 +1,383 @@
+r"""The parallel-robot workflow: motors to pose, pose to motors, and actuation singularities.
+
+What users of parallel robots (Gepetto's toolbox-parallel-robots) do with a closed-chain
+model, on closedchain's loops:
+
+* forward kinematics: the configuration with the actuated joints at given motor values
+  and every loop closed (:func:`forward_kinematics`: the assembly holding the actuated
+  coordinates, :func:`closedchain.assemble`);
+* closed-loop inverse kinematics: a configuration with every loop closed and a frame at a
+  target placement (:func:`inverse_kinematics`), a least-squares solve on the stacked
+
+  .. math::
+
+      r(q) = \begin{bmatrix} e(q) \\ \epsilon(q) \end{bmatrix}, \qquad
+      \epsilon_{6d} = \log_6\bigl(T^{-1}\, {}^oM_f(q)\bigr), \quad
+      \epsilon_{3d} = p_f(q) - p_T,
+
+  with e the closure residual of every loop (zero exactly at the closure,
+  :meth:`closedchain.constraints.ConstraintLayer.closure_residuals`) and exact Jacobians
+  (:math:`J_{\log_6}\, J_f^{local}` and the frame's world-aligned linear Jacobian);
+* motor torques: :func:`closedchain.inverse_dynamics` with ``actuated="actuated"``;
+* actuation singularities (seed Problems 1 and 4, :func:`actuation_singularities`): the
+  smallest singular value of :math:`J_D`, the non-actuated columns of J (parallel,
+  type II: the motors no longer determine the motion) and of the output map (serial,
+  type I: the output frame no longer determines the motors),
+  :func:`closedchain.kinematics.actuation_sigma_min`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pinocchio as pin
+
+from ._locking import exclusive
+from .closure import (
+    DEFAULT_ASSEMBLY_SETTINGS,
+    AssemblySettings,
+    _clip_into,
+    _free_bounds,
+    _least_squares,
+    closure_error,
+)
+from .exceptions import (
+    AssemblyError,
+    InvalidArgumentError,
+    SingularConfigurationError,
+    UnknownChoiceError,
+    resolve_choice,
+)
+from .kinematics import actuation_sigma_min, assemble, compute_jacobian
+from .mechanism import Mechanism
+
+__all__ = [
+    "ActuationSingularities",
+    "ForwardKinematicsResult",
+    "InverseKinematicsResult",
+    "actuation_singularities",
+    "forward_kinematics",
+    "inverse_kinematics",
+]
+
+#: Task-error modes of :func:`inverse_kinematics`: the full placement or the position.
+IK_MODES = ("6d", "3d")
+#: Largest frame error [m or rad] (max |epsilon|) an inverse-kinematics solution may keep.
+IK_TOL = 1e-10
+#: Residual evaluations of the inverse-kinematics least-squares solve.
+IK_MAX_NFEV = 200
+#: Forward kinematics refuses a configuration where sigma_min(J_D) <= this times
+#: ||J||_2 [-]: the motors' error is amplified 1 / TYPE_II_RTOL times in the passive joints.
+TYPE_II_RTOL = 1e-8
+
+_LOCAL = pin.ReferenceFrame.LOCAL
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+
+@dataclass(frozen=True)
+class ForwardKinematicsResult:
+    """A closed configuration with the motors at given values.
+
+    Attributes:
+        q: configuration, shape (nq,).
+        motors: the actuated coordinates' values, shape (na,) [rad or m], in the order
+            of ``mech.actuated_joints``.
+        closure_residual: max |e| of every loop's closure residual at q [m or rad].
+        sigma_min_JD: smallest singular value of J_D, the non-actuated columns of J
+            [m or -] (zero at a type II singularity).
+    """
+
+    q: np.ndarray
+    motors: np.ndarray
+    closure_residual: float
+    sigma_min_JD: float
+
+
+@dataclass(frozen=True)
+class InverseKinematicsResult:
+    """A closed configuration with a frame at a target.
+
+    Attributes:
+        q: configuration, shape (nq,).
+        motors: the actuated coordinates' values, shape (na,) [rad or m], in the order
+            of ``mech.actuated_joints``.
+        frame: the frame placed.
+        mode: ``"6d"`` (placement) or ``"3d"`` (position).
+        closure_residual: max |e| of every loop's closure residual at q [m or rad].
+        frame_error: max |epsilon| of the frame's error (6 entries of log6 in 6d,
+            the position's 3 in 3d) [m or rad].
+    """
+
+    q: np.ndarray
+    motors: np.ndarray
+    frame: str
+    mode: str
+    closure_residual: float
+    frame_error: float
+
+
+@dataclass(frozen=True)
+class ActuationSingularities:
+    """How far a configuration is from the two actuation singularities.
+
+    Attributes:
+        parallel: sigma_min of J_D, the non-actuated columns of J (type II) [m or -].
+        serial: sigma_min of the output map of ``frame`` (type I) [m or -], NaN
+            without a frame.
+        frame: the output frame, or None.
+    """
+
+    parallel: float
+    serial: float
+    frame: str | None
+
+
+def _motor_joints(mech: Mechanism) -> list[pin.JointModel]:
+    """The actuated joints in ``mech.actuated_joints`` order, each one coordinate."""
+    if not mech.actuated_joints:
+        raise InvalidArgumentError(
+            f"{mech.path}: no actuated joint (no <transmission> element): forward "
+            "kinematics needs the motors; valid: a URDF with <transmission> elements"
+        )
+    out = []
+    for name in mech.actuated_joints:
+        jm = mech.model.joints[mech.model.getJointId(name)]
+        if jm.nv != 1 or jm.nq not in (1, 2):
+            raise InvalidArgumentError(
+                f"{mech.path}: actuated joint {name!r} ({jm.shortname()}) has {jm.nv} "
+                "coordinates; valid: revolute, continuous or prismatic motors"
+            )
+        out.append(jm)
+    return out
+
+
+def _motor_values(mech: Mechanism, q: np.ndarray) -> np.ndarray:
+    """Return the actuated coordinates of q, shape (na,) [rad or m], in
+    ``mech.actuated_joints`` order (a continuous joint's angle from its cos, sin)."""
+    return np.array(
+        [
+            q[jm.idx_q] if jm.nq == 1 else np.arctan2(q[jm.idx_q + 1], q[jm.idx_q])
+            for jm in _motor_joints(mech)
+        ]
+    )
+
+
+def _with_motors(mech: Mechanism, q: np.ndarray, motors: np.ndarray) -> np.ndarray:
+    """Return q with the actuated coordinates set to ``motors`` [rad or m]."""
+    q = q.copy()
+    for jm, x in zip(_motor_joints(mech), motors, strict=True):
+        if jm.nq == 1:
+            q[jm.idx_q] = x
+        else:
+            q[jm.idx_q : jm.idx_q + 2] = np.cos(x), np.sin(x)
+    return q
+
+
+def _check_motors(mech: Mechanism, motors) -> np.ndarray:
+    na = len(_motor_joints(mech))
+    m = np.asarray(motors, dtype=float).reshape(-1) if np.ndim(motors) <= 1 else None
+    if m is None or m.shape != (na,) or not np.all(np.isfinite(m)):
+        raise InvalidArgumentError(
+            f"motors must be {na} finite numbers [rad or m], one per actuated joint "
+            f"({', '.join(mech.actuated_joints)}), got {np.asarray(motors)}"
+        )
+    return m
+
+
+def _frame_id(mech: Mechanism, frame: str) -> int:
+    names = [f.name for f in mech.model.frames][1:]  # not the universe
+    if not isinstance(frame, str) or frame not in names:
+        raise UnknownChoiceError(f"{mech.name} frame", frame, names)
+    return mech.model.getFrameId(frame)
+
+
+def _output_jacobian(mech: Mechanism, fid: int, mode: str) -> np.ndarray:
+    """The frame's Jacobian, shape (6 or 3, nv): LOCAL in 6d, the world-aligned linear
+    rows in 3d (``data`` holds the joint Jacobians at q)."""
+    if mode == "6d":
+        return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)
+    return pin.getFrameJacobian(mech.model, mech.data, fid, _LWA)[:3]
+
+
+@exclusive
+def actuation_singularities(
+    mech: Mechanism, q: np.ndarray, *, frame: str | None = None, mode: str = "6d"
+) -> ActuationSingularities:
+    """Return sigma_min of J_D (type II) and of a frame's output map (type I) at q.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), on the constraint manifold.
+        frame: the output frame (the platform, the end effector), or None (no serial
+            measure).
+        mode: ``"6d"``: the frame's placement is the output; ``"3d"``: its position.
+
+    Returns:
+        The two measures (:func:`closedchain.kinematics.actuation_sigma_min`).
+
+    Raises:
+        UnknownChoiceError: unknown frame or mode (lists the valid ones).
+    """
+    q = mech.check_q(q, "q")
+    mode = resolve_choice("actuation-singularity mode", mode, IK_MODES)
+    J = compute_jacobian(mech, q)  # fills mech.data's joint Jacobians at q
+    J_out = None
+    if frame is not None:
+        fid = _frame_id(mech, frame)
+        pin.updateFramePlacements(mech.model, mech.data)
+        J_out = _output_jacobian(mech, fid, mode)
+    parallel, serial = actuation_sigma_min(J, mech.actuated_idx_v, J_output=J_out)
+    return ActuationSingularities(parallel, serial, frame)
+
+
+@exclusive
+def forward_kinematics(
+    mech: Mechanism,
+    motors: np.ndarray,
+    *,
+    q_guess: np.ndarray | None = None,
+    settings: AssemblySettings = DEFAULT_ASSEMBLY_SETTINGS,
+    type_ii_rtol: float = TYPE_II_RTOL,
+) -> ForwardKinematicsResult:
+    """Close every loop with the actuated joints held at ``motors``.
+
+    Args:
+        mech: the mechanism.
+        motors: the actuated coordinates, shape (na,) [rad or m], in the order of
+            ``mech.actuated_joints``.
+        q_guess: start of the assembly, shape (nq,) (default ``mech.q_ref``): the
+            assembly mode reached is the one nearest to it.
+        settings: tolerances of the assembly (:class:`closedchain.AssemblySettings`).
+        type_ii_rtol: refuse a result with sigma_min(J_D) <= this times ||J||_2.
+
+    Returns:
+        The configuration, its closure residual and sigma_min of J_D.
+
+    Raises:
+        InvalidArgumentError: wrong number of motor values, or no actuated joint.
+        AssemblyError: the motors admit no closed configuration near ``q_guess``.
+        SingularConfigurationError: the result is at a type II (parallel) singularity.
+    """
+    m = _check_motors(mech, motors)
+    q0 = mech.q_ref if q_guess is None else mech.check_q(q_guess, "q_guess")
+    try:
+        q = assemble(mech, _with_motors(mech, q0, m), fixed="actuated", settings=settings)
+    except AssemblyError as exc:
+        raise AssemblyError(
+            f"{mech.name}: no closed configuration with motors "
+            f"{', '.join(f'{n} = {x:.6g}' for n, x in zip(mech.actuated_joints, m, strict=True))}"
+            f" near q_guess: {exc}",
+            residual=exc.residual,
+            q=exc.q,
+        ) from None
+    J = compute_jacobian(mech, q)
+    sigma, _ = actuation_sigma_min(J, mech.actuated_idx_v)
+    scale = float(np.linalg.norm(J, 2)) if J.size else 0.0
+    if sigma <= type_ii_rtol * scale:
+        raise SingularConfigurationError.build(
+            mech.name,
+            "J_D (the constraint-Jacobian columns of the non-actuated coordinates)",
+            q=q,
+            cond=scale / sigma if sigma > 0 else float("inf"),
+            bound=1.0 / type_ii_rtol,
+            bound_name="1 / type_ii_rtol",
+            hint="a type II (parallel) singularity: the motors "
+            + ", ".join(mech.actuated_joints)
+            + " do not determine the motion here",
+        )
+    res = closure_error(mech.model, mech.data, mech.declared, q)
+    return ForwardKinematicsResult(q, _motor_values(mech, q), res, sigma)
+
+
+def _task(mech: Mechanism, fid: int, target: pin.SE3, mode: str) -> Callable:
+    """The frame-error rows of :func:`inverse_kinematics` for ``_least_squares``."""
+
+    def task(model, data, jacobian: bool):
+        oMf = pin.updateFramePlacement(model, data, fid)
+        if mode == "6d":
+            err = target.actInv(oMf)
+            eps = pin.log6(err).vector
+            E = pin.Jlog6(err) @ _output_jacobian(mech, fid, mode) if jacobian else None
+        else:
+            eps = oMf.translation - target.translation
+            E = _output_jacobian(mech, fid, mode) if jacobian else None
+        return eps, E
+
+    return task
+
+
+def _check_target(target, mode: str) -> pin.SE3:
+    if isinstance(target, pin.SE3):
+        return target
+    p = np.asarray(target, dtype=float) if mode == "3d" else None
+    if p is None or p.shape != (3,) or not np.all(np.isfinite(p)):
+        valid = "a pinocchio.SE3" + (" or a position, shape (3,) [m]" if mode == "3d" else "")
+        raise InvalidArgumentError(f"target of mode {mode!r} must be {valid}, got {target!r}")
+    return pin.SE3(np.eye(3), p)
+
+
+@exclusive
+def inverse_kinematics(
+    mech: Mechanism,
+    frame: str,
+    target: pin.SE3 | np.ndarray,
+    *,
+    q_guess: np.ndarray | None = None,
+    mode: str = "6d",
+    tol: float = IK_TOL,
+    max_nfev: int = IK_MAX_NFEV,
+    settings: AssemblySettings = DEFAULT_ASSEMBLY_SETTINGS,
+) -> InverseKinematicsResult:
+    """Find a configuration with every loop closed and ``frame`` at ``target``.
+
+    A trust-region least-squares solve (``scipy.optimize.least_squares``, ``trf``, exact
+    Jacobians) of the stacked closure residual and frame error over every coordinate,
+    in the chart ``q_guess (+) x`` (``pin.integrate``), within the joint limits.
+
+    Args:
+        mech: the mechanism.
+        frame: name of the frame to place (a link, a loop side ``"P::predecessor"``).
+        target: its placement in the world (``pin.SE3``); in 3d its position, shape (3,)
+            [m], or an SE3 whose translation counts.
+        q_guess: start, shape (nq,) (default ``mech.q_ref``): the working mode reached
+            is the one nearest to it.
+        mode: ``"6d"`` (placement) or ``"3d"`` (position).
+        tol: largest frame error accepted, max |epsilon| [m or rad].
+        max_nfev: residual evaluations of the solve.
+        settings: ``closure_tol`` (largest closure residual accepted [m or rad]) and
+            ``lsq_tol`` (the solve's ftol, xtol, gtol).
+
+    Returns:
+        The configuration, its motor values and residuals.
+
+    Raises:
+        UnknownChoiceError: unknown frame or mode (lists the valid ones).
+        InvalidArgumentError: a target of the wrong kind.
+        AssemblyError: the target is out of reach from ``q_guess``: the message gives
+            the frame, the residuals reached and ``exc.q`` their configuration.
+    """
+    mode = resolve_choice("inverse-kinematics mode", mode, IK_MODES)
+    fid = _frame_id(mech, frame)
+    target = _check_target(target, mode)
+    q0 = mech.q_ref if q_guess is None else mech.check_q(q_guess, "q_guess")
+    model = mech.model
+    free = np.arange(mech.nv)
+    bounds = (model.lowerPositionLimit, model.upperPositionLimit)
+    lower, upper = _free_bounds(model, free, bounds)
+    q0 = _clip_into(model, q0, free, lower, upper)
+    task = _task(mech, fid, target, mode)
+    lsq = replace(settings, max_iter=max_nfev)
+    q = _least_squares(model, mech.data, mech.declared, q0, free, lsq, lower, upper, task=task)
+    res = closure_error(model, mech.data, mech.declared, q)
+    err = float(np.max(np.abs(task(model, mech.data, False)[0])))
+    if res > settings.closure_tol or err > tol:
+        raise AssemblyError(
+            f"{mech.name}: frame {frame!r} cannot reach the target ({mode}) from q_guess: "
+            f"frame error {err:.3e} (tol {tol:.1e}), closure residual {res:.3e} "
+            f"(closure_tol {settings.closure_tol:.1e})",
+            residual=max(res, err),
+            q=q,
+        )
+    return InverseKinematicsResult(q, _motor_values(mech, q), frame, mode, res, err)

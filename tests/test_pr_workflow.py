@@ -1,0 +1,314 @@
+"""Tests of closedchain.parallel, the parallel-robot workflow, against closed forms.
+
+* the seed's 4-bar: forward kinematics from the crank = Freudenstein's equation (conftest);
+* the planar five-bar of tests/data/five_bar.urdf: forward kinematics = the intersection of
+  the distal links' circles, inverse kinematics of the end point = the intersection of each
+  leg's crank and distal circles (both working modes), motor torques at rest = the
+  gradient of the potential energy (virtual work), sigma_min of J_D = its closed form near
+  the type II singularity where the distal links align;
+* the Agile Eye: inverse kinematics of the platform placement round-trips with forward
+  kinematics.
+
+The five-bar's closed forms below are written from the geometry stated in the URDF's
+header and share no code with closedchain.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import DATA_DIR, MODELS
+
+import closedchain as cc
+from closedchain.exceptions import InvalidArgumentError, UnknownChoiceError
+
+#: Joint angles of a forward / inverse kinematics solution against a closed form [rad].
+ANGLE_TOL = 1e-9
+#: Motor angles of the Agile Eye's IK -> FK round trip [rad].
+ROUND_TRIP_TOL = 1e-10
+#: Central-difference step of the potential energy [rad].
+FD_STEP = 1e-6
+#: Motor torques against the central difference of the potential energy [N m]
+#: (truncation ~ FD_STEP^2, round-off ~ eps V / FD_STEP ~ 1e-10).
+TORQUE_TOL = 1e-7
+#: sigma_min of J_D against its closed form [m].
+SIGMA_TOL = 1e-10
+#: sigma_min of J_D at the type II singularity itself [m].
+SINGULAR_TOL = 1e-12
+#: Relative spread of sigma_min / delta over halvings of delta (a simple root) [-].
+LINEAR_RTOL = 0.02
+
+FIVE_BAR = DATA_DIR / "five_bar.urdf"
+END_POINT = "P::predecessor"
+
+
+def wrap(x):
+    """Return x wrapped into [-pi, pi) [rad], elementwise."""
+    return (np.asarray(x) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class FiveBarClosedForms:
+    """The five-bar of tests/data/five_bar.urdf in its vertical plane (world x, z).
+
+    Ground pivots A = (0, 0) and E = (0.2, 0); cranks of length l1 = 0.15 m, distal links
+    l2 = 0.25 m; each a uniform 0.5 kg rod; angles turn x towards z. Coordinates
+    q = [theta1, psi1, theta2, psi2] (crank angles and the distal joints' relative angles).
+    """
+
+    base: float = 0.2
+    l1: float = 0.15
+    l2: float = 0.25
+    mass: float = 0.5
+    g: float = 9.81
+
+    @staticmethod
+    def e(angle: float) -> np.ndarray:
+        return np.array([math.cos(angle), math.sin(angle)])
+
+    @staticmethod
+    def circles(c1, r1, c2, r2, side: int) -> np.ndarray:
+        """The intersection of circles (c1, r1) and (c2, r2) on ``side`` (+1: left of
+        c1 -> c2)."""
+        u = np.asarray(c2) - np.asarray(c1)
+        d = float(np.linalg.norm(u))
+        a = (r1 * r1 - r2 * r2 + d * d) / (2.0 * d)
+        h = math.sqrt(r1 * r1 - a * a)
+        return np.asarray(c1) + (a * u + side * h * np.array([-u[1], u[0]])) / d
+
+    def pivots(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(2), np.array([self.base, 0.0])
+
+    def forward(self, theta1: float, theta2: float, side: int) -> np.ndarray:
+        """q with the cranks at theta1, theta2 and the end point on ``side`` of B1 -> B2."""
+        A, E = self.pivots()
+        B1, B2 = A + self.l1 * self.e(theta1), E + self.l1 * self.e(theta2)
+        P = self.circles(B1, self.l2, B2, self.l2, side)
+        return self.q_of(theta1, theta2, B1, B2, P)
+
+    def inverse(self, P: np.ndarray, sides: tuple[int, int]) -> np.ndarray:
+        """q with the end point at P (x, z), each elbow B on ``sides`` of pivot -> P."""
+        A, E = self.pivots()
+        B1 = self.circles(A, self.l1, P, self.l2, sides[0])
+        B2 = self.circles(E, self.l1, P, self.l2, sides[1])
+        t1 = math.atan2(B1[1] - A[1], B1[0] - A[0])
+        t2 = math.atan2(B2[1] - E[1], B2[0] - E[0])
+        return self.q_of(t1, t2, B1, B2, P)
+
+    def q_of(self, t1, t2, B1, B2, P) -> np.ndarray:
+        d1 = math.atan2(P[1] - B1[1], P[0] - B1[0])
+        d2 = math.atan2(P[1] - B2[1], P[0] - B2[0])
+        return wrap(np.array([t1, d1 - t1, t2, d2 - t2]))
+
+    def end_point(self, q) -> np.ndarray:
+        A, _ = self.pivots()
+        return A + self.l1 * self.e(q[0]) + self.l2 * self.e(q[0] + q[1])
+
+    def potential(self, q) -> float:
+        """m g times the heights of the four rods' centres [J]."""
+        A, E = self.pivots()
+        z = 0.0
+        for pivot, t, psi in ((A, q[0], q[1]), (E, q[2], q[3])):
+            B = pivot + self.l1 * self.e(t)
+            z += (pivot + 0.5 * self.l1 * self.e(t))[1] + (B + 0.5 * self.l2 * self.e(t + psi))[1]
+        return self.mass * self.g * z
+
+    def sigma_min_jd(self, q) -> float:
+        """sigma_min of J_D = [l2 n1, -l2 n2] (n_i the distal links' normals): the
+        translation rows of the loop in any rotated frame; l2 sqrt(1 - |cos alpha|)."""
+        alpha = (q[0] + q[1]) - (q[2] + q[3])
+        return self.l2 * math.sqrt(1.0 - abs(math.cos(alpha)))
+
+
+FB = FiveBarClosedForms()
+
+
+@pytest.fixture(scope="module")
+def five_bar() -> cc.Mechanism:
+    return cc.load(FIVE_BAR)
+
+
+def nearest_branch(q, candidates) -> np.ndarray:
+    return min(candidates, key=lambda c: float(np.linalg.norm(wrap(q - c))))
+
+
+# -- forward kinematics ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("theta2_deg", [-150, -90, -20, 0, 30, 90, 150])
+def test_fourbar_forward_kinematics_is_freudenstein(fourbar, fourbar_closed_forms, rng, theta2_deg):
+    cf = fourbar_closed_forms
+    theta2 = math.radians(theta2_deg)
+    for theta in cf.freudenstein(theta2):
+        q_exact = cf.q_from_theta(theta)
+        guess = q_exact + np.r_[0.0, rng.uniform(-0.05, 0.05, 2)]
+        r = cc.forward_kinematics(fourbar, [theta2], q_guess=guess)
+        assert np.linalg.norm(wrap(r.q - q_exact)) <= ANGLE_TOL
+        assert r.motors[0] == theta2
+        assert r.closure_residual <= ANGLE_TOL
+        # sigma_min of J_D: the seed's J_c (Section 2) in joint coordinates, columns of
+        # the coupler and rocker (the rows' rotation into the cut frame keeps it).
+        Jc = cf.jacobian(theta) @ cf.T
+        sd = np.linalg.svd(Jc[:, 1:], compute_uv=False)[-1]
+        assert abs(r.sigma_min_JD - sd) <= SIGMA_TOL
+
+
+@pytest.mark.parametrize("motors_deg", [(100, 80), (120, 40), (60, 100), (150, 10)])
+@pytest.mark.parametrize("side", [1, -1])
+def test_five_bar_forward_kinematics_is_circle_intersection(five_bar, rng, motors_deg, side):
+    t1, t2 = np.radians(motors_deg)
+    q_exact = FB.forward(t1, t2, side)
+    r = cc.forward_kinematics(five_bar, [t1, t2], q_guess=q_exact + rng.uniform(-0.1, 0.1, 4))
+    assert np.linalg.norm(wrap(r.q - q_exact)) <= ANGLE_TOL
+    np.testing.assert_array_equal(r.motors, [t1, t2])
+    assert r.closure_residual <= ANGLE_TOL
+    assert abs(r.sigma_min_JD - FB.sigma_min_jd(q_exact)) <= SIGMA_TOL
+
+
+def test_forward_kinematics_errors(five_bar, fourbar, tmp_path):
+    with pytest.raises(InvalidArgumentError, match=r"motors must be 2 finite numbers .*"):
+        cc.forward_kinematics(five_bar, [1.0])
+    with pytest.raises(InvalidArgumentError, match="left_crank_joint, right_crank_joint"):
+        cc.forward_kinematics(five_bar, [1.0, math.nan])
+    # A non-Grashof 4-bar (rocker 0.25 m: s + l = 0.7 > p + q = 0.65): the crank cannot
+    # point away from the rocker (tip 0.7 m from the rocker pivot > b + c = 0.65 m).
+    text = (MODELS / "fourbar.urdf").read_text()
+    old = '<successor_origin xyz="0.3 0 0"'
+    assert text.count(old) == 1
+    path = tmp_path / "triple_rocker.urdf"
+    path.write_text(text.replace(old, '<successor_origin xyz="0.25 0 0"'))
+    mech = cc.load(path)
+    with pytest.raises(cc.AssemblyError, match=r"no closed configuration with motors crank_joint"):
+        cc.forward_kinematics(mech, [math.pi])
+
+
+# -- inverse kinematics ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("P", [(0.1, 0.3), (0.05, 0.25), (0.18, 0.2)])
+@pytest.mark.parametrize("sides", [(-1, 1), (1, -1)])  # q_ref's working mode and the other
+def test_five_bar_inverse_kinematics_is_circle_intersection(five_bar, rng, P, sides):
+    q_exact = FB.inverse(np.array(P), sides)
+    assert np.linalg.norm(FB.end_point(q_exact) - P) <= ANGLE_TOL  # the reference holds
+    target = np.array([P[0], 0.0, P[1]])
+    r = cc.inverse_kinematics(
+        five_bar, END_POINT, target, mode="3d", q_guess=q_exact + rng.uniform(-0.1, 0.1, 4)
+    )
+    assert np.linalg.norm(wrap(r.q - q_exact)) <= ANGLE_TOL
+    assert np.linalg.norm(wrap(r.motors - q_exact[[0, 2]])) <= ANGLE_TOL
+    assert r.frame_error <= cc.parallel.IK_TOL
+    assert r.closure_residual <= ANGLE_TOL
+
+
+def test_agile_eye_inverse_kinematics_round_trips(agile_eye, rng):
+    fid = agile_eye.model.getFrameId("platform")
+    data = agile_eye.model.createData()
+    for _ in range(5):
+        motors = rng.uniform(-0.4, 0.4, 3)
+        fk = cc.forward_kinematics(agile_eye, motors)
+        pin.framesForwardKinematics(agile_eye.model, data, fk.q)
+        target = data.oMf[fid].copy()
+        ik = cc.inverse_kinematics(agile_eye, "platform", target)  # from q_ref
+        assert np.linalg.norm(wrap(ik.motors - motors)) <= ROUND_TRIP_TOL
+        assert np.linalg.norm(wrap(ik.q - fk.q)) <= ROUND_TRIP_TOL
+        pin.framesForwardKinematics(agile_eye.model, data, ik.q)
+        assert np.linalg.norm(pin.log6(target.actInv(data.oMf[fid])).vector) <= ROUND_TRIP_TOL
+
+
+def test_inverse_kinematics_errors(five_bar):
+    with pytest.raises(UnknownChoiceError, match=r"unknown five_bar frame 'tip'; .*P::predecessor"):
+        cc.inverse_kinematics(five_bar, "tip", pin.SE3.Identity())
+    with pytest.raises(UnknownChoiceError, match=r"inverse-kinematics mode '2d'; .*3d, 6d"):
+        cc.inverse_kinematics(five_bar, END_POINT, pin.SE3.Identity(), mode="2d")
+    with pytest.raises(InvalidArgumentError, match=r"target of mode '6d' must be a pinocchio.SE3"):
+        cc.inverse_kinematics(five_bar, END_POINT, np.zeros(3))
+    # 0.6 m above the left pivot: beyond the reach of both legs (0.4 m).
+    with pytest.raises(
+        cc.AssemblyError, match=r"frame 'P::predecessor' cannot reach the target \(3d\)"
+    ) as info:
+        cc.inverse_kinematics(five_bar, END_POINT, [0.0, 0.0, 0.6], mode="3d")
+    assert info.value.residual > 0.1
+
+
+# -- motor torques -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("motors_deg", [(100, 80), (130, 30)])
+def test_five_bar_motor_torques_at_rest_are_virtual_work(five_bar, motors_deg):
+    """At rest the motors hold the potential energy V(theta1, theta2) of the closed
+    five-bar (virtual work): tau = dV/dtheta, by central differences on the closed form."""
+    t = np.radians(motors_deg)
+    fk = cc.forward_kinematics(five_bar, t)
+    side = 1 if FB.end_point(fk.q)[1] > 0 else -1  # the branch reached: P above or below
+
+    def V(t1, t2):
+        return FB.potential(FB.forward(t1, t2, side))
+
+    ref = np.array(
+        [
+            (V(t[0] + FD_STEP, t[1]) - V(t[0] - FD_STEP, t[1])) / (2 * FD_STEP),
+            (V(t[0], t[1] + FD_STEP) - V(t[0], t[1] - FD_STEP)) / (2 * FD_STEP),
+        ]
+    )
+    res = cc.inverse_dynamics(five_bar, fk.q, np.zeros(4), np.zeros(2), coordinates="actuated")
+    assert np.linalg.norm(res.tau[five_bar.actuated_idx_v] - ref) <= TORQUE_TOL
+
+
+# -- actuation singularities ---------------------------------------------------------
+
+
+def distal_aligned() -> np.ndarray:
+    """The type II singularity of this five-bar: both cranks at the point B where their
+    circles meet, both distal links from B straight up (aligned)."""
+    h = math.sqrt(FB.l1**2 - (FB.base / 2) ** 2)
+    t1, t2 = math.atan2(h, FB.base / 2), math.atan2(h, -FB.base / 2)
+    return np.array([t1, math.pi / 2 - t1, t2, math.pi / 2 - t2])
+
+
+def test_five_bar_type_ii_singularity(five_bar):
+    q_star = distal_aligned()
+    assert np.max(np.abs(cc.compute_phi(five_bar, q_star))) <= SINGULAR_TOL
+    assert cc.actuation_singularities(five_bar, q_star).parallel <= SINGULAR_TOL
+    with pytest.raises(cc.SingularConfigurationError, match="type II"):
+        cc.forward_kinematics(five_bar, q_star[[0, 2]], q_guess=q_star)
+    # Turning the cranks apart by +-delta keeps the end point above B: sigma_min(J_D)
+    # follows the closed form and vanishes like delta (a simple root).
+    ratios = []
+    for delta in (4e-3, 2e-3, 1e-3):
+        motors = q_star[[0, 2]] + np.array([delta, -delta])
+        r = cc.forward_kinematics(five_bar, motors, q_guess=q_star)
+        q_cf = nearest_branch(r.q, [FB.forward(*motors, side) for side in (1, -1)])
+        assert np.linalg.norm(wrap(r.q - q_cf)) <= ANGLE_TOL
+        s = cc.actuation_singularities(five_bar, r.q).parallel
+        assert abs(s - FB.sigma_min_jd(q_cf)) <= SIGMA_TOL
+        assert s == r.sigma_min_JD
+        ratios.append(s / delta)
+    assert np.ptp(ratios) <= LINEAR_RTOL * np.mean(ratios)
+
+
+def test_five_bar_type_i_singularity(five_bar):
+    """A stretched left leg (distal joint at 0): the end point no longer determines the
+    left crank, so the serial measure of the end point's position vanishes, like the
+    distal joint's angle, while J_D stays regular."""
+    serial = []
+    for psi in (0.0, 2e-3, 1e-3):
+        t1 = math.radians(70)
+        P = FB.end_point([t1, psi, 0.0, 0.0])
+        _, E = FB.pivots()
+        B2 = FB.circles(E, FB.l1, P, FB.l2, 1)  # the right elbow of q_ref's working mode
+        t2 = math.atan2(B2[1], B2[0] - E[0])
+        q = FB.q_of(t1, t2, FB.l1 * FB.e(t1), B2, P)
+        assert np.max(np.abs(cc.compute_phi(five_bar, q))) <= SINGULAR_TOL
+        m = cc.actuation_singularities(five_bar, q, frame=END_POINT, mode="3d")
+        assert abs(m.parallel - FB.sigma_min_jd(q)) <= SIGMA_TOL  # regular: ~0.05 m
+        assert m.parallel > 0.01
+        serial.append(m.serial)
+    assert serial[0] <= SINGULAR_TOL
+    assert abs(serial[1] / 2e-3 - serial[2] / 1e-3) <= LINEAR_RTOL * serial[2] / 1e-3
+    far = cc.actuation_singularities(five_bar, five_bar.q_ref, frame=END_POINT, mode="3d")
+    assert far.serial > 0.01
+    assert math.isnan(cc.actuation_singularities(five_bar, five_bar.q_ref).serial)
