@@ -16,6 +16,7 @@ header and share no code with closedchain.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -312,3 +313,21 @@ def test_five_bar_type_i_singularity(five_bar):
     far = cc.actuation_singularities(five_bar, five_bar.q_ref, frame=END_POINT, mode="3d")
     assert far.serial > 0.01
     assert math.isnan(cc.actuation_singularities(five_bar, five_bar.q_ref).serial)
+
+
+# -- the guide's example -------------------------------------------------------------
+
+GUIDE = MODELS.parent / "docs" / "guide" / "robots-and-moving-bases.md"
+
+
+def test_guide_example_runs(tmp_path, monkeypatch):
+    """The ```python block of the guide's section "The parallel-robot workflow" runs."""
+    text = GUIDE.read_text().split("## The parallel-robot workflow", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"^```python\n(.*?)^```$", text, re.M | re.S)
+    assert len(blocks) == 1
+    (tmp_path / "models").symlink_to(MODELS)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "guide_example"}
+    exec(compile(blocks[0], str(GUIDE), "exec"), namespace)
+    assert namespace["ik"].frame_error <= cc.parallel.IK_TOL
+    assert namespace["s"].parallel > 0.1  # the Agile Eye's workspace centre is regular
