@@ -77,44 +77,53 @@ _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
 
 @dataclass(frozen=True)
-class ForwardKinematicsResult:
-    """A closed configuration with the motors at given values.
+class _ClosedConfiguration:
+    """A configuration with every loop closed, its motors and its closure residual.
 
     Attributes:
         q: configuration, shape (nq,).
         motors: the actuated coordinates' values, shape (na,) [rad or m], in the order
             of ``mech.actuated_joints``.
+        closure_residual: max |e| of every loop's closure residual at q [m or rad].
+    """
+
+    q: np.ndarray
+    motors: np.ndarray
+    closure_residual: float
+
+
+@dataclass(frozen=True)
+class ForwardKinematicsResult(_ClosedConfiguration):
+    """A closed configuration with the motors at given values.
+
+    Attributes:
+        q: configuration, shape (nq,).
+        motors: the motor values held, shape (na,) [rad or m].
         closure_residual: max |e| of every loop's closure residual at q [m or rad].
         sigma_min_JD: smallest singular value of J_D, the non-actuated columns of J
             [m or -] (zero at a type II singularity).
     """
 
-    q: np.ndarray
-    motors: np.ndarray
-    closure_residual: float
     sigma_min_JD: float
 
 
 @dataclass(frozen=True)
-class InverseKinematicsResult:
+class InverseKinematicsResult(_ClosedConfiguration):
     """A closed configuration with a frame at a target.
 
     Attributes:
         q: configuration, shape (nq,).
-        motors: the actuated coordinates' values, shape (na,) [rad or m], in the order
-            of ``mech.actuated_joints``.
+        motors: the motor values reached, shape (na,) [rad or m], in the order of
+            ``mech.actuated_joints``.
+        closure_residual: max |e| of every loop's closure residual at q [m or rad].
         frame: the frame placed.
         mode: ``"6d"`` (placement) or ``"3d"`` (position).
-        closure_residual: max |e| of every loop's closure residual at q [m or rad].
         frame_error: max |epsilon| of the frame's error (6 entries of log6 in 6d,
             the position's 3 in 3d) [m or rad].
     """
 
-    q: np.ndarray
-    motors: np.ndarray
     frame: str
     mode: str
-    closure_residual: float
     frame_error: float
 
 
@@ -268,7 +277,7 @@ def forward_kinematics(
         raise AssemblyError(
             f"{mech.name}: no closed configuration with motors "
             f"{', '.join(f'{n} = {x:.6g}' for n, x in zip(mech.actuated_joints, m, strict=True))}"
-            f" near q_guess: {exc}",
+            f" near q_guess: {str(exc).removeprefix(f'{mech.name}: ')}",
             residual=exc.residual,
             q=exc.q,
         ) from None
@@ -380,4 +389,4 @@ def inverse_kinematics(
             residual=max(res, err),
             q=q,
         )
-    return InverseKinematicsResult(q, _motor_values(mech, q), frame, mode, res, err)
+    return InverseKinematicsResult(q, _motor_values(mech, q), res, frame, mode, err)
