@@ -24,7 +24,7 @@ import numpy as np
 from .closure import PIVOT_TIE_RTOL
 from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
-from .exceptions import ClosedChainError
+from .exceptions import ClosedChainError, InvalidArgumentError
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -89,6 +89,28 @@ def supports_method(method: str) -> bool:
     return available() and METHOD_CAPABILITIES[method].compiled
 
 
+def unsupported_rows(mech: Mechanism) -> str | None:
+    """Return why the compiled core cannot evaluate ``mech``'s rows, or None when it can.
+
+    The core evaluates frame rows only: a joint coupling (``q_j = m q_i + c``,
+    :data:`closedchain.constraints.ROW_COUPLING`) runs on the numpy backend.
+    """
+    names = [spec.name for spec in mech.declared.couplings]
+    if not names:
+        return None
+    return (
+        f"{mech.name}: the compiled core has no joint-coupling rows (loops "
+        f"{', '.join(map(repr, names))}); valid: backend='numpy' (or 'auto')"
+    )
+
+
+def _check_rows(mech: Mechanism) -> None:
+    """Raise InvalidArgumentError when the core cannot hold ``mech``'s rows."""
+    reason = unsupported_rows(mech)
+    if reason is not None:
+        raise InvalidArgumentError(reason)
+
+
 def make_core(mech: Mechanism, *, shared: bool = True):
     """Return a compiled core of the mechanism (its own Pinocchio Data and buffers).
 
@@ -122,6 +144,7 @@ def make_core(mech: Mechanism, *, shared: bool = True):
 
 def _core_of_rows(mech: Mechanism, layer) -> _core.Core:
     """A new core on ``mech``'s model whose rows are those of the constraint ``layer``."""
+    _check_rows(mech)
     tab = layer.row_table()
     return _core.Core(
         mech.model,

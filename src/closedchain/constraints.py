@@ -16,6 +16,7 @@ spherical translation in c1 (t1, t2, ta)                 3
 fixed     translation (t1, t2, ta), tilt, twist (r3)     3 + 3
 prismatic translation across the axis (t1, t2), tilt,    2 + 3
           twist
+coupling  q_j - m q_i - c (q)                            1
 ========= ============================================== =========
 
 where a is the loop axis and (n1, n2, a) a right-handed orthonormal basis of
@@ -49,6 +50,11 @@ with :math:`\dot U = \omega_p \times U`, :math:`\ddot U = \alpha_{b,p} \times
 U + \omega_p \times (\omega_p \times U)` (and the same for W with the
 successor's), expanded in :meth:`ConstraintLayer.evaluate` into dot products.
 
+A coupling loop (``q_j = m q_i + c``, :data:`closedchain.urdf.COUPLING`) has
+no frame rows: its one row reads the two joints' coordinates from ``data``
+(``data.joints[j].joint_q``, which every kinematics routine fills), its J is
+constant (+1 at j, -m at i) and its gamma is zero.
+
 So J is exactly the derivative of phi along ``pin.integrate`` and
 gamma = Jdot v exactly: finite differences check both (tests/test_constraints.py).
 For the planar 4-bar the two kept rows are the seed's closure
@@ -64,7 +70,7 @@ import pinocchio as pin
 
 from ._arrays import same_array
 from .exceptions import ValidationUnavailableError
-from .urdf import LoopSpec
+from .urdf import COUPLING, LoopSpec
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _LOCAL = pin.ReferenceFrame.LOCAL
@@ -84,6 +90,10 @@ BATCH_LOOPS = 4
 ROW_TRANSLATION = 0
 #: Rotation (R_p u).(R_s w).
 ROW_ROTATION = 1
+#: Joint coupling q_j - m q_i - c (no frames; not in the compiled core).
+ROW_COUPLING = 2
+#: Kind of a coupling row in :class:`RowInfo`.
+COUPLING_KIND = "q"
 
 
 _I1 = np.array([1, 2, 0])
@@ -195,6 +205,28 @@ def _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma) -> None:
         gamma[sl] = NR @ np.array(x)
 
 
+def _coupling_row(model, data, blk: LoopRows, phi, J, gamma) -> None:
+    r"""Fill the row ``q_j - m q_i - c`` of a coupling loop (joints i, j: the parent
+    joints of its frames c1, c2), reading the coordinates ``data`` was filled at:
+
+    .. math::
+
+        \phi = q_j - m q_i - c, \qquad J = e_j^\top - m e_i^\top, \qquad \gamma = 0.
+    """
+    r = blk.start
+    ji = model.frames[blk.fid_p].parentJoint
+    jj = model.frames[blk.fid_s].parentJoint
+    m = blk.spec.multiplier
+    if phi is not None:
+        phi[r] = data.joints[jj].joint_q[0] - m * data.joints[ji].joint_q[0] - blk.spec.offset
+    if J is not None:
+        J[r] = 0.0
+        J[r, model.joints[jj].idx_v] = 1.0
+        J[r, model.joints[ji].idx_v] -= m
+    if gamma is not None:
+        gamma[r] = 0.0
+
+
 @dataclass(frozen=True)
 class RowInfo:
     """One declared constraint row.
@@ -202,8 +234,9 @@ class RowInfo:
     Attributes:
         loop: name of its loop.
         kind: ``"t1" | "t2" | "ta"`` (translation along n1, n2, a of c1),
-            ``"r1" | "r2"`` (tilt of the axis), ``"r3"`` (twist about it).
-        unit: ``"m"`` or ``"1"`` (dimensionless).
+            ``"r1" | "r2"`` (tilt of the axis), ``"r3"`` (twist about it),
+            ``"q"`` (a coupling q_j - m q_i - c).
+        unit: ``"m"`` or ``"1"`` (dimensionless); a coupling row ``"q"`` (the unit of q_j).
     """
 
     loop: str
@@ -216,18 +249,23 @@ class RowInfo:
 
     @property
     def function(self) -> int:
-        """:data:`ROW_TRANSLATION` or :data:`ROW_ROTATION`."""
+        """:data:`ROW_TRANSLATION`, :data:`ROW_ROTATION` or :data:`ROW_COUPLING`."""
+        if self.kind == COUPLING_KIND:
+            return ROW_COUPLING
         return ROW_TRANSLATION if self.unit == "m" else ROW_ROTATION
 
 
 def declared_row_vectors(spec: LoopSpec) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
     """Return the declared rows of a loop, in order: (kind, function, u or n in c1, w in c2).
 
-    Translation rows carry w = 0. See the module docstring for the table.
+    Translation and coupling rows carry w = 0 (a coupling row also u = 0). See the
+    module docstring for the table.
     """
     a = np.asarray(spec.axis, dtype=float)
     n1, n2 = axis_basis(a)
     zero = np.zeros(3)
+    if spec.type == COUPLING:
+        return [(COUPLING_KIND, ROW_COUPLING, zero, zero)]
     rows: list[tuple[str, int, np.ndarray, np.ndarray]] = []
     if spec.type in ("revolute", "spherical", "fixed"):
         rows += [("t1", ROW_TRANSLATION, n1, zero), ("t2", ROW_TRANSLATION, n2, zero)]
@@ -263,10 +301,8 @@ class LoopRows:
         self.fid_s = fid_s
         declared = declared_row_vectors(spec)
         self.n_declared = len(declared)
-        self.declared_rows = tuple(
-            RowInfo(spec.name, kind, "m" if f == ROW_TRANSLATION else "1")
-            for kind, f, _, _ in declared
-        )
+        units = {ROW_TRANSLATION: "m", ROW_ROTATION: "1", ROW_COUPLING: COUPLING_KIND}
+        self.declared_rows = tuple(RowInfo(spec.name, kind, units[f]) for kind, f, _, _ in declared)
         self.keep = tuple(range(len(declared))) if keep is None else tuple(sorted(keep))
         active = [declared[i] for i in self.keep]
         self.rows = tuple(self.declared_rows[i] for i in self.keep)
@@ -275,6 +311,8 @@ class LoopRows:
         self.rot_w = np.array([w for _, f, _, w in active if f == ROW_ROTATION]).reshape(-1, 3)
         self.n = len(self.keep)
         self.nt, self.nr = len(self.trans), len(self.rot_u)
+        #: Whether the loop's active row is a coupling row (:data:`ROW_COUPLING`).
+        self.coupling = spec.type == COUPLING and self.n == 1
         self.start = 0  # first row of this block in the layer, set by ConstraintLayer
 
 
@@ -446,6 +484,17 @@ class ConstraintLayer:
                 reuses the frame placements of its last evaluation at the same q (the
                 simulator evaluates J and then gamma at each stage's q).
         """
+        self._evaluate_frames(model, data, phi, J, gamma, v, q)
+        for blk in self._couplings:
+            _coupling_row(model, data, blk, phi, J, gamma)
+
+    @property
+    def couplings(self) -> tuple[LoopSpec, ...]:
+        """The loops whose active row is a coupling row (``q_j = m q_i + c``)."""
+        return tuple(b.spec for b in self._couplings)
+
+    def _evaluate_frames(self, model, data, phi, J, gamma, v, q) -> None:
+        """Fill the rows of the loops with frames (all but the couplings), see evaluate."""
         # Hot path (every dynamics evaluation). Translation rows: per loop, a few
         # 3 x 3 / k x 3 products (see _translation_rows). Rotation rows: all loops at
         # once, a fixed number of batched numpy calls (numpy's per-call overhead,
@@ -568,6 +617,7 @@ class ConstraintLayer:
         one batched table of rotation rows; with more than :data:`BATCH_LOOPS` loops
         holding translation rows, one batched table of them too (every row at once)."""
         self._build_batched_tables()
+        self._couplings = [b for b in self._active if b.coupling]
         self._fids: list[int] = []
         self._trans: list[tuple[slice, int, int, np.ndarray]] = []
         rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
@@ -667,7 +717,7 @@ class ConstraintLayer:
         dependent solve checks the same)."""
         out = []
         for blk in self._blocks:
-            if blk.spec.type == "spherical":
+            if blk.spec.type in ("spherical", COUPLING):
                 continue
             a = blk.spec.axis
             vectors = [a] if blk.spec.type == "revolute" else [a, *axis_basis(a)]
@@ -816,6 +866,12 @@ def build_pinocchio_constraints(
         frame_p, frame_s = model.frames[fp], model.frames[fs]
         j1, M1 = frame_p.parentJoint, frame_p.placement
         j2, M2 = frame_s.parentJoint, frame_s.placement
+        if spec.type == COUPLING:
+            raise ValidationUnavailableError(
+                f"loop {spec.name!r} is a joint coupling: Pinocchio has no coupling "
+                "constraint model, so there is no Pinocchio reference for coupling rows; "
+                "valid loop types for validation: revolute, spherical, fixed"
+            )
         if spec.type == "prismatic":
             raise ValidationUnavailableError(
                 f"loop {spec.name!r} is prismatic: Pinocchio has no prismatic rigid "

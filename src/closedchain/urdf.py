@@ -13,6 +13,20 @@ parser, what Pinocchio ignores (URDF+, Chignoli et al. 2024):
       <axis xyz="0 0 1"/>
     </loop>
 
+A *coupling* loop ties two 1-dof joints (a gear, a mimic joint) with the
+one row ``q_j = multiplier q_i + offset``:
+
+.. code-block:: xml
+
+    <loop name="finger" type="coupling">
+      <joint name="right_finger_joint"/>
+      <mimics joint="left_finger_joint" multiplier="-1" offset="0"/>
+    </loop>
+
+and a standard URDF ``<mimic joint="i" multiplier="m" offset="c"/>`` inside
+``<joint name="j">`` is read as the same loop, named ``j`` + :data:`MIMIC_SUFFIX`
+(the joint itself stays an ordinary joint of the tree). See :func:`parse_urdf`.
+
 Parsing is safe: no DTD is accepted (so no entity expansion and no external
 entities), no network access, no huge trees. What the parser accepts, refuses
 and warns about is stated in :func:`parse_urdf`.
@@ -38,7 +52,16 @@ from .exceptions import ModelTooLargeError, URDFError
 logger = logging.getLogger(__name__)
 
 #: Loop-joint types and the relative motion each allows.
-LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed")
+LOOP_TYPES = ("revolute", "prismatic", "spherical", "fixed", "coupling")
+
+#: Loop type of a joint coupling ``q_j = multiplier q_i + offset`` (one row, no frames).
+COUPLING = "coupling"
+
+#: Joint types a coupling may tie (one coordinate each, angle or length, no wrap).
+COUPLING_JOINT_TYPES = ("revolute", "prismatic")
+
+#: Suffix of the name of the coupling loop a ``<mimic>`` element becomes.
+MIMIC_SUFFIX = "_mimic"
 
 #: Reserved link name a ``<loop>`` may use for the fixed world (Pinocchio's
 #: universe) when the tree has no link of that name: with a free-flyer or
@@ -67,6 +90,7 @@ FOREIGN_ELEMENTS = ("gazebo",)
 
 #: Children of the closedchain elements (any other child is refused).
 LOOP_CHILDREN = ("predecessor", "successor", "predecessor_origin", "successor_origin", "axis")
+COUPLING_CHILDREN = ("joint", "mimics")
 SCENE_CHILDREN = ("initial", "track")
 TRACK_CHILDREN = ("sinusoid",)
 
@@ -108,6 +132,14 @@ class LoopSpec:
         successor_origin: placement of the cut-joint frame c2 in the successor link frame.
         axis: unit joint axis, shape (3,), in frame c1 (unused for spherical and fixed).
         line: source line of the ``<loop>`` element, for error messages.
+        joint: coupling loops: the driven joint j (``<joint name>``), else "".
+        mimics: coupling loops: the driving joint i (``<mimics joint>``), else "".
+        multiplier: coupling loops: m of ``q_j = m q_i + c`` [-, or m/rad, rad/m
+            between a revolute and a prismatic joint].
+        offset: coupling loops: c of ``q_j = m q_i + c`` [rad or m, as q_j].
+
+    A coupling loop's predecessor and successor are the child links of ``mimics``
+    and ``joint`` (where its frames are put; its row reads the joints' coordinates).
     """
 
     name: str
@@ -118,6 +150,10 @@ class LoopSpec:
     successor_origin: pin.SE3
     axis: np.ndarray
     line: int = 0
+    joint: str = ""
+    mimics: str = ""
+    multiplier: float = 1.0
+    offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -639,6 +675,12 @@ def parse_urdf(
       given): present, without control characters (:data:`NAME_REFUSED_CATEGORIES`); link and joint
       names unique (a duplicate names both lines). Messages quote names
       with ``repr``, so they stay one line.
+    - ``<loop type="coupling">`` (see the module docstring): one ``<joint name>``
+      and one ``<mimics joint multiplier offset>`` (defaults 1 and 0), two
+      different revolute or prismatic joints (:data:`COUPLING_JOINT_TYPES`;
+      continuous joints are refused: their angle wraps). A ``<mimic>`` inside a
+      ``<joint>`` is the same loop (URDF's defaults: multiplier 1, offset 0),
+      named after the joint with :data:`MIMIC_SUFFIX`.
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
       :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
       scaling first (an axis of 1e308 is a direction). The axis of a
@@ -677,7 +719,22 @@ def parse_urdf(
 
     # A loop may name the world (WORLD_LINK) even when no link has that name.
     loop_links = links if WORLD_LINK in links else (*links, WORLD_LINK)
-    loops = tuple(_parse_loop(path, e, loop_links) for e in root.findall("loop"))
+    children = {
+        e.get("name"): e.find("child").get("link")
+        for e in joint_elements
+        if e.find("child") is not None
+    }
+    loops = tuple(
+        _parse_coupling(path, e, joints, children)
+        if e.get("type") == COUPLING
+        else _parse_loop(path, e, loop_links)
+        for e in root.findall("loop")
+    )
+    loops += tuple(
+        _parse_mimic(path, e, joints, children)
+        for e in joint_elements
+        if e.find("mimic") is not None
+    )
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:
@@ -784,6 +841,81 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         successor_origin=origins["successor_origin"],
         axis=axis,
         line=element.sourceline or 0,
+    )
+
+
+def _coupling_spec(
+    where: str, name: str, joint: str, mimics: str, element, joints, children, line: int
+) -> LoopSpec:
+    """Return the coupling loop ``q_joint = multiplier q_mimics + offset`` of ``element``
+    (which holds ``multiplier`` and ``offset``), checking both joints."""
+    for jname in (joint, mimics):
+        if joints.get(jname) not in COUPLING_JOINT_TYPES:
+            valid = sorted(j for j, t in joints.items() if t in COUPLING_JOINT_TYPES)
+            found = "no joint of this file" if jname not in joints else f"a {joints[jname]} joint"
+            raise URDFError(
+                f"{where}: a coupling ties 1-dof joints without wrap-around, and {jname!r} is "
+                f"{found}; valid: revolute or prismatic joints ({', '.join(valid)})"
+            )
+    if joint == mimics:
+        raise URDFError(f"{where}: joint {joint!r} cannot mimic itself")
+    w = f"{where} <{element.tag}>"
+    multiplier = _number(w, element, "multiplier")
+    offset = _number(w, element, "offset")
+    return LoopSpec(
+        name=name,
+        type=COUPLING,
+        predecessor=children.get(mimics, ""),
+        successor=children.get(joint, ""),
+        predecessor_origin=pin.SE3.Identity(),
+        successor_origin=pin.SE3.Identity(),
+        axis=np.array([1.0, 0.0, 0.0]),
+        line=line,
+        joint=joint,
+        mimics=mimics,
+        multiplier=1.0 if multiplier is None else multiplier,
+        offset=0.0 if offset is None else offset,
+    )
+
+
+def _parse_coupling(path: Path, element, joints: dict[str, str], children) -> LoopSpec:
+    """Read ``<loop type="coupling"><joint name/><mimics joint multiplier offset/></loop>``."""
+    where = _where(path, element)
+    name = _check_name(path, element, "loop")
+    _check_children(path, element, COUPLING_CHILDREN, strict=True)
+    found = {tag: element.findall(tag) for tag in COUPLING_CHILDREN}
+    for tag, items in found.items():
+        if len(items) != 1:
+            raise URDFError(
+                f"{where}: a coupling loop needs exactly one <{tag}>, found {len(items)}"
+            )
+    return _coupling_spec(
+        where,
+        name,
+        found["joint"][0].get("name"),
+        found["mimics"][0].get("joint"),
+        found["mimics"][0],
+        joints,
+        children,
+        element.sourceline or 0,
+    )
+
+
+def _parse_mimic(path: Path, joint, joints: dict[str, str], children) -> LoopSpec:
+    """Read the URDF ``<mimic joint multiplier offset>`` of ``joint`` as a coupling loop."""
+    mimics = joint.findall("mimic")
+    where = _where(path, joint)
+    if len(mimics) > 1:
+        raise URDFError(f"{where}: more than one <mimic>")
+    return _coupling_spec(
+        where,
+        joint.get("name") + MIMIC_SUFFIX,
+        joint.get("name"),
+        mimics[0].get("joint"),
+        mimics[0],
+        joints,
+        children,
+        mimics[0].sourceline or 0,
     )
 
 

@@ -14,7 +14,8 @@ sites placed at the two halves c1 and c2 of the cut joint:
 
 * ``spherical``: one ``connect`` (c1 and c2 coincide);
 * ``revolute``: two ``connect``: c1 = c2 and c1 + L u = c2 + L u on the axis u;
-* ``fixed``: one ``weld`` of the two site frames.
+* ``fixed``: one ``weld`` of the two site frames;
+* ``coupling``: one ``joint`` equality, ``polycoef`` = (offset, multiplier, 0, 0, 0).
 
 Prismatic loops have no MuJoCo equality and raise.
 
@@ -202,6 +203,13 @@ def export_mjcf(
                 f"loop {spec.name!r} is prismatic: MuJoCo has no prismatic equality; valid "
                 "loop types for MJCF export: revolute, spherical, fixed"
             )
+        if spec.type == "coupling":  # q_joint = multiplier q_mimics + offset
+            equalities.append(
+                f"<joint name={quoteattr(spec.name)} joint1={quoteattr(spec.joint)} "
+                f"joint2={quoteattr(spec.mimics)} "
+                f'polycoef="{_fmt([spec.offset, spec.multiplier, 0.0, 0.0, 0.0])}"{attrs}/>'
+            )
+            continue
         ends = []
         for side, fid in (("c1", fp), ("c2", fs)):
             frame = model.frames[fid]

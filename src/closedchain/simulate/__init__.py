@@ -227,12 +227,20 @@ def check_t_eval(
 
 
 def _select_backend(
-    spec: IntegratorSpec, backend: str, stabilization: str, method: str
-) -> IntegratorSpec:
-    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``)."""
+    spec: IntegratorSpec, backend: str, stabilization: str, method: str, mech: Mechanism
+) -> tuple[IntegratorSpec, str | None]:
+    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``)
+    and, when ``"auto"`` falls back to numpy because of the mechanism's rows, why."""
+    from .. import compiled
+
     backend = resolve_choice("backend", backend, BACKENDS)
     if backend == "numpy":
-        return spec
+        return spec, None
+    rows = compiled.unsupported_rows(mech)
+    if rows is not None:
+        if backend == "compiled":
+            raise InvalidArgumentError("backend='compiled' cannot run this request: " + rows)
+        return spec, rows
     method = method_name(method)
     cspec = COMPILED_INTEGRATORS.get(spec.name)
     reasons = []
@@ -246,12 +254,12 @@ def _select_backend(
     if not METHOD_CAPABILITIES[method].compiled:
         reasons.append(f"method {method!r} has no compiled implementation")
     if not reasons:
-        return cspec
+        return cspec, None
     if backend == "compiled":
         raise InvalidArgumentError(
             "backend='compiled' cannot run this request: " + "; ".join(reasons)
         )
-    return spec
+    return spec, None
 
 
 @exclusive
@@ -333,7 +341,7 @@ def simulate(
     fixed = spec.kind == "fixed"
     if stabilization is None:
         stabilization = spec.default_stabilization
-    spec = _select_backend(spec, backend, stabilization, method)
+    spec, fallback = _select_backend(spec, backend, stabilization, method, mech)
     stab = get_stabilization(stabilization)
     stabilization = stab.name
     if stabilization not in spec.stabilizations:
@@ -461,6 +469,8 @@ def simulate(
     }
     if stab.accel_terms:
         info["baumgarte"] = list(solver_settings.baumgarte)
+    if fallback is not None:
+        info["backend_fallback"] = fallback
     cpu0 = time.process_time()
     control = StepControl(dt=dt, rtol=rtol, atol=atol)
     # The numpy path makes many small solves; OpenBLAS's threads only spin on them (N-four-bar
