@@ -43,6 +43,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
 )
+from .mjcf import read_model
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf
 
@@ -522,6 +523,12 @@ class Mechanism:
                 numbers(spec.successor_origin.homogeneous[:3]),
                 numbers(spec.axis),
             ]
+            # A coupling's joints and numbers (the other loops' entries stay as they were).
+            + (
+                [spec.joint, spec.mimics, *numbers([spec.multiplier, spec.offset])]
+                if spec.joint
+                else []
+            )
             for spec in self.urdf.loops
         ]
         text = json.dumps({"joints": joints, "loops": loops}, separators=(",", ":"))
@@ -544,6 +551,13 @@ class Mechanism:
                     "independent_rows": kept,
                 }
             )
+            if spec.joint:  # a coupling q_joint = multiplier q_mimics + offset
+                loops[-1].update(
+                    joint=spec.joint,
+                    mimics=spec.mimics,
+                    multiplier=spec.multiplier,
+                    offset=spec.offset,
+                )
         tree = []
         for j in range(1, self.model.njoints):
             jm = self.model.joints[j]
@@ -600,16 +614,18 @@ def load(
     *,
     root_joint: str | None = None,
     loops: str | Path | None = None,
-    gravity: Sequence[float] = DEFAULT_GRAVITY,
+    gravity: Sequence[float] | None = None,
     settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
     cut_joints: Sequence[str] = (),
 ) -> Mechanism:
-    """Load a URDF+ mechanism.
+    """Load a URDF+ or MJCF mechanism.
 
     Args:
         path: URDF file with optional ``<loop>`` / ``<transmission>`` elements,
             an SDF file (``.sdf``, cut into a tree and loops by
-            :mod:`closedchain.sdf`), or ``erd:<name>``, a model of the
+            :mod:`closedchain.sdf`), a MuJoCo MJCF file (root ``<mujoco>``, read by
+            :mod:`closedchain.mjcf`: ``<equality>`` connect, weld and joint
+            constraints become loops), or ``erd:<name>``, a model of the
             installed example-robot-data (:data:`closedchain.robots.ERD_MODELS`;
             drawn with primitive geometry).
         root_joint: joint between the world and the URDF's root link: None
@@ -619,7 +635,8 @@ def load(
         loops: overlay file in URDF+ syntax whose links, joints, loops and
             transmissions are merged into the tree (see :mod:`closedchain.robots`).
         gravity: gravity vector in the world frame [m/s^2], shape (3,), of
-            norm at most :data:`MAX_GRAVITY_NORM`.
+            norm at most :data:`MAX_GRAVITY_NORM`; None: the file's (MJCF
+            ``<option gravity>``), else :data:`DEFAULT_GRAVITY`.
         settings: row-selection settings (defaults: :class:`LoadSettings`).
         cut_joints: SDF only: joints to cut into loops in preference to the
             rule of :mod:`closedchain.sdf` (default: the registry entry's).
@@ -645,9 +662,14 @@ def load(
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
     cut = tuple(cut_joints) or (entry.cut_joints if entry is not None else ())
+    # URDF and MJCF are read here once (MJCF carries its gravity); SDF and cuts by
+    # merge_overlay's read_base.
+    robot, file_gravity = (None, None) if cut or is_sdf(base) else read_model(base)
+    if gravity is None:
+        gravity = DEFAULT_GRAVITY if file_gravity is None else file_gravity
     try:
-        if loops is None and entry is None and not cut and not is_sdf(base):
-            urdf = parse_urdf(base, max_nv=max_nv(settings))
+        if loops is None and entry is None and robot is not None:
+            urdf = parse_urdf(base, element=robot, max_nv=max_nv(settings))
         else:
             urdf = merge_overlay(
                 base,
@@ -655,6 +677,7 @@ def load(
                 primitive=entry is not None,
                 max_nv=max_nv(settings),
                 cut_joints=cut,
+                root=robot,
             )
     except ModelTooLargeError as exc:
         raise ModelTooLargeError(

@@ -38,6 +38,7 @@ import numpy as np
 from lxml import etree
 
 from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
+from .mjcf import read_model
 from .sdf import is_sdf, read_sdf
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
 
@@ -173,10 +174,11 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
 
 
 def read_base(base: Path, *, cut_joints: tuple[str, ...] = ()):
-    """Return the ``<robot>`` element of a base model: a URDF, or an SDF read as URDF+.
+    """Return the ``<robot>`` element of a base model: a URDF, or an SDF or MJCF read as URDF+.
 
     Args:
-        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`).
+        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`; root
+            ``<mujoco>``: :func:`closedchain.mjcf.read_model`).
         cut_joints: SDF only: joints to cut in preference.
 
     Raises:
@@ -190,7 +192,7 @@ def read_base(base: Path, *, cut_joints: tuple[str, ...] = ()):
             f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
             "loops with <loop> elements"
         )
-    return read_xml(base)
+    return read_model(base)[0]
 
 
 def merge_overlay(
@@ -200,6 +202,7 @@ def merge_overlay(
     primitive: bool = False,
     max_nv: int | None = None,
     cut_joints: tuple[str, ...] = (),
+    root=None,
 ) -> URDFPlus:
     """Merge an overlay's elements into a base URDF and parse the result.
 
@@ -211,6 +214,8 @@ def merge_overlay(
             :func:`primitive_visuals`).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
         cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
+        root: the base's ``<robot>`` element, already read (an MJCF base translated by
+            :func:`closedchain.mjcf.read_model`); None: :func:`read_base` reads it.
 
     Returns:
         The parsed, merged model. Its ``path`` is the overlay (messages about
@@ -221,7 +226,7 @@ def merge_overlay(
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
             (lists the valid ones), or a link or joint name the base already uses.
     """
-    root = read_base(base, cut_joints=cut_joints)
+    root = read_base(base, cut_joints=cut_joints) if root is None else root
     path = base
     if overlay is not None:
         path = Path(overlay)
