@@ -336,7 +336,7 @@ def _cmd_info(args) -> int:
         + np.array2string(np.array(s["q_ref"]), precision=6, max_line_width=100)
     )
     if not s["pinocchio_reference"]:
-        print("note: no Pinocchio reference for this mechanism's loop types (prismatic)")
+        print("note: no Pinocchio reference for this mechanism's loop types (prismatic, coupling)")
     return 0
 
 
