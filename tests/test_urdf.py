@@ -256,11 +256,12 @@ def test_robot_without_links(write):
 
 def test_unknown_loop_type_lists_the_valid_types(fourbar_text, write):
     path = write(with_loop(fourbar_text, FOURBAR_LOOP.replace('"revolute"', '"ball"')))
-    assert LOOP_TYPES == ("revolute", "prismatic", "spherical", "fixed")
+    assert LOOP_TYPES == ("revolute", "prismatic", "spherical", "fixed", "coupling")
     with pytest.raises(
         cc.URDFError,
         match=where(path, "<loop name='C'>")
-        + r": unknown loop type 'ball'; valid choices: revolute, prismatic, spherical, fixed",
+        + r": unknown loop type 'ball'; valid choices: revolute, prismatic, spherical, fixed, "
+        "coupling",
     ):
         cc.load(path)
 

@@ -121,7 +121,7 @@ def read_model(path: Path) -> tuple[etree._Element, np.ndarray | None]:
     Raises:
         URDFError: unsafe or malformed XML, or an MJCF element closedchain cannot read.
     """
-    root = read_xml(path, what="model file")
+    root = read_xml(path)
     if root.tag != MJCF_ROOT:
         return root, None
     model = mjcf_to_urdf(path, root)

@@ -680,7 +680,8 @@ def parse_urdf(
       different revolute or prismatic joints (:data:`COUPLING_JOINT_TYPES`;
       continuous joints are refused: their angle wraps). A ``<mimic>`` inside a
       ``<joint>`` is the same loop (URDF's defaults: multiplier 1, offset 0),
-      named after the joint with :data:`MIMIC_SUFFIX`.
+      named after the joint with :data:`MIMIC_SUFFIX`; the ``<mimic>`` of a
+      fixed joint couples nothing and is left out (logged).
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
       :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
       scaling first (an axis of 1e308 is a direction). The axis of a
@@ -730,10 +731,12 @@ def parse_urdf(
         else _parse_loop(path, e, loop_links)
         for e in root.findall("loop")
     )
+    mimicking = [e for e in joint_elements if e.find("mimic") is not None]
+    for e in mimicking:
+        if e.get("type") == "fixed":  # no coordinate to couple (Talos' reduced grippers)
+            logger.info("%s: fixed joint: its <mimic> couples nothing", _where(path, e))
     loops += tuple(
-        _parse_mimic(path, e, joints, children)
-        for e in joint_elements
-        if e.find("mimic") is not None
+        _parse_mimic(path, e, joints, children) for e in mimicking if e.get("type") != "fixed"
     )
     names = [lp.name for lp in loops]
     for name in set(names):
