@@ -819,7 +819,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add(name: str, help_: str, handler) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_, description=help_)
-        p.add_argument("file", help="URDF file with <loop> elements, or erd:<name>")
+        p.add_argument(
+            "file", help="URDF file with <loop> elements, MJCF file (<mujoco>), or erd:<name>"
+        )
         add_model_arguments(p)
         _add_debug(p)
         p.set_defaults(handler=handler)
