@@ -149,32 +149,30 @@ def test_weld_becomes_a_fixed_loop_closed_at_qpos0(tmp_path):
     assert np.linalg.norm(cc.compute_phi(mech, np.zeros(3))) <= 1e-12
 
 
+#: A body's mass and inertia, for the bodies of the refused inputs below.
+INERTIAL = '<inertial mass="1" diaginertia="1 1 1"/>'
+
+
 @pytest.mark.parametrize(
     ("xml", "match"),
     [
         (
-            '<body name="b"><joint type="ball"/><inertial mass="1" diaginertia="1 1 1"/></body>',
+            f'<body name="b"><joint type="ball"/>{INERTIAL}</body>',
             r"<joint>: ball joints are not supported .*valid: hinge, slide, free",
         ),
         (
-            '<body name="b"><body name="c"><freejoint/>'
-            '<inertial mass="1" diaginertia="1 1 1"/></body></body>',
+            f'<body name="b"><body name="c"><freejoint/>{INERTIAL}</body></body>',
             r"<freejoint>: a free joint must be the only joint of a top-level body",
         ),
         (
-            '<body name="b"><joint name="j" ref="0.3"/><inertial mass="1" diaginertia="1 1 1"/>'
-            "</body>",
+            f'<body name="b"><joint name="j" ref="0.3"/>{INERTIAL}</body>',
             r"<joint name='j'>: ref= other than 0 is not supported",
         ),
         (
             '<body name="b"><joint name="j"/><geom size="0.1"/></body>',
             r"<body name='b'>: has joints and geoms but no <inertial>",
         ),
-        (
-            '<body name="b" quat="0 0 0 0"><joint name="j"/>'
-            '<inertial mass="1" diaginertia="1 1 1"/></body>',
-            r"quat is zero",
-        ),
+        (f'<body name="b" quat="0 0 0 0"><joint name="j"/>{INERTIAL}</body>', r"quat is zero"),
     ],
 )
 def test_bad_bodies_are_refused(tmp_path, xml, match):
