@@ -212,3 +212,10 @@ def _variant(tmp_path, old: str, new: str):
 def test_bad_couplings_are_refused(tmp_path, old, new, match):
     with pytest.raises(URDFError, match=match):
         cc.load(_variant(tmp_path, old, new))
+
+
+def test_joint_reactions_leave_couplings_out(gripper, rng):
+    """A coupling transmits no wrench between two links (its reaction is J^T lam)."""
+    q, v = cc.random_consistent_state(gripper, rng)
+    res = cc.forward_dynamics(gripper, q, v, np.zeros(gripper.nv), method="kkt")
+    assert cc.joint_reactions(gripper, q, v, res) == []

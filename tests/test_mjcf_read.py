@@ -230,3 +230,32 @@ def test_unknown_models_stay_urdf(tmp_path):
     path = tmp_path / "fourbar.xml"
     path.write_bytes((MODELS / "fourbar.urdf").read_bytes())
     assert cc.load(path).urdf.loops[0].type == "revolute"
+
+
+def test_free_joint_is_the_free_flyer_root(tmp_path, rng):
+    """A <freejoint> on the top-level body is Pinocchio's free flyer: the same dynamics as
+    ``root_joint="free"`` on the fixed-base file (the ground given a mass for both)."""
+
+    def ground_mass(root):
+        ground = root.find("worldbody/body")
+        ground.insert(0, etree.fromstring('<inertial mass="2" diaginertia="0.1 0.2 0.3"/>'))
+
+    fixed = cc.load(_edit(tmp_path, ground_mass), root_joint="free")
+
+    def free(root):
+        ground_mass(root)
+        root.find("worldbody/body").insert(0, etree.Element("freejoint", name="base"))
+
+    floating = cc.load(_edit(tmp_path, free))
+    assert floating.model.joints[1].shortname() == "JointModelFreeFlyer"
+    assert (floating.nq, floating.nv) == (fixed.nq, fixed.nv) == (10, 9)
+    _same_dynamics(fixed, floating, rng)
+
+
+def test_passive_joint_terms_are_logged_as_ignored(tmp_path, caplog):
+    def damped(root):
+        root.find(".//joint[@name='crank_joint']").set("damping", "0.5")
+
+    with caplog.at_level("WARNING", logger="closedchain.mjcf"):
+        cc.load(_edit(tmp_path, damped))
+    assert "damping=0.5 ignored" in caplog.text

@@ -79,6 +79,7 @@ from .dynamics.base import (
     workspace,
 )
 from .exceptions import ClosedChainError, NonFiniteError
+from .urdf import COUPLING
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -411,8 +412,12 @@ def joint_reactions(
         tree: also report every tree joint (default False: the loops only).
 
     Returns:
-        One :class:`LoopReaction` per loop, in the URDF's order; with ``tree``, then
-        one :class:`JointReaction` per tree joint, in tree order.
+        One :class:`LoopReaction` per loop with frames, in the URDF's order; with
+        ``tree``, then one :class:`JointReaction` per tree joint, in tree order. A
+        coupling loop transmits no wrench between two links: its reaction is the
+        generalized force lam on its joint and -multiplier lam on the one it mimics
+        (the rows of J^T lam), which act as motor torques do, so it is left out (the
+        tree joints' wrenches, from their subtrees' motion, include it).
 
     Raises:
         ClosedChainError: lam of the wrong shape, or ``tree`` without accelerations.
@@ -436,6 +441,8 @@ def joint_reactions(
     # opposite on the predecessor.
     fext = [pin.Force.Zero() for _ in range(model.njoints)]
     for blk, sl in mech.constraints.per_loop():
+        if blk.spec.type == COUPLING:
+            continue
         oMp = pin.updateFramePlacement(model, data, blk.fid_p)
         oMs = pin.updateFramePlacement(model, data, blk.fid_s)
         Rp, Rs = oMp.rotation, oMs.rotation

@@ -41,7 +41,8 @@ below the top level, joint ``ref`` other than 0, ``<include>``, ``<frame>``,
 ``<default>`` classes that set joint, inertial or equality attributes,
 equality types other than connect, weld and joint, a ``joint`` equality
 without ``joint2`` or with nonzero ``polycoef`` beyond c1. Ignored:
-``solref``/``solimp`` (closedchain's constraints are exact), contacts,
+``solref``/``solimp`` (closedchain's constraints are exact), joint
+``damping``, ``stiffness``, ``armature`` and ``frictionloss`` (logged), contacts,
 tendons, sensors, cameras, lights, and inactive (``active="false"``)
 equalities (logged).
 
@@ -90,6 +91,10 @@ REFUSED_DEFAULTS = ("joint", "inertial", "equality", "connect", "weld")
 
 #: Number of polynomial coefficients of a ``joint`` equality (c0..c4).
 POLYCOEF_SIZE = 5
+
+#: Joint attributes of passive forces and rotor inertia that closedchain does not model:
+#: nonzero values are logged as ignored (the dynamics differ from MuJoCo's by them).
+IGNORED_JOINT_ATTRIBUTES = ("damping", "stiffness", "armature", "frictionloss")
 
 #: Geom types drawn as visuals.
 VISUAL_GEOMS = ("sphere", "box", "cylinder", "capsule")
@@ -377,6 +382,14 @@ class _Reader:
         self.origin(joint, M)
         self.add(joint, "parent", j, link=parent)
         self.add(joint, "child", j, link=child)
+        ignored = [a for a in IGNORED_JOINT_ATTRIBUTES if self.numbers(j, a, 1, "0")[0] != 0.0]
+        if ignored:
+            logger.warning(
+                "%s: %s ignored (closedchain models no joint damping, stiffness, friction "
+                "or armature)",
+                self.where(j),
+                ", ".join(f"{a}={j.get(a)}" for a in ignored),
+            )
         if kind == "floating":
             return
         self.add(joint, "axis", j, xyz=_fmt(self.numbers(j, "axis", 3, "0 0 1")))

@@ -14,6 +14,7 @@ import pinocchio as pin
 from .._io import MAX_MESH_BYTES, check_input_file
 from ..constraints import axis_basis
 from ..exceptions import ClosedChainError
+from ..urdf import COUPLING
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -269,6 +270,8 @@ def joint_markers(
         origin = cMj @ _frame_with_z(axis, offset * axis)
         out.append(JointMarker("actuated", name, child.name, origin, shape, pin_radius))
     for spec in mech.urdf.loops:
+        if spec.type == COUPLING:  # it joins two coordinates, no two frames: no marker
+            continue
         shape = "ring" if spec.type in ("revolute", "prismatic") else "ball"
         # In the cut-joint frames c1 and c2 the axis has the same coordinates
         # (closed, they differ by a motion along or about the axis).
