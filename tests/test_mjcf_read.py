@@ -259,3 +259,27 @@ def test_passive_joint_terms_are_logged_as_ignored(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="closedchain.mjcf"):
         cc.load(_edit(tmp_path, damped))
     assert "damping=0.5 ignored" in caplog.text
+
+
+def test_several_joints_in_one_body_match_pinocchio_composite_joint(tmp_path, rng):
+    """Two hinges at different ``pos`` in one body: a chain through a massless link here,
+    a composite joint in Pinocchio's MJCF reader; the same M and h."""
+    path = tmp_path / "two_hinges.xml"
+    path.write_text(
+        '<mujoco><compiler angle="radian"/><worldbody><body name="b" pos="0 0 1">'
+        '<joint name="j1" axis="1 0 0" pos="0 0 0.1"/><joint name="j2" axis="0 1 0" '
+        'pos="0 0 0.2"/><inertial pos="0.1 0 -0.3" mass="1" diaginertia="0.01 0.02 0.03"/>'
+        "</body></worldbody></mujoco>"
+    )
+    mech = cc.load(path)
+    assert mech.joint_names == ("j1", "j2")
+    model = pin.buildModelFromMJCF(str(path))
+    model.gravity.linear = mech.gravity
+    assert model.njoints == 2  # one composite joint
+    data, ours = model.createData(), mech.model.createData()
+    for _ in range(N_STATES):
+        q, v = rng.uniform(-math.pi, math.pi, 2), rng.standard_normal(2)
+        M1, M2 = pin.crba(model, data, q), pin.crba(mech.model, ours, q)
+        assert np.linalg.norm(np.triu(M1) - np.triu(M2)) <= TREE_TOL
+        h1 = pin.nonLinearEffects(model, data, q, v)
+        assert np.linalg.norm(h1 - pin.nonLinearEffects(mech.model, ours, q, v)) <= TREE_TOL
