@@ -53,17 +53,21 @@ def _index(mech: cc.Mechanism, joint: str) -> int:
     return mech.coordinate_names.index(joint)
 
 
-def _coupling_rows(mech: cc.Mechanism, q: np.ndarray, couplings=COUPLINGS):
-    """phi, shape (k,), and J, shape (k, nv), of the couplings written from their numbers."""
-    phi, J = [], np.zeros((len(couplings), mech.nv))
-    for r, (joint, (leader, m, c)) in enumerate(couplings.items()):
+def _coupling_rows(mech: cc.Mechanism, q: np.ndarray):
+    """phi, shape (nc,), and J, shape (nc, nv), of the couplings written from their
+    numbers (:data:`COUPLINGS`), in the order of the mechanism's rows."""
+    joint_of = {spec.name: spec.joint for spec in mech.urdf.loops}
+    phi, J = [], np.zeros((mech.nc, mech.nv))
+    for r, row in enumerate(mech.rows):
+        joint = joint_of[row.loop]
+        leader, m, c = COUPLINGS[joint]
         j, i = _index(mech, joint), _index(mech, leader)
         phi.append(q[j] - m * q[i] - c)
         J[r, j], J[r, i] = 1.0, -m
     return np.array(phi), J
 
 
-def _kkt_reference(path, mech: cc.Mechanism, q, v, tau, couplings=COUPLINGS) -> np.ndarray:
+def _kkt_reference(path, mech: cc.Mechanism, q, v, tau) -> np.ndarray:
     """Accelerations of the tree of ``path`` under the coupling rows (gamma = 0), by KKT."""
     model = pin.buildModelFromUrdf(str(path))
     model.gravity.linear = mech.gravity
@@ -71,7 +75,7 @@ def _kkt_reference(path, mech: cc.Mechanism, q, v, tau, couplings=COUPLINGS) -> 
     M = pin.crba(model, data, q)
     M = np.triu(M) + np.triu(M, 1).T
     h = pin.nonLinearEffects(model, data, q, v)
-    _, J = _coupling_rows(mech, q, couplings)
+    _, J = _coupling_rows(mech, q)
     k = len(J)
     K = np.block([[M, J.T], [J, np.zeros((k, k))]])
     return np.linalg.solve(K, np.concatenate([tau - h, np.zeros(k)]))[: mech.nv]
@@ -95,12 +99,8 @@ def test_rows_match_their_closed_form(gripper, rng):
         q = gripper.random_configuration(rng)  # not assembled: phi != 0
         v = rng.standard_normal(gripper.nv)
         phi_ref, J_ref = _coupling_rows(gripper, q)
-        joint_of = {spec.name: spec.joint for spec in gripper.urdf.loops}
-        perm = [list(COUPLINGS).index(joint_of[r.loop]) for r in gripper.rows]
-        np.testing.assert_allclose(cc.compute_phi(gripper, q), phi_ref[perm], rtol=0, atol=ROW_TOL)
-        np.testing.assert_allclose(
-            cc.compute_jacobian(gripper, q), J_ref[perm], rtol=0, atol=ROW_TOL
-        )
+        np.testing.assert_allclose(cc.compute_phi(gripper, q), phi_ref, rtol=0, atol=ROW_TOL)
+        np.testing.assert_allclose(cc.compute_jacobian(gripper, q), J_ref, rtol=0, atol=ROW_TOL)
         assert np.linalg.norm(cc.compute_gamma(gripper, q, v)) == 0.0
 
 
@@ -215,7 +215,14 @@ def test_bad_couplings_are_refused(tmp_path, old, new, match):
 
 
 def test_joint_reactions_leave_couplings_out(gripper, rng):
-    """A coupling transmits no wrench between two links (its reaction is J^T lam)."""
+    """A coupling transmits no wrench between two links: its generalized force acts on
+    the coupled joints as a motor's would, so each tree joint transmits
+    tau - J^T lam along its axis (J written from the file's numbers)."""
     q, v = cc.random_consistent_state(gripper, rng)
-    res = cc.forward_dynamics(gripper, q, v, np.zeros(gripper.nv), method="kkt")
+    tau = rng.standard_normal(gripper.nv)
+    res = cc.forward_dynamics(gripper, q, v, tau, method="kkt")
     assert cc.joint_reactions(gripper, q, v, res) == []
+    tree = cc.joint_reactions(gripper, q, v, res, tree=True)
+    _, J = _coupling_rows(gripper, q)
+    transmitted = np.array([float(r.tau[0]) for r in tree])
+    assert np.linalg.norm(transmitted - (tau - J.T @ res.lam)) <= ACCEL_RTOL * np.linalg.norm(tau)

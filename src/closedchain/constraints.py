@@ -205,15 +205,15 @@ def _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma) -> None:
         gamma[sl] = NR @ np.array(x)
 
 
-def _coupling_row(model, data, blk: LoopRows, phi, J, gamma) -> None:
-    r"""Fill the row ``q_j - m q_i - c`` of a coupling loop (joints i, j: the parent
-    joints of its frames c1, c2), reading the coordinates ``data`` was filled at:
+def _coupling_row(model, data, blk: LoopRows, r: int, phi, J, gamma) -> None:
+    r"""Fill row ``r`` of phi, J, gamma with the row ``q_j - m q_i - c`` of a coupling
+    loop (joints i, j: the parent joints of its frames c1, c2), reading the
+    coordinates ``data`` was filled at:
 
     .. math::
 
         \phi = q_j - m q_i - c, \qquad J = e_j^\top - m e_i^\top, \qquad \gamma = 0.
     """
-    r = blk.start
     ji = model.frames[blk.fid_p].parentJoint
     jj = model.frames[blk.fid_s].parentJoint
     m = blk.spec.multiplier
@@ -486,7 +486,7 @@ class ConstraintLayer:
         """
         self._evaluate_frames(model, data, phi, J, gamma, v, q)
         for blk in self._couplings:
-            _coupling_row(model, data, blk, phi, J, gamma)
+            _coupling_row(model, data, blk, blk.start, phi, J, gamma)
 
     @property
     def couplings(self) -> tuple[LoopSpec, ...]:
@@ -772,6 +772,12 @@ class ConstraintLayer:
         """
         es, Es = [], []
         for blk in self._blocks:
+            if blk.spec.type == COUPLING:  # e is its row phi (zero exactly where closed)
+                e, E = np.zeros(1), np.zeros((1, model.nv)) if jacobian else None
+                _coupling_row(model, data, blk, 0, e, E, None)
+                es.append(e)
+                Es.append(E)
+                continue
             oMp = pin.updateFramePlacement(model, data, blk.fid_p)
             oMs = pin.updateFramePlacement(model, data, blk.fid_s)
             c1Mc2 = oMp.actInv(oMs)
@@ -788,7 +794,7 @@ class ConstraintLayer:
 
 
 #: Entries of :func:`closure_residual` per loop type.
-CLOSURE_SIZES = {"fixed": 6, "spherical": 3, "revolute": 6, "prismatic": 5}
+CLOSURE_SIZES = {"fixed": 6, "spherical": 3, "revolute": 6, "prismatic": 5, COUPLING: 1}
 
 
 def closure_residual(spec: LoopSpec, c1Mc2: pin.SE3) -> tuple[np.ndarray, np.ndarray]:
@@ -805,6 +811,8 @@ def closure_residual(spec: LoopSpec, c1Mc2: pin.SE3) -> tuple[np.ndarray, np.nda
     revolute  p, R a - a                               3 + 3
     prismatic n1.p, n2.p, log3(R)                      2 + 3
     ========= ======================================== =====
+
+    (A coupling loop's e is its row q_j - m q_i - c: :meth:`ConstraintLayer.closure_residuals`.)
 
     The revolute loop's rotation part is the chord between the axis and its
     image: smooth everywhere, zero only when the axes coincide, of length
