@@ -173,6 +173,7 @@ INERTIAL = '<inertial mass="1" diaginertia="1 1 1"/>'
             r"<body name='b'>: has joints and geoms but no <inertial>",
         ),
         (f'<body name="b" quat="0 0 0 0"><joint name="j"/>{INERTIAL}</body>', r"quat is zero"),
+        ('<body name="b"><geom size="big"/></body>', r"<geom>: size='big' must be 1 to 3"),
     ],
 )
 def test_bad_bodies_are_refused(tmp_path, xml, match):

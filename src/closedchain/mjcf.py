@@ -263,15 +263,17 @@ class _Reader:
         inertial = body.find("inertial")
         if inertial is not None:
             self.inertial(link, inertial, L)
-        elif body.get("name") != WORLD_LINK and body.findall("geom") and body.tag == "body":
-            if self.inertia_from_geom != "false" and (
-                body.findall("joint") or body.findall("freejoint")
-            ):
-                self.fail(
-                    body,
-                    "has joints and geoms but no <inertial>: MuJoCo infers its inertia "
-                    "from the geoms, which closedchain does not; valid: give an <inertial>",
-                )
+        elif (
+            body.tag == "body"
+            and body.findall("geom")
+            and self.inertia_from_geom != "false"
+            and (body.findall("joint") or body.findall("freejoint"))
+        ):
+            self.fail(
+                body,
+                "has joints and geoms but no <inertial>: MuJoCo infers its inertia "
+                "from the geoms, which closedchain does not; valid: give an <inertial>",
+            )
         for geom in body.findall("geom"):
             self.visual(link, geom, L)
 
@@ -304,7 +306,13 @@ class _Reader:
         if kind not in VISUAL_GEOMS:
             logger.info("%s: geom type %r is not drawn", self.where(geom), kind)
             return
-        size = [float(x) for x in geom.get("size", "0").split()]
+        text = geom.get("size", "0")
+        try:
+            size = [float(x) for x in text.split()]
+        except ValueError:
+            size = []
+        if not 1 <= len(size) <= 3 or not all(map(math.isfinite, size)):
+            self.fail(geom, f"size={text!r} must be 1 to 3 finite numbers")
         fromto = self.numbers(geom, "fromto", 6)
         if fromto is not None and kind in ("cylinder", "capsule", "box"):
             a, b = fromto[:3], fromto[3:]
