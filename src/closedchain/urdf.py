@@ -99,15 +99,27 @@ LIMIT_ATTRIBUTES = {"lower": False, "upper": False, "effort": True, "velocity": 
 class LoopSpec:
     """One loop-closure joint as written in the URDF.
 
+    A side written ``<predecessor frame="..."/>`` names any frame of the tree
+    (a link, or a joint's frame: fixed or movable); :func:`closedchain.load`
+    resolves it to the link the frame is attached to and the origin in that
+    link's frame, so that once loaded every side is a link and an origin.
+
     Attributes:
         name: loop name (the ``name`` attribute).
         type: one of :data:`LOOP_TYPES`.
-        predecessor: name of the predecessor link.
-        successor: name of the successor link.
-        predecessor_origin: placement of the cut-joint frame c1 in the predecessor link frame.
-        successor_origin: placement of the cut-joint frame c2 in the successor link frame.
+        predecessor: name of the predecessor link (before ``load`` resolves a
+            ``frame=`` side: the frame's name).
+        successor: name of the successor link (idem).
+        predecessor_origin: placement of the cut-joint frame c1 in the predecessor link
+            frame (before ``load`` resolves a ``frame=`` side: in that frame).
+        successor_origin: placement of the cut-joint frame c2 in the successor link frame
+            (idem).
         axis: unit joint axis, shape (3,), in frame c1 (unused for spherical and fixed).
-        line: source line of the ``<loop>`` element, for error messages.
+        line: source line of the ``<loop>`` element, for error messages (0: none,
+            e.g. a loop read from a YAML file).
+        predecessor_frame: the frame ``<predecessor frame=...>`` names, or None
+            (``link=``).
+        successor_frame: idem for ``<successor>``.
     """
 
     name: str
@@ -118,6 +130,13 @@ class LoopSpec:
     successor_origin: pin.SE3
     axis: np.ndarray
     line: int = 0
+    predecessor_frame: str | None = None
+    successor_frame: str | None = None
+
+    def where(self, path: Path | str) -> str:
+        """Return ``"{path}: line {n}: <loop name='...'>"`` (without the line when unknown)."""
+        line = f" line {self.line}:" if self.line else ""
+        return f"{path}:{line} <loop name={self.name!r}>"
 
 
 @dataclass(frozen=True)
@@ -322,6 +341,22 @@ def unit_vector(text: str, what: str) -> np.ndarray:
         raise URDFError(f"{what} is zero; valid: a direction with a non-zero component")
     unit = xyz / scale  # largest |component| is 1: the norm below is in [1, sqrt(3)]
     return unit / math.sqrt(float(unit @ unit))
+
+
+#: Names an error message lists before it shortens the list to "... and N more".
+MAX_LISTED_NAMES = 30
+
+
+def name_list(names, *, limit: int = MAX_LISTED_NAMES) -> str:
+    """Return the sorted names, comma separated, the ones past ``limit`` counted, not listed.
+
+    Args:
+        names: the valid names (any iterable of str; duplicates are listed once).
+        limit: names listed at most.
+    """
+    unique = sorted(set(names))
+    shown = ", ".join(unique[:limit])
+    return shown if len(unique) <= limit else f"{shown}, ... and {len(unique) - limit} more"
 
 
 def _check_name(path: Path, element, kind: str) -> str:
@@ -753,16 +788,25 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
             raise URDFError(f"{where}: missing <{tag}>")
         return found[0] if found else None
 
-    ends = {}
+    ends, frames = {}, {}
     for tag in ("predecessor", "successor"):
-        link = child(tag).get("link")
+        end = child(tag)
+        link, frame = end.get("link"), end.get("frame")
+        if (link is None) == (frame is None):
+            raise URDFError(
+                f"{where}: <{tag}> needs exactly one of link= (a link) or frame= (any frame "
+                "of the tree: a link or a joint)"
+            )
+        if frame is not None:  # resolved against Pinocchio's frames by load()
+            ends[tag] = frames[tag] = frame
+            continue
         if link not in links:
             raise URDFError(
                 f"{where}: <{tag} link={link!r}> names an unknown link; links: "
-                f"{', '.join(sorted(links))}"
+                f"{name_list(links)} (or frame= for a joint's frame)"
             )
         ends[tag] = link
-    if ends["predecessor"] == ends["successor"]:
+    if not frames and ends["predecessor"] == ends["successor"]:
         raise URDFError(f"{where}: predecessor and successor are the same link")
 
     origins = {}
@@ -784,6 +828,8 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         successor_origin=origins["successor_origin"],
         axis=axis,
         line=element.sourceline or 0,
+        predecessor_frame=frames.get("predecessor"),
+        successor_frame=frames.get("successor"),
     )
 
 

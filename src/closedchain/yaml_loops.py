@@ -1,0 +1,328 @@
+"""Loops in the YAML convention of example-parallel-robots (Gepetto, BSD-3).
+
+Each robot of that collection is a URDF tree (``robot.urdf``) and a YAML
+file (``robot.yaml``) that says how to close it::
+
+    closed_loop: [["closedloop1_A", "closedloop1_B"], ["knee_A", "knee_B"]]
+    type: ["6d", "3d"]            # per loop: 6d placements equal, 3d positions equal
+    name_mot: ["mot1", "mot2"]    # the actuated joints
+    joint_name: ["ankle", "foot"] # optional: joints to convert ...
+    joint_type: ["SPHERICAL", "UJOINT_ZY"]  # ... into these
+
+:func:`apply_loops_yaml` turns it into URDF+ in the tree's XML, so that the
+rest of closedchain reads one format:
+
+- each pair of ``closed_loop`` becomes a ``<loop>`` between the two frames
+  (``<predecessor frame=...>``, any frame of the tree: links, joints, fixed
+  joints), named ``A--B``: ``6d`` a ``fixed`` loop, ``3d`` a ``spherical`` one
+  (:data:`LOOP_TYPE_OF`, case ignored);
+- each joint of ``name_mot`` gets a ``<transmission>``;
+- ``joint_type`` rewrites the joints of ``joint_name`` before Pinocchio reads
+  the tree (:data:`JOINT_CONVERSIONS`, case ignored): ``FIXED`` makes the
+  joint fixed at its zero position (the URDF's origin); ``UJOINT_<A><B>``
+  replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
+  the axes A then B of the joint's frame, at its origin, through a massless
+  link ``<joint>_<A>_link``; ``SPHERICAL`` by three, about X, Y, Z.
+
+Why three revolute joints for ``SPHERICAL`` rather than Pinocchio's
+``JointModelSpherical`` (a quaternion, which the authors' loader builds): URDF
+has no spherical joint type, and keeping the model a URDF keeps every part of
+closedchain that reads the XML (the drawing, MJCF export, digest, the compiled
+core) seeing the same tree. The price is the Euler-angle singularity: the
+joint's mass matrix loses rank when the middle (Y) angle reaches +-pi/2, where
+the X and Z axes align; the joint starts at 0 (the robots are exported at their
+assembled pose) and ball joints of legs and deltas stay far from it.
+
+The YAML is read with PyYAML's safe loader (no Python objects, no code).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+from lxml import etree
+
+from .exceptions import URDFError
+from .urdf import name_list
+
+#: File suffixes that mark a ``loops=`` file as YAML (else it is a URDF+ overlay).
+YAML_SUFFIXES = (".yaml", ".yml")
+
+#: Keys of the YAML file (any other key is refused).
+YAML_KEYS = ("closed_loop", "type", "name_mot", "joint_name", "joint_type")
+
+#: Loop type of each YAML constraint type (keys case folded).
+LOOP_TYPE_OF = {"6d": "fixed", "3d": "spherical"}
+
+#: The ``joint_type`` conversions, as the message listing them says.
+JOINT_CONVERSIONS = ("SPHERICAL", "FIXED", "UJOINT_<A><B> (A, B two different axes of X, Y, Z)")
+
+#: A U-joint conversion: first and second axis.
+_UJOINT = re.compile(r"UJOINT_([XYZ])([XYZ])")
+
+#: Axes of the joint frame, as URDF ``<axis xyz=...>``.
+AXIS_XYZ = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
+
+#: Axes of the three revolute joints of a ``SPHERICAL`` conversion, in order.
+SPHERICAL_AXES = "XYZ"
+
+#: Position limits [rad] of the revolute joints of a converted joint: +-CONVERTED_JOINT_LIMIT
+#: (URDF's revolute joint needs limits; half a turn either way is every orientation).
+CONVERTED_JOINT_LIMIT = math.pi
+
+#: Joint types a ``SPHERICAL`` or ``UJOINT`` conversion may replace (one degree of freedom).
+CONVERTIBLE_JOINT_TYPES = ("revolute", "continuous", "prismatic")
+
+#: Children of a ``<joint>`` that a conversion keeps (the others describe the old motion).
+KEPT_JOINT_CHILDREN = ("origin", "parent", "child")
+
+#: Separator of the two frame names in a loop's name.
+LOOP_NAME_SEPARATOR = "--"
+
+
+@dataclass(frozen=True)
+class LoopsYAML:
+    """The content of a loops YAML file, checked.
+
+    Attributes:
+        path: the file read.
+        loops: per ``closed_loop`` pair: (predecessor frame, successor frame,
+            loop type of :data:`LOOP_TYPE_OF`).
+        motors: the joints of ``name_mot``, in file order.
+        conversions: per ``joint_name`` entry: (joint, conversion in upper case).
+    """
+
+    path: Path
+    loops: tuple[tuple[str, str, str], ...] = ()
+    motors: tuple[str, ...] = ()
+    conversions: tuple[tuple[str, str], ...] = ()
+
+
+def is_loops_yaml(path: str | Path) -> bool:
+    """Return whether a ``loops=`` file is YAML (:data:`YAML_SUFFIXES`, case ignored)."""
+    return Path(path).suffix.lower() in YAML_SUFFIXES
+
+
+def _names(path: Path, data: dict, key: str) -> list[str]:
+    """Return ``data[key]`` (default empty) as a list of strings, or raise naming the key."""
+    value = data.get(key)
+    if value is None:
+        return []
+    if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
+        raise URDFError(f"{path}: {key} must be a list of names, got {_brief(value)}")
+    return value
+
+
+def _brief(value: object, limit: int = 60) -> str:
+    """Return ``repr(value)`` cut to ``limit`` characters (one line)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def read_loops_yaml(path: str | Path) -> LoopsYAML:
+    """Read and check a loops YAML file (see the module docstring).
+
+    Args:
+        path: the YAML file.
+
+    Returns:
+        Its loops, motors and joint conversions.
+
+    Raises:
+        URDFError: the file cannot be read or is not YAML; an unknown key
+            (lists the valid ones); a value of the wrong shape; ``closed_loop``
+            and ``type`` (or ``joint_name`` and ``joint_type``) of different
+            lengths; an unknown constraint type or conversion (lists the valid
+            ones); a name given twice.
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise URDFError(f"{path}: cannot read loops file: {exc.strerror}") from exc
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise URDFError(f"{path}: not a YAML file: {' '.join(str(exc).split())}") from exc
+    if not isinstance(data, dict):
+        raise URDFError(f"{path}: expected a mapping of keys {', '.join(YAML_KEYS)}")
+    for key in data:
+        if key not in YAML_KEYS:
+            raise URDFError(f"{path}: unknown key {key!r}; valid keys: {', '.join(YAML_KEYS)}")
+
+    pairs = data.get("closed_loop") or []
+    if not isinstance(pairs, list) or not all(
+        isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p) for p in pairs
+    ):
+        raise URDFError(
+            f"{path}: closed_loop must be a list of pairs of frame names, got {_brief(pairs)}"
+        )
+    types = _names(path, data, "type")
+    if len(types) != len(pairs):
+        raise URDFError(
+            f"{path}: closed_loop has {len(pairs)} pairs but type has {len(types)} entries; "
+            "valid: one type per pair"
+        )
+    loops = []
+    for i, ((a, b), kind) in enumerate(zip(pairs, types, strict=True)):
+        if kind.casefold() not in LOOP_TYPE_OF:
+            raise URDFError(f"{path}: type[{i}] = {kind!r} is not a constraint type; valid: 6d, 3d")
+        if a == b:
+            raise URDFError(f"{path}: closed_loop[{i}] pairs frame {a!r} with itself")
+        loops.append((a, b, LOOP_TYPE_OF[kind.casefold()]))
+    seen: dict[tuple[str, str], int] = {}
+    for i, (a, b, _) in enumerate(loops):
+        if (a, b) in seen or (b, a) in seen:
+            j = seen.get((a, b), seen.get((b, a)))
+            raise URDFError(f"{path}: closed_loop[{i}] repeats closed_loop[{j}] ({a!r}, {b!r})")
+        seen[a, b] = i
+
+    motors = _names(path, data, "name_mot")
+    joints = _names(path, data, "joint_name")
+    kinds = _names(path, data, "joint_type")
+    if len(joints) != len(kinds):
+        raise URDFError(
+            f"{path}: joint_name has {len(joints)} entries but joint_type has {len(kinds)}; "
+            "valid: one type per joint"
+        )
+    for key, names in (("name_mot", motors), ("joint_name", joints)):
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise URDFError(f"{path}: {key} lists {name!r} twice")
+    conversions = []
+    for i, (joint, kind) in enumerate(zip(joints, kinds, strict=True)):
+        upper = kind.upper()
+        m = _UJOINT.fullmatch(upper)
+        if upper not in ("SPHERICAL", "FIXED") and (m is None or m[1] == m[2]):
+            raise URDFError(
+                f"{path}: joint_type[{i}] = {kind!r} (joint {joint!r}) is not a conversion; "
+                f"valid: {', '.join(JOINT_CONVERSIONS)}"
+            )
+        conversions.append((joint, upper))
+    return LoopsYAML(
+        path=path, loops=tuple(loops), motors=tuple(motors), conversions=tuple(conversions)
+    )
+
+
+def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> None:
+    """Write a loops YAML file's conversions, loops and motors into a URDF tree, in place.
+
+    Args:
+        root: the ``<robot>`` element of the base URDF (modified).
+        loops: the checked YAML content (:func:`read_loops_yaml`).
+        base: the base URDF file, for messages.
+
+    Raises:
+        URDFError: ``joint_name`` names no ``<joint>`` (lists them), a joint
+            that cannot be converted so, or one whose conversion would reuse a
+            name; ``name_mot`` names no movable joint of the converted tree (lists
+            them). Loop frames are checked when the tree is built
+            (:func:`closedchain.load`).
+    """
+    path = loops.path
+    joints = {e.get("name"): e for e in root.findall("joint")}
+    taken = set(joints) | {e.get("name") for e in root.findall("link")}
+    converted = {}
+    for i, (name, kind) in enumerate(loops.conversions):
+        where = f"{path}: joint_name[{i}] = {name!r}"
+        joint = joints.get(name)
+        if joint is None:
+            raise URDFError(f"{where} is not a <joint> of {base}; joints: {name_list(joints)}")
+        if kind == "FIXED":
+            _make_fixed(joint)
+        else:
+            jtype = joint.get("type")
+            if jtype not in CONVERTIBLE_JOINT_TYPES:
+                raise URDFError(
+                    f"{where} is a {jtype} joint, which {kind} cannot replace; valid: a "
+                    f"{', '.join(CONVERTIBLE_JOINT_TYPES)} joint"
+                )
+            axes = SPHERICAL_AXES if kind == "SPHERICAL" else kind[-2:]
+            _replace_by_revolute_chain(root, joint, axes, taken, where)
+        converted[name] = kind
+
+    movable = [e.get("name") for e in root.findall("joint") if e.get("type") != "fixed"]
+    for i, name in enumerate(loops.motors):
+        if name in converted:
+            raise URDFError(
+                f"{path}: name_mot[{i}] = {name!r} is converted to {converted[name]} by "
+                "joint_type, so it cannot be a motor"
+            )
+        if name not in movable:
+            raise URDFError(
+                f"{path}: name_mot[{i}] = {name!r} is not a movable <joint> of {base}; "
+                f"movable joints: {name_list(movable)}"
+            )
+        transmission = etree.SubElement(root, "transmission", name=f"{name}_transmission")
+        etree.SubElement(transmission, "type").text = "transmission_interface/SimpleTransmission"
+        etree.SubElement(transmission, "joint", name=name)
+
+    for a, b, loop_type in loops.loops:
+        loop = etree.SubElement(root, "loop", name=f"{a}{LOOP_NAME_SEPARATOR}{b}", type=loop_type)
+        etree.SubElement(loop, "predecessor", frame=a)
+        etree.SubElement(loop, "successor", frame=b)
+
+
+def _make_fixed(joint) -> None:
+    """Turn ``joint`` into a fixed joint at its zero position (its origin)."""
+    joint.set("type", "fixed")
+    for child in list(joint):
+        if isinstance(child.tag, str) and child.tag not in KEPT_JOINT_CHILDREN:
+            joint.remove(child)
+
+
+def _replace_by_revolute_chain(root, joint, axes: str, taken: set[str], where: str) -> None:
+    """Replace ``joint`` by revolute joints about ``axes`` of its frame, all at its origin.
+
+    Joint ``<name>_<axis>`` turns about ``axis``; massless links
+    ``<name>_<axis>_link`` join consecutive ones; the first has the old
+    joint's parent and origin, the last its child.
+
+    Args:
+        root: the ``<robot>`` element (modified).
+        joint: the ``<joint>`` element to replace.
+        axes: the axes in order, letters of :data:`AXIS_XYZ`.
+        taken: names of every link and joint so far (updated).
+        where: the YAML entry, for messages.
+    """
+    name = joint.get("name")
+    parent, child = joint.find("parent"), joint.find("child")
+    if parent is None or child is None:
+        raise URDFError(f"{where}: the <joint> has no <parent> or <child>")
+    limit = joint.find("limit")
+    rates = {
+        key: limit.get(key, "0") if limit is not None else "0" for key in ("effort", "velocity")
+    }
+    names = [f"{name}_{axis}" for axis in axes]
+    links = [f"{n}_link" for n in names[:-1]]
+    for new in names + links:
+        if new in taken:
+            raise URDFError(
+                f"{where}: converting it needs the name {new!r}, which the tree already uses"
+            )
+        taken.add(new)
+    origin = joint.find("origin")
+    position = list(root).index(joint)
+    root.remove(joint)
+    elements = [etree.Element("link", name=link) for link in links]
+    parents = [parent.get("link"), *links]
+    children = [*links, child.get("link")]
+    for k, (jname, axis) in enumerate(zip(names, axes, strict=True)):
+        new = etree.Element("joint", name=jname, type="revolute")
+        if k == 0 and origin is not None:
+            new.append(origin)
+        etree.SubElement(new, "parent", link=parents[k])
+        etree.SubElement(new, "child", link=children[k])
+        etree.SubElement(new, "axis", xyz=AXIS_XYZ[axis])
+        etree.SubElement(
+            new,
+            "limit",
+            lower=repr(-CONVERTED_JOINT_LIMIT),
+            upper=repr(CONVERTED_JOINT_LIMIT),
+            **rates,
+        )
+        elements.append(new)
+    for offset, element in enumerate(elements):
+        root.insert(position + offset, element)
