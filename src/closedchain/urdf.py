@@ -208,6 +208,10 @@ class URDFPlus:
         actuated: joints named by ``<transmission>`` elements, in file order.
         independent: joints marked ``independent="true"``, in file order.
         scene: the ``<scene>`` element (default scene), or None.
+        spherical: joints written in the XML as three revolute joints
+            ``<name>_X, _Y, _Z`` that :func:`closedchain.load` fuses into one
+            Pinocchio spherical joint (a loops YAML's ``SPHERICAL``, see
+            :mod:`closedchain.yaml_loops`).
     """
 
     path: Path
@@ -219,6 +223,7 @@ class URDFPlus:
     actuated: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
     scene: SceneSpec | None = None
+    spherical: tuple[str, ...] = ()
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a

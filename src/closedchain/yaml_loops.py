@@ -22,16 +22,17 @@ rest of closedchain reads one format:
   joint fixed at its zero position (the URDF's origin); ``UJOINT_<A><B>``
   replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
   the axes A then B of the joint's frame, at its origin, through a massless
-  link ``<joint>_<A>_link``; ``SPHERICAL`` by three, about X, Y, Z.
+  link ``<joint>_<A>_link``; ``SPHERICAL`` by Pinocchio's spherical joint
+  ``<joint>`` (a unit quaternion in q, 3 entries of v), at the joint's origin.
 
-Why three revolute joints for ``SPHERICAL`` rather than Pinocchio's
-``JointModelSpherical`` (a quaternion, which the authors' loader builds): URDF
-has no spherical joint type, and keeping the model a URDF keeps every part of
-closedchain that reads the XML (the drawing, MJCF export, digest, the compiled
-core) seeing the same tree. The price is the Euler-angle singularity: the
-joint's mass matrix loses rank when the middle (Y) angle reaches +-pi/2, where
-the X and Z axes align; the joint starts at 0 (the robots are exported at their
-assembled pose) and ball joints of legs and deltas stay far from it.
+URDF has no spherical joint type, so a ``SPHERICAL`` joint is written into
+the XML as three revolute joints ``<joint>_X``, ``_Y``, ``_Z`` through massless
+links (what URDF readers such as the drawing see), and :func:`closedchain.load`
+fuses them into one ``JointModelSpherical`` (:func:`fuse_spherical_joints`),
+as the authors' loader builds it. Left as three revolutes, the joint would be
+Euler angles: singular where the middle angle reaches +-pi/2 (the X and Z axes
+align and, the links between being massless, the mass matrix loses rank), and
+random states near there made the validation against Pinocchio lose 7 digits.
 
 The YAML is read with PyYAML's safe loader (no Python objects, no code).
 """
@@ -42,12 +43,16 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 from lxml import etree
 
 from .exceptions import URDFError
 from .urdf import name_list
+
+if TYPE_CHECKING:
+    import pinocchio as pin
 
 #: File suffixes that mark a ``loops=`` file as YAML (else it is a URDF+ overlay).
 YAML_SUFFIXES = (".yaml", ".yml")
@@ -206,13 +211,18 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     )
 
 
-def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> None:
+def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
     """Write a loops YAML file's conversions, loops and motors into a URDF tree, in place.
 
     Args:
         root: the ``<robot>`` element of the base URDF (modified).
         loops: the checked YAML content (:func:`read_loops_yaml`).
         base: the base URDF file, for messages.
+
+    Returns:
+        The joints converted to ``SPHERICAL``: written as three revolute
+        joints, for :func:`fuse_spherical_joints` to fuse once Pinocchio has
+        read the tree.
 
     Raises:
         URDFError: ``joint_name`` names no ``<joint>`` (lists them), a joint
@@ -263,6 +273,7 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> None:
         loop = etree.SubElement(root, "loop", name=f"{a}{LOOP_NAME_SEPARATOR}{b}", type=loop_type)
         etree.SubElement(loop, "predecessor", frame=a)
         etree.SubElement(loop, "successor", frame=b)
+    return tuple(name for name, kind in converted.items() if kind == "SPHERICAL")
 
 
 def _make_fixed(joint) -> None:
@@ -326,3 +337,119 @@ def _replace_by_revolute_chain(root, joint, axes: str, taken: set[str], where: s
         elements.append(new)
     for offset, element in enumerate(elements):
         root.insert(position + offset, element)
+
+
+#: Model vectors with one entry per configuration entry, and per velocity entry,
+#: that :func:`fuse_spherical_joints` copies joint by joint.
+Q_VECTORS = ("lowerPositionLimit", "upperPositionLimit", "positionLimitMargin")
+V_VECTORS = (
+    "armature",
+    "damping",
+    "effortLimit",
+    "friction",
+    "lowerDryFrictionLimit",
+    "lowerEffortLimit",
+    "lowerVelocityLimit",
+    "rotorGearRatio",
+    "rotorInertia",
+    "upperDryFrictionLimit",
+    "upperEffortLimit",
+    "upperVelocityLimit",
+    "velocityLimit",
+)
+
+
+def fuse_spherical_joints(model: pin.Model, names: tuple[str, ...]) -> pin.Model:
+    """Return a copy of ``model`` with each chain ``J_X, J_Y, J_Z`` fused into a spherical ``J``.
+
+    The spherical joint takes the place of ``J_X`` (its placement in the
+    parent joint's frame) and the bodies of the three joints (the massless
+    links and the child link: ``J_Y`` and ``J_Z`` sit at identity, so their
+    inertias are already expressed in the same frame at q = 0). Frames keep
+    their names and placements; the JOINT frames ``J_X, J_Y, J_Z`` give way to
+    one JOINT frame ``J``. Limits, friction, damping and armature of the other
+    joints are copied.
+
+    Args:
+        model: the model Pinocchio built from the XML of :func:`apply_loops_yaml`.
+        names: the joints converted to ``SPHERICAL``.
+
+    Raises:
+        URDFError: a chain is not three revolute joints about X, Y, Z in a row
+            at one place (the XML was changed after the conversion).
+    """
+    import pinocchio as pin
+
+    chains: dict[int, tuple[str, list[int]]] = {}
+    for name in names:
+        parts = [f"{name}_{axis}" for axis in SPHERICAL_AXES]
+        ids = [model.getJointId(p) if model.existJointName(p) else 0 for p in parts]
+        if (
+            0 in ids
+            or [model.joints[j].shortname() for j in ids]
+            != ["JointModelRX", "JointModelRY", "JointModelRZ"]
+            or any(model.parents[b] != a for a, b in zip(ids, ids[1:], strict=False))
+            or not all(model.jointPlacements[j].isIdentity() for j in ids[1:])
+        ):
+            raise URDFError(
+                f"joint {name!r}: expected revolute joints {', '.join(parts)} about X, Y, Z in a "
+                "row at one place, to fuse into a spherical joint"
+            )
+        chains[ids[0]] = (name, ids)
+
+    new = pin.Model()
+    new.name = model.name
+    joint_of = {0: 0}
+    copied: list[tuple[int, int]] = []  # (old joint, new joint) of unchanged joints
+    for j in range(1, model.njoints):
+        if j in joint_of:  # J_Y, J_Z: fused already
+            continue
+        parent = joint_of[model.parents[j]]
+        if j in chains:
+            name, ids = chains[j]
+            jid = new.addJoint(parent, pin.JointModelSpherical(), model.jointPlacements[j], name)
+            inertia = model.inertias[ids[0]] + model.inertias[ids[1]] + model.inertias[ids[2]]
+            joint_of.update(dict.fromkeys(ids, jid))
+        else:
+            jid = new.addJoint(parent, model.joints[j], model.jointPlacements[j], model.names[j])
+            inertia = model.inertias[j]
+            joint_of[j] = jid
+            copied.append((j, jid))
+        new.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+    for attribute in Q_VECTORS + V_VECTORS:
+        per_q = attribute in Q_VECTORS
+        old_values, values = getattr(model, attribute), getattr(new, attribute).copy()
+        for j, jid in copied:
+            a, b = model.joints[j], new.joints[jid]
+            if per_q:
+                values[b.idx_q : b.idx_q + b.nq] = old_values[a.idx_q : a.idx_q + a.nq]
+            else:
+                values[b.idx_v : b.idx_v + b.nv] = old_values[a.idx_v : a.idx_v + a.nv]
+        setattr(new, attribute, values)
+
+    fused_joint_frames = {
+        f"{name}_{axis}": name for name, _ in chains.values() for axis in SPHERICAL_AXES
+    }
+    frame_of = {0: 0}
+    for i in range(1, len(model.frames)):
+        f = model.frames[i]
+        if f.type == pin.FrameType.JOINT and f.name in fused_joint_frames:
+            name = fused_joint_frames[f.name]
+            if not new.existFrame(name, pin.FrameType.JOINT):
+                new.addFrame(
+                    pin.Frame(
+                        name,
+                        joint_of[f.parentJoint],
+                        frame_of[f.parentFrame],
+                        pin.SE3.Identity(),
+                        pin.FrameType.JOINT,
+                    ),
+                    False,
+                )
+            frame_of[i] = new.getFrameId(name, pin.FrameType.JOINT)
+            continue
+        frame = pin.Frame(
+            f.name, joint_of[f.parentJoint], frame_of[f.parentFrame], f.placement, f.type, f.inertia
+        )
+        frame_of[i] = new.addFrame(frame, False)
+    return new

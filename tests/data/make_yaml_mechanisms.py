@@ -70,10 +70,10 @@ def _link(name: str, mass: float = 0.0, com=(0.0, 0.0, 0.0), inertia=None) -> st
     )
 
 
-def _rod_link(name: str, mass: float, d) -> str:
+def _rod_link(name: str, mass: float, d, radius: float = 0.01) -> str:
     """A uniform rod from the link origin to d (in the link frame)."""
     d = np.asarray(d, dtype=float)
-    return _link(name, mass, d / 2.0, _stick(mass, d))
+    return _link(name, mass, d / 2.0, _stick(mass, d, radius))
 
 
 def _joint(name, jtype, parent, child, xyz, rpy=(0.0, 0.0, 0.0), axis=(0.0, 1.0, 0.0)) -> str:
@@ -173,7 +173,7 @@ def delta() -> None:
         elbows.append(e)
         attach.append(p)
         rod_local = R.T @ (p - e)  # the rod frame is turned like the arm's at q = 0
-        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", 0.1, rod_local)
+        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", 0.1, rod_local, 0.05)
         joints += _joint(f"mot{k}", "revolute", "base", f"arm{k}", b, (0.0, 0.0, theta))
         joints += _joint(f"elbow{k}", "revolute", f"arm{k}", f"rod{k}", e_local, axis=(1, 0, 0))
         if k == 0:
