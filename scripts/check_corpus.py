@@ -62,9 +62,9 @@ def _short(exc: BaseException, folder: Path) -> str:
 def check_robot(folder: Path, t_final: float) -> dict:
     """Load, check and simulate one robot; return its row (values, or errors in ``notes``)."""
     import numpy as np
-    import pinocchio as pin
 
     import closedchain as cc
+    from closedchain.closure import max_declared_residual
     from closedchain.yaml_loops import read_loops_yaml
 
     urdf, loops = folder / "robot.urdf", folder / "robot.yaml"
@@ -86,9 +86,7 @@ def check_robot(folder: Path, t_final: float) -> dict:
     row["load"] = time.process_time() - t0
     row["nv"] = mech.nv
     row["mobility"] = f"{mech.mobility} / {len(mech.actuated_joints)}"
-    data = mech.model.createData()
-    pin.forwardKinematics(mech.model, data, mech.q_ref)
-    row["phi"] = max(mech.declared.loop_residuals(mech.model, data).values(), default=0.0)
+    row["phi"] = max_declared_residual(mech, np.atleast_2d(mech.q_ref))
     try:
         rep = cc.validate(mech, n_samples=N_VALIDATE, seed=VALIDATE_SEED)
         row["da"] = rep.max_da

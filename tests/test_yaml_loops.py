@@ -26,6 +26,7 @@ from conftest import DATA_DIR, ROOT
 
 import closedchain as cc
 from closedchain.cli import main
+from closedchain.closure import layer_phi, max_declared_residual
 
 #: Assembled configurations close every declared row to this [m or -].
 TOL_PHI = 1e-12
@@ -76,9 +77,7 @@ def mechs():
 
 def _max_phi(mech: cc.Mechanism, q: np.ndarray) -> float:
     """Max |phi| over every declared row (redundant ones included) at q."""
-    data = mech.model.createData()
-    pin.forwardKinematics(mech.model, data, q)
-    return max(mech.declared.loop_residuals(mech.model, data).values())
+    return max_declared_residual(mech, np.atleast_2d(q))
 
 
 def _pair_errors(mech: cc.Mechanism, q: np.ndarray, a: str, b: str) -> tuple[float, float]:
@@ -136,7 +135,7 @@ def test_simulate_keeps_the_loops_closed(mechs, case):
     mech = mechs(case)
     traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), T_RUN)
     assert traj.t[-1] == pytest.approx(T_RUN)
-    assert max(_max_phi(mech, q) for q in traj.q) <= TOL_ROWS
+    assert max_declared_residual(mech, traj.q) <= TOL_ROWS
     assert np.all(np.isfinite(traj.q))
 
 
@@ -251,36 +250,37 @@ def test_frame_sides_match_the_yaml_weld(mechs, tmp_path, rng, pred, origin):
 
 
 def _all_rows(mech: cc.Mechanism, q: np.ndarray) -> np.ndarray:
-    phi = np.zeros(mech.declared.nc)
-    data = mech.model.createData()
-    pin.forwardKinematics(mech.model, data, q)
-    mech.declared.evaluate(mech.model, data, phi=phi)
-    return phi
+    return layer_phi(mech.model, mech.model.createData(), mech.declared, q)
 
 
-def test_unknown_frame_lists_the_frames(tmp_path):
-    overlay = tmp_path / "weld.urdf"
-    overlay.write_text(FIVEBAR_LOOP.format(pred='frame="tip3"', origin=""))
+@pytest.mark.parametrize(
+    ("urdf", "name", "text", "where", "frames"),
+    [
+        (  # URDF+ overlay: every frame listed
+            "yaml_fivebar.urdf",
+            "weld.urdf",
+            FIVEBAR_LOOP.format(pred='frame="tip3"', origin=""),
+            "line 2: <loop name='weld'>: <predecessor frame='tip3'>",
+            "base, dist1, dist2, free1, free2, mot1, mot2, pin, pin_link, prox1, prox2, tip1, "
+            "tip1_link, tip2, tip2_link, universe$",
+        ),
+        (  # YAML, a tree of more than 30 frames: the list is cut
+            "yaml_delta.urdf",
+            "delta.yaml",
+            (DATA_DIR / "yaml_delta.yaml").read_text().replace("'rod_tip1'", "'rod_tipl'"),
+            "<loop name='rod_tipl--platform_att1'>: <predecessor frame='rod_tipl'>",
+            r"arm0, arm1, arm2, base, .*, \.\.\. and \d+ more$",
+        ),
+    ],
+)
+def test_unknown_frame_lists_the_frames(tmp_path, urdf, name, text, where, frames):
+    loops = tmp_path / name
+    loops.write_text(text)
     with pytest.raises(
         cc.URDFError,
-        match=re.escape(f"{overlay}: line 2: <loop name='weld'>: <predecessor frame='tip3'> ")
-        + r"names no frame of the tree; frames: base, dist1, dist2, free1, free2, mot1, mot2, "
-        r"pin, pin_link, prox1, prox2, tip1, tip1_link, tip2, tip2_link, universe$",
+        match=re.escape(f"{loops}: {where} ") + "names no frame of the tree; frames: " + frames,
     ):
-        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=overlay)
-
-
-def test_long_frame_lists_are_shortened(tmp_path):
-    loops = tmp_path / "delta.yaml"
-    text = (DATA_DIR / "yaml_delta.yaml").read_text().replace("'platform_att2'", "'platform'")
-    loops.write_text(text.replace("'rod_tip1'", "'rod_tipl'"))
-    with pytest.raises(
-        cc.URDFError,
-        match=re.escape(f"{loops}: <loop name='rod_tipl--platform_att1'>: <predecessor ")
-        + r"frame='rod_tipl'> names no frame of the tree; frames: arm0, arm1, arm2, base, "
-        r".*, \.\.\. and \d+ more$",
-    ):
-        cc.load(DATA_DIR / "yaml_delta.urdf", loops=loops)
+        cc.load(DATA_DIR / urdf, loops=loops)
 
 
 @pytest.mark.parametrize(
