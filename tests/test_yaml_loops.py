@@ -364,8 +364,8 @@ def test_yaml_errors_name_the_file_and_the_key(tmp_path, text, message):
     [
         (
             "joint_name: [pn]\njoint_type: [FIXED]\n",
-            r"joint_name\[0\] = 'pn' is not a <joint> of .*yaml_fivebar.urdf; joints: free1, "
-            "free2, mot1, mot2, pin, tip1, tip2",
+            r"joint_name\[0\] = 'pn' is not a <joint> of .*yaml_fivebar.urdf \(did you mean "
+            r"'pin'\?\); joints: free1, free2, mot1, mot2, pin, tip1, tip2",
         ),
         (
             "joint_name: [tip1]\njoint_type: [spherical]\n",
@@ -391,7 +391,7 @@ def test_unknown_motor_lists_the_movable_joints(tmp_path):
     with pytest.raises(
         cc.URDFError,
         match=re.escape(f"{loops}: name_mot[1] = 'mot3' is not a movable <joint> of ")
-        + ".*; movable joints: free1, free2, mot1, mot2, pin$",
+        + r".* \(did you mean 'mot2'\?\); movable joints: free1, free2, mot1, mot2, pin$",
     ):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
@@ -408,6 +408,27 @@ def test_conversion_names_must_be_free(tmp_path):
         + "'pin_Y_link', which the tree already uses",
     ):
         cc.load(urdf, loops=loops)
+
+
+def test_limits_without_a_range_are_no_limits(tmp_path):
+    """A <limit> without lower and upper (URDF: [0, 0]; the corpus writes every joint so)
+    gives no position limits under a loops YAML; plain URDF keeps URDF's reading."""
+    urdf = tmp_path / "fivebar.urdf"
+    text = (DATA_DIR / "yaml_fivebar.urdf").read_text()
+    first = text.index('lower="-3.14" upper="3.14" ')  # mot1's, the first joint
+    urdf.write_text(text[:first] + text[first + len('lower="-3.14" upper="3.14" ') :])
+    mech = cc.load(urdf, loops=DATA_DIR / "yaml_fivebar_6d.yaml")
+    plain = cc.load(urdf)
+    lower, upper = mech.model.lowerPositionLimit, mech.model.upperPositionLimit
+    k = mech.model.joints[mech.model.getJointId("mot1")].idx_q
+    k_plain = plain.model.joints[plain.model.getJointId("mot1")].idx_q
+    assert (lower[k], upper[k]) == (-np.inf, np.inf)
+    assert (plain.model.lowerPositionLimit[k_plain], plain.model.upperPositionLimit[k_plain]) == (
+        0.0,
+        0.0,
+    )
+    others = np.arange(mech.nq) != k
+    assert np.all(lower[others] == -3.14) and np.all(upper[others] == 3.14)
 
 
 # -- command line and the corpus script ----------------------------------------------------

@@ -45,7 +45,7 @@ from .exceptions import (
 )
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
-from .yaml_loops import fuse_spherical_joints
+from .yaml_loops import edit_model
 
 logger = logging.getLogger(__name__)
 
@@ -693,8 +693,8 @@ def load(
     if urdfdom.text.strip():
         reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
         logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
-    if urdf.spherical:
-        model = fuse_spherical_joints(model, urdf.spherical)
+    if urdf.spherical or urdf.unlimited:
+        model = edit_model(model, urdf)
     if model.nv == 0:
         raise URDFError(
             f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "

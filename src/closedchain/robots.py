@@ -226,13 +226,13 @@ def merge_overlay(
     """
     root = read_base(base, cut_joints=cut_joints)
     path = base
-    spherical: tuple[str, ...] = ()
+    edits: dict[str, tuple[str, ...]] = {}
     if overlay is not None and is_loops_yaml(overlay):
         path = Path(overlay)
         loops = read_loops_yaml(path)
         # Checked first on its own, so that messages about its elements name the URDF.
         parse_urdf(base, element=root, max_nv=max_nv)
-        spherical = apply_loops_yaml(root, loops, base=base)
+        edits = apply_loops_yaml(root, loops, base=base)
     elif overlay is not None:
         path = Path(overlay)
         extra = read_xml(path, what="overlay file")
@@ -260,9 +260,7 @@ def merge_overlay(
         _check_world_joints(path, root)
     # The SDF reader has warned about SDF inertias that violate the triangle inequality.
     triangle = "pass" if is_sdf(base) else "refuse"
-    urdf = replace(
-        parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), spherical=spherical
-    )
+    urdf = replace(parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), **edits)
     if primitive:
         # After the checks: the joint origins it reads are finite and bounded.
         primitive_visuals(root)

@@ -212,6 +212,8 @@ class URDFPlus:
             ``<name>_X, _Y, _Z`` that :func:`closedchain.load` fuses into one
             Pinocchio spherical joint (a loops YAML's ``SPHERICAL``, see
             :mod:`closedchain.yaml_loops`).
+        unlimited: joints whose position limits :func:`closedchain.load`
+            removes (a loops YAML's tree: ``<limit>`` without lower and upper).
     """
 
     path: Path
@@ -224,6 +226,7 @@ class URDFPlus:
     independent: tuple[str, ...] = ()
     scene: SceneSpec | None = None
     spherical: tuple[str, ...] = ()
+    unlimited: tuple[str, ...] = ()
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a

@@ -23,7 +23,11 @@ rest of closedchain reads one format:
   replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
   the axes A then B of the joint's frame, at its origin, through a massless
   link ``<joint>_<A>_link``; ``SPHERICAL`` by Pinocchio's spherical joint
-  ``<joint>`` (a unit quaternion in q, 3 entries of v), at the joint's origin.
+  ``<joint>`` (a unit quaternion in q, 3 entries of v), at the joint's origin;
+- a revolute or prismatic joint whose ``<limit>`` gives neither ``lower``
+  nor ``upper`` gets no position limits. URDF reads such a limit as [0, 0],
+  a locked joint; the convention's robots (exported by onshape-to-robot)
+  write every joint so, and the authors' loader ignores limits.
 
 URDF has no spherical joint type, so a ``SPHERICAL`` joint is written into
 the XML as three revolute joints ``<joint>_X``, ``_Y``, ``_Z`` through massless
@@ -39,17 +43,19 @@ The YAML is read with PyYAML's safe loader (no Python objects, no code).
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import yaml
 from lxml import etree
 
 from .exceptions import URDFError
-from .urdf import name_list
+from .urdf import NEAR_MISS_CUTOFF, URDFPlus, name_list
 
 if TYPE_CHECKING:
     import pinocchio as pin
@@ -78,6 +84,9 @@ SPHERICAL_AXES = "XYZ"
 #: Position limits [rad] of the revolute joints of a converted joint: +-CONVERTED_JOINT_LIMIT
 #: (URDF's revolute joint needs limits; half a turn either way is every orientation).
 CONVERTED_JOINT_LIMIT = math.pi
+
+#: Joint types whose ``<limit>`` without lower and upper means no limits (see the module).
+UNLIMITED_JOINT_TYPES = ("revolute", "prismatic")
 
 #: Joint types a ``SPHERICAL`` or ``UJOINT`` conversion may replace (one degree of freedom).
 CONVERTIBLE_JOINT_TYPES = ("revolute", "continuous", "prismatic")
@@ -211,7 +220,7 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     )
 
 
-def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
+def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, tuple[str, ...]]:
     """Write a loops YAML file's conversions, loops and motors into a URDF tree, in place.
 
     Args:
@@ -220,9 +229,10 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
         base: the base URDF file, for messages.
 
     Returns:
-        The joints converted to ``SPHERICAL``: written as three revolute
-        joints, for :func:`fuse_spherical_joints` to fuse once Pinocchio has
-        read the tree.
+        What :func:`edit_model` does once Pinocchio has read the tree, as
+        fields of :class:`~closedchain.urdf.URDFPlus`: ``spherical``, the
+        joints converted to ``SPHERICAL`` (written as three revolute joints),
+        and ``unlimited``, the joints whose limits give no range.
 
     Raises:
         URDFError: ``joint_name`` names no ``<joint>`` (lists them), a joint
@@ -239,7 +249,10 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
         where = f"{path}: joint_name[{i}] = {name!r}"
         joint = joints.get(name)
         if joint is None:
-            raise URDFError(f"{where} is not a <joint> of {base}; joints: {name_list(joints)}")
+            raise URDFError(
+                f"{where} is not a <joint> of {base}{_did_you_mean(name, joints)}; joints: "
+                f"{name_list(joints)}"
+            )
         if kind == "FIXED":
             _make_fixed(joint)
         else:
@@ -262,8 +275,8 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
             )
         if name not in movable:
             raise URDFError(
-                f"{path}: name_mot[{i}] = {name!r} is not a movable <joint> of {base}; "
-                f"movable joints: {name_list(movable)}"
+                f"{path}: name_mot[{i}] = {name!r} is not a movable <joint> of {base}"
+                f"{_did_you_mean(name, movable)}; movable joints: {name_list(movable)}"
             )
         transmission = etree.SubElement(root, "transmission", name=f"{name}_transmission")
         etree.SubElement(transmission, "type").text = "transmission_interface/SimpleTransmission"
@@ -273,7 +286,42 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> tuple[str, ...]:
         loop = etree.SubElement(root, "loop", name=f"{a}{LOOP_NAME_SEPARATOR}{b}", type=loop_type)
         etree.SubElement(loop, "predecessor", frame=a)
         etree.SubElement(loop, "successor", frame=b)
-    return tuple(name for name, kind in converted.items() if kind == "SPHERICAL")
+    unlimited = [
+        e.get("name")
+        for e in root.findall("joint")
+        if e.get("type") in UNLIMITED_JOINT_TYPES
+        and (limit := e.find("limit")) is not None
+        and limit.get("lower") is None
+        and limit.get("upper") is None
+    ]
+    return {
+        "spherical": tuple(name for name, kind in converted.items() if kind == "SPHERICAL"),
+        "unlimited": tuple(unlimited),
+    }
+
+
+def edit_model(model: pin.Model, urdf: URDFPlus) -> pin.Model:
+    """Return the Pinocchio model with a loops YAML's edits: spherical joints fused, limits removed.
+
+    Args:
+        model: the model Pinocchio built from ``urdf.xml``.
+        urdf: the parsed tree, with its ``spherical`` and ``unlimited`` joints.
+    """
+    if urdf.spherical:
+        model = fuse_spherical_joints(model, urdf.spherical)
+    lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
+    for name in urdf.unlimited:
+        jm = model.joints[model.getJointId(name)]
+        lower[jm.idx_q : jm.idx_q + jm.nq] = -np.inf
+        upper[jm.idx_q : jm.idx_q + jm.nq] = np.inf
+    model.lowerPositionLimit, model.upperPositionLimit = lower, upper
+    return model
+
+
+def _did_you_mean(name: str, names) -> str:
+    """Return ``" (did you mean 'x'?)"`` for the closest of ``names`` (NEAR_MISS_CUTOFF), or ""."""
+    close = difflib.get_close_matches(name, list(names), n=1, cutoff=NEAR_MISS_CUTOFF)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def _make_fixed(joint) -> None:
