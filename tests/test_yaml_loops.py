@@ -253,6 +253,27 @@ def _all_rows(mech: cc.Mechanism, q: np.ndarray) -> np.ndarray:
     return layer_phi(mech.model, mech.model.createData(), mech.declared, q)
 
 
+def test_a_frame_of_the_world_holds_a_free_base(mechs, tmp_path):
+    """frame="universe" (Pinocchio's world frame) welded to the root link's frame: the
+    free-flying five-bar keeps the fixed one's mobility and its base stays put."""
+    overlay = tmp_path / "welds.urdf"
+    text = FIVEBAR_LOOP.format(pred='frame="tip1"', origin="")
+    overlay.write_text(
+        text.replace(
+            "  <transmission",
+            '  <loop name="ground" type="fixed"><predecessor frame="universe"/>'
+            '<successor frame="base"/></loop>\n  <transmission',
+            1,
+        )
+    )
+    mech = cc.load(DATA_DIR / "yaml_fivebar.urdf", root_joint="free", loops=overlay)
+    assert mech.urdf.loops[1].predecessor == "world"
+    assert mech.nv == mechs("fivebar_6d").nv + 6
+    assert mech.mobility == mechs("fivebar_6d").mobility
+    traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), T_RUN)
+    assert np.max(np.abs(traj.q[:, :7] - mech.q_ref[:7])) <= TOL_ROWS
+
+
 @pytest.mark.parametrize(
     ("urdf", "name", "text", "where", "frames"),
     [

@@ -771,8 +771,8 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
 
     Raises:
         URDFError: the name is no frame of the tree (lists the frames), names
-            several frames at different places, or a frame fixed to the world
-            when no link is (a free or planar root joint: name ``world``).
+            several frames at different places, or a frame of the world when the
+            tree's own link ``world`` moves with a root joint.
     """
     if not any(spec.predecessor_frame or spec.successor_frame for spec in urdf.loops):
         return urdf
@@ -809,12 +809,12 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
                 link = frame
             elif bodies:
                 link = bodies[0]
-            elif frame.parentJoint == 0 and not model.existFrame(WORLD_LINK, pin.FrameType.BODY):
-                link = None  # fixed to the universe: the reserved WORLD_LINK stands for it
+            elif not model.existFrame(WORLD_LINK, pin.FrameType.BODY):
+                link = None  # on the universe: the reserved WORLD_LINK stands for it
             else:
                 raise URDFError(
-                    f"{where} is fixed to the world, where no link is (a root joint moves the "
-                    f"tree's root link); valid: link={WORLD_LINK!r}"
+                    f"{where} is fixed to the world, and no link is: the tree's link "
+                    f"{WORLD_LINK!r} moves with the root joint; valid: a frame of a link"
                 )
             origin = getattr(spec, f"{side}_origin")
             lMf = frame.placement if link is None else link.placement.actInv(frame.placement)
