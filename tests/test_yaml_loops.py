@@ -23,10 +23,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import DATA_DIR, ROOT
+from lxml import etree
 
 import closedchain as cc
 from closedchain.cli import main
 from closedchain.closure import layer_phi, max_declared_residual
+from closedchain.urdf import read_xml
+from closedchain.yaml_loops import apply_loops_yaml, read_loops_yaml
 
 #: Assembled configurations close every declared row to this [m or -].
 TOL_PHI = 1e-12
@@ -429,6 +432,27 @@ def test_conversion_names_must_be_free(tmp_path):
         + "'pin_Y_link', which the tree already uses",
     ):
         cc.load(urdf, loops=loops)
+
+
+def test_ball_chains_of_the_corpus_are_fused(mechs, tmp_path):
+    """Three revolute joints through massless links at one point (how the corpus writes a
+    ball joint; here the XML the SPHERICAL conversion writes) become one spherical joint
+    named after the last, under a loops YAML; plain URDF keeps the three."""
+    root = read_xml(DATA_DIR / "yaml_delta.urdf")
+    apply_loops_yaml(root, read_loops_yaml(DATA_DIR / "yaml_delta.yaml"), base=DATA_DIR)
+    urdf = tmp_path / "delta_chains.urdf"  # the loops and motors are in it now
+    urdf.write_bytes(etree.tostring(root))
+    loops = tmp_path / "robot.yaml"
+    loops.write_text("name_mot: []\n")
+    fused, plain, ref = cc.load(urdf, loops=loops), cc.load(urdf), mechs("delta")
+    assert [fused.model.joints[j].shortname() for j in range(1, fused.model.njoints)] == [
+        ref.model.joints[j].shortname() for j in range(1, ref.model.njoints)
+    ]
+    assert fused.model.existJointName("elbow1_Z") and not fused.model.existJointName("elbow1_X")
+    assert (fused.nq, fused.nv, fused.mobility) == (ref.nq, ref.nv, ref.mobility)
+    assert (plain.nq, plain.nv) == (ref.nv, ref.nv)
+    M = pin.crba(fused.model, fused.model.createData(), ref.q_ref)
+    assert np.max(np.abs(M - pin.crba(ref.model, ref.model.createData(), ref.q_ref))) <= 1e-15
 
 
 def test_limits_without_a_range_are_no_limits(tmp_path):

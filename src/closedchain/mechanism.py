@@ -693,7 +693,7 @@ def load(
     if urdfdom.text.strip():
         reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
         logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
-    if urdf.spherical or urdf.unlimited:
+    if urdf.spherical or urdf.unlimited or urdf.fuse_ball_chains:
         model = edit_model(model, urdf)
     if model.nv == 0:
         raise URDFError(

@@ -214,6 +214,9 @@ class URDFPlus:
             :mod:`closedchain.yaml_loops`).
         unlimited: joints whose position limits :func:`closedchain.load`
             removes (a loops YAML's tree: ``<limit>`` without lower and upper).
+        fuse_ball_chains: whether :func:`closedchain.load` fuses chains of three
+            revolute joints through massless links at one point into spherical
+            joints (a loops YAML's tree, as the convention's loader does).
     """
 
     path: Path
@@ -227,6 +230,7 @@ class URDFPlus:
     scene: SceneSpec | None = None
     spherical: tuple[str, ...] = ()
     unlimited: tuple[str, ...] = ()
+    fuse_ball_chains: bool = False
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a

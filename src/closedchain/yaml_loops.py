@@ -24,6 +24,11 @@ rest of closedchain reads one format:
   the axes A then B of the joint's frame, at its origin, through a massless
   link ``<joint>_<A>_link``; ``SPHERICAL`` by Pinocchio's spherical joint
   ``<joint>`` (a unit quaternion in q, 3 entries of v), at the joint's origin;
+- three revolute joints in a row through massless links at one point, the
+  way the convention's URDFs write a ball joint, become one spherical joint
+  named after the last (:func:`find_ball_chains`), as the authors' loader
+  fuses them: left as Euler angles, massless links between, the mass
+  matrix is singular at the middle angle +-pi/2 and ill-conditioned near it;
 - a revolute or prismatic joint whose ``<limit>`` gives neither ``lower``
   nor ``upper`` gets no position limits. URDF reads such a limit as [0, 0],
   a locked joint; the convention's robots (exported by onshape-to-robot)
@@ -46,6 +51,7 @@ from __future__ import annotations
 import difflib
 import math
 import re
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -220,7 +226,7 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     )
 
 
-def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, tuple[str, ...]]:
+def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]:
     """Write a loops YAML file's conversions, loops and motors into a URDF tree, in place.
 
     Args:
@@ -232,7 +238,9 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, tuple[s
         What :func:`edit_model` does once Pinocchio has read the tree, as
         fields of :class:`~closedchain.urdf.URDFPlus`: ``spherical``, the
         joints converted to ``SPHERICAL`` (written as three revolute joints),
-        and ``unlimited``, the joints whose limits give no range.
+        ``unlimited``, the joints whose limits give no range, and
+        ``fuse_ball_chains`` (True: the convention's ball joints, see
+        :func:`find_ball_chains`).
 
     Raises:
         URDFError: ``joint_name`` names no ``<joint>`` (lists them), a joint
@@ -297,25 +305,121 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, tuple[s
     return {
         "spherical": tuple(name for name, kind in converted.items() if kind == "SPHERICAL"),
         "unlimited": tuple(unlimited),
+        "fuse_ball_chains": True,
     }
 
 
 def edit_model(model: pin.Model, urdf: URDFPlus) -> pin.Model:
-    """Return the Pinocchio model with a loops YAML's edits: spherical joints fused, limits removed.
+    """Return the Pinocchio model with a loops YAML's edits: ball joints fused, limits removed.
 
     Args:
         model: the model Pinocchio built from ``urdf.xml``.
-        urdf: the parsed tree, with its ``spherical`` and ``unlimited`` joints.
+        urdf: the parsed tree: its ``spherical`` joints, whether to fuse other
+            ball chains (``fuse_ball_chains``, see :func:`find_ball_chains`), and
+            its ``unlimited`` joints.
     """
-    if urdf.spherical:
-        model = fuse_spherical_joints(model, urdf.spherical)
+    chains = [_named_chain(model, name) for name in urdf.spherical]
+    if urdf.fuse_ball_chains:
+        chains += find_ball_chains(model, exclude={j for _, ids in chains for j in ids})
+    if chains:
+        model = fuse_spherical_joints(model, chains)
     lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
     for name in urdf.unlimited:
+        if not model.existJointName(name):  # fused into a spherical joint: no limits
+            continue
         jm = model.joints[model.getJointId(name)]
         lower[jm.idx_q : jm.idx_q + jm.nq] = -np.inf
         upper[jm.idx_q : jm.idx_q + jm.nq] = np.inf
     model.lowerPositionLimit, model.upperPositionLimit = lower, upper
     return model
+
+
+def _named_chain(model: pin.Model, name: str) -> tuple[str, list[int]]:
+    """Return ``(name, ids)`` of the joints ``name_X, _Y, _Z`` a SPHERICAL conversion wrote.
+
+    Raises:
+        URDFError: they are not three revolute joints about X, Y, Z in a row at
+            one place (the XML was changed after the conversion).
+    """
+    parts = [f"{name}_{axis}" for axis in SPHERICAL_AXES]
+    ids = [model.getJointId(p) if model.existJointName(p) else 0 for p in parts]
+    if (
+        0 in ids
+        or [model.joints[j].shortname() for j in ids] != [f"JointModelR{a}" for a in SPHERICAL_AXES]
+        or any(model.parents[b] != a for a, b in zip(ids, ids[1:], strict=False))
+        or not all(model.jointPlacements[j].isIdentity() for j in ids[1:])
+    ):
+        raise URDFError(
+            f"joint {name!r}: expected revolute joints {', '.join(parts)} about X, Y, Z in a row "
+            "at one place, to fuse into a spherical joint"
+        )
+    return name, ids
+
+
+#: A chain of three revolute joints is a ball joint when the second and third sit
+#: within this distance [m] of the first (the corpus writes them at exactly one point) ...
+BALL_POINT_TOL = 1e-9
+
+#: ... and their unit axes are independent: |det(a1, a2, a3)| at least this.
+BALL_AXES_MIN_DET = 1e-6
+
+
+def _is_revolute(joint) -> bool:
+    """Whether a Pinocchio joint model is revolute (RX/RY/RZ, unaligned, unbounded)."""
+    return joint.shortname().startswith("JointModelR") and joint.nv == 1
+
+
+def find_ball_chains(model: pin.Model, *, exclude: Collection[int] = ()) -> list:
+    """Return the chains of three revolute joints that make a ball joint, as the corpus writes one.
+
+    example-parallel-robots writes a ball joint as three revolute joints in a
+    row through two massless links, and the authors' loader fuses them
+    (``simplifyModel``). A chain (j1, j2, j3) is fused when j2 is the only
+    joint child of j1 and j3 of j2, the bodies of j1 and j2 are massless
+    (mass and rotational inertia exactly 0: a link with mass is a real body),
+    j2 and j3 sit within :data:`BALL_POINT_TOL` of j1, and the three axes are
+    independent (:data:`BALL_AXES_MIN_DET`, at the neutral configuration).
+
+    Args:
+        model: the Pinocchio model.
+        exclude: joint ids already fused otherwise.
+
+    Returns:
+        ``[(name of j3, [j1, j2, j3]), ...]``: the spherical joint takes j3's name.
+    """
+    import pinocchio as pin
+
+    children: dict[int, list[int]] = {}
+    for j in range(1, model.njoints):
+        children.setdefault(model.parents[j], []).append(j)
+    data = model.createData()
+    q0 = pin.neutral(model)
+    pin.forwardKinematics(model, data, q0)
+    used, chains = set(exclude), []
+    for first in range(1, model.njoints):
+        ids = [first]
+        while len(ids) < 3 and len(children.get(ids[-1], [])) == 1:
+            ids.append(children[ids[-1]][0])
+        if len(ids) < 3 or used.intersection(ids):
+            continue
+        if not all(_is_revolute(model.joints[j]) for j in ids):
+            continue
+        if any(model.inertias[j].mass != 0.0 or model.inertias[j].inertia.any() for j in ids[:2]):
+            continue
+        if any(
+            np.linalg.norm(model.jointPlacements[j].translation) > BALL_POINT_TOL for j in ids[1:]
+        ):
+            continue
+        axes = []
+        for j in ids:
+            jdata = model.joints[j].createData()
+            model.joints[j].calc(jdata, q0)
+            axes.append(data.oMi[j].rotation @ np.asarray(jdata.S, dtype=float).ravel()[3:6])
+        if abs(np.linalg.det(np.array(axes))) < BALL_AXES_MIN_DET:
+            continue
+        chains.append((model.names[ids[2]], ids))
+        used.update(ids)
+    return chains
 
 
 def _did_you_mean(name: str, names) -> str:
@@ -407,56 +511,49 @@ V_VECTORS = (
 )
 
 
-def fuse_spherical_joints(model: pin.Model, names: tuple[str, ...]) -> pin.Model:
-    """Return a copy of ``model`` with each chain ``J_X, J_Y, J_Z`` fused into a spherical ``J``.
+def fuse_spherical_joints(model: pin.Model, chains: list) -> pin.Model:
+    """Return a copy of ``model`` with each chain of three revolute joints fused into a spherical.
 
-    The spherical joint takes the place of ``J_X`` (its placement in the
-    parent joint's frame) and the bodies of the three joints (the massless
-    links and the child link: ``J_Y`` and ``J_Z`` sit at identity, so their
-    inertias are already expressed in the same frame at q = 0). Frames keep
-    their names and placements; the JOINT frames ``J_X, J_Y, J_Z`` give way to
-    one JOINT frame ``J``. Limits, friction, damping and armature of the other
-    joints are copied.
+    The spherical joint stands where the chain's last joint's frame is at its
+    zero position (placement ``P1 P2 P3`` in the parent joint's frame) and
+    carries the bodies and frames of the three joints, moved into that frame
+    (the frames of j1 and j2 by ``(P2 P3)^-1`` and ``P3^-1``). The JOINT frames
+    of the chain become OP_FRAMEs, except one JOINT frame with the spherical
+    joint's name. Limits, friction, damping and armature of the other joints
+    are copied.
 
     Args:
-        model: the model Pinocchio built from the XML of :func:`apply_loops_yaml`.
-        names: the joints converted to ``SPHERICAL``.
-
-    Raises:
-        URDFError: a chain is not three revolute joints about X, Y, Z in a row
-            at one place (the XML was changed after the conversion).
+        model: the Pinocchio model.
+        chains: ``[(name, [j1, j2, j3]), ...]`` (:func:`_named_chain`,
+            :func:`find_ball_chains`).
     """
     import pinocchio as pin
 
-    chains: dict[int, tuple[str, list[int]]] = {}
-    for name in names:
-        parts = [f"{name}_{axis}" for axis in SPHERICAL_AXES]
-        ids = [model.getJointId(p) if model.existJointName(p) else 0 for p in parts]
-        if (
-            0 in ids
-            or [model.joints[j].shortname() for j in ids]
-            != ["JointModelRX", "JointModelRY", "JointModelRZ"]
-            or any(model.parents[b] != a for a, b in zip(ids, ids[1:], strict=False))
-            or not all(model.jointPlacements[j].isIdentity() for j in ids[1:])
-        ):
-            raise URDFError(
-                f"joint {name!r}: expected revolute joints {', '.join(parts)} about X, Y, Z in a "
-                "row at one place, to fuse into a spherical joint"
-            )
-        chains[ids[0]] = (name, ids)
+    by_first = {ids[0]: (name, ids) for name, ids in chains}
+    # Placement of each fused joint's frame in its chain's last joint frame, at q = 0.
+    in_last: dict[int, pin.SE3] = {}
+    for _, (j1, j2, j3) in chains:
+        in_last[j3] = pin.SE3.Identity()
+        in_last[j2] = model.jointPlacements[j3].inverse()
+        in_last[j1] = (model.jointPlacements[j2] * model.jointPlacements[j3]).inverse()
 
     new = pin.Model()
     new.name = model.name
     joint_of = {0: 0}
     copied: list[tuple[int, int]] = []  # (old joint, new joint) of unchanged joints
     for j in range(1, model.njoints):
-        if j in joint_of:  # J_Y, J_Z: fused already
+        if j in joint_of:  # the second and third joints of a chain: fused already
             continue
         parent = joint_of[model.parents[j]]
-        if j in chains:
-            name, ids = chains[j]
-            jid = new.addJoint(parent, pin.JointModelSpherical(), model.jointPlacements[j], name)
-            inertia = model.inertias[ids[0]] + model.inertias[ids[1]] + model.inertias[ids[2]]
+        if j in by_first:
+            name, ids = by_first[j]
+            placement = model.jointPlacements[ids[0]]
+            for k in ids[1:]:
+                placement = placement * model.jointPlacements[k]
+            jid = new.addJoint(parent, pin.JointModelSpherical(), placement, name)
+            inertia = pin.Inertia.Zero()
+            for k in ids:
+                inertia += in_last[k].act(model.inertias[k])
             joint_of.update(dict.fromkeys(ids, jid))
         else:
             jid = new.addJoint(parent, model.joints[j], model.jointPlacements[j], model.names[j])
@@ -475,29 +572,26 @@ def fuse_spherical_joints(model: pin.Model, names: tuple[str, ...]) -> pin.Model
                 values[b.idx_v : b.idx_v + b.nv] = old_values[a.idx_v : a.idx_v + a.nv]
         setattr(new, attribute, values)
 
-    fused_joint_frames = {
-        f"{name}_{axis}": name for name, _ in chains.values() for axis in SPHERICAL_AXES
-    }
+    names = {j: name for name, ids in chains for j in ids}
     frame_of = {0: 0}
     for i in range(1, len(model.frames)):
         f = model.frames[i]
-        if f.type == pin.FrameType.JOINT and f.name in fused_joint_frames:
-            name = fused_joint_frames[f.name]
-            if not new.existFrame(name, pin.FrameType.JOINT):
-                new.addFrame(
-                    pin.Frame(
-                        name,
-                        joint_of[f.parentJoint],
-                        frame_of[f.parentFrame],
-                        pin.SE3.Identity(),
-                        pin.FrameType.JOINT,
-                    ),
-                    False,
-                )
-            frame_of[i] = new.getFrameId(name, pin.FrameType.JOINT)
+        parent, parent_frame = joint_of[f.parentJoint], frame_of[f.parentFrame]
+        if f.parentJoint not in in_last:
+            frame = pin.Frame(f.name, parent, parent_frame, f.placement, f.type, f.inertia)
+            frame_of[i] = new.addFrame(frame, False)
             continue
-        frame = pin.Frame(
-            f.name, joint_of[f.parentJoint], frame_of[f.parentFrame], f.placement, f.type, f.inertia
-        )
+        name = names[f.parentJoint]
+        if f.type == pin.FrameType.JOINT and not new.existFrame(name, pin.FrameType.JOINT):
+            frame = pin.Frame(name, parent, parent_frame, pin.SE3.Identity(), pin.FrameType.JOINT)
+            new.addFrame(frame, False)
+        kind = f.type
+        if kind == pin.FrameType.JOINT:
+            if f.name == name:
+                frame_of[i] = new.getFrameId(name, pin.FrameType.JOINT)
+                continue
+            kind = pin.FrameType.OP_FRAME
+        placement = in_last[f.parentJoint] * f.placement
+        frame = pin.Frame(f.name, parent, parent_frame, placement, kind, f.inertia)
         frame_of[i] = new.addFrame(frame, False)
     return new
