@@ -451,6 +451,8 @@ def test_ball_chains_of_the_corpus_are_fused(mechs, tmp_path):
     assert fused.model.existJointName("elbow1_Z") and not fused.model.existJointName("elbow1_X")
     assert (fused.nq, fused.nv, fused.mobility) == (ref.nq, ref.nv, ref.mobility)
     assert (plain.nq, plain.nv) == (ref.nv, ref.nv)
+    masses = [sum(i.mass for i in m.model.inertias) for m in (fused, plain, ref)]
+    assert masses[0] == pytest.approx(masses[1], rel=1e-15) == pytest.approx(masses[2], rel=1e-15)
     M = pin.crba(fused.model, fused.model.createData(), ref.q_ref)
     assert np.max(np.abs(M - pin.crba(ref.model, ref.model.createData(), ref.q_ref))) <= 1e-15
 

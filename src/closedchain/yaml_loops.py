@@ -539,6 +539,7 @@ def fuse_spherical_joints(model: pin.Model, chains: list) -> pin.Model:
 
     new = pin.Model()
     new.name = model.name
+    new.appendBodyToJoint(0, model.inertias[0], pin.SE3.Identity())  # links fixed to the world
     joint_of = {0: 0}
     copied: list[tuple[int, int]] = []  # (old joint, new joint) of unchanged joints
     for j in range(1, model.njoints):

@@ -160,7 +160,7 @@ def fivebar() -> None:
 def delta() -> None:
     radius, arm, beta = 0.15, 0.2, 0.5
     centre, r_p = np.array([0.0, 0.0, -0.35]), 0.06
-    body = _link("base")
+    body = _link("base", 2.0, (0.0, 0.0, 0.02), np.diag([0.01, 0.01, 0.02]))  # on the world
     joints = ""
     thetas = [2.0 * np.pi * k / 3.0 for k in range(3)]
     elbows, attach = [], []
