@@ -173,7 +173,7 @@ def delta() -> None:
         elbows.append(e)
         attach.append(p)
         rod_local = R.T @ (p - e)  # the rod frame is turned like the arm's at q = 0
-        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", 0.1, rod_local, 0.05)
+        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", 0.2, rod_local, 0.1)
         joints += _joint(f"mot{k}", "revolute", "base", f"arm{k}", b, (0.0, 0.0, theta))
         joints += _joint(f"elbow{k}", "revolute", f"arm{k}", f"rod{k}", e_local, axis=(1, 0, 0))
         if k == 0:
