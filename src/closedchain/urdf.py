@@ -13,6 +13,10 @@ parser, what Pinocchio ignores (URDF+, Chignoli et al. 2024):
       <axis xyz="0 0 1"/>
     </loop>
 
+A side may name any frame of the tree instead of a link, ``<predecessor
+frame="closedloop1_A"/>`` (a link, or a joint's frame); the origin is then in
+that frame, and :func:`closedchain.load` resolves the side to a link.
+
 Parsing is safe: no DTD is accepted (so no entity expansion and no external
 entities), no network access, no huge trees. What the parser accepts, refuses
 and warns about is stated in :func:`parse_urdf`.

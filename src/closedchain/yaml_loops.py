@@ -369,7 +369,9 @@ def _is_revolute(joint) -> bool:
     return joint.shortname().startswith("JointModelR") and joint.nv == 1
 
 
-def find_ball_chains(model: pin.Model, *, exclude: Collection[int] = ()) -> list:
+def find_ball_chains(
+    model: pin.Model, *, exclude: Collection[int] = ()
+) -> list[tuple[str, list[int]]]:
     """Return the chains of three revolute joints that make a ball joint, as the corpus writes one.
 
     example-parallel-robots writes a ball joint as three revolute joints in a
@@ -511,7 +513,7 @@ V_VECTORS = (
 )
 
 
-def fuse_spherical_joints(model: pin.Model, chains: list) -> pin.Model:
+def fuse_spherical_joints(model: pin.Model, chains: list[tuple[str, list[int]]]) -> pin.Model:
     """Return a copy of ``model`` with each chain of three revolute joints fused into a spherical.
 
     The spherical joint stands where the chain's last joint's frame is at its
