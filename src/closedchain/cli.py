@@ -136,9 +136,10 @@ def add_model_arguments(p: argparse.ArgumentParser, gravity_note: str = "") -> N
     )
     p.add_argument(
         "--loops",
-        metavar="OVERLAY",
+        metavar="FILE",
         help="URDF+ overlay whose links, joints, <loop> and <transmission> elements are"
-        " merged into the tree",
+        " merged into the tree, or a .yaml/.yml file of example-parallel-robots"
+        " (closed_loop, type, name_mot, joint_name/joint_type)",
     )
     p.add_argument(
         "--gravity",

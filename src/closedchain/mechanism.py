@@ -45,7 +45,8 @@ from .exceptions import (
 )
 from .mjcf import read_model
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
-from .urdf import WORLD_LINK, URDFPlus, parse_urdf
+from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
+from .yaml_loops import edit_model
 
 logger = logging.getLogger(__name__)
 
@@ -545,8 +546,8 @@ class Mechanism:
                 {
                     "name": spec.name,
                     "type": spec.type,
-                    "predecessor": spec.predecessor,
-                    "successor": spec.successor,
+                    "predecessor": spec.predecessor_frame or spec.predecessor,
+                    "successor": spec.successor_frame or spec.successor,
                     "declared_rows": declared,
                     "independent_rows": kept,
                 }
@@ -633,7 +634,10 @@ def load(
             unit quaternion x, y, z, w; 6 of v in the root link frame) or
             ``"planar"`` (x, y [m], cos, sin of the angle about world z).
         loops: overlay file in URDF+ syntax whose links, joints, loops and
-            transmissions are merged into the tree (see :mod:`closedchain.robots`).
+            transmissions are merged into the tree (see :mod:`closedchain.robots`),
+            or, with a ``.yaml`` / ``.yml`` suffix, the loops, motors and joint
+            conversions of the example-parallel-robots convention (see
+            :mod:`closedchain.yaml_loops`).
         gravity: gravity vector in the world frame [m/s^2], shape (3,), of
             norm at most :data:`MAX_GRAVITY_NORM`; None: the file's (MJCF
             ``<option gravity>``), else :data:`DEFAULT_GRAVITY`.
@@ -712,6 +716,8 @@ def load(
     if urdfdom.text.strip():
         reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
         logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
+    if urdf.spherical or urdf.unlimited or urdf.fuse_ball_chains:
+        model = edit_model(model, urdf)
     if model.nv == 0:
         raise URDFError(
             f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "
@@ -720,6 +726,7 @@ def load(
         )
     model.gravity.linear = gravity
 
+    urdf = _resolve_frame_sides(model, urdf)
     frame_ids = []
     for spec in urdf.loops:
         pair = []
@@ -731,8 +738,7 @@ def load(
                 parent = 0  # Pinocchio's universe frame: fixed whatever the root joint
             elif not model.existFrame(link, pin.FrameType.BODY):
                 raise URDFError(
-                    f"{urdf.path}: line {spec.line}: <loop name={spec.name!r}>: link {link!r} "
-                    "is not part of the kinematic tree"
+                    f"{spec.where(urdf.path)}: link {link!r} is not part of the kinematic tree"
                 )
             else:
                 parent = model.getFrameId(link, pin.FrameType.BODY)
@@ -746,10 +752,13 @@ def load(
             )
             pair.append(model.addFrame(frame, False))
         if model.frames[pair[0]].parentJoint == model.frames[pair[1]].parentJoint:
+            ends = (
+                spec.predecessor_frame or spec.predecessor,
+                spec.successor_frame or spec.successor,
+            )
             raise URDFError(
-                f"{urdf.path}: line {spec.line}: <loop name={spec.name!r}>: predecessor "
-                f"{spec.predecessor!r} and successor {spec.successor!r} move with the same "
-                "joint, so the loop closes nothing"
+                f"{spec.where(urdf.path)}: predecessor {ends[0]!r} and successor {ends[1]!r} "
+                "move with the same joint, so the loop closes nothing"
             )
         frame_ids.append(tuple(pair))
 
@@ -772,6 +781,70 @@ def load(
     )
     logger.info("loaded %r", mech)
     return mech
+
+
+def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
+    """Return ``urdf`` with every ``<loop>`` side written ``frame=`` turned into a link and origin.
+
+    A frame f on joint j (any Pinocchio frame of the tree: a link's BODY frame,
+    a joint's JOINT or FIXED_JOINT frame, an OP_FRAME) moves with the links on
+    j; the side becomes the first such link l (the frame itself if it is a
+    link) with origin ``lMf * origin``, where ``lMf = jMl^-1 jMf``. Everything
+    downstream (loop frames, drawing, digest) then sees links only.
+
+    Raises:
+        URDFError: the name is no frame of the tree (lists the frames), names
+            several frames at different places, or a frame of the world when the
+            tree's own link ``world`` moves with a root joint.
+    """
+    if not any(spec.predecessor_frame or spec.successor_frame for spec in urdf.loops):
+        return urdf
+    tree_frames = [f.name for f in model.frames]
+    loops = []
+    for spec in urdf.loops:
+        sides = {}
+        for side in ("predecessor", "successor"):
+            name = getattr(spec, f"{side}_frame")
+            if name is None:
+                continue
+            where = f"{spec.where(urdf.path)}: <{side} frame={name!r}>"
+            if not model.existFrame(name):
+                raise URDFError(
+                    f"{where} names no frame of the tree; frames: {name_list(tree_frames)}"
+                )
+            found = [f for f in model.frames if f.name == name]
+            frame = found[0]
+            if any(
+                f.parentJoint != frame.parentJoint or not f.placement.isApprox(frame.placement)
+                for f in found[1:]
+            ):
+                kinds = ", ".join(str(f.type) for f in found)
+                raise URDFError(
+                    f"{where} names {len(found)} frames ({kinds}) at different places; "
+                    "valid: link= for the link, or rename the joint"
+                )
+            bodies = [
+                f
+                for f in model.frames
+                if f.type == pin.FrameType.BODY and f.parentJoint == frame.parentJoint
+            ]
+            if frame.type == pin.FrameType.BODY:
+                link = frame
+            elif bodies:
+                link = bodies[0]
+            elif not model.existFrame(WORLD_LINK, pin.FrameType.BODY):
+                link = None  # on the universe: the reserved WORLD_LINK stands for it
+            else:
+                raise URDFError(
+                    f"{where} is fixed to the world, and no link is: the tree's link "
+                    f"{WORLD_LINK!r} moves with the root joint; valid: a frame of a link"
+                )
+            origin = getattr(spec, f"{side}_origin")
+            lMf = frame.placement if link is None else link.placement.actInv(frame.placement)
+            sides[side] = WORLD_LINK if link is None else link.name
+            sides[f"{side}_origin"] = lMf * origin
+        loops.append(replace(spec, **sides))
+    return replace(urdf, loops=tuple(loops))
 
 
 def _select_rows_and_coordinates(

@@ -41,6 +41,7 @@ from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
 from .mjcf import read_model
 from .sdf import is_sdf, read_sdf
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
+from .yaml_loops import apply_loops_yaml, is_loops_yaml, read_loops_yaml
 
 logger = logging.getLogger(__name__)
 
@@ -208,8 +209,10 @@ def merge_overlay(
 
     Args:
         base: the base URDF file.
-        overlay: the overlay file (URDF+ syntax, root ``<robot>``), or None
-            (only ``primitive`` applies).
+        overlay: the overlay file (URDF+ syntax, root ``<robot>``), a loops
+            YAML file of example-parallel-robots (a ``.yaml`` or ``.yml``
+            suffix; see :mod:`closedchain.yaml_loops`), or None (only
+            ``primitive`` applies).
         primitive: replace mesh visuals by primitive geometry (see
             :func:`primitive_visuals`).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
@@ -220,7 +223,7 @@ def merge_overlay(
     Returns:
         The parsed, merged model. Its ``path`` is the overlay (messages about
         overlay elements give the overlay's line numbers); its ``robot_name``
-        is the overlay's ``<robot name>``.
+        is the overlay's ``<robot name>`` (a YAML file keeps the base's).
 
     Raises:
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
@@ -228,7 +231,14 @@ def merge_overlay(
     """
     root = read_base(base, cut_joints=cut_joints) if root is None else root
     path = base
-    if overlay is not None:
+    edits: dict[str, tuple[str, ...]] = {}
+    if overlay is not None and is_loops_yaml(overlay):
+        path = Path(overlay)
+        loops = read_loops_yaml(path)
+        # Checked first on its own, so that messages about its elements name the URDF.
+        parse_urdf(base, element=root, max_nv=max_nv)
+        edits = apply_loops_yaml(root, loops, base=base)
+    elif overlay is not None:
         path = Path(overlay)
         extra = read_xml(path, what="overlay file")
         if extra.tag != "robot":
@@ -255,7 +265,7 @@ def merge_overlay(
         _check_world_joints(path, root)
     # The SDF reader has warned about SDF inertias that violate the triangle inequality.
     triangle = "pass" if is_sdf(base) else "refuse"
-    urdf = parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle)
+    urdf = replace(parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), **edits)
     if primitive:
         # After the checks: the joint origins it reads are finite and bounded.
         primitive_visuals(root)

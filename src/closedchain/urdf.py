@@ -27,6 +27,10 @@ and a standard URDF ``<mimic joint="i" multiplier="m" offset="c"/>`` inside
 ``<joint name="j">`` is read as the same loop, named ``j`` + :data:`MIMIC_SUFFIX`
 (the joint itself stays an ordinary joint of the tree). See :func:`parse_urdf`.
 
+A side may name any frame of the tree instead of a link, ``<predecessor
+frame="closedloop1_A"/>`` (a link, or a joint's frame); the origin is then in
+that frame, and :func:`closedchain.load` resolves the side to a link.
+
 Parsing is safe: no DTD is accepted (so no entity expansion and no external
 entities), no network access, no huge trees. What the parser accepts, refuses
 and warns about is stated in :func:`parse_urdf`.
@@ -123,20 +127,32 @@ LIMIT_ATTRIBUTES = {"lower": False, "upper": False, "effort": True, "velocity": 
 class LoopSpec:
     """One loop-closure joint as written in the URDF.
 
+    A side written ``<predecessor frame="..."/>`` names any frame of the tree
+    (a link, or a joint's frame: fixed or movable); :func:`closedchain.load`
+    resolves it to the link the frame is attached to and the origin in that
+    link's frame, so that once loaded every side is a link and an origin.
+
     Attributes:
         name: loop name (the ``name`` attribute).
         type: one of :data:`LOOP_TYPES`.
-        predecessor: name of the predecessor link.
-        successor: name of the successor link.
-        predecessor_origin: placement of the cut-joint frame c1 in the predecessor link frame.
-        successor_origin: placement of the cut-joint frame c2 in the successor link frame.
+        predecessor: name of the predecessor link (before ``load`` resolves a
+            ``frame=`` side: the frame's name).
+        successor: name of the successor link (idem).
+        predecessor_origin: placement of the cut-joint frame c1 in the predecessor link
+            frame (before ``load`` resolves a ``frame=`` side: in that frame).
+        successor_origin: placement of the cut-joint frame c2 in the successor link frame
+            (idem).
         axis: unit joint axis, shape (3,), in frame c1 (unused for spherical and fixed).
-        line: source line of the ``<loop>`` element, for error messages.
         joint: coupling loops: the driven joint j (``<joint name>``), else "".
         mimics: coupling loops: the driving joint i (``<mimics joint>``), else "".
         multiplier: coupling loops: m of ``q_j = m q_i + c`` [-, or m/rad, rad/m
             between a revolute and a prismatic joint].
         offset: coupling loops: c of ``q_j = m q_i + c`` [rad or m, as q_j].
+        line: source line of the ``<loop>`` element, for error messages (0: none,
+            e.g. a loop read from a YAML file).
+        predecessor_frame: the frame ``<predecessor frame=...>`` names, or None
+            (``link=``).
+        successor_frame: idem for ``<successor>``.
 
     A coupling loop's predecessor and successor are the child links of ``mimics``
     and ``joint`` (where its frames are put; its row reads the joints' coordinates).
@@ -154,6 +170,13 @@ class LoopSpec:
     mimics: str = ""
     multiplier: float = 1.0
     offset: float = 0.0
+    predecessor_frame: str | None = None
+    successor_frame: str | None = None
+
+    def where(self, path: Path | str) -> str:
+        """Return ``"{path}: line {n}: <loop name='...'>"`` (without the line when unknown)."""
+        line = f" line {self.line}:" if self.line else ""
+        return f"{path}:{line} <loop name={self.name!r}>"
 
 
 @dataclass(frozen=True)
@@ -225,6 +248,15 @@ class URDFPlus:
         actuated: joints named by ``<transmission>`` elements, in file order.
         independent: joints marked ``independent="true"``, in file order.
         scene: the ``<scene>`` element (default scene), or None.
+        spherical: joints written in the XML as three revolute joints
+            ``<name>_X, _Y, _Z`` that :func:`closedchain.load` fuses into one
+            Pinocchio spherical joint (a loops YAML's ``SPHERICAL``, see
+            :mod:`closedchain.yaml_loops`).
+        unlimited: joints whose position limits :func:`closedchain.load`
+            removes (a loops YAML's tree: ``<limit>`` without lower and upper).
+        fuse_ball_chains: whether :func:`closedchain.load` fuses chains of three
+            revolute joints through massless links at one point into spherical
+            joints (a loops YAML's tree, as the convention's loader does).
     """
 
     path: Path
@@ -236,6 +268,9 @@ class URDFPlus:
     actuated: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
     scene: SceneSpec | None = None
+    spherical: tuple[str, ...] = ()
+    unlimited: tuple[str, ...] = ()
+    fuse_ball_chains: bool = False
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -358,6 +393,22 @@ def unit_vector(text: str, what: str) -> np.ndarray:
         raise URDFError(f"{what} is zero; valid: a direction with a non-zero component")
     unit = xyz / scale  # largest |component| is 1: the norm below is in [1, sqrt(3)]
     return unit / math.sqrt(float(unit @ unit))
+
+
+#: Names an error message lists before it shortens the list to "... and N more".
+MAX_LISTED_NAMES = 30
+
+
+def name_list(names, *, limit: int = MAX_LISTED_NAMES) -> str:
+    """Return the sorted names, comma separated, the ones past ``limit`` counted, not listed.
+
+    Args:
+        names: the valid names (any iterable of str; duplicates are listed once).
+        limit: names listed at most.
+    """
+    unique = sorted(set(names))
+    shown = ", ".join(unique[:limit])
+    return shown if len(unique) <= limit else f"{shown}, ... and {len(unique) - limit} more"
 
 
 def _check_name(path: Path, element, kind: str) -> str:
@@ -813,16 +864,25 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
             raise URDFError(f"{where}: missing <{tag}>")
         return found[0] if found else None
 
-    ends = {}
+    ends, frames = {}, {}
     for tag in ("predecessor", "successor"):
-        link = child(tag).get("link")
+        end = child(tag)
+        link, frame = end.get("link"), end.get("frame")
+        if (link is None) == (frame is None):
+            raise URDFError(
+                f"{where}: <{tag}> needs exactly one of link= (a link) or frame= (any frame "
+                "of the tree: a link or a joint)"
+            )
+        if frame is not None:  # resolved against Pinocchio's frames by load()
+            ends[tag] = frames[tag] = frame
+            continue
         if link not in links:
             raise URDFError(
                 f"{where}: <{tag} link={link!r}> names an unknown link; links: "
-                f"{', '.join(sorted(links))}"
+                f"{name_list(links)} (or frame= for a joint's frame)"
             )
         ends[tag] = link
-    if ends["predecessor"] == ends["successor"]:
+    if not frames and ends["predecessor"] == ends["successor"]:
         raise URDFError(f"{where}: predecessor and successor are the same link")
 
     origins = {}
@@ -844,6 +904,8 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         successor_origin=origins["successor_origin"],
         axis=axis,
         line=element.sourceline or 0,
+        predecessor_frame=frames.get("predecessor"),
+        successor_frame=frames.get("successor"),
     )
 
 
