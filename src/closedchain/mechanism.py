@@ -611,7 +611,8 @@ def load(
             an SDF file (``.sdf``, cut into a tree and loops by
             :mod:`closedchain.sdf`), or ``erd:<name>``, a model of the
             installed example-robot-data (:data:`closedchain.robots.ERD_MODELS`;
-            drawn with primitive geometry).
+            animations embed its meshes within a budget:
+            :attr:`closedchain.visualize.AnimationSettings.mesh_budget_bytes`).
         root_joint: joint between the world and the URDF's root link: None
             (fixed), ``"free"`` (free flyer, 7 entries of q: x, y, z [m] and a
             unit quaternion x, y, z, w; 6 of v in the root link frame) or
@@ -652,7 +653,6 @@ def load(
             urdf = merge_overlay(
                 base,
                 loops,
-                primitive=entry is not None,
                 max_nv=max_nv(settings),
                 cut_joints=cut,
             )
