@@ -246,3 +246,74 @@ def test_urdf_names_stay_text_in_the_browser(browser, tmp_path, artifacts_dir):
         page.page.screenshot(path=str(artifacts_dir / "browser_escaped_names.png"))
     finally:
         page.close()
+
+
+#: World-free bounding boxes of each link's visual geometries, by "link/visual_i".
+JS_GEOMETRY_BOXES = """(root) => {
+  const links = window.closedchain.viewer.scene_tree.children.meshcat.children[root].children;
+  const out = {};
+  for (const [link, node] of Object.entries(links)) {
+    for (const [name, child] of Object.entries(node.children)) {
+      const obj = child.children["<object>"] ? child.children["<object>"].object : child.object;
+      const g = obj && obj.geometry;
+      if (!name.startsWith("visual_") || !g) { continue; }
+      g.computeBoundingBox();
+      out[link + "/" + name] = [g.boundingBox.min.toArray(), g.boundingBox.max.toArray()];
+    }
+  }
+  return out;
+}"""
+
+#: Mesh bounds in the browser vs trimesh's [m] (three.js keeps single precision).
+MESH_BOUNDS_TOL = 1e-6
+
+
+def test_meshes_of_every_format_are_drawn_in_the_browser(browser, tmp_path, artifacts_dir):
+    """STL (binary, ASCII), OBJ and DAE meshes load in meshcat's viewer with trimesh's bounds."""
+    import trimesh
+
+    from closedchain import visualize as vz
+
+    tetra = trimesh.Trimesh(
+        vertices=[[0, 0, 0], [0.2, 0, 0], [0, 0.03, 0], [0, 0, 0.03]],
+        faces=[[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+    )
+    formats = {"crank": "stl", "coupler": "obj", "rocker": "dae"}
+    for link, fmt in formats.items():
+        tetra.apply_scale(1.5)  # a size per link
+        (tmp_path / f"{link}.{fmt}").write_bytes(_as_bytes(tetra.export(file_type=fmt)))
+    (tmp_path / "ground.stl").write_bytes(_as_bytes(tetra.export(file_type="stl_ascii")))
+    urdf = (MODELS / "fourbar.urdf").read_text()
+    for box, link in (
+        ("0.2 0.012 0.02", "crank"),
+        ("0.4 0.012 0.02", "coupler"),
+        ("0.3 0.012 0.02", "rocker"),
+        ("0.5 0.01 0.012", "ground"),
+    ):
+        name = f"{link}.{formats.get(link, 'stl')}"
+        urdf = urdf.replace(f'<box size="{box}"/>', f'<mesh filename="{name}"/>')
+    (tmp_path / "meshes.urdf").write_text(urdf)
+    mech = cc.load(tmp_path / "meshes.urdf")
+    html = cc.write_html(mech, fourbar_sweep(mech, np.linspace(0.0, 1.0, 31)), tmp_path / "m.html")
+    assert html.meshes.n_embedded == 4 and html.meshes.primitive_links == ()
+    expected, counters = {}, {}
+    for v in vz.read_visuals(mech):
+        i = counters[v.link] = counters.get(v.link, -1) + 1
+        if v.kind == "mesh":
+            expected[f"{v.link}/visual_{i}"] = (v.mesh_data.lower, v.mesh_data.upper)
+    page = Page(running(browser), html.path)
+    try:
+        assert page.errors == [] and page.dialogs == [] and page.requests == [page.url]
+        boxes = page.evaluate(JS_GEOMETRY_BOXES, "fourbar")
+        assert len(expected) == 4 and set(expected) <= set(boxes)
+        for key, (lower, upper) in expected.items():
+            got = np.array(boxes[key])
+            assert np.linalg.norm(got[0] - lower) <= MESH_BOUNDS_TOL, key
+            assert np.linalg.norm(got[1] - upper) <= MESH_BOUNDS_TOL, key
+        page.page.screenshot(path=str(artifacts_dir / "browser_meshes.png"))
+    finally:
+        page.close()
+
+
+def _as_bytes(data: bytes | str) -> bytes:
+    return data.encode() if isinstance(data, str) else data

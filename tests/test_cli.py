@@ -255,6 +255,10 @@ def test_simulate_reports_a_joint_past_its_limit(capsys, tmp_path):
         ),
         (["simulate", "{fourbar}", "--t-final", "nan"], "--t-final must be a positive number"),
         (["animate", "{fourbar}", "--fps", "0", "-o", "{tmp}/a.html"], "--fps must be a positive"),
+        (
+            ["animate", "{fourbar}", "--mesh-budget", "nan", "-o", "{tmp}/a.html"],
+            "--mesh-budget must be a number of MB >= 0, got nan",
+        ),
         (["simulate", "{fourbar}", "--integrator", "rk4", "--dt", "0"], "--dt must be a positive"),
         (["simulate", "{fourbar}", "--rtol=-1e-9"], "--rtol must be a positive number"),
         (["validate", "{fourbar}", "--samples", "0"], "--samples must be at least 1, got 0"),

@@ -31,6 +31,7 @@ from closedchain import robots
 from closedchain.cli import main
 from closedchain.dynamics import SolverSettings
 from closedchain.validation import pinocchio_forward_dynamics
+from closedchain.visualize import read_scene_visuals
 
 #: Accelerations agree with pinocchio.constraintDynamics to this [rad/s^2, m/s^2].
 TOL_A = 1e-9
@@ -45,7 +46,7 @@ N_STATES = 20
 #: Fixed step [s] and duration [s] of the robot runs (rk4 + projection: nq != nv).
 DT = 1e-3
 T_RUN = 2.0
-#: Largest size of a robot animation [bytes] (primitive geometry, 2 s at 30 fps).
+#: Largest size of a robot animation without meshes [bytes] (stick figures, 2 s at 30 fps).
 MAX_HTML_BYTES = 2_000_000
 
 ROOTS = (None, "free", "planar")
@@ -234,7 +235,7 @@ def test_bad_overlay_is_refused_naming_file_and_element(tmp_path, text, match):
 
 
 def test_overlay_on_a_robot_is_checked_before_its_stick_figure_is_drawn(tmp_path):
-    """primitive_visuals reads the overlay's joint origins only once they are checked."""
+    """An overlay's joint origins are checked at load, before a stick figure reads them."""
     overlay = tmp_path / "far.urdf"
     overlay.write_text(
         '<robot name="o"><link name="x"/><joint name="j" type="revolute"><parent link="world"/>'
@@ -297,10 +298,10 @@ def test_robot_loads_with_every_row_independent(robot, key):
     assert mech.nc == rows  # no redundant row in these loops
     assert mech.mobility == nv - rows
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= TOL_PHI
-    # Primitive visuals only: nothing drawn points into the package's meshes.
-    visuals = etree.fromstring(mech.urdf.xml.encode()).findall("link/visual/geometry/*")
-    assert visuals
-    assert {v.tag for v in visuals} <= {"box", "cylinder", "sphere"}
+    # The package's mesh visuals are kept, and all of them fit the default page budget.
+    meshes = etree.fromstring(mech.urdf.xml.encode()).findall("link/visual/geometry/mesh")
+    summary = read_scene_visuals(mech)[1]
+    assert (summary.n_embedded, summary.primitive_links) == (len(meshes), ())
 
 
 @pytest.mark.parametrize("key", list(ROBOTS))
@@ -435,6 +436,9 @@ def test_cli_info_and_animate_a_robot(tmp_path, capsys):
     assert (info["nv"], info["mobility"], info["root_joint"]) == (7, 2, None)
     out = tmp_path / "ur5.html"
     argv = ["animate", "erd:ur5", "--loops", overlay, "--t-final", "0.5", "--integrator", "rk4"]
-    assert main([*argv, "--dt", "1e-3", "-o", str(out)]) == 0
+    assert main([*argv, "--dt", "1e-3", "--mesh-budget", "0", "-o", str(out)]) == 0
+    assert "meshes: 0 embedded (0 MB of a 0 MB budget), 7 links drawn as primitives)" in (
+        capsys.readouterr().out
+    )
     assert 0 < out.stat().st_size <= MAX_HTML_BYTES
     assert b"package://" not in out.read_bytes()

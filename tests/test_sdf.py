@@ -375,13 +375,15 @@ def test_cassie_simulates_from_rest(cassie):
 
 
 @needs_erd
-def test_cassie_animates_with_primitive_visuals(cassie, tmp_path):
-    shapes = etree.fromstring(cassie.urdf.xml.encode()).findall("link/visual/geometry/*")
-    assert shapes
-    assert {s.tag for s in shapes} <= {"box", "cylinder", "sphere"}
+def test_cassie_animates_with_its_meshes(cassie, tmp_path, capsys):
+    """The SDF's model:// meshes are example-robot-data's, embedded within the budget."""
+    meshes = etree.fromstring(cassie.urdf.xml.encode()).findall("link/visual/geometry/mesh")
+    uris = [m.get("filename") for m in meshes]
+    prefix = "package://example-robot-data/robots/cassie_description/meshes/"
+    assert uris and all(u.startswith(prefix) for u in uris)
     out = tmp_path / "cassie.html"
     assert main(["animate", "erd:cassie", "--t-final", "0.1", "-o", str(out)]) == 0
-    assert out.stat().st_size > 0
+    assert f"meshes: {len(uris)} embedded (" in capsys.readouterr().out
     assert b"package://" not in out.read_bytes()
 
 

@@ -8,7 +8,6 @@ import hashlib
 import json
 import logging
 import re
-import struct
 import uuid
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -409,23 +408,60 @@ def test_scene_path_escapes_names():
 # -- meshes --------------------------------------------------------------------------
 
 
-def write_binary_stl(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    with path.open("wb") as f:
-        f.write(b"\0" * 80 + struct.pack("<I", len(faces)))
-        for tri in faces:
-            f.write(struct.pack("<3f", 0.0, 0.0, 0.0))
-            for v in vertices[tri]:
-                f.write(struct.pack("<3f", *v))
-            f.write(b"\0\0")
+#: Binary STL: an 80-byte header, a uint32 triangle count, then 50 bytes per triangle.
+STL_TRIANGLE = np.dtype([("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
+#: A tetrahedron [m] and its four triangles.
+TETRA = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
+TETRA_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+#: What the page carries besides a mesh's base64 when the mesh replaces its link's
+#: stick figure (the mesh's object and material, the legend's digits) [bytes].
+MESH_PAGE_SLACK = 2_000
+
+
+def write_binary_stl(path: Path, vertices: np.ndarray, faces: np.ndarray) -> int:
+    """Write a binary STL (normals zero); return its size [bytes]."""
+    triangles = np.zeros(len(faces), dtype=STL_TRIANGLE)
+    triangles["vertices"] = vertices[faces]
+    data = b"\0" * 80 + np.uint32(len(faces)).tobytes() + triangles.tobytes()
+    path.write_bytes(data)
+    return len(data)
+
+
+def tetrahedra(n: int, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """n tetrahedra side by side along x over ``length`` [m]: (vertices, faces)."""
+    offsets = np.linspace(0.0, length, n)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    vertices = (TETRA[None] * (length / n) + offsets).reshape(-1, 3)
+    faces = (TETRA_FACES[None] + 4 * np.arange(n)[:, None, None]).reshape(-1, 3)
+    return vertices, faces
+
+
+def mesh_fourbar(directory: Path, crank: str, coupler: str) -> cc.Mechanism:
+    """The 4-bar with its crank's and its coupler's box visuals replaced by meshes."""
+    urdf = (MODELS / "fourbar.urdf").read_text()
+    urdf = urdf.replace(
+        '<geometry><box size="0.2 0.012 0.02"/></geometry>',
+        f'<geometry><mesh filename="{crank}"/></geometry>',
+    ).replace(
+        '<geometry><box size="0.4 0.012 0.02"/></geometry>',
+        f'<geometry><mesh filename="{coupler}"/></geometry>',
+    )
+    (directory / "mesh.urdf").write_text(urdf)
+    return cc.load(directory / "mesh.urdf")
+
+
+def mesh_objects(scene: vz.MeshcatScene) -> dict[str, dict]:
+    """Scene path -> geometry of the meshes the scene embeds."""
+    return {
+        c["path"]: c["object"]["geometries"][0]
+        for c in decode(scene)
+        if c["type"] == "set_object" and c["object"]["geometries"][0]["type"] == "_meshfile"
+    }
 
 
 def test_mesh_visuals_are_embedded_or_skipped(tmp_path, caplog):
     mesh_dir = tmp_path / "meshes"
     mesh_dir.mkdir()
-    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
-    write_binary_stl(
-        mesh_dir / "tetra.stl", tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
-    )
+    write_binary_stl(mesh_dir / "tetra.stl", TETRA, TETRA_FACES)
     urdf = (MODELS / "fourbar.urdf").read_text()
     urdf = urdf.replace(
         '<geometry><box size="0.4 0.012 0.02"/></geometry>',
@@ -473,8 +509,7 @@ def test_mesh_files_outside_the_urdf_directory_are_refused(tmp_path, caplog, fil
     """A URDF cannot embed local files from outside its own directory in the page."""
     (tmp_path / "outside").mkdir()
     secret = tmp_path / "outside" / "secret.stl"
-    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
-    write_binary_stl(secret, tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    write_binary_stl(secret, TETRA, TETRA_FACES)
     robot = tmp_path / "robot"
     (robot / "meshes").mkdir(parents=True)
     (robot / "meshes" / "link.stl").symlink_to(secret)
@@ -572,10 +607,7 @@ def test_mesh_files_over_the_size_limit_are_skipped(tmp_path, caplog, monkeypatc
     """The page embeds each mesh: one over MAX_MESH_BYTES is left out, unread, with a warning."""
     from closedchain.visualize import shapes
 
-    tetra = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], dtype=float)
-    write_binary_stl(
-        tmp_path / "tetra.stl", tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
-    )
+    write_binary_stl(tmp_path / "tetra.stl", TETRA, TETRA_FACES)
     size = (tmp_path / "tetra.stl").stat().st_size  # 84 + 4 x 50 bytes
     urdf = (MODELS / "fourbar.urdf").read_text()
     urdf = urdf.replace(
@@ -594,3 +626,192 @@ def test_mesh_files_over_the_size_limit_are_skipped(tmp_path, caplog, monkeypatc
     )
     monkeypatch.setattr(shapes, "MAX_MESH_BYTES", size)
     assert [v.link for v in vz.read_visuals(mech) if v.kind == "mesh"] == ["coupler"]
+
+
+# -- mesh budget -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_meshes(tmp_path_factory):
+    """(4-bar whose crank is a 100 kB STL and coupler a 284-byte one, their sizes [bytes])."""
+    directory = tmp_path_factory.mktemp("two_meshes")
+    (directory / "meshes").mkdir()
+    big = write_binary_stl(directory / "meshes" / "crank.stl", *tetrahedra(500, 0.2))
+    small = write_binary_stl(directory / "meshes" / "coupler.stl", TETRA, TETRA_FACES)
+    return mesh_fourbar(directory, "meshes/crank.stl", "meshes/coupler.stl"), big, small
+
+
+def test_meshes_within_the_budget_are_embedded_the_others_drawn_as_sticks(two_meshes, caplog):
+    mech, big, small = two_meshes
+    settings = vz.AnimationSettings(mesh_budget_bytes=big)  # the crank's mesh fits exactly
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        visuals, meshes = vz.read_scene_visuals(mech, settings=settings)
+    assert meshes == vz.MeshSummary(1, big, big, ("coupler",))
+    assert (
+        "meshes over what is left of the budget of 0.1 MB (AnimationSettings.mesh_budget_bytes), "
+        "drawn as primitives: coupler (0.000284 MB)" in caplog.text
+    )
+    assert [v.link for v in visuals if v.kind == "mesh"] == ["crank"]
+    # The coupler's stick figure: a ball at its origin (it has no child joint in the tree);
+    # its pin cylinder stays.
+    coupler = [(v.kind, v.dims) for v in visuals if v.link == "coupler"]
+    assert coupler == [("sphere", (0.03,)), ("cylinder", (0.012, 0.05))]
+
+    # A budget of 0: the crank is a stick from its origin to the coupler joint.
+    visuals, meshes = vz.read_scene_visuals(
+        mech, settings=vz.AnimationSettings(mesh_budget_bytes=0)
+    )
+    assert meshes == vz.MeshSummary(0, 0, 0, ("crank", "coupler"))
+    ball, stick = [v for v in visuals if v.link == "crank"]
+    joint = mech.model.jointPlacements[mech.model.getJointId("coupler_joint")].translation
+    assert ball.kind == "sphere" and np.linalg.norm(ball.origin[:3, 3]) <= EXACT_TOL
+    assert stick.kind == "cylinder" and stick.dims[1] == pytest.approx(np.linalg.norm(joint))
+    assert np.linalg.norm(stick.origin[:3, 3] - joint / 2) <= EXACT_TOL
+    assert np.linalg.norm(stick.origin[:3, 2] - joint / np.linalg.norm(joint)) <= EXACT_TOL
+
+
+def test_page_states_its_meshes_and_grows_by_the_embedded_mesh_only(two_meshes, tmp_path):
+    mech, big, small = two_meshes
+    traj = fourbar_sweep(mech, np.linspace(0.0, 1.0, 11))
+    sizes, legends = {}, {}
+    for budget in (0, big, big + small):
+        out = vz.write_html(
+            mech,
+            traj,
+            tmp_path / f"{budget}.html",
+            settings=vz.AnimationSettings(mesh_budget_bytes=budget),
+        )
+        text = out.path.read_text()
+        sizes[budget] = out.size
+        legends[budget] = re.search(r'<div id="closedchain-legend">(.*?)</div>', text).group(1)
+        meta = json.loads(scripts_of(text)[0][1])["meta"]["meshes"]
+        assert meta["embedded_bytes"] == out.meshes.embedded_bytes
+        assert meta["primitive_links"] == list(out.meshes.primitive_links)
+    assert legends[0].endswith(
+        "<br>meshes: 0 embedded (0 MB of a 0 MB budget), 2 links drawn as primitives"
+    )
+    assert legends[big].endswith(
+        f"<br>meshes: 1 embedded ({big / 1e6:.3g} MB of a {big / 1e6:.3g} MB budget), "
+        "1 link drawn as primitives"
+    )
+    assert "2 embedded" in legends[big + small] and "0 links drawn" in legends[big + small]
+    # base64 carries 4 bytes per 3 of the mesh.
+    assert abs(sizes[big] - sizes[0] - 4 * big / 3) <= MESH_PAGE_SLACK
+    assert abs(sizes[big + small] - sizes[big] - 4 * small / 3) <= MESH_PAGE_SLACK
+
+
+def test_pages_without_meshes_say_nothing_of_them(fourbar_scene):
+    assert fourbar_scene.meshes == vz.MeshSummary(0, 0, vz.DEFAULT_SETTINGS.mesh_budget_bytes)
+    assert "meshes:" not in vz.scene_html(fourbar_scene)
+
+
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        (lambda: b"not a mesh\n" * 20, "STL mesh has no triangles"),
+        (lambda: tetra_stl()[:-60], "STL mesh has no triangles"),  # truncated
+        (lambda: tetra_stl() + b"\0\0", "STL mesh has no triangles"),  # a count that lies
+    ],
+    ids=["text", "truncated", "trailing"],
+)
+def test_a_corrupt_stl_is_drawn_as_a_stick_with_a_warning(tmp_path, caplog, content, reason):
+    (tmp_path / "bad.stl").write_bytes(content())
+    write_binary_stl(tmp_path / "good.stl", TETRA, TETRA_FACES)
+    mech = mesh_fourbar(tmp_path, "bad.stl", "good.stl")
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        scene = vz.build_scene(mech, fourbar_sweep(mech, np.linspace(0.0, 1.0, 3)))
+    assert f"link 'crank' visual 0: {(tmp_path / 'bad.stl').resolve()}: {reason}; not drawn" in (
+        caplog.text
+    )
+    assert scene.meshes.primitive_links == ("crank",) and scene.meshes.n_embedded == 1
+    assert [p.rsplit("/", 2)[1] for p in mesh_objects(scene)] == ["coupler"]
+
+
+def tetra_stl() -> bytes:
+    triangles = np.zeros(len(TETRA_FACES), dtype=STL_TRIANGLE)
+    triangles["vertices"] = TETRA[TETRA_FACES]
+    return b"\0" * 80 + np.uint32(len(TETRA_FACES)).tobytes() + triangles.tobytes()
+
+
+OBJ_TETRA = "v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nv 0 0 0.1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+
+
+def test_obj_meshes_are_embedded_as_text(tmp_path):
+    (tmp_path / "tetra.obj").write_text(OBJ_TETRA)
+    mesh = vz.read_mesh(tmp_path / "tetra.obj")
+    assert mesh.format == "obj" and mesh.data == OBJ_TETRA.encode()
+    assert np.linalg.norm(mesh.lower) <= EXACT_TOL
+    assert np.linalg.norm(mesh.upper - 0.1) <= EXACT_TOL
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "match"),
+    [
+        (
+            "t.obj",
+            OBJ_TETRA.encode().replace(b"v 0 0 0", b"v 0 0 0 \xff"),
+            r"OBJ file is not UTF-8",
+        ),
+        (
+            "t.dae",
+            b'<?xml version="1.0"?><!DOCTYPE x [<!ENTITY a "b">]><COLLADA/>',
+            r"t.dae: DAE file declares a DOCTYPE; valid: COLLADA without one",
+        ),
+        ("t.stl", b"", r"t.stl: STL mesh has no triangles"),
+        ("t.ply", b"ply\n", r"t.ply: cannot read mesh: "),
+    ],
+)
+def test_meshes_meshcat_cannot_take_are_refused(tmp_path, name, content, match):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ClosedChainError, match=match):
+        vz.read_mesh(tmp_path / name)
+
+
+def test_a_negative_mesh_budget_is_refused(fourbar):
+    with pytest.raises(
+        ClosedChainError, match=r"mesh_budget_bytes = -1; valid: a number of bytes >= 0"
+    ):
+        vz.read_visuals(fourbar, settings=vz.AnimationSettings(mesh_budget_bytes=-1))
+
+
+@pytest.fixture(scope="module")
+def ur5_crank():
+    """erd:ur5 with an overlay from models/: its meshes lie in example-robot-data."""
+    return cc.load("erd:ur5", loops=MODELS / "ur5_crank.urdf")
+
+
+def test_an_erd_robot_embeds_its_meshes_within_the_budget(ur5_crank):
+    from lxml import etree
+
+    from closedchain.robots import erd_robots_dir
+
+    root = etree.fromstring(ur5_crank.urdf.xml.encode())
+    files = [m.get("filename") for m in root.findall("link/visual/geometry/mesh")]
+    assert len(files) == 7 and all(f.startswith("package://example-robot-data/") for f in files)
+    share = erd_robots_dir().parent
+    total = sum((share / f.partition("example-robot-data/")[2]).stat().st_size for f in files)
+    visuals, meshes = vz.read_scene_visuals(ur5_crank)
+    assert meshes == vz.MeshSummary(7, total, vz.DEFAULT_SETTINGS.mesh_budget_bytes, ())
+    assert {v.mesh.parent.name for v in visuals if v.kind == "mesh"} == {"visual"}
+
+    tiny = vz.AnimationSettings(mesh_budget_bytes=1)
+    visuals, meshes = vz.read_scene_visuals(ur5_crank, settings=tiny)
+    assert (meshes.n_embedded, meshes.embedded_bytes, len(meshes.primitive_links)) == (0, 0, 7)
+    assert {v.kind for v in visuals} == {"sphere", "cylinder"}
+
+
+def test_cli_states_the_meshes_and_takes_a_budget(two_meshes, tmp_path, capsys):
+    from closedchain.cli import main
+
+    mech, big, _ = two_meshes
+    out = tmp_path / "m.html"
+    argv = ["animate", str(mech.path), "--t-final", "0.1", "-o", str(out)]
+    assert main([*argv, "--mesh-budget", f"{big / 1e6}"]) == 0
+    assert (
+        capsys.readouterr()
+        .out.rstrip()
+        .endswith(
+            f"; meshes: 1 embedded ({big / 1e6:.3g} MB of a {big / 1e6:.3g} MB budget), "
+            "1 link drawn as primitives)"
+        )
+    )

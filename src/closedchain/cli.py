@@ -30,6 +30,8 @@ from .exceptions import (
     format_upper_bound,
     resolve_choice,
 )
+from .visualize.settings import DEFAULT_SETTINGS as DEFAULT_ANIMATION
+from .visualize.settings import MEGABYTE
 
 #: Exit statuses of the ``closedchain`` command (documented in ``--help`` and the README).
 EXIT_OK = 0
@@ -193,16 +195,17 @@ def check_args(args: argparse.Namespace) -> None:
             raise ClosedChainError(f"{flag} must be at most {high}, got {value}")
     if getattr(args, "fps", None) is not None and getattr(args, "t_final", None) is not None:
         if args.command == "animate":  # the tighter bound first
-            from .visualize.settings import DEFAULT_SETTINGS
-
             _check_sample_count(
                 args.t_final,
                 args.fps,
-                DEFAULT_SETTINGS.max_keyframes,
+                DEFAULT_ANIMATION.max_keyframes,
                 "keyframes",
                 "AnimationSettings.max_keyframes",
             )
         output_times(args.t_final, args.fps)  # checks the sample count before any work
+    budget = getattr(args, "mesh_budget", None)
+    if budget is not None and not (np.isfinite(budget) and budget >= 0):
+        raise ClosedChainError(f"--mesh-budget must be a number of MB >= 0, got {budget:g}")
     if getattr(args, "torque", None) is not None:
         torque_values(args.torque)
     outputs = _check_output_suffix(args)
@@ -423,10 +426,12 @@ def _cmd_animate(args) -> int:
     mech = _load(args)
     traj, stopped = run_or_stop(args, mech, min_samples=2)
     stop = None if stopped is None else f"Simulation stopped at t = {stopped.t:.6g} s: {stopped}"
-    out = write_html(mech, traj, args.output, fps=args.fps, stop=stop)
+    settings = replace(DEFAULT_ANIMATION, mesh_budget_bytes=round(args.mesh_budget * MEGABYTE))
+    out = write_html(mech, traj, args.output, fps=args.fps, stop=stop, settings=settings)
+    meshes = f"; {out.meshes.describe()}" if out.meshes.has_meshes else ""
     print(
-        f"wrote {out.path} ({out.size / 1e6:.2f} MB; {out.duration:.3g} s at {out.fps:g} fps, "
-        f"{out.n_keyframes} keyframes x {out.n_tracks} tracks)"
+        f"wrote {out.path} ({out.size / MEGABYTE:.2f} MB; {out.duration:.3g} s at {out.fps:g} "
+        f"fps, {out.n_keyframes} keyframes x {out.n_tracks} tracks{meshes})"
     )
     return report_stop(stopped, traj, "animation written")
 
@@ -854,6 +859,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("animate", "simulate and write a self-contained HTML animation (meshcat)", _cmd_animate)
     add_simulation_arguments(p)
     p.add_argument("-o", "--output", required=True, help="HTML file to write")
+    budget_mb = DEFAULT_ANIMATION.mesh_budget_bytes / MEGABYTE
+    p.add_argument(
+        "--mesh-budget",
+        type=float,
+        default=budget_mb,
+        metavar="MB",
+        help="mesh data the page may embed [MB]; links over it are drawn as stick figures "
+        f"(default: {budget_mb:g}; 0: no meshes)",
+    )
 
     p = add(
         "export-mjcf",

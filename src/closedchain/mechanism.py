@@ -628,7 +628,8 @@ def load(
             :mod:`closedchain.mjcf`: ``<equality>`` connect, weld and joint
             constraints become loops), or ``erd:<name>``, a model of the
             installed example-robot-data (:data:`closedchain.robots.ERD_MODELS`;
-            drawn with primitive geometry).
+            animations embed its meshes within a budget:
+            :attr:`closedchain.visualize.AnimationSettings.mesh_budget_bytes`).
         root_joint: joint between the world and the URDF's root link: None
             (fixed), ``"free"`` (free flyer, 7 entries of q: x, y, z [m] and a
             unit quaternion x, y, z, w; 6 of v in the root link frame) or
@@ -678,7 +679,6 @@ def load(
             urdf = merge_overlay(
                 base,
                 loops,
-                primitive=entry is not None,
                 max_nv=max_nv(settings),
                 cut_joints=cut,
                 root=robot,

@@ -35,7 +35,6 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-from lxml import etree
 
 from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
 from .mjcf import read_model
@@ -57,13 +56,6 @@ INSTALL_HINT = "pip install closedchain[robots]"
 
 #: Overlay elements merged into the base tree.
 OVERLAY_ELEMENTS = ("link", "joint", "material", "loop", "transmission")
-
-#: Radius [m] of the cylinders and spheres that stand for a link whose visuals
-#: are meshes (see :func:`primitive_visuals`).
-STICK_RADIUS = 0.02
-
-#: Segments shorter than this [m] get no cylinder.
-STICK_MIN_LENGTH = 1e-3
 
 
 @dataclass(frozen=True)
@@ -200,7 +192,6 @@ def merge_overlay(
     base: Path,
     overlay: str | Path | None,
     *,
-    primitive: bool = False,
     max_nv: int | None = None,
     cut_joints: tuple[str, ...] = (),
     root=None,
@@ -211,10 +202,8 @@ def merge_overlay(
         base: the base URDF file.
         overlay: the overlay file (URDF+ syntax, root ``<robot>``), a loops
             YAML file of example-parallel-robots (a ``.yaml`` or ``.yml``
-            suffix; see :mod:`closedchain.yaml_loops`), or None (only
-            ``primitive`` applies).
-        primitive: replace mesh visuals by primitive geometry (see
-            :func:`primitive_visuals`).
+            suffix; see :mod:`closedchain.yaml_loops`), or None (an SDF base
+            is still read as URDF+).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
         cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
         root: the base's ``<robot>`` element, already read (an MJCF base translated by
@@ -265,12 +254,7 @@ def merge_overlay(
         _check_world_joints(path, root)
     # The SDF reader has warned about SDF inertias that violate the triangle inequality.
     triangle = "pass" if is_sdf(base) else "refuse"
-    urdf = replace(parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), **edits)
-    if primitive:
-        # After the checks: the joint origins it reads are finite and bounded.
-        primitive_visuals(root)
-        urdf = replace(urdf, xml=etree.tostring(root, encoding="unicode"))
-    return urdf
+    return replace(parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), **edits)
 
 
 def _check_world_joints(path: Path, root) -> None:
@@ -292,62 +276,3 @@ def _check_world_joints(path: Path, root) -> None:
                 f"part to the robot, or fix it to the world with a <loop> whose predecessor "
                 f"is {WORLD_LINK!r}"
             )
-
-
-def primitive_visuals(root) -> None:
-    """Replace every mesh visual by primitive geometry, in place.
-
-    A link whose visuals are meshes is drawn as a sphere at its origin and a
-    cylinder from its origin to the origin of each child joint: a stick
-    figure with the robot's exact kinematics, and a page of kilobytes instead
-    of the package's meshes (which live outside the URDF's directory).
-
-    Args:
-        root: the ``<robot>`` element.
-    """
-    children: dict[str, list[np.ndarray]] = {}
-    for joint in root.findall("joint"):
-        parent, origin = joint.find("parent"), joint.find("origin")
-        if parent is None:
-            continue
-        xyz = np.zeros(3)
-        if origin is not None:
-            xyz = np.array([float(x) for x in origin.get("xyz", "0 0 0").split()])
-        children.setdefault(parent.get("link"), []).append(xyz)
-    for link in root.findall("link"):
-        visuals = link.findall("visual")
-        meshes = [v for v in visuals if v.find("geometry/mesh") is not None]
-        if not meshes:
-            continue
-        for v in meshes:
-            link.remove(v)
-        link.append(_visual("sphere", {"radius": f"{1.5 * STICK_RADIUS:g}"}, np.zeros(3), None))
-        for xyz in children.get(link.get("name"), []):
-            length = float(np.linalg.norm(xyz))
-            if length < STICK_MIN_LENGTH:
-                continue
-            # A URDF cylinder runs along its z axis: turn z onto xyz.
-            z = xyz / length
-            pitch = float(np.arccos(np.clip(z[2], -1.0, 1.0)))
-            yaw = float(np.arctan2(z[1], z[0]))
-            link.append(
-                _visual(
-                    "cylinder",
-                    {"radius": f"{STICK_RADIUS:g}", "length": f"{length:.6g}"},
-                    xyz / 2.0,
-                    (0.0, pitch, yaw),
-                )
-            )
-
-
-def _visual(kind: str, attributes: dict, xyz: np.ndarray, rpy) -> etree._Element:
-    visual = etree.Element("visual")
-    origin = etree.SubElement(visual, "origin")
-    origin.set("xyz", " ".join(f"{x:.6g}" for x in xyz))
-    if rpy is not None:
-        origin.set("rpy", " ".join(f"{x:.6g}" for x in rpy))
-    geometry = etree.SubElement(visual, "geometry")
-    shape = etree.SubElement(geometry, kind)
-    for key, value in attributes.items():
-        shape.set(key, value)
-    return visual

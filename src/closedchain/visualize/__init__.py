@@ -6,10 +6,11 @@ process, no network), and replayed in the page by meshcat's JavaScript viewer
 (``main.min.js`` from the installed meshcat package, inlined):
 
 - one meshcat node per URDF link that has something to draw, holding the
-  link's ``<visual>`` primitives (box, cylinder, sphere, and meshes whose file
-  is found) in their URDF colours, plus markers for the loop joints (on the
-  predecessor link, at the cut-joint frame c1) and the actuated joints (on the
-  joint's child link);
+  link's ``<visual>`` primitives (box, cylinder, sphere) and meshes in their
+  URDF colours (meshes embedded within ``AnimationSettings.mesh_budget_bytes``;
+  a link over it, or whose mesh cannot be read, drawn as a stick figure), plus
+  markers for the loop joints (on the predecessor link, at the cut-joint frame
+  c1) and the actuated joints (on the joint's child link);
 - one transform track (position + quaternion) per moving link node, with
   keyframes resampled to the display rate ``fps`` whatever the simulation
   step, interpolated on the configuration Lie group (``pin.interpolate``);
@@ -69,10 +70,14 @@ from .settings import (
     HTMLAnimation,
     JointMarker,
     MeshcatScene,
+    MeshData,
+    MeshSummary,
     VisualShape,
 )
 from .shapes import (
     joint_markers,
+    read_mesh,
+    read_scene_visuals,
     read_visuals,
     scene_path,
 )
@@ -93,6 +98,8 @@ __all__ = [
     "JointMarker",
     "MESHCAT_GRID_CELL",
     "MIN_SCENE_RADIUS",
+    "MeshData",
+    "MeshSummary",
     "MeshcatScene",
     "NATIVE_MESH_FORMATS",
     "SCENE_ROOT",
@@ -106,6 +113,8 @@ __all__ = [
     "check_trajectory",
     "frame_camera",
     "joint_markers",
+    "read_mesh",
+    "read_scene_visuals",
     "read_visuals",
     "resample",
     "scene_html",

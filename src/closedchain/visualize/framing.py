@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,6 +22,7 @@ from .settings import (
     MIN_SCENE_RADIUS,
     TIME_EPS,
     AnimationSettings,
+    MeshData,
 )
 
 logger = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ def body_placements(mech: Mechanism, bodies, qs: np.ndarray) -> np.ndarray:
     return out
 
 
-def _local_points(kind: str, dims: tuple[float, ...], mesh: Path | None) -> np.ndarray:
+def _local_points(kind: str, dims: tuple[float, ...], mesh: MeshData | None) -> np.ndarray:
     """Return corners of a shape's bounding box in its own frame, shape (8, 3) [m]."""
     if kind == "box":
         h = 0.5 * np.array(dims)
@@ -138,24 +138,12 @@ def _local_points(kind: str, dims: tuple[float, ...], mesh: Path | None) -> np.n
     elif kind == "sphere":
         h = np.full(3, dims[0])
     else:
-        lo, hi = _mesh_bounds(mesh)
-        lo, hi = lo * np.array(dims), hi * np.array(dims)
+        lo, hi = mesh.lower * np.array(dims), mesh.upper * np.array(dims)
         return np.array(
             [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
         )
     signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
     return signs * h
-
-
-def _mesh_bounds(mesh: Path | None) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        import trimesh
-
-        bounds = trimesh.load(str(mesh), force="mesh").bounds
-        return np.asarray(bounds[0], dtype=float), np.asarray(bounds[1], dtype=float)
-    except Exception as exc:  # any failure of a third-party reader: fall back
-        logger.warning("cannot read the bounds of mesh %s (%s); framing ignores it", mesh, exc)
-        return np.zeros(3), np.zeros(3)
 
 
 def _swept_points(bodies, visuals, markers, placements, sizes, settings) -> np.ndarray:
@@ -166,7 +154,7 @@ def _swept_points(bodies, visuals, markers, placements, sizes, settings) -> np.n
     local: list[tuple[int, np.ndarray]] = []
     for v in visuals:
         if v.link in index:
-            pts = _local_points(v.kind, v.dims, v.mesh)
+            pts = _local_points(v.kind, v.dims, v.mesh_data)
             pts = (v.origin[:3, :3] @ pts.T).T + v.origin[:3, 3]
             local.append((index[v.link], pts))
     for m in markers:

@@ -125,6 +125,12 @@ def scene_meta(scene: MeshcatScene, settings: AnimationSettings = DEFAULT_SETTIN
         "open_controls": bool(settings.open_controls),
         "loop_color": f"#{settings.loop_color:06x}",
         "actuated_color": f"#{settings.actuated_color:06x}",
+        "meshes": {
+            "embedded": scene.meshes.n_embedded,
+            "embedded_bytes": scene.meshes.embedded_bytes,
+            "budget_bytes": scene.meshes.budget_bytes,
+            "primitive_links": list(scene.meshes.primitive_links),
+        },
     }
 
 
@@ -140,7 +146,10 @@ def scene_html(
     and in ``meta["stop"]``: the simulation stopped there (e.g. a singularity).
 
     The page inlines meshcat's ``main.min.js`` and replays the recorded
-    commands; nothing is loaded from the network (the Content-Security-Policy
+    commands (meshes embedded in them); when the URDF has meshes, its legend
+    says what of them is embedded
+    (:meth:`~closedchain.visualize.settings.MeshSummary.describe`). Nothing
+    is loaded from the network (the Content-Security-Policy
     forbids it, and admits only the page's own two scripts, by hash).
     """
     from .. import __version__
@@ -169,6 +178,8 @@ def scene_html(
         f'<span class="swatch" style="background:{meta["actuated_color"]}"></span>actuated joint'
         f'<span class="swatch" style="background:{meta["loop_color"]}"></span>loop joint'
     )
+    if scene.meshes.has_meshes:
+        legend += f"<br>{html.escape(scene.meshes.describe())}"
     return (
         "<!DOCTYPE html>\n"
         '<html lang="en">\n<head>\n<meta charset="utf-8">\n'
@@ -203,7 +214,10 @@ def write_html(
     The page opens offline (meshcat's JavaScript is inlined; no server, no
     network), frames the mechanism, loops the animation, and has meshcat's
     animation controls (play, pause, reset, time scrubber) in its control
-    panel. The same inputs give a byte-identical file.
+    panel. The same inputs give a byte-identical file. Meshes are embedded
+    within ``settings.mesh_budget_bytes``, links over it drawn as stick
+    figures (:func:`~closedchain.visualize.shapes.read_scene_visuals`); the
+    page's legend and the result's ``meshes`` say how many.
 
     Args:
         mech: the mechanism.
@@ -216,7 +230,7 @@ def write_html(
             stopped simulation), shown in a red banner; None: no banner.
 
     Returns:
-        What was written: path, size [bytes], duration [s], keyframes, tracks.
+        What was written: path, size [bytes], duration [s], keyframes, tracks, meshes.
 
     Raises:
         ClosedChainError: the trajectory does not fit the mechanism (its shape,
@@ -239,4 +253,5 @@ def write_html(
         n_keyframes=int(len(scene.times)),
         n_tracks=scene.n_tracks,
         bodies=tuple(b.link for b in scene.bodies),
+        meshes=scene.meshes,
     )

@@ -7,7 +7,6 @@ import logging
 import math
 import urllib.parse
 import uuid
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -35,17 +34,17 @@ from .settings import (
     GRID_CELLS_PER_RADIUS,
     GRID_CLEARANCE,
     MESHCAT_GRID_CELL,
-    NATIVE_MESH_FORMATS,
     TORUS_SEGMENTS,
     UUID_NAMESPACE,
     AnimationSettings,
     MeshcatScene,
+    MeshData,
 )
 from .shapes import (
     _bodies,
     _meshcat,
     joint_markers,
-    read_visuals,
+    read_scene_visuals,
 )
 
 logger = logging.getLogger(__name__)
@@ -111,24 +110,15 @@ def _hex(rgba) -> int:
     return (r << 16) | (g << 8) | b
 
 
-def _mesh_geometry(mg, path: Path):
-    """Return a meshcat geometry for a mesh file (None if it cannot be read)."""
-    fmt = path.suffix.lower().lstrip(".")
-    try:
-        if fmt in NATIVE_MESH_FORMATS:
-            reader = {
-                "stl": mg.StlMeshGeometry,
-                "obj": mg.ObjMeshGeometry,
-                "dae": mg.DaeMeshGeometry,
-            }[fmt]
-            return reader.from_file(str(path))
-        import trimesh
+def _mesh_geometry(mg, mesh: MeshData):
+    """Return the meshcat geometry of a mesh checked by ``read_mesh``.
 
-        stl = trimesh.load(str(path), force="mesh").export(file_type="stl")
-        return mg.StlMeshGeometry.from_stream(io.BytesIO(stl))
-    except Exception as exc:  # an unreadable mesh is skipped, not fatal
-        logger.warning("cannot read mesh %s (%s); not drawn", path, exc)
-        return None
+    As meshcat's own readers send them: STL as a typed array (three.js's
+    STLLoader parses its buffer), OBJ and DAE as text.
+    """
+    if mesh.format == "stl":
+        return mg.StlMeshGeometry.from_stream(io.BytesIO(mesh.data))
+    return mg.MeshGeometry(mesh.data.decode("utf-8"), mesh.format)
 
 
 def _set_mesh(vis, mg, geometry, rgba, key: str) -> None:
@@ -167,7 +157,7 @@ def build_scene(
     mc = _meshcat()
     mg = mc.geometry
     times, qs = resample(mech, trajectory, fps, max_keyframes=settings.max_keyframes)
-    visuals = read_visuals(mech, settings=settings)
+    visuals, meshes = read_scene_visuals(mech, settings=settings)
     markers = joint_markers(mech, visuals, settings=settings)
     if not visuals:
         logger.warning(
@@ -209,9 +199,7 @@ def build_scene(
         elif v.kind == "sphere":
             geometry = mg.Sphere(v.dims[0])
         else:
-            geometry = _mesh_geometry(mg, v.mesh)
-            if geometry is None:
-                continue
+            geometry = _mesh_geometry(mg, v.mesh_data)
             T = T @ np.diag([*v.dims, 1.0])
         _set_mesh(vis[path], mg, geometry, v.rgba, path)
         vis[path].set_transform(T)
@@ -260,6 +248,8 @@ def build_scene(
                     node.set_property("quaternion", "quaternion", quats[k, j].tolist())
         vis.set_animation(anim, play=True, repetitions=math.inf)
 
+    if meshes.has_meshes:
+        logger.info("%s: %s", mech.name, meshes.describe())
     logger.info(
         "%s: %d bodies (%d moving), %d visuals, %d markers, %d keyframes at %g fps",
         mech.name,
@@ -283,6 +273,7 @@ def build_scene(
         radius=radius,
         camera_position=cam_pos,
         camera_target=target,
+        meshes=meshes,
     )
 
 

@@ -24,8 +24,23 @@ DEFAULT_FPS = 30.0
 #: Shapes of the URDF ``<visual>`` geometries that are drawn.
 VISUAL_KINDS = ("box", "cylinder", "sphere", "mesh")
 
-#: Mesh formats meshcat's viewer reads directly; others are converted to STL by trimesh.
+#: Mesh formats meshcat's viewer reads directly (three.js's STLLoader: binary and
+#: ASCII STL; OBJLoader2 and ColladaLoader: UTF-8 text); others are converted to
+#: binary STL by trimesh.
 NATIVE_MESH_FORMATS = ("stl", "obj", "dae")
+
+#: Bytes in the megabyte of the page's messages (SI, as the CLI's page sizes).
+MEGABYTE = 1_000_000
+
+#: Radius [m] of the cylinders of the stick figure that stands for a link whose
+#: meshes are not drawn (see :func:`closedchain.visualize.shapes.stick_figure`).
+STICK_RADIUS = 0.02
+
+#: Radius of the stick figure's ball at the link origin, in stick radii [-].
+STICK_BALL_RATIO = 1.5
+
+#: Stick segments shorter than this [m] get no cylinder.
+STICK_MIN_LENGTH = 1e-3
 
 #: A trajectory time step below this [s] counts as a repeated sample.
 TIME_EPS = 1e-12
@@ -111,6 +126,14 @@ class AnimationSettings:
         show_axes: keep meshcat's world axes (0.5 m arrows at the origin).
         open_controls: open meshcat's control panel (with the animation
             controls: play, pause, reset, time scrubber) when the page opens.
+        mesh_budget_bytes: mesh data the page may embed [bytes] (base64 adds a
+            third in the page): in URDF order, the meshes of a link are
+            embedded when they fit in what the links before them left; a link
+            whose meshes do not fit, or cannot be read, is drawn as a stick
+            figure (:func:`~closedchain.visualize.shapes.stick_figure`). The
+            default, 20 MB, holds the visual meshes of every robot of
+            :data:`closedchain.robots.ERD_MODELS` and keeps a page loadable in
+            a browser; 0 draws every mesh link as a stick figure.
     """
 
     default_rgba: tuple[float, float, float, float] = (0.6, 0.6, 0.6, 1.0)
@@ -129,9 +152,60 @@ class AnimationSettings:
     max_keyframes: int = 100_000
     show_axes: bool = False
     open_controls: bool = True
+    mesh_budget_bytes: int = 20 * MEGABYTE
 
 
 DEFAULT_SETTINGS = AnimationSettings()
+
+
+@dataclass(frozen=True)
+class MeshData:
+    """A mesh read, checked and ready to embed in the page.
+
+    Attributes:
+        format: the format meshcat's viewer reads it in: ``"stl"``, ``"obj"`` or ``"dae"``.
+        data: the bytes embedded (a converted STL for formats meshcat does not read).
+        lower: lower corner of its bounding box in the mesh frame, before scaling, shape (3,).
+        upper: upper corner, shape (3,).
+    """
+
+    format: str
+    data: bytes = field(repr=False)
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+@dataclass(frozen=True)
+class MeshSummary:
+    """What the page embeds of the URDF's meshes.
+
+    Attributes:
+        n_embedded: mesh visuals embedded.
+        embedded_bytes: their data [bytes].
+        budget_bytes: :attr:`AnimationSettings.mesh_budget_bytes` [bytes].
+        primitive_links: links with mesh visuals drawn as stick figures instead
+            (over the budget, or a mesh that cannot be read), in URDF order.
+    """
+
+    n_embedded: int = 0
+    embedded_bytes: int = 0
+    budget_bytes: int = 0
+    primitive_links: tuple[str, ...] = ()
+
+    @property
+    def has_meshes(self) -> bool:
+        """Whether the URDF has mesh visuals (embedded or not)."""
+        return self.n_embedded > 0 or bool(self.primitive_links)
+
+    def describe(self) -> str:
+        """Return the page's line, e.g. ``meshes: 7 embedded (6.66 MB of a 20 MB budget), 0
+        links drawn as primitives``."""
+        m = len(self.primitive_links)
+        return (
+            f"meshes: {self.n_embedded} embedded ({self.embedded_bytes / MEGABYTE:.3g} MB of a "
+            f"{self.budget_bytes / MEGABYTE:.3g} MB budget), {m} link{'' if m == 1 else 's'} "
+            "drawn as primitives"
+        )
 
 
 @dataclass(frozen=True)
@@ -146,6 +220,7 @@ class VisualShape:
         origin: placement of the visual in the link frame, shape (4, 4) [m].
         rgba: colour, (r, g, b, a) in [0, 1].
         mesh: the mesh file (kind ``"mesh"`` only).
+        mesh_data: what the page embeds of it (kind ``"mesh"`` only).
     """
 
     link: str
@@ -154,6 +229,7 @@ class VisualShape:
     origin: np.ndarray
     rgba: tuple[float, float, float, float]
     mesh: Path | None = None
+    mesh_data: MeshData | None = None
 
 
 @dataclass(frozen=True)
@@ -213,6 +289,7 @@ class MeshcatScene:
         radius: radius of its bounding sphere [m].
         camera_position: camera position in the world frame, shape (3,) [m].
         camera_target: point the camera looks at, world frame, shape (3,) [m].
+        meshes: what the page embeds of the URDF's meshes.
     """
 
     name: str
@@ -227,6 +304,7 @@ class MeshcatScene:
     radius: float
     camera_position: np.ndarray
     camera_target: np.ndarray
+    meshes: MeshSummary = field(default_factory=MeshSummary)
 
     @property
     def duration(self) -> float:
@@ -251,6 +329,7 @@ class HTMLAnimation:
         n_keyframes: keyframes per track.
         n_tracks: transform tracks (one per moving body).
         bodies: names of the links drawn.
+        meshes: what the page embeds of the URDF's meshes.
     """
 
     path: Path
@@ -260,6 +339,7 @@ class HTMLAnimation:
     n_keyframes: int
     n_tracks: int
     bodies: tuple[str, ...] = field(default_factory=tuple)
+    meshes: MeshSummary = field(default_factory=MeshSummary)
 
 
 # -- reading the URDF ----------------------------------------------------------

@@ -11,20 +11,27 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from .._io import MAX_MESH_BYTES, check_input_file
+from .._io import MAX_MESH_BYTES, check_input_file, read_input_bytes
 from ..constraints import axis_basis
 from ..exceptions import ClosedChainError
-from ..urdf import COUPLING
+from ..urdf import COUPLING, _declares_doctype
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
 from .settings import (
     DEFAULT_SETTINGS,
+    MEGABYTE,
+    NATIVE_MESH_FORMATS,
     SCENE_ROOT,
+    STICK_BALL_RATIO,
+    STICK_MIN_LENGTH,
+    STICK_RADIUS,
     AnimationSettings,
     Body,
     JointMarker,
+    MeshData,
+    MeshSummary,
     VisualShape,
 )
 
@@ -53,14 +60,32 @@ def scene_path(*names: str) -> str:
     return SCENE_ROOT + "".join("/" + urllib.parse.quote(n, safe="") for n in names)
 
 
-def _mesh_candidates(filename: str, urdf_dir: Path) -> list[Path]:
+#: ROS packages whose installed share directory is a trusted mesh root:
+#: ``package://<name>/sub`` is looked up there, and files under it may be embedded
+#: whatever the URDF's directory (they are public data installed with Python
+#: packages, so embedding them discloses nothing).
+TRUSTED_PACKAGES = ("example-robot-data",)
+
+
+def _trusted_roots() -> dict[str, Path]:
+    """Return package name -> resolved share directory of the installed trusted packages."""
+    from ..robots import erd_robots_dir
+
+    try:
+        return {TRUSTED_PACKAGES[0]: erd_robots_dir().parent.resolve()}
+    except ClosedChainError:  # example-robot-data is not installed
+        return {}
+
+
+def _mesh_candidates(filename: str, urdf_dir: Path, trusted: dict[str, Path]) -> list[Path]:
     """Return the paths a URDF mesh ``filename`` may refer to, in lookup order.
 
     A plain name is relative to ``urdf_dir`` (or absolute); ``file://`` gives
     a path the same way; ``package://pkg/sub`` is looked up as ``sub`` in
     ``urdf_dir``, then in its parent directories (where ROS packages keep
-    their meshes, so that :func:`_resolve_mesh` can name a file it refuses);
-    other schemes give nothing.
+    their meshes, so that :func:`_resolve_mesh` can name a file it refuses),
+    then in the share directory of a trusted package ``pkg``; other schemes
+    give nothing.
     """
     scheme, sep, rest = filename.partition("://")
     if not sep:
@@ -68,49 +93,160 @@ def _mesh_candidates(filename: str, urdf_dir: Path) -> list[Path]:
     if scheme == "file":
         return [urdf_dir / urllib.parse.unquote(rest)]
     if scheme == "package":
-        sub = rest.partition("/")[2]
-        return [d / sub for d in (urdf_dir, *urdf_dir.parents)] if sub else []
+        package, _, sub = rest.partition("/")
+        if not sub:
+            return []
+        roots = [urdf_dir, *urdf_dir.parents]
+        if package in trusted:
+            roots.append(trusted[package])
+        return [d / sub for d in roots]
     return []
 
 
-def _resolve_mesh(filename: str, urdf_dir: Path) -> tuple[Path | None, Path | None]:
-    """Return (the mesh file, None), or (None, a file found outside ``urdf_dir``).
+def _resolve_mesh(
+    filename: str, urdf_dir: Path, trusted: dict[str, Path]
+) -> tuple[Path | None, Path | None]:
+    """Return (the mesh file, None), or (None, a file found outside the allowed roots).
 
-    Only files under the URDF's directory (after resolving ``..`` and symbolic
-    links) are drawn, so a URDF cannot embed arbitrary local files in the page.
-    ``urdf_dir`` must be resolved. (None, None): no file found.
+    Only files under the URDF's directory or a trusted package's share
+    directory (after resolving ``..`` and symbolic links) are drawn, so a URDF
+    cannot embed arbitrary local files in the page. ``urdf_dir`` must be
+    resolved. (None, None): no file found.
     """
+    allowed = (urdf_dir, *trusted.values())
     outside = None
-    for candidate in _mesh_candidates(filename, urdf_dir):
+    for candidate in _mesh_candidates(filename, urdf_dir, trusted):
         if not candidate.is_file():
             continue
         found = candidate.resolve()
-        if found.is_relative_to(urdf_dir):
+        if any(found.is_relative_to(root) for root in allowed):
             return found, None
         outside = outside or found
     return None, outside
 
 
+def read_mesh(path: str | Path) -> MeshData:
+    """Read a mesh file and check that meshcat's viewer can draw it.
+
+    The file is parsed by trimesh (never fetching what it references): it
+    must hold at least one triangle, with finite vertices. STL (binary or
+    ASCII), OBJ and DAE (UTF-8 text; a DAE without a DOCTYPE) are embedded as
+    they are, other formats trimesh reads as a converted binary STL.
+
+    Args:
+        path: the mesh file, at most :data:`closedchain._io.MAX_MESH_BYTES`.
+
+    Returns:
+        The data to embed and the mesh's bounding box [mesh units].
+
+    Raises:
+        ClosedChainError: the file is not a regular file, is too large, or is
+            not a mesh meshcat can draw (the message names the file and why).
+    """
+    import trimesh
+
+    path = Path(path)
+    raw = read_input_bytes(path, limit=MAX_MESH_BYTES, what="mesh file")
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt == "dae" and _declares_doctype(raw):
+        # Entities of a DTD would be expanded by the parsers (ours and the browser's).
+        raise ClosedChainError(f"{path}: DAE file declares a DOCTYPE; valid: COLLADA without one")
+    if fmt in ("obj", "dae"):
+        try:
+            raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ClosedChainError(f"{path}: {fmt.upper()} file is not UTF-8 text: {exc}") from None
+    try:
+        mesh = trimesh.load(io.BytesIO(raw), file_type=fmt, force="mesh")
+        faces, vertices = np.asarray(mesh.faces), np.asarray(mesh.vertices, dtype=float)
+    except Exception as exc:  # any failure of a third-party reader: not drawable
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ClosedChainError(f"{path}: cannot read mesh: {reason}") from None
+    if len(faces) == 0 or len(vertices) == 0:
+        raise ClosedChainError(f"{path}: {fmt.upper()} mesh has no triangles")
+    if not np.all(np.isfinite(vertices)):
+        raise ClosedChainError(f"{path}: mesh has vertices that are not finite")
+    if fmt not in NATIVE_MESH_FORMATS:
+        raw, fmt = mesh.export(file_type="stl"), "stl"
+    return MeshData(fmt, raw, vertices.min(axis=0), vertices.max(axis=0))
+
+
+def stick_figure(
+    link: str,
+    child_origins: list[np.ndarray],
+    rgba: tuple[float, float, float, float],
+) -> list[VisualShape]:
+    """Return the primitives that stand for a link whose meshes are not drawn.
+
+    A ball at the link origin and a cylinder from it to the origin of each
+    child joint: the robot's exact kinematics, without reading any mesh.
+
+    Args:
+        link: the link's name.
+        child_origins: origins of its child joints in the link frame, shape (3,) each [m].
+        rgba: colour, (r, g, b, a) in [0, 1] (the colour of its first mesh).
+    """
+    ball = (STICK_BALL_RATIO * STICK_RADIUS,)
+    out = [VisualShape(link, "sphere", ball, np.eye(4), rgba)]
+    for xyz in child_origins:
+        length = float(np.linalg.norm(xyz))
+        if length < STICK_MIN_LENGTH:
+            continue
+        # A URDF cylinder runs along its z axis, centred on its origin.
+        origin = _frame_with_z(xyz / length, xyz / 2.0)
+        out.append(VisualShape(link, "cylinder", (STICK_RADIUS, length), origin, rgba))
+    return out
+
+
 def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS):
     """Read the ``<visual>`` elements of the mechanism's URDF.
 
-    Materials are resolved by name against the robot's top-level
-    ``<material>`` elements. Mesh files are looked up relative to the URDF
-    (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub``); only files
-    under the URDF's directory are drawn (the page embeds them, so a URDF must
-    not reach other local files): a mesh outside it, whose file is not found,
-    or larger than :data:`closedchain._io.MAX_MESH_BYTES`, is skipped with a
-    warning naming the file and the link.
-
-    Args:
-        mech: the mechanism.
-        settings: gives the colour of visuals without a material.
+    See :func:`read_scene_visuals`, which also says what of the meshes is embedded.
 
     Returns:
         tuple of :class:`VisualShape`, in URDF order.
     """
+    return read_scene_visuals(mech, settings=settings)[0]
+
+
+def read_scene_visuals(
+    mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS
+) -> tuple[tuple[VisualShape, ...], MeshSummary]:
+    """Read the ``<visual>`` elements of the mechanism's URDF, with meshes within the budget.
+
+    Materials are resolved by name against the robot's top-level
+    ``<material>`` elements. Mesh files are looked up relative to the URDF
+    (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub`` in the URDF's
+    directory and its parents, and in the share directory of the packages of
+    :data:`TRUSTED_PACKAGES`, i.e. example-robot-data's meshes for ``erd:``
+    models). Only files under the URDF's directory or a trusted package are
+    drawn (the page embeds them, so a URDF must not reach other local files).
+
+    In URDF order, the meshes of a link are embedded when all of them can be
+    read (:func:`read_mesh`) and together fit in what the links before left of
+    ``settings.mesh_budget_bytes``. Otherwise the link's mesh visuals are
+    replaced by its :func:`stick_figure` (its boxes, cylinders and spheres
+    stay): a mesh outside the allowed directories, not found, larger than
+    :data:`closedchain._io.MAX_MESH_BYTES` or unreadable is named in a warning
+    (file and link); links over the budget are listed in one warning.
+
+    Args:
+        mech: the mechanism.
+        settings: gives the colour of visuals without a material and the mesh budget.
+
+    Returns:
+        (visuals in URDF order, what of the meshes is embedded).
+
+    Raises:
+        ClosedChainError: ``settings.mesh_budget_bytes`` is negative.
+    """
     import yourdfpy
 
+    budget = settings.mesh_budget_bytes
+    if not budget >= 0:
+        raise ClosedChainError(
+            f"AnimationSettings.mesh_budget_bytes = {budget!r}; valid: a number of bytes >= 0"
+        )
     robot = yourdfpy.URDF.load(
         io.BytesIO(mech.urdf.xml.encode("utf-8")),
         build_scene_graph=False,
@@ -120,8 +256,18 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
     ).robot
     named = {m.name: m for m in robot.materials if m.name}
     urdf_dir = Path(mech.path).resolve().parent
+    trusted = _trusted_roots()
+    children: dict[str, list[np.ndarray]] = {}
+    for joint in robot.joints:
+        xyz = np.zeros(3) if joint.origin is None else np.asarray(joint.origin, float)[:3, 3]
+        children.setdefault(joint.parent, []).append(xyz)
     out: list[VisualShape] = []
+    left, n_embedded = budget, 0
+    primitive_links: list[str] = []
+    over_budget: list[str] = []
     for link in robot.links:
+        shapes: list[VisualShape | None] = []  # None: where the link's meshes are drawn
+        meshes: list[tuple[int, object, np.ndarray, tuple]] = []
         for i, vis in enumerate(link.visuals):
             origin = np.eye(4) if vis.origin is None else np.array(vis.origin, dtype=float)
             rgba = _rgba(vis.material, named, settings.default_rgba)
@@ -129,48 +275,99 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
             if g is None:
                 continue
             if g.box is not None:
-                out.append(VisualShape(link.name, "box", _floats(g.box.size), origin, rgba))
+                shapes.append(VisualShape(link.name, "box", _floats(g.box.size), origin, rgba))
             elif g.cylinder is not None:
                 dims = (float(g.cylinder.radius), float(g.cylinder.length))
-                out.append(VisualShape(link.name, "cylinder", dims, origin, rgba))
+                shapes.append(VisualShape(link.name, "cylinder", dims, origin, rgba))
             elif g.sphere is not None:
-                out.append(
+                shapes.append(
                     VisualShape(link.name, "sphere", (float(g.sphere.radius),), origin, rgba)
                 )
             elif g.mesh is not None:
-                found, outside = _resolve_mesh(g.mesh.filename, urdf_dir)
-                if outside is not None:
-                    logger.warning(
-                        "%s: link %r visual %d: mesh file %r (%s) is outside the URDF's"
-                        " directory %s; not drawn",
-                        mech.path,
-                        link.name,
-                        i,
-                        g.mesh.filename,
-                        outside,
-                        urdf_dir,
-                    )
-                    continue
-                if found is None:
-                    logger.warning(
-                        "%s: link %r visual %d: mesh file %r not found; not drawn",
-                        mech.path,
-                        link.name,
-                        i,
-                        g.mesh.filename,
-                    )
-                    continue
-                try:  # the page embeds the mesh: bound it (a FIFO is not is_file())
-                    check_input_file(found, limit=MAX_MESH_BYTES, what="mesh file")
-                except ClosedChainError as exc:
-                    logger.warning(
-                        "%s: link %r visual %d: %s; not drawn", mech.path, link.name, i, exc
-                    )
-                    continue
-                scale = g.mesh.scale
-                dims = (1.0, 1.0, 1.0) if scale is None else _floats(np.broadcast_to(scale, 3))
-                out.append(VisualShape(link.name, "mesh", dims, origin, rgba, found))
-    return tuple(out)
+                if not meshes:
+                    shapes.append(None)
+                meshes.append((i, g.mesh, origin, rgba))
+        drawn: list[VisualShape] = []
+        if meshes:
+            where = f"{mech.path}: link {link.name!r}"
+            fit = _link_meshes(where, link.name, meshes, urdf_dir, trusted, left)
+            if isinstance(fit, list):
+                drawn = fit
+                left -= sum(len(v.mesh_data.data) for v in fit)
+                n_embedded += len(fit)
+            else:
+                if fit is not None:  # the bytes its meshes need
+                    over_budget.append(f"{link.name} ({fit / MEGABYTE:.3g} MB)")
+                primitive_links.append(link.name)
+                drawn = stick_figure(link.name, children.get(link.name, []), meshes[0][3])
+        for v in shapes:
+            out.extend(drawn if v is None else [v])
+    if over_budget:
+        logger.warning(
+            "%s: meshes over what is left of the budget of %.3g MB "
+            "(AnimationSettings.mesh_budget_bytes), drawn as primitives: %s",
+            mech.path,
+            budget / MEGABYTE,
+            ", ".join(over_budget),
+        )
+    summary = MeshSummary(n_embedded, budget - left, budget, tuple(primitive_links))
+    return tuple(out), summary
+
+
+def _link_meshes(where, link, meshes, urdf_dir, trusted, left):
+    """Return a link's mesh visuals to embed, or why it is drawn as a stick figure.
+
+    Args:
+        where: ``file: link 'name'``, for messages.
+        link: the link's name.
+        meshes: (visual index, yourdfpy Mesh, origin (4, 4), rgba) of its mesh visuals.
+        urdf_dir: the URDF's directory, resolved.
+        trusted: trusted package share directories (see :func:`_trusted_roots`).
+        left: what is left of the budget [bytes].
+
+    Returns:
+        list of :class:`VisualShape` (all fit), the bytes they need (over the
+        budget), or None (a mesh cannot be drawn; a warning says why).
+    """
+    files = []
+    for i, mesh, _, _ in meshes:
+        found, outside = _resolve_mesh(mesh.filename, urdf_dir, trusted)
+        if outside is not None:
+            logger.warning(
+                "%s visual %d: mesh file %r (%s) is outside the URDF's directory %s; not drawn",
+                where,
+                i,
+                mesh.filename,
+                outside,
+                urdf_dir,
+            )
+            return None
+        if found is None:
+            logger.warning(
+                "%s visual %d: mesh file %r not found; not drawn", where, i, mesh.filename
+            )
+            return None
+        try:  # the page embeds the mesh: bound it (a FIFO is not is_file())
+            size = check_input_file(found, limit=MAX_MESH_BYTES, what="mesh file")
+        except ClosedChainError as exc:
+            logger.warning("%s visual %d: %s; not drawn", where, i, exc)
+            return None
+        files.append((found, size))
+    native = all(f.suffix.lower().lstrip(".") in NATIVE_MESH_FORMATS for f, _ in files)
+    if native and sum(size for _, size in files) > left:  # embedded as they are: not read
+        return sum(size for _, size in files)
+    out = []
+    for (i, mesh, origin, rgba), (found, _) in zip(meshes, files, strict=True):
+        try:
+            data = read_mesh(found)
+        except ClosedChainError as exc:
+            logger.warning("%s visual %d: %s; not drawn", where, i, exc)
+            return None
+        scale = mesh.scale
+        dims = (1.0, 1.0, 1.0) if scale is None else _floats(np.broadcast_to(scale, 3))
+        out.append(VisualShape(link, "mesh", dims, origin, rgba, found, data))
+    need = sum(len(v.mesh_data.data) for v in out)
+    return out if need <= left else need
 
 
 def _floats(x) -> tuple[float, ...]:
