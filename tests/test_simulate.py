@@ -1348,3 +1348,19 @@ def test_an_unforced_run_records_no_work(fourbar):
     traj = simulate(fourbar, q0, np.zeros(3), 0.1)
     assert traj.work is None
     assert traj.energy_balance == traj.energy_drift == traj.info.energy_balance
+
+
+def test_chart_rate_of_a_joint_turned_a_full_turn_is_not_finite():
+    """D(x) of a spherical joint is singular at a rotation of 2 pi (a state that diverged
+    within one step): the rate is NaN, which the integrators report as a non-finite state
+    with its time, never numpy's LinAlgError."""
+    from closedchain.simulate.chart import tangent_rate
+
+    model = pin.Model()
+    model.addJoint(0, pin.JointModelSpherical(), pin.SE3.Identity(), "ball")
+    q_c = pin.neutral(model)
+    v = np.array([0.1, 0.2, 0.3])
+    small = tangent_rate(model, q_c, np.array([0.0, 0.0, 0.5]), v)
+    assert np.all(np.isfinite(small))
+    full_turn = tangent_rate(model, q_c, np.array([0.0, 0.0, 2.0 * np.pi]), v)
+    assert np.all(np.isnan(full_turn))

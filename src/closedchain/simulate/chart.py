@@ -32,6 +32,10 @@ import pinocchio as pin
 #: (its D stays well conditioned: cond(D) <= 1.1 for a rotation of 1 rad).
 RECENTRE_NORM = 1.0
 
+#: cond(D) of a joint's block beyond which its chart has degenerated: the rotation within
+#: one step came within about 1e-6 rad of 2 pi (cond(D) ~ 2 pi / distance).
+DEGENERATE_COND = 1e6
+
 
 def curved_blocks(model: pin.Model) -> list[slice]:
     """The velocity blocks of the joints whose ``integrate`` is not x + v (nv > 1, nq != nv)."""
@@ -56,7 +60,12 @@ def tangent_rate(model: pin.Model, q_c: np.ndarray, x: np.ndarray, v: np.ndarray
     D = pin.dIntegrate(model, q_c, x, pin.ArgumentPosition.ARG1)
     out = np.array(v, dtype=float)
     for b in curved:
-        out[b] = np.linalg.solve(D[b, b], v[b])
+        if np.linalg.cond(D[b, b]) > DEGENERATE_COND:
+            # A joint turned by about 2 pi within one step (the state has diverged): a
+            # non-finite rate, which the integrator's checks report with the time.
+            out[b] = np.nan
+        else:
+            out[b] = np.linalg.solve(D[b, b], v[b])
     return out
 
 

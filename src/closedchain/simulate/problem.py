@@ -523,6 +523,8 @@ def project(
     """
     mech, s = problem.mech, problem.settings
     model = mech.model
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+        raise SimulationError(f"{mech.name}: non-finite state at t = {t:.9g} s", t)
     normal = problem.normal_solver()
 
     def min_norm(J: np.ndarray, r: np.ndarray) -> np.ndarray:
