@@ -1,4 +1,4 @@
-// closedchain._core: the ALI3-P integrator (included by core.cpp).
+// closedchain._core: the ALI3-P integrator (included by core_fixed.hpp).
 //
 // Index-3 augmented Lagrangian integrated by the implicit trapezoidal rule with
 // Newton iterations, then mass-orthogonal projections of the velocities and
@@ -13,12 +13,20 @@
 
 #pragma once
 
+#include <pinocchio/algorithm/joint-configuration.hpp>
+
 #include <Eigen/Dense>
+#include <boost/python.hpp>
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <string>
+#include <vector>
+
+#include "al_iteration.hpp"
+#include "common.hpp"
+#include "errors.hpp"
 
 namespace closedchain {
 
