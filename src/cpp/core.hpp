@@ -37,9 +37,6 @@
 
 namespace closedchain {
 
-template <class>
-class Ali3pLoop;
-
 struct Row {
   int kind;  // 0 world translation, 1 translation along n in c1, 2 rotation
   int p, s;  // indices into the Core's frame list
@@ -48,8 +45,6 @@ struct Row {
 };
 
 class Core {
-  template <class> friend class Ali3pLoop;  // the ALI3-P loop (ali3p.hpp)
-
  public:
   Core(bp::object model_obj, const std::string &name, const Eigen::VectorXi &kinds,
        const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &vec1,
@@ -86,6 +81,9 @@ class Core {
   /// x = J^T y (x overwritten).
   void jt_mul(const Vec &y, Vec &x) const;
 
+  /// x += J^T y over each row's column hull.
+  void jt_mul_add(const Vec &y, Vec &x) const;
+
   /// y -= M x over each row's hull.
   void m_mul_sub(const Vec &x, Vec &y) const;
 
@@ -98,6 +96,14 @@ class Core {
   /// x <- P^-1 x on the band factor.
   void solve_penalized_band(Vec &x);
 
+  /// Factorize P = M + alpha J^T J with the caller's alpha (dense: Cholesky of P's lower
+  /// triangle; band: factor_penalized_band); the factor of solve_al's alpha is dropped.
+  /// Returns false when P is not positive definite.
+  bool factor_penalized(double alpha);
+
+  /// x <- P^-1 x with the factor of factor_penalized (or al_factor).
+  void solve_penalized(Vec &x);
+
   /// Assemble J J^T + eps I as a band (natural row order), eps = rel_reg max(tr(J J^T), 1)
   /// / nc (0: none), and factorize it.
   bool factor_normal_band(double rel_reg);
@@ -107,6 +113,41 @@ class Core {
   int nc() const { return nc_; }
   long n_evals() const { return n_evals_; }
   void reset_evals() { n_evals_ = 0; }
+
+  // -- the state of the last evaluation, read by the ALI3-P loop (ali3p.hpp) ----
+
+  /// The Pinocchio model (by reference: the Python object holds it).
+  const Model &model() const { return model_; }
+  /// Configuration size nq and velocity size nv of the model.
+  int nq() const { return nq_; }
+  int nv() const { return nv_; }
+  /// The mechanism's name, the first word of every error message.
+  const std::string &name() const { return name_; }
+  /// Mass matrix M, shape (nv, nv), at the last evaluation [kg, kg m, kg m^2].
+  const Mat &mass_matrix() const { return M_; }
+  /// Bias forces h = C(q, v) v + g(q), shape (nv,), at the last evaluation [N, N m].
+  const Vec &bias_forces() const { return h_; }
+  /// Constraint residuals phi, shape (nc,), at the last evaluation [m or 1].
+  const Vec &phi() const { return phi_; }
+  /// Constraint Jacobian J, shape (nc, nv), at the last evaluation.
+  const Mat &jacobian() const { return J_; }
+  /// gamma = Jdot v, shape (nc,), at the last evaluation (Baumgarte terms included).
+  const Vec &gamma() const { return gamma_; }
+  /// Accelerations a, shape (nv,), and multipliers lam, shape (nc,), of the last solve.
+  const Vec &accelerations() const { return a_; }
+  const Vec &multipliers() const { return lam_; }
+  /// Replace the last solve's (a, lam), e.g. by an integrator's own, before record().
+  void set_solution(const Vec &a, const Vec &lam) {
+    a_ = a;
+    lam_ = lam;
+  }
+  /// SimulationSettings.singular_zone [steps].
+  double singular_zone() const { return singular_zone_; }
+  /// True when M + alpha J^T J is factored as a band (set_band's banded_p).
+  bool banded_penalized() const { return band_p_; }
+  /// The augmented-Lagrangian iteration's limit and tolerance (al_max_iter, al_tol).
+  int al_max_iter() const { return al_max_iter_; }
+  double al_tol() const { return al_tol_; }
 
   /// Settings: method, cond_max, Baumgarte gains, simulation settings.
   void configure(bp::dict s);

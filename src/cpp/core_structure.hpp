@@ -120,6 +120,10 @@ inline void Core::j_mul(const Vec &x, Vec &y) const {
 
 inline void Core::jt_mul(const Vec &y, Vec &x) const {
   x.setZero();
+  jt_mul_add(y, x);
+}
+
+inline void Core::jt_mul_add(const Vec &y, Vec &x) const {
   for (int r = 0; r < nc_; ++r) {
     const int lo = jlo_[r], len = jhi_[r] - jlo_[r] + 1;
     if (len > 0) x.segment(lo, len) += y[r] * J_.row(r).segment(lo, len).transpose();
@@ -167,6 +171,24 @@ inline void Core::solve_penalized_band(Vec &x) {
   for (int k = 0; k < nv_; ++k) pw_[k] = x[perm_[k]];
   bp_.solve_in_place(pw_);
   for (int k = 0; k < nv_; ++k) x[perm_[k]] = pw_[k];
+}
+
+inline bool Core::factor_penalized(double alpha) {
+  p_fact_ = false;
+  if (band_p_) return factor_penalized_band(alpha);
+  if (nc_)
+    P_.triangularView<Eigen::Lower>() = J_.transpose() * J_;
+  else
+    P_.setZero();
+  P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
+  return llt_p_.compute(P_);
+}
+
+inline void Core::solve_penalized(Vec &x) {
+  if (band_p_)
+    solve_penalized_band(x);
+  else
+    llt_p_.solveInPlace(x);
 }
 
 inline bool Core::factor_normal_band(double rel_reg) {
