@@ -71,7 +71,9 @@ class Core {
 
   bool rows_share_column(int r, int s2) const;
 
-  bp::tuple band_info() const { return bp::make_tuple(band_p_, band_n_, b_p_, b_n_); }
+  bp::tuple band_info() const {
+    return bp::make_tuple(band_p_, band_n_, penalized_bandwidth_, normal_bandwidth_);
+  }
 
   // -- products on the structure (the band paths) ------------------------------
 
@@ -224,9 +226,9 @@ class Core {
   // solve_al for nv <= AL_FIXED_MAX (the 4-bar: nv 3, nc 2) on fixed-size matrices:
   // the same iteration (al_iterate), penalty, acceptance test of P's Cholesky and
   // multiplier polish, with Eigen's unrolled fixed-size products and small_llt.hpp's
-  // FixedLDLT in place of the dynamic-size ones (in the C++ loop, 4-bar: about 4,300
-  // instructions of the dynamic path's 10,000 per evaluation are the solve). The results differ from the
-  // dynamic path by round-off. P is factored here each time (a few dozen operations);
+  // FixedLDLT in place of the dynamic-size ones (on the 4-bar the solve is the larger
+  // part of one evaluation's cost). The results differ from the dynamic path by
+  // round-off. P is factored here each time (a few dozen operations);
   // the factor kept for the stage projection (p_fact_, llt_p_) is left as it is.
   // Returns false when (nv, nc) is not among the sizes compiled.
   static constexpr int AL_FIXED_MAX = 6;
@@ -620,10 +622,20 @@ class Core {
   std::vector<Eigen::Matrix3d> R_;
   std::vector<Vector3d> p_;
   std::vector<Eigen::Matrix<double, 6, 1>> vf_, af_;
-  Mat M_, J_, Y_, D_, Mr_, JJt_;
-  Vec z_;
+  Mat M_, J_, JJt_;
+  /// solve_schur: M^-1 [J^T, tau - h], shape (nv, nc + 1).
+  Mat schur_solves_;
+  /// solve_schur: the Delassus matrix J M^-1 J^T, shape (nc, nc).
+  Mat delassus_;
+  /// The reduced mass matrix, shape (nv - nc, nv - nc): N^T M N (solve_nullspace) or
+  /// S^T M S (solve_reduced).
+  Mat reduced_mass_;
+  /// solve_nullspace: the accelerations in the null-space basis N, shape (nv - nc,).
+  Vec nullspace_a_;
   DenseLU kkt_;  // K of the kkt method
-  Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, x_, dq_, tmp_c_, tmp_v_;
+  Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, dq_, tmp_c_, tmp_v_;
+  /// solve_kkt: the right-hand side [tau - h, -gamma], then the solution [a, lam].
+  Vec kkt_solution_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
   SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
   Mat P_;
@@ -633,14 +645,18 @@ class Core {
   Vec mv_;  // project(mass_orth): M v
   Vec zero_c_;  // project(mass_orth): g = 0
   Vec al_wc_, al_wv_;  // BandAlOps' products
-  double rho_m_ = 0.0;  // rk4_projected: rank indicator at the projected midpoint
+  /// rk4_projected: the rank indicator at the projected midpoint.
+  double midpoint_indicator_ = 0.0;
   // Structure (sparsity) and the band paths (set_band).
   std::vector<int> jcol_start_, jcols_, jlo_, jhi_, mlo_, mhi_;
   std::vector<int> perm_, pinv_;
   bool perm_identity_ = true, band_p_ = false, band_n_ = false;
-  int b_p_ = 0, b_n_ = 0;
-  BandCholesky bp_, bn_;  // M + alpha J^T J (order perm_), J J^T
-  Vec pw_;
+  /// Half bandwidths of M + alpha J^T J in the order perm_ and of J J^T (set_band).
+  int penalized_bandwidth_ = 0, normal_bandwidth_ = 0;
+  /// Band Cholesky factors of M + alpha J^T J (order perm_) and of J J^T.
+  BandCholesky penalized_band_, normal_band_;
+  /// solve_penalized_band: the right-hand side in the order perm_, shape (nv,).
+  Vec band_work_;
   Eigen::JacobiSVD<Mat> svd_;
   Eigen::SelfAdjointEigenSolver<Mat> eig_;
   Method method_ = KKT;
@@ -671,11 +687,12 @@ class Core {
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
   bool m_at_J_ = false;  // M_ at J_at_ too (with J_at_valid_)
-  bool p_fact_ = false;  // llt_p_ / bp_ hold P = M_ + alpha J_^T J_ (solve_al's alpha)
+  bool p_fact_ = false;  // llt_p_ / penalized_band_ hold P = M_ + alpha J_^T J_ (solve_al's alpha)
   Eigen::VectorXi branch_cols_;  // set_branch_columns
   DenseLU lu_branch_;  // branch_sign's LU of J's branch columns
-  Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, pe_ valid there)
-  double pe_ = 0.0;
+  Vec terms_q_, terms_v_;  // (q, v) of the last eval_terms (M_, potential_energy_ valid there)
+  /// Potential energy at terms_q_ [J] (gravity on the total mass, for record()).
+  double potential_energy_ = 0.0;
   int tau_mode_ = 0;
   bp::object tau_obj_, np_asarray_;
   long n_evals_ = 0;
@@ -693,14 +710,28 @@ class Core {
   double dependent_tol_ = 1e-13, repartition_cond_ = 10.0, partition_singular_cond_ = 1e4;
   double pivot_tie_rtol_ = 1e-9;
   Mat Xwarm_;  // (J_D^-1 J_I) at warm_q_: the dependent solve's tangent predictor
-  Mat KD_;     // v_D at the stages of the current adaptive step
-  Vec qD0_, KD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
+  /// v_D at the stages of the current adaptive step, shape (nc, n_stages + 1).
+  Mat stage_dependent_v_;
+  Vec qD0_, qD_end_, qD_new_, vD_last_, guess_qD_;
+  /// v_D at the start of the current adaptive step, shape (nc,).
+  Vec start_dependent_v_;
   bool use_guess_ = false, use_out_guess_ = false;
-  Vec dqI_, unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
+  /// unpack: the independent coordinates' distance from warm_q_, shape (nv - nc,).
+  Vec independent_dq_;
+  Vec unpack_y_, unpack_warm_, unpack_q_, unpack_v_;
   bool predictor_valid_ = false, unpack_valid_ = false;
   double sign0_ = 0.0;  // sign of det(J_D) at the first step (0: not yet)
-  Mat JD_, Sred_, MS_;
-  Vec cred_, fred_, aI_, phi_n_, phi_best_, step_c_, q_try_, q_best_, dv_n_, warm_q_, fq_, fv_;
+  Mat JD_;
+  /// solve_reduced: a = S a_I + c with S (this, shape (nv, nv - nc)) and c
+  /// (reduced_offset_, shape (nv,)); M S, shape (nv, nv - nc).
+  Mat reduced_basis_, mass_reduced_basis_;
+  Vec reduced_offset_;
+  /// solve_reduced: tau - h - M c, shape (nv,), and the independent accelerations a_I,
+  /// shape (nv - nc,).
+  Vec reduced_force_, independent_a_;
+  Vec phi_n_, phi_best_, step_c_, q_try_, q_best_, dv_n_, warm_q_;
+  /// fun_partitioned: the full state (q, v) completed from the independent one.
+  Vec fun_q_, fun_v_;
   DenseLU lu_jd_;
   Eigen::JacobiSVD<Mat> svd_jd_, svd_jd_uv_;
   std::vector<Align> align_;

@@ -105,9 +105,10 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     y.tail(nv_) = v0;
   }
   Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
-  KD_ = Mat::Zero(nc_, K.cols());
+  stage_dependent_v_ = Mat::Zero(nc_, K.cols());
   Mat F(n, dop853::INTERPOLATOR_POWER);
-  // partitioning: the same dense output of q_D from its rates v_D at the stages (KD_),
+  // partitioning: the same dense output of q_D from its rates v_D at the stages
+  // (stage_dependent_v_),
   // the guess of the output's dependent solve (as stage_guess for the stages)
   Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
   auto output = [&](double t, const Vec &yy) {
@@ -167,7 +168,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
       h_abs = std::abs(h);
       // rk_step
       K.col(0) = f;
-      if (partitions_) KD_.col(0) = KD0_;
+      if (partitions_) stage_dependent_v_.col(0) = start_dependent_v_;
       for (int s = 1; s < n_stages; ++s) {
         dy.setZero();
         for (int j = 0; j < s; ++j) {
@@ -177,7 +178,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
         ye = y + h * dy;
         if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
         fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
-        if (partitions_) KD_.col(s) = vD_last_;
+        if (partitions_) stage_dependent_v_.col(s) = vD_last_;
       }
       dy.setZero();
       for (int j = 0; j < n_stages; ++j) {
@@ -187,7 +188,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
       y_new = y + h * dy;
       if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
       fun(t + h, y_new, f_new);
-      if (partitions_) KD_.col(n_stages) = vD_last_;
+      if (partitions_) stage_dependent_v_.col(n_stages) = vD_last_;
       K.col(n_stages) = f_new;
       scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
       double err;
@@ -226,7 +227,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     const double t_old = t;
     if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
       qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
-      KD0_ = KD_.col(n_stages);
+      start_dependent_v_ = stage_dependent_v_.col(n_stages);
     }
     // dense output at the t_eval within the step, from the unprojected step
     if (dense && ip < pending.size() && pending[ip] <= t_new) {
@@ -238,7 +239,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
           ye = y + h * dy;
           if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
           fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
-          if (partitions_) KD_.col(s) = vD_last_;
+          if (partitions_) stage_dependent_v_.col(s) = vD_last_;
         }
         F.col(0) = y_new - y;
         F.col(1) = h * K.col(0) - F.col(0);
@@ -251,12 +252,14 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
         }
         if (partitions_ && nc_) {
           FD.col(0) = qD_end_ - qD0_;
-          FD.col(1) = h * KD_.col(0) - FD.col(0);
-          FD.col(2) = 2 * FD.col(0) - h * (KD_.col(n_stages) + KD_.col(0));
+          FD.col(1) = h * stage_dependent_v_.col(0) - FD.col(0);
+          FD.col(2) = 2 * FD.col(0) -
+                      h * (stage_dependent_v_.col(n_stages) + stage_dependent_v_.col(0));
           for (int i = 0; i < 4; ++i) {
             FD.col(3 + i).setZero();
             for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
-              if (dop853::D[i][j] != 0.0) FD.col(3 + i) += (h * dop853::D[i][j]) * KD_.col(j);
+              if (dop853::D[i][j] != 0.0)
+                FD.col(3 + i) += (h * dop853::D[i][j]) * stage_dependent_v_.col(j);
           }
         }
       } else {
@@ -268,7 +271,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
           if (partitions_ && nc_) {
             FD.col(i).setZero();
             for (int j = 0; j <= n_stages; ++j)
-              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * KD_.col(j);
+              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * stage_dependent_v_.col(j);
           }
         }
       }

@@ -85,7 +85,7 @@ inline void Core::rk4_projected(double t, const Vec &q, const Vec &v, const Vec 
   vs_ = v + (h / 2) * a0;
   project(qm, vs_, true);
   // the retake rule's midpoint indicator, while J is at qm (no kinematics pass later)
-  if (stage_zone_ > 0) rho_m_ = rank_indicator(qm);
+  if (stage_zone_ > 0) midpoint_indicator_ = rank_indicator(qm);
   accel(t + h / 2, qm, vs_);
   chart_rate(q, dv_, vs_, k2v_);  // the stages' rates in the chart about q (run_fixed)
   k2a_ = a_;
@@ -150,7 +150,7 @@ inline bp::dict Core::run_rk4_stage_projected(const Vec &q0, const Vec &v0, doub
     bool twice = false;
     double f = 0.0;
     if (stage_zone_ > 0 &&
-        retake_plan(crossing_estimate(rho_start, rho_m_, rho_new), stage_zone_,
+        retake_plan(crossing_estimate(rho_start, midpoint_indicator_, rho_new), stage_zone_,
                     twice, f)) {
       const double span = twice ? 2.0 : 1.0;
       double h1 = f * dt, h2 = span * dt - f * dt;

@@ -50,7 +50,7 @@ inline void Core::solve_al(const RefV &q, const Vec &tau, double t) {
     tmp_v_ -= dq_;  // r_d
     j_mul(tmp_v_, tmp_c_);
     if (band_n_ && factor_normal_band(AL_NORMAL_EQ_REG)) {
-      bn_.solve_in_place(tmp_c_);
+      normal_band_.solve_in_place(tmp_c_);
     } else {  // dense normal equations (no narrow row band, or the band factor failed)
       JJt_.noalias() = J_ * J_.transpose();
       JJt_.diagonal().array() +=
@@ -195,8 +195,8 @@ inline void Core::solve_kkt(const RefV &q, const Vec &tau, double t) {
     for (Eigen::Index i = 0; i < nv; ++i) col[i] = J_(r, i);
     for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
   }
-  for (Eigen::Index i = 0; i < nv; ++i) x_[i] = tau[i] - h_[i];
-  for (Eigen::Index r = 0; r < nc; ++r) x_[nv + r] = -gamma_[r];
+  for (Eigen::Index i = 0; i < nv; ++i) kkt_solution_[i] = tau[i] - h_[i];
+  for (Eigen::Index r = 0; r < nc; ++r) kkt_solution_[nv + r] = -gamma_[r];
   // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
   // Away from singular configurations a cheap upper bound of cond_1(K) already
   // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
@@ -206,31 +206,31 @@ inline void Core::solve_kkt(const RefV &q, const Vec &tau, double t) {
   } else if (!(kkt_.anorm * kkt_.inverse_norm_bound() <= cond_max_)) {
     check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", kkt_.rcond(), t);
   }
-  kkt_.solve(x_);
-  a_ = x_.head(nv_);
-  lam_ = x_.tail(nc_);
+  kkt_.solve(kkt_solution_);
+  a_ = kkt_solution_.head(nv_);
+  lam_ = kkt_solution_.tail(nc_);
 }
 
 inline void Core::solve_schur(const RefV &q, const Vec &tau, double t) {
   llt_m_.compute(M_);
   check_rcond(q, "the mass matrix M", llt_m_.info() == Eigen::Success ? llt_m_.rcond() : 0.0, t);
-  Y_.leftCols(nc_) = J_.transpose();
-  Y_.col(nc_) = tau - h_;
-  llt_m_.solveInPlace(Y_);
+  schur_solves_.leftCols(nc_) = J_.transpose();
+  schur_solves_.col(nc_) = tau - h_;
+  llt_m_.solveInPlace(schur_solves_);
   if (nc_ == 0) {
-    a_ = Y_.col(0);
+    a_ = schur_solves_.col(0);
     return;
   }
-  D_.noalias() = J_ * Y_.leftCols(nc_);
-  tmp_c_.noalias() = J_ * Y_.col(nc_);
+  delassus_.noalias() = J_ * schur_solves_.leftCols(nc_);
+  tmp_c_.noalias() = J_ * schur_solves_.col(nc_);
   tmp_c_ += gamma_;
-  llt_c_.compute(D_);
+  llt_c_.compute(delassus_);
   check_rcond(q, "the Delassus matrix J M^-1 J^T",
               llt_c_.info() == Eigen::Success ? llt_c_.rcond() : 0.0, t);
   lam_ = tmp_c_;
   llt_c_.solveInPlace(lam_);
-  a_ = Y_.col(nc_);
-  a_.noalias() -= Y_.leftCols(nc_) * lam_;
+  a_ = schur_solves_.col(nc_);
+  a_.noalias() -= schur_solves_.leftCols(nc_) * lam_;
 }
 
 inline void Core::solve_nullspace(const RefV &q, const Vec &tau, double t) {
@@ -254,15 +254,15 @@ inline void Core::solve_nullspace(const RefV &q, const Vec &tau, double t) {
   a_.noalias() = -(V.leftCols(nc_) * tmp_c_);
   if (nr > 0) {
     auto N = V.rightCols(nr);
-    Mr_.noalias() = N.transpose() * M_ * N;
-    llt_r_.compute(Mr_);
+    reduced_mass_.noalias() = N.transpose() * M_ * N;
+    llt_r_.compute(reduced_mass_);
     check_rcond(q, "the reduced mass matrix N^T M N",
                 llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
     tmp_v_ = tau - h_;
     tmp_v_.noalias() -= M_ * a_;
-    z_.noalias() = N.transpose() * tmp_v_;
-    llt_r_.solveInPlace(z_);
-    a_.noalias() += N * z_;
+    nullspace_a_.noalias() = N.transpose() * tmp_v_;
+    llt_r_.solveInPlace(nullspace_a_);
+    a_.noalias() += N * nullspace_a_;
   }
   tmp_v_ = tau - h_;
   tmp_v_.noalias() -= M_ * a_;

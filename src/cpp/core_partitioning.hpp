@@ -17,11 +17,11 @@ inline void Core::init_partitioning() {
   const int m = std::max(nv_ - nc_, 0);
   JD_ = Mat::Zero(nc_, nc_);
   lu_jd_.resize(nc_);
-  Sred_ = Mat::Zero(nv_, m);
-  MS_ = Mat::Zero(nv_, m);
-  cred_ = Vec::Zero(nv_);
-  fred_ = Vec::Zero(nv_);
-  aI_ = Vec::Zero(m);
+  reduced_basis_ = Mat::Zero(nv_, m);
+  mass_reduced_basis_ = Mat::Zero(nv_, m);
+  reduced_offset_ = Vec::Zero(nv_);
+  reduced_force_ = Vec::Zero(nv_);
+  independent_a_ = Vec::Zero(m);
   svd_jd_ = Eigen::JacobiSVD<Mat>(nc_, nc_);
   svd_jd_uv_ = Eigen::JacobiSVD<Mat>(nc_, nc_, Eigen::ComputeFullU | Eigen::ComputeFullV);
   phi_n_ = Vec::Zero(nc_);
@@ -31,11 +31,11 @@ inline void Core::init_partitioning() {
   q_best_ = Vec::Zero(nq_);
   dv_n_ = Vec::Zero(nv_);
   warm_q_ = Vec::Zero(nq_);
-  fq_ = Vec::Zero(nq_);
-  fv_ = Vec::Zero(nv_);
+  fun_q_ = Vec::Zero(nq_);
+  fun_v_ = Vec::Zero(nv_);
   Xwarm_ = Mat::Zero(nc_, m);
-  qD0_ = KD0_ = qD_end_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
-  dqI_ = Vec::Zero(m);
+  qD0_ = start_dependent_v_ = qD_end_ = qD_new_ = vD_last_ = guess_qD_ = Vec::Zero(nc_);
+  independent_dq_ = Vec::Zero(m);
   unpack_q_ = Vec::Zero(nq_);
   unpack_v_ = Vec::Zero(nv_);
   unpack_warm_ = Vec::Zero(nq_);
@@ -78,8 +78,8 @@ inline void Core::set_partition(const Eigen::VectorXi &ind, bp::list names) {
   for (int i = 0; i < nv_; ++i) coordinate_names_.push_back(bp::extract<std::string>(names[i]));
   red_what_ = "J_D (constraint-Jacobian columns of the dependent coordinates " +
               join_names(red_dep_) + ")";
-  Sred_.setZero();
-  for (std::size_t k = 0; k < red_ind_.size(); ++k) Sred_(red_ind_[k], k) = 1.0;
+  reduced_basis_.setZero();
+  for (std::size_t k = 0; k < red_ind_.size(); ++k) reduced_basis_(red_ind_[k], k) = 1.0;
   ind0_ = ind_ = red_ind_;
   dep_ = red_dep_;
 }
@@ -135,7 +135,7 @@ inline void Core::gather_JD(const std::vector<int> &dep) {
 
 inline void Core::solve_reduced(const RefV &q, const Vec &tau, double t) {
   const int m = nv_ - nc_;
-  fred_ = tau - h_;
+  reduced_force_ = tau - h_;
   if (nc_) {
     gather_JD(red_dep_);
     const double rcond = lu_jd_.factor(JD_) ? lu_jd_.rcond() : 0.0;
@@ -149,29 +149,29 @@ inline void Core::solve_reduced(const RefV &q, const Vec &tau, double t) {
     for (int k = 0; k < m; ++k) {
       tmp_c_ = J_.col(red_ind_[k]);
       lu_jd_.solve(tmp_c_);
-      for (int i = 0; i < nc_; ++i) Sred_(red_dep_[i], k) = -tmp_c_[i];
+      for (int i = 0; i < nc_; ++i) reduced_basis_(red_dep_[i], k) = -tmp_c_[i];
     }
     tmp_c_ = gamma_;
     lu_jd_.solve(tmp_c_);
-    for (int i = 0; i < nc_; ++i) cred_[red_dep_[i]] = -tmp_c_[i];
-    fred_.noalias() -= M_ * cred_;
+    for (int i = 0; i < nc_; ++i) reduced_offset_[red_dep_[i]] = -tmp_c_[i];
+    reduced_force_.noalias() -= M_ * reduced_offset_;
   }
   if (m) {
-    MS_.noalias() = M_ * Sred_;
-    Mr_.noalias() = Sred_.transpose() * MS_;
-    llt_r_.compute(Mr_);
+    mass_reduced_basis_.noalias() = M_ * reduced_basis_;
+    reduced_mass_.noalias() = reduced_basis_.transpose() * mass_reduced_basis_;
+    llt_r_.compute(reduced_mass_);
     check_rcond(q, "the reduced mass matrix S^T M S",
                 llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
-    aI_.noalias() = Sred_.transpose() * fred_;
-    llt_r_.solveInPlace(aI_);
-    a_.noalias() = Sred_ * aI_;
-    a_ += cred_;
+    independent_a_.noalias() = reduced_basis_.transpose() * reduced_force_;
+    llt_r_.solveInPlace(independent_a_);
+    a_.noalias() = reduced_basis_ * independent_a_;
+    a_ += reduced_offset_;
     if (!nc_) return;
-    fred_.noalias() -= MS_ * aI_;
+    reduced_force_.noalias() -= mass_reduced_basis_ * independent_a_;
   } else {
-    a_ = cred_;
+    a_ = reduced_offset_;
   }
-  for (int i = 0; i < nc_; ++i) tmp_c_[i] = fred_[red_dep_[i]];
+  for (int i = 0; i < nc_; ++i) tmp_c_[i] = reduced_force_[red_dep_[i]];
   lu_jd_.solve_transposed(tmp_c_);
   lam_ = tmp_c_;
 }
@@ -392,8 +392,8 @@ inline bool Core::unpack(const Vec &y, double t, Vec &q, Vec &v) {
   if (guess) {  // a dense output's q_D (run_adaptive)
     for (int i = 0; i < nc_; ++i) q[dep_[i]] = guess_qD_[i];
   } else if (predictor_valid_ && nc_) {
-    for (int k = 0; k < m; ++k) dqI_[k] = y[k] - warm_q_[ind_[k]];
-    tmp_c_.noalias() = Xwarm_ * dqI_;
+    for (int k = 0; k < m; ++k) independent_dq_[k] = y[k] - warm_q_[ind_[k]];
+    tmp_c_.noalias() = Xwarm_ * independent_dq_;
     for (int i = 0; i < nc_; ++i) q[dep_[i]] -= tmp_c_[i];
   }
   complete(q, v, t);
@@ -409,24 +409,24 @@ inline void Core::fun_partitioned(double t, const Vec &y, Eigen::Ref<Vec> f) {
   const int m = static_cast<int>(ind_.size());
   if (use_guess_) {  // the stage's guess of q_D (stage_guess)
     use_guess_ = false;
-    fq_ = warm_q_;
-    fv_.setZero();
+    fun_q_ = warm_q_;
+    fun_v_.setZero();
     for (int k = 0; k < m; ++k) {
-      fq_[ind_[k]] = y[k];
-      fv_[ind_[k]] = y[m + k];
+      fun_q_[ind_[k]] = y[k];
+      fun_v_[ind_[k]] = y[m + k];
     }
-    for (int i = 0; i < nc_; ++i) fq_[dep_[i]] = guess_qD_[i];
-    complete(fq_, fv_, t);
-  } else if (!unpack(y, t, fq_, fv_) && nc_) {
-    eval_phi_J(fq_);
+    for (int i = 0; i < nc_; ++i) fun_q_[dep_[i]] = guess_qD_[i];
+    complete(fun_q_, fun_v_, t);
+  } else if (!unpack(y, t, fun_q_, fun_v_) && nc_) {
+    eval_phi_J(fun_q_);
     gather_JD(dep_);
     lu_jd_.factor(JD_);
   }
   for (int i = 0; i < nc_; ++i) {
-    vD_last_[i] = fv_[dep_[i]];
-    qD_new_[i] = fq_[dep_[i]];
+    vD_last_[i] = fun_v_[dep_[i]];
+    qD_new_[i] = fun_q_[dep_[i]];
   }
-  // the tangent at the new warm start: lu_jd_ holds J_D(fq_) from complete, J_ is J(fq_)
+  // the tangent at the new warm start: lu_jd_ holds J_D(fun_q_) from complete, J_ is J(fun_q_)
   if (nc_) {
     for (int k = 0; k < m; ++k) {
       tmp_c_ = J_.col(ind_[k]);
@@ -435,10 +435,10 @@ inline void Core::fun_partitioned(double t, const Vec &y, Eigen::Ref<Vec> f) {
     }
     predictor_valid_ = true;
   }
-  accel(t, fq_, fv_);
-  warm_q_ = fq_;
+  accel(t, fun_q_, fun_v_);
+  warm_q_ = fun_q_;
   for (int k = 0; k < m; ++k) {
-    f[k] = fv_[ind_[k]];
+    f[k] = fun_v_[ind_[k]];
     f[m + k] = a_[ind_[k]];
   }
 }
@@ -474,13 +474,13 @@ inline bool Core::adaptive_partition_check(double t, double t_final, Vec &y, Vec
 inline void Core::stage_guess(const double *a, int s, double h) {
   guess_qD_ = qD0_;
   for (int j = 0; j < s; ++j)
-    if (a[j] != 0.0) guess_qD_.noalias() += (h * a[j]) * KD_.col(j);
+    if (a[j] != 0.0) guess_qD_.noalias() += (h * a[j]) * stage_dependent_v_.col(j);
   use_guess_ = nc_ > 0;
 }
 
 inline void Core::step_start_from_last() {
   qD0_ = qD_new_;
-  KD0_ = vD_last_;
+  start_dependent_v_ = vD_last_;
 }
 
 inline bp::list Core::repartitions_list() const {

@@ -25,9 +25,9 @@ inline double Core::cond_J() {
 }
 
 inline bool Core::cond_J_below(double limit) {
-  const int b = bn_.bandwidth();
+  const int b = normal_band_.bandwidth();
   assemble_normal_band(0.0);
-  Mat &A = bn_.A;
+  Mat &A = normal_band_.A;
   double anorm = 0.0;
   for (int j = 0; j < nc_; ++j) {
     double s = 0.0;
@@ -37,7 +37,7 @@ inline bool Core::cond_J_below(double limit) {
   }
   if (!(anorm > 0.0) || !std::isfinite(anorm)) return false;
   A.row(0).array() -= anorm / (limit * limit);
-  return bn_.factor();
+  return normal_band_.factor();
 }
 
 inline void Core::check_regular(const RefV &q, double t) {
@@ -116,9 +116,9 @@ inline void Core::min_norm(const Vec &b, Vec &x) {
     // (J J^T + eps I) there were measured less accurate through the N-four-bar's
     // flat positions (N = 10, 20 s: B0 error 2.2e-6 m against 3.1e-8 m) and barely
     // cheaper (N = 40: 5 %).
-    if (factor_normal_band(0.0) && bn_.rcond() > MIN_NORM_RCOND) {
+    if (factor_normal_band(0.0) && normal_band_.rcond() > MIN_NORM_RCOND) {
       tmp_c_ = b;
-      bn_.solve_in_place(tmp_c_);
+      normal_band_.solve_in_place(tmp_c_);
       jt_mul(tmp_c_, x);
       return;
     }
@@ -178,7 +178,7 @@ inline void Core::project(Vec &q, Vec &v, bool mass_orth) {
       mass_at_kinematics(plan_, model_, data_, M_);
       m_at_J_ = true;
       p_fact_ = false;
-      terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not pe_
+      terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not potential_energy_
     }
     mv_.noalias() = M_ * v;
     // From v itself (problem.project's a0): its correction is small here.
@@ -199,12 +199,12 @@ inline double Core::rank_indicator(const Vec &q) {
   eval_phi_J(q);
   if (band_n_) {
     assemble_normal_band(0.0);
-    const double ref = bn_.A.row(0).sum() / nc_;
+    const double ref = normal_band_.A.row(0).sum() / nc_;
     if (!(ref > 0.0)) return 0.0;
-    if (!bn_.factor()) return 0.0;
+    if (!normal_band_.factor()) return 0.0;
     al_wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc_)));
     for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
-      bn_.solve_in_place(al_wc_);
+      normal_band_.solve_in_place(al_wc_);
       al_wc_ /= al_wc_.norm();
     }
     jt_mul(al_wc_, al_wv_);

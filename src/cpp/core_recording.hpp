@@ -63,7 +63,7 @@ inline void Core::record(Samples &out, double t, const Vec &q, const Vec &v) {
   double ke, pe;
   if (q == terms_q_ && v == terms_v_) {
     ke = 0.5 * v.dot(M_.lazyProduct(v));
-    pe = pe_;
+    pe = potential_energy_;
   } else {
     ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
     pe = pinocchio::computePotentialEnergy(model_, data_, q);

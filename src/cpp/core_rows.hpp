@@ -113,7 +113,7 @@ inline void Core::eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
   m_at_J_ = true;
   terms_q_ = q;
   terms_v_ = v;
-  pe_ = -data_.oYcrb[0].mass() * model_.gravity.linear().dot(data_.oYcrb[0].lever());
+  potential_energy_ = -data_.oYcrb[0].mass() * model_.gravity.linear().dot(data_.oYcrb[0].lever());
   mark(2);
 }
 

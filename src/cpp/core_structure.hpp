@@ -77,15 +77,15 @@ inline bp::tuple Core::set_band(const Eigen::VectorXi &perm, bool banded_p, bool
   for (int r = 0; r < nc_; ++r)
     for (int s2 = 0; s2 < r; ++s2)
       if (r - s2 > b_n && rows_share_column(r, s2)) b_n = r - s2;
-  b_p_ = b_p;
-  b_n_ = b_n;
+  penalized_bandwidth_ = b_p;
+  normal_bandwidth_ = b_n;
   band_p_ = banded_p && nc_ > 0;
   band_n_ = banded_n && nc_ > 0;
   if (band_p_) {
-    bp_.resize(nv_, b_p);
-    pw_ = Vec::Zero(nv_);
+    penalized_band_.resize(nv_, b_p);
+    band_work_ = Vec::Zero(nv_);
   }
-  if (band_n_) bn_.resize(nc_, b_n);
+  if (band_n_) normal_band_.resize(nc_, b_n);
   invalidate_kinematics();
   return bp::make_tuple(b_p, b_n);
 }
@@ -147,8 +147,8 @@ inline double Core::j_squared_norm() const {
 }
 
 inline bool Core::factor_penalized_band(double alpha) {
-  const int b = bp_.bandwidth();
-  Mat &A = bp_.A;
+  const int b = penalized_band_.bandwidth();
+  Mat &A = penalized_band_.A;
   for (int j = 0; j < nv_; ++j)
     for (int k = 0; k <= b; ++k) A(k, j) = j + k < nv_ ? M_(perm_[j + k], perm_[j]) : 0.0;
   for (int r = 0; r < nc_; ++r)
@@ -160,17 +160,17 @@ inline bool Core::factor_penalized_band(double alpha) {
         if (px >= py) A(px - py, py) += ax * J_(r, cy);
       }
     }
-  return bp_.factor();
+  return penalized_band_.factor();
 }
 
 inline void Core::solve_penalized_band(Vec &x) {
   if (perm_identity_) {
-    bp_.solve_in_place(x);
+    penalized_band_.solve_in_place(x);
     return;
   }
-  for (int k = 0; k < nv_; ++k) pw_[k] = x[perm_[k]];
-  bp_.solve_in_place(pw_);
-  for (int k = 0; k < nv_; ++k) x[perm_[k]] = pw_[k];
+  for (int k = 0; k < nv_; ++k) band_work_[k] = x[perm_[k]];
+  penalized_band_.solve_in_place(band_work_);
+  for (int k = 0; k < nv_; ++k) x[perm_[k]] = band_work_[k];
 }
 
 inline bool Core::factor_penalized(double alpha) {
@@ -193,12 +193,12 @@ inline void Core::solve_penalized(Vec &x) {
 
 inline bool Core::factor_normal_band(double rel_reg) {
   assemble_normal_band(rel_reg);
-  return bn_.factor();
+  return normal_band_.factor();
 }
 
 inline void Core::assemble_normal_band(double rel_reg) {
-  const int b = bn_.bandwidth();
-  Mat &A = bn_.A;
+  const int b = normal_band_.bandwidth();
+  Mat &A = normal_band_.A;
   for (int j = 0; j < nc_; ++j)
     for (int k = 0; k <= b; ++k) {
       const int i = j + k;
