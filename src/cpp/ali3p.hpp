@@ -1,4 +1,4 @@
-// closedchain._core: the ALI3-P integrator (included by core.cpp).
+// closedchain._core: the ALI3-P integrator (included by core_fixed.hpp).
 //
 // Index-3 augmented Lagrangian integrated by the implicit trapezoidal rule with
 // Newton iterations, then mass-orthogonal projections of the velocities and
@@ -8,17 +8,26 @@
 // on the Core's pieces: the single tree pass (eval_terms), the rows, and the band
 // Cholesky of P = M + alpha J^T J (set_band) when the numpy backend uses one.
 //
-// Ali3pLoop<Core> is a friend of Core (it reads the Core's buffers); one object per
-// run owns the run's own vectors, sized once (no allocation inside the steps).
+// Ali3pLoop<Core> uses Core's public interface only (the last evaluation's M, h, J,
+// phi, gamma, the products on the structure and the factor of P); one object per run
+// owns the run's own vectors, sized once (no allocation inside the steps).
 
 #pragma once
 
+#include <pinocchio/algorithm/joint-configuration.hpp>
+
 #include <Eigen/Dense>
+#include <boost/python.hpp>
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <string>
+#include <vector>
+
+#include "al_iteration.hpp"
+#include "common.hpp"
+#include "errors.hpp"
 
 namespace closedchain {
 
@@ -47,7 +56,7 @@ class Ali3pLoop {
   using Vec = Eigen::VectorXd;
 
   Ali3pLoop(CoreT &core, const Ali3pSettings &s) : c_(core), s_(s) {
-    const int nq = c_.nq_, nv = c_.nv_, nc = c_.nc_;
+    const int nq = c_.nq(), nv = c_.nv(), nc = c_.nc();
     delta_.setZero(nv);
     step_.setZero(nv);
     f_.setZero(nv);
@@ -69,7 +78,7 @@ class Ali3pLoop {
   void advance(double t_new, const Vec &q, const Vec &v, const Vec &a, Vec &lam_star, double h,
                Vec &qn, Vec &vn, Vec &an, Vec &lam) {
     CoreT &c = c_;
-    const int nc = c.nc_;
+    const int nc = c.nc();
     w_ = c.tau_at(t_new, q, v);
     const double hh = h * h / 4.0;
     mu_ = hh * lam_star;
@@ -77,17 +86,17 @@ class Ali3pLoop {
     bool converged = false;
     double last = std::numeric_limits<double>::infinity(), size = 0.0;
     for (int it = 0; it < s_.max_iter; ++it) {
-      pinocchio::integrate(c.model_, q, delta_, qn);
+      pinocchio::integrate(c.model(), q, delta_, qn);
       vn = (2.0 / h) * delta_ - v;
       an = (4.0 / (h * h)) * delta_ - (4.0 / h) * v - a;
       c.eval_terms(qn, vn);
-      if (nc && it) mu_ += alpha_ * c.phi_;  // lambda*_{i+1} = lambda*_i + alpha phi(q_{i+1})
+      if (nc && it) mu_ += alpha_ * c.phi();  // lambda*_{i+1} = lambda*_i + alpha phi(q_{i+1})
       // f = h^2/4 (M a + h - tau) + J^T (mu + alpha phi)
       m_mul(an, f_);
-      f_ += c.h_ - w_;
+      f_ += c.bias_forces() - w_;
       f_ *= hh;
       if (nc) {
-        wc_ = mu_ + alpha_ * c.phi_;
+        wc_ = mu_ + alpha_ * c.phi();
         jt_mul_add(wc_, f_);
       }
       factor(qn, t_new);
@@ -101,13 +110,13 @@ class Ali3pLoop {
       // tangent converges linearly), and until J^T phi is below ali3p_phi_tol.
       converged = size <= s_.tol && (size <= s_.tol * ALI3P_TOL_FLOOR || size > ALI3P_STALL * last);
       if (converged && nc) {
-        jt_mul(c.phi_, f_);
+        jt_mul(c.phi(), f_);
         converged = f_.cwiseAbs().maxCoeff() <= s_.phi_tol;
       }
       last = size;
     }
     if (!converged)
-      throw SimulationFailure{c.name_ + ": ALI3-P Newton iterations did not converge at t = " +
+      throw SimulationFailure{c.name() + ": ALI3-P Newton iterations did not converge at t = " +
                                   fmt("%.9g", t_new) + " s (last correction " + fmt("%.3e", size) +
                                   " > ali3p_tol " + fmt("%.1e", s_.tol) + " after " +
                                   std::to_string(s_.max_iter) +
@@ -118,45 +127,45 @@ class Ali3pLoop {
       lam.resize(0);
       return;
     }
-    lam = (4.0 / (h * h)) * (mu_ + alpha_ * c.phi_);
+    lam = (4.0 / (h * h)) * (mu_ + alpha_ * c.phi());
     // Mass-orthogonal projections with the factorization of P at q_{n+1}.
     m_mul(vn, f_);
     project(f_, zc_, vn);
     // gamma = Jdot v at (q_{n+1}, projected v): M and J at the same q are unchanged.
     c.eval_terms(qn, vn);
     m_mul(an, f_);
-    project(f_, c.gamma_, an);
+    project(f_, c.gamma(), an);
     lam_star = (4.0 / (h * h)) * mu_;
   }
 
   bp::dict run(const Vec &q0, const Vec &v0, double dt, long n_steps,
                const std::vector<char> &out, bp::object progress) {
     CoreT &c = c_;
-    const int nq = c.nq_, nv = c.nv_, nc = c.nc_;
+    const int nq = c.nq(), nv = c.nv(), nc = c.nc();
     typename CoreT::Samples S;
     Vec q = q0, v = v0, a(nv), qn(nq), vn(nv), an(nv), q1(nq), v1(nv), a1(nv);
     Vec lam_star(nc), lam(nc), lam1(nc), dq(nv);
     double t = 0.0;
-    c.n_evals_ = 0;
+    c.reset_evals();
     c.accel(t, q, v);  // M_, J_ at q0 from its evaluation
-    a = c.a_;
-    alpha_ = nc ? s_.penalty * c.M_.trace() /
-                      std::max(c.J_.squaredNorm(), std::numeric_limits<double>::min())
+    a = c.accelerations();
+    alpha_ = nc ? s_.penalty * c.mass_matrix().trace() /
+                      std::max(c.jacobian().squaredNorm(), std::numeric_limits<double>::min())
                 : 0.0;
     // The multiplier estimate, warm-started from the method's multipliers.
-    lam = c.lam_;
+    lam = c.multipliers();
     if (out[0]) c.record(S, t, q, v);
     // Singular positions: steps never end within singular_zone steps of a crossing
     // (ali3p.py, run_ali3p): its time is extrapolated from the rank indicator at the
     // last two states (before the first step: q(-dt) by Taylor's expansion), and a step
     // that would end near it is taken with the next one as 1.5 + 0.5 steps.
-    const double zone = c.singular_zone_;
+    const double zone = c.singular_zone();
     const double sigma_min = std::sqrt(ALI3P_ENFORCED / s_.penalty);
     long splits = 0;
     lam_star = lam;
     double rho_now = indicator(q);
     dq = -dt * v + (0.5 * dt * dt) * a;
-    pinocchio::integrate(c.model_, q, dq, qn);
+    pinocchio::integrate(c.model(), q, dq, qn);
     double rho_prev = indicator(qn);
     double gap = 1.0;
     for (long k = 1; k <= n_steps; ++k) {
@@ -194,8 +203,7 @@ class Ali3pLoop {
       rho_prev = rho_now;
       rho_now = indicator(q);  // J at q from advance's last evaluation
       if (out[k]) {
-        c.a_ = a;
-        c.lam_ = lam;
+        c.set_solution(a, lam);
         c.record(S, t, q, v);
       }
       c.poll(k, t, progress);
@@ -214,24 +222,21 @@ class Ali3pLoop {
 
   // f = M x (the band path: over M's structural hulls).
   void m_mul(const Vec &x, Vec &f) {
-    if (c_.band_p_) {
+    if (c_.banded_penalized()) {
       f.setZero();
       c_.m_mul_sub(x, f);
       f = -f;
     } else {
-      f.noalias() = c_.M_ * x;
+      f.noalias() = c_.mass_matrix() * x;
     }
   }
 
   // x += J^T y
   void jt_mul_add(const Vec &y, Vec &x) {
-    if (c_.band_p_) {
-      for (int r = 0; r < c_.nc_; ++r) {
-        const int lo = c_.jlo_[r], len = c_.jhi_[r] - c_.jlo_[r] + 1;
-        if (len > 0) x.segment(lo, len) += y[r] * c_.J_.row(r).segment(lo, len).transpose();
-      }
+    if (c_.banded_penalized()) {
+      c_.jt_mul_add(y, x);
     } else {
-      x.noalias() += c_.J_.transpose() * y;
+      x.noalias() += c_.jacobian().transpose() * y;
     }
   }
 
@@ -243,28 +248,16 @@ class Ali3pLoop {
 
   // y = J x
   void j_mul(const Vec &x, Vec &y) {
-    if (c_.band_p_)
+    if (c_.banded_penalized())
       c_.j_mul(x, y);
     else
-      y.noalias() = c_.J_ * x;
+      y.noalias() = c_.jacobian() * x;
   }
 
   // Factorize P = M + alpha J^T J at the last evaluation (at q, for the error); the
   // Core's own factor (its solve_al's alpha) is gone.
   void factor(const Vec &q, double t) {
-    c_.p_fact_ = false;
-    bool ok;
-    if (c_.band_p_) {
-      ok = c_.factor_penalized_band(alpha_);
-    } else {
-      if (c_.nc_)
-        c_.P_.template triangularView<Eigen::Lower>() = c_.J_.transpose() * c_.J_;
-      else
-        c_.P_.setZero();
-      c_.P_.template triangularView<Eigen::Lower>() = alpha_ * c_.P_ + c_.M_;
-      ok = c_.llt_p_.compute(c_.P_);
-    }
-    if (!ok)
+    if (!c_.factor_penalized(alpha_))
       c_.singular(q, "the penalized mass matrix M + alpha J^T J",
                   std::numeric_limits<double>::infinity(),
                   "it is not positive definite (alpha = " + fmt("%.3g", alpha_) +
@@ -274,12 +267,7 @@ class Ali3pLoop {
   }
 
   // x <- P^-1 x
-  void solve(Vec &x) {
-    if (c_.band_p_)
-      c_.solve_penalized_band(x);
-    else
-      c_.llt_p_.solveInPlace(x);
-  }
+  void solve(Vec &x) { c_.solve_penalized(x); }
 
   // al_iterate's products (al_iteration.hpp) on the dense path: Eigen's matrix-vector
   // kernels into the loop's own vectors (the band path: the Core's BandAlOps).
@@ -308,12 +296,12 @@ class Ali3pLoop {
   // rhs = M x*, by the augmented-Lagrangian iteration (al_iterate) with P at alpha_
   // until max |dx| <= al_tol (1 + max |x|) (solve_augmented_lagrangian, no polish).
   void project(const Vec &rhs, const Vec &g, Vec &x) {
-    if (c_.band_p_) {
+    if (c_.banded_penalized()) {
       typename CoreT::BandAlOps ops{c_};
-      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter(), c_.al_tol(), x, lp_, step_, wc_);
     } else {
       DenseOps ops{*this};
-      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter_, c_.al_tol_, x, lp_, step_, wc_);
+      al_iterate(ops, alpha_, rhs, g, c_.al_max_iter(), c_.al_tol(), x, lp_, step_, wc_);
     }
   }
 
@@ -325,13 +313,12 @@ class Ali3pLoop {
                       const Vec &lam) {
     const double h00 = 2 * s * s * s - 3 * s * s + 1, h10 = s * s * s - 2 * s * s + s;
     const double h01 = -2 * s * s * s + 3 * s * s, h11 = s * s * s - s * s;
-    pinocchio::difference(c_.model_, q0, q1, dqi_);
+    pinocchio::difference(c_.model(), q0, q1, dqi_);
     dqi_ = h10 * h * v0 + h01 * dqi_ + h11 * h * v1;
-    pinocchio::integrate(c_.model_, q0, dqi_, qi_);
+    pinocchio::integrate(c_.model(), q0, dqi_, qi_);
     vi_ = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1;
     ai_ = a0 + s * (a1 - a0);
-    c_.a_ = ai_;
-    c_.lam_ = lam;
+    c_.set_solution(ai_, lam);
     c_.record(S, t, qi_, vi_);
   }
 

@@ -1,0 +1,346 @@
+// closedchain._core: the adaptive loops (RK45, DOP853 with scipy's error control) and the
+// chart of q when nq != nv.
+// (Member functions of Core, declared in core.hpp.)
+
+#pragma once
+
+#include <pinocchio/algorithm/joint-configuration.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "core.hpp"
+#include "rk_coefficients.hpp"
+
+namespace closedchain {
+
+inline void Core::chart_start(const Vec &q0) {
+  chart_ = nq_ != nv_;
+  if (!chart_) return;
+  q_c_ = q0;
+  q_x_ = q0;
+}
+
+inline void Core::chart_rate(const Vec &q_c, const Eigen::Ref<const Vec> &x,
+                             const Eigen::Ref<const Vec> &v, Eigen::Ref<Vec> out) {
+  out = v;
+  if (curved_.empty()) return;
+  pinocchio::dIntegrate(model_, q_c, x, D_chart_, pinocchio::ARG1);
+  for (const auto &b : curved_) {
+    SmallMat Db = D_chart_.block(b.first, b.first, b.second, b.second);
+    out.segment(b.first, b.second) = Db.partialPivLu().solve(v.segment(b.first, b.second));
+  }
+}
+
+inline RefV Core::chart_q(const Eigen::Ref<const Vec> &x) {
+  if (!chart_) return x;
+  pinocchio::integrate(model_, q_c_, x, q_x_);
+  return q_x_;
+}
+
+inline bool Core::chart_recentre(Eigen::Ref<Vec> x) {
+  bool far = false;
+  for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > 1.0;
+  if (!far) return false;
+  pinocchio::integrate(model_, q_c_, x, q_x_);
+  q_c_ = q_x_;
+  x.setZero();
+  return true;
+}
+
+inline void Core::fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
+  if (partitions_) {
+    fun_partitioned(t, y, f);
+    return;
+  }
+  accel(t, chart_q(y.head(nv_)), y.tail(nv_));
+  if (chart_)
+    chart_rate(q_c_, y.head(nv_), y.tail(nv_), f.head(nv_));
+  else
+    f.head(nv_) = y.tail(nv_);
+  f.tail(nv_) = a_;
+}
+
+inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0, double t_final,
+                                   double rtol, double atol, bp::object t_eval_obj, bool projects,
+                                   bp::object progress) {
+  check_sizes(q0, v0);
+  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
+  if (integrator != RK45 && integrator != DOP853)
+    throw BadArgument{"run_adaptive: unknown integrator"};
+  const bool dop = integrator == DOP853;
+  const int n_stages = dop ? dop853::N_STAGES : rk45::N_STAGES;
+  const int error_order = dop ? 7 : 4;
+  const double error_exponent = -1.0 / (error_order + 1);
+  const double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
+  const double eps = std::numeric_limits<double>::epsilon();
+  if (rtol < 100 * eps) rtol = 100 * eps;  // scipy's validate_tol
+  const std::string iname = dop ? "DOP853" : "RK45";
+  n_evals_ = 0;
+  Samples S;
+  begin_partitioning(false);
+  // Partitioning integrates (q_I, v_I) only; (q_D, v_D) follow at every evaluation.
+  const int ns = partitions_ ? nv_ - nc_ : nv_;
+  const int n = 2 * ns;
+  Vec qc(nv_), vc(nv_);
+  std::vector<double> pending;
+  const bool dense = !t_eval_obj.is_none();
+  if (dense) {
+    Vec te = bp::extract<Vec>(t_eval_obj);
+    pending.assign(te.data(), te.data() + te.size());
+  }
+  std::size_t ip = 0;
+  Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
+  Vec q_out(nq_), v_out(nv_), x_out(nv_);
+  chart_start(q0);  // partitioning needs nq == nv (refused in Python): no chart then
+  if (partitions_) {
+    qc = q0;
+    vc = v0;
+    complete(qc, vc, 0.0);
+    warm_q_ = q0;  // the dependent solves start from the last evaluation's q
+    pack(qc, vc, y);
+  } else {
+    y.head(nv_) = chart_ ? Vec::Zero(nv_) : q0;
+    y.tail(nv_) = v0;
+  }
+  Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+  stage_dependent_v_ = Mat::Zero(nc_, K.cols());
+  Mat F(n, dop853::INTERPOLATOR_POWER);
+  // partitioning: the same dense output of q_D from its rates v_D at the stages
+  // (stage_dependent_v_),
+  // the guess of the output's dependent solve (as stage_guess for the stages)
+  Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
+  auto output = [&](double t, const Vec &yy) {
+    if (partitions_) {
+      unpack(yy, t, qc, vc);
+      accel(t, qc, vc);
+      record(S, t, qc, vc);
+      return;
+    }
+    q_out = chart_q(yy.head(nv_));
+    v_out = yy.tail(nv_);
+    accel(t, q_out, v_out);
+    record(S, t, q_out, v_out);
+  };
+  double t = 0.0;
+  if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
+    output(0.0, y);
+    if (dense) ++ip;
+  }
+  fun(t, y, f);
+  if (partitions_) step_start_from_last();
+  // scipy's select_initial_step
+  double h_abs;
+  {
+    double interval = std::abs(t_final - t);
+    scale = atol + y.cwiseAbs().array() * rtol;
+    double d0 = rms(y.cwiseQuotient(scale)), d1 = rms(f.cwiseQuotient(scale));
+    double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
+    h0 = std::min(h0, interval);
+    Vec y1 = y + h0 * f;
+    Vec f1(n);
+    fun(t + h0, y1, f1);
+    double d2 = rms((f1 - f).cwiseQuotient(scale)) / h0;
+    double h1 = (d1 <= 1e-15 && d2 <= 1e-15) ? std::max(1e-6, h0 * 1e-3)
+                                              : std::pow(0.01 / std::max(d1, d2),
+                                                         1.0 / (error_order + 1));
+    h_abs = std::min(std::min(100 * h0, h1), interval);
+  }
+  long steps = 0;
+  while (t < t_final) {
+    // one step of scipy's RungeKutta._step_impl
+    double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
+    if (h_abs < min_step) h_abs = min_step;
+    bool accepted = false, rejected = false;
+    double t_new = t, h = 0.0;
+    while (!accepted) {
+      if (h_abs < min_step)
+        throw SimulationFailure{name_ + ": integrator " + iname + " failed at t = " +
+                                    fmt("%.9g", t) +
+                                    " s: Required step size is less than spacing between "
+                                    "numbers.",
+                                t};
+      h = h_abs;
+      t_new = t + h;
+      if (t_new - t_final > 0) t_new = t_final;
+      h = t_new - t;
+      h_abs = std::abs(h);
+      // rk_step
+      K.col(0) = f;
+      if (partitions_) stage_dependent_v_.col(0) = start_dependent_v_;
+      for (int s = 1; s < n_stages; ++s) {
+        dy.setZero();
+        for (int j = 0; j < s; ++j) {
+          double c = dop ? dop853::A[s][j] : rk45::A[s][j];
+          if (c != 0.0) dy += c * K.col(j);
+        }
+        ye = y + h * dy;
+        if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
+        fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
+        if (partitions_) stage_dependent_v_.col(s) = vD_last_;
+      }
+      dy.setZero();
+      for (int j = 0; j < n_stages; ++j) {
+        double b = dop ? dop853::B[j] : rk45::B[j];
+        if (b != 0.0) dy += b * K.col(j);
+      }
+      y_new = y + h * dy;
+      if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
+      fun(t + h, y_new, f_new);
+      if (partitions_) stage_dependent_v_.col(n_stages) = vD_last_;
+      K.col(n_stages) = f_new;
+      scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
+      double err;
+      if (dop) {
+        e5.setZero();
+        e3.setZero();
+        for (int j = 0; j <= n_stages; ++j) {
+          e5 += dop853::E5[j] * K.col(j);
+          e3 += dop853::E3[j] * K.col(j);
+        }
+        e5 = e5.cwiseQuotient(scale);
+        e3 = e3.cwiseQuotient(scale);
+        double n5 = e5.squaredNorm(), n3 = e3.squaredNorm();
+        if (n5 == 0 && n3 == 0)
+          err = 0.0;
+        else
+          err = std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * n);
+      } else {
+        tmp.setZero();
+        for (int j = 0; j <= n_stages; ++j) tmp += rk45::E[j] * K.col(j);
+        tmp *= h;
+        err = rms(tmp.cwiseQuotient(scale));
+      }
+      if (err < 1) {
+        double factor =
+            err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, error_exponent));
+        if (rejected) factor = std::min(1.0, factor);
+        h_abs *= factor;
+        accepted = true;
+      } else {
+        h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, error_exponent));
+        rejected = true;
+      }
+    }
+    ++steps;
+    const double t_old = t;
+    if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
+      qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
+      start_dependent_v_ = stage_dependent_v_.col(n_stages);
+    }
+    // dense output at the t_eval within the step, from the unprojected step
+    if (dense && ip < pending.size() && pending[ip] <= t_new) {
+      if (dop) {
+        for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
+          dy.setZero();
+          for (int j = 0; j < s; ++j)
+            if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
+          ye = y + h * dy;
+          if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
+          fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
+          if (partitions_) stage_dependent_v_.col(s) = vD_last_;
+        }
+        F.col(0) = y_new - y;
+        F.col(1) = h * K.col(0) - F.col(0);
+        F.col(2) = 2 * F.col(0) - h * (f_new + K.col(0));
+        for (int i = 0; i < 4; ++i) {
+          tmp.setZero();
+          for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+            if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
+          F.col(3 + i) = h * tmp;
+        }
+        if (partitions_ && nc_) {
+          FD.col(0) = qD_end_ - qD0_;
+          FD.col(1) = h * stage_dependent_v_.col(0) - FD.col(0);
+          FD.col(2) = 2 * FD.col(0) -
+                      h * (stage_dependent_v_.col(n_stages) + stage_dependent_v_.col(0));
+          for (int i = 0; i < 4; ++i) {
+            FD.col(3 + i).setZero();
+            for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+              if (dop853::D[i][j] != 0.0)
+                FD.col(3 + i) += (h * dop853::D[i][j]) * stage_dependent_v_.col(j);
+          }
+        }
+      } else {
+        for (int i = 0; i < 4; ++i) {  // Q = K^T P
+          tmp.setZero();
+          for (int j = 0; j <= n_stages; ++j)
+            if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
+          F.col(i) = tmp;
+          if (partitions_ && nc_) {
+            FD.col(i).setZero();
+            for (int j = 0; j <= n_stages; ++j)
+              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * stage_dependent_v_.col(j);
+          }
+        }
+      }
+      while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
+        double x = (pending[ip] - t_old) / h;
+        const bool guess = partitions_ && nc_;
+        if (dop) {
+          ye.setZero();
+          if (guess) guess_qD_.setZero();
+          for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
+            ye += F.col(i);
+            ye *= (r % 2 == 0) ? x : 1 - x;
+            if (guess) {
+              guess_qD_ += FD.col(i);
+              guess_qD_ *= (r % 2 == 0) ? x : 1 - x;
+            }
+          }
+          ye += y;
+          if (guess) guess_qD_ += qD0_;
+        } else {
+          double p = x;
+          ye = y;
+          if (guess) guess_qD_ = qD0_;
+          for (int i = 0; i < 4; ++i, p *= x) {
+            ye += (h * p) * F.col(i);
+            if (guess) guess_qD_ += (h * p) * FD.col(i);
+          }
+        }
+        use_out_guess_ = guess;
+        output(pending[ip], ye);
+        ++ip;
+      }
+    }
+    t = t_new;
+    y = y_new;
+    f = f_new;
+    if (partitions_) {
+      qD0_ = qD_end_;
+      check_finite(y.head(ns), y.tail(ns), t);
+    } else {
+      q_out = chart_q(y.head(nv_));
+      v_out = y.tail(nv_);
+      check_finite(q_out, v_out, t);
+    }
+    if (projects) {
+      project(q_out, v_out);
+      if (chart_)
+        pinocchio::difference(model_, q_c_, q_out, x_out);
+      y.head(nv_) = chart_ ? x_out : q_out;
+      y.tail(nv_) = v_out;
+      fun(t, y, f);
+    }
+    if (partitions_) {
+      unpack(y, t, qc, vc);
+      check_regular(qc, t);
+    } else {
+      if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
+      check_regular(q_out, t);
+    }
+    if (!dense) output(t, y);
+    poll(steps, t, progress);
+    // det(J_D) sign and re-partitioning; a new partition restarts the integrator
+    // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
+    if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) {
+      fun(t, y, f);
+      step_start_from_last();
+    }
+  }
+  return samples_dict(S, steps);
+}
+
+}  // namespace closedchain
