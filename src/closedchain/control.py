@@ -26,7 +26,7 @@ import numpy as np
 
 from ._locking import exclusive
 from .dynamics.base import DEFAULT_SETTINGS, SolverSettings
-from .exceptions import ClosedChainError
+from .exceptions import ClosedChainError, check_settings
 from .inverse import _resolve_ordered, inverse_dynamics
 
 if TYPE_CHECKING:
@@ -78,6 +78,7 @@ def computed_torque_controller(
         ClosedChainError: a controlled coordinate is not a 1-dof joint, or
             the number of coordinates is not the mobility.
     """
+    check_settings("settings", settings, SolverSettings)
     idx_v = _resolve_ordered(mech, coordinates, "coordinates")
     if len(idx_v) != mech.mobility:
         raise ClosedChainError(
@@ -126,6 +127,7 @@ def gravity_torque(
     Returns:
         tau, shape (nv,) [N m or N], zero off the actuated coordinates.
     """
+    check_settings("settings", settings, SolverSettings)
     zero_v = np.zeros(mech.nv)
     return inverse_dynamics(mech, q, zero_v, np.zeros(mech.mobility), settings=settings).tau
 

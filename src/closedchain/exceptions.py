@@ -194,3 +194,20 @@ def format_upper_bound(x: float, digits: int = 6) -> str:
         if not (math.isfinite(x) and float(text) > x):
             return text
     return repr(x)
+
+
+def check_settings(name: str, value: object, cls: type) -> None:
+    """Raise InvalidArgumentError unless ``value`` is an instance of the settings class ``cls``.
+
+    A settings object of another class (``simulate(settings=SolverSettings())``)
+    would otherwise fail later with an AttributeError far from the mistake.
+
+    Args:
+        name: the argument's name, for the message.
+        value: what was passed.
+        cls: the settings class the argument takes.
+    """
+    if not isinstance(value, cls):
+        raise InvalidArgumentError(
+            f"{name} must be a {cls.__name__} (from {cls.__module__}), got a {type(value).__name__}"
+        )

@@ -78,7 +78,7 @@ from .dynamics.base import (
     singular_error,
     workspace,
 )
-from .exceptions import ClosedChainError, NonFiniteError
+from .exceptions import ClosedChainError, NonFiniteError, check_settings
 from .urdf import COUPLING
 
 if TYPE_CHECKING:
@@ -267,6 +267,7 @@ def inverse_dynamics(
             the motion (J_F singular), J has lost rank, or the actuators cannot
             produce every motion at q (N^T B singular, an actuation singularity).
     """
+    check_settings("settings", settings, SolverSettings)
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     nv, nc, mob = mech.nv, mech.nc, mech.mobility

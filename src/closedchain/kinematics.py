@@ -36,7 +36,7 @@ from .closure import (
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
-from .exceptions import AssemblyError, ClosedChainError
+from .exceptions import AssemblyError, ClosedChainError, check_settings
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -74,6 +74,7 @@ def assemble(
         AssemblyError: no closure found from q_guess (the message gives the
             smallest closure residual reached, ``exc.q`` its configuration).
     """
+    check_settings("settings", settings, AssemblySettings)
     q_guess = mech.check_q(q_guess, "q_guess")
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)

@@ -42,6 +42,7 @@ from .exceptions import (
     UnknownChoiceError,
     URDFError,
     ValidationUnavailableError,
+    check_settings,
 )
 from .mjcf import read_model
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
@@ -660,6 +661,7 @@ def load(
         LoopClosureError: no start closes the loops (the message gives the closure
             residual reached per loop).
     """
+    check_settings("settings", settings, LoadSettings)
     from .robots import merge_overlay, reference_configuration, resolve_model
     from .sdf import is_sdf
 

@@ -48,6 +48,7 @@ from .exceptions import (
     InvalidArgumentError,
     SingularConfigurationError,
     UnknownChoiceError,
+    check_settings,
     resolve_choice,
 )
 from .kinematics import actuation_sigma_min, assemble, compute_jacobian
@@ -269,6 +270,7 @@ def forward_kinematics(
         AssemblyError: the motors admit no closed configuration near ``q_guess``.
         SingularConfigurationError: the result is at a type II (parallel) singularity.
     """
+    check_settings("settings", settings, AssemblySettings)
     m = _check_motors(mech, motors)
     q0 = mech.q_ref if q_guess is None else mech.check_q(q_guess, "q_guess")
     try:
@@ -367,6 +369,7 @@ def inverse_kinematics(
         AssemblyError: the target is out of reach from ``q_guess``: the message gives
             the frame, the residuals reached and ``exc.q`` their configuration.
     """
+    check_settings("settings", settings, AssemblySettings)
     mode = resolve_choice("inverse-kinematics mode", mode, IK_MODES)
     fid = _frame_id(mech, frame)
     target = _check_target(target, mode)

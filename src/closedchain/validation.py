@@ -48,7 +48,12 @@ from .closure import AssemblySettings
 from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamics
 from .dynamics.base import method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
-from .exceptions import InvalidArgumentError, SingularConfigurationError, UnknownChoiceError
+from .exceptions import (
+    InvalidArgumentError,
+    SingularConfigurationError,
+    UnknownChoiceError,
+    check_settings,
+)
 from .kinematics import random_consistent_state
 from .mechanism import Mechanism
 
@@ -228,6 +233,7 @@ def validate(
             :data:`MAX_VALIDATION_SAMPLES`], or ``seed`` not an integer >= 0.
         UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
     """
+    check_settings("settings", settings, SolverSettings)
     if (
         isinstance(n_samples, bool)
         or not isinstance(n_samples, int | np.integer)

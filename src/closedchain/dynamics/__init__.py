@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .._locking import exclusive
-from ..exceptions import NonFiniteError
+from ..exceptions import NonFiniteError, check_settings
 from . import augmented_lagrangian as _augmented_lagrangian  # noqa: F401  (registers it)
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
 from . import nullspace as _nullspace  # noqa: F401  (registers "nullspace")
@@ -71,6 +71,7 @@ def forward_dynamics(
             the condition number).
         NonFiniteError: v or tau so large that the result overflows.
     """
+    check_settings("settings", settings, SolverSettings)
     method = method_name(method)
     func = METHODS[method]
     q = mech.check_q(q, "q")

@@ -43,7 +43,7 @@ import pinocchio as pin
 
 from .._io import atomic_write
 from .._locking import exclusive
-from ..exceptions import ClosedChainError
+from ..exceptions import ClosedChainError, check_settings
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -184,6 +184,7 @@ def export_mjcf(
     Raises:
         ClosedChainError: a joint or loop type MuJoCo cannot express (prismatic loops).
     """
+    check_settings("settings", settings, MjcfSettings)
     model = mech.model
     layer = mech.declared
     children: dict[int, list[int]] = {j: [] for j in range(model.njoints)}

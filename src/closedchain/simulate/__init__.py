@@ -48,7 +48,12 @@ from .._locking import exclusive
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
-from ..exceptions import InvalidArgumentError, SingularConfigurationError, resolve_choice
+from ..exceptions import (
+    InvalidArgumentError,
+    SingularConfigurationError,
+    check_settings,
+    resolve_choice,
+)
 from ..trajectory import SimulationInfo, Trajectory, energy_balance, energy_drift
 from .problem import Problem, Recorder, report_limit_violations
 from .registry import (
@@ -333,6 +338,8 @@ def simulate(
         SimulationError: non-finite state, integrator failure, or drift
             beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
+    check_settings("settings", settings, SimulationSettings)
+    check_settings("solver_settings", solver_settings, SolverSettings)
     if integrator is None:
         adaptive = rtol is not None or atol is not None
         integrator = DEFAULT_ADAPTIVE_INTEGRATOR if adaptive else DEFAULT_INTEGRATOR

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from .._io import atomic_write
 from .._locking import exclusive
-from ..exceptions import ClosedChainError
+from ..exceptions import ClosedChainError, check_settings
 from ..trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -238,6 +238,7 @@ def write_html(
             :meth:`~closedchain.trajectory.Trajectory.check_mechanism`), its
             times do not increase, or fps is not positive.
     """
+    check_settings("settings", settings, AnimationSettings)
     scene = build_scene(mech, trajectory, fps=fps, settings=settings)
     text = scene_html(scene, settings, stop=stop)
     path = Path(path)
