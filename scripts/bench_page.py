@@ -106,6 +106,20 @@ def header(
     return lines + [""]
 
 
+def run_header(title: str, *, command: str, date: str, load_before: str, about: str = ""):
+    """:func:`header` of a page measured now, on this machine and this code: its table
+    also gives the load average before the run (``load_before``) and after it."""
+    return header(
+        title,
+        command=command,
+        date=date,
+        machine=machine_description(),
+        code=code_version(),
+        extra={"load average (1, 5, 15 min) before / after": f"{load_before} / {load_average()}"},
+        about=about,
+    )
+
+
 if __name__ == "__main__":
     if sys.argv[1:] != ["machine"]:
         sys.exit("usage: python scripts/bench_page.py machine")

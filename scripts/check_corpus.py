@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import subprocess
 import sys
@@ -188,22 +187,18 @@ def main(argv: list[str] | None = None) -> int:
         command = "python scripts/check_corpus.py " + shlex.join(
             [args.path.name, *(argv if argv is not None else sys.argv[1:])[1:]]
         )
-        head = bench_page.header(
+        head = bench_page.run_header(
             "example-parallel-robots: the acceptance",
             command=command,
             date=date,
-            machine=bench_page.machine_description(),
-            code=bench_page.code_version(),
-            extra={
-                "load average (1, 5, 15 min) before / after": f"{load} / "
-                f"{bench_page.load_average()}"
-            },
+            load_before=load,
             about="How the YAML is read: [Robots and moving bases]"
             "(../guide/robots-and-moving-bases.md#loops-in-yaml-example-parallel-robots).",
         )
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        tmp.write_text("\n".join(head) + "\n" + text)
-        os.replace(tmp, args.out)
+        from closedchain._io import atomic_write
+
+        with atomic_write(args.out, "w") as f:
+            f.write("\n".join(head) + "\n" + text)
     return 0
 
 

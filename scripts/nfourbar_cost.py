@@ -46,6 +46,7 @@ import bench_page  # noqa: E402  (scripts/bench_page.py: the generated pages' he
 import nfourbar_reference as ref  # noqa: E402
 
 import closedchain as cc  # noqa: E402
+from closedchain._io import atomic_write  # noqa: E402
 
 logger = logging.getLogger("nfourbar_cost")
 
@@ -157,21 +158,16 @@ def write_page(args, command: str) -> None:
             exponents[label] = growth_exponent(rows, "us_per_step_20s")
     lines += ["", "Growth exponent p of the cost per step (cost ~ N^p):", ""]
     lines += [f"- {label}: {p:.2f}" for label, p in exponents.items()]
-    head = bench_page.header(
+    head = bench_page.run_header(
         "N-four-bar: accuracy and cost against N",
         command=command,
         date=date,
-        machine=bench_page.machine_description(),
-        code=bench_page.code_version(),
-        extra={
-            "load average (1, 5, 15 min) before / after": (
-                f"{load_before} / {bench_page.load_average()}"
-            )
-        },
+        load_before=load_before,
         about="The benchmark and the methods: "
         "[Singular positions](../guide/singular-positions.md).",
     )
-    args.page.write_text("\n".join(head + lines) + "\n")
+    with atomic_write(args.page, "w") as f:  # a failed run leaves the previous page
+        f.write("\n".join(head + lines) + "\n")
     logger.info("wrote %s", args.page)
 
 
