@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from threadpoolctl import threadpool_limits
 
 from .._io import atomic_write
 from ..dynamics.base import DEFAULT_METHOD, DEFAULT_SETTINGS, get_method
@@ -176,13 +177,10 @@ def time_scaling(
         q, v = _start(mech, guess)
         for name, backend, fn, per_evaluation in scaling_calls(mech, q, v, methods):
             entries.append((n, mech, name, backend, fn, per_evaluation, []))
-    for _ in range(repeats):
-        for *_, fn, per_evaluation, runs in entries:
-            try:
-                runs.append(fn() if per_evaluation else cpu_us(fn))
-            except Exception as exc:  # a method that cannot handle a size is reported
-                logger.warning("scaling: %s", exc)
-                runs.append(math.nan)
+    # BLAS on one thread: idle OpenBLAS workers spin and charge their CPU time to the
+    # next timed call.
+    with threadpool_limits(limits=1, user_api="blas"):
+        _time_entries(entries, repeats)
     return [
         dict(
             family=family,
@@ -195,6 +193,17 @@ def time_scaling(
         )
         for n, mech, name, backend, _fn, _per, runs in entries
     ]
+
+
+def _time_entries(entries: list[tuple], repeats: int) -> None:
+    """Time every entry once per repeat, interleaved; a failure is timed as NaN."""
+    for _ in range(repeats):
+        for *_, fn, per_evaluation, runs in entries:
+            try:
+                runs.append(fn() if per_evaluation else cpu_us(fn))
+            except Exception as exc:  # a method that cannot handle a size is reported
+                logger.warning("scaling: %s", exc)
+                runs.append(math.nan)
 
 
 def series_label(row: dict) -> str:
