@@ -1,6 +1,6 @@
 """Cost per step of simulate on the N-four-bar (IFToMM A02) against N, and its growth exponent.
 
-For each N the script writes the model (scripts/make_nfourbar.py), runs a short
+For each N the script writes the model (closedchain.benchmark.families.nfourbar_urdf), runs a short
 horizon of a configuration (default: simulate's defaults, i.e. method
 augmented-lagrangian, rk4, dt = 1 ms, stage-projection; each option given
 overrides one) and reports CPU time per step and per dynamics evaluation; the
@@ -29,7 +29,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
 
 import argparse  # noqa: E402
-import importlib.util  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
@@ -47,6 +46,7 @@ import nfourbar_reference as ref  # noqa: E402
 
 import closedchain as cc  # noqa: E402
 from closedchain._io import atomic_write  # noqa: E402
+from closedchain.benchmark.families import nfourbar_urdf  # noqa: E402
 
 logger = logging.getLogger("nfourbar_cost")
 
@@ -61,18 +61,9 @@ PAGE_CONFIGS = {
 B0_BAR_M = 1e-6
 
 
-def _generator():
-    spec = importlib.util.spec_from_file_location(
-        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def measure(n: int, args, folder: Path) -> dict:
     path = folder / f"nfourbar_{n}.urdf"
-    path.write_text(_generator().build(n))
+    path.write_text(nfourbar_urdf(n))
     mech = cc.load(path)
     q0, v0 = ref.initial_state(mech)
     given = dict(

@@ -415,32 +415,22 @@ def fourbar_lookalikes(tmp_path_factory) -> dict[str, cc.Mechanism]:
     return out
 
 
-def nfourbar_generator():
-    """The module ``scripts/make_nfourbar.py`` (``build(n)`` writes the N-four-bar)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "make_nfourbar", ROOT / "scripts" / "make_nfourbar.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def nfourbar(tmp_path_factory):
     """``get(n) -> Mechanism``: the N-four-bar, the shipped model when there is one
-    (models/nfourbar_2.urdf, nfourbar_40.urdf), else written by scripts/make_nfourbar.py;
+    (models/nfourbar_2.urdf, nfourbar_40.urdf), else written by ``nfourbar_urdf``;
     each N loaded once per test module."""
     cache: dict[int, cc.Mechanism] = {}
     folder = tmp_path_factory.mktemp("nfourbar")
+
+    from closedchain.benchmark.families import nfourbar_urdf
 
     def get(n: int) -> cc.Mechanism:
         if n not in cache:
             path = MODELS / f"nfourbar_{n}.urdf"
             if not path.exists():
                 path = folder / f"nfourbar_{n}.urdf"
-                path.write_text(nfourbar_generator().build(n))
+                path.write_text(nfourbar_urdf(n))
             cache[n] = cc.load(path)
         return cache[n]
 

@@ -313,6 +313,102 @@ def test_growth_exponent_of_a_power_law():
     assert growth_exponents(rows)["m"] == pytest.approx(2.0, rel=1e-12)
 
 
+#: Closure of the generated families at their neutral configuration [m] (round-off).
+FAMILY_CLOSURE_TOL = 1e-12
+#: Parallelogram: the closed form (opposite bars parallel) against the assembly [rad].
+PARALLELOGRAM_TOL = 1e-9
+
+
+def _loop_gap(mech, q) -> float:
+    """Largest distance between the two frames of a loop at q (Pinocchio placements)."""
+    import numpy as np
+    import pinocchio as pin
+
+    data = mech.model.createData()
+    pin.framesForwardKinematics(mech.model, data, q)
+    gaps = [0.0]
+    for blk, _sl in mech.constraints.per_loop():
+        gaps.append(
+            float(np.linalg.norm(data.oMf[blk.fid_p].translation - data.oMf[blk.fid_s].translation))
+        )
+    return max(gaps)
+
+
+@pytest.mark.parametrize("m", (3, 7))
+def test_leg_pair_is_closed_with_the_mobility_of_its_parallelograms(tmp_path, m):
+    """Grubler count: per leg 1 roll + m pitch + 2 bars, minus 2 planar conditions per
+    parallelogram: mobility 2 (m - 1); closed at q = 0 (every link hanging)."""
+    import numpy as np
+
+    import closedchain as cc
+    from closedchain.benchmark.families import leg_pair_urdf
+
+    path = tmp_path / "legs.urdf"
+    path.write_text(leg_pair_urdf(m))
+    mech = cc.load(path)
+    assert mech.nv == 2 * (1 + m + 2)
+    assert mech.nv - mech.nc == 2 * (m - 1)
+    assert _loop_gap(mech, np.zeros(mech.nq)) <= FAMILY_CLOSURE_TOL
+
+
+def test_leg_pair_parallelogram_keeps_the_shank_parallel(tmp_path):
+    """Turning the thigh by theta, the parallelogram turns link 2 by -theta relative to
+    it (link 2 keeps the hip's orientation): the closed form of a parallelogram."""
+    import numpy as np
+
+    import closedchain as cc
+    from closedchain.benchmark.families import leg_pair_urdf
+
+    path = tmp_path / "legs.urdf"
+    path.write_text(leg_pair_urdf(4))
+    mech = cc.load(path)
+    names = list(mech.coordinate_names)
+    theta = 0.4
+    guess = np.zeros(mech.nq)
+    guess[names.index("left_001_pitch")] = theta
+    q = cc.assemble(mech, guess, fixed=["left_001_pitch"])
+    assert q[names.index("left_002_pitch")] == pytest.approx(-theta, abs=PARALLELOGRAM_TOL)
+    assert _loop_gap(mech, q) <= FAMILY_CLOSURE_TOL
+
+
+@pytest.mark.parametrize(
+    ("factory", "bad", "match"),
+    [("chain_urdf", 2, "n must be >= 3"), ("leg_pair_urdf", 2, "m must be >= 3")],
+)
+def test_families_refuse_sizes_too_small(factory, bad, match):
+    from closedchain.benchmark import families
+
+    with pytest.raises(ValueError, match=match):
+        getattr(families, factory)(bad)
+
+
+def test_scaling_run_writes_every_series(tmp_path):
+    """A small scaling run: one row per size and call, a table per family, the chart."""
+    import numpy as np
+
+    from closedchain.benchmark.scaling import IN_SIMULATE, SCALING_METHODS, run_scaling
+
+    rows = run_scaling(tmp_path, ["chain"], repeats=1, sizes={"chain": (5, 8)})
+    labels = {(r["method"], r["backend"]) for r in rows}
+    assert {(m, "numpy") for m in SCALING_METHODS} <= labels
+    assert ("pin.constraintDynamics", "C++") in labels
+    if cc_compiled.available():
+        assert {(m, b) for m in SCALING_METHODS for b in ("compiled", IN_SIMULATE)} <= labels
+    assert len(rows) == 2 * len(labels)
+    kkt = [r for r in rows if r["method"] == "kkt"]
+    assert all(np.isfinite(r["us"]) and r["us"] > 0 for r in kkt)
+    text = (tmp_path / "scaling.md").read_text()
+    assert "### chain" in text and "n = 5 (nv 5, nc 2)" in text and "n = 8 (nv 8" in text
+    assert (tmp_path / "scaling.png").stat().st_size > 0
+    assert (tmp_path / "scaling.csv").read_text().startswith("family,n,nv,nc,method")
+
+
+def test_bench_scaling_refuses_an_unknown_family(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["bench", "--scaling", "tripod"])
+    assert "invalid choice: 'tripod'" in capsys.readouterr().err
+
+
 def test_evaluation_calls_cover_every_method_and_exact_pinocchio(fourbar):
     import closedchain as cc
     from closedchain.benchmark.evaluation import evaluation_calls

@@ -383,10 +383,10 @@ def test_batched_evaluation_is_the_per_loop_one(load_mechanism, rng, monkeypatch
 def test_batched_evaluation_matches_finite_differences(tmp_path, rng):
     """The N-four-bar with 5 loops (more than BATCH_LOOPS): J and gamma of the batched
     path against central differences, every declared row."""
-    from conftest import nfourbar_generator
+    from closedchain.benchmark.families import nfourbar_urdf
 
     path = tmp_path / "nfourbar_5.urdf"
-    path.write_text(nfourbar_generator().build(5))
+    path.write_text(nfourbar_urdf(5))
     mech = cc.load(path)
     for layer in layers(mech).values():
         assert layer._tt is not None
@@ -402,10 +402,10 @@ def test_declared_rows_reuse_the_kept_rows_placements_only_at_the_same_q(tmp_pat
     declared rows evaluated with q=... right after the kept rows at the same q equal their
     evaluation on a fresh model (own placements), and at another q they are not served
     the memo's placements."""
-    from conftest import nfourbar_generator
+    from closedchain.benchmark.families import nfourbar_urdf
 
     path = tmp_path / "nfourbar_5.urdf"
-    path.write_text(nfourbar_generator().build(5))
+    path.write_text(nfourbar_urdf(5))
     mech, fresh = cc.load(path), cc.load(path)
     assert mech.constraints._memo is mech.declared._memo  # one memo for both layers
     (q1, _), (q2, _) = sample_states(mech, rng)[:2]

@@ -383,8 +383,7 @@ def test_digest_ignores_the_last_bits(fourbar, tmp_path):
 
 @pytest.mark.parametrize("n", [5000, pytest.param(50_000, marks=pytest.mark.slow)])
 def test_tree_beyond_the_supported_size_is_refused_before_work(tmp_path, n):
-    from chain_urdf import chain_urdf
-
+    from closedchain.benchmark.families import chain_urdf
     from closedchain.pindata import data_bytes, data_cost_formula, max_nv_for
 
     path = tmp_path / f"chain{n}.urdf"
@@ -401,8 +400,7 @@ def test_tree_beyond_the_supported_size_is_refused_before_work(tmp_path, n):
 
 
 def test_size_limit_is_a_setting(tmp_path):
-    from chain_urdf import chain_urdf
-
+    from closedchain.benchmark.families import chain_urdf
     from closedchain.pindata import data_bytes
 
     path = tmp_path / "chain12.urdf"
@@ -421,7 +419,7 @@ CHAIN1000_CI_STEPS = 5
 
 @pytest.fixture(scope="module")
 def chain1000(tmp_path_factory):
-    from chain_urdf import chain_urdf
+    from closedchain.benchmark.families import chain_urdf
 
     path = tmp_path_factory.mktemp("chain1000") / "chain1000.urdf"
     path.write_text(chain_urdf(1000, length=1000.0))
@@ -462,7 +460,7 @@ def test_a_1000_link_chain_with_one_loop_loads_and_simulates_one_second(tmp_path
     near 1e12 at n = 1000, so the default cond_max refuses it by name and the
     run raises the bound.
     """
-    from chain_urdf import chain_urdf
+    from closedchain.benchmark.families import chain_urdf
 
     path = tmp_path / "chain1000.urdf"
     path.write_text(chain_urdf(1000, length=1000.0))
@@ -488,7 +486,7 @@ def test_a_1000_link_chain_with_one_loop_loads_and_simulates_one_second(tmp_path
 
 
 def test_long_chain_refused_by_the_penalty_method_says_what_to_do(tmp_path):
-    from chain_urdf import chain_urdf
+    from closedchain.benchmark.families import chain_urdf
 
     path = tmp_path / "chain100.urdf"
     path.write_text(chain_urdf(100))

@@ -12,9 +12,10 @@ import nfourbar_reference as ref
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import MODELS, nfourbar_generator
+from conftest import MODELS
 
 import closedchain as cc
+from closedchain.benchmark.families import nfourbar_urdf
 
 #: Loop counts of the benchmark runs and of the shipped models.
 N_VALUES = (1, 2, 5, 10, 20, 40)
@@ -25,11 +26,6 @@ T_BENCHMARK = 20.0
 REFERENCE_AGREEMENT_TOL = 1e-12
 #: Model vs closed form: energy [J], position [m], closure [m] (round-off).
 MODEL_TOL = 1e-12
-
-
-@pytest.fixture(scope="module")
-def generator():
-    return nfourbar_generator()
 
 
 @pytest.mark.parametrize("n", N_VALUES)
@@ -67,13 +63,13 @@ def test_reference_against_an_ode_at_short_time():
 
 
 @pytest.mark.parametrize("n", SHIPPED)
-def test_shipped_models_are_the_generator_output(generator, n):
-    assert (MODELS / f"nfourbar_{n}.urdf").read_text() == generator.build(n)
+def test_shipped_models_are_the_generator_output(n):
+    assert (MODELS / f"nfourbar_{n}.urdf").read_text() == nfourbar_urdf(n)
 
 
-def test_generator_rejects_bad_n(generator):
+def test_generator_rejects_bad_n():
     with pytest.raises(ValueError, match="N must be a positive number of loops"):
-        generator.build(0)
+        nfourbar_urdf(0)
 
 
 @pytest.mark.parametrize("n", (1, 2, 5))

@@ -764,6 +764,8 @@ def _cmd_bench(args) -> int:
 
     from .benchmark import QUICK, BenchSettings, run_work_precision
 
+    if args.scaling is not None:
+        return _bench_scaling(args)
     settings = QUICK if args.quick else BenchSettings()
     if args.repeats is not None:
         settings = replace(settings, repeats=args.repeats)
@@ -795,6 +797,21 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _bench_scaling(args) -> int:
+    from .benchmark.scaling import run_scaling
+
+    families = args.scaling or None
+
+    def progress(name: str) -> None:
+        if not args.no_progress:
+            print(f"scaling: timing the {name} family", file=sys.stderr, flush=True)
+
+    rows = run_scaling(args.out_dir, families, repeats=args.repeats or 3, progress=progress)
+    print((Path(args.out_dir) / "scaling.md").read_text())
+    print(f"wrote {len(rows)} rows to {Path(args.out_dir) / 'scaling.csv'}")
+    return 0
+
+
 def _cmd_workspace(args) -> int:
     from .workspace import plot_workspace
 
@@ -807,6 +824,7 @@ def _cmd_workspace(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
+    from .benchmark.families import FAMILIES
     from .dynamics import METHODS
 
     parser = argparse.ArgumentParser(
@@ -920,6 +938,14 @@ def build_parser() -> argparse.ArgumentParser:
         " (default %(default)s)",
     )
     p.add_argument("--no-cache", action="store_true", help="recompute the references")
+    p.add_argument(
+        "--scaling",
+        nargs="*",
+        metavar="FAMILY",
+        choices=sorted(FAMILIES),
+        help="instead of the work-precision run: cost per evaluation against size for these "
+        f"families of mechanisms (default all: {', '.join(FAMILIES)}), with fitted exponents",
+    )
     _add_debug(p)
     p.set_defaults(handler=_cmd_bench)
 

@@ -56,7 +56,10 @@ def cpu_us_per_call(fn: Callable[[], object], number: int) -> float:
     return (time.process_time() - t0) / number * 1e6
 
 
-def _cheapest_exact(mech: Mechanism, q, v, tau, a_ref, cms, cds, data):
+def cheapest_exact_settings(mech: Mechanism, q, v, tau, a_ref, cms, cds, data):
+    """The cheapest ``pin.ProximalSettings`` (fewest iterations first, then the smallest mu) whose
+    ``pin.constraintDynamics`` matches ``a_ref`` to ``EXACT_TOL``, and a note saying which;
+    ``(None, note)`` when none does."""
     for max_iter in MAX_ITER_CANDIDATES:
         for mu in MU_CANDIDATES:
             prox = pin.ProximalSettings(1e-14, 0.0, mu, max_iter)
@@ -111,7 +114,7 @@ def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Cal
         )
     )
     a_ref = forward_dynamics(mech, q, v, tau, method="kkt").a
-    prox, note = _cheapest_exact(mech, q, v, tau, a_ref, cms, cds, data)
+    prox, note = cheapest_exact_settings(mech, q, v, tau, a_ref, cms, cds, data)
     if prox is not None:
         calls.append(
             (

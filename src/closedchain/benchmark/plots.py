@@ -112,7 +112,8 @@ def plot_stability_map(rows: list[dict], path: str | Path) -> None:
 
 
 def plot_scaling(rows: list[dict], path: str | Path) -> None:
-    """Cost per evaluation against N (log-log), one line per method."""
+    """Cost per evaluation against nv (log-log), one panel per family, one line per
+    method and backend, with the fitted exponent in the legend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -120,25 +121,29 @@ def plot_scaling(rows: list[dict], path: str | Path) -> None:
 
     from .scaling import growth_exponents, series_label
 
-    exps = growth_exponents(rows)
-    fig, ax = plt.subplots(figsize=(8, 5.5))
-    for label in sorted({series_label(r) for r in rows}):
-        mine = sorted((r for r in rows if series_label(r) == label), key=lambda r: r["n"])
-        style = "--s" if "compiled" in label else ("-^" if "C++" in label else "-o")
-        p = exps.get(label)
-        ax.plot(
-            [r["n"] for r in mine],
-            [r["us"] for r in mine],
-            style,
-            label=label + ("" if p is None else f"  p = {p:.2f}"),
-        )
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("N (N-four-bar loops)")
-    ax.set_ylabel("CPU microseconds per evaluation")
-    ax.set_title("cost per forward-dynamics evaluation against N (fitted cost ~ N^p)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    families = list(dict.fromkeys(r.get("family", "") for r in rows))
+    fig, axes = plt.subplots(1, len(families), figsize=(6 * len(families), 5), squeeze=False)
+    for ax, family in zip(axes[0], families, strict=True):
+        mine = [r for r in rows if r.get("family", "") == family]
+        exps = growth_exponents(mine, size="nv")
+        for label in sorted({series_label(r) for r in mine}):
+            line = sorted((r for r in mine if series_label(r) == label), key=lambda r: r["nv"])
+            style = "--s" if "compiled" in label else ("-^" if "numpy" not in label else "-o")
+            p = exps.get(label)
+            ax.plot(
+                [r["nv"] for r in line],
+                [r["us"] for r in line],
+                style,
+                label=label + ("" if p is None else f"  p = {p:.2f}"),
+            )
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("nv (degrees of freedom of the tree)")
+        ax.set_ylabel("CPU microseconds per evaluation")
+        ax.set_title(family or "cost per evaluation")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("cost per forward-dynamics evaluation against nv (fitted cost ~ nv^p)")
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
     plt.close(fig)
