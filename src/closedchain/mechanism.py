@@ -21,6 +21,7 @@ import numpy as np
 import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
+from ._invariants import prove_unclosable
 from ._io import captured_stderr
 from ._locking import exclusive
 from .closure import (
@@ -658,8 +659,9 @@ def load(
             ``settings.max_data_bytes`` (refused before any work).
         ClosedChainError: gravity is not 3 finite numbers of norm at most
             :data:`MAX_GRAVITY_NORM`.
-        LoopClosureError: no start closes the loops (the message gives the closure
-            residual reached per loop).
+        LoopClosureError: a loop provably cannot close (the message names the
+            height along a common joint axis that keeps it open), or no start
+            closes the loops (the message gives the closure residual reached per loop).
     """
     check_settings("settings", settings, LoadSettings)
     from .robots import merge_overlay, reference_configuration, resolve_model
@@ -950,9 +952,14 @@ def _first_closure(mech: Mechanism, settings: LoadSettings, q_guess, extra_start
     is accepted with a logged warning naming the loops.
 
     Raises:
-        LoopClosureError: no start closes the loops (names the residual per loop).
+        LoopClosureError: a loop provably cannot close (names the invariant that
+            keeps it open: :func:`~closedchain._invariants.prove_unclosable`), or no
+            start closes the loops (names the residual per loop).
     """
     model, data, declared = mech.model, mech.data, mech.closure.declared
+    proof = prove_unclosable(model, declared)
+    if proof is not None:
+        raise LoopClosureError(f"{mech.path}: {proof}; check the loop's type and its joints' types")
     limits = (model.lowerPositionLimit, model.upperPositionLimit)
     free = np.arange(mech.nv)
     asm = AssemblySettings()
