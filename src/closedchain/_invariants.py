@@ -30,11 +30,11 @@ own link), may be of another kind:
 
 All the quantities are evaluated at the neutral configuration (any
 configuration gives the same values). :func:`prove_unclosable` returns the
-first loop whose two sides' values differ by more than :data:`GAP_MIN`, in one
-line naming the joints, the axis and the two values. Loops of another type
-(revolute, prismatic, coupling) and joints of another kind (free flyer,
-planar, helical, mimic, ...) are not examined: no proof is found, none is
-claimed.
+first loop whose two sides' values differ by more than :data:`GAP_MIN` (or the
+caller's ``gap_min``), in one line naming the joints, the axis and the two
+values. Loops of another type (revolute, prismatic, coupling) and joints of
+another kind (free flyer, planar, helical, mimic, ...) are not examined: no
+proof is found, none is claimed.
 """
 
 from __future__ import annotations
@@ -183,7 +183,9 @@ def _height_gap(
     )
 
 
-def prove_unclosable(model: pin.Model, layer: ConstraintLayer) -> str | None:
+def prove_unclosable(
+    model: pin.Model, layer: ConstraintLayer, *, gap_min: float = GAP_MIN
+) -> str | None:
     """Return why some loop of ``layer`` can never close, in one line, or None.
 
     See the module docstring for the argument.
@@ -191,6 +193,7 @@ def prove_unclosable(model: pin.Model, layer: ConstraintLayer) -> str | None:
     Args:
         model: the Pinocchio model with the loop frames.
         layer: the declared loops.
+        gap_min: smallest difference [m or rad] reported (at least :data:`GAP_MIN`).
 
     Returns:
         ``"loop 'name' (type) cannot close in any configuration: ..."`` for the
@@ -230,7 +233,7 @@ def prove_unclosable(model: pin.Model, layer: ConstraintLayer) -> str | None:
                 else:
                     continue
                 gap, what = _height_gap(y, end, spec.type, frames)
-                if gap > GAP_MIN:
+                if gap > max(gap_min, GAP_MIN):
                     planar = ", ".join(jt.name for jt in joints if jt is not end)
                     return (
                         f"loop {spec.name!r} ({spec.type}) cannot close in any configuration: "

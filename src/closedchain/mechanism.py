@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
@@ -957,7 +958,10 @@ def _first_closure(mech: Mechanism, settings: LoadSettings, q_guess, extra_start
             start closes the loops (names the residual per loop).
     """
     model, data, declared = mech.model, mech.data, mech.closure.declared
-    proof = prove_unclosable(model, declared)
+    # A proven gap g keeps a 3-vector of the closure residual at norm g or more, so its
+    # largest component at g / sqrt(3) or more: below sqrt(3) mismatch_tol the gap may
+    # be a rounded CAD export that mismatch_tol accepts, left to the assembly.
+    proof = prove_unclosable(model, declared, gap_min=math.sqrt(3.0) * settings.mismatch_tol)
     if proof is not None:
         raise LoopClosureError(f"{mech.path}: {proof}; check the loop's type and its joints' types")
     limits = (model.lowerPositionLimit, model.upperPositionLimit)
