@@ -18,7 +18,9 @@ rest of closedchain reads one format:
   (:data:`LOOP_TYPE_OF`, case ignored);
 - each joint of ``name_mot`` gets a ``<transmission>``;
 - ``joint_type`` rewrites the joints of ``joint_name`` before Pinocchio reads
-  the tree (:data:`JOINT_CONVERSIONS`, case ignored): ``FIXED`` makes the
+  the tree (:data:`JOINT_CONVERSIONS`, case ignored; a name of no joint is
+  passed over with a logged warning, as the authors' loader passes over it
+  silently): ``FIXED`` makes the
   joint fixed at its zero position (the URDF's origin); ``UJOINT_<A><B>``
   replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
   the axes A then B of the joint's frame, at its origin, through a massless
