@@ -184,7 +184,7 @@ def _height_gap(
 
 
 def prove_unclosable(
-    model: pin.Model, layer: ConstraintLayer, *, gap_min: float = GAP_MIN
+    model: pin.Model, data: pin.Data, layer: ConstraintLayer, *, gap_min: float = GAP_MIN
 ) -> str | None:
     """Return why some loop of ``layer`` can never close, in one line, or None.
 
@@ -192,6 +192,9 @@ def prove_unclosable(
 
     Args:
         model: the Pinocchio model with the loop frames.
+        data: its data (overwritten: the kinematics at the neutral configuration;
+            the caller's, as a full ``model.createData()`` of a long chain takes
+            nv^3 memory).
         layer: the declared loops.
         gap_min: smallest difference [m or rad] reported (at least :data:`GAP_MIN`).
 
@@ -199,7 +202,6 @@ def prove_unclosable(
         ``"loop 'name' (type) cannot close in any configuration: ..."`` for the
         first loop proven open, else None (no proof found; not a proof of closure).
     """
-    data = model.createData()
     q = pin.neutral(model)
     pin.framesForwardKinematics(model, data, q)
     for spec, (fp, fs) in zip(layer.loops, layer.frame_ids, strict=True):

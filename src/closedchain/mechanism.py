@@ -961,7 +961,7 @@ def _first_closure(mech: Mechanism, settings: LoadSettings, q_guess, extra_start
     # A proven gap g keeps a 3-vector of the closure residual at norm g or more, so its
     # largest component at g / sqrt(3) or more: below sqrt(3) mismatch_tol the gap may
     # be a rounded CAD export that mismatch_tol accepts, left to the assembly.
-    proof = prove_unclosable(model, declared, gap_min=math.sqrt(3.0) * settings.mismatch_tol)
+    proof = prove_unclosable(model, data, declared, gap_min=math.sqrt(3.0) * settings.mismatch_tol)
     if proof is not None:
         raise LoopClosureError(f"{mech.path}: {proof}; check the loop's type and its joints' types")
     limits = (model.lowerPositionLimit, model.upperPositionLimit)
