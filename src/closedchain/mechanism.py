@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
@@ -21,6 +22,7 @@ import numpy as np
 import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
+from ._invariants import prove_unclosable
 from ._io import captured_stderr
 from ._locking import exclusive
 from .closure import (
@@ -658,8 +660,9 @@ def load(
             ``settings.max_data_bytes`` (refused before any work).
         ClosedChainError: gravity is not 3 finite numbers of norm at most
             :data:`MAX_GRAVITY_NORM`.
-        LoopClosureError: no start closes the loops (the message gives the closure
-            residual reached per loop).
+        LoopClosureError: a loop provably cannot close (the message names the
+            height along a common joint axis that keeps it open), or no start
+            closes the loops (the message gives the closure residual reached per loop).
     """
     check_settings("settings", settings, LoadSettings)
     from .robots import merge_overlay, reference_configuration, resolve_model
@@ -950,9 +953,17 @@ def _first_closure(mech: Mechanism, settings: LoadSettings, q_guess, extra_start
     is accepted with a logged warning naming the loops.
 
     Raises:
-        LoopClosureError: no start closes the loops (names the residual per loop).
+        LoopClosureError: a loop provably cannot close (names the invariant that
+            keeps it open: :func:`~closedchain._invariants.prove_unclosable`), or no
+            start closes the loops (names the residual per loop).
     """
     model, data, declared = mech.model, mech.data, mech.closure.declared
+    # A proven gap g keeps a 3-vector of the closure residual at norm g or more, so its
+    # largest component at g / sqrt(3) or more: below sqrt(3) mismatch_tol the gap may
+    # be a rounded CAD export that mismatch_tol accepts, left to the assembly.
+    proof = prove_unclosable(model, data, declared, gap_min=math.sqrt(3.0) * settings.mismatch_tol)
+    if proof is not None:
+        raise LoopClosureError(f"{mech.path}: {proof}; check the loop's type and its joints' types")
     limits = (model.lowerPositionLimit, model.upperPositionLimit)
     free = np.arange(mech.nv)
     asm = AssemblySettings()

@@ -18,7 +18,9 @@ rest of closedchain reads one format:
   (:data:`LOOP_TYPE_OF`, case ignored);
 - each joint of ``name_mot`` gets a ``<transmission>``;
 - ``joint_type`` rewrites the joints of ``joint_name`` before Pinocchio reads
-  the tree (:data:`JOINT_CONVERSIONS`, case ignored): ``FIXED`` makes the
+  the tree (:data:`JOINT_CONVERSIONS`, case ignored; a name of no joint is
+  passed over with a logged warning, as the authors' loader passes over it
+  silently): ``FIXED`` makes the
   joint fixed at its zero position (the URDF's origin); ``UJOINT_<A><B>``
   replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
   the axes A then B of the joint's frame, at its origin, through a massless
@@ -49,6 +51,7 @@ The YAML is read with PyYAML's safe loader (no Python objects, no code).
 from __future__ import annotations
 
 import difflib
+import logging
 import math
 import re
 from collections.abc import Collection
@@ -65,6 +68,8 @@ from .urdf import NEAR_MISS_CUTOFF, URDFPlus, name_list
 
 if TYPE_CHECKING:
     import pinocchio as pin
+
+logger = logging.getLogger(__name__)
 
 #: File suffixes that mark a ``loops=`` file as YAML (else it is a URDF+ overlay).
 YAML_SUFFIXES = (".yaml", ".yml")
@@ -242,12 +247,15 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
         ``fuse_ball_chains`` (True: the convention's ball joints, see
         :func:`find_ball_chains`).
 
+    A ``joint_name`` entry that names no ``<joint>`` is passed over with a
+    logged warning (suggesting the nearest name), as the authors' loader passes
+    over it silently.
+
     Raises:
-        URDFError: ``joint_name`` names no ``<joint>`` (lists them), a joint
-            that cannot be converted so, or one whose conversion would reuse a
-            name; ``name_mot`` names no movable joint of the converted tree (lists
-            them). Loop frames are checked when the tree is built
-            (:func:`closedchain.load`).
+        URDFError: ``joint_name`` names a joint that cannot be converted so, or
+            one whose conversion would reuse a name; ``name_mot`` names no
+            movable joint of the converted tree (lists them). Loop frames are
+            checked when the tree is built (:func:`closedchain.load`).
     """
     path = loops.path
     joints = {e.get("name"): e for e in root.findall("joint")}
@@ -257,10 +265,17 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
         where = f"{path}: joint_name[{i}] = {name!r}"
         joint = joints.get(name)
         if joint is None:
-            raise URDFError(
-                f"{where} is not a <joint> of {base}{_did_you_mean(name, joints)}; joints: "
-                f"{name_list(joints)}"
+            # The authors' loader converts the joints it finds by name and passes over
+            # the others: so does this one, saying so.
+            logger.warning(
+                "%s is not a <joint> of %s%s: ignored (%s not applied), as the authors' "
+                "loader does",
+                where,
+                base,
+                _did_you_mean(name, joints),
+                kind,
             )
+            continue
         if kind == "FIXED":
             _make_fixed(joint)
         else:
