@@ -6,8 +6,11 @@
   leg's crank and distal circles (both working modes), motor torques at rest = the
   gradient of the potential energy (virtual work), sigma_min of J_D = its closed form near
   the type II singularity where the distal links align;
-* the Agile Eye: inverse kinematics of the platform placement round-trips with forward
-  kinematics.
+* the Agile Eye and a leg in the corpus's URDF + YAML form: inverse kinematics of the
+  platform (sole) placement round-trips with forward kinematics; the leg's forward
+  kinematics = its two four-bars' circle intersections, its motor torques = virtual work
+  at rest and Pinocchio's constrained dynamics in motion, its type II singularity where a
+  rod passes through the knee axis, its type I ones where hip axes align.
 
 The five-bar's closed forms below are written from the geometry stated in the URDF's
 header and share no code with closedchain.
@@ -205,18 +208,23 @@ def test_five_bar_inverse_kinematics_is_circle_intersection(five_bar, rng, P, si
     assert r.closure_residual <= ANGLE_TOL
 
 
-def test_agile_eye_inverse_kinematics_round_trips(agile_eye, rng):
-    fid = agile_eye.model.getFrameId("platform")
-    data = agile_eye.model.createData()
-    for _ in range(5):
-        motors = rng.uniform(-0.4, 0.4, 3)
-        fk = cc.forward_kinematics(agile_eye, motors)
-        pin.framesForwardKinematics(agile_eye.model, data, fk.q)
+@pytest.mark.parametrize("name, frame, samples", [("agile_eye", "platform", 5), ("leg", "sole", 3)])
+def test_inverse_kinematics_round_trips(request, rng, name, frame, samples):
+    """The pose forward kinematics gives to random motors takes inverse kinematics,
+    started from q_ref, back to those motors (the Agile Eye's platform; the sole of
+    the corpus-style leg below, 6d with five motors)."""
+    mech = request.getfixturevalue(name)
+    fid = mech.model.getFrameId(frame)
+    data = mech.model.createData()
+    for _ in range(samples):
+        motors = rng.uniform(-0.4, 0.4, len(mech.actuated_joints))
+        fk = cc.forward_kinematics(mech, motors)
+        pin.framesForwardKinematics(mech.model, data, fk.q)
         target = data.oMf[fid].copy()
-        ik = cc.inverse_kinematics(agile_eye, "platform", target)  # from q_ref
+        ik = cc.inverse_kinematics(mech, frame, target)  # from q_ref
         assert np.linalg.norm(wrap(ik.motors - motors)) <= ROUND_TRIP_TOL
-        assert np.linalg.norm(wrap(ik.q - fk.q)) <= ROUND_TRIP_TOL
-        pin.framesForwardKinematics(agile_eye.model, data, ik.q)
+        assert np.linalg.norm(pin.difference(mech.model, fk.q, ik.q)) <= ROUND_TRIP_TOL
+        pin.framesForwardKinematics(mech.model, data, ik.q)
         assert np.linalg.norm(pin.log6(target.actInv(data.oMf[fid])).vector) <= ROUND_TRIP_TOL
 
 
@@ -320,17 +328,23 @@ def test_five_bar_type_i_singularity(five_bar):
 GUIDE = MODELS.parent / "docs" / "guide" / "robots-and-moving-bases.md"
 
 
-def test_guide_example_runs(tmp_path, monkeypatch):
-    """The ```python block of the guide's section "The parallel-robot workflow" runs."""
+def test_guide_examples_run(tmp_path, monkeypatch):
+    """The ```python blocks of the guide's section "The parallel-robot workflow" run:
+    the Agile Eye's, and the leg's (tests/data/yaml_parallel_leg)."""
     text = GUIDE.read_text().split("## The parallel-robot workflow", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"^```python\n(.*?)^```$", text, re.M | re.S)
-    assert len(blocks) == 1
+    assert len(blocks) == 2
     (tmp_path / "models").symlink_to(MODELS)
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "data").symlink_to(DATA_DIR)
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "guide_example"}
-    exec(compile(blocks[0], str(GUIDE), "exec"), namespace)
-    assert namespace["ik"].frame_error <= cc.parallel.IK_TOL
-    assert namespace["s"].parallel > 0.1  # the Agile Eye's workspace centre is regular
+    eye, leg = ({"__name__": "guide_example"} for _ in blocks)
+    for block, namespace in zip(blocks, (eye, leg), strict=True):
+        exec(compile(block, str(GUIDE), "exec"), namespace)
+    assert eye["ik"].frame_error <= cc.parallel.IK_TOL
+    assert eye["s"].parallel > 0.1  # the Agile Eye's workspace centre is regular
+    assert np.linalg.norm(wrap(leg["ik"].motors - leg["fk"].motors)) <= ROUND_TRIP_TOL
+    assert min(leg["s"].parallel, leg["s"].serial) > 1e-3  # a bent leg is regular
 
 
 # -- a leg in the example-parallel-robots convention (URDF + loops YAML) -----------------
@@ -433,19 +447,6 @@ def test_leg_forward_kinematics_is_its_four_bars(leg, motors):
     assert abs(wrap(_leg_q(leg, "knee", fk.q) - KNEE.arm_angle(motors[3]))) <= ANGLE_TOL
     assert abs(wrap(_leg_q(leg, "ankle", fk.q) - ANKLE.arm_angle(motors[4]))) <= ANGLE_TOL
     assert fk.closure_residual <= ANGLE_TOL
-
-
-def test_leg_inverse_kinematics_of_the_sole_round_trips(leg, rng):
-    fid = leg.model.getFrameId("sole")
-    data = leg.model.createData()
-    for _ in range(3):
-        motors = rng.uniform(-0.4, 0.4, 5)
-        fk = cc.forward_kinematics(leg, motors)
-        pin.framesForwardKinematics(leg.model, data, fk.q)
-        target = data.oMf[fid].copy()
-        ik = cc.inverse_kinematics(leg, "sole", target)  # from q_ref
-        assert np.linalg.norm(wrap(ik.motors - motors)) <= ROUND_TRIP_TOL
-        assert ik.frame_error <= cc.parallel.IK_TOL
 
 
 def test_leg_motor_torques_at_rest_are_virtual_work(leg):
