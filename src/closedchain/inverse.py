@@ -12,7 +12,9 @@ motion:
     \begin{bmatrix} B & -J^\top \end{bmatrix}
     \begin{bmatrix} \tau_A \\ \lambda \end{bmatrix} = M a + h,
 
-where B (nv x na) selects the actuated coordinates. Projected onto an
+where B (nv x na) selects the actuated coordinates (with passive generalized forces
+``tau_passive``, such as joint springs, the right-hand side is
+:math:`M a + h - \tau_{passive}`). Projected onto an
 orthonormal basis N of the null space of J (:math:`N^\top J^\top = 0`) the
 second system splits into
 

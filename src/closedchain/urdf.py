@@ -27,6 +27,10 @@ and a standard URDF ``<mimic joint="i" multiplier="m" offset="c"/>`` inside
 ``<joint name="j">`` is read as the same loop, named ``j`` + :data:`MIMIC_SUFFIX`
 (the joint itself stays an ordinary joint of the tree). See :func:`parse_urdf`.
 
+A joint spring (:class:`JointSpring`, generalized force -k (q - q0)) is written in
+the joint's ``<dynamics>``, with the names of SDF's elements:
+``<dynamics damping="0" spring_stiffness="1500" spring_reference="0"/>``.
+
 A side may name any frame of the tree instead of a link, ``<predecessor
 frame="closedloop1_A"/>`` (a link, or a joint's frame); the origin is then in
 that frame, and :func:`closedchain.load` resolves the side to a link.
@@ -762,6 +766,10 @@ def parse_urdf(
       ``<joint>`` is the same loop (URDF's defaults: multiplier 1, offset 0),
       named after the joint with :data:`MIMIC_SUFFIX`; the ``<mimic>`` of a
       fixed joint couples nothing and is left out (logged).
+    - ``<dynamics spring_stiffness spring_reference>`` of a revolute or prismatic
+      joint (:data:`SPRING_JOINT_TYPES`): a :class:`JointSpring`; a stiffness that is
+      negative or not finite, a reference without a stiffness, another joint type, or
+      no ``damping``/``friction`` beside them (urdfdom refuses that) is refused.
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
       :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
       scaling first (an axis of 1e308 is a direction). The axis of a
