@@ -446,6 +446,20 @@ def test_sdf_springs_become_joint_springs():
     np.testing.assert_array_equal(cc.spring_torque(mech, q), expected)
 
 
+def test_with_spring_torque_adds_the_springs_to_any_tau(rng):
+    mech = cc.load(SPRING_LEGS)
+    q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+    v, tau = rng.standard_normal(mech.nv), rng.standard_normal(mech.nv)
+    springs = cc.spring_torque(mech, q)
+    assert np.max(np.abs(springs)) > 0.0
+    np.testing.assert_array_equal(cc.with_spring_torque(mech)(0.0, q, v), springs)
+    np.testing.assert_array_equal(cc.with_spring_torque(mech, tau)(0.0, q, v), tau + springs)
+    law = cc.with_spring_torque(mech, lambda t, q, v: t * v)
+    np.testing.assert_array_equal(law(2.0, q, v), 2.0 * v + springs)
+    fourbar = cc.load(FOURBAR)  # no spring: tau comes back as it was
+    assert cc.with_spring_torque(fourbar, tau) is tau
+
+
 def test_a_spring_on_a_cut_joint_is_left_out_with_a_warning(tmp_path, caplog):
     ball = """    <joint name="left-achilles-hip" type="ball">
       <parent>left-thigh</parent>
@@ -487,6 +501,27 @@ def test_gravity_torque_with_springs_is_the_gradient_of_the_potential(spring_leg
         # Fourth-order central difference.
         grad[i] = (8 * (V[1] - V[-1]) - (V[2] - V[-2])) / (12 * FD_STEP)
     assert np.max(np.abs(tau - grad)) < TOL_VIRTUAL_WORK * np.max(np.abs(tau))
+
+
+def test_the_command_line_applies_the_springs(spring_legs_pinned, tmp_path, capsys):
+    """Released at a state where the heel springs pull hard (~1e3 N m on the hips),
+    under --torque gravity the legs stay at rest only if the springs act too."""
+    q0 = cc.forward_kinematics(spring_legs_pinned, [0.05, -0.04]).q
+    out = tmp_path / "run.npz"
+    argv = ["simulate", str(SPRING_LEGS), "--loops", str(DATA_DIR / "spring_legs_pinned.urdf")]
+    argv += [
+        "--q0",
+        *(repr(float(x)) for x in q0),
+        "--torque",
+        "gravity",
+        "--t-final",
+        "0.2",
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    traj = cc.Trajectory.load(out)
+    assert np.max(np.abs(traj.q - q0)) < TOL_STAND_DRIFT
 
 
 def test_spring_legs_stand_2_s_on_welded_feet_under_gravity_torque(tmp_path, monkeypatch):
