@@ -6,8 +6,11 @@
   leg's crank and distal circles (both working modes), motor torques at rest = the
   gradient of the potential energy (virtual work), sigma_min of J_D = its closed form near
   the type II singularity where the distal links align;
-* the Agile Eye: inverse kinematics of the platform placement round-trips with forward
-  kinematics.
+* the Agile Eye and a leg in the corpus's URDF + YAML form: inverse kinematics of the
+  platform (sole) placement round-trips with forward kinematics; the leg's forward
+  kinematics = its two four-bars' circle intersections, its motor torques = virtual work
+  at rest and Pinocchio's constrained dynamics in motion, its type II singularity where a
+  rod passes through the knee axis, its type I ones where hip axes align.
 
 The five-bar's closed forms below are written from the geometry stated in the URDF's
 header and share no code with closedchain.
@@ -205,18 +208,23 @@ def test_five_bar_inverse_kinematics_is_circle_intersection(five_bar, rng, P, si
     assert r.closure_residual <= ANGLE_TOL
 
 
-def test_agile_eye_inverse_kinematics_round_trips(agile_eye, rng):
-    fid = agile_eye.model.getFrameId("platform")
-    data = agile_eye.model.createData()
-    for _ in range(5):
-        motors = rng.uniform(-0.4, 0.4, 3)
-        fk = cc.forward_kinematics(agile_eye, motors)
-        pin.framesForwardKinematics(agile_eye.model, data, fk.q)
+@pytest.mark.parametrize("name, frame, samples", [("agile_eye", "platform", 5), ("leg", "sole", 3)])
+def test_inverse_kinematics_round_trips(request, rng, name, frame, samples):
+    """The pose forward kinematics gives to random motors takes inverse kinematics,
+    started from q_ref, back to those motors (the Agile Eye's platform; the sole of
+    the corpus-style leg below, 6d with five motors)."""
+    mech = request.getfixturevalue(name)
+    fid = mech.model.getFrameId(frame)
+    data = mech.model.createData()
+    for _ in range(samples):
+        motors = rng.uniform(-0.4, 0.4, len(mech.actuated_joints))
+        fk = cc.forward_kinematics(mech, motors)
+        pin.framesForwardKinematics(mech.model, data, fk.q)
         target = data.oMf[fid].copy()
-        ik = cc.inverse_kinematics(agile_eye, "platform", target)  # from q_ref
+        ik = cc.inverse_kinematics(mech, frame, target)  # from q_ref
         assert np.linalg.norm(wrap(ik.motors - motors)) <= ROUND_TRIP_TOL
-        assert np.linalg.norm(wrap(ik.q - fk.q)) <= ROUND_TRIP_TOL
-        pin.framesForwardKinematics(agile_eye.model, data, ik.q)
+        assert np.linalg.norm(pin.difference(mech.model, fk.q, ik.q)) <= ROUND_TRIP_TOL
+        pin.framesForwardKinematics(mech.model, data, ik.q)
         assert np.linalg.norm(pin.log6(target.actInv(data.oMf[fid])).vector) <= ROUND_TRIP_TOL
 
 
@@ -320,14 +328,182 @@ def test_five_bar_type_i_singularity(five_bar):
 GUIDE = MODELS.parent / "docs" / "guide" / "robots-and-moving-bases.md"
 
 
-def test_guide_example_runs(tmp_path, monkeypatch):
-    """The ```python block of the guide's section "The parallel-robot workflow" runs."""
+def test_guide_examples_run(tmp_path, monkeypatch):
+    """The ```python blocks of the guide's section "The parallel-robot workflow" run:
+    the Agile Eye's, and the leg's (tests/data/yaml_parallel_leg)."""
     text = GUIDE.read_text().split("## The parallel-robot workflow", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"^```python\n(.*?)^```$", text, re.M | re.S)
-    assert len(blocks) == 1
+    assert len(blocks) == 2
     (tmp_path / "models").symlink_to(MODELS)
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "data").symlink_to(DATA_DIR)
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "guide_example"}
-    exec(compile(blocks[0], str(GUIDE), "exec"), namespace)
-    assert namespace["ik"].frame_error <= cc.parallel.IK_TOL
-    assert namespace["s"].parallel > 0.1  # the Agile Eye's workspace centre is regular
+    eye, leg = ({"__name__": "guide_example"} for _ in blocks)
+    for block, namespace in zip(blocks, (eye, leg), strict=True):
+        exec(compile(block, str(GUIDE), "exec"), namespace)
+    assert eye["ik"].frame_error <= cc.parallel.IK_TOL
+    assert eye["s"].parallel > 0.1  # the Agile Eye's workspace centre is regular
+    assert np.linalg.norm(wrap(leg["ik"].motors - leg["fk"].motors)) <= ROUND_TRIP_TOL
+    assert min(leg["s"].parallel, leg["s"].serial) > 1e-3  # a bent leg is regular
+
+
+# -- a leg in the example-parallel-robots convention (URDF + loops YAML) -----------------
+#
+# tests/data/yaml_parallel_leg: hip yaw, roll and pitch motors in series; the knee and the
+# ankle passive, each turned by a crank motor through a rod (the knee's rod welded 6d to a
+# spherical link of the shin, the ankle's joined 3d to the foot). Its two four-bars lie in
+# the x-z plane of their frames (joint axes along y): thigh frame for the knee, shin frame
+# for the ankle. Their closed forms below are written from the numbers in the URDF header.
+
+LEG = DATA_DIR / "yaml_parallel_leg.urdf"
+LEG_MOTORS = ("hip_z", "hip_x", "hip_y", "knee_mot", "ankle_mot")
+#: Accelerations of the motors that Pinocchio's constrained dynamics gives under the
+#: inverse-dynamics torques, against the prescribed ones [rad/s^2].
+LEG_ACCEL_TOL = 1e-8
+
+
+@dataclass(frozen=True)
+class FourBar:
+    """A crank-rod-arm four-bar in the x-z plane of a link frame (points (x, z) [m]).
+
+    The crank turns about y at ``pivot`` with its tip at ``tip`` (angle 0); the arm turns
+    about y at ``joint`` carrying the rod's end ``end`` (angle 0); the rod joins tip to end.
+    """
+
+    pivot: np.ndarray
+    tip: np.ndarray
+    joint: np.ndarray
+    end: np.ndarray
+
+    @staticmethod
+    def rot(theta: float, p) -> np.ndarray:
+        """(x, z) turned by theta about +y: x' = x cos + z sin, z' = -x sin + z cos."""
+        c, s = math.cos(theta), math.sin(theta)
+        return np.array([c * p[0] + s * p[1], -s * p[0] + c * p[1]])
+
+    @staticmethod
+    def angle(a, b) -> float:
+        """The angle about +y that turns direction a into direction b [rad]."""
+        return math.atan2(a[1] * b[0] - a[0] * b[1], a[0] * b[0] + a[1] * b[1])
+
+    @property
+    def rod(self) -> float:
+        return float(np.linalg.norm(self.end - self.tip))
+
+    def crank_tip(self, phi: float) -> np.ndarray:
+        return self.pivot + self.rot(phi, self.tip - self.pivot)
+
+    def arm_angle(self, phi: float, guess: float = 0.0) -> float:
+        """The arm's angle with the crank at phi: its end on the circle of radius |rod| about
+        the crank tip (the intersection nearest ``guess``)."""
+        c = self.crank_tip(phi)
+        arm = self.end - self.joint
+        a, d = float(np.linalg.norm(arm)), float(np.linalg.norm(c - self.joint))
+        x = (a**2 - self.rod**2 + d**2) / (2 * d)
+        h = math.sqrt(a**2 - x**2)
+        u = (c - self.joint) / d
+        n = np.array([-u[1], u[0]])
+        angles = [self.angle(arm, x * u + sign * h * n) for sign in (1.0, -1.0)]
+        return min(angles, key=lambda t: abs(wrap(t - guess)))
+
+    def toggle(self) -> tuple[float, float]:
+        """(crank, arm) angles where the rod passes through the arm's joint (type II):
+        |tip - joint| = rod - arm, the arm pointing away from the tip."""
+        arm = self.end - self.joint
+        r, d = float(np.linalg.norm(self.tip - self.pivot)), self.rod - float(np.linalg.norm(arm))
+        e = float(np.linalg.norm(self.joint - self.pivot))
+        x = (r**2 - d**2 + e**2) / (2 * e)
+        u = (self.joint - self.pivot) / e
+        c = self.pivot + x * u + math.sqrt(r**2 - x**2) * np.array([-u[1], u[0]])
+        phi = self.angle(self.tip - self.pivot, c - self.pivot)
+        return phi, self.angle(arm, self.joint - c)
+
+
+#: The knee's four-bar in the thigh frame, the ankle's in the shin frame (header numbers).
+KNEE = FourBar(*(np.array(p) for p in ((0.06, -0.05), (0.12, -0.05), (0.0, -0.4), (0.06, -0.45))))
+ANKLE = FourBar(
+    *(np.array(p) for p in ((-0.06, -0.05), (-0.12, -0.05), (0.0, -0.4), (-0.06, -0.42)))
+)
+
+
+@pytest.fixture(scope="module")
+def leg() -> cc.Mechanism:
+    return cc.load(LEG, loops=LEG.with_suffix(".yaml"))
+
+
+def _leg_q(leg, name: str, q) -> float:
+    return float(q[leg.model.joints[leg.model.getJointId(name)].idx_q])
+
+
+def test_leg_loads_with_its_motors(leg):
+    # 14 coordinates (2 U-joints, a spherical joint), 9 rows (6d + 3d): 5 motors.
+    assert (leg.nv, leg.nc, leg.mobility, leg.actuated_joints) == (14, 9, 5, LEG_MOTORS)
+
+
+@pytest.mark.parametrize("motors", [(0.1, -0.2, 0.3, 0.4, -0.3), (-0.3, 0.2, -0.5, -0.6, 0.5)])
+def test_leg_forward_kinematics_is_its_four_bars(leg, motors):
+    fk = cc.forward_kinematics(leg, motors)
+    assert np.linalg.norm(wrap(fk.motors - motors)) <= ANGLE_TOL
+    assert abs(wrap(_leg_q(leg, "knee", fk.q) - KNEE.arm_angle(motors[3]))) <= ANGLE_TOL
+    assert abs(wrap(_leg_q(leg, "ankle", fk.q) - ANKLE.arm_angle(motors[4]))) <= ANGLE_TOL
+    assert fk.closure_residual <= ANGLE_TOL
+
+
+def test_leg_motor_torques_at_rest_are_virtual_work(leg):
+    motors = np.array([0.2, -0.1, 0.4, 0.3, -0.2])
+    q = cc.forward_kinematics(leg, motors).q
+    # actuated_idx_v is in the order of the coordinates; the motors in name_mot's order.
+    idx_v = [leg.model.joints[leg.model.getJointId(n)].idx_v for n in LEG_MOTORS]
+    tau = cc.gravity_torque(leg, q)[idx_v]
+    data = leg.model.createData()
+
+    def V(m):
+        return pin.computePotentialEnergy(
+            leg.model, data, cc.forward_kinematics(leg, m, q_guess=q).q
+        )
+
+    steps = FD_STEP * np.eye(5)
+    ref = np.array([(V(motors + h) - V(motors - h)) / (2 * FD_STEP) for h in steps])
+    assert np.linalg.norm(tau - ref) <= TORQUE_TOL
+
+
+def test_leg_motor_torques_give_pinocchios_accelerations(leg, rng):
+    """Inverse dynamics in motion: under its torques, pinocchio.constraintDynamics
+    accelerates the motors as prescribed."""
+    from closedchain.validation import pinocchio_reference_dynamics
+
+    q = cc.forward_kinematics(leg, [0.1, 0.2, -0.3, 0.2, 0.1]).q
+    v = cc.project_velocity(leg, q, rng.standard_normal(leg.nv), fixed=list(LEG_MOTORS))
+    a_motors = rng.standard_normal(5)
+    res = cc.inverse_dynamics(leg, q, v, a_motors, coordinates="actuated")
+    a_pin = pinocchio_reference_dynamics(leg, q, v, res.tau)[0]
+    assert np.max(np.abs(a_pin[leg.actuated_idx_v] - a_motors)) <= LEG_ACCEL_TOL
+    assert np.max(np.abs(a_pin - res.a)) <= LEG_ACCEL_TOL
+
+
+def test_leg_actuation_singularities(leg):
+    # Away from both: a bent leg (q_ref, the straight leg, is a type I singularity: its
+    # hip pitch, knee and ankle axes are parallel and lie in one plane).
+    bent = cc.forward_kinematics(leg, [0.1, -0.2, 0.3, 0.4, -0.3]).q
+    s = cc.actuation_singularities(leg, bent, frame="sole")
+    assert min(s.parallel, s.serial) > 1e-3
+    assert cc.actuation_singularities(leg, leg.q_ref, frame="sole").serial <= SINGULAR_TOL
+    # Type II: the knee rod passes through the knee axis (closed form of the four-bar).
+    phi, theta = KNEE.toggle()
+    q = leg.q_ref.copy()
+    for name, x in (("knee_mot", phi), ("knee", theta)):
+        q[leg.model.joints[leg.model.getJointId(name)].idx_q] = x
+    q = cc.assemble(leg, q, fixed=["knee_mot", "knee"])
+    assert cc.actuation_singularities(leg, q).parallel <= SINGULAR_TOL
+    with pytest.raises(cc.SingularConfigurationError, match="type II"):
+        cc.forward_kinematics(leg, [0.0, 0.0, 0.0, phi, 0.0], q_guess=q)
+    # Type I: hip roll at 90 deg turns the hip pitch axis onto the yaw axis, so the
+    # sole stays put while yaw and pitch turn opposite ways; sigma_min is linear in
+    # the distance delta to it.
+    sigma = []
+    for delta in (0.0, 1e-3, 5e-4, 2.5e-4):
+        fk = cc.forward_kinematics(leg, [0.3, math.pi / 2 - delta, 0.2, 0.4, -0.3])
+        sigma.append(cc.actuation_singularities(leg, fk.q, frame="sole").serial)
+    assert sigma[0] <= SINGULAR_TOL
+    ratios = np.array(sigma[1:]) / np.array([1e-3, 5e-4, 2.5e-4])
+    assert np.ptp(ratios) <= LINEAR_RTOL * ratios.mean()

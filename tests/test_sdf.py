@@ -8,13 +8,18 @@ References, none computed by the code under test:
   4-bar; on Cassie at states near its reference, with enough proximal
   iterations for its ill-conditioned knee-spring loops);
 * the ``standing`` configuration of example-robot-data's cassie_v2.srdf,
-  written for Pinocchio's own SDF reader: our loops close on it before assembly.
+  written for Pinocchio's own SDF reader: our loops close on it before assembly;
+* the joint springs of ``tests/data/spring_legs.sdf`` (written here from its numbers)
+  and the principle of virtual work: the motor torques that hold a closed chain
+  at rest are the gradient of its potential energy (Pinocchio's gravity term plus
+  the springs') along the motion, by central differences over motor angles.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 from importlib import metadata
 
 import numpy as np
@@ -31,6 +36,14 @@ from closedchain.sdf import read_sdf
 from closedchain.validation import pinocchio_reference_dynamics
 
 FOURBAR = DATA_DIR / "fourbar.sdf"
+SPRING_LEGS = DATA_DIR / "spring_legs.sdf"
+
+#: The heel springs of spring_legs.sdf as its <dynamics> write them: joint ->
+#: (spring_stiffness [N m/rad], spring_reference [rad]).
+SPRING_LEGS_SPRINGS = {
+    "left-heel-spring-joint": (400.0, 0.0),
+    "right-heel-spring-joint": (400.0, 0.0),
+}
 
 #: Placements computed by hand agree to this [m or rad] (round-off of rpy <-> matrix).
 TOL_FRAME = 1e-12
@@ -49,6 +62,17 @@ STEP = 0.05
 #: Largest |a| [rad/s^2, m/s^2] the holding torque leaves at Cassie's standing reference:
 #: the augmented-Lagrangian answer where cond(J) ~ 4e6 (the knee-spring loops).
 TOL_HOLD = 1e-3
+#: Step h [rad] of the central differences of the potential energy over the motor angles.
+FD_STEP = 1e-4
+#: Holding torques agree with the potential energy's gradient to this, relative to
+#: max |tau| (~1e3 N m: the heel springs turn fast with the hips): the fourth-order
+#: difference's truncation (h^4 |V'(5)| / 30, measured ~2e-11 relative) and the
+#: assembly's closure error (phi <= 1e-12, times |grad V| over h).
+TOL_VIRTUAL_WORK = 1e-7
+#: Largest pelvis displacement [m] and closure residual over 2 s of standing: the
+#: stance has one mode growing as exp(4.3 t) under constant torques (the springs
+#: hold the others), so a round-off of 1e-16 grows to ~1e-12.
+TOL_STAND_DRIFT = 1e-9
 #: Pinocchio's proximal solver needs many iterations where sigma_min(J)^2 << mu (Cassie).
 PIN_SETTINGS = SolverSettings(pinocchio_mu=1e-10, pinocchio_max_iter=2000)
 
@@ -399,3 +423,121 @@ def test_cassie_standing_is_held_at_rest_by_the_gravity_torque():
     assert np.max(np.abs(held.a)) < TOL_HOLD
     falls = cc.forward_dynamics(mech, mech.q_ref, rest, 0 * tau, method="augmented-lagrangian")
     assert np.max(np.abs(falls.a)) > 1.0
+
+
+@pytest.fixture(scope="module")
+def spring_legs_pinned():
+    return cc.load(SPRING_LEGS, loops=DATA_DIR / "spring_legs_pinned.urdf")
+
+
+def test_sdf_springs_become_joint_springs():
+    mech = cc.load(SPRING_LEGS)
+    springs = {s.joint: (s.stiffness, s.reference) for s in mech.urdf.springs}
+    assert springs == SPRING_LEGS_SPRINGS
+    # The achilles rods hang on reversed joints; the springs' joints are kept as written.
+    _, tree = read_sdf(SPRING_LEGS)
+    assert set(tree.reversed_joints) == {"left-achilles-heel", "right-achilles-heel"}
+    q = mech.q_ref.copy()
+    expected = np.zeros(mech.nv)
+    for name, (k, q0) in SPRING_LEGS_SPRINGS.items():
+        joint = mech.model.joints[mech.model.getJointId(name)]
+        q[joint.idx_q] = 0.3
+        expected[joint.idx_v] = -k * (0.3 - q0)
+    np.testing.assert_array_equal(cc.spring_torque(mech, q), expected)
+
+
+def test_with_spring_torque_adds_the_springs_to_any_tau(rng):
+    mech = cc.load(SPRING_LEGS)
+    q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+    v, tau = rng.standard_normal(mech.nv), rng.standard_normal(mech.nv)
+    springs = cc.spring_torque(mech, q)
+    assert np.max(np.abs(springs)) > 0.0
+    np.testing.assert_array_equal(cc.with_spring_torque(mech)(0.0, q, v), springs)
+    np.testing.assert_array_equal(cc.with_spring_torque(mech, tau)(0.0, q, v), tau + springs)
+    law = cc.with_spring_torque(mech, lambda t, q, v: t * v)
+    np.testing.assert_array_equal(law(2.0, q, v), 2.0 * v + springs)
+    fourbar = cc.load(FOURBAR)  # no spring: tau comes back as it was
+    assert cc.with_spring_torque(fourbar, tau) is tau
+
+
+def test_a_spring_on_a_cut_joint_is_left_out_with_a_warning(tmp_path, caplog):
+    ball = """    <joint name="left-achilles-hip" type="ball">
+      <parent>left-thigh</parent>
+      <child>left-achilles-rod</child>
+      <axis>
+        <xyz>0 1 0</xyz>"""
+    assert ball in SPRING_LEGS.read_text()
+    dynamics = (
+        "\n        <dynamics><damping>0</damping><spring_stiffness>5</spring_stiffness></dynamics>"
+    )
+    text = SPRING_LEGS.read_text().replace(ball, ball + dynamics)
+    with caplog.at_level(logging.WARNING, logger="closedchain.sdf"):
+        mech = cc.load(_write(tmp_path, text))
+    assert "the springs of left-achilles-hip are left out" in caplog.text
+    assert {s.joint for s in mech.urdf.springs} == set(SPRING_LEGS_SPRINGS)
+
+
+def _potential_energy(mech, q) -> float:
+    """Gravity's potential energy (Pinocchio) plus the springs' (this file's numbers) [J]."""
+    V = pin.computePotentialEnergy(mech.model, mech.data, q)
+    for name, (k, q0) in SPRING_LEGS_SPRINGS.items():
+        V += 0.5 * k * (q[mech.model.joints[mech.model.getJointId(name)].idx_q] - q0) ** 2
+    return float(V)
+
+
+@pytest.mark.parametrize("motors", [(0.0, 0.0), (0.05, -0.04)])
+def test_gravity_torque_with_springs_is_the_gradient_of_the_potential(spring_legs_pinned, motors):
+    mech = spring_legs_pinned
+    assert (mech.mobility, mech.actuated_joints) == (2, ("left-hip", "right-hip"))
+    q = cc.forward_kinematics(mech, motors).q
+    tau = cc.gravity_torque(mech, q)[mech.actuated_idx_v]
+    grad = np.zeros(2)
+    for i in range(2):
+        V = {}
+        for step in (-2, -1, 1, 2):
+            m = np.array(motors, dtype=float)
+            m[i] += step * FD_STEP
+            V[step] = _potential_energy(mech, cc.forward_kinematics(mech, m, q_guess=q).q)
+        # Fourth-order central difference.
+        grad[i] = (8 * (V[1] - V[-1]) - (V[2] - V[-2])) / (12 * FD_STEP)
+    assert np.max(np.abs(tau - grad)) < TOL_VIRTUAL_WORK * np.max(np.abs(tau))
+
+
+def test_the_command_line_applies_the_springs(spring_legs_pinned, tmp_path, capsys):
+    """Released at a state where the heel springs pull hard (~1e3 N m on the hips),
+    under --torque gravity the legs stay at rest only if the springs act too."""
+    q0 = cc.forward_kinematics(spring_legs_pinned, [0.05, -0.04]).q
+    out = tmp_path / "run.npz"
+    argv = ["simulate", str(SPRING_LEGS), "--loops", str(DATA_DIR / "spring_legs_pinned.urdf")]
+    argv += [
+        "--q0",
+        *(repr(float(x)) for x in q0),
+        "--torque",
+        "gravity",
+        "--t-final",
+        "0.2",
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    traj = cc.Trajectory.load(out)
+    assert np.max(np.abs(traj.q - q0)) < TOL_STAND_DRIFT
+
+
+def test_spring_legs_stand_2_s_on_welded_feet_under_gravity_torque(tmp_path, monkeypatch):
+    """The guide's example (section "Joint springs") runs: 2 s of standing."""
+    guide = DATA_DIR.parent.parent / "docs" / "guide" / "robots-and-moving-bases.md"
+    text = guide.read_text().split("### Joint springs", 1)[1].split("\n### ", 1)[0]
+    (block,) = re.findall(r"^```python\n(.*?)^```$", text, re.M | re.S)
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "data").symlink_to(DATA_DIR)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "guide_example"}
+    exec(compile(block, str(guide), "exec"), namespace)
+    mech, traj = namespace["legs"], namespace["traj"]
+    # 16 coordinates, 13 rows (the welds' out-of-plane rows are redundant): the pelvis on
+    # its legs, the motors (hips, knees) and the heel springs share 3 freedoms.
+    assert (mech.nv, mech.nc, mech.mobility, len(mech.urdf.springs)) == (16, 13, 3, 2)
+    assert traj.t[-1] == pytest.approx(2.0)
+    assert np.max(np.abs(traj.q[:, :3] - mech.q_ref[:3])) < TOL_STAND_DRIFT
+    assert traj.info.max_constraint_residual < TOL_STAND_DRIFT

@@ -965,3 +965,54 @@ def test_duplicate_joint_or_link_name_names_both_lines(fourbar_text, write, kind
         ),
     ):
         cc.load(path)
+
+
+# -- joint springs: <dynamics spring_stiffness spring_reference> ---------------------------
+
+ROCKER_AXIS = """    <child link="rocker"/>
+    <origin xyz="0.5 0 0" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/>"""
+
+
+def test_a_joint_spring_is_read(fourbar_text, write):
+    dynamics = '\n    <dynamics damping="0" spring_stiffness="12.5" spring_reference="-0.25"/>'
+    mech = cc.load(write(replaced(fourbar_text, ROCKER_AXIS, ROCKER_AXIS + dynamics)))
+    (spring,) = mech.urdf.springs
+    assert (spring.joint, spring.stiffness, spring.reference) == ("rocker_joint", 12.5, -0.25)
+
+
+@pytest.mark.parametrize(
+    "dynamics, match",
+    [
+        (
+            'damping="0" spring_stiffness="-1"',
+            "spring_stiffness='-1'>: must be a finite number >= 0",
+        ),
+        ('damping="0" spring_stiffness="nan"', "spring_stiffness='nan'>: must be a finite number"),
+        ('damping="0" spring_reference="0.1"', "spring_reference without spring_stiffness"),
+        ('spring_stiffness="1"', 'without damping or friction; add damping="0"'),
+    ],
+)
+def test_a_bad_joint_spring_is_refused_naming_the_joint(fourbar_text, write, dynamics, match):
+    path = write(replaced(fourbar_text, ROCKER_AXIS, ROCKER_AXIS + f"\n    <dynamics {dynamics}/>"))
+    with pytest.raises(
+        cc.URDFError, match=where(path, "<joint name='rocker_joint'>") + ".*" + re.escape(match)
+    ):
+        cc.load(path)
+
+
+def test_a_spring_on_a_continuous_joint_is_refused(fourbar_text, write):
+    dynamics = '\n    <dynamics damping="0" spring_stiffness="1"/>'
+    text = replaced(fourbar_text, ROCKER_AXIS, ROCKER_AXIS + dynamics)
+    text = replaced(
+        text,
+        '<joint name="rocker_joint" type="revolute">',
+        '<joint name="rocker_joint" type="continuous">',
+    )
+    path = write(replaced(text, '<initial joint="rocker_joint" value="-1.8151424220741028"/>', ""))
+    with pytest.raises(
+        cc.URDFError,
+        match=where(path, "<joint name='rocker_joint'>")
+        + ".*this joint is continuous; valid joint types: revolute, prismatic",
+    ):
+        cc.load(path)

@@ -13,7 +13,12 @@ close kinematic loops and ``<transmission>`` elements for actuators::
 
 from __future__ import annotations
 
-from .control import computed_torque_controller, gravity_torque
+from .control import (
+    computed_torque_controller,
+    gravity_torque,
+    spring_torque,
+    with_spring_torque,
+)
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
     AssemblyError,
@@ -119,6 +124,8 @@ __all__ = [
     "project_velocity",
     "random_consistent_state",
     "singularity_measures",
+    "spring_torque",
     "validate",
+    "with_spring_torque",
     "write_html",
 ]

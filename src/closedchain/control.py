@@ -28,6 +28,7 @@ from ._locking import exclusive
 from .dynamics.base import DEFAULT_SETTINGS, SolverSettings
 from .exceptions import ClosedChainError, check_settings
 from .inverse import _resolve_ordered, inverse_dynamics
+from .simulate.settings import TorqueInput
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -39,6 +40,8 @@ __all__ = [
     "default_scene",
     "gravity_torque",
     "sinusoid_reference",
+    "spring_torque",
+    "with_spring_torque",
 ]
 
 #: A reference: t [s] -> (q_P, v_P, a_P), each of shape (mobility,) [rad, rad/s, rad/s^2].
@@ -109,6 +112,70 @@ def computed_torque_controller(
     return tau
 
 
+def _spring_indices(mech: Mechanism) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return (idx_q, idx_v, stiffness, reference) of the mechanism's joint springs."""
+    springs = mech.urdf.springs
+    joints = [mech.model.joints[mech.model.getJointId(s.joint)] for s in springs]
+    return (
+        np.array([j.idx_q for j in joints], dtype=int),
+        np.array([j.idx_v for j in joints], dtype=int),
+        np.array([s.stiffness for s in springs], dtype=float),
+        np.array([s.reference for s in springs], dtype=float),
+    )
+
+
+def spring_torque(mech: Mechanism, q: np.ndarray) -> np.ndarray:
+    r"""Return the generalized forces of the mechanism's joint springs at q.
+
+    .. math::
+
+        \tau_{s,j} = -k_j\, (q_j - q_{0,j})
+
+    on each joint j with a spring (``<dynamics spring_stiffness spring_reference>``,
+    :class:`closedchain.urdf.JointSpring`; the SDF reader fills them), zero elsewhere.
+    :func:`simulate` applies the ``tau`` it is given and nothing else: pass
+    :func:`with_spring_torque` to have the springs act.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+
+    Returns:
+        tau_s, shape (nv,) [N m or N].
+    """
+    q = mech.check_q(q, "q")
+    idx_q, idx_v, k, q_rest = _spring_indices(mech)
+    tau = np.zeros(mech.nv)
+    tau[idx_v] = -k * (q[idx_q] - q_rest)
+    return tau
+
+
+def with_spring_torque(mech: Mechanism, tau: TorqueInput = None) -> TorqueInput:
+    """Return ``tau`` plus the joint springs' :func:`spring_torque`, as :func:`simulate` takes it.
+
+    Args:
+        mech: the mechanism.
+        tau: None (zero), a constant array, shape (nv,) [N m or N], or a callable
+            ``tau(t, q, v) -> (nv,)``.
+
+    Returns:
+        ``tau`` itself when the mechanism has no spring, else the callable
+        ``tau(t, q, v) + spring_torque(mech, q)``.
+    """
+    if not mech.urdf.springs:
+        return tau
+    idx_q, idx_v, k, q_rest = _spring_indices(mech)
+    base = tau if callable(tau) else None
+    constant = np.zeros(mech.nv) if tau is None or base else mech.check_v(tau, "tau").copy()
+
+    def sprung(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        out = base(t, q, v).copy() if base else constant.copy()
+        out[idx_v] -= k * (q[idx_q] - q_rest)
+        return out
+
+    return sprung
+
+
 @exclusive
 def gravity_torque(
     mech: Mechanism, q: np.ndarray, *, settings: SolverSettings = DEFAULT_SETTINGS
@@ -116,8 +183,10 @@ def gravity_torque(
     """Return the actuator torques that hold the mechanism at rest at q against gravity.
 
     Closed-chain inverse dynamics (:func:`closedchain.inverse_dynamics`) with
-    v = 0 and zero accelerations: a constant ``tau`` for :func:`simulate`
-    under which q is an equilibrium (not necessarily a stable one).
+    v = 0 and zero accelerations, the joint springs' forces
+    (:func:`spring_torque`) acting besides the actuators: a constant ``tau``
+    under which q is an equilibrium (not necessarily a stable one) of
+    :func:`simulate` given ``with_spring_torque(mech, tau)``.
 
     Args:
         mech: the mechanism (its actuators must control every degree of freedom).
@@ -129,7 +198,10 @@ def gravity_torque(
     """
     check_settings("settings", settings, SolverSettings)
     zero_v = np.zeros(mech.nv)
-    return inverse_dynamics(mech, q, zero_v, np.zeros(mech.mobility), settings=settings).tau
+    passive = spring_torque(mech, q) if mech.urdf.springs else None
+    return inverse_dynamics(
+        mech, q, zero_v, np.zeros(mech.mobility), tau_passive=passive, settings=settings
+    ).tau
 
 
 def sinusoid_reference(specs: Sequence[SinusoidSpec]) -> Reference:

@@ -12,7 +12,9 @@ motion:
     \begin{bmatrix} B & -J^\top \end{bmatrix}
     \begin{bmatrix} \tau_A \\ \lambda \end{bmatrix} = M a + h,
 
-where B (nv x na) selects the actuated coordinates. Projected onto an
+where B (nv x na) selects the actuated coordinates (with passive generalized forces
+``tau_passive``, such as joint springs, the right-hand side is
+:math:`M a + h - \tau_{passive}`). Projected onto an
 orthonormal basis N of the null space of J (:math:`N^\top J^\top = 0`) the
 second system splits into
 
@@ -237,6 +239,7 @@ def inverse_dynamics(
     *,
     actuated: Iterable[str | int] | str = "actuated",
     coordinates: Iterable[str | int] | str = "independent",
+    tau_passive: np.ndarray | None = None,
     settings: SolverSettings = DEFAULT_SETTINGS,
 ) -> InverseDynamicsResult:
     """Compute the actuator torques that produce prescribed accelerations.
@@ -252,6 +255,9 @@ def inverse_dynamics(
         coordinates: the prescribed coordinates: ``"independent"``
             (``mech.independent_idx_v``) or ``mobility`` joint names / velocity
             indices, e.g. a platform's orientation joints.
+        tau_passive: generalized forces that act besides the actuators (the
+            joint springs' :func:`closedchain.spring_torque`), shape (nv,) [N m or
+            N], or None: the torques returned produce the motion with them.
         settings: ``cond_max`` bounds cond(J_F) (the other coordinates' block
             of J), cond(J) and cond(N^T B).
 
@@ -324,6 +330,8 @@ def inverse_dynamics(
         a[F] = lapack.dgetrs(lu, piv, -gamma - J[:, P] @ a_P)[0]
 
     b = M @ a + h  # = B tau_A - J^T lam
+    if tau_passive is not None:
+        b -= mech.check_v(tau_passive, "tau_passive")
     if not np.all(np.isfinite(b)):
         raise NonFiniteError(
             f"{mech.name}: inverse dynamics overflowed to non-finite M a + h at "

@@ -696,6 +696,13 @@ def load(
             nv=exc.nv,
             max_nv=exc.max_nv,
         ) from None
+    if entry is not None and not entry.springs and urdf.springs:
+        logger.info(
+            "%s: its joint springs (%s) are left out, as its registry entry says",
+            path,
+            ", ".join(s.joint for s in urdf.springs),
+        )
+        urdf = replace(urdf, springs=())
     gravity = np.asarray(gravity, dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")

@@ -69,12 +69,15 @@ class RobotEntry:
             start of ``q_ref``, or None (then Pinocchio's neutral configuration).
         cut_joints: for an SDF model, joints to cut in preference (see
             :mod:`closedchain.sdf`).
+        springs: whether the model's joint springs are kept (False: left out, with a
+            logged note; for a file whose springs contradict its own geometry).
     """
 
     urdf: str
     srdf: str | None = None
     reference: str | None = None
     cut_joints: tuple[str, ...] = ()
+    springs: bool = True
 
 
 #: Models found by ``erd:<name>``.
@@ -88,9 +91,15 @@ ERD_MODELS: dict[str, RobotEntry] = {
     "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
     # SDF: the achilles and plantar rods close with ball joints, the knee spring with a
     # revolute one; its gearbox joints (motor rotors) are left out (closedchain.sdf).
-    # The SRDF of cassie_v2 names the same joints with the same signs.
+    # The SRDF of cassie_v2 names the same joints with the same signs. Its springs are
+    # left out: at that standing state the loops lock the knee and heel springs and hold
+    # the heel springs 0.63 rad from their spring_reference (790 N m); with them, a run
+    # from rest leaves the manifold within 0.07 s (docs/guide/robots-and-moving-bases.md).
     "cassie": RobotEntry(
-        "cassie_description/robots/cassie.sdf", "cassie_description/srdf/cassie_v2.srdf", "standing"
+        "cassie_description/robots/cassie.sdf",
+        "cassie_description/srdf/cassie_v2.srdf",
+        "standing",
+        springs=False,
     ),
 }
 

@@ -56,6 +56,12 @@ they are left out with a logged warning (the rotor link then turns freely on
 its own joint) and listed in :attr:`SDFTree.gearboxes`; a model that needs a
 gearbox to hold a link at all is refused.
 
+Joint springs: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has a
+``spring_stiffness`` > 0 gets ``<dynamics spring_stiffness spring_reference>`` in the
+URDF+ (:class:`closedchain.urdf.JointSpring`; the generalized force
+:func:`closedchain.spring_torque`); a spring on a cut joint, a gearbox or another
+joint type is left out with a logged warning. Damping and friction are not read.
+
 Parsing is as safe as for URDF (:func:`closedchain.urdf.read_xml`: no DTD, no
 network, bounded size). Mesh ``model://name/sub`` URIs become
 ``package://name/sub`` and are then looked up as URDF meshes are.
@@ -75,6 +81,7 @@ from .exceptions import URDFError
 from .urdf import (
     ORIGIN_RPY_MAX,
     ORIGIN_XYZ_MAX,
+    SPRING_JOINT_TYPES,
     _check_name,
     _unique_names,
     _where,
@@ -135,6 +142,9 @@ class SDFJoint:
         axis: unit axis in the joint frame, shape (3,) (``<axis>``).
         axis2: unit second axis in the joint frame, shape (3,) (``<axis2>``, universal).
         limits: ``(lower, upper, effort, velocity)`` (see :data:`SDF_UNLIMITED`).
+        spring: ``(stiffness [N m/rad or N/m], reference [rad or m], damping
+            [N m s/rad or N s/m])`` of ``<axis><dynamics>`` ``spring_stiffness``,
+            ``spring_reference`` and ``damping``, or None (no stiffness, or 0).
         index: position in the file among the joints.
         line: source line of the ``<joint>``.
     """
@@ -147,6 +157,7 @@ class SDFJoint:
     axis: np.ndarray
     axis2: np.ndarray
     limits: tuple[float, float, float, float]
+    spring: tuple[float, float, float] | None
     index: int
     line: int
 
@@ -386,6 +397,16 @@ class _Reader:
                 effort if effort >= 0 else SDF_UNLIMITED,
                 velocity if velocity >= 0 else SDF_UNLIMITED,
             )
+        spring = None
+        dynamics = element.find("axis/dynamics")
+        if dynamics is not None:
+            stiffness = _scalar(self.path, dynamics, "spring_stiffness", 0.0, minimum=0.0)
+            if stiffness > 0.0:
+                spring = (
+                    stiffness,
+                    _scalar(self.path, dynamics, "spring_reference", 0.0),
+                    _scalar(self.path, dynamics, "damping", 0.0, minimum=0.0),
+                )
         return SDFJoint(
             name=element.get("name"),
             type=jtype,
@@ -395,6 +416,7 @@ class _Reader:
             axis=axes[0],
             axis2=axes[1],
             limits=limits,
+            spring=spring,
             index=index,
             line=element.sourceline or 0,
         )
@@ -542,6 +564,20 @@ class _Reader:
                 robot.append(joint)
         for name in tree.cut_joints:
             robot.append(self._loop(joints[name], frames))
+        sprung = [
+            j.name
+            for j in self.joints
+            if j.spring is not None
+            and (j.name not in tree.tree_joints or j.type not in SPRING_JOINT_TYPES)
+        ]
+        if sprung:
+            logger.warning(
+                "%s: the springs of %s are left out: a cut joint (a <loop>), a gearbox, a "
+                "continuous or universal joint has no spring coordinate; valid: revolute or "
+                "prismatic tree joints (cut_joints chooses which joint of a cycle is cut)",
+                self.path,
+                ", ".join(sprung),
+            )
         return robot, tree
 
     def _link(self, element, oMl_urdf: pin.SE3, materials: list):
@@ -660,6 +696,16 @@ class _Reader:
                     upper=repr(upper),
                     effort=repr(effort),
                     velocity=repr(velocity),
+                )
+            if j.spring is not None and jtype in SPRING_JOINT_TYPES:
+                # A reversed joint keeps the SDF's coordinate (its axis is negated).
+                stiffness, reference, damping = j.spring
+                etree.SubElement(
+                    joint,
+                    "dynamics",
+                    damping=repr(damping),  # urdfdom wants damping or friction in <dynamics>
+                    spring_stiffness=repr(stiffness),
+                    spring_reference=repr(reference),
                 )
             out.append(joint)
         return out

@@ -27,6 +27,10 @@ and a standard URDF ``<mimic joint="i" multiplier="m" offset="c"/>`` inside
 ``<joint name="j">`` is read as the same loop, named ``j`` + :data:`MIMIC_SUFFIX`
 (the joint itself stays an ordinary joint of the tree). See :func:`parse_urdf`.
 
+A joint spring (:class:`JointSpring`, generalized force -k (q - q0)) is written in
+the joint's ``<dynamics>``, with the names of SDF's elements:
+``<dynamics damping="0" spring_stiffness="1500" spring_reference="0"/>``.
+
 A side may name any frame of the tree instead of a link, ``<predecessor
 frame="closedloop1_A"/>`` (a link, or a joint's frame); the origin is then in
 that frame, and :func:`closedchain.load` resolves the side to a link.
@@ -63,6 +67,13 @@ COUPLING = "coupling"
 
 #: Joint types a coupling may tie (one coordinate each, angle or length, no wrap).
 COUPLING_JOINT_TYPES = ("revolute", "prismatic")
+
+#: Joint types a spring may act on (one coordinate each, angle or length, no wrap).
+SPRING_JOINT_TYPES = COUPLING_JOINT_TYPES
+
+#: Attributes of a joint's ``<dynamics>`` that make a spring (closedchain's extension of
+#: URDF, which has none; the names are SDF's ``<dynamics>`` children).
+SPRING_ATTRIBUTES = ("spring_stiffness", "spring_reference")
 
 #: Suffix of the name of the coupling loop a ``<mimic>`` element becomes.
 MIMIC_SUFFIX = "_mimic"
@@ -235,6 +246,26 @@ class SceneSpec:
 
 
 @dataclass(frozen=True)
+class JointSpring:
+    """A linear spring on a 1-dof joint: generalized force -stiffness (q - reference).
+
+    Written ``<dynamics damping="0" spring_stiffness="1500" spring_reference="0"/>``
+    inside the ``<joint>`` (the SDF reader fills it from SDF's ``<dynamics>``).
+
+    Attributes:
+        joint: the joint's name (revolute or prismatic).
+        stiffness: [N m/rad or N/m], >= 0.
+        reference: the coordinate where it exerts no force [rad or m].
+        line: source line of the ``<dynamics>`` (0: written by a reader).
+    """
+
+    joint: str
+    stiffness: float
+    reference: float
+    line: int = 0
+
+
+@dataclass(frozen=True)
 class URDFPlus:
     """What a URDF+ file adds to the tree.
 
@@ -257,6 +288,7 @@ class URDFPlus:
         fuse_ball_chains: whether :func:`closedchain.load` fuses chains of three
             revolute joints through massless links at one point into spherical
             joints (a loops YAML's tree, as the convention's loader does).
+        springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
     """
 
     path: Path
@@ -271,6 +303,7 @@ class URDFPlus:
     spherical: tuple[str, ...] = ()
     unlimited: tuple[str, ...] = ()
     fuse_ball_chains: bool = False
+    springs: tuple[JointSpring, ...] = ()
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -733,6 +766,10 @@ def parse_urdf(
       ``<joint>`` is the same loop (URDF's defaults: multiplier 1, offset 0),
       named after the joint with :data:`MIMIC_SUFFIX`; the ``<mimic>`` of a
       fixed joint couples nothing and is left out (logged).
+    - ``<dynamics spring_stiffness spring_reference>`` of a revolute or prismatic
+      joint (:data:`SPRING_JOINT_TYPES`): a :class:`JointSpring`; a stiffness that is
+      negative or not finite, a reference without a stiffness, another joint type, or
+      no ``damping``/``friction`` beside them (urdfdom refuses that) is refused.
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
       :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
       scaling first (an axis of 1e308 is a direction). The axis of a
@@ -831,6 +868,9 @@ def parse_urdf(
     if len(scenes) > 1:
         raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
     scene = _parse_scene(path, scenes[0], joints) if scenes else None
+    springs = tuple(
+        spring for je in joint_elements if (spring := _parse_spring(path, je, joints)) is not None
+    )
 
     xml = etree.tostring(root, encoding="unicode")
     return URDFPlus(
@@ -843,6 +883,35 @@ def parse_urdf(
         actuated=tuple(actuated),
         independent=tuple(independent),
         scene=scene,
+        springs=springs,
+    )
+
+
+def _parse_spring(path: Path, joint, joints: dict[str, str]) -> JointSpring | None:
+    """Read the spring of a ``<joint>``'s ``<dynamics spring_stiffness spring_reference>``."""
+    dynamics = joint.find("dynamics")
+    if dynamics is None or not any(a in dynamics.attrib for a in SPRING_ATTRIBUTES):
+        return None
+    where = _where(path, joint)
+    name = joint.get("name")
+    if joints[name] not in SPRING_JOINT_TYPES:
+        raise URDFError(
+            f"{where} <dynamics>: a spring acts on one coordinate without wrap-around, and "
+            f"this joint is {joints[name]}; valid joint types: {', '.join(SPRING_JOINT_TYPES)}"
+        )
+    stiffness = _number(where, dynamics, "spring_stiffness", minimum=0.0)
+    if stiffness is None:
+        raise URDFError(
+            f"{where} <dynamics>: spring_reference without spring_stiffness [N m/rad or N/m]"
+        )
+    if dynamics.get("damping") is None and dynamics.get("friction") is None:
+        raise URDFError(
+            f"{where} <dynamics>: URDF readers (urdfdom) refuse a <dynamics> without damping "
+            'or friction; add damping="0"'
+        )
+    reference = _number(where, dynamics, "spring_reference")
+    return JointSpring(
+        name, stiffness, 0.0 if reference is None else reference, dynamics.sourceline or 0
     )
 
 

@@ -27,6 +27,11 @@ the motors and the joint conversions:
   (the kangaroo robots' root cause); it does not close at q = 0.
   ``yaml_offset_rod_ball.yaml`` converts the placeholder into a SPHERICAL
   joint: the loop closes, mobility 2 (5 - 3: the crank and the rod's spin).
+- ``yaml_parallel_leg.urdf`` / ``.yaml``: a leg in the manner of the corpus's
+  talos_like: hip yaw, roll and pitch motors in series, a passive knee driven by
+  a knee motor on the thigh (crank, rod on a UJOINT_YX, the rod's tip welded 6d
+  to a SPHERICAL link of the shin) and a passive ankle driven by an ankle motor
+  on the shin (crank, rod on a UJOINT_YX, 3d loop to the foot). Mobility 5.
 
 The numbers below place every frame; the tests check from the files alone
 that the named frames coincide at q = 0, so this script is not a reference.
@@ -290,8 +295,75 @@ def offset_rod() -> None:
 OFFSET_ROD_GAP = 0.01
 
 
+def parallel_leg() -> None:
+    # Thigh frame at the hip pitch joint; shin frame at the knee; foot frame at the ankle.
+    hip_x = hip_y = np.array([0.0, 0.0, -0.05])  # the three hip axes meet there
+    knee, ankle = np.array([0.0, 0.0, -0.4]), np.array([0.0, 0.0, -0.4])  # each from its parent
+    p1, c1, s1 = (
+        np.array([0.06, 0.0, -0.05]),
+        np.array([0.12, 0.0, -0.05]),
+        np.array([0.06, 0.0, -0.05]),
+    )
+    p2, c2, s2 = (
+        np.array([-0.06, 0.0, -0.05]),
+        np.array([-0.12, 0.0, -0.05]),
+        np.array([-0.06, 0.0, -0.02]),
+    )
+    sole = np.array([0.05, 0.0, -0.05])
+    # p1, c1 (thigh frame): the knee crank's pivot and tip; s1 (shin frame): the rod's end.
+    # p2, c2 (shin frame): the ankle crank's pivot and tip; s2 (foot frame): its rod's end.
+    rod1 = (knee + s1) - c1  # thigh frame, at q = 0
+    rod2 = (ankle + s2) - c2  # shin frame, at q = 0
+    body = _link("pelvis")
+    body += _link("hip_z_link", 0.5, (0.0, 0.0, -0.025), np.diag([5e-4, 5e-4, 5e-4]))
+    body += _link("hip_x_link", 0.5, (0.0, 0.0, -0.025), np.diag([5e-4, 5e-4, 5e-4]))
+    body += _rod_link("thigh", 2.0, knee, 0.04) + _rod_link("shin", 1.0, ankle, 0.03)
+    body += _link("foot", 0.4, (0.03, 0.0, -0.04), np.diag([4e-4, 8e-4, 8e-4]))
+    body += _rod_link("knee_crank", 0.1, c1 - p1) + _rod_link("knee_rod", 0.15, rod1)
+    body += _rod_link("ankle_crank", 0.1, c2 - p2) + _rod_link("ankle_rod", 0.1, rod2)
+    body += _link("knee_ball", 0.02, (0.0, 0.0, 0.0), np.diag([1e-6, 1e-6, 1e-6]))
+    for frame in ("knee_rod_tip", "knee_att", "ankle_rod_tip", "ankle_att", "sole"):
+        body += _link(f"{frame}_link")
+    body += _joint("hip_z", "revolute", "pelvis", "hip_z_link", np.zeros(3), axis=(0, 0, 1))
+    body += _joint("hip_x", "revolute", "hip_z_link", "hip_x_link", hip_x, axis=(1, 0, 0))
+    body += _joint("hip_y", "revolute", "hip_x_link", "thigh", hip_y - hip_x)
+    body += _joint("knee", "revolute", "thigh", "shin", knee)
+    body += _joint("ankle", "revolute", "shin", "foot", ankle)
+    body += _joint("sole", "fixed", "foot", "sole_link", sole)
+    body += _joint("knee_mot", "revolute", "thigh", "knee_crank", p1)
+    body += _joint("knee_rod_u", "revolute", "knee_crank", "knee_rod", c1 - p1)
+    body += _joint("knee_rod_tip", "fixed", "knee_rod", "knee_rod_tip_link", rod1)
+    body += _joint("knee_ball_joint", "revolute", "shin", "knee_ball", s1)
+    body += _joint("knee_att", "fixed", "knee_ball", "knee_att_link", np.zeros(3))
+    body += _joint("ankle_mot", "revolute", "shin", "ankle_crank", p2)
+    body += _joint("ankle_rod_u", "revolute", "ankle_crank", "ankle_rod", c2 - p2)
+    body += _joint("ankle_rod_tip", "fixed", "ankle_rod", "ankle_rod_tip_link", rod2)
+    body += _joint("ankle_att", "fixed", "foot", "ankle_att_link", s2)
+    header = f"""
+  Leg in the example-parallel-robots convention (a small talos_like): hip yaw
+  (z), roll (x) and pitch (y) motors at the origin, {_fmt(hip_x)} and {_fmt(hip_y)}
+  (the three axes meet at the second point);
+  knee {_fmt(knee)} below the hip pitch, ankle {_fmt(ankle)} below the knee, the
+  frame sole {_fmt(sole)} from the ankle [m]; knee and ankle about y, passive.
+  Knee drive, thigh frame: crank knee_mot about y at {_fmt(p1)}, tip {_fmt(c1)};
+  rod on knee_rod_u (UJOINT_YX) to the knee_ball joint {_fmt(s1)} from the knee
+  (SPHERICAL), welded 6d. Ankle drive, shin frame: crank ankle_mot about y at
+  {_fmt(p2)}, tip {_fmt(c2)}; rod on ankle_rod_u (UJOINT_YX) to the foot point
+  {_fmt(s2)} from the ankle, 3d.
+"""
+    _write("yaml_parallel_leg", header, body)
+    (HERE / "yaml_parallel_leg.yaml").write_text(
+        "closed_loop: [['knee_rod_tip', 'knee_att'], ['ankle_rod_tip', 'ankle_att']]\n"
+        "type: ['6d', '3d']\n"
+        "name_mot: ['hip_z', 'hip_x', 'hip_y', 'knee_mot', 'ankle_mot']\n"
+        "joint_name: ['knee_rod_u', 'ankle_rod_u', 'knee_ball_joint']\n"
+        "joint_type: ['UJOINT_YX', 'UJOINT_YX', 'SPHERICAL']\n"
+    )
+
+
 if __name__ == "__main__":
     fivebar()
     delta()
     ujoint_leg()
     offset_rod()
+    parallel_leg()
