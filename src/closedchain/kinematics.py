@@ -26,6 +26,7 @@ import numpy as np
 import pinocchio as pin
 
 from ._locking import exclusive
+from ._percall import backend_name, rows_evaluator
 from .closure import (
     DEFAULT_ASSEMBLY_SETTINGS,
     SelectionSettings,
@@ -102,22 +103,55 @@ def assemble(
 
 
 @exclusive
-def compute_phi(mech: Mechanism, q: np.ndarray) -> np.ndarray:
-    """Return the loop-closure residual phi(q), shape (nc,), [m] or [-] per row."""
-    return layer_phi(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+def compute_phi(mech: Mechanism, q: np.ndarray, *, backend: str = "auto") -> np.ndarray:
+    """Return the loop-closure residual phi(q), shape (nc,), [m] or [-] per row.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        backend: ``"auto"`` (compiled when built and it holds the rows), ``"compiled"``
+            or ``"numpy"``, as :func:`~closedchain.forward_dynamics`.
+    """
+    rows = rows_evaluator(mech, backend_name(backend))
+    q = mech.check_q(q, "q")
+    if rows is not None:
+        return rows.rows(q, np.zeros(mech.nv))[0]
+    return layer_phi(mech.model, mech.data, mech.constraints, q)
 
 
 @exclusive
-def compute_jacobian(mech: Mechanism, q: np.ndarray) -> np.ndarray:
-    """Return the constraint Jacobian J(q), shape (nc, nv)."""
-    return layer_jacobian(mech.model, mech.data, mech.constraints, mech.check_q(q, "q"))
+def compute_jacobian(mech: Mechanism, q: np.ndarray, *, backend: str = "auto") -> np.ndarray:
+    """Return the constraint Jacobian J(q), shape (nc, nv).
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        backend: as :func:`compute_phi`.
+    """
+    rows = rows_evaluator(mech, backend_name(backend))
+    q = mech.check_q(q, "q")
+    if rows is not None:
+        return rows.rows(q, np.zeros(mech.nv))[1]
+    return layer_jacobian(mech.model, mech.data, mech.constraints, q)
 
 
 @exclusive
-def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Return gamma(q, v) = Jdot(q, v) v, shape (nc,), [m/s^2] or [1/s^2] per row."""
+def compute_gamma(
+    mech: Mechanism, q: np.ndarray, v: np.ndarray, *, backend: str = "auto"
+) -> np.ndarray:
+    """Return gamma(q, v) = Jdot(q, v) v, shape (nc,), [m/s^2] or [1/s^2] per row.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,).
+        v: velocity, shape (nv,).
+        backend: as :func:`compute_phi`.
+    """
+    rows = rows_evaluator(mech, backend_name(backend))
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
+    if rows is not None:
+        return rows.rows(q, v)[2]
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
     if mech.constraints.batched:
         pin.computeJointJacobiansTimeVariation(mech.model, mech.data, q, v)

@@ -327,9 +327,9 @@ class Mechanism:
         q = np.asarray(q, dtype=float)
         if q.shape != (self.nq,):
             raise ClosedChainError(f"{name} has shape {q.shape}, expected ({self.nq},)")
-        if not np.all(np.isfinite(q)):
+        if not np.isfinite(q).all():
             raise ClosedChainError(f"{name} contains non-finite values: {q}")
-        if not pin.isNormalized(self.model, q, NORMALIZATION_TOL):
+        if self.nq != self.nv and not pin.isNormalized(self.model, q, NORMALIZATION_TOL):
             # A continuous joint's (cos, sin) or a quaternion off the unit
             # sphere gives Pinocchio a scaled rotation: wrong numbers, silently.
             for j in range(1, self.model.njoints):
@@ -350,7 +350,7 @@ class Mechanism:
         v = np.asarray(v, dtype=float)
         if v.shape != (self.nv,):
             raise ClosedChainError(f"{name} has shape {v.shape}, expected ({self.nv},)")
-        if not np.all(np.isfinite(v)):
+        if not np.isfinite(v).all():
             raise ClosedChainError(f"{name} contains non-finite values: {v}")
         return v
 

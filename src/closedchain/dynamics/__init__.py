@@ -5,11 +5,13 @@ Use :func:`forward_dynamics`; :data:`METHODS` lists the registered names.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .._locking import exclusive
+from .._percall import backend_name, evaluator
 from ..exceptions import NonFiniteError, check_settings
 from . import augmented_lagrangian as _augmented_lagrangian  # noqa: F401  (registers it)
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
@@ -49,6 +51,7 @@ def forward_dynamics(
     *,
     method: str = DEFAULT_METHOD,
     settings: SolverSettings = DEFAULT_SETTINGS,
+    backend: str = "auto",
 ) -> ForwardDynamicsResult:
     """Compute the constrained accelerations and multipliers.
 
@@ -61,33 +64,46 @@ def forward_dynamics(
             (``"augmented-lagrangian"``, as :func:`~closedchain.simulate`: well posed
             where J loses rank; ``"kkt"`` is the seed's block system).
         settings: numerical settings.
+        backend: ``"auto"`` (the compiled core when it is built, holds the mechanism's
+            rows and has the method; else numpy), ``"compiled"`` or ``"numpy"`` (the
+            reference implementation). The two agree to round-off.
 
     Returns:
         The result, with accelerations, multipliers and the J, gamma used.
 
     Raises:
-        UnknownChoiceError: unknown method (lists the valid ones).
+        UnknownChoiceError: unknown method or backend (lists the valid ones).
+        InvalidArgumentError: ``backend="compiled"`` where the core cannot run it.
         SingularConfigurationError: the method cannot solve at q (names q and
             the condition number).
         NonFiniteError: v or tau so large that the result overflows.
     """
     check_settings("settings", settings, SolverSettings)
     method = method_name(method)
-    func = METHODS[method]
+    fd = evaluator(mech, method, settings, backend_name(backend))
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
-    # An overflow is reported by the finiteness check below, not as a warning.
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        a, lam = func(mech, q, v, tau, settings)
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(lam))):
+    if fd is not None:
+        a, lam = fd.forward(q, v, tau)
+        rows = partial(_compiled_rows, fd, q.copy(), v.copy())
+    else:
+        # An overflow is reported by the finiteness check below, not as a warning.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            a, lam = METHODS[method](mech, q, v, tau, settings)
+        a, lam = np.array(a), np.array(lam)
+        ws = workspace(mech)
+        rows = partial(tuple, (ws.J.copy(), ws.gamma.copy()))
+    if not (np.isfinite(a).all() and np.isfinite(lam).all()):
         raise NonFiniteError(
             f"{mech.name}: method {method!r} overflowed to non-finite accelerations or "
             f"multipliers at max|v| = {np.max(np.abs(v), initial=0):.3g}, "
             f"max|tau| = {np.max(np.abs(tau), initial=0):.3g}: v and tau must be small enough "
             "for M a + h (quadratic in v) to stay finite in double precision"
         )
-    ws = workspace(mech)
-    return ForwardDynamicsResult(
-        a=np.array(a), lam=np.array(lam), method=method, J=ws.J.copy(), gamma=ws.gamma.copy()
-    )
+    return ForwardDynamicsResult(a=a, lam=lam, method=method, _rows=rows)
+
+
+def _compiled_rows(fd, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    _phi, J, gamma = fd.rows(q, v)
+    return J, gamma

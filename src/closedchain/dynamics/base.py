@@ -15,7 +15,8 @@ independent rows.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -104,15 +105,30 @@ class ForwardDynamicsResult:
         lam: multipliers of the independent constraint rows, shape (nc,), in
             the convention ``M a + h + J^T lam = tau``.
         method: name of the method that produced them.
-        J: constraint Jacobian used, shape (nc, nv).
-        gamma: Jdot v used, shape (nc,).
+
+    ``J`` and ``gamma`` (the rows used) are evaluated on first access on the
+    compiled backend, from a copy of the state.
     """
 
     a: np.ndarray
     lam: np.ndarray
     method: str
-    J: np.ndarray
-    gamma: np.ndarray
+    #: () -> (J, gamma) at the evaluation's state.
+    _rows: Callable[[], tuple[np.ndarray, np.ndarray]] = field(repr=False, compare=False)
+
+    @cached_property
+    def _J_gamma(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._rows()
+
+    @property
+    def J(self) -> np.ndarray:
+        """Constraint Jacobian used, shape (nc, nv)."""
+        return self._J_gamma[0]
+
+    @property
+    def gamma(self) -> np.ndarray:
+        """Jdot v used, shape (nc,)."""
+        return self._J_gamma[1]
 
     def constraint_residual(self) -> float:
         """Return max |J a + gamma|, the acceleration-level constraint violation."""
@@ -181,7 +197,7 @@ def register(
 
 def method_name(name: str) -> str:
     """Return the registered spelling of method ``name`` (any case), or raise listing them."""
-    return resolve_choice("forward-dynamics method", name, METHODS)
+    return name if name in METHODS else resolve_choice("forward-dynamics method", name, METHODS)
 
 
 def get_method(name: str) -> MethodFunction:

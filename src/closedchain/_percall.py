@@ -1,0 +1,94 @@
+"""Which backend a public per-call function runs on, and its compiled evaluators.
+
+The public functions (:func:`~closedchain.forward_dynamics`, the rows of
+:mod:`closedchain.kinematics`) take ``backend="auto" | "compiled" | "numpy"``. With
+``"auto"`` they run on the compiled core when it is built, holds the mechanism's rows
+and has the method, else on the numpy reference; ``"compiled"`` raises where it
+cannot. The compiled evaluators are made once per mechanism, constraint layer,
+method and settings, and kept on the mechanism.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from .exceptions import InvalidArgumentError, resolve_choice
+
+if TYPE_CHECKING:
+    from .compiled import CompiledDynamics
+    from .dynamics.base import SolverSettings
+    from .mechanism import Mechanism
+
+#: The backends of the per-call functions.
+BACKENDS = ("auto", "compiled", "numpy")
+#: Compiled evaluators kept per mechanism (other settings objects make new ones).
+MAX_EVALUATORS = 8
+
+
+def backend_name(backend: str) -> str:
+    """Return the registered spelling of ``backend`` (any case), or raise listing them."""
+    return backend if backend in BACKENDS else resolve_choice("backend", backend, BACKENDS)
+
+
+def why_not_compiled(mech: Mechanism, method: str) -> str | None:
+    """Why ``method`` on ``mech`` cannot run on the compiled core, or None if it can."""
+    from . import compiled
+    from .dynamics.base import METHOD_CAPABILITIES
+
+    if not compiled.available():
+        return f"the compiled core is not available ({compiled.IMPORT_ERROR})"
+    capabilities = METHOD_CAPABILITIES.get(method)
+    if capabilities is None or not capabilities.compiled:
+        valid = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
+        return f"method {method!r} has no compiled version; compiled methods: {', '.join(valid)}"
+    return compiled.unsupported_rows(mech)
+
+
+def evaluator(
+    mech: Mechanism, method: str, settings: SolverSettings, backend: str
+) -> CompiledDynamics | None:
+    """The compiled evaluator of ``method`` with ``settings`` on ``mech``, or None where
+    the call runs on numpy (``backend`` ``"numpy"``, or ``"auto"`` without a compiled
+    version).
+
+    Raises:
+        InvalidArgumentError: ``backend="compiled"`` where the core cannot run it (says why).
+    """
+    if backend == "numpy":
+        return None
+    layer = mech.constraints
+    last = mech.__dict__.get("_percall_last")
+    # The same method, settings object and rows as the last call: the common case.
+    if last is not None and last[0] is layer and last[1] == method and last[2] is settings:
+        entry = last[3]
+    else:
+        cache = mech.__dict__.setdefault("_percall_evaluators", {})
+        key = (method, settings)
+        entry = cache.get(key)
+        if entry is None or entry[0] is not layer:
+            entry = cache[key] = (layer, *_make(mech, method, settings))
+            if len(cache) > MAX_EVALUATORS:
+                cache.clear()
+                cache[key] = entry
+        mech.__dict__["_percall_last"] = (layer, method, settings, entry)
+    if entry[1] is None and backend == "compiled":
+        raise InvalidArgumentError(f"{mech.name}: backend='compiled': {entry[2]}")
+    return entry[1]
+
+
+def _make(mech: Mechanism, method: str, settings: SolverSettings):
+    """``(evaluator, None)``, or ``(None, why not)`` where the core cannot run it."""
+    reason = why_not_compiled(mech, method)
+    if reason is not None:
+        return None, reason
+    from .compiled import CompiledDynamics
+
+    return CompiledDynamics(mech, method, settings), None
+
+
+def rows_evaluator(mech: Mechanism, backend: str) -> CompiledDynamics | None:
+    """The compiled evaluator of the kept rows' phi, J and gamma (no Baumgarte terms),
+    or None where they are evaluated by numpy."""
+    from .dynamics.base import DEFAULT_SETTINGS
+
+    return evaluator(mech, "kkt", DEFAULT_SETTINGS, backend)
