@@ -111,3 +111,15 @@ def test_bad_state_is_refused_on_both_backends(fourbar):
         bad[0] = np.nan
         with pytest.raises(cc.ClosedChainError, match="v contains non-finite values"):
             cc.forward_dynamics(fourbar, q, bad, tau, backend=backend)
+
+
+@needs_core
+def test_project_velocity_compiled_equals_numpy(mechanisms):
+    """The same projection with J of the declared rows from C++ or numpy."""
+    for mech in mechanisms.values():
+        q, _, _ = _state(mech, seed=2)
+        v = np.random.default_rng(3).standard_normal(mech.nv)
+        for fixed in ((), "independent"):
+            c = cc.project_velocity(mech, q, v, fixed=fixed, backend="compiled")
+            n = cc.project_velocity(mech, q, v, fixed=fixed, backend="numpy")
+            assert np.max(np.abs(c - n)) <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(n)))

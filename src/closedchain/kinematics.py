@@ -37,6 +37,7 @@ from .closure import (
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
+from .compiled import declared_rows
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
 if TYPE_CHECKING:
@@ -162,7 +163,12 @@ def compute_gamma(
 
 @exclusive
 def project_velocity(
-    mech: Mechanism, q: np.ndarray, v: np.ndarray, *, fixed: Iterable[str | int] | str = ()
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    *,
+    fixed: Iterable[str | int] | str = (),
+    backend: str = "auto",
 ) -> np.ndarray:
     """Project a velocity onto the constraint tangent space J(q) v = 0.
 
@@ -175,6 +181,8 @@ def project_velocity(
         q: configuration, shape (nq,).
         v: velocity, shape (nv,).
         fixed: coordinates to keep (as in :func:`assemble`).
+        backend: where J is evaluated, as :func:`compute_phi` (the projection itself is
+            a small least-squares solve by numpy).
 
     Returns:
         The projected velocity, shape (nv,), with J v = 0 for every declared row.
@@ -182,13 +190,17 @@ def project_velocity(
     Raises:
         ClosedChainError: the held coordinates admit no velocity with J v = 0.
     """
+    compiled_rows = rows_evaluator(mech, backend_name(backend)) is not None
     q = mech.check_q(q, "q")
     v = np.array(mech.check_v(v, "v"), dtype=float)
     if mech.nc == 0:
         return v
     # Every declared row: the same tangent space as the independent rows
     # wherever they describe the loops, and the right one where they do not.
-    J = layer_jacobian(mech.model, mech.data, mech.declared, q)
+    if compiled_rows:
+        J = declared_rows(mech, q)[1]
+    else:
+        J = layer_jacobian(mech.model, mech.data, mech.declared, q)
     held = mech.coordinate_indices(fixed)
     free = np.setdiff1d(np.arange(mech.nv), held)
     # The declared rows are redundant (rank < rows): singular values below the
