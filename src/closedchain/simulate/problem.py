@@ -36,6 +36,7 @@ from ..dynamics.base import (
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory, first_samples
+from .registry import INTEGRATORS, STABILIZATIONS
 from .settings import SimulationError
 
 if TYPE_CHECKING:
@@ -482,8 +483,6 @@ class Problem:
 
 def passing_hint() -> str:
     """Name the configurations that pass singular positions (from the registries' capabilities)."""
-    from .registry import INTEGRATORS, STABILIZATIONS
-
     methods = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].singular_robust]
     integrators = [n for n, spec in INTEGRATORS.items() if spec.singular_robust]
     if not methods:
