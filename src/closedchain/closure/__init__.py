@@ -47,9 +47,9 @@ import pinocchio as pin
 import scipy.linalg
 import scipy.optimize
 
-from .constraints import ConstraintLayer, RowInfo
-from .exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
-from .pindata import new_data
+from ..constraints import ConstraintLayer, RowInfo
+from ..exceptions import AssemblyError, LoopClosureError, SingularConfigurationError, URDFError
+from ..pindata import new_data
 
 logger = logging.getLogger(__name__)
 
