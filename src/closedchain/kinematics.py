@@ -119,10 +119,8 @@ def compute_gamma(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
-    if mech.constraints.batched:
-        pin.computeJointJacobiansTimeVariation(mech.model, mech.data, q, v)
     out = np.zeros(mech.nc)
-    mech.constraints.evaluate(mech.model, mech.data, gamma=out, v=v)
+    mech.constraints.evaluate(mech.model, mech.data, gamma=out)
     return out
 
 
