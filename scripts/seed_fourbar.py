@@ -1,5 +1,8 @@
 """Run the seed's Python program (Section 7) through closedchain and print its lines.
 
+The seed is the course text the project grew from (Chapter 15, Lesson 3; cited in
+docs/references.md, not distributed with closedchain).
+
 The seed integrates the 4-bar with an explicit-Euler-style step (v += dt a; q += dt v)
 followed by two Gauss-Newton projection steps, dt = 1 ms, 1000 steps, a 1 N m crank
 torque, from rest at theta2 = 10 deg. In closedchain that is one configuration::

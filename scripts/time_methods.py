@@ -40,7 +40,7 @@ def time_model(name: str, *, number: int, repeat: int) -> None:
     rows = {
         "pin.computeAllTerms": lambda: pin.computeAllTerms(mech.model, mech.data, q, v),
         "constraints.evaluate(J, gamma)": lambda: mech.constraints.evaluate(
-            mech.model, mech.data, J=ws.J, gamma=ws.gamma, v=v
+            mech.model, mech.data, J=ws.J, gamma=ws.gamma
         ),
         "compute_terms": lambda: compute_terms(mech, q, v),
         "pin.constraintDynamics": lambda: pin.constraintDynamics(

@@ -2,8 +2,9 @@
 closed forms, and kinematic trajectories (no simulator needed).
 
 The 4-bar closed forms are the *independent* reference of the constraint
-layer: they are written from the seed text (Chapter 15, Lesson 3, Section 2
-and Problem 2) and Freudenstein's equation, with the link lengths stated in
+layer: they are written from the seed text (the course text the project grew from,
+Chapter 15, Lesson 3, cited in docs/references.md; here its Section 2 and Problem 2)
+and Freudenstein's equation, with the link lengths stated in
 the header of ``models/fourbar.urdf``, and share no code with ``closedchain``.
 """
 

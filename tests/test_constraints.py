@@ -98,9 +98,8 @@ def layer_jacobian(mech, layer, q):
 
 def layer_gamma(mech, layer, q, v):
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
-    pin.computeJointJacobiansTimeVariation(mech.model, mech.data, q, v)  # many loops
     out = np.zeros(layer.nc)
-    layer.evaluate(mech.model, mech.data, gamma=out, v=v)
+    layer.evaluate(mech.model, mech.data, gamma=out)
     return out
 
 
@@ -342,80 +341,20 @@ def test_agile_eye_translation_rows_vanish_identically(agile_eye, rng):
         assert np.linalg.norm(J[translation]) <= 1e-15
 
 
-# -- the batched evaluation (many loops) --------------------------------------------------
-
-#: The batched and the per-loop evaluation are the same formulas: round-off apart.
-TOL_BATCHED = 1e-13
+# -- many loops ----------------------------------------------------------------------------
 
 
-def _evaluate_all(mech, layer, q, v):
-    pin.computeAllTerms(mech.model, mech.data, q, v)
-    out = np.zeros(layer.nc), np.zeros((layer.nc, mech.nv)), np.zeros(layer.nc)
-    layer.evaluate(mech.model, mech.data, phi=out[0], J=out[1], gamma=out[2], v=v)
-    return out
-
-
-@pytest.mark.parametrize("name", ALL_MECHANISMS)
-def test_batched_evaluation_is_the_per_loop_one(load_mechanism, rng, monkeypatch, name):
-    """Every loop type: phi, J, gamma of all rows at once (as for many loops) equal the
-    per-loop evaluation, forced by setting the loop-count threshold to zero."""
-    import closedchain.constraints as constraints
-
-    mech = load_mechanism(name)
-    for layer in (mech.constraints, mech.declared):
-        assert layer._tt is None  # few loops: the per-loop path
-        if not any(r.unit == "m" for r in layer.rows):
-            continue  # rotation rows only: always batched
-        states = sample_states(mech, rng)
-        per_loop = [_evaluate_all(mech, layer, q, v) for q, v in states]
-        monkeypatch.setattr(constraints, "BATCH_LOOPS", 0)
-        layer._build_batched_tables()
-        try:
-            assert layer._tt is not None
-            for (q, v), ref in zip(states, per_loop, strict=True):
-                for got, want in zip(_evaluate_all(mech, layer, q, v), ref, strict=True):
-                    assert np.linalg.norm(got - want) <= TOL_BATCHED
-        finally:
-            monkeypatch.undo()
-            layer._build_batched_tables()
-
-
-def test_batched_evaluation_matches_finite_differences(tmp_path, rng):
-    """The N-four-bar with 5 loops (more than BATCH_LOOPS): J and gamma of the batched
-    path against central differences, every declared row."""
+def test_many_loops_match_finite_differences(tmp_path, rng):
+    """The N-four-bar with 5 loops: J and gamma against central differences, every
+    declared row."""
     from closedchain.benchmark.families import nfourbar_urdf
 
     path = tmp_path / "nfourbar_5.urdf"
     path.write_text(nfourbar_urdf(5))
     mech = cc.load(path)
     for layer in layers(mech).values():
-        assert layer._tt is not None
         for q, v in sample_states(mech, rng):
             J = layer_jacobian(mech, layer, q)
             assert np.linalg.norm(J - fd_jacobian(mech, layer, q)) <= TOL_FD
             gamma = layer_gamma(mech, layer, q, v)
             assert np.linalg.norm(gamma - fd_gamma(mech, layer, q, v)) <= TOL_FD
-
-
-def test_declared_rows_reuse_the_kept_rows_placements_only_at_the_same_q(tmp_path, rng):
-    """The declared and kept layers of many loops share one frame-placement memo: the
-    declared rows evaluated with q=... right after the kept rows at the same q equal their
-    evaluation on a fresh model (own placements), and at another q they are not served
-    the memo's placements."""
-    from closedchain.benchmark.families import nfourbar_urdf
-
-    path = tmp_path / "nfourbar_5.urdf"
-    path.write_text(nfourbar_urdf(5))
-    mech, fresh = cc.load(path), cc.load(path)
-    assert mech.constraints._memo is mech.declared._memo  # one memo for both layers
-    (q1, _), (q2, _) = sample_states(mech, rng)[:2]
-    for q_kept, q_declared in ((q1, q1), (q1, q2)):
-        pin.computeJointJacobians(mech.model, mech.data, q_kept)
-        mech.constraints.evaluate(mech.model, mech.data, phi=np.zeros(mech.nc), q=q_kept)
-        pin.forwardKinematics(mech.model, mech.data, q_declared)
-        got = np.zeros(mech.declared.nc)
-        mech.declared.evaluate(mech.model, mech.data, phi=got, q=q_declared)
-        pin.forwardKinematics(fresh.model, fresh.data, q_declared)
-        want = np.zeros(fresh.declared.nc)
-        fresh.declared.evaluate(fresh.model, fresh.data, phi=want)
-        assert np.linalg.norm(got - want) <= TOL_BATCHED

@@ -498,13 +498,17 @@ def test_polish_changes_the_multipliers_only(nfourbar):
 #: Velocity projections from a cold and a warm start: the same fixed point, to the
 #: iteration's tolerance (al_tol relative to max |v|, with margin for P's round-off).
 TOL_WARM_START = 1e-12
+#: Least ratio of the cold to the warm start's first-iterate error (round-off of P^-1 on
+#: the whole v against on its correction; measured 25 to 170 on the N-four-bar N = 5).
+WARM_START_GAIN_MIN = 10.0
 
 
 def test_velocity_projection_from_the_velocity_itself(nfourbar):
     """The augmented-Lagrangian projection of v onto J v = 0 in the metric of M started
-    from v (a0) reaches the cold start's result, in fewer iterations when v is near the
-    constraint (a stage's velocity); both satisfy J v = 0 and are M-orthogonal
-    corrections (checked against the closed form v - M^-1 J^T (J M^-1 J^T)^-1 J v)."""
+    from v (a0) reaches the cold start's result, with less round-off and no more
+    iterations when v is near the constraint (a stage's velocity); both satisfy J v = 0
+    and are M-orthogonal corrections (checked against the closed form
+    v - M^-1 J^T (J M^-1 J^T)^-1 J v)."""
     from closedchain.dynamics.augmented_lagrangian import (
         penalized_solver,
         solve_augmented_lagrangian,
@@ -528,7 +532,14 @@ def test_velocity_projection_from_the_velocity_itself(nfourbar):
     scale = np.abs(v).max()
     assert np.abs(warm - cold).max() <= TOL_WARM_START * scale
     assert np.abs(warm - exact).max() <= TOL_WARM_START * scale
-    assert it_warm < it_cold
+    assert it_warm <= it_cold
+    # The first iterates are the same in exact arithmetic; the one corrected from v
+    # carries far less round-off (measured: 25 to 170 times less).
+    first = dict(kw, max_iter=1)
+    cold1 = solve_augmented_lagrangian(solver, M, J, M @ v, zero, alpha, **first)[0]
+    warm1 = solve_augmented_lagrangian(solver, M, J, M @ v, zero, alpha, a0=v, **first)[0]
+    gain = np.abs(cold1 - exact).max() / np.abs(warm1 - exact).max()
+    assert gain >= WARM_START_GAIN_MIN
 
 
 def test_one_default_method_for_forward_dynamics_and_simulate(mechs, near_singular):

@@ -9,6 +9,12 @@ close kinematic loops and ``<transmission>`` elements for actuators::
     q = cc.assemble(mech, mech.q_ref)
     res = cc.forward_dynamics(mech, q, v, tau, method="kkt")
     report = cc.validate(mech, n_samples=100)
+
+Docstrings cite their sources by author and year; the documentation's References
+page lists them. "The seed" (the seed text, with its Section and Problem numbers) is
+the course text the project grew from: *Chapter 15: Constrained and Closed-Chain
+Dynamics. Lesson 3: Closed-Chain Examples (4-bar, parallel wrists)*, cited there and
+not distributed with closedchain.
 """
 
 from __future__ import annotations

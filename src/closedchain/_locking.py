@@ -1,9 +1,9 @@
 """One mechanism, many threads: the public functions take turns on a Mechanism.
 
 A :class:`~closedchain.Mechanism` keeps state between calls, as Pinocchio's
-``Data`` does: the Pinocchio data, the dynamics workspaces, the memo of frame
-placements, the kept factorization of the augmented-Lagrangian method, the
-compiled core's buffers, and the row selection that a simulation may change.
+``Data`` does: the Pinocchio data, the dynamics workspaces, the factorization
+of the augmented-Lagrangian method, the compiled core's buffers, and the row
+selection that a simulation may change.
 Two threads working on one mechanism at once would overwrite each other's
 intermediate results and get wrong numbers without an error. Every public
 function that reads or writes that state is therefore decorated with

@@ -48,7 +48,7 @@ and ``W = R_s w``:
 
 with :math:`\dot U = \omega_p \times U`, :math:`\ddot U = \alpha_{b,p} \times
 U + \omega_p \times (\omega_p \times U)` (and the same for W with the
-successor's), expanded in :meth:`ConstraintLayer.evaluate` into dot products.
+successor's), evaluated as written by :meth:`ConstraintLayer.evaluate`.
 
 A coupling loop (``q_j = m q_i + c``, :data:`closedchain.urdf.COUPLING`) has
 no frame rows: its one row reads the two joints' coordinates from ``data``
@@ -68,7 +68,6 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from ._arrays import same_array
 from .exceptions import ValidationUnavailableError
 from .urdf import COUPLING, LoopSpec
 
@@ -80,12 +79,6 @@ _LOCAL = pin.ReferenceFrame.LOCAL
 #: it only rescales the multipliers, not J^T lam).
 PIN_REVOLUTE_POINT_OFFSET = 0.1
 
-#: With more loops than this holding translation rows, :meth:`ConstraintLayer.evaluate`
-#: evaluates every row of every loop at once (numpy over the rows, cost growing with the
-#: arithmetic, not with Python calls per loop); with fewer, per loop (numpy's per-call
-#: overhead exceeds the arithmetic of a few loops).
-BATCH_LOOPS = 4
-
 #: Row function codes of :class:`RowTable`: translation (R_p n).(p_p - p_s).
 ROW_TRANSLATION = 0
 #: Rotation (R_p u).(R_s w).
@@ -94,41 +87,6 @@ ROW_ROTATION = 1
 ROW_COUPLING = 2
 #: Kind of a coupling row in :class:`RowInfo`.
 COUPLING_KIND = "q"
-
-
-_I1 = np.array([1, 2, 0])
-_I2 = np.array([2, 0, 1])
-
-
-def _rotation_gamma(V, A, tr, U, W, UW) -> np.ndarray:
-    """gamma of rotation rows u.w = 0 (u = R_p u0, w = R_s w0 in the world): with the
-    frames' velocities V and classical bias accelerations A, shape (frames, 6), and the
-    rows' table ``tr`` (pred, succ),
-    gamma = (alpha_s - alpha_p).(w x u) + (wp.u)(wp.w) + (ws.u)(ws.w)
-            - 2 (wp.w)(ws.u) - |wp - ws|^2 (u.w), the triple products expanded."""
-    wp, ws = V[tr.pred, 3:], V[tr.succ, 3:]
-    pu = np.einsum("ri,ri->r", wp, U)
-    pw = np.einsum("ri,ri->r", wp, W)
-    su = np.einsum("ri,ri->r", ws, U)
-    sw = np.einsum("ri,ri->r", ws, W)
-    dw = wp - ws
-    return (
-        np.einsum("ri,ri->r", _cross(W, U), A[tr.succ, 3:] - A[tr.pred, 3:])
-        + pu * pw
-        + su * sw
-        - 2.0 * pw * su
-        - np.einsum("ri,ri->r", dw, dw) * UW
-    )
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (k, 3) arrays (or a (3,) vector against (k, 3)).
-
-    numpy.cross spends ~30 us on axis handling; this is the same formula
-    without it (``take``: half the time of fancy indexing), for the small arrays of the
-    per-evaluation path.
-    """
-    return a.take(_I1, -1) * b.take(_I2, -1) - a.take(_I2, -1) * b.take(_I1, -1)
 
 
 def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,12 +102,6 @@ def axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n1, n2
 
 
-def _cross3(a: list, b: list) -> list:
-    """Cross product of two 3-vectors given as lists of floats (plain Python arithmetic:
-    numpy's per-call overhead exceeds the six products)."""
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-
-
 def support_mask(model: pin.Model, joint: int) -> np.ndarray:
     """Return the velocity columns of the joints supporting ``joint`` (itself included,
     the universe excluded) as a bool mask, shape (nv,): where the joint's frames'
@@ -162,47 +114,64 @@ def support_mask(model: pin.Model, joint: int) -> np.ndarray:
     return mask
 
 
-def _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma) -> None:
-    r"""Fill the translation rows ``(R_p n_i).(p_p - p_s)`` of one loop.
+def _loop_rows(model, data, blk: LoopRows, phi, J, gamma) -> None:
+    r"""Fill the rows of one loop with cut frames (the formulas of the module docstring).
 
-    With d = p_p - p_s, (N R_p^T) the rows (R_p n_i)^T, and frame quantities
-    world-aligned (LOCAL_WORLD_ALIGNED):
+    With world placements ``(R_p, p_p)`` of c1 and ``(R_s, p_s)`` of c2, d = p_p - p_s,
+    U = R_p n (translation rows) or R_p u (rotation rows), W = R_s w, and the frames'
+    velocities (v, omega) and classical bias accelerations (a_b, alpha_b), all
+    LOCAL_WORLD_ALIGNED:
 
     .. math::
 
-        \phi = N R_p^\top d, \qquad
-        J = N R_p^\top \bigl(J_{v,p} - J_{v,s} + [d]_\times J_{\omega,p}\bigr),
+        \phi_t = U^\top d, \qquad
+        J_t = U^\top (J_{v,p} - J_{v,s}) + (U \times d)^\top J_{\omega,p}, \qquad
+        \gamma_t = \ddot U^\top d + 2 \dot U^\top \dot d + U^\top (a_{b,p} - a_{b,s}),
 
-        \gamma = N R_p^\top \bigl(a_{b,p} - a_{b,s} + d \times \alpha_{b,p}
-        + 2\, \dot d \times \omega_p + (d \times \omega_p) \times \omega_p\bigr),
+        \phi_r = U^\top W, \qquad
+        J_r = (W \times U)^\top (J_{\omega,s} - J_{\omega,p}), \qquad
+        \gamma_r = \ddot U^\top W + 2 \dot U^\top \dot W + U^\top \ddot W,
 
-    the last from :math:`\ddot U^\top d + 2 \dot U^\top \dot d + U^\top \ddot d`
-    with :math:`\dot U = \omega_p \times U` (module docstring) and the triple
-    product rule :math:`(\omega \times U)^\top x = U^\top (x \times \omega)`.
+    with :math:`\dot U = \omega_p \times U`, :math:`\ddot U = \alpha_{b,p} \times U +
+    \omega_p \times \dot U`, and the same for W with the successor's.
     """
-    oMp = pin.updateFramePlacement(model, data, fp)
-    d_arr = oMp.translation - pin.updateFramePlacement(model, data, fs).translation
-    NR = N @ oMp.rotation.T  # rows (R_p n_i)^T, world
+    oMp = pin.updateFramePlacement(model, data, blk.fid_p)
+    oMs = pin.updateFramePlacement(model, data, blk.fid_s)
+    d = oMp.translation - oMs.translation
+    Ut = blk.trans @ oMp.rotation.T  # translation rows: U = R_p n, one row each
+    Ur = blk.rot_u @ oMp.rotation.T  # rotation rows: U = R_p u
+    Wr = blk.rot_w @ oMs.rotation.T  # W = R_s w
+    t = slice(blk.start, blk.start + blk.nt)  # translation rows come first
+    r = slice(blk.start + blk.nt, blk.start + blk.n)
     if phi is not None:
-        phi[sl] = NR @ d_arr
-    if J is None and gamma is None:
-        return
-    d = d_arr.tolist()
+        phi[t] = Ut @ d
+        phi[r] = np.sum(Ur * Wr, axis=1)
     if J is not None:
-        Jp = pin.getFrameJacobian(model, data, fp, _LWA)
-        Js = pin.getFrameJacobian(model, data, fs, _LWA)
-        S = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])  # d x .
-        J[sl] = NR @ (Jp[:3] - Js[:3] + S @ Jp[3:])
+        Jp = pin.getFrameJacobian(model, data, blk.fid_p, _LWA)
+        Js = pin.getFrameJacobian(model, data, blk.fid_s, _LWA)
+        # (U x d).omega_p = U.(d x omega_p) = U^T [d]x omega_p
+        J[t] = Ut @ (Jp[:3] - Js[:3] + pin.skew(d) @ Jp[3:])
+        W_x_U = np.array([pin.skew(w) @ u for u, w in zip(Ur, Wr, strict=True)]).reshape(-1, 3)
+        J[r] = W_x_U @ (Js[3:] - Jp[3:])
     if gamma is not None:
-        ap = pin.getFrameClassicalAcceleration(model, data, fp, _LWA).vector.tolist()
-        as_ = pin.getFrameClassicalAcceleration(model, data, fs, _LWA).linear.tolist()
-        vp = pin.getFrameVelocity(model, data, fp, _LWA).vector.tolist()
-        vs = pin.getFrameVelocity(model, data, fs, _LWA).linear.tolist()
-        w, alpha = vp[3:], ap[3:]
-        dd = [vp[0] - vs[0], vp[1] - vs[1], vp[2] - vs[2]]
-        c1, c2, c3 = _cross3(d, alpha), _cross3(dd, w), _cross3(_cross3(d, w), w)
-        x = [ap[k] - as_[k] + c1[k] + 2.0 * c2[k] + c3[k] for k in range(3)]
-        gamma[sl] = NR @ np.array(x)
+        vp = pin.getFrameVelocity(model, data, blk.fid_p, _LWA)
+        vs = pin.getFrameVelocity(model, data, blk.fid_s, _LWA)
+        ap = pin.getFrameClassicalAcceleration(model, data, blk.fid_p, _LWA)
+        as_ = pin.getFrameClassicalAcceleration(model, data, blk.fid_s, _LWA)
+        Ut_dot = _cross_rows(vp.angular, Ut)
+        Ut_ddot = _cross_rows(ap.angular, Ut) + _cross_rows(vp.angular, Ut_dot)
+        d_dot = vp.linear - vs.linear
+        gamma[t] = Ut_ddot @ d + 2.0 * Ut_dot @ d_dot + Ut @ (ap.linear - as_.linear)
+        Ur_dot = _cross_rows(vp.angular, Ur)
+        Ur_ddot = _cross_rows(ap.angular, Ur) + _cross_rows(vp.angular, Ur_dot)
+        Wr_dot = _cross_rows(vs.angular, Wr)
+        Wr_ddot = _cross_rows(as_.angular, Wr) + _cross_rows(vs.angular, Wr_dot)
+        gamma[r] = np.sum(Ur_ddot * Wr + 2.0 * Ur_dot * Wr_dot + Ur * Wr_ddot, axis=1)
+
+
+def _cross_rows(w: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Return w x a for every row a of A, shape (k, 3) (A: shape (k, 3), w: shape (3,))."""
+    return A @ pin.skew(w).T
 
 
 def _coupling_row(model, data, blk: LoopRows, r: int, phi, J, gamma) -> None:
@@ -343,27 +312,6 @@ class RowTable:
     labels: tuple[str, ...]
 
 
-class _Table:
-    """Rows of one kind over all loops: output rows, loop index, frame indices, vectors."""
-
-    def __init__(self, columns: dict[str, list]) -> None:
-        self.rows = np.array(columns["rows"], dtype=int)
-        self.loop = np.array(columns["loop"], dtype=int)
-        self.pred = 2 * self.loop  # index of c1 in the stacked frames
-        self.succ = 2 * self.loop + 1
-        for key in ("n", "u", "w"):
-            if key in columns:
-                setattr(self, key, np.array(columns[key], dtype=float).reshape(-1, 3))
-
-
-class _PlacementMemo:
-    """The world placements H, shape (2L, 4, 4), of a batched layer's frames at q."""
-
-    def __init__(self) -> None:
-        self.q: np.ndarray | None = None
-        self.H: np.ndarray | None = None
-
-
 class ConstraintLayer:
     """phi, J and gamma of a set of loops, evaluated from filled Pinocchio data.
 
@@ -374,9 +322,7 @@ class ConstraintLayer:
 
     * phi needs ``forwardKinematics(q)``,
     * J needs ``computeJointJacobians(q)`` (or ``computeAllTerms``),
-    * gamma needs ``forwardKinematics(q, v, 0)``, and when :attr:`batched` also
-      ``computeJointJacobiansTimeVariation(q, v)`` and ``v`` itself (``computeAllTerms``
-      does both).
+    * gamma needs ``forwardKinematics(q, v, 0)`` (or ``computeAllTerms``).
     """
 
     def __init__(
@@ -384,11 +330,7 @@ class ConstraintLayer:
         loops: tuple[LoopSpec, ...],
         frame_ids: tuple[tuple[int, int], ...],
         keep: tuple[tuple[int, ...], ...] | None = None,
-        _memos: dict | None = None,
     ) -> None:
-        #: Frame-placement memos by frame list, shared with the layers :meth:`restricted`
-        #: makes (the same model and loops).
-        self._memos: dict[tuple[int, ...], _PlacementMemo] = {} if _memos is None else _memos
         self.loops = loops
         self.frame_ids = frame_ids
         self._blocks = [
@@ -413,7 +355,6 @@ class ConstraintLayer:
             self._slices.append(slice(start, start + b.n))
             start += b.n
         self._active = [b for b in self._blocks if b.n]
-        self._build_tables()
 
     def per_loop(self) -> list[tuple[LoopRows, slice]]:
         """Return each loop's rows and their slice of phi, J, gamma and lam, in URDF order."""
@@ -432,9 +373,7 @@ class ConstraintLayer:
                 if offset <= r < offset + b.n_declared:
                     per_loop[i].append(r - offset)
             offset += b.n_declared
-        return ConstraintLayer(
-            self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop), _memos=self._memos
-        )
+        return ConstraintLayer(self.loops, self.frame_ids, tuple(tuple(k) for k in per_loop))
 
     def row_table(self) -> RowTable:
         """Return the active rows as flat per-row arrays (see :class:`RowTable`)."""
@@ -467,10 +406,8 @@ class ConstraintLayer:
         phi: np.ndarray | None = None,
         J: np.ndarray | None = None,
         gamma: np.ndarray | None = None,
-        v: np.ndarray | None = None,
-        q: np.ndarray | None = None,
     ) -> None:
-        """Fill the requested outputs from ``data``.
+        """Fill the requested outputs from ``data``, loop by loop.
 
         Args:
             model: the mechanism's Pinocchio model (with the loop frames).
@@ -478,216 +415,17 @@ class ConstraintLayer:
             phi: output, shape (nc,), [m] or [-] per row.
             J: output, shape (nc, nv), d phi / d v along ``pin.integrate``.
             gamma: output, shape (nc,), Jdot v.
-            v: the velocity ``data`` was filled at, shape (nv,); required with gamma
-                when the layer evaluates all loops at once (:attr:`batched`).
-            q: the configuration ``data`` was filled at, if known: a batched layer then
-                reuses the frame placements of its last evaluation at the same q (the
-                simulator evaluates J and then gamma at each stage's q).
         """
-        self._evaluate_frames(model, data, phi, J, gamma, v, q)
-        for blk in self._couplings:
-            _coupling_row(model, data, blk, blk.start, phi, J, gamma)
+        for blk in self._active:
+            if blk.coupling:
+                _coupling_row(model, data, blk, blk.start, phi, J, gamma)
+            else:
+                _loop_rows(model, data, blk, phi, J, gamma)
 
     @property
     def couplings(self) -> tuple[LoopSpec, ...]:
         """The loops whose active row is a coupling row (``q_j = m q_i + c``)."""
-        return tuple(b.spec for b in self._couplings)
-
-    def _evaluate_frames(self, model, data, phi, J, gamma, v, q) -> None:
-        """Fill the rows of the loops with frames (all but the couplings), see evaluate."""
-        # Hot path (every dynamics evaluation). Translation rows: per loop, a few
-        # 3 x 3 / k x 3 products (see _translation_rows). Rotation rows: all loops at
-        # once, a fixed number of batched numpy calls (numpy's per-call overhead,
-        # not arithmetic, dominates arrays this small).
-        if self._tt is not None:
-            if gamma is not None and v is None:
-                raise ValueError(
-                    "gamma of a layer with many loops needs v (the velocity data was "
-                    "filled at); pass v=..."
-                )
-            self._evaluate_batched(model, data, phi, J, gamma, v, q)
-            return
-        for sl, fp, fs, N in self._trans:
-            _translation_rows(model, data, sl, fp, fs, N, phi, J, gamma)
-        tr = self._tr
-        if tr is None:
-            return
-        frames = [pin.updateFramePlacement(model, data, f) for f in self._fids]
-        R = np.array([M.rotation for M in frames])  # (2L, 3, 3): c1, c2 of each loop
-        U = (R[tr.pred] @ tr.u[:, :, None])[:, :, 0]  # R_p u, world
-        W = (R[tr.succ] @ tr.w[:, :, None])[:, :, 0]  # R_s w, world
-        UW = np.einsum("ri,ri->r", U, W)
-        if phi is not None:
-            phi[tr.rows] = UW
-        if J is not None:
-            Jf = np.array([pin.getFrameJacobian(model, data, f, _LWA) for f in self._fids])
-            J[tr.rows] = np.einsum("ri,rin->rn", _cross(W, U), Jf[tr.succ, 3:] - Jf[tr.pred, 3:])
-        if gamma is not None:
-            A = np.array(
-                [pin.getFrameClassicalAcceleration(model, data, f, _LWA).vector for f in self._fids]
-            )  # (2L, 6): classical linear, angular; bias (zero joint acceleration)
-            V = np.array([pin.getFrameVelocity(model, data, f, _LWA).vector for f in self._fids])
-            gamma[tr.rows] = _rotation_gamma(V, A, tr, U, W, UW)
-
-    @property
-    def batched(self) -> bool:
-        """Whether every row of every loop is evaluated at once (more than
-        :data:`BATCH_LOOPS` loops with translation rows; gamma then needs v and the
-        joint Jacobians' time variation, see the class doc)."""
-        return self._tt is not None
-
-    def _evaluate_batched(self, model, data, phi, J, gamma, v, q) -> None:
-        r"""Every row of every loop at once (many loops: numpy over all rows, one pass of
-        frame placements), the rows of :func:`_translation_rows` and the rotation rows
-        of :meth:`evaluate` (the same functions; J and gamma written differently).
-
-        Translation rows, with U = R_p n (world) and d = p_p - p_s: phi = U.d.
-
-        J from the joint Jacobians (``data.J``: world frame, column k the twist of joint k
-        at the world origin) in one product: every row's rate is b_r . (V_p - V_s), with
-        V_p, V_s the twists (at the world origin) of the bodies of c1 and c2,
-        b_r = (U, p_s x U) for a translation row (from U.(v_p - v_s) + (U x d).omega_p
-        with v = v_o + omega x p) and b_r = (0, U x W) for a rotation row; V_f is the sum
-        of the columns of the joints supporting frame f, so J = D o (B data.J), D_rk =
-        1 / -1 / 0 where joint column k supports c1 only / c2 only / both or neither.
-        """
-        # One array per frame (R and p in one homogeneous matrix): per-frame Python calls
-        # dominate this path.
-        memo = self._memo
-        if q is not None and same_array(q, memo.q):
-            H = memo.H
-        else:
-            H = np.array(
-                [pin.updateFramePlacement(model, data, f).homogeneous for f in self._bfids]
-            )
-            memo.H, memo.q = H, None if q is None else np.array(q)
-        # ``take`` on the contiguous stack: a fraction of fancy indexing's cost here.
-        tt, tr = self._tt, self._btr
-        Hp = H.take(tt.pred, 0)
-        ps = H.take(tt.succ, 0)[:, :3, 3]  # p_s of each translation row
-        U = np.einsum("rij,rj->ri", Hp[:, :3, :3], tt.n)
-        if tr is not None:
-            Ur = np.einsum("rij,rj->ri", H.take(tr.pred, 0)[:, :3, :3], tr.u)
-            Wr = np.einsum("rij,rj->ri", H.take(tr.succ, 0)[:, :3, :3], tr.w)
-            UW = np.einsum("ri,ri->r", Ur, Wr)
-        if phi is not None:
-            phi[tt.rows] = np.einsum("ri,ri->r", U, Hp[:, :3, 3] - ps)
-            if tr is not None:
-                phi[tr.rows] = UW
-        if J is not None:
-            if tr is None and self._tt_all:  # translation rows only, in table order
-                B = np.concatenate([U, _cross(ps, U)], axis=1)
-            else:
-                B = np.zeros((self.nc, 6))
-                B[tt.rows, :3] = U
-                B[tt.rows, 3:] = _cross(ps, U)
-                if tr is not None:
-                    B[tr.rows, 3:] = _cross(Ur, Wr)
-            np.multiply(self._support_difference(model), B @ data.J, out=J)
-        if gamma is None:
-            return
-        # gamma = d/dt(b_r) . (V_p - V_s) + b_r . (A_p - A_s), the derivative of the rate
-        # b_r . (V_p - V_s) of J above, with the bodies' twists V = data.J (s o v) and
-        # bias accelerations A = data.dJ (s o v) at the world origin (s: the frame's
-        # support mask; joint accelerations zero). Translation rows: b_r = (U, p_s x U),
-        # so b_r . (V_p - V_s) = U . dv, dv = (v_p - v_s) + (w_p - w_s) x p_s the
-        # relative velocity at the point p_s, and with dU/dt = w_p x U,
-        # dp_s/dt = v_s + w_s x p_s and the triple product rule (w x U) . x = U . (x x w):
-        # gamma = U . X, X = dv x w_p + (a_p - a_s) + (alpha_p - alpha_s) x p_s
-        # + (w_p - w_s) x dp_s/dt, one X per loop (frames 2 l and 2 l + 1).
-        # V and A in one product: S (J v, dJ v per column) with S the 0/1 support masks.
-        VA = self._frame_support(model) @ (np.concatenate([data.J, data.dJ]) * v).T
-        V, A = VA[:, :6], VA[:, 6:]  # (2L, 6) each: linear, angular
-        Vp, Vs = V[0::2], V[1::2]
-        dV, dA = Vp - Vs, A[0::2] - A[1::2]
-        p = H[1::2, :3, 3]  # p_s of each loop
-        n = len(p)
-        # Three cross products with p_s at once: dw x p, dalpha x p, w_s x p.
-        C1 = _cross(np.concatenate([dV[:, 3:], dA[:, 3:], Vs[:, 3:]]), np.concatenate([p, p, p]))
-        dv = dV[:, :3] + C1[:n]
-        dps = Vs[:, :3] + C1[2 * n :]
-        C2 = _cross(np.concatenate([dv, dV[:, 3:]]), np.concatenate([Vp[:, 3:], dps]))
-        X = C2[:n] + C2[n:] + dA[:, :3] + C1[n : 2 * n]
-        gamma[tt.rows] = np.einsum("ri,ri->r", U, X.take(tt.loop, 0))
-        if tr is not None:  # _rotation_gamma reads the angular parts only
-            gamma[tr.rows] = _rotation_gamma(V, A, tr, Ur, Wr, UW)
-
-    def _build_tables(self) -> None:
-        """Index tables of the active rows over all loops: per-loop translation blocks,
-        one batched table of rotation rows; with more than :data:`BATCH_LOOPS` loops
-        holding translation rows, one batched table of them too (every row at once)."""
-        self._build_batched_tables()
-        self._couplings = [b for b in self._active if b.coupling]
-        self._fids: list[int] = []
-        self._trans: list[tuple[slice, int, int, np.ndarray]] = []
-        rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
-        active = [b for b in self._active if b.nr]
-        for i, blk in enumerate(active):
-            self._fids += [blk.fid_p, blk.fid_s]
-            r = blk.start + blk.nt  # rotation rows follow the translation rows
-            for u, w in zip(blk.rot_u, blk.rot_w, strict=True):
-                rot["rows"].append(r)
-                rot["loop"].append(i)
-                rot["u"].append(u)
-                rot["w"].append(w)
-                r += 1
-        for blk in self._active:
-            if blk.nt:
-                sl = slice(blk.start, blk.start + blk.nt)
-                self._trans.append((sl, blk.fid_p, blk.fid_s, np.array(blk.trans)))
-        self._tr = _Table(rot) if rot["rows"] else None
-
-    def _build_batched_tables(self) -> None:
-        """Tables of :meth:`_evaluate_batched` (``self._tt`` None: the per-loop path)."""
-        self._tt = None
-        self._support_model = None  # the model _support_difference was made for
-        self._memo = _PlacementMemo()  # placements of _bfids kept by _evaluate_batched
-        with_trans = [b for b in self._active if b.nt]
-        if not with_trans or len(with_trans) <= BATCH_LOOPS:
-            return  # rotation rows alone are batched by the per-loop path already
-        self._bfids: list[int] = []
-        trans: dict[str, list] = {"rows": [], "loop": [], "n": []}
-        rot: dict[str, list] = {"rows": [], "loop": [], "u": [], "w": []}
-        for i, blk in enumerate(self._active):
-            self._bfids += [blk.fid_p, blk.fid_s]
-            for k, n in enumerate(blk.trans):
-                trans["rows"].append(blk.start + k)
-                trans["loop"].append(i)
-                trans["n"].append(n)
-            for k, (u, w) in enumerate(zip(blk.rot_u, blk.rot_w, strict=True)):
-                rot["rows"].append(blk.start + blk.nt + k)
-                rot["loop"].append(i)
-                rot["u"].append(u)
-                rot["w"].append(w)
-        self._tt = _Table(trans)
-        self._btr = _Table(rot) if rot["rows"] else None
-        # One memo for every layer of these loops with the same frames (the declared rows
-        # and the kept ones: the simulator evaluates both at each step's end).
-        self._memo = self._memos.setdefault(tuple(self._bfids), self._memo)
-        self._memo.q = None
-        #: The translation rows are every row, in order (J's rows are then B's as made).
-        self._tt_all = bool(np.array_equal(self._tt.rows, np.arange(self.nc)))
-
-    def _frame_support(self, model: pin.Model) -> np.ndarray:
-        """Return the support masks of the frames of :meth:`_evaluate_batched` (c1, c2 of
-        each loop), shape (2L, nv), float (made once per model)."""
-        if self._support_model is not model:
-            S = np.array([support_mask(model, model.frames[f].parentJoint) for f in self._bfids])
-            self._support = S.astype(float)
-            row_loop = np.zeros(self.nc, dtype=int)
-            row_loop[self._tt.rows] = self._tt.loop
-            if self._btr is not None:
-                row_loop[self._btr.rows] = self._btr.loop
-            self._support_diff = self._support[2 * row_loop] - self._support[2 * row_loop + 1]
-            self._support_model = model
-        return self._support
-
-    def _support_difference(self, model: pin.Model) -> np.ndarray:
-        """Return D, shape (nc, nv), of :meth:`_evaluate_batched`: per row, 1 on the
-        velocity columns of the joints that support c1 but not c2, -1 on those that
-        support c2 but not c1, 0 elsewhere (made once per model)."""
-        self._frame_support(model)
-        return self._support_diff
+        return tuple(b.spec for b in self._active if b.coupling)
 
     def misaligned_loops(self, model: pin.Model, data: pin.Data) -> list[str]:
         """Return the loops whose cut frames satisfy phi = 0 only spuriously.

@@ -154,10 +154,8 @@ def compute_gamma(
     if rows is not None:
         return rows.rows(q, v)[2]
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
-    if mech.constraints.batched:
-        pin.computeJointJacobiansTimeVariation(mech.model, mech.data, q, v)
     out = np.zeros(mech.nc)
-    mech.constraints.evaluate(mech.model, mech.data, gamma=out, v=v)
+    mech.constraints.evaluate(mech.model, mech.data, gamma=out)
     return out
 
 

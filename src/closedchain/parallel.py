@@ -232,7 +232,7 @@ def actuation_singularities(
     """
     q = mech.check_q(q, "q")
     mode = resolve_choice("actuation-singularity mode", mode, IK_MODES)
-    J = compute_jacobian(mech, q)  # fills mech.data's joint Jacobians at q
+    J = compute_jacobian(mech, q, backend="numpy")  # fills mech.data's joint Jacobians at q
     J_out = None
     if frame is not None:
         fid = _frame_id(mech, frame)

@@ -42,7 +42,6 @@ import scipy.sparse
 import scipy.sparse.csgraph
 from scipy.linalg import lapack
 
-from .._arrays import same_array
 from ..constraints import support_mask
 from ..exceptions import SingularConfigurationError
 from .base import (
@@ -123,24 +122,11 @@ class PenalizedSolver:
         if b_rcm < self.bandwidth:
             self.perm, self.bandwidth = np.asarray(perm), b_rcm
         self.banded = nv > 8 and self.bandwidth <= BANDED_FRACTION * nv
-        self._natural = bool(np.array_equal(self.perm, np.arange(nv)))
         self.nv = nv
         #: The kept rows this solver is for (see :func:`penalized_solver`).
         self.layer = mech.constraints
-        #: (M, J) of the current factorization (with :attr:`alpha`), or None.
-        self._factored: tuple[np.ndarray, np.ndarray] | None = None
-        b = self.bandwidth
-        if self.banded:
-            # Upper band storage: ab[b + i - j, j] = P[i, j], i <= j.
-            self._fac = None
-            self._jtj = _BandProducts.of_columns(_row_columns(mech), self.perm, b)
-            # M's band: ab.flat[m_target] = M.flat[m_source] (the order perm).
-            k, j = np.nonzero(np.arange(nv)[None, :] >= np.arange(b + 1)[:, None])
-            self._m_target = (b - k) * nv + j
-            self._m_source = self.perm[j - k] * nv + self.perm[j]
-        self._P = np.zeros((nv, nv))
+        self._fac: np.ndarray | None = None  # the Cholesky factor (band or dense)
         self.alpha = 0.0
-        self._rho: float | None = None  # rho of factor_relative's factorization
         #: The normal equations of the kept rows (multiplier polish, projections).
         self.normal = NormalSolver(mech)
 
@@ -154,51 +140,28 @@ class PenalizedSolver:
             mech: the mechanism, for the error message.
             q: configuration, shape (nq,), for the error message.
 
-        The factorization of the same M, J and alpha is kept (the stage projection and
-        the accelerations that follow it factorize P at the same q).
-
         Raises:
             SingularConfigurationError: P is not positive definite (M singular).
         """
-        if alpha == self.alpha and self._keeps(M, J):
-            return
-        self._factored = None
-        self._rho = None
         self.alpha = alpha
+        P = M + alpha * (J.T @ J)
         if self.banded:
-            # Only the band of P (never the dense J^T J): alpha times the products of
-            # J's structurally nonzero entries, plus M's band.
-            ab = self._jtj(J)
-            ab *= alpha
-            ab.ravel()[self._m_target] += np.ravel(M).take(self._m_source)
-            self._fac, info = lapack.dpbtrf(ab, lower=0)  # LAPACK directly: no wrappers
+            # Cholesky of the band of P in the order perm (LAPACK's band storage).
+            P_perm = P[np.ix_(self.perm, self.perm)]
+            self._fac, info = lapack.dpbtrf(upper_band(P_perm, self.bandwidth), lower=0)
         else:
-            P = self._P
-            np.dot(J.T, J, out=P)
-            P *= alpha
-            P += M
-            self._R, info = lapack.dpotrf(P, lower=0, clean=0)
+            self._fac, info = lapack.dpotrf(P, lower=0, clean=0)
         if info != 0:
             raise self._error(mech, q)
-        self._factored = (M.copy(), J.copy())
-
-    def _keeps(self, M: np.ndarray, J: np.ndarray) -> bool:
-        """Whether the current factorization is of this M and J."""
-        done = self._factored
-        return done is not None and same_array(M, done[0]) and same_array(J, done[1])
 
     def factor_relative(self, M: np.ndarray, J: np.ndarray, rho: float, mech, q) -> float:
         """Factorize P = M + alpha J^T J with alpha = :func:`relative_penalty` (M, J, rho)
-        and return alpha; the factorization of the same M, J and rho is kept (then alpha
-        is not recomputed either: the accelerations after a stage projection).
+        and return alpha.
 
         Args: as :meth:`factor`, with ``rho`` the dimensionless relative penalty.
         """
-        if rho == self._rho and self._keeps(M, J):
-            return self.alpha
         alpha = relative_penalty(M, J, rho)
         self.factor(M, J, alpha, mech, q)
-        self._rho = rho
         return alpha
 
     def _error(self, mech, q):
@@ -217,13 +180,11 @@ class PenalizedSolver:
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Return P^-1 rhs for rhs of shape (nv,) or (nv, k)."""
         if self.banded:
-            if self._natural:
-                return lapack.dpbtrs(self._fac, rhs, lower=0)[0]
             x = lapack.dpbtrs(self._fac, rhs[self.perm], lower=0)[0]
             out = np.empty_like(x)
             out[self.perm] = x
             return out
-        return lapack.dpotrs(self._R, rhs)[0]
+        return lapack.dpotrs(self._fac, rhs)[0]
 
 
 def penalized_solver(mech: Mechanism) -> PenalizedSolver:
@@ -269,61 +230,6 @@ def _row_columns(mech: Mechanism, layer=None) -> np.ndarray:
     return cols
 
 
-class _BandProducts:
-    """J^T J or J J^T in LAPACK's upper band storage from J's structurally nonzero
-    entries: entry ``target[p]`` of the flat (b + 1, n) band is the sum over p of
-    J.flat[first[p]] J.flat[second[p]] (``np.bincount``: a fixed number of numpy calls,
-    where a dense product per diagonal costs O(nc nv) each)."""
-
-    def __init__(self, first, second, target, nc: int, shape: tuple[int, int]) -> None:
-        self.first = np.asarray(first, dtype=np.intp)
-        self.second = np.asarray(second, dtype=np.intp)
-        self.target = np.asarray(target, dtype=np.intp)
-        self.nc = nc
-        self.shape = shape
-
-    @classmethod
-    def of_columns(cls, cols: np.ndarray, perm: np.ndarray, b: int) -> _BandProducts:
-        """J^T J in the column order ``perm`` (half bandwidth b) from ``cols``, the rows'
-        structural columns, shape (nc, nv)."""
-        nc, nv = cols.shape
-        pos = np.empty(nv, dtype=np.intp)
-        pos[perm] = np.arange(nv)  # position of each column in the order perm
-        first, second, target = [], [], []
-        for r in range(nc):
-            c = np.flatnonzero(cols[r])
-            c = c[np.argsort(pos[c])]
-            i, j = np.triu_indices(len(c))
-            pi, pj = pos[c[i]], pos[c[j]]  # pi <= pj, pj - pi <= b (the band of M + J^T J)
-            first.append(r * nv + c[i])
-            second.append(r * nv + c[j])
-            target.append((b - (pj - pi)) * nv + pj)
-        return cls(*(np.concatenate(x or [[]]) for x in (first, second, target)), nc, (b + 1, nv))
-
-    @classmethod
-    def of_rows(cls, cols: np.ndarray, b: int) -> _BandProducts:
-        """J J^T (half bandwidth b, rows in their order) from ``cols``, the rows'
-        structural columns, shape (nc, nv)."""
-        nc, nv = cols.shape
-        first, second, target = [], [], []
-        for r in range(nc):
-            for s in range(r, min(r + b, nc - 1) + 1):
-                common = np.flatnonzero(cols[r] & cols[s])
-                first.append(r * nv + common)
-                second.append(s * nv + common)
-                target.append(np.full(len(common), (b - (s - r)) * nc + s))
-        return cls(*(np.concatenate(x or [[]]) for x in (first, second, target)), nc, (b + 1, nc))
-
-    def __call__(self, J: np.ndarray) -> np.ndarray:
-        """Return the band, shape (b + 1, n) (a new array; J: shape (nc, nv))."""
-        if J.shape[0] != self.nc:
-            raise ValueError(f"J has {J.shape[0]} rows; this band is for {self.nc}")
-        Jf = np.ravel(J)
-        products = Jf.take(self.first) * Jf.take(self.second)
-        size = self.shape[0] * self.shape[1]
-        return np.bincount(self.target, products, minlength=size).reshape(self.shape)
-
-
 class NormalSolver:
     """Solve the regularized normal equations (J J^T + eps I) x = b of the kept rows.
 
@@ -345,8 +251,6 @@ class NormalSolver:
         self.nc = len(pattern)
         self.bandwidth = _bandwidth(pattern)
         self.banded = self.nc > 8 and self.bandwidth <= BANDED_FRACTION * self.nc
-        if self.banded:
-            self._jjt = _BandProducts.of_rows(cols, self.bandwidth)
 
     def solve(self, J: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """Return x with (J J^T + eps I) x = rhs.
@@ -378,7 +282,24 @@ class NormalSolver:
         Args:
             J: constraint Jacobian, shape (nc, nv).
         """
-        return self._jjt(J)
+        return upper_band(J @ J.T, self.bandwidth)
+
+
+def upper_band(A: np.ndarray, b: int) -> np.ndarray:
+    """Return the upper band of the symmetric matrix A in LAPACK's band storage.
+
+    Args:
+        A: symmetric matrix, shape (n, n), zero beyond the half bandwidth b.
+        b: half bandwidth.
+
+    Returns:
+        ``ab``, shape (b + 1, n), with ``ab[b - k, j] = A[j - k, j]`` for 0 <= k <= b
+        (``dpbtrf``'s ``lower=0`` layout; entries above the matrix are zero).
+    """
+    ab = np.zeros((b + 1, len(A)))
+    for k in range(b + 1):
+        ab[b - k, k:] = np.diagonal(A, k)
+    return ab
 
 
 def _bandwidth(pattern: np.ndarray) -> int:

@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from .._arrays import same_array
 from ..exceptions import SingularConfigurationError, resolve_choice
 
 if TYPE_CHECKING:
@@ -218,11 +217,6 @@ class Workspace:
         self.rhs = np.zeros(nv + nc)
         self.phi = np.zeros(nc)
         self.lower_mask = np.tri(nv, k=-1, dtype=bool)  # CRBA fills the upper triangle only
-        #: (layer, q) of J from :func:`position_terms` and q of M from
-        #: :func:`mass_matrix`: the next :func:`compute_terms` at that q (and layer)
-        #: keeps both, and clears them.
-        self.jacobian_at: tuple | None = None
-        self.mass_at: np.ndarray | None = None
         #: Per-method buffers, keyed by method name, made on a method's first
         #: call ("schur", "nullspace", "reduced", "pinocchio": see their modules).
         self.method_buffers: dict[str, object] = {}
@@ -300,8 +294,7 @@ def position_terms(mech: Mechanism, q: np.ndarray, phi: np.ndarray | None = None
     ws = workspace(mech)
     model, data = mech.model, mech.data
     pin.computeJointJacobians(model, data, q)  # placements and joint Jacobians
-    mech.constraints.evaluate(model, data, phi=phi, J=ws.J, q=q)
-    ws.jacobian_at, ws.mass_at = (mech.constraints, np.array(q)), None
+    mech.constraints.evaluate(model, data, phi=phi, J=ws.J)
     return ws
 
 
@@ -312,15 +305,13 @@ def _symmetric_mass(ws: Workspace, upper: np.ndarray) -> None:
 
 
 def mass_matrix(mech: Mechanism, q: np.ndarray) -> Workspace:
-    """Fill M at q (CRBA); after :func:`position_terms` at the same q, the next
-    :func:`compute_terms` at that q reuses M and J (it then evaluates only h and gamma).
+    """Fill M at q (CRBA, symmetric, full).
 
     The stage projection of the simulator evaluates M and J at the projected q for the
-    mass-orthogonal velocity step; the accelerations that follow are at the same q.
+    mass-orthogonal velocity step.
     """
     ws = workspace(mech)
     _symmetric_mass(ws, pin.crba(mech.model, mech.data, q))
-    ws.mass_at = np.array(q)
     return ws
 
 
@@ -330,11 +321,7 @@ def compute_terms(
     v: np.ndarray,
     baumgarte: tuple[float, float] | None = None,
 ) -> Workspace:
-    """Fill M, h, J and gamma at (q, v) (one ``computeAllTerms`` call, or less; below).
-
-    Right after :func:`position_terms` and :func:`mass_matrix` at the same q (and rows),
-    M and J are kept (only h and gamma are evaluated; for a batched layer by
-    ``nonLinearEffects`` and ``computeJointJacobiansTimeVariation`` alone).
+    """Fill M, h, J and gamma at (q, v) (one ``computeAllTerms`` call).
 
     Args:
         mech: the mechanism.
@@ -348,36 +335,16 @@ def compute_terms(
     """
     ws = workspace(mech)
     model, data = mech.model, mech.data
-    at_J, at_M = ws.jacobian_at, ws.mass_at
-    ws.jacobian_at = ws.mass_at = None
-    known = (
-        at_J is not None
-        and at_M is not None
-        and at_J[0] is mech.constraints
-        and same_array(q, at_J[1])
-        and same_array(q, at_M)
-    )
-    if known and mech.constraints.batched:
-        # M and J are current: only the bias forces, and the joint Jacobians with their
-        # time variation for the batched gamma (about half of computeAllTerms' cost at
-        # N = 40; the per-loop gamma reads the frame accelerations of forwardKinematics(q,
-        # v, 0), which these two leave unset).
-        ws.h[:] = pin.nonLinearEffects(model, data, q, v)
-        pin.computeJointJacobiansTimeVariation(model, data, q, v)
-    else:
-        # computeAllTerms: CRBA (upper triangle), nonLinearEffects, joint Jacobians and
-        # their time variation, forward kinematics with zero acceleration (gamma's terms).
-        pin.computeAllTerms(model, data, q, v)
-        if not known:
-            _symmetric_mass(ws, data.M)
-        ws.h[:] = data.nle
+    # CRBA (upper triangle), nonLinearEffects, joint Jacobians, forward kinematics with
+    # zero acceleration (the frames' bias accelerations of gamma).
+    pin.computeAllTerms(model, data, q, v)
+    _symmetric_mass(ws, data.M)
+    ws.h[:] = data.nle
     if mech.nc:
-        # Right after position_terms at q: J is known, and so are the frame placements.
-        J, at_q = (None, q) if known else (ws.J, None)
         if baumgarte is None:
-            mech.constraints.evaluate(model, data, J=J, gamma=ws.gamma, v=v, q=at_q)
+            mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)
         else:
             alpha, beta = baumgarte
-            mech.constraints.evaluate(model, data, phi=ws.phi, J=J, gamma=ws.gamma, v=v, q=at_q)
+            mech.constraints.evaluate(model, data, phi=ws.phi, J=ws.J, gamma=ws.gamma)
             ws.gamma += 2.0 * alpha * (ws.J @ v) + beta * beta * ws.phi
     return ws

@@ -48,7 +48,6 @@ from .base import (
     SolverSettings,
     check_condition,
     compute_terms,
-    method_buffers,
     register,
 )
 
@@ -56,17 +55,6 @@ if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
 _NAME = "nullspace"
-
-
-class _NullspaceBuffers:
-    """Preallocated arrays of one mechanism."""
-
-    def __init__(self, nv: int, nc: int) -> None:
-        m = nv - nc
-        self.MN = np.zeros((nv, m))  # M N
-        self.Mr = np.zeros((m, m))  # N^T M N
-        self.f = np.zeros(nv)  # tau - h - M a_p, then tau - h - M a
-        self.rc = np.zeros(nc)
 
 
 def check_rank(mech: Mechanism, q: np.ndarray, s: np.ndarray, settings: SolverSettings) -> None:
@@ -116,9 +104,8 @@ def nullspace(
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
     nv, nc = mech.nv, mech.nc
-    buf = method_buffers(ws, _NAME, lambda: _NullspaceBuffers(nv, nc))
-    M, f = ws.M, buf.f
-    np.subtract(tau, ws.h, out=f)
+    M = ws.M
+    f = tau - ws.h  # then tau - h - M a_p, then tau - h - M a
     if nc == 0:
         N = np.eye(nv)
         a_p = np.zeros(nv)
@@ -129,24 +116,19 @@ def nullspace(
             s = np.zeros(nc)
         check_rank(mech, q, s, settings)
         Vr, N = Vt[:nc], Vt[nc:].T
-        rc = np.dot(ws.gamma, U, out=buf.rc)  # U^T gamma
-        rc /= s
-        a_p = np.dot(rc, Vr)
-        np.negative(a_p, out=a_p)
-        f -= M @ a_p
+        a_p = -((ws.gamma @ U) / s) @ Vr  # the minimum-norm solution of J a = -gamma
+        f = f - M @ a_p
     if N.shape[1]:
-        MN = np.dot(M, N, out=buf.MN)
-        Mr = np.dot(N.T, MN, out=buf.Mr)
+        MN = M @ N
+        Mr = N.T @ MN
         R, info = lapack.dpotrf(Mr, lower=0, clean=0)
         rcond = lapack.dpocon(R, lapack.dlange("1", Mr))[0] if info == 0 else 0.0
         check_condition(mech, q, "the reduced mass matrix N^T M N", rcond, info, settings)
         z = lapack.dpotrs(R, f @ N)[0]
         a = a_p + N @ z
-        f -= MN @ z  # now tau - h - M a
+        f = f - MN @ z  # now tau - h - M a
     else:
         a = a_p
     if nc == 0:
         return a, np.zeros(0)
-    rc = np.dot(Vr, f, out=buf.rc)
-    rc /= s
-    return a, U @ rc
+    return a, U @ ((Vr @ f) / s)

@@ -138,7 +138,7 @@ def choose_partition(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.nda
     """
     from ..kinematics import compute_jacobian, partition_coordinates
 
-    return partition_coordinates(compute_jacobian(mech, q))
+    return partition_coordinates(compute_jacobian(mech, q, backend="numpy"))
 
 
 def partition_condition(mech: Mechanism, independent_idx_v=None) -> float:

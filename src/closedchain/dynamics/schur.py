@@ -33,7 +33,6 @@ from .base import (
     SolverSettings,
     check_condition,
     compute_terms,
-    method_buffers,
     register,
 )
 
@@ -41,17 +40,6 @@ if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
 _NAME = "schur"
-
-
-class _SchurBuffers:
-    """Preallocated arrays of one mechanism (Fortran order where LAPACK writes them)."""
-
-    def __init__(self, nv: int, nc: int) -> None:
-        #: [J^T | tau - h], overwritten by M^-1 [J^T | tau - h], shape (nv, nc + 1).
-        self.Y = np.zeros((nv, nc + 1), order="F")
-        #: J Y = [D | J M^-1 (tau - h)], shape (nc, nc + 1).
-        self.JY = np.zeros((nc, nc + 1))
-        self.a = np.zeros(nv)
 
 
 @register(_NAME, MethodCapabilities(compiled=True))
@@ -76,22 +64,17 @@ def schur(
         SingularConfigurationError: M or D is singular or ill-conditioned at q.
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
-    nv, nc = mech.nv, mech.nc
-    buf = method_buffers(ws, _NAME, lambda: _SchurBuffers(nv, nc))
+    nc = mech.nc
     M = ws.M
     # M is symmetric: its transpose is a Fortran-ordered view LAPACK reads without a copy.
     R, info = lapack.dpotrf(M.T, lower=0, clean=0)
     rcond = lapack.dpocon(R, lapack.dlange("1", M.T))[0] if info == 0 else 0.0
     check_condition(mech, q, "the mass matrix M", rcond, info, settings)
-    Y = buf.Y
-    np.subtract(tau, ws.h, out=Y[:, nc])
+    f = tau - ws.h
     if nc == 0:
-        lapack.dpotrs(R, Y, overwrite_b=1)
-        buf.a[:] = Y[:, 0]
-        return buf.a.copy(), np.zeros(0)
-    Y[:, :nc] = ws.J.T
-    lapack.dpotrs(R, Y, overwrite_b=1)  # Y <- M^-1 [J^T | tau - h]
-    JY = np.dot(ws.J, Y, out=buf.JY)
+        return lapack.dpotrs(R, f)[0], np.zeros(0)
+    Y = lapack.dpotrs(R, np.column_stack([ws.J.T, f]))[0]  # M^-1 [J^T | tau - h]
+    JY = ws.J @ Y  # [D | J M^-1 (tau - h)]
     D = JY[:, :nc]
     b = JY[:, nc] + ws.gamma
     # D is symmetric (up to round-off in its lower triangle, which dpotrf with
@@ -100,6 +83,4 @@ def schur(
     rcond = lapack.dpocon(Rd, lapack.dlange("1", D))[0] if info == 0 else 0.0
     check_condition(mech, q, "the Delassus matrix J M^-1 J^T", rcond, info, settings)
     lam = lapack.dpotrs(Rd, b)[0]
-    a = np.dot(Y[:, :nc], lam, out=buf.a)
-    np.subtract(Y[:, nc], a, out=a)
-    return a.copy(), lam
+    return Y[:, nc] - Y[:, :nc] @ lam, lam

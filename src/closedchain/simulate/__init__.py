@@ -33,29 +33,17 @@ project_velocities=False)`` (see :func:`seed_settings`).
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import math
-import time
 from collections.abc import Callable
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from .._locking import exclusive
 from ..dynamics import DEFAULT_SETTINGS as DEFAULT_SOLVER_SETTINGS
 from ..dynamics import SolverSettings
-from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
-from ..exceptions import (
-    InvalidArgumentError,
-    SingularConfigurationError,
-    check_settings,
-    resolve_choice,
-)
-from ..trajectory import SimulationInfo, Trajectory, energy_balance, energy_drift
-from .problem import Problem, Recorder, report_limit_violations
+from ..dynamics.base import DEFAULT_METHOD
+from ..trajectory import Trajectory
+from . import builtin  # noqa: F401  (registers the built-in integrators and stabilizations)
 from .registry import (
     COMPILED_INTEGRATORS,
     INTEGRATORS,
@@ -68,6 +56,18 @@ from .registry import (
     register_integrator,
     register_stabilization,
 )
+from .request import (
+    BACKENDS,
+    DEFAULT_ADAPTIVE_INTEGRATOR,
+    DEFAULT_INTEGRATOR,
+    MIN_ATOL,
+    MIN_RTOL,
+    check_positive,
+    check_request,
+    check_start_velocity,
+    check_t_eval,
+)
+from .run import check_energy, run_request
 from .settings import (
     DEFAULT_SIMULATION_SETTINGS,
     SimulationError,
@@ -79,20 +79,14 @@ from .settings import (
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
-logger = logging.getLogger(__name__)
-
-#: The integrator of ``simulate(integrator=None)``: fixed-step rk4 with stage projection.
-DEFAULT_INTEGRATOR = "rk4"
-#: The integrator of ``simulate(integrator=None, rtol=..., atol=...)``.
-DEFAULT_ADAPTIVE_INTEGRATOR = "DOP853"
-
-#: Values of ``simulate(backend=...)``.
-BACKENDS = ("auto", "compiled", "numpy")
-
 __all__ = [
     "BACKENDS",
     "COMPILED_INTEGRATORS",
+    "DEFAULT_ADAPTIVE_INTEGRATOR",
+    "DEFAULT_INTEGRATOR",
     "INTEGRATORS",
+    "MIN_ATOL",
+    "MIN_RTOL",
     "STABILIZATIONS",
     "IntegratorSpec",
     "SimulationError",
@@ -100,6 +94,10 @@ __all__ = [
     "StabilizationSpec",
     "StepControl",
     "TorqueInput",
+    "check_energy",
+    "check_positive",
+    "check_start_velocity",
+    "check_t_eval",
     "get_integrator",
     "get_stabilization",
     "register_integrator",
@@ -107,164 +105,6 @@ __all__ = [
     "seed_settings",
     "simulate",
 ]
-
-
-#: Smallest relative tolerance accepted: 100 machine epsilons, the floor scipy's
-#: solvers silently raise a smaller rtol to.
-MIN_RTOL = 100 * float(np.finfo(float).eps)
-
-#: Smallest absolute tolerance accepted: scipy's error norm squares
-#: error / (atol + rtol |y|), and below 1e-150 the square of an O(1) error over
-#: atol overflows double precision (1e300 against the largest double, 1.8e308).
-MIN_ATOL = 1e-150
-
-
-def check_start_velocity(
-    mech: Mechanism,
-    q0: np.ndarray,
-    v0: np.ndarray,
-    tol: float,
-    jacobian: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> None:
-    """Raise InvalidArgumentError when v0 violates the loops' velocity constraint J(q0) v0 = 0.
-
-    The residual is compared with ``tol * max(1, max |v0|)`` [m/s or rad/s per row].
-
-    Args:
-        jacobian: J(q) of the kept rows (e.g. ``Problem.jacobian``, which reuses the J
-            its start check computed at q0); default: :func:`closedchain.compute_jacobian`.
-    """
-    if jacobian is None:
-        from ..kinematics import compute_jacobian
-
-        def jacobian(q):
-            return compute_jacobian(mech, q)
-
-    residual = float(np.max(np.abs(jacobian(q0) @ v0), initial=0.0))
-    bound = tol * max(1.0, float(np.max(np.abs(v0), initial=0.0)))
-    if residual > bound:
-        raise InvalidArgumentError(
-            f"{mech.name}: v0 violates the loops' velocity constraint J(q0) v0 = 0: max |J v0| "
-            f"= {residual:.3g} > {bound:.3g} (SimulationSettings.start_velocity_tol x "
-            "max(1, max |v0|)); project it first: v0 = closedchain.project_velocity(mech, q0, v0)"
-        )
-
-
-def check_energy(traj: Trajectory, energy_tol: float) -> None:
-    """Raise SimulationError when the run's relative energy balance exceeds ``energy_tol``.
-
-    ``Trajectory.energy_balance``: the energy drift E - E0 of an unforced run, and
-    E - E0 - W of a run driven by tau (W its work), which is zero for an exact solution
-    whatever drives it.
-
-    Raises:
-        SimulationError: with ``trajectory`` the whole run.
-    """
-    balance = traj.energy_balance
-    if not balance <= energy_tol:
-        what = (
-            "energy drift of this unforced run"
-            if traj.work is None
-            else "energy balance of this driven run (E - E0 - the work of tau)"
-        )
-        exc = SimulationError(
-            f"{traj.info.mechanism}: the relative {what} is {balance:.3g} > energy_tol "
-            f"{energy_tol:.3g}: the integration is not accurate (use a smaller step or "
-            "tolerance, or another integrator)",
-            float(traj.t[-1]),
-        )
-        exc.trajectory = traj
-        raise exc
-
-
-def check_positive(name: str, value, what: str) -> None:
-    """Raise ClosedChainError (a ValueError) unless ``value`` is a finite number > 0.
-
-    Args:
-        name: argument name, for the message.
-        value: the value given.
-        what: what the argument is, for the message.
-    """
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        x = math.nan
-    if not (math.isfinite(x) and x > 0):
-        raise InvalidArgumentError(
-            f"{name} ({what}) must be a finite number > 0, got {value!r}; valid range: (0, inf)"
-        )
-
-
-def check_t_eval(
-    t_eval, t_final: float, settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS
-) -> np.ndarray | None:
-    """Return ``t_eval`` as a float array, or raise naming what is wrong with it.
-
-    Valid: None, or a 1-D array of 1 to ``settings.max_outputs`` finite,
-    strictly increasing times within [0, t_final].
-    """
-    if t_eval is None:
-        return None
-    t_eval = np.asarray(t_eval, dtype=float)
-    valid = (
-        f"valid: 1 to {settings.max_outputs} finite, strictly increasing times within "
-        f"[0, t_final = {t_final:g}] s"
-    )
-    if t_eval.ndim != 1 or t_eval.size == 0:
-        raise InvalidArgumentError(f"t_eval has shape {t_eval.shape}; {valid}")
-    if t_eval.size > settings.max_outputs:
-        raise InvalidArgumentError(
-            f"t_eval has {t_eval.size} times, more than SimulationSettings.max_outputs; {valid}"
-        )
-    if not np.all(np.isfinite(t_eval)):
-        raise InvalidArgumentError(f"t_eval contains non-finite times; {valid}")
-    if np.any(np.diff(t_eval) <= 0):
-        k = int(np.argmax(np.diff(t_eval) <= 0))
-        raise InvalidArgumentError(
-            f"t_eval is not strictly increasing (t_eval[{k}] = {t_eval[k]:g}, "
-            f"t_eval[{k + 1}] = {t_eval[k + 1]:g}); {valid}"
-        )
-    if t_eval[0] < 0 or t_eval[-1] > t_final * (1 + 1e-12):
-        raise InvalidArgumentError(
-            f"t_eval spans [{t_eval[0]:g}, {t_eval[-1]:g}] s, outside [0, t_final]; {valid}"
-        )
-    return t_eval
-
-
-def _select_backend(
-    spec: IntegratorSpec, backend: str, stabilization: str, method: str, mech: Mechanism
-) -> tuple[IntegratorSpec, str | None]:
-    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``)
-    and, when ``"auto"`` falls back to numpy because of the mechanism's rows, why."""
-    from .. import compiled
-
-    backend = resolve_choice("backend", backend, BACKENDS)
-    if backend == "numpy":
-        return spec, None
-    rows = compiled.unsupported_rows(mech)
-    if rows is not None:
-        if backend == "compiled":
-            raise InvalidArgumentError("backend='compiled' cannot run this request: " + rows)
-        return spec, rows
-    method = method_name(method)
-    cspec = COMPILED_INTEGRATORS.get(spec.name)
-    reasons = []
-    if cspec is None:
-        reasons.append(f"integrator {spec.name!r} has no compiled loop")
-    elif stabilization not in cspec.stabilizations:
-        reasons.append(
-            f"the compiled {spec.name!r} supports stabilizations "
-            f"{', '.join(cspec.stabilizations)}, not {stabilization!r}"
-        )
-    if not METHOD_CAPABILITIES[method].compiled:
-        reasons.append(f"method {method!r} has no compiled implementation")
-    if not reasons:
-        return cspec, None
-    if backend == "compiled":
-        raise InvalidArgumentError(
-            "backend='compiled' cannot run this request: " + "; ".join(reasons)
-        )
-    return spec, None
 
 
 @exclusive
@@ -338,212 +178,22 @@ def simulate(
         SimulationError: non-finite state, integrator failure, or drift
             beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
     """
-    check_settings("settings", settings, SimulationSettings)
-    check_settings("solver_settings", solver_settings, SolverSettings)
-    if integrator is None:
-        adaptive = rtol is not None or atol is not None
-        integrator = DEFAULT_ADAPTIVE_INTEGRATOR if adaptive else DEFAULT_INTEGRATOR
-    spec = get_integrator(integrator)
-    integrator = spec.name
-    fixed = spec.kind == "fixed"
-    if stabilization is None:
-        stabilization = spec.default_stabilization
-    spec, fallback = _select_backend(spec, backend, stabilization, method, mech)
-    stab = get_stabilization(stabilization)
-    stabilization = stab.name
-    if stabilization not in spec.stabilizations:
-        raise InvalidArgumentError(
-            f"integrator {integrator!r} does not support stabilization {stabilization!r}; "
-            f"valid choices: {', '.join(spec.stabilizations)}"
-        )
-    method = method_name(method)
-    caps = METHOD_CAPABILITIES[method]
-    missing = [c for c in spec.method_capabilities if not getattr(caps, c)]
-    if missing:
-        able = [
-            m
-            for m in sorted(METHODS)
-            if all(getattr(METHOD_CAPABILITIES[m], c) for c in spec.method_capabilities)
-        ]
-        raise InvalidArgumentError(
-            f"integrator {integrator!r} needs a method with {', '.join(missing)}; "
-            f"method {method!r} has not; valid choices: {', '.join(able)}"
-        )
-    if stab.accel_terms and not METHOD_CAPABILITIES[method].baumgarte:
-        with_terms = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].baumgarte]
-        raise InvalidArgumentError(
-            f"method {method!r} solves its own constraint equations and cannot apply the "
-            "Baumgarte terms; use stabilization 'projection' or 'partitioning', or a "
-            f"method among {', '.join(with_terms)}"
-        )
-    q0 = mech.check_q(q0, "q0")
-    mech.check_limits(
+    request = check_request(
+        mech,
         q0,
-        "q0",
-        urdf_limits=settings.check_limits,
-        opt_out="SimulationSettings(check_limits=False) or --ignore-limits allows it",
+        v0,
+        t_final,
+        method=method,
+        integrator=integrator,
+        dt=dt,
+        rtol=rtol,
+        atol=atol,
+        stabilization=stabilization,
+        tau=tau,
+        t_eval=t_eval,
+        settings=settings,
+        solver_settings=solver_settings,
+        progress=progress,
+        backend=backend,
     )
-    v0 = mech.check_v(v0, "v0")
-    check_positive("t_final", t_final, "the duration [s]")
-    t_final = float(t_final)
-    if tau is not None and not callable(tau):
-        tau = mech.check_v(tau, "tau")
-    if stab.partitions and mech.nq != mech.nv:
-        raise InvalidArgumentError(
-            f"stabilization {stabilization!r} integrates the independent coordinates of q as "
-            f"a vector and needs nq == nv (this mechanism has nq={mech.nq}, nv={mech.nv}); "
-            "valid choices here: "
-            + ", ".join(s for s in spec.stabilizations if not STABILIZATIONS[s].partitions)
-        )
-    t_eval = check_t_eval(t_eval, t_final, settings)
-    # A step control the integrator would ignore is a mistake, not a no-op.
-    ignored = ("rtol", "atol") if fixed else ("dt",)
-    given = [n for n, val in (("dt", dt), ("rtol", rtol), ("atol", atol)) if val is not None]
-    if any(n in ignored for n in given):
-        kinds = {"fixed": "dt", "adaptive": "rtol and atol"}
-        raise InvalidArgumentError(
-            f"integrator {integrator!r} is {spec.kind}-step and takes {kinds[spec.kind]}, "
-            f"not {', '.join(n for n in given if n in ignored)}; fixed-step: "
-            f"{', '.join(n for n, sp in INTEGRATORS.items() if sp.kind == 'fixed')}; adaptive: "
-            f"{', '.join(n for n, sp in INTEGRATORS.items() if sp.kind == 'adaptive')}"
-        )
-    if fixed:
-        dt = settings.dt if dt is None else dt
-        check_positive("dt", dt, "the fixed step [s]")
-        dt = float(dt)
-        ratio = t_final / dt  # a float: inf when it overflows (dt near the underflow)
-        n_steps = math.ceil(ratio - 1e-9) if math.isfinite(ratio) else math.inf
-        if n_steps > settings.max_steps:
-            raise InvalidArgumentError(
-                f"dt = {dt:g} s over t_final = {t_final:g} s is {n_steps:.3g} steps, more than "
-                f"SimulationSettings.max_steps = {settings.max_steps:.3g}; use a larger dt "
-                f"(>= {t_final / settings.max_steps:.3g} s) or an adaptive integrator"
-            )
-        if t_eval is None and n_steps + 1 > settings.max_outputs:
-            raise InvalidArgumentError(
-                f"recording every one of {n_steps:.3g} steps is more than "
-                f"SimulationSettings.max_outputs = {settings.max_outputs:.3g} samples; "
-                "pass t_eval (the output times) to keep fewer"
-            )
-    else:
-        rtol = settings.rtol if rtol is None else rtol
-        atol = settings.atol if atol is None else atol
-        check_positive("rtol", rtol, "the relative tolerance")
-        check_positive("atol", atol, "the absolute tolerance")
-        rtol, atol = float(rtol), float(atol)
-        if rtol < MIN_RTOL:
-            raise InvalidArgumentError(
-                f"rtol = {rtol:g} is below what double precision resolves (scipy would raise it "
-                f"to {MIN_RTOL:.3g} without a word); valid range: [{MIN_RTOL:.3g}, inf)"
-            )
-        if atol < MIN_ATOL:
-            raise InvalidArgumentError(
-                f"atol = {atol:g} is so small that scipy's error norm overflows; "
-                f"valid range: [{MIN_ATOL:.3g}, inf)"
-            )
-
-    original_solver_settings = solver_settings
-    if stab.accel_terms:
-        gains = (settings.baumgarte_alpha, settings.baumgarte_beta)
-        solver_settings = replace(solver_settings, baumgarte=gains)
-    problem = Problem(mech, method, tau, solver_settings, settings)
-    # Passing singular positions takes a singular-robust method *and* accelerations
-    # evaluated on the manifold only (stage projection) or an index-3 scheme; any
-    # other configuration stops there with an error naming this one.
-    problem.singular_robust = caps.singular_robust and (
-        stab.projects_stages or spec.singular_robust
-    )
-    recorder = Recorder(mech, settings.drift_limit, problem.jacobian, problem.meter)
-    problem.check_start(q0, compiled_rows=spec.backend == "compiled")
-    check_start_velocity(mech, q0, v0, settings.start_velocity_tol, problem.start_jacobian)
-    info = {
-        "mechanism": mech.name,
-        "method": method,
-        "integrator": integrator,
-        "backend": spec.backend,
-        "stabilization": stabilization,
-        "dt": dt,
-        "rtol": rtol,
-        "atol": atol,
-        "t_final": float(t_final),
-        "joint_names": list(mech.joint_names),
-        "model_digest": mech.digest(),
-        "coordinate_names": list(mech.coordinate_names) if mech.nq == mech.nv else None,
-        "configuration_names": list(mech.configuration_names),
-        "velocity_names": list(mech.coordinate_names),
-        "independent": [mech.coordinate_names[i] for i in mech.independent_idx_v],
-        "repartitions": [],
-    }
-    if stab.accel_terms:
-        info["baumgarte"] = list(solver_settings.baumgarte)
-    if fallback is not None:
-        info["backend_fallback"] = fallback
-    cpu0 = time.process_time()
-    control = StepControl(dt=dt, rtol=rtol, atol=atol)
-    # The numpy path makes many small solves; OpenBLAS's threads only spin on them (N-four-bar
-    # N = 40 on the shared 2-core machine: 15 ms of CPU per step with one thread, 39 ms with
-    # two). Entering the limit costs about 1 ms, nothing next to a numpy run.
-    serial_blas = (
-        threadpool_limits(limits=1, user_api="blas")
-        if spec.backend == "numpy"
-        else contextlib.nullcontext()
-    )
-    try:
-        with serial_blas:
-            steps = spec.run(
-                problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
-            )
-    except (SingularConfigurationError, SimulationError) as exc:
-        if spec.backend == "compiled" and not len(recorder):
-            # The compiled loop hands its samples over at the end only: the
-            # reference loop recovers the motion up to the stop (its error,
-            # with exc.trajectory, is raised instead).
-            logger.info("%s: compiled run stopped (%s); re-running with numpy", mech.name, exc)
-            simulate(
-                mech,
-                q0,
-                v0,
-                t_final,
-                method=method,
-                integrator=integrator,
-                dt=None if not fixed else control.dt,
-                rtol=None if fixed else rtol,
-                atol=None if fixed else atol,
-                stabilization=stabilization,
-                tau=tau,
-                t_eval=t_eval,
-                settings=settings,
-                solver_settings=original_solver_settings,
-                progress=progress,
-                backend="numpy",
-            )
-        # Nothing is lost: the caller gets the motion up to the stop (e.g. to animate it).
-        if getattr(exc, "t", None) is None:  # raised outside a timed evaluation
-            exc.t = float(recorder.series()["t"][-1]) if len(recorder) else 0.0
-        info["stopped"] = {"t": exc.t, "reason": str(exc)}
-        info["cpu_time"] = time.process_time() - cpu0
-        info["evaluations"] = problem.n_evals
-        exc.trajectory = recorder.trajectory(info) if len(recorder) else None
-        raise
-    info["cpu_time"] = time.process_time() - cpu0
-    info["row_reselections"] = problem.reselections
-    info["steps"] = steps
-    info["evaluations"] = problem.n_evals
-    info["branch_changes"] = recorder.branch_changes
-    series = recorder.series()
-    info["max_constraint_residual"] = float(np.max(series["res"], initial=0.0))
-    info["energy_drift"] = energy_drift(series["e"], series["ke"])
-    work = None if recorder.meter is None else series["w"]
-    info["energy_balance"] = energy_balance(series["e"], series["ke"], work)
-    report_limit_violations(mech, recorder, info, settings)  # warns; raises: stop_at_limits
-    traj = recorder.trajectory(SimulationInfo.from_dict(info))
-    if settings.energy_tol is not None:
-        check_energy(traj, settings.energy_tol)
-    logger.info(
-        "%s: %d steps, %d evaluations, %.3f s CPU",
-        mech.name,
-        steps,
-        problem.n_evals,
-        info["cpu_time"],
-    )
-    return traj
+    return run_request(request)

@@ -201,9 +201,7 @@ def run_ali3p(
             polish=False,
         )
         pin.forwardKinematics(model, data, q_new, v_new, zero_v)
-        if layer.batched:
-            pin.computeJointJacobiansTimeVariation(model, data, q_new, v_new)
-        layer.evaluate(model, data, gamma=gamma, v=v_new)
+        layer.evaluate(model, data, gamma=gamma)
         a_new, _, _ = solve_augmented_lagrangian(
             solver,
             M,

@@ -26,6 +26,7 @@ import numpy as np
 from .. import compiled
 from .fixed import output_grid
 from .problem import Problem
+from .registry import INTEGRATORS
 
 logger = logging.getLogger(__name__)
 
@@ -81,8 +82,6 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
 
 def _numpy_fallback(exc, problem, recorder, args, spec, info) -> int:
     """Run the request with the numpy loop of the same name (it re-selects the rows)."""
-    from .registry import INTEGRATORS
-
     logger.info("%s: %s; the numpy backend re-selects the rows", problem.mech.name, exc)
     info["backend"] = "numpy"
     info["backend_fallback"] = str(exc)

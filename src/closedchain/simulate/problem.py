@@ -18,7 +18,6 @@ import pinocchio as pin
 import scipy.linalg
 
 from .. import compiled
-from .._arrays import same_array
 from ..closure import RowCheckSettings
 from ..dynamics.augmented_lagrangian import (
     NormalSolver,
@@ -36,6 +35,7 @@ from ..dynamics.base import (
 from ..exceptions import ClosedChainError, SingularConfigurationError
 from ..kinematics import AssemblySettings, compute_jacobian, solve_closure
 from ..trajectory import Trajectory, first_samples
+from .registry import INTEGRATORS, STABILIZATIONS
 from .settings import SimulationError
 
 if TYPE_CHECKING:
@@ -227,11 +227,9 @@ class Problem:
         self.ind = np.array(mech.independent_idx_v)
         self.dep = np.array(mech.dependent_idx_v)
         self.asm = AssemblySettings(tol=settings.dependent_tol, max_iter=20)
-        self._J_at: np.ndarray | None = None
         self._start_J: np.ndarray | None = None  # J(q0) of check_start (compiled rows)
         self._normal = None
         self._normal_layer = None
-        self._J: np.ndarray | None = None
         #: Row re-selections made during the run: [t, kept row labels, reason].
         self.reselections: list[list] = []
         self.row_check = RowCheckSettings(
@@ -257,20 +255,12 @@ class Problem:
         return penalized_solver(self.mech)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """Return J(q), reusing the last one when q is the same (each step asks several
-        times at one q: dependent solve, J_D checks, regularity check, projection)."""
-        if not same_array(q, self._J_at):
-            self._J = compute_jacobian(self.mech, q)
-            self._J_at = np.array(q)
-        return self._J
+        """Return J(q) of the kept rows, shape (nc, nv)."""
+        return compute_jacobian(self.mech, q, backend="numpy")
 
     def residual_and_jacobian(self, q: np.ndarray, phi: np.ndarray) -> np.ndarray:
-        """Fill phi(q) of the kept rows and return J(q), in one pass over the loops (the
-        Jacobian memo of :meth:`jacobian` then holds it)."""
-        ws = position_terms(self.mech, q, phi)
-        self._J = ws.J.copy()
-        self._J_at = np.array(q)
-        return self._J
+        """Fill phi(q) of the kept rows and return J(q), in one pass over the loops."""
+        return position_terms(self.mech, q, phi).J.copy()
 
     def torque(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Return tau(t, q, v), shape (nv,), or raise SimulationError when it is malformed."""
@@ -404,7 +394,6 @@ class Problem:
             raise exc.with_hint(passing_hint(), t=t) from None
         if not changed:
             return False
-        self._J_at = None  # the memo holds the old rows
         self._start_J = None
         self.reselections.append(
             [t, list(mech.closure.selection.kept), mech.closure.selection.reason]
@@ -482,8 +471,6 @@ class Problem:
 
 def passing_hint() -> str:
     """Name the configurations that pass singular positions (from the registries' capabilities)."""
-    from .registry import INTEGRATORS, STABILIZATIONS
-
     methods = [m for m in sorted(METHODS) if METHOD_CAPABILITIES[m].singular_robust]
     integrators = [n for n, spec in INTEGRATORS.items() if spec.singular_robust]
     if not methods:
@@ -583,7 +570,7 @@ class Recorder:
         #: The work of tau (:attr:`Problem.meter`), or None: the ``w`` series is then NaN.
         self.meter = meter
         self.drift_limit = drift_limit
-        self.jacobian = jacobian  # J(q), shared with the problem's memo
+        self.jacobian = jacobian  # J(q) of the kept rows (Problem.jacobian)
         #: Samples of :meth:`add` not yet moved into :attr:`_blocks` (one entry per sample).
         self.rows: dict[str, list] = {k: [] for k in self.SERIES}
         self.rows["branch"], self.rows["branch_t"] = [], []
@@ -599,12 +586,10 @@ class Recorder:
 
     def declared_phi(self, q: np.ndarray) -> np.ndarray:
         """Return phi(q) of every declared row (a buffer of the recorder, overwritten by
-        the next call). Leaves ``mech.data``'s joint placements at q (the loop frames'
-        ``oMf`` too unless a batched layer reused the kept rows' placements at q)."""
+        the next call). Leaves ``mech.data``'s joint and loop frame placements at q."""
         mech = self.mech
         pin.forwardKinematics(mech.model, mech.data, q)
-        # q: a batched layer reuses the frame placements of the kept rows' evaluation at q.
-        mech.declared.evaluate(mech.model, mech.data, phi=self._phi, q=q)
+        mech.declared.evaluate(mech.model, mech.data, phi=self._phi)
         return self._phi
 
     def declared_residual(self, t: float, q: np.ndarray, phi: np.ndarray | None = None) -> float:

@@ -3,6 +3,8 @@
 Each entry declares what it can do, so :func:`closedchain.simulate` never
 special-cases an integrator or stabilization by name: a new integrator (a
 compiled one, an implicit scheme) is one :func:`register_integrator` call.
+The built-in entries are registered by :mod:`.builtin`; this module imports
+none of the loops, so the loops may read the registries.
 """
 
 from __future__ import annotations
@@ -10,9 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .. import compiled
 from ..exceptions import resolve_choice
-from . import adaptive, ali3p, compiled_loops, fixed
 
 
 @dataclass(frozen=True)
@@ -112,126 +112,3 @@ def get_integrator(name: str) -> IntegratorSpec:
 def get_stabilization(name: str) -> StabilizationSpec:
     """Return the stabilization registered as ``name`` (any case), or raise listing the names."""
     return STABILIZATIONS[resolve_choice("stabilization", name, STABILIZATIONS)]
-
-
-for _spec in (
-    StabilizationSpec("none", description="acceleration-level constraint only; phi drifts"),
-    StabilizationSpec(
-        "baumgarte",
-        accel_terms=True,
-        description="J a + gamma + 2 alpha J v + beta^2 phi = 0 (Baumgarte 1972)",
-    ),
-    StabilizationSpec(
-        "projection",
-        projects=True,
-        description="Gauss-Newton projection of q onto phi = 0 and of v onto J v = 0 after a step",
-    ),
-    StabilizationSpec(
-        "partitioning",
-        partitions=True,
-        description="coordinate partitioning with re-partitioning (Wehage & Haug 1982)",
-    ),
-    StabilizationSpec(
-        "stage-projection",
-        projects=True,
-        projects_stages=True,
-        description="projection of q and v onto the manifold at every stage and after each "
-        "step: accelerations are only evaluated on phi = 0, J v = 0",
-    ),
-    StabilizationSpec(
-        "mass-orthogonal",
-        description="index-3 penalty with augmented-Lagrangian multipliers, then "
-        "M-orthogonal projections of v and a (ALI3-P; its integrator only)",
-    ),
-):
-    register_stabilization(_spec)
-
-for _name, _step, _order, _what in (
-    ("euler", fixed.step_euler, 1, "explicit Euler"),
-    ("semi-implicit", fixed.step_semi_implicit, 1, "semi-implicit (symplectic) Euler"),
-    ("rk4", fixed.step_rk4, 4, "classical Runge-Kutta 4"),
-):
-    register_integrator(
-        IntegratorSpec(
-            _name,
-            "fixed",
-            fixed.run_fixed,
-            _order,
-            step=_step,
-            stabilizations=("none", "baumgarte", "projection", "partitioning", "stage-projection"),
-            default_stabilization="stage-projection",
-            description=f"{_what}, fixed step, on the manifold through pin.integrate",
-        )
-    )
-
-for _name, _order, _what in (
-    ("RK45", 5, "Dormand-Prince 5(4)"),
-    ("DOP853", 8, "Dormand-Prince 8(5,3)"),
-    ("Radau", 5, "implicit Radau IIA (stiff)"),
-    ("BDF", 5, "backward differentiation formulas (stiff)"),
-    ("LSODA", 12, "LSODA, switching Adams/BDF"),
-):
-    register_integrator(
-        IntegratorSpec(
-            _name,
-            "adaptive",
-            adaptive.run_adaptive,
-            _order,
-            description=f"scipy.integrate.{_name}: {_what}, adaptive, dense output; "
-            "q in a chart x -> q0 (+) x when nq != nv",
-        )
-    )
-
-register_integrator(
-    IntegratorSpec(
-        "ali3p",
-        "fixed",
-        ali3p.run_ali3p,
-        2,
-        stabilizations=("mass-orthogonal",),
-        default_stabilization="mass-orthogonal",
-        method_capabilities=("singular_robust",),
-        singular_robust=True,
-        description="ALI3-P: index-3 augmented Lagrangian, implicit trapezoidal rule with "
-        "Newton, mass-orthogonal projections (Bayo & Ledesma 1996; Cuadrado et al. 2000)",
-    )
-)
-
-# The compiled core's loops: same names, same semantics, the numpy entry's
-# stabilizations (partitioning included); registered only when the core imports.
-if compiled.available():
-    for _name, _kind, _order, _run in (
-        ("euler", "fixed", 1, compiled_loops.run_fixed_compiled),
-        ("semi-implicit", "fixed", 1, compiled_loops.run_fixed_compiled),
-        ("rk4", "fixed", 4, compiled_loops.run_fixed_compiled),
-        ("RK45", "adaptive", 5, compiled_loops.run_adaptive_compiled),
-        ("DOP853", "adaptive", 8, compiled_loops.run_adaptive_compiled),
-    ):
-        _ref = INTEGRATORS[_name]
-        register_integrator(
-            IntegratorSpec(
-                _name,
-                _kind,
-                _run,
-                _order,
-                backend="compiled",
-                stabilizations=_ref.stabilizations,
-                default_stabilization=_ref.default_stabilization,
-                description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
-            )
-        )
-    _ref = INTEGRATORS["ali3p"]
-    register_integrator(
-        IntegratorSpec(
-            "ali3p",
-            "fixed",
-            compiled_loops.run_ali3p_compiled,
-            _ref.order,
-            backend="compiled",
-            stabilizations=_ref.stabilizations,
-            default_stabilization=_ref.default_stabilization,
-            method_capabilities=_ref.method_capabilities,
-            singular_robust=True,
-            description="ALI3-P, loop in C++ (compiled core)",
-        )
-    )
