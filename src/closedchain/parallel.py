@@ -283,7 +283,7 @@ def forward_kinematics(
             residual=exc.residual,
             q=exc.q,
         ) from None
-    J = compute_jacobian(mech, q)
+    J = compute_jacobian(mech, q, backend="numpy")  # as actuation_singularities
     sigma, _ = actuation_sigma_min(J, mech.actuated_idx_v)
     scale = float(np.linalg.norm(J, 2)) if J.size else 0.0
     if sigma <= type_ii_rtol * scale:
