@@ -5,7 +5,7 @@ with ``closedchain.load(robot.urdf, loops=robot.yaml)`` (meshes are not read,
 so ``package://`` paths need not resolve) and checked, each in a subprocess
 with a time limit: loops, nv, mobility against the number of motors (where
 they differ, the notes list the motions left with the motors held, by the
-links each moves), load CPU time, max |phi| at ``q_ref`` over every declared
+joints each moves), load CPU time, max |phi| at ``q_ref`` over every declared
 row, ``validate`` against pinocchio.constraintDynamics (the judged deviation
 in the mass-matrix norm, relative above 1, and max |a - a_pin| for
 information: see closedchain.validation), the CPU time of a passive
@@ -103,15 +103,14 @@ def _sparse_basis(N, tol: float):
 
 
 def unactuated_motions(mech) -> list[list[str]]:
-    """Return the motions the closed mechanism keeps with its motors held, as the links each moves.
+    """Return the motions the closed mechanism keeps with its motors held, as the joints each moves.
 
     A basis of the null space of the constraint Jacobian (every independent
     row) with the motor columns held, at ``q_ref``, made sparse
-    (:func:`_sparse_basis`); each motion is named by the links whose velocity
-    it makes nonzero (``MOTION_TOL``), in URDF order.
+    (:func:`_sparse_basis`); each motion is named by the joints whose velocity
+    it makes nonzero (``MOTION_TOL``), in tree order.
     """
     import numpy as np
-    import pinocchio as pin
     import scipy.linalg
 
     from closedchain.kinematics import compute_jacobian
@@ -122,15 +121,15 @@ def unactuated_motions(mech) -> list[list[str]]:
         held[i, model.joints[model.getJointId(name)].idx_v] = 1.0
     J = compute_jacobian(mech, mech.q_ref)
     basis = _sparse_basis(scipy.linalg.null_space(np.vstack([J, held])), MOTION_TOL)
-    data = model.createData()
-    bodies = [f for f in model.frames if f.type == pin.FrameType.BODY]
-    motions = []
-    for v in basis:
-        pin.forwardKinematics(model, data, mech.q_ref, v)
-        speed = [np.linalg.norm(data.v[j].vector) for j in range(model.njoints)]
-        scale = max(speed, default=0.0)
-        motions.append([f.name for f in bodies if speed[f.parentJoint] > MOTION_TOL * scale])
-    return motions
+    joints = range(1, model.njoints)
+    return [
+        [
+            model.names[j]
+            for j in joints
+            if np.any(v[model.joints[j].idx_v : model.joints[j].idx_v + model.joints[j].nv])
+        ]
+        for v in basis
+    ]
 
 
 def _mobility_note(mech) -> str:
@@ -139,7 +138,8 @@ def _mobility_note(mech) -> str:
     listed = "; ".join("+".join(links) for links in motions)
     return (
         f"mobility {mech.mobility} = {len(mech.actuated_joints)} motors + {len(motions)} "
-        f"motion{'s' if len(motions) != 1 else ''} with the motors held, moving only: {listed}"
+        f"motion{'s' if len(motions) != 1 else ''} with the motors held, moving only the "
+        f"joints {listed}"
     )
 
 
