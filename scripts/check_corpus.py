@@ -3,11 +3,16 @@
 Every robot folder of PATH holding ``robot.urdf`` and ``robot.yaml`` is loaded
 with ``closedchain.load(robot.urdf, loops=robot.yaml)`` (meshes are not read,
 so ``package://`` paths need not resolve) and checked, each in a subprocess
-with a time limit: loops, nv, mobility against the number of motors, load
-CPU time, max |phi| at ``q_ref`` over every declared row, ``validate``
-against pinocchio.constraintDynamics (max |a - a_pin|), and the CPU time of a
-passive simulation from ``q_ref`` (default integrator), or the error that
-stopped a step. The table is Markdown; ``--out FILE`` also writes it as a
+with a time limit: loops, nv, mobility against the number of motors (where
+they differ, the notes list the motions left with the motors held, by the
+joints each moves), load CPU time, max |phi| at ``q_ref`` over every declared
+row, ``validate`` against pinocchio.constraintDynamics (the judged deviation
+in the mass-matrix norm, relative above 1, and max |a - a_pin| for
+information: see closedchain.validation), the CPU time of a passive
+simulation from ``q_ref`` (default integrator), or the error that stopped a
+step, and the size of the HTML animation of that motion (``write_html`` into a
+temporary directory, meshes embedded within the default budget; up to the stop
+when a step failed). The table is Markdown; ``--out FILE`` also writes it as a
 generated page (the run's command, date, machine and code in its header,
 scripts/bench_page.py), atomically: FILE.tmp, then renamed.
 
@@ -40,6 +45,10 @@ T_FINAL = 1.0
 TIMEOUT = 900.0
 #: Longest error text kept in the table [characters].
 MAX_NOTE = 160
+#: Velocity entries below this (relative to the largest) are not part of a motion [-].
+MOTION_TOL = 1e-9
+#: Bytes per megabyte in the animation cell.
+MEGABYTE = 1e6
 
 COLUMNS = (
     "robot",
@@ -48,8 +57,10 @@ COLUMNS = (
     "mobility / motors",
     "load CPU [s]",
     "max abs phi at q_ref",
+    "validate da_M (judged)",
     "validate max abs da [rad/s^2]",
     "simulate CPU [s]",
+    "animates",
     "notes",
 )
 
@@ -59,6 +70,92 @@ def _short(exc: BaseException, folder: Path) -> str:
     text = " ".join(str(exc).replace(f"{folder}/", "").split())
     text = f"{type(exc).__name__}: {text}"
     return text if len(text) <= MAX_NOTE else text[: MAX_NOTE - 3] + "..."
+
+
+def _sparse_basis(N, tol: float):
+    """Return a basis of the columns' span in reduced row-echelon form (few entries each).
+
+    Args:
+        N: a basis, shape (nv, k).
+        tol: entries below ``tol`` times the largest are zero.
+
+    Returns:
+        Rows spanning the same space, shape (k, nv), each with a unit pivot.
+    """
+    import numpy as np
+
+    B = np.array(N, dtype=float).T
+    row = 0
+    for col in range(B.shape[1]):
+        if row == B.shape[0]:
+            break
+        pivot = row + int(np.argmax(np.abs(B[row:, col])))
+        if abs(B[pivot, col]) <= tol:
+            continue
+        B[[row, pivot]] = B[[pivot, row]]
+        B[row] /= B[row, col]
+        for other in range(B.shape[0]):
+            if other != row:
+                B[other] -= B[other, col] * B[row]
+        row += 1
+    B[np.abs(B) <= tol * np.max(np.abs(B), initial=1.0)] = 0.0
+    return B
+
+
+def unactuated_motions(mech) -> list[list[str]]:
+    """Return the motions the closed mechanism keeps with its motors held, as the joints each moves.
+
+    A basis of the null space of the constraint Jacobian (every independent
+    row) with the motor columns held, at ``q_ref``, made sparse
+    (:func:`_sparse_basis`); each motion is named by the joints whose velocity
+    it makes nonzero (``MOTION_TOL``), in tree order.
+    """
+    import numpy as np
+    import scipy.linalg
+
+    from closedchain.kinematics import compute_jacobian
+
+    model = mech.model
+    held = np.zeros((len(mech.actuated_joints), mech.nv))
+    for i, name in enumerate(mech.actuated_joints):
+        held[i, model.joints[model.getJointId(name)].idx_v] = 1.0
+    J = compute_jacobian(mech, mech.q_ref)
+    basis = _sparse_basis(scipy.linalg.null_space(np.vstack([J, held])), MOTION_TOL)
+    joints = range(1, model.njoints)
+    return [
+        [
+            model.names[j]
+            for j in joints
+            if np.any(v[model.joints[j].idx_v : model.joints[j].idx_v + model.joints[j].nv])
+        ]
+        for v in basis
+    ]
+
+
+def _mobility_note(mech) -> str:
+    """Say why the mobility exceeds the motors: the motions left with the motors held."""
+    motions = unactuated_motions(mech)
+    listed = "; ".join("+".join(links) for links in motions)
+    return (
+        f"mobility {mech.mobility} = {len(mech.actuated_joints)} motors + {len(motions)} "
+        f"motion{'s' if len(motions) != 1 else ''} with the motors held, moving only the "
+        f"joints {listed}"
+    )
+
+
+def _animation_cell(mech, trajectory, stop: str | None) -> str:
+    """Write the motion's HTML animation into a temporary directory; return its size and meshes."""
+    import tempfile
+
+    from closedchain import write_html
+
+    with tempfile.TemporaryDirectory() as tmp:
+        anim = write_html(mech, trajectory, Path(tmp) / "robot.html", stop=stop)
+    meshes = anim.meshes
+    cell = f"{anim.size / MEGABYTE:.2g} MB, {meshes.n_embedded} meshes"
+    if meshes.primitive_links:
+        cell += f", {len(meshes.primitive_links)} links as primitives"
+    return cell
 
 
 def check_robot(folder: Path, t_final: float, method: str | None = None) -> dict:
@@ -92,21 +189,34 @@ def check_robot(folder: Path, t_final: float, method: str | None = None) -> dict
     row["load"] = time.process_time() - t0
     row["nv"] = mech.nv
     row["mobility"] = f"{mech.mobility} / {len(mech.actuated_joints)}"
+    if mech.mobility != len(mech.actuated_joints):
+        try:
+            row["notes"].append(_mobility_note(mech))
+        except Exception as exc:
+            row["notes"].append(f"mobility: {_short(exc, folder)}")
     row["phi"] = max_declared_residual(mech, np.atleast_2d(mech.q_ref))
     options = {} if method is None else {"method": method}
     try:
         rep = cc.validate(mech, n_samples=N_VALIDATE, seed=VALIDATE_SEED)
         row["da"] = rep.max_da
+        row["da_M"] = rep.max_da_mass_norm
         if rep.n_singular:
             row["notes"].append(f"validate: {rep.n_singular} singular states")
     except Exception as exc:
         row["notes"].append(f"validate: {_short(exc, folder)}")
     t0 = time.process_time()
+    stop = None
     try:
-        cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), t_final, **options)
+        trajectory = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), t_final, **options)
         row["simulate"] = time.process_time() - t0
     except Exception as exc:
         row["notes"].append(f"simulate: {_short(exc, folder)}")
+        trajectory, stop = getattr(exc, "trajectory", None), str(exc)
+    if trajectory is not None:
+        try:
+            row["animates"] = _animation_cell(mech, trajectory, stop)
+        except Exception as exc:
+            row["notes"].append(f"animate: {_short(exc, folder)}")
     return row
 
 
@@ -131,8 +241,10 @@ def table(rows: list[dict], t_final: float) -> str:
             _cell(row, "mobility", ""),
             _cell(row, "load", ".2f"),
             _cell(row, "phi", ".1e"),
+            _cell(row, "da_M", ".1e"),
             _cell(row, "da", ".1e"),
             _cell(row, "simulate", ".2f"),
+            _cell(row, "animates", ""),
             "; ".join(row["notes"]).replace("|", "\\|"),
         ]
         lines.append("| " + " | ".join(cells) + " |")

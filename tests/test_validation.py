@@ -16,9 +16,10 @@ import mpmath
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import SHIPPED_MECHANISMS, VALIDATABLE_MECHANISMS
+from conftest import DATA_DIR, SHIPPED_MECHANISMS, VALIDATABLE_MECHANISMS
 
 import closedchain as cc
+from closedchain import validation
 from closedchain.dynamics import base as dynamics_base
 from closedchain.validation import MAX_VALIDATION_SAMPLES
 
@@ -295,3 +296,68 @@ def test_validate_refuses_a_negative_or_non_integer_seed(fourbar, seed):
 
 def test_validate_method_in_any_case(fourbar):
     assert cc.validate(fourbar, n_samples=2, method="Schur").method == "schur"
+
+
+# -- near-massless links: the accelerations judged in the mass-matrix norm -------------------
+
+#: Condition number of M at least this on the light-rod delta (the corpus's robots: 1e6 to 1e8).
+MIN_LIGHT_COND_M = 1e6
+#: Accelerations of the light-rod delta's validation states reach at least this [rad/s^2].
+MIN_LIGHT_ACCELERATION = 1e3
+
+
+@pytest.fixture(scope="module")
+def light_delta():
+    """The delta of tests/data with rods of 2e-5 kg (make_yaml_mechanisms.py), like the corpus."""
+    return cc.load(DATA_DIR / "yaml_delta_light.urdf", loops=DATA_DIR / "yaml_delta.yaml")
+
+
+def _mass_norm(M, x):
+    return float(np.sqrt(x @ M @ x))
+
+
+def test_light_links_are_judged_in_the_mass_matrix_norm(light_delta, rng):
+    """Both sides agree with a 40-digit solve in the mass-matrix norm; validate passes.
+
+    max |a - a_pin| is left unjudged: along the rods' spins (M eigenvalue 5e-8 kg m^2)
+    the accelerations reach 1e4 rad/s^2 or more, where the double-precision problem
+    does not determine them to 1e-9 (validation module docstring).
+    """
+    mech = light_delta
+    model, data = mech.model, mech.model.createData()
+    M0 = pin.crba(model, data, mech.q_ref)
+    assert np.linalg.cond(np.triu(M0) + np.triu(M0, 1).T) >= MIN_LIGHT_COND_M
+    scale = mech.gravity_torque_scale()
+    worst_ours = worst_pin = largest_a = 0.0
+    for _ in range(5):
+        q, v = cc.random_consistent_state(mech, rng)
+        tau = scale * rng.standard_normal(mech.nv)
+        M = pin.crba(model, data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        h = pin.nonLinearEffects(model, data, q, v)
+        a_ref, _ = mp_solve_kkt(
+            M, h, cc.compute_jacobian(mech, q), cc.compute_gamma(mech, q, v), tau
+        )
+        ours = cc.forward_dynamics(mech, q, v, tau, method="kkt").a
+        a_pin = validation.pinocchio_reference_dynamics(mech, q, v, tau)[0]
+        norm = max(1.0, _mass_norm(M, a_ref))
+        worst_ours = max(worst_ours, _mass_norm(M, ours - a_ref) / norm)
+        worst_pin = max(worst_pin, _mass_norm(M, a_pin - a_ref) / norm)
+        largest_a = max(largest_a, float(np.max(np.abs(a_ref))))
+    assert largest_a >= MIN_LIGHT_ACCELERATION
+    # Rounding M, h, J and gamma to double alone moves the 40-digit solution by
+    # 3e-11 to 1e-10 of ||a||_M here (measured), so TOL_HIGH_PRECISION cannot hold.
+    assert worst_ours <= TOL_ACCELERATION
+    assert worst_pin <= TOL_ACCELERATION
+    rep = cc.validate(mech, n_samples=10, seed=VALIDATION_SEED)
+    assert rep.max_da_mass_norm <= TOL_ACCELERATION
+    assert rep.max_dforce <= TOL_FORCE
+    assert rep.passed
+
+
+def test_validate_fails_a_wrong_acceleration_in_the_mass_matrix_norm(fourbar, monkeypatch):
+    """A bias of 1e-6 rad/s^2 on every coordinate fails the judged mass-matrix norm."""
+    monkeypatch.setitem(dynamics_base.METHODS, "kkt_biased", _biased_method(da=1e-6))
+    rep = cc.validate(fourbar, n_samples=10, seed=VALIDATION_SEED, method="kkt_biased")
+    assert rep.max_da_mass_norm > TOL_ACCELERATION
+    assert not rep.passed

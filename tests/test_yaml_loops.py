@@ -512,6 +512,9 @@ def test_check_corpus_writes_its_table(tmp_path):
     shutil.copy(DATA_DIR / "yaml_fivebar.urdf", robots / "fivebar" / "robot.urdf")
     shutil.copy(DATA_DIR / "yaml_fivebar_3d.yaml", robots / "fivebar" / "robot.yaml")
     shutil.copy(DATA_DIR / "yaml_fivebar.urdf", robots / "no_yaml" / "robot.urdf")
+    (robots / "delta").mkdir()
+    shutil.copy(DATA_DIR / "yaml_delta.urdf", robots / "delta" / "robot.urdf")
+    shutil.copy(DATA_DIR / "yaml_delta.yaml", robots / "delta" / "robot.yaml")
     out = tmp_path / "table.md"
     run = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "check_corpus.py"), str(robots), "--out", str(out)],
@@ -520,12 +523,27 @@ def test_check_corpus_writes_its_table(tmp_path):
         check=True,
         timeout=600,
     )
-    rows = [ln for ln in out.read_text().splitlines() if ln.startswith("| fivebar ")]
-    assert len(rows) == 1
-    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    table = out.read_text()
+    header = next(ln for ln in table.splitlines() if ln.startswith("| robot "))
+    assert [c.strip() for c in header.strip("|").split("|")][6:10] == [
+        "validate da_M (judged)",
+        "validate max abs da [rad/s^2]",
+        "simulate 1 s CPU [s]",
+        "animates",
+    ]
+    rows = {ln.split("|")[1].strip(): ln for ln in table.splitlines() if ln.startswith("| ")}
+    cells = [c.strip() for c in rows["fivebar"].strip("|").split("|")]
     assert cells[1:4] == ["1 (0 6d, 1 3d)", "4", "2 / 2"]
     assert float(cells[5]) <= TOL_PHI
     assert float(cells[6]) <= TOL_A
+    assert re.fullmatch(r"\d\S* MB, 0 meshes", cells[9])
+    assert cells[10] == ""
+    # Mobility above the motors: the motions left with the motors held, by their joints
+    # (the rods' spins about their axes; the platform, held by three rods only, moves).
+    delta = [c.strip() for c in rows["delta"].strip("|").split("|")]
+    assert delta[3] == "9 / 3"
+    assert "mobility 9 = 3 motors + 6 motions with the motors held" in delta[10]
+    assert delta[10].split(";")[-2:] == [" elbow1", " elbow2"]
     assert "no_yaml" in run.stdout and not (tmp_path / "table.md.tmp").exists()
 
 

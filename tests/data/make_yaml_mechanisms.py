@@ -17,6 +17,9 @@ the motors and the joint conversions:
   rod carries the platform through a SPHERICAL wrist, legs 1 and 2 join it by
   3d loops. Mobility 9 by Gruebler-Kutzbach (7 bodies, 3 revolute and 6
   spherical joints: 6*7 - 3*5 - 6*3), of which 3 are the rods' spins.
+- ``yaml_delta_light.urdf``: the same delta with rods of LIGHT_ROD_MASS,
+  like the corpus's near-massless links (M's eigenvalues from 5e-8 to 0.15
+  kg m^2: the rods' spins); it reads ``yaml_delta.yaml``.
 - ``yaml_ujoint_leg.urdf`` / ``.yaml``: a planar leg (hip and knee about y)
   whose knee is driven by a crank and a rod; the rod hangs from the crank by a
   UJOINT_YX conversion and joins the shin by a 3d loop. Mobility 2
@@ -46,6 +49,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+
+#: Rod mass [kg] of yaml_delta_light (1e-4 of yaml_delta's): a condition number of M of 3e6.
+LIGHT_ROD_MASS = 2e-5
 
 
 def _fmt(values) -> str:
@@ -168,7 +174,7 @@ def fivebar() -> None:
     )
 
 
-def delta() -> None:
+def delta(name: str = "yaml_delta", rod_mass: float = 0.2) -> None:
     radius, arm, beta = 0.15, 0.2, 0.5
     centre, r_p = np.array([0.0, 0.0, -0.35]), 0.06
     body = _link("base", 2.0, (0.0, 0.0, 0.02), np.diag([0.01, 0.01, 0.02]))  # on the world
@@ -184,7 +190,7 @@ def delta() -> None:
         elbows.append(e)
         attach.append(p)
         rod_local = R.T @ (p - e)  # the rod frame is turned like the arm's at q = 0
-        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", 0.2, rod_local, 0.1)
+        body += _rod_link(f"arm{k}", 0.3, e_local) + _rod_link(f"rod{k}", rod_mass, rod_local, 0.1)
         joints += _joint(f"mot{k}", "revolute", "base", f"arm{k}", b, (0.0, 0.0, theta))
         joints += _joint(f"elbow{k}", "revolute", f"arm{k}", f"rod{k}", e_local, axis=(1, 0, 0))
         if k == 0:
@@ -201,12 +207,15 @@ def delta() -> None:
     header = f"""
   Delta-like 3-RSS in the example-parallel-robots convention: motors mot0..2
   at radius {radius} m, 120 degrees apart, about the tangent; upper arms
-  {arm} m long, {beta} rad below the horizontal; rods from the elbows to the
-  platform's attachment points at radius {r_p} m around {_fmt(centre)} [m].
+  {arm} m long, {beta} rad below the horizontal; rods of {rod_mass!r} kg from the
+  elbows to the platform's attachment points at radius {r_p} m around
+  {_fmt(centre)} [m].
   The elbows and the wrist of leg 0 are revolute placeholders that the YAML
   converts into SPHERICAL joints.
 """
-    _write("yaml_delta", header, body + joints)
+    _write(name, header, body + joints)
+    if name != "yaml_delta":  # a variant: it reads yaml_delta.yaml
+        return
     (HERE / "yaml_delta.yaml").write_text(
         "closed_loop: [['rod_tip1', 'platform_att1'], ['rod_tip2', 'platform_att2']]\n"
         "type: ['3d', '3d']\n"
@@ -364,6 +373,7 @@ def parallel_leg() -> None:
 if __name__ == "__main__":
     fivebar()
     delta()
+    delta("yaml_delta_light", rod_mass=LIGHT_ROD_MASS)
     ujoint_leg()
     offset_rod()
     parallel_leg()
