@@ -146,14 +146,12 @@ def _random_tree(kinds, rng):
 
 
 @pytest.mark.parametrize("tree", sorted(TREES))
-def test_tree_pass_matches_pinocchio(tree, rng):
+def test_tree_pass_matches_pinocchio(tree, rng, core_testing):
     """tree_terms.hpp (revolute path + Pinocchio's visitor for the other joints) against
     pinocchio.crba, nonLinearEffects, computeJointJacobians and forwardKinematics."""
-    from closedchain import _core
-
     model = _random_tree(TREES[tree], rng)
     expected = [False] + [k in REVOLUTE_KINDS for k, _ in TREES[tree]]
-    assert list(_core._revolute_joints(model)) == expected
+    assert list(core_testing._revolute_joints(model)) == expected
     data = model.createData()
     for _ in range(5):
         q = pin.randomConfiguration(model, -np.pi * np.ones(model.nq), np.pi * np.ones(model.nq))
@@ -167,14 +165,32 @@ def test_tree_pass_matches_pinocchio(tree, rng):
         ov = np.column_stack([data.oMi[i].act(data.v[i]).vector for i in range(model.njoints)])
         oa = np.column_stack([data.oMi[i].act(data.a[i]).vector for i in range(model.njoints)])
         for at_kinematics in (False, True):
-            got = _core._tree_terms(model, q, v, at_kinematics)
+            got = core_testing._tree_terms(model, q, v, at_kinematics)
             assert _close(got["M"], M) and _close(got["h"], h)
             assert _close(got["J"], J)
             assert all(_close(g, r) for g, r in zip(got["oMi"], oMi, strict=True))
             assert _close(got["ov"], ov) and _close(got["oa"], oa)
-        kin = _core._joint_kinematics(model, q)
+        kin = core_testing._joint_kinematics(model, q)
         assert _close(kin["J"], J)
         assert all(_close(g, r) for g, r in zip(kin["oMi"], oMi, strict=True))
+
+
+def test_the_production_module_has_no_test_helpers(core_testing):
+    """The tree-pass and lean_data helpers live in closedchain._core_testing only."""
+    from closedchain import _core
+
+    helpers = ("_tree_terms", "_joint_kinematics", "_revolute_joints", "_lean_data_matches_full")
+    assert all(hasattr(core_testing, h) and not hasattr(_core, h) for h in helpers)
+
+
+def test_errors_are_declared_in_one_module():
+    """The exceptions the compiled core raises are classes of closedchain.exceptions; the
+    modules that declared two of them before re-export the same classes."""
+    from closedchain import exceptions
+    from closedchain.simulate import settings
+
+    assert compiled.RowCheckRequired is exceptions.RowCheckRequired
+    assert settings.SimulationError is exceptions.SimulationError is SimulationError
 
 
 @pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])

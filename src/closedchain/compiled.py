@@ -1,6 +1,6 @@
 """The compiled core: constraint rows, forward dynamics and integration loops in C++.
 
-``closedchain._core`` (src/cpp/core.cpp, built by CMake through
+``closedchain._core`` (src/cpp/module.cpp and expose-*.cpp, built by CMake through
 scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
 (:meth:`ConstraintLayer.row_table`, and every declared row for the per-step
@@ -26,26 +26,11 @@ from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
 from .exceptions import ClosedChainError, InvalidArgumentError
 
+# Declared in closedchain.exceptions; importable from here as before.
+from .exceptions import RowCheckRequired as RowCheckRequired
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
-
-
-class RowCheckRequired(ClosedChainError):
-    """Raised by a compiled loop when the kept rows stop describing the loops at ``t``.
-
-    A dropped row opened (beyond ``SimulationSettings.dropped_row_tol`` and
-    ``dropped_row_ratio`` times the kept rows' residual) or the kept rows
-    degenerate where there are dropped rows: the rows must be re-selected
-    (:meth:`LoopClosure.check_rows`), which the numpy backend does; the
-    simulator then runs the request there (:mod:`closedchain.simulate.compiled_loops`).
-
-    Attributes:
-        t: simulation time [s] of the step that found it.
-    """
-
-    def __init__(self, message: str, t: float) -> None:
-        super().__init__(message)
-        self.t = t
 
 
 try:

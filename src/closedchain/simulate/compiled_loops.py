@@ -12,7 +12,7 @@ Each step checks every declared row (the dropped ones too): beyond
 ``drift_limit`` the run stops with SimulationError naming the row and time;
 when a dropped row opens or the kept rows degenerate, the rows must be
 re-selected, which the numpy backend does: the loop raises
-:class:`closedchain.compiled.RowCheckRequired` and the request runs there from
+:class:`closedchain.exceptions.RowCheckRequired` and the request runs there from
 the start (logged; ``info.backend_fallback`` says why).
 """
 
@@ -24,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from .. import compiled
+from ..exceptions import RowCheckRequired
 from .fixed import output_grid
 from .problem import Problem
 
@@ -140,7 +141,7 @@ def run_fixed_compiled(
             bool(stab.projects),
             progress,
         )
-    except compiled.RowCheckRequired as exc:
+    except RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
@@ -183,7 +184,7 @@ def run_adaptive_compiled(
             if len(grid) <= problem.settings.max_outputs:
                 times, keep = grid, np.searchsorted(grid, t_eval)
         core, out = run(times, progress)
-    except compiled.RowCheckRequired as exc:
+    except RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
