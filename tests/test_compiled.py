@@ -193,6 +193,39 @@ def test_errors_are_declared_in_one_module():
     assert settings.SimulationError is exceptions.SimulationError is SimulationError
 
 
+def test_core_settings_are_the_dataclasses_fields_with_their_defaults():
+    """Each typed settings class of the core binds fields of its Python settings dataclass
+    (same names; Ali3pSettings those after ``ali3p_``), with the dataclass's defaults."""
+    from closedchain import _core
+
+    for cls, source, prefix in (
+        (_core.SolverSettings, cc.SolverSettings(), ""),
+        (_core.SimulationSettings, cc.SimulationSettings(), ""),
+        (_core.Ali3pSettings, cc.SimulationSettings(), "ali3p_"),
+    ):
+        core = cls()
+        got = {name: getattr(core, name) for name in cls.fields}
+        assert got == {name: getattr(source, prefix + name) for name in cls.fields}
+
+
+def test_core_settings_take_the_dataclass_values_and_check_types():
+    """compiled.core_settings copies every field; a value of the wrong type is refused by
+    the binding, a Baumgarte pair of the wrong length by the core."""
+    from closedchain import _core
+
+    solver = cc.SolverSettings(cond_max=1e9, baumgarte=(3.0, 4.0), al_max_iter=7)
+    core = compiled.core_settings(_core.SolverSettings, solver)
+    assert (core.cond_max, core.baumgarte, core.al_max_iter) == (1e9, (3.0, 4.0), 7)
+    sim = cc.SimulationSettings(drift_limit=0.5, projection_iters=3, project_velocities=False)
+    core = compiled.core_settings(_core.SimulationSettings, sim)
+    assert (core.drift_limit, core.projection_iters, core.project_velocities) == (0.5, 3, False)
+    assert compiled.ali3p_settings(cc.SimulationSettings(ali3p_max_iter=9)).max_iter == 9
+    with pytest.raises(TypeError, match=r"did not match C\+\+ signature"):
+        core.drift_limit = "large"
+    with pytest.raises(cc.ClosedChainError, match="baumgarte: None or the gains"):
+        _core.SolverSettings().baumgarte = (1.0, 2.0, 3.0)
+
+
 @pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])
 def test_declared_rows_match_numpy(mech_by_name, name, rng):
     """compiled.declared_rows (simulate's start checks): phi and J of every declared row,

@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .closure import PIVOT_TIE_RTOL
 from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
 from .exceptions import ClosedChainError, InvalidArgumentError
@@ -246,36 +245,47 @@ def configure(
             f"method {method!r} has no compiled implementation; compiled methods: "
             f"{', '.join(compiled)} (use backend='numpy')"
         )
-    cfg = {
-        "method": method,
-        "cond_max": float(solver_settings.cond_max),
-        "baumgarte": solver_settings.baumgarte,
-        "al_penalty": float(solver_settings.al_penalty),
-        "al_tol": float(solver_settings.al_tol),
-        "al_max_iter": int(solver_settings.al_max_iter),
-        "stage_projects": bool(stage_projects),
-        "singular_robust": bool(singular_robust),
-        "partitions": bool(partitions),
-    }
+    run = _core.RunOptions()
+    run.method = method
+    run.stage_projects = bool(stage_projects)
+    run.singular_robust = bool(singular_robust)
+    run.partitions = bool(partitions)
     if independent is not None:
-        cfg["independent"] = np.asarray(independent, dtype=np.int32)
+        run.independent = np.asarray(independent, dtype=np.int32)
+    # The defaults of the core's SimulationSettings are the dataclass's (tested).
+    simulation = _core.SimulationSettings()
     if settings is not None:
-        cfg.update(
-            projection_tol=float(settings.projection_tol),
-            projection_iters=int(settings.projection_iters),
-            project_velocities=bool(settings.project_velocities),
-            singular_cond=float(settings.singular_cond),
-            drift_limit=float(settings.drift_limit),
-            singular_zone=float(settings.singular_zone),
-            stage_singular_zone=float(settings.stage_singular_zone),
-            dropped_row_tol=float(settings.dropped_row_tol),
-            dropped_row_ratio=float(settings.dropped_row_ratio),
-            dependent_tol=float(settings.dependent_tol),
-            repartition_cond=float(settings.repartition_cond),
-            partition_singular_cond=float(settings.partition_singular_cond),
-            pivot_tie_rtol=PIVOT_TIE_RTOL,
-        )
-    core.configure(cfg)
+        simulation = core_settings(_core.SimulationSettings, settings)
+    core.configure(run, core_settings(_core.SolverSettings, solver_settings), simulation)
+
+
+def core_settings(cls, source, prefix: str = ""):
+    """Return an instance of the core's settings class ``cls`` filled from ``source``.
+
+    Every field the core reads (``cls.fields``, src/cpp/expose-settings.cpp) is copied
+    from the settings dataclass ``source``'s field of the same name after ``prefix``
+    (a field the dataclass lacks raises AttributeError here), converted to the type of
+    the core's default (bool, int or float) once, here.
+
+    Args:
+        cls: ``_core.SolverSettings``, ``_core.SimulationSettings`` or ``_core.Ali3pSettings``.
+        source: a :class:`SolverSettings` or
+            :class:`~closedchain.simulate.settings.SimulationSettings`.
+        prefix: prefix of the dataclass's field names (``"ali3p_"`` for Ali3pSettings).
+    """
+    out = cls()
+    for name in cls.fields:
+        value = getattr(source, prefix + name)
+        default = getattr(out, name)
+        if isinstance(default, (bool, int, float)):
+            value = type(default)(value)
+        setattr(out, name, value)
+    return out
+
+
+def ali3p_settings(settings):
+    """Return the core's Ali3pSettings of a SimulationSettings (its ``ali3p_*`` fields)."""
+    return core_settings(_core.Ali3pSettings, settings, prefix="ali3p_")
 
 
 class CompiledDynamics:

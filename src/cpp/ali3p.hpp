@@ -28,6 +28,7 @@
 #include "al_iteration.hpp"
 #include "common.hpp"
 #include "errors.hpp"
+#include "settings.hpp"
 
 namespace closedchain {
 
@@ -41,14 +42,6 @@ constexpr double ALI3P_STALL = 0.5;
 constexpr double ALI3P_SPLIT = 1.5;
 constexpr double ALI3P_ENFORCED = 10.0;
 constexpr double ALI3P_ZONE_MAX = 0.5;
-
-// The settings of one run (SimulationSettings.ali3p_*).
-struct Ali3pSettings {
-  double tol = 1e-10;
-  double phi_tol = 1e-13;
-  int max_iter = 50;
-  double penalty = 1e11;
-};
 
 template <class CoreT>
 class Ali3pLoop {

@@ -21,6 +21,10 @@ constexpr int RETAKE_GRID = 40;
 constexpr double CROSSING_FIT_RTOL = 0.5;
 constexpr int RANK_INDICATOR_ITERS = 4;
 
+//: Column-pivoted QR: remaining column norms within this relative tolerance count as
+//: tied, the lowest index wins (closure.PIVOT_TIE_RTOL).
+constexpr double PIVOT_TIE_RTOL = 1e-9;
+
 //: Relative margin of the Cholesky inverse-norm bound (min_norm) over its own round-off.
 constexpr double INVERSE_BOUND_MARGIN = 1e-8;
 

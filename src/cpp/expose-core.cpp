@@ -28,7 +28,8 @@ void expose_core() {
       bp::init<bp::object, std::string, Eigen::VectorXi, Eigen::VectorXi, Eigen::VectorXi,
                Eigen::MatrixXd, Eigen::MatrixXd>(
           bp::args("self", "model", "name", "kinds", "fid_p", "fid_s", "vec1", "vec2")))
-      .def("configure", &Core::configure, bp::args("self", "settings"))
+      .def("configure", &Core::configure, bp::args("self", "run", "solver", "simulation"),
+           "Set the method and options (RunOptions), SolverSettings and SimulationSettings.")
       .def("set_tau", &Core::set_tau, bp::args("self", "tau"))
       .def("set_declared", &Core::set_declared,
            bp::args("self", "kinds", "fid_p", "fid_s", "vec1", "vec2", "kept", "labels"),
@@ -53,7 +54,7 @@ void expose_core() {
       .def("run_ali3p", &Core::run_ali3p,
            bp::args("self", "q0", "v0", "dt", "n_steps", "out_steps", "settings", "progress"),
            "ALI3-P (index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal "
-           "projections); settings = (tol, phi_tol, max_iter, penalty).")
+           "projections) with settings (Ali3pSettings).")
       .def("run_adaptive", &Core::run_adaptive,
            bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
                     "projects", "progress"))

@@ -10,6 +10,9 @@ namespace closedchain {
 /// Translators of the C++ errors (errors.hpp) into closedchain.exceptions (expose-errors.cpp).
 void expose_errors();
 
+/// The typed settings classes of Core.configure and Core.run_ali3p (expose-settings.cpp).
+void expose_settings();
+
 /// lean_data: a pinocchio.Data without the nv^3 tensors (expose-pindata.cpp).
 void expose_pindata();
 

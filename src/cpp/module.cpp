@@ -13,6 +13,7 @@ BOOST_PYTHON_MODULE(_core) {
   eigenpy::enableEigenPy();
   eigenpy::enableEigenPySpecific<Eigen::VectorXi>();
   closedchain::expose_errors();
+  closedchain::expose_settings();
   closedchain::expose_pindata();
   closedchain::expose_core();
 }

@@ -208,7 +208,7 @@ def run_ali3p_compiled(
         float(dt),
         int(n_steps),
         recorded,
-        (float(s.ali3p_tol), float(s.ali3p_phi_tol), int(s.ali3p_max_iter), float(s.ali3p_penalty)),
+        compiled.ali3p_settings(s),
         progress,
     )
     info["ali3p_alpha"] = float(out["ali3p_alpha"])
