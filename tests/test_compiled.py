@@ -23,6 +23,7 @@ import closedchain as cc
 from closedchain import compiled
 from closedchain.dynamics.base import METHOD_CAPABILITIES, compute_terms
 from closedchain.simulate import COMPILED_INTEGRATORS, INTEGRATORS, SimulationError
+from closedchain.simulate.problem import passing_hint
 
 #: Per evaluation: |compiled - numpy| <= EVAL_RTOL * max(1, max |reference|) ...
 EVAL_RTOL = 1e-12
@@ -224,6 +225,18 @@ def test_core_settings_take_the_dataclass_values_and_check_types():
         core.drift_limit = "large"
     with pytest.raises(cc.ClosedChainError, match="baumgarte: None or the gains"):
         _core.SolverSettings().baumgarte = (1.0, 2.0, 3.0)
+
+
+def test_generated_constants_header_is_up_to_date():
+    """src/cpp/constants.hpp is what scripts/gen_constants.py writes from the Python
+    constants it shares (run it after changing one of them)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "scripts" / "gen_constants.py"
+    spec = importlib.util.spec_from_file_location("gen_constants", path)
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert gen.OUT.read_text() == gen.render(), "run python scripts/gen_constants.py"
 
 
 @pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])
@@ -868,6 +881,7 @@ def test_partitioning_singular_error(fourbar, fourbar_closed_forms, integrator):
     hint = r"use method='augmented-lagrangian' with stabilization='stage-projection'"
     with pytest.raises(cc.SingularConfigurationError, match=match + ".*" + hint) as exc:
         _core_run(fourbar, integrator, q0, v0, 1.0, settings=settings)
+    assert str(exc.value).endswith(passing_hint())  # constants.hpp's, generated from it
     step = dict(dt=DT) if integrator == "rk4" else dict(rtol=RTOL, atol=ATOL)
     with pytest.raises(cc.SingularConfigurationError, match=match) as ref:
         cc.simulate(

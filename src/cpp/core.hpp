@@ -565,7 +565,7 @@ class Core {
   /// The configuration of state y's position part (y itself without a chart).
   RefV chart_q(const Eigen::Ref<const Vec> &x);
 
-  /// Re-centre the chart when a curved joint's block exceeds 1 (chart.RECENTRE_NORM).
+  /// Re-centre the chart when a curved joint's block exceeds RECENTRE_NORM.
   bool chart_recentre(Eigen::Ref<Vec> x);
 
   void fun(double t, const Vec &y, Eigen::Ref<Vec> f);
