@@ -38,6 +38,23 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.fixture(scope="session")
+def core_testing():
+    """The compiled test helpers, closedchain._core_testing (src/cpp/expose-testing.cpp).
+
+    Built by the test install only (``scripts/setup_venv.sh test``: CMake option
+    CLOSEDCHAIN_TESTING); a missing module fails the test, never skips it.
+    """
+    try:
+        from closedchain import _core_testing
+    except ImportError as exc:
+        pytest.fail(
+            f"closedchain._core_testing is not built ({exc}): install with "
+            "`bash scripts/setup_venv.sh test` (CMake option CLOSEDCHAIN_TESTING=ON)"
+        )
+    return _core_testing
+
+
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 DATA_DIR = Path(__file__).resolve().parent / "data"

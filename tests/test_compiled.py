@@ -23,6 +23,7 @@ import closedchain as cc
 from closedchain import compiled
 from closedchain.dynamics.base import METHOD_CAPABILITIES, compute_terms
 from closedchain.simulate import COMPILED_INTEGRATORS, INTEGRATORS, SimulationError
+from closedchain.simulate.problem import passing_hint
 
 #: Per evaluation: |compiled - numpy| <= EVAL_RTOL * max(1, max |reference|) ...
 EVAL_RTOL = 1e-12
@@ -146,14 +147,12 @@ def _random_tree(kinds, rng):
 
 
 @pytest.mark.parametrize("tree", sorted(TREES))
-def test_tree_pass_matches_pinocchio(tree, rng):
+def test_tree_pass_matches_pinocchio(tree, rng, core_testing):
     """tree_terms.hpp (revolute path + Pinocchio's visitor for the other joints) against
     pinocchio.crba, nonLinearEffects, computeJointJacobians and forwardKinematics."""
-    from closedchain import _core
-
     model = _random_tree(TREES[tree], rng)
     expected = [False] + [k in REVOLUTE_KINDS for k, _ in TREES[tree]]
-    assert list(_core._revolute_joints(model)) == expected
+    assert list(core_testing._revolute_joints(model)) == expected
     data = model.createData()
     for _ in range(5):
         q = pin.randomConfiguration(model, -np.pi * np.ones(model.nq), np.pi * np.ones(model.nq))
@@ -167,14 +166,77 @@ def test_tree_pass_matches_pinocchio(tree, rng):
         ov = np.column_stack([data.oMi[i].act(data.v[i]).vector for i in range(model.njoints)])
         oa = np.column_stack([data.oMi[i].act(data.a[i]).vector for i in range(model.njoints)])
         for at_kinematics in (False, True):
-            got = _core._tree_terms(model, q, v, at_kinematics)
+            got = core_testing._tree_terms(model, q, v, at_kinematics)
             assert _close(got["M"], M) and _close(got["h"], h)
             assert _close(got["J"], J)
             assert all(_close(g, r) for g, r in zip(got["oMi"], oMi, strict=True))
             assert _close(got["ov"], ov) and _close(got["oa"], oa)
-        kin = _core._joint_kinematics(model, q)
+        kin = core_testing._joint_kinematics(model, q)
         assert _close(kin["J"], J)
         assert all(_close(g, r) for g, r in zip(kin["oMi"], oMi, strict=True))
+
+
+def test_the_production_module_has_no_test_helpers(core_testing):
+    """The tree-pass and lean_data helpers live in closedchain._core_testing only."""
+    from closedchain import _core
+
+    helpers = ("_tree_terms", "_joint_kinematics", "_revolute_joints", "_lean_data_matches_full")
+    assert all(hasattr(core_testing, h) and not hasattr(_core, h) for h in helpers)
+
+
+def test_errors_are_declared_in_one_module():
+    """The exceptions the compiled core raises are classes of closedchain.exceptions; the
+    modules that declared two of them before re-export the same classes."""
+    from closedchain import exceptions
+    from closedchain.simulate import settings
+
+    assert compiled.RowCheckRequired is exceptions.RowCheckRequired
+    assert settings.SimulationError is exceptions.SimulationError is SimulationError
+
+
+def test_core_settings_are_the_dataclasses_fields_with_their_defaults():
+    """Each typed settings class of the core binds fields of its Python settings dataclass
+    (same names; Ali3pSettings those after ``ali3p_``), with the dataclass's defaults."""
+    from closedchain import _core
+
+    for cls, source, prefix in (
+        (_core.SolverSettings, cc.SolverSettings(), ""),
+        (_core.SimulationSettings, cc.SimulationSettings(), ""),
+        (_core.Ali3pSettings, cc.SimulationSettings(), "ali3p_"),
+    ):
+        core = cls()
+        got = {name: getattr(core, name) for name in cls.fields}
+        assert got == {name: getattr(source, prefix + name) for name in cls.fields}
+
+
+def test_core_settings_take_the_dataclass_values_and_check_types():
+    """compiled.core_settings copies every field; a value of the wrong type is refused by
+    the binding, a Baumgarte pair of the wrong length by the core."""
+    from closedchain import _core
+
+    solver = cc.SolverSettings(cond_max=1e9, baumgarte=(3.0, 4.0), al_max_iter=7)
+    core = compiled.core_settings(_core.SolverSettings, solver)
+    assert (core.cond_max, core.baumgarte, core.al_max_iter) == (1e9, (3.0, 4.0), 7)
+    sim = cc.SimulationSettings(drift_limit=0.5, projection_iters=3, project_velocities=False)
+    core = compiled.core_settings(_core.SimulationSettings, sim)
+    assert (core.drift_limit, core.projection_iters, core.project_velocities) == (0.5, 3, False)
+    assert compiled.ali3p_settings(cc.SimulationSettings(ali3p_max_iter=9)).max_iter == 9
+    with pytest.raises(TypeError, match=r"did not match C\+\+ signature"):
+        core.drift_limit = "large"
+    with pytest.raises(cc.ClosedChainError, match="baumgarte: None or the gains"):
+        _core.SolverSettings().baumgarte = (1.0, 2.0, 3.0)
+
+
+def test_generated_constants_header_is_up_to_date():
+    """src/cpp/constants.hpp is what scripts/gen_constants.py writes from the Python
+    constants it shares (run it after changing one of them)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "scripts" / "gen_constants.py"
+    spec = importlib.util.spec_from_file_location("gen_constants", path)
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert gen.OUT.read_text() == gen.render(), "run python scripts/gen_constants.py"
 
 
 @pytest.mark.parametrize("name", [*ALL_MECHS, "nfourbar_2"])
@@ -819,6 +881,7 @@ def test_partitioning_singular_error(fourbar, fourbar_closed_forms, integrator):
     hint = r"use method='augmented-lagrangian' with stabilization='stage-projection'"
     with pytest.raises(cc.SingularConfigurationError, match=match + ".*" + hint) as exc:
         _core_run(fourbar, integrator, q0, v0, 1.0, settings=settings)
+    assert str(exc.value).endswith(passing_hint())  # constants.hpp's, generated from it
     step = dict(dt=DT) if integrator == "rk4" else dict(rtol=RTOL, atol=ATOL)
     with pytest.raises(cc.SingularConfigurationError, match=match) as ref:
         cc.simulate(

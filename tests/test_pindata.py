@@ -34,23 +34,21 @@ def _pinocchio_equality_is_reflexive(model) -> bool:
 
 @pytest.mark.parametrize("name", ALL_MECHANISMS)
 @pytest.mark.parametrize("root", [None, "free"])
-def test_lean_data_equals_pinocchio_data_apart_from_the_tensors(load_mechanism, name, root):
-    from closedchain import _core
-
+def test_lean_data_equals_pinocchio_data_apart_from_the_tensors(
+    load_mechanism, name, root, core_testing
+):
     model = load_mechanism(name).model
     if root == "free":
         model = pin.buildModelFromXML(load_mechanism(name).urdf.xml, pin.JointModelFreeFlyer())
     if not _pinocchio_equality_is_reflexive(model):
         pytest.skip("pinocchio.Data == is not reflexive for this model's joints")
-    assert _core._lean_data_matches_full(model)
+    assert core_testing._lean_data_matches_full(model)
 
 
-def test_lean_data_equals_pinocchio_data_on_pinocchio_sample_models():
-    from closedchain import _core
-
+def test_lean_data_equals_pinocchio_data_on_pinocchio_sample_models(core_testing):
     for model in (pin.buildSampleModelHumanoidRandom(), pin.buildSampleModelManipulator()):
         assert _pinocchio_equality_is_reflexive(model)
-        assert _core._lean_data_matches_full(model)
+        assert core_testing._lean_data_matches_full(model)
 
 
 @pytest.mark.parametrize("name", ALL_MECHANISMS)

@@ -1,6 +1,6 @@
 """The compiled core: constraint rows, forward dynamics and integration loops in C++.
 
-``closedchain._core`` (src/cpp/core.cpp, built by CMake through
+``closedchain._core`` (src/cpp/module.cpp and expose-*.cpp, built by CMake through
 scikit-build-core against the Pinocchio of the ``pin`` wheel) evaluates the
 same equations as the numpy backend: the rows of the constraint layer
 (:meth:`ConstraintLayer.row_table`, and every declared row for the per-step
@@ -21,31 +21,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .closure import PIVOT_TIE_RTOL
 from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
 from .exceptions import ClosedChainError, InvalidArgumentError
 
+# Declared in closedchain.exceptions; importable from here as before.
+from .exceptions import RowCheckRequired as RowCheckRequired
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
-
-
-class RowCheckRequired(ClosedChainError):
-    """Raised by a compiled loop when the kept rows stop describing the loops at ``t``.
-
-    A dropped row opened (beyond ``SimulationSettings.dropped_row_tol`` and
-    ``dropped_row_ratio`` times the kept rows' residual) or the kept rows
-    degenerate where there are dropped rows: the rows must be re-selected
-    (:meth:`LoopClosure.check_rows`), which the numpy backend does; the
-    simulator then runs the request there (:mod:`closedchain.simulate.compiled_loops`).
-
-    Attributes:
-        t: simulation time [s] of the step that found it.
-    """
-
-    def __init__(self, message: str, t: float) -> None:
-        super().__init__(message)
-        self.t = t
 
 
 try:
@@ -261,36 +245,47 @@ def configure(
             f"method {method!r} has no compiled implementation; compiled methods: "
             f"{', '.join(compiled)} (use backend='numpy')"
         )
-    cfg = {
-        "method": method,
-        "cond_max": float(solver_settings.cond_max),
-        "baumgarte": solver_settings.baumgarte,
-        "al_penalty": float(solver_settings.al_penalty),
-        "al_tol": float(solver_settings.al_tol),
-        "al_max_iter": int(solver_settings.al_max_iter),
-        "stage_projects": bool(stage_projects),
-        "singular_robust": bool(singular_robust),
-        "partitions": bool(partitions),
-    }
+    run = _core.RunOptions()
+    run.method = method
+    run.stage_projects = bool(stage_projects)
+    run.singular_robust = bool(singular_robust)
+    run.partitions = bool(partitions)
     if independent is not None:
-        cfg["independent"] = np.asarray(independent, dtype=np.int32)
+        run.independent = np.asarray(independent, dtype=np.int32)
+    # The defaults of the core's SimulationSettings are the dataclass's (tested).
+    simulation = _core.SimulationSettings()
     if settings is not None:
-        cfg.update(
-            projection_tol=float(settings.projection_tol),
-            projection_iters=int(settings.projection_iters),
-            project_velocities=bool(settings.project_velocities),
-            singular_cond=float(settings.singular_cond),
-            drift_limit=float(settings.drift_limit),
-            singular_zone=float(settings.singular_zone),
-            stage_singular_zone=float(settings.stage_singular_zone),
-            dropped_row_tol=float(settings.dropped_row_tol),
-            dropped_row_ratio=float(settings.dropped_row_ratio),
-            dependent_tol=float(settings.dependent_tol),
-            repartition_cond=float(settings.repartition_cond),
-            partition_singular_cond=float(settings.partition_singular_cond),
-            pivot_tie_rtol=PIVOT_TIE_RTOL,
-        )
-    core.configure(cfg)
+        simulation = core_settings(_core.SimulationSettings, settings)
+    core.configure(run, core_settings(_core.SolverSettings, solver_settings), simulation)
+
+
+def core_settings(cls, source, prefix: str = ""):
+    """Return an instance of the core's settings class ``cls`` filled from ``source``.
+
+    Every field the core reads (``cls.fields``, src/cpp/expose-settings.cpp) is copied
+    from the settings dataclass ``source``'s field of the same name after ``prefix``
+    (a field the dataclass lacks raises AttributeError here), converted to the type of
+    the core's default (bool, int or float) once, here.
+
+    Args:
+        cls: ``_core.SolverSettings``, ``_core.SimulationSettings`` or ``_core.Ali3pSettings``.
+        source: a :class:`SolverSettings` or
+            :class:`~closedchain.simulate.settings.SimulationSettings`.
+        prefix: prefix of the dataclass's field names (``"ali3p_"`` for Ali3pSettings).
+    """
+    out = cls()
+    for name in cls.fields:
+        value = getattr(source, prefix + name)
+        default = getattr(out, name)
+        if isinstance(default, (bool, int, float)):
+            value = type(default)(value)
+        setattr(out, name, value)
+    return out
+
+
+def ali3p_settings(settings):
+    """Return the core's Ali3pSettings of a SimulationSettings (its ``ali3p_*`` fields)."""
+    return core_settings(_core.Ali3pSettings, settings, prefix="ali3p_")
 
 
 class CompiledDynamics:

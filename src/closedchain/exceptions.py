@@ -2,7 +2,10 @@
 
 Every error derives from :class:`ClosedChainError`, names the offending value
 (file, element, argument, configuration) and, where there is a finite set of
-valid choices, lists them.
+valid choices, lists them. Every exception class is declared here, those the
+compiled core raises included (src/cpp/expose-errors.cpp translates its C++
+errors into them); :mod:`closedchain.simulate.settings` and
+:mod:`closedchain.compiled` re-export the ones they used to declare.
 """
 
 from __future__ import annotations
@@ -136,6 +139,39 @@ class SingularConfigurationError(ClosedChainError):
             condition_number=self.condition_number,
             t=t,
         )
+
+
+class SimulationError(ClosedChainError):
+    """A simulation failed: non-finite state, integrator failure or drift beyond the limit.
+
+    Attributes:
+        t: simulation time [s] at which it happened.
+        trajectory: the Trajectory recorded up to the stop (output samples
+            before ``t``), or None.
+    """
+
+    def __init__(self, message: str, t: float) -> None:
+        super().__init__(message)
+        self.t = t
+        self.trajectory = None
+
+
+class RowCheckRequired(ClosedChainError):
+    """Raised by a compiled loop when the kept rows stop describing the loops at ``t``.
+
+    A dropped row opened (beyond ``SimulationSettings.dropped_row_tol`` and
+    ``dropped_row_ratio`` times the kept rows' residual) or the kept rows
+    degenerate where there are dropped rows: the rows must be re-selected
+    (:meth:`LoopClosure.check_rows`), which the numpy backend does; the
+    simulator then runs the request there (:mod:`closedchain.simulate.compiled_loops`).
+
+    Attributes:
+        t: simulation time [s] of the step that found it.
+    """
+
+    def __init__(self, message: str, t: float) -> None:
+        super().__init__(message)
+        self.t = t
 
 
 class InvalidArgumentError(ClosedChainError, ValueError):

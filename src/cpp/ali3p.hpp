@@ -27,28 +27,11 @@
 
 #include "al_iteration.hpp"
 #include "common.hpp"
+#include "constants.hpp"
 #include "errors.hpp"
+#include "settings.hpp"
 
 namespace closedchain {
-
-//: Newton stops below ali3p_tol once a correction is this fraction of it, or once the
-//: corrections stop shrinking by at least ALI3P_STALL per iteration (simulate/ali3p.py).
-constexpr double ALI3P_TOL_FLOOR = 1e-4;
-constexpr double ALI3P_STALL = 0.5;
-//: First substep of a step pair around a crossing before the grid point, in steps
-//: (2 - ALI3P_SPLIT after it), and the zone rule's constants (ali3p.py: ALI3P_SPLIT,
-//: ALI3P_ENFORCED, ALI3P_ZONE_MAX).
-constexpr double ALI3P_SPLIT = 1.5;
-constexpr double ALI3P_ENFORCED = 10.0;
-constexpr double ALI3P_ZONE_MAX = 0.5;
-
-// The settings of one run (SimulationSettings.ali3p_*).
-struct Ali3pSettings {
-  double tol = 1e-10;
-  double phi_tol = 1e-13;
-  int max_iter = 50;
-  double penalty = 1e11;
-};
 
 template <class CoreT>
 class Ali3pLoop {

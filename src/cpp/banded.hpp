@@ -1,4 +1,4 @@
-// closedchain._core: symmetric positive definite band matrices (included by core.cpp).
+// closedchain._core: symmetric positive definite band matrices (included by expose-core.cpp).
 //
 // Many loops in a chain (the N-four-bar) give a penalized mass matrix
 // M + alpha J^T J and normal equations J J^T whose structural nonzeros lie in a

@@ -32,6 +32,7 @@
 #include "constants.hpp"
 #include "dense_lu.hpp"
 #include "errors.hpp"
+#include "settings.hpp"
 #include "small_llt.hpp"
 #include "tree_terms.hpp"
 
@@ -151,8 +152,10 @@ class Core {
   int al_max_iter() const { return al_max_iter_; }
   double al_tol() const { return al_tol_; }
 
-  /// Settings: method, cond_max, Baumgarte gains, simulation settings.
-  void configure(bp::dict s);
+  /// Settings: the method and the run's options, the solver settings (cond_max,
+  /// Baumgarte gains, the augmented Lagrangian's), the simulation settings.
+  void configure(const RunOptions &run, const SolverSettings &solver,
+                 const SimulationSettings &sim);
 
   /// Every declared row (the kept ones and those dropped as redundant), checked at
   /// every step: kinds/frames/vectors as for the kept rows, kept[i] = 1 for a row
@@ -387,7 +390,7 @@ class Core {
   void set_alignment(const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &u,
                      const Eigen::VectorXi &loop, bp::list loop_names);
 
-  void configure_partitioning(const bp::dict &s);
+  void configure_partitioning(const RunOptions &run, const SimulationSettings &sim);
 
   std::string join_names(const std::vector<int> &idx) const;
 
@@ -541,10 +544,10 @@ class Core {
                      const Eigen::VectorXi &out_steps, bool projects, bp::object progress);
 
   /// The ALI3-P integrator (ali3p.hpp) at the fixed step dt for n_steps, recording at
-  /// the steps in out_steps; settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter,
-  /// ali3p_penalty).
+  /// the steps in out_steps with the settings (SimulationSettings.ali3p_*).
   bp::dict run_ali3p(const Vec &q0, const Vec &v0, double dt, long n_steps,
-                     const Eigen::VectorXi &out_steps, bp::tuple settings, bp::object progress);
+                     const Eigen::VectorXi &out_steps, const Ali3pSettings &settings,
+                     bp::object progress);
 
   // -- adaptive explicit Runge-Kutta (scipy's RK45 / DOP853, same error control) --
 
@@ -562,7 +565,7 @@ class Core {
   /// The configuration of state y's position part (y itself without a chart).
   RefV chart_q(const Eigen::Ref<const Vec> &x);
 
-  /// Re-centre the chart when a curved joint's block exceeds 1 (chart.RECENTRE_NORM).
+  /// Re-centre the chart when a curved joint's block exceeds RECENTRE_NORM.
   bool chart_recentre(Eigen::Ref<Vec> x);
 
   void fun(double t, const Vec &y, Eigen::Ref<Vec> f);

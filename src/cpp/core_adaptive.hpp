@@ -41,7 +41,7 @@ inline RefV Core::chart_q(const Eigen::Ref<const Vec> &x) {
 
 inline bool Core::chart_recentre(Eigen::Ref<Vec> x) {
   bool far = false;
-  for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > 1.0;
+  for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > RECENTRE_NORM;
   if (!far) return false;
   pinocchio::integrate(model_, q_c_, x, q_x_);
   q_c_ = q_x_;

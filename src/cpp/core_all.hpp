@@ -1,5 +1,5 @@
 // closedchain._core: class Core with every member function (one translation unit,
-// core.cpp, includes this: Pinocchio's algorithms are instantiated once).
+// expose-core.cpp, includes this: Pinocchio's algorithms are instantiated once).
 
 #pragma once
 

@@ -278,18 +278,10 @@ inline bp::dict Core::run_fixed(int integrator, const Vec &q0, const Vec &v0, do
 }
 
 inline bp::dict Core::run_ali3p(const Vec &q0, const Vec &v0, double dt, long n_steps,
-                                const Eigen::VectorXi &out_steps, bp::tuple settings,
+                                const Eigen::VectorXi &out_steps, const Ali3pSettings &s,
                                 bp::object progress) {
   check_sizes(q0, v0);
   invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
-  if (bp::len(settings) != 4)
-    throw BadArgument{"run_ali3p: settings = (ali3p_tol, ali3p_phi_tol, ali3p_max_iter, "
-                      "ali3p_penalty)"};
-  Ali3pSettings s;
-  s.tol = bp::extract<double>(settings[0]);
-  s.phi_tol = bp::extract<double>(settings[1]);
-  s.max_iter = bp::extract<int>(settings[2]);
-  s.penalty = bp::extract<double>(settings[3]);
   if (!(dt > 0.0) || n_steps < 0 || s.max_iter < 1)
     throw BadArgument{"run_ali3p: dt > 0, n_steps >= 0 and ali3p_max_iter >= 1 required"};
   std::vector<char> out(n_steps + 1, 0);

@@ -89,8 +89,9 @@ inline Core::Core(bp::object model_obj, const std::string &name, const Eigen::Ve
   sparsity();
 }
 
-inline void Core::configure(bp::dict s) {
-  std::string m = bp::extract<std::string>(s.get("method", "kkt"));
+inline void Core::configure(const RunOptions &run, const SolverSettings &solver,
+                            const SimulationSettings &sim) {
+  const std::string &m = run.method;
   if (m == "kkt")
     method_ = KKT;
   else if (m == "schur")
@@ -105,28 +106,27 @@ inline void Core::configure(bp::dict s) {
     throw BadArgument{"compiled core: unknown method '" + m +
                       "'; compiled: kkt, schur, nullspace, augmented-lagrangian, reduced"};
   method_name_ = m;
-  cond_max_ = bp::extract<double>(s.get("cond_max", 1e12));
-  bp::object bg = s.get("baumgarte", bp::object());
-  baumgarte_ = !bg.is_none();
+  cond_max_ = solver.cond_max;
+  baumgarte_ = solver.baumgarte;
   if (baumgarte_) {
-    alpha_ = bp::extract<double>(bg[0]);
-    beta_ = bp::extract<double>(bg[1]);
+    alpha_ = solver.baumgarte_alpha;
+    beta_ = solver.baumgarte_beta;
   }
-  projection_tol_ = bp::extract<double>(s.get("projection_tol", 1e-13));
-  projection_iters_ = bp::extract<int>(s.get("projection_iters", 10));
-  project_velocities_ = bp::extract<bool>(s.get("project_velocities", true));
-  singular_cond_ = bp::extract<double>(s.get("singular_cond", 1e3));
-  drift_limit_ = bp::extract<double>(s.get("drift_limit", 1e-2));
-  al_penalty_ = bp::extract<double>(s.get("al_penalty", 1e11));
-  al_tol_ = bp::extract<double>(s.get("al_tol", 1e-13));
-  al_max_iter_ = bp::extract<int>(s.get("al_max_iter", 30));
-  stage_projects_ = bp::extract<bool>(s.get("stage_projects", false));
-  singular_zone_ = bp::extract<double>(s.get("singular_zone", 0.0));
-  stage_zone_ = bp::extract<double>(s.get("stage_singular_zone", 0.0));
-  singular_robust_ = bp::extract<bool>(s.get("singular_robust", false));
-  dropped_tol_ = bp::extract<double>(s.get("dropped_row_tol", 1e-9));
-  dropped_ratio_ = bp::extract<double>(s.get("dropped_row_ratio", 100.0));
-  configure_partitioning(s);
+  projection_tol_ = sim.projection_tol;
+  projection_iters_ = sim.projection_iters;
+  project_velocities_ = sim.project_velocities;
+  singular_cond_ = sim.singular_cond;
+  drift_limit_ = sim.drift_limit;
+  al_penalty_ = solver.al_penalty;
+  al_tol_ = solver.al_tol;
+  al_max_iter_ = solver.al_max_iter;
+  stage_projects_ = run.stage_projects;
+  singular_zone_ = sim.singular_zone;
+  stage_zone_ = sim.stage_singular_zone;
+  singular_robust_ = run.singular_robust;
+  dropped_tol_ = sim.dropped_row_tol;
+  dropped_ratio_ = sim.dropped_row_ratio;
+  configure_partitioning(run, sim);
   invalidate_kinematics();  // the kept factor of M + alpha J^T J has the old al_penalty
 }
 

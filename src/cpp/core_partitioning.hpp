@@ -105,18 +105,14 @@ inline void Core::set_alignment(const Eigen::VectorXi &fid_p, const Eigen::Vecto
   invalidate_kinematics();
 }
 
-inline void Core::configure_partitioning(const bp::dict &s) {
-  dependent_tol_ = bp::extract<double>(s.get("dependent_tol", 1e-13));
-  repartition_cond_ = bp::extract<double>(s.get("repartition_cond", 10.0));
-  partition_singular_cond_ = bp::extract<double>(s.get("partition_singular_cond", 1e4));
-  partitions_ = bp::extract<bool>(s.get("partitions", false));
+inline void Core::configure_partitioning(const RunOptions &run, const SimulationSettings &sim) {
+  dependent_tol_ = sim.dependent_tol;
+  repartition_cond_ = sim.repartition_cond;
+  partition_singular_cond_ = sim.partition_singular_cond;
+  partitions_ = run.partitions;
   rows_only_ = false;  // set by begin_partitioning for the run
-  pivot_tie_rtol_ = bp::extract<double>(s.get("pivot_tie_rtol", 1e-9));
-  bp::object ind = s.get("independent", bp::object());
-  if (!ind.is_none()) {
-    Eigen::VectorXi v = bp::extract<Eigen::VectorXi>(ind);
-    ind0_ = checked_indices(v, "independent");
-  }
+  pivot_tie_rtol_ = PIVOT_TIE_RTOL;
+  if (run.independent.size() > 0) ind0_ = checked_indices(run.independent, "independent");
 }
 
 inline std::string Core::join_names(const std::vector<int> &idx) const {

@@ -1,5 +1,5 @@
 // closedchain._core: the errors thrown in C++ (translated into closedchain's Python
-// exceptions by the module, core.cpp) and the number formats of their messages.
+// exceptions by the module, expose-errors.cpp) and the number formats of their messages.
 
 #pragma once
 

@@ -7,7 +7,7 @@
 // computeRNEASecondOrderDerivatives. A 1000-dof chain would need 32 GB for
 // them. lean_data() builds the same Data member by member (a transcription of
 // that constructor for the pinned pin 4.1.0, checked field by field against it
-// by _lean_data_matches_full) and leaves those four tensors empty: every other
+// by closedchain._core_testing._lean_data_matches_full) and leaves those four tensors empty: every other
 // algorithm reads the same fields it would read in a full Data. Calling
 // computeRNEASecondOrderDerivatives on it is undefined: closedchain never does.
 
@@ -17,11 +17,7 @@
 #include <pinocchio/multibody/model.hpp>
 #include <pinocchio/algorithm/joint-configuration.hpp>
 
-#include <boost/python.hpp>
-
 #include <algorithm>
-
-namespace bp = boost::python;
 
 // lastChild and contact_chol are deprecated members that Pinocchio still fills.
 #pragma GCC diagnostic ignored "-Wdeprecated-declarations"
@@ -284,26 +280,6 @@ Data lean_data(const Model& model) {
   d.a_gf[0] = -model.gravity;
   d.kinematic_hessians.setZero();
   return d;
-}
-
-// True when lean_data(model), with the four tensors of a full Data copied in,
-// equals pinocchio::Data(model) field by field (Pinocchio's operator==).
-bool lean_data_matches_full(const Model& model) {
-  Data full(model);
-  Data lean = lean_data(model);
-  if (lean.d2tau_dqdq.size() != 0) return false;
-  lean.d2tau_dqdq = full.d2tau_dqdq;
-  lean.d2tau_dvdv = full.d2tau_dvdv;
-  lean.d2tau_dqdv = full.d2tau_dqdv;
-  lean.d2tau_dadq = full.d2tau_dadq;
-  return lean == full;
-}
-void register_lean_data() {
-  bp::def("lean_data", &lean_data, bp::args("model"),
-          "A pinocchio.Data of model without the four nv^3 second-order derivative tensors "
-          "(every other field as pinocchio.Data(model)).");
-  bp::def("_lean_data_matches_full", &lean_data_matches_full, bp::args("model"),
-          "Test helper: lean_data(model) equals pinocchio.Data(model) apart from those tensors.");
 }
 
 }  // namespace closedchain

@@ -5,10 +5,7 @@
 
 namespace closedchain {
 
-// pinocchio::Data(model) minus d2tau_dqdq/dvdv/dqdv/dadq (left empty).
+/// pinocchio::Data(model) minus d2tau_dqdq/dvdv/dqdv/dadq (left empty).
 pinocchio::Data lean_data(const pinocchio::Model& model);
-
-// Defines lean_data and _lean_data_matches_full in the current Python module.
-void register_lean_data();
 
 }  // namespace closedchain

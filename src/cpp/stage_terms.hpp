@@ -1,5 +1,5 @@
 // closedchain._core: the two halves of tree_terms_at_kinematics (tree_terms.hpp) for
-// the stage projection (included by core.cpp after tree_terms.hpp).
+// the stage projection (included by expose-core.cpp after tree_terms.hpp).
 //
 // At a stage of rk4 with stage projection the mass-orthogonal velocity step needs M
 // at the projected q, and the evaluation that follows needs h and gamma at the same

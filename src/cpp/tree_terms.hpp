@@ -1,7 +1,7 @@
 // closedchain._core: M, h, the joints' world placements, world Jacobian columns,
 // spatial velocities and bias accelerations of a kinematic tree in one forward and
-// one backward pass (included by core.cpp: the only translation unit that
-// instantiates Pinocchio's algorithms).
+// one backward pass (included by expose-core.cpp, the production module's only
+// translation unit that instantiates Pinocchio's algorithms, and by expose-testing.cpp).
 //
 // Pinocchio's crba (WORLD convention) and nonLinearEffects each run their own
 // forward pass with its own joint calc (sin/cos), and the frames' bias

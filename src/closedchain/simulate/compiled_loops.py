@@ -12,7 +12,7 @@ Each step checks every declared row (the dropped ones too): beyond
 ``drift_limit`` the run stops with SimulationError naming the row and time;
 when a dropped row opens or the kept rows degenerate, the rows must be
 re-selected, which the numpy backend does: the loop raises
-:class:`closedchain.compiled.RowCheckRequired` and the request runs there from
+:class:`closedchain.exceptions.RowCheckRequired` and the request runs there from
 the start (logged; ``info.backend_fallback`` says why).
 """
 
@@ -24,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from .. import compiled
+from ..exceptions import RowCheckRequired
 from .fixed import output_grid
 from .problem import Problem
 from .registry import INTEGRATORS
@@ -139,7 +140,7 @@ def run_fixed_compiled(
             bool(stab.projects),
             progress,
         )
-    except compiled.RowCheckRequired as exc:
+    except RowCheckRequired as exc:
         args = (q, v, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
@@ -182,7 +183,7 @@ def run_adaptive_compiled(
             if len(grid) <= problem.settings.max_outputs:
                 times, keep = grid, np.searchsorted(grid, t_eval)
         core, out = run(times, progress)
-    except compiled.RowCheckRequired as exc:
+    except RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
@@ -206,7 +207,7 @@ def run_ali3p_compiled(
         float(dt),
         int(n_steps),
         recorded,
-        (float(s.ali3p_tol), float(s.ali3p_phi_tol), int(s.ali3p_max_iter), float(s.ali3p_penalty)),
+        compiled.ali3p_settings(s),
         progress,
     )
     info["ali3p_alpha"] = float(out["ali3p_alpha"])

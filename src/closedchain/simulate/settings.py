@@ -1,4 +1,4 @@
-"""Settings, errors and the torque input of :func:`closedchain.simulate`."""
+"""Settings and the torque input of :func:`closedchain.simulate` (and its SimulationError)."""
 
 from __future__ import annotations
 
@@ -8,24 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..exceptions import ClosedChainError
+# Declared in closedchain.exceptions; importable from here as before.
+from ..exceptions import SimulationError as SimulationError
 
 TorqueInput = None | np.ndarray | Callable[[float, np.ndarray, np.ndarray], np.ndarray]
-
-
-class SimulationError(ClosedChainError):
-    """A simulation failed: non-finite state, integrator failure or drift beyond the limit.
-
-    Attributes:
-        t: simulation time [s] at which it happened.
-        trajectory: the Trajectory recorded up to the stop (output samples
-            before ``t``), or None.
-    """
-
-    def __init__(self, message: str, t: float) -> None:
-        super().__init__(message)
-        self.t = t
-        self.trajectory = None
 
 
 @dataclass(frozen=True)

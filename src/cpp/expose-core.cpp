@@ -1,0 +1,72 @@
+// closedchain._core: class Core, the compiled constraint rows, forward dynamics and
+// integration loops of one mechanism, and the integrator codes.
+//
+// The one translation unit that instantiates Pinocchio's algorithms (core_all.hpp:
+// a unit including them compiles in minutes). The Python side (closedchain.compiled)
+// builds one Core per mechanism from the Pinocchio model and the constraint layer's
+// row table; the model is used by reference, the Core owns its Data and every buffer.
+
+#include <boost/python.hpp>
+#include <eigenpy/eigenpy.hpp>
+
+#include <string>
+
+#include "core_all.hpp"
+#include "expose.hpp"
+
+namespace closedchain {
+
+void expose_core() {
+  bp::scope().attr("EULER") = static_cast<int>(EULER);
+  bp::scope().attr("SEMI_IMPLICIT") = static_cast<int>(SEMI_IMPLICIT);
+  bp::scope().attr("RK4") = static_cast<int>(RK4);
+  bp::scope().attr("RK45") = static_cast<int>(RK45);
+  bp::scope().attr("DOP853") = static_cast<int>(DOP853);
+  bp::class_<Core, boost::noncopyable>(
+      "Core",
+      "Compiled constraint rows, forward dynamics and integration loops of one mechanism.",
+      bp::init<bp::object, std::string, Eigen::VectorXi, Eigen::VectorXi, Eigen::VectorXi,
+               Eigen::MatrixXd, Eigen::MatrixXd>(
+          bp::args("self", "model", "name", "kinds", "fid_p", "fid_s", "vec1", "vec2")))
+      .def("configure", &Core::configure, bp::args("self", "run", "solver", "simulation"),
+           "Set the method and options (RunOptions), SolverSettings and SimulationSettings.")
+      .def("set_tau", &Core::set_tau, bp::args("self", "tau"))
+      .def("set_declared", &Core::set_declared,
+           bp::args("self", "kinds", "fid_p", "fid_s", "vec1", "vec2", "kept", "labels"),
+           "Every declared row (kept[i] = 1 for the rows the methods use), checked each step.")
+      .def("set_band", &Core::set_band, bp::args("self", "perm", "banded_p", "banded_n"),
+           "Use band Cholesky factorizations: of M + alpha J^T J in the order perm "
+           "(banded_p) and of J J^T (banded_n); returns their half bandwidths.")
+      .def("band_info", &Core::band_info, bp::args("self"),
+           "(banded_p, banded_n, b_p, b_n) as set by set_band.")
+      .def("rows", &Core::py_rows, bp::args("self", "q", "v"),
+           "(phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.")
+      .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")
+      .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),
+           "a at (q, v) after n evaluations inside C++ (timing).")
+      .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),
+           "Mean time [ns] of each stage of one evaluation (profiling).")
+      .def("set_branch_columns", &Core::set_branch_columns, bp::args("self", "cols"),
+           "Record the sign of det(J[:, cols]) with every sample ('branch'); cols: (nc,) or empty.")
+      .def("run_fixed", &Core::run_fixed,
+           bp::args("self", "integrator", "q0", "v0", "dt", "n_steps", "out_steps", "projects",
+                    "progress"))
+      .def("run_ali3p", &Core::run_ali3p,
+           bp::args("self", "q0", "v0", "dt", "n_steps", "out_steps", "settings", "progress"),
+           "ALI3-P (index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal "
+           "projections) with settings (Ali3pSettings).")
+      .def("run_adaptive", &Core::run_adaptive,
+           bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
+                    "projects", "progress"))
+      .def("set_partition", &Core::set_partition, bp::args("self", "independent", "names"),
+           "The reduced method's partition (independent velocity indices) and coordinate names.")
+      .def("set_alignment", &Core::set_alignment,
+           bp::args("self", "fid_p", "fid_s", "u", "loop", "loop_names"),
+           "The loops' alignment checks of the dependent solve (spurious closures).")
+      .add_property("partition", &Core::py_partition,
+                    "(independent, dependent) velocity indices of the stabilization's partition.")
+      .add_property("nc", &Core::nc)
+      .add_property("n_evals", &Core::n_evals);
+}
+
+}  // namespace closedchain
