@@ -20,7 +20,7 @@ OUT = Path(__file__).resolve().parent.parent / "src/cpp/constants.hpp"
 #: The shared constants: (C++ name, C++ type, Python module, Python name).
 SHARED = (
     ("AL_NORMAL_EQ_REG", "double", "closedchain.dynamics.augmented_lagrangian", "NORMAL_EQ_REG"),
-    ("PIVOT_TIE_RTOL", "double", "closedchain.closure", "PIVOT_TIE_RTOL"),
+    ("PIVOT_TIE_RTOL", "double", "closedchain.closure.partition", "PIVOT_TIE_RTOL"),
     ("RANK_INDICATOR_CAP", "double", "closedchain.simulate.fixed", "RANK_INDICATOR_CAP"),
     ("RETAKE_GRID", "int", "closedchain.simulate.fixed", "RETAKE_GRID"),
     ("RANK_INDICATOR_ITERS", "int", "closedchain.simulate.fixed", "RANK_INDICATOR_ITERS"),

@@ -15,7 +15,7 @@ constexpr double AL_NORMAL_EQ_REG = 1e-14;
 /// count as tied (:func:`partition_coordinates` with ``tie_rtol``): the Agile Eye's
 /// columns tie exactly (platform columns of norm sqrt(2), distal ones of sqrt(2)/2), so
 /// LAPACK's choice among them is decided by round-off, differently in the compiled core.
-/// (closedchain.closure.PIVOT_TIE_RTOL)
+/// (closedchain.closure.partition.PIVOT_TIE_RTOL)
 constexpr double PIVOT_TIE_RTOL = 1e-09;
 
 /// Cap of the rank indicator (a regular configuration): see :func:`rank_indicator`.
