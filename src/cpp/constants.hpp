@@ -21,6 +21,13 @@ constexpr int RETAKE_GRID = 40;
 constexpr double CROSSING_FIT_RTOL = 0.5;
 constexpr int RANK_INDICATOR_ITERS = 4;
 
+//: rk43's step-size control (closedchain/simulate/rk43.py): safety factor, bounds of the
+//: step's change, exponent of the error (an estimate of order 3: err ~ h^4).
+constexpr double RK43_SAFETY = 0.9;
+constexpr double RK43_MIN_FACTOR = 0.2;
+constexpr double RK43_MAX_FACTOR = 5.0;
+constexpr double RK43_ERROR_EXPONENT = -0.25;
+
 //: Relative margin of the Cholesky inverse-norm bound (min_norm) over its own round-off.
 constexpr double INVERSE_BOUND_MARGIN = 1e-8;
 

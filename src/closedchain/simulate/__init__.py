@@ -81,9 +81,14 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-#: The integrator of ``simulate(integrator=None)``: fixed-step rk4 with stage projection.
-DEFAULT_INTEGRATOR = "rk4"
-#: The integrator of ``simulate(integrator=None, rtol=..., atol=...)``.
+#: The integrator of ``simulate(integrator=None)``: rk4 with stage projection and an
+#: adaptive step under rtol/atol (:mod:`closedchain.simulate.rk43`).
+DEFAULT_INTEGRATOR = "rk43"
+#: The integrator of ``simulate(integrator=None, dt=...)``, and of a stabilization that
+#: the default does not support: fixed-step rk4.
+DEFAULT_FIXED_INTEGRATOR = "rk4"
+#: The integrator of ``simulate(integrator=None, rtol=..., stabilization=...)`` with a
+#: stabilization that the default does not support.
 DEFAULT_ADAPTIVE_INTEGRATOR = "DOP853"
 
 #: Values of ``simulate(backend=...)``.
@@ -231,6 +236,23 @@ def check_t_eval(
     return t_eval
 
 
+def default_integrator(
+    dt: float | None, rtol: float | None, atol: float | None, stabilization: str | None
+) -> str:
+    """Return the integrator of ``simulate(integrator=None, ...)``: :data:`DEFAULT_INTEGRATOR`
+    unless the request needs another kind (``dt``: :data:`DEFAULT_FIXED_INTEGRATOR`) or a
+    stabilization it does not support (then the fixed or, with ``rtol`` or ``atol``, the
+    adaptive :data:`DEFAULT_ADAPTIVE_INTEGRATOR`)."""
+    if dt is not None:
+        return DEFAULT_FIXED_INTEGRATOR
+    default = get_integrator(DEFAULT_INTEGRATOR)
+    if stabilization is None or get_stabilization(stabilization).name in default.stabilizations:
+        return default.name
+    if rtol is not None or atol is not None:
+        return DEFAULT_ADAPTIVE_INTEGRATOR
+    return DEFAULT_FIXED_INTEGRATOR
+
+
 def _select_backend(
     spec: IntegratorSpec, backend: str, stabilization: str, method: str, mech: Mechanism
 ) -> tuple[IntegratorSpec, str | None]:
@@ -297,14 +319,18 @@ def simulate(
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
             Default ``DEFAULT_METHOD`` (``"augmented-lagrangian"``, as
             :func:`~closedchain.forward_dynamics`): well posed where J loses rank.
-        integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk4"``
-            with ``dt = settings.dt`` (1 ms) and stage projection, which together
-            pass singular positions (see the README, "Singular positions"); or,
-            when ``rtol`` or ``atol`` is given, :data:`DEFAULT_ADAPTIVE_INTEGRATOR`
-            (``"DOP853"``), the adaptive integrator those tolerances are for.
+        integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk43"``, rk4
+            with stage projection whose step is chosen by an embedded error estimate
+            under ``rtol``/``atol`` (first trial step ``settings.dt``), which passes
+            singular positions (see the guide, "Singular positions"); with ``dt``,
+            ``"rk4"`` at that fixed step; with a stabilization rk43 does not
+            support, ``"rk4"`` (``"DOP853"`` when ``rtol`` or ``atol`` is given):
+            :func:`default_integrator`.
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
-        rtol: relative tolerance (adaptive integrators; default ``settings.rtol``).
-        atol: absolute tolerance (adaptive integrators; default ``settings.atol``).
+        rtol: relative tolerance (adaptive integrators; default: the integrator's
+            ``IntegratorSpec.tolerances``, 1e-9 for rk43, else ``settings.rtol``).
+        atol: absolute tolerance (adaptive integrators; default: the integrator's
+            ``IntegratorSpec.tolerances``, 1e-10 for rk43, else ``settings.atol``).
         stabilization: a name in :data:`STABILIZATIONS`; default: the
             integrator's ``default_stabilization`` (``"stage-projection"`` for
             the explicit fixed-step integrators, ``"mass-orthogonal"`` for
@@ -341,8 +367,7 @@ def simulate(
     check_settings("settings", settings, SimulationSettings)
     check_settings("solver_settings", solver_settings, SolverSettings)
     if integrator is None:
-        adaptive = rtol is not None or atol is not None
-        integrator = DEFAULT_ADAPTIVE_INTEGRATOR if adaptive else DEFAULT_INTEGRATOR
+        integrator = default_integrator(dt, rtol, atol, stabilization)
     spec = get_integrator(integrator)
     integrator = spec.name
     fixed = spec.kind == "fixed"
@@ -426,8 +451,9 @@ def simulate(
                 "pass t_eval (the output times) to keep fewer"
             )
     else:
-        rtol = settings.rtol if rtol is None else rtol
-        atol = settings.atol if atol is None else atol
+        default_rtol, default_atol = spec.tolerances or (settings.rtol, settings.atol)
+        rtol = default_rtol if rtol is None else rtol
+        atol = default_atol if atol is None else atol
         check_positive("rtol", rtol, "the relative tolerance")
         check_positive("atol", atol, "the absolute tolerance")
         rtol, atol = float(rtol), float(atol)

@@ -73,8 +73,12 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
     if out["repartitions"]:
         ind, dep = core.partition
         problem.ind, problem.dep = np.array(ind, dtype=int), np.array(dep, dtype=int)
-    if "singular_splits" in out:  # rk4 with stage projection (fixed.py)
+    if "singular_splits" in out:  # rk4 with stage projection (fixed.py, rk43.py)
         info["singular_splits"] = int(out["singular_splits"])
+    if "rejected_steps" in out:  # rk43.py
+        info["rejected_steps"] = int(out["rejected_steps"])
+        info["error_estimate_max"] = float(out["error_estimate_max"])
+        info["error_estimate_sum"] = float(out["error_estimate_sum"])
     recorder.extend(out)
     return int(out["steps"])
 
@@ -186,6 +190,39 @@ def run_adaptive_compiled(
     except compiled.RowCheckRequired as exc:
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
+
+
+def run_rk43_compiled(
+    problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
+) -> int:
+    """rk43 in C++ (:mod:`.rk43`, step for step); return the accepted steps.
+
+    Its steps land on the output times; with tau and ``t_eval`` every step end is recorded
+    too, W computed on them and the outputs kept (:func:`_keep`).
+    """
+    _start_work(problem, q0, v0)
+    core = _prepare(problem, info, stab)
+    keep = None
+    record_all = problem.meter is not None and t_eval is not None
+    try:
+        out = core.run_rk43(
+            np.asarray(q0, dtype=float),
+            np.asarray(v0, dtype=float),
+            float(t_final),
+            float(control.rtol),
+            float(control.atol),
+            float(problem.settings.dt),
+            None if t_eval is None else np.asarray(t_eval, dtype=float),
+            record_all,
+            progress,
+        )
+    except compiled.RowCheckRequired as exc:
+        args = (q0, v0, t_final, control, stab, t_eval, progress)
+        return _numpy_fallback(exc, problem, recorder, args, spec, info)
+    if record_all:
+        t = np.asarray(out["t"], dtype=float).ravel()
+        keep = np.searchsorted(t, t_eval)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from .. import compiled
 from ..exceptions import resolve_choice
-from . import adaptive, ali3p, compiled_loops, fixed
+from . import adaptive, ali3p, compiled_loops, fixed, rk43
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class IntegratorSpec:
             forward-dynamics method must declare to pair with this integrator.
         singular_robust: the scheme itself stays well posed where J loses rank
             (the simulator does not stop it on cond(J)).
+        tolerances: the default (rtol, atol) of an adaptive integrator; None:
+            ``SimulationSettings.rtol`` and ``atol``.
         description: one line for ``--help`` and the README.
     """
 
@@ -56,7 +58,16 @@ class IntegratorSpec:
     step: Callable | None = None
     method_capabilities: tuple[str, ...] = ()
     singular_robust: bool = False
+    tolerances: tuple[float, float] | None = None
     description: str = ""
+
+
+#: rk43's default (rtol, atol), chosen to meet the bars of tests/test_rk43.py and
+#: tests/test_singular.py with margin (numpy backend): the driven slider-crank (2 s, 146
+#: rad/s) is off by 2.9e-8 m (13,200 steps; 1.2e-7 m at rtol 1e-8), the N-four-bar
+#: N = 1 by 6.8e-8 m after 20 s (6,300 steps; 5.7e-7 m at rtol 1e-8, thin against the
+#: benchmark's 1e-6 m).
+RK43_TOLERANCES = (1e-9, 1e-10)
 
 
 @dataclass(frozen=True)
@@ -184,6 +195,21 @@ for _name, _order, _what in (
 
 register_integrator(
     IntegratorSpec(
+        "rk43",
+        "adaptive",
+        rk43.run_rk43,
+        4,
+        stabilizations=("stage-projection",),
+        default_stabilization="stage-projection",
+        tolerances=RK43_TOLERANCES,
+        description="classical Runge-Kutta 4 with stage projection, adaptive step from the "
+        "embedded third-order estimate of its stages (FSAL), on the manifold through "
+        "pin.integrate",
+    )
+)
+
+register_integrator(
+    IntegratorSpec(
         "ali3p",
         "fixed",
         ali3p.run_ali3p,
@@ -198,15 +224,19 @@ register_integrator(
 )
 
 # The compiled core's loops: same names, same semantics, the numpy entry's
-# stabilizations (partitioning included); registered only when the core imports.
+# stabilizations (partitioning included) and tolerances; registered only when the core
+# imports and has the loop (a core built before rk43 runs it on numpy).
 if compiled.available():
-    for _name, _kind, _order, _run in (
-        ("euler", "fixed", 1, compiled_loops.run_fixed_compiled),
-        ("semi-implicit", "fixed", 1, compiled_loops.run_fixed_compiled),
-        ("rk4", "fixed", 4, compiled_loops.run_fixed_compiled),
-        ("RK45", "adaptive", 5, compiled_loops.run_adaptive_compiled),
-        ("DOP853", "adaptive", 8, compiled_loops.run_adaptive_compiled),
+    for _name, _kind, _order, _run, _member in (
+        ("euler", "fixed", 1, compiled_loops.run_fixed_compiled, "run_fixed"),
+        ("semi-implicit", "fixed", 1, compiled_loops.run_fixed_compiled, "run_fixed"),
+        ("rk4", "fixed", 4, compiled_loops.run_fixed_compiled, "run_fixed"),
+        ("rk43", "adaptive", 4, compiled_loops.run_rk43_compiled, "run_rk43"),
+        ("RK45", "adaptive", 5, compiled_loops.run_adaptive_compiled, "run_adaptive"),
+        ("DOP853", "adaptive", 8, compiled_loops.run_adaptive_compiled, "run_adaptive"),
     ):
+        if not compiled.has(_member):
+            continue
         _ref = INTEGRATORS[_name]
         register_integrator(
             IntegratorSpec(
@@ -217,6 +247,7 @@ if compiled.available():
                 backend="compiled",
                 stabilizations=_ref.stabilizations,
                 default_stabilization=_ref.default_stabilization,
+                tolerances=_ref.tolerances,
                 description=f"{_ref.description.split(',')[0]}, loop in C++ (compiled core)",
             )
         )
