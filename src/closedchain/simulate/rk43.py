@@ -39,7 +39,13 @@ import numpy as np
 import pinocchio as pin
 
 from .chart import tangent_rate
-from .fixed import crossing_estimate, rank_indicator, retake_plan, rk4_projected
+from .fixed import (
+    _record_interpolated,
+    crossing_estimate,
+    rank_indicator,
+    retake_plan,
+    rk4_projected,
+)
 from .problem import Problem
 from .settings import SimulationError
 
@@ -85,10 +91,38 @@ class _Estimator:
         return q_new, v_new, a_new, J_mid, err, float(np.max(np.abs(ex), initial=0.0))
 
 
+def record_outputs(problem: Problem, recorder, pending: list, start: tuple, end: tuple) -> None:
+    """Record the output times of ``pending`` within the step (start, end] and drop them
+    from it: at the step's end its state, before it the cubic Hermite interpolant of the
+    step projected onto phi = 0 (:func:`.fixed._record_interpolated`).
+
+    Steps do not land on the output times: an output time near a singular position would
+    put a step's end where the retakes keep every evaluation point away from.
+
+    Args:
+        pending: increasing output times [s]; those recorded are removed.
+        start, end: (t, q, v, a) at the step's start and end; the work of tau must have
+            been advanced to the end (:meth:`Problem.step_end`).
+    """
+    t0, q0, v0, a0 = start
+    t1 = end[0]
+    while pending and pending[0] <= t1:
+        t = pending.pop(0)
+        if t == t1:
+            recorder.add(t1, end[1], end[2], problem.accel(t1, end[1], end[2]), problem.lam)
+        else:
+            _record_interpolated(
+                problem, recorder, t, (t - t0) / (t1 - t0), t1 - t0, *start[1:], *end[1:]
+            )
+
+
 def run_rk43(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:
     """Integrate with rk43 (module docstring); return the accepted steps.
+
+    The steps end at the last output time (``t_final`` without ``t_eval``); the outputs
+    before it are interpolated (:func:`record_outputs`).
 
     Args:
         control: ``control.rtol``, ``control.atol``: the tolerances, with scipy's meaning.
@@ -99,76 +133,81 @@ def run_rk43(
     t = 0.0
     a = problem.accel(t, q, v)
     problem.step_end(t, q, v, a)
-    stops = [t_final] if t_eval is None else [float(s) for s in t_eval if s > 0.0]
-    if t_eval is None or (len(t_eval) and t_eval[0] <= 0.0):
+    pending = None if t_eval is None else [float(s) for s in t_eval]
+    t_stop = t_final if t_eval is None else pending[-1]
+    if pending is None or pending[0] <= 0.0:
         recorder.add(t, q, v, a, problem.lam)
+        if pending:
+            pending.pop(0)
 
     def rho(q):
         return rank_indicator(problem.jacobian(q), problem.normal_solver())
 
-    def accept(t, q, v, a):
+    def check(t, q):
         phi = recorder.declared_phi(q)
         problem.check_regular(q, t, phi)  # checks every declared row too
         recorder.declared_residual(t, q, phi)  # drift limit, every declared row
-        problem.step_end(t, q, v, a)
 
     rho_start = rho(q)
     h = settings.dt  # the first trial step
     steps = rejected = splits = 0
     err_max = err_sum = 0.0
-    for t_stop in stops:
-        while t < t_stop:
-            proposed = h
-            clipped = t + h >= t_stop * (1.0 - 1e-15)
-            if clipped:
-                h = t_stop - t
-            if not h > 10.0 * abs(math.nextafter(t, t_stop) - t):
-                raise SimulationError(
-                    f"{problem.mech.name}: integrator rk43 failed at t = {t:.9g} s: the step "
-                    "fell below the spacing of the times",
-                    t,
-                )
-            q_new, v_new, a_new, J_mid, err, ex = est.step(t, q, v, a, h)
-            rho_new = rho(q_new)
-            plan = None
-            if zone > 0:
-                rho_mid = rank_indicator(J_mid, problem.normal_solver())
-                plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), zone)
-            span, substep = 1.0, None
-            if plan is not None:
-                double, f = plan
-                span = 2.0 if double else 1.0
-                if double and t + 2.0 * h > t_stop * (1.0 + 1e-15):
-                    h = 0.5 * (t_stop - t)  # re-plan with two steps ending at the stop
-                    continue
-                if f < span:
-                    q1, v1, a1, _, err1, ex1 = est.step(t, q, v, a, f * h)
-                    substep = (t + f * h, q1, v1, a1)
-                    out = est.step(t + f * h, q1, v1, a1, (span - f) * h)
-                    q_new, v_new, a_new, _, err2, ex2 = out
-                    err, ex = max(err1, err2), ex1 + ex2
-                else:  # one substep of two steps
-                    q_new, v_new, a_new, _, err, ex = est.step(t, q, v, a, span * h)
-                rho_new = rho(q_new)
-            if err > 1.0:
-                rejected += 1
-                h *= step_factor(err)
+    while t < t_stop:
+        proposed = h
+        clipped = t + h >= t_stop * (1.0 - 1e-15)
+        if clipped:
+            h = t_stop - t
+        if not h > 10.0 * abs(math.nextafter(t, t_stop) - t):
+            raise SimulationError(
+                f"{problem.mech.name}: integrator rk43 failed at t = {t:.9g} s: the step "
+                "fell below the spacing of the times",
+                t,
+            )
+        q_new, v_new, a_new, J_mid, err, ex = est.step(t, q, v, a, h)
+        rho_new = rho(q_new)
+        plan = None
+        if zone > 0:
+            rho_mid = rank_indicator(J_mid, problem.normal_solver())
+            plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), zone)
+        span, substep = 1.0, None
+        if plan is not None:
+            double, f = plan
+            span = 2.0 if double else 1.0
+            if double and t + 2.0 * h > t_stop * (1.0 + 1e-15):
+                h = 0.5 * (t_stop - t)  # re-plan with two steps ending at the stop
                 continue
-            splits += plan is not None
-            if substep is not None:
-                accept(*substep)
-            t = t_stop if clipped or t + span * h >= t_stop else t + span * h
-            accept(t, q_new, v_new, a_new)
-            q, v, a, rho_start = q_new, v_new, a_new, rho_new
-            steps += 1
-            err_max, err_sum = max(err_max, err), err_sum + ex
-            if t_eval is None or t == t_stop:
-                recorder.add(t, q, v, a, problem.lam)
-            if progress is not None:
-                progress(t)
+            if f < span:
+                q1, v1, a1, _, err1, ex1 = est.step(t, q, v, a, f * h)
+                substep = (t + f * h, q1)
+                out = est.step(t + f * h, q1, v1, a1, (span - f) * h)
+                q_new, v_new, a_new, _, err2, ex2 = out
+                err, ex = max(err1, err2), ex1 + ex2
+            else:  # one substep of two steps
+                q_new, v_new, a_new, _, err, ex = est.step(t, q, v, a, span * h)
+            rho_new = rho(q_new)
+        if err > 1.0:
+            rejected += 1
             h *= step_factor(err)
-            if clipped:
-                h = max(h, proposed)
+            continue
+        splits += plan is not None
+        if substep is not None:
+            check(*substep)
+        t_new = t_stop if clipped or t + span * h >= t_stop else t + span * h
+        check(t_new, q_new)
+        problem.step_end(t_new, q_new, v_new, a_new)
+        start = (t, q, v, a)
+        t, q, v, a, rho_start = t_new, q_new, v_new, a_new, rho_new
+        steps += 1
+        err_max, err_sum = max(err_max, err), err_sum + ex
+        if pending is None:
+            recorder.add(t, q, v, a, problem.lam)
+        else:
+            record_outputs(problem, recorder, pending, start, (t, q, v, a))
+        if progress is not None:
+            progress(t)
+        h *= step_factor(err)
+        if clipped:
+            h = max(h, proposed)
     info["rejected_steps"] = rejected
     info["error_estimate_max"] = err_max
     info["error_estimate_sum"] = err_sum
