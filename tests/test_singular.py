@@ -523,7 +523,7 @@ def test_change_point_fourbar_default_passes(load_mechanism, q_open):
 #: stop with the documented error naming the configuration that passes (the default,
 #: which passes, is test_change_point_fourbar_default_passes).
 CHANGE_POINT_TABLE = {
-    "kkt-rk4-stage": (dict(method="kkt"), "singular"),
+    "kkt-rk4-stage": (dict(method="kkt", dt=1e-3), "singular"),
     "kkt-dop853": (dict(method="kkt", integrator="DOP853", rtol=1e-10, atol=1e-10), "singular"),
     "al-dop853-none": (
         dict(integrator="DOP853", rtol=1e-10, atol=1e-10, stabilization="none"),
