@@ -101,8 +101,9 @@ def record_outputs(problem: Problem, recorder, pending: list, start: tuple, end:
 
     Args:
         pending: increasing output times [s]; those recorded are removed.
-        start, end: (t, q, v, a) at the step's start and end; the work of tau must have
-            been advanced to the end (:meth:`Problem.step_end`).
+        start: (t, q, v, a) at the step's start.
+        end: (t, q, v, a) at the step's end; the work of tau must have been advanced to
+            it (:meth:`Problem.step_end`).
     """
     t0, q0, v0, a0 = start
     t1 = end[0]
