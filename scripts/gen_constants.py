@@ -31,6 +31,10 @@ SHARED = (
     ("ALI3P_ENFORCED", "double", "closedchain.simulate.ali3p", "ALI3P_ENFORCED"),
     ("ALI3P_ZONE_MAX", "double", "closedchain.simulate.ali3p", "ALI3P_ZONE_MAX"),
     ("RECENTRE_NORM", "double", "closedchain.simulate.chart", "RECENTRE_NORM"),
+    ("RK43_SAFETY", "double", "closedchain.simulate.rk43", "SAFETY"),
+    ("RK43_MIN_FACTOR", "double", "closedchain.simulate.rk43", "MIN_FACTOR"),
+    ("RK43_MAX_FACTOR", "double", "closedchain.simulate.rk43", "MAX_FACTOR"),
+    ("RK43_ERROR_EXPONENT", "double", "closedchain.simulate.rk43", "ERROR_EXPONENT"),
 )
 
 HEADER = """\

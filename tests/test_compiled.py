@@ -84,7 +84,15 @@ def _close(x, ref, rtol=EVAL_RTOL):
 def test_core_is_built():
     assert compiled.available(), compiled.IMPORT_ERROR
     assert set(COMPILED_METHODS) >= {"kkt", "schur", "nullspace", "augmented-lagrangian", "reduced"}
-    assert set(COMPILED_INTEGRATORS) == {"euler", "semi-implicit", "rk4", "RK45", "DOP853", "ali3p"}
+    assert set(COMPILED_INTEGRATORS) == {
+        "euler",
+        "semi-implicit",
+        "rk4",
+        "rk43",
+        "RK45",
+        "DOP853",
+        "ali3p",
+    }
     for name, spec in COMPILED_INTEGRATORS.items():
         assert spec.backend == "compiled"
         assert spec.kind == INTEGRATORS[name].kind

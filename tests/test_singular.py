@@ -222,8 +222,8 @@ def _check_benchmark(mech, traj, n):
 
 @pytest.mark.parametrize("n", _nfourbar_params(NFOURBAR_IN_CI, DEFAULT_MISSES))
 def test_nfourbar_default_configuration(nfourbar, n):
-    """20 s of the benchmark with simulate's default method, integrator, step and
-    stabilization (augmented-lagrangian, rk4, 1 ms, stage-projection): see
+    """20 s of the benchmark with simulate's default method, integrator, tolerances and
+    stabilization (augmented-lagrangian, rk43, rtol 1e-9, stage-projection): see
     :func:`_check_benchmark`."""
     mech = nfourbar(n)
     q0, v0 = ref.initial_state(mech)
@@ -231,10 +231,11 @@ def test_nfourbar_default_configuration(nfourbar, n):
     info = traj.info
     assert (info["method"], info["integrator"], info["stabilization"], info["dt"]) == (
         "augmented-lagrangian",
-        "rk4",
+        "rk43",
         "stage-projection",
-        SimulationSettings().dt,
+        None,
     )
+    assert (info.rtol, info.atol) == cc.INTEGRATORS["rk43"].tolerances
     _check_benchmark(mech, traj, n)
 
 
@@ -418,14 +419,14 @@ def _landing_case(mech, n, x, dt):
 
 @pytest.mark.parametrize("x", LANDINGS)
 def test_default_steps_through_a_flat_position_wherever_they_land(nfourbar, x):
-    """N = 5, three default steps whose first ends x rad before a flat position: the
+    """N = 5, three fixed rk4 steps whose first ends x rad before a flat position: the
     crank rate agrees with the reduced motion (scipy DOP853 at 1e-13) on both backends,
     and the two backends take the same substeps around the crossing."""
     n, dt = 5, SimulationSettings().dt
     mech = nfourbar(n)
     q0, v0, (theta, rate) = _landing_case(mech, n, x, dt)
     grid = np.linspace(0.0, 3 * dt, 4)
-    runs = {b: simulate(mech, q0, v0, 3 * dt, t_eval=grid, backend=b) for b in BACKENDS}
+    runs = {b: simulate(mech, q0, v0, 3 * dt, dt=dt, t_eval=grid, backend=b) for b in BACKENDS}
     for traj in runs.values():
         assert abs(traj.v[-1, 0] - rate) <= LANDING_RATE_TOL
         assert abs(traj.q[-1, 0] - theta) <= LANDING_ANGLE_TOL
@@ -522,7 +523,7 @@ def test_change_point_fourbar_default_passes(load_mechanism, q_open):
 #: stop with the documented error naming the configuration that passes (the default,
 #: which passes, is test_change_point_fourbar_default_passes).
 CHANGE_POINT_TABLE = {
-    "kkt-rk4-stage": (dict(method="kkt"), "singular"),
+    "kkt-rk4-stage": (dict(method="kkt", dt=1e-3), "singular"),
     "kkt-dop853": (dict(method="kkt", integrator="DOP853", rtol=1e-10, atol=1e-10), "singular"),
     "al-dop853-none": (
         dict(integrator="DOP853", rtol=1e-10, atol=1e-10, stabilization="none"),

@@ -473,7 +473,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         type=_choice(INTEGRATORS),
         choices=sorted(INTEGRATORS),
-        help="time integrator, any case (default rk4; DOP853 when --rtol or --atol is given)",
+        help="time integrator, any case (default rk43: rk4 with stage projection and error "
+        "control under --rtol/--atol; rk4 when --dt is given)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")
@@ -484,8 +485,8 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         type=_choice(STABILIZATIONS),
         choices=sorted(STABILIZATIONS),
-        help="drift control, any case (default: stage-projection for euler/semi-implicit/rk4, "
-        "mass-orthogonal for ali3p, none for adaptive)",
+        help="drift control, any case (default: stage-projection for rk43/euler/"
+        "semi-implicit/rk4, mass-orthogonal for ali3p, none for the other adaptive ones)",
     )
     p.add_argument(
         "--q0",
@@ -694,6 +695,9 @@ def _cmd_simulate(args) -> int:
         "steps": info.steps,
         "evaluations": info.evaluations,
         "cpu_time_s": info.cpu_time,
+        "rejected_steps": info.get("rejected_steps"),
+        "error_estimate_max": info.get("error_estimate_max"),
+        "error_estimate_sum": info.get("error_estimate_sum"),
         "max_constraint_residual": traj.max_constraint_residual,
         "max_velocity_residual": float(np.max(traj.velocity_residual)),
         "energy_drift": traj.energy_drift,
@@ -722,6 +726,21 @@ def _cmd_simulate(args) -> int:
             ("steps", str(summary["steps"])),
             ("dynamics evaluations", str(summary["evaluations"])),
             ("CPU time", f"{summary['cpu_time_s']:.3f} s"),
+            *(
+                ()
+                if summary["rejected_steps"] is None
+                else (
+                    ("rejected steps", str(summary["rejected_steps"])),
+                    (
+                        "largest local error estimate / tolerance",
+                        _fmt(summary["error_estimate_max"]),
+                    ),
+                    (
+                        "sum of local position error estimates [m or rad]",
+                        _fmt(summary["error_estimate_sum"]),
+                    ),
+                )
+            ),
             ("max constraint residual |phi|", _fmt(summary["max_constraint_residual"])),
             ("max velocity residual |J v|", _fmt(summary["max_velocity_residual"])),
             ("relative energy drift", _fmt(summary["energy_drift"])),

@@ -67,6 +67,12 @@ def available() -> bool:
     return _core is not None
 
 
+def has(member: str) -> bool:
+    """Return True when the compiled core imports and its ``Core`` has ``member`` (a core
+    built from an older tree lacks the loops added since)."""
+    return available() and hasattr(_core.Core, member)
+
+
 def supports_method(method: str) -> bool:
     """Return True when the compiled core implements forward-dynamics ``method``."""
     get_method(method)

@@ -131,7 +131,14 @@ class SimulationInfo:
         baumgarte: (alpha, beta) gains when the stabilization adds them, else None.
         stopped: where the run stopped early, else None.
         cpu_time: CPU time of the integration [s].
-        steps: integration steps taken.
+        steps: integration steps taken (accepted steps of an adaptive integrator).
+        rejected_steps: steps rejected by the error control (``"rk43"``), else None.
+        error_estimate_max: the largest local error estimate of an accepted step,
+            relative to the tolerance (at most 1; ``"rk43"``), else None.
+        error_estimate_sum: the sum over the accepted steps of their largest local
+            position error estimate [rad or m] (``"rk43"``), else None: a first-order
+            bound on the accumulated position error that leaves out how the motion
+            amplifies earlier errors.
         evaluations: forward-dynamics evaluations.
         row_reselections: ``(t, kept rows, reason)`` at each re-selection of the
             independent constraint rows.
@@ -172,6 +179,9 @@ class SimulationInfo:
     stopped: StopInfo | None = None
     cpu_time: float | None = None
     steps: int | None = None
+    rejected_steps: int | None = None
+    error_estimate_max: float | None = None
+    error_estimate_sum: float | None = None
     evaluations: int | None = None
     row_reselections: tuple = ()
     branch_changes: tuple = ()

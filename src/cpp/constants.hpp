@@ -72,6 +72,26 @@ constexpr double ALI3P_ZONE_MAX = 0.5;
 /// (closedchain.simulate.chart.RECENTRE_NORM)
 constexpr double RECENTRE_NORM = 1.0;
 
+/// Step-size control: safety factor, bounds of the change per step, error exponent
+/// (the estimate is of order 3: err ~ h^4).
+/// (closedchain.simulate.rk43.SAFETY)
+constexpr double RK43_SAFETY = 0.9;
+
+/// Step-size control: safety factor, bounds of the change per step, error exponent
+/// (the estimate is of order 3: err ~ h^4).
+/// (closedchain.simulate.rk43.MIN_FACTOR)
+constexpr double RK43_MIN_FACTOR = 0.2;
+
+/// Step-size control: safety factor, bounds of the change per step, error exponent
+/// (the estimate is of order 3: err ~ h^4).
+/// (closedchain.simulate.rk43.MAX_FACTOR)
+constexpr double RK43_MAX_FACTOR = 5.0;
+
+/// Step-size control: safety factor, bounds of the change per step, error exponent
+/// (the estimate is of order 3: err ~ h^4).
+/// (closedchain.simulate.rk43.ERROR_EXPONENT)
+constexpr double RK43_ERROR_EXPONENT = -0.25;
+
 /// How to pass singular positions, appended to the partitioning stabilization's
 /// singular errors (closedchain.simulate.problem.passing_hint()).
 static const char *const PASSING_HINT =

@@ -574,6 +574,13 @@ class Core {
                         double rtol, double atol, bp::object t_eval_obj, bool projects,
                         bp::object progress);
 
+  /// rk43 (simulate/rk43.py, step for step): rk4 with stage projection and the retakes
+  /// near singular positions, its step chosen by the embedded third-order estimate
+  /// (h / 6) (k4 - k5); first trial step h0 [s]; the steps land on every time of
+  /// t_eval (or t_final), recorded there, and at every step end with record_all.
+  bp::dict run_rk43(const Vec &q0, const Vec &v0, double t_final, double rtol, double atol,
+                    double h0, bp::object t_eval_obj, bool record_all, bp::object progress);
+
  private:
   /// Row r of a row table (kind, frames, vectors as the layer's RowTable), checked.
   Row make_row(int r, const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
@@ -644,6 +651,7 @@ class Core {
   Mat P_;
   Vec rhs_v_, q_prev_, vel_c_, rhs_work_;
   Vec dv_, vs_, qs_, k2v_, k2a_, k3v_, k3a_, k4v_;  // rk4_projected's stages
+  Vec k4a_;  // rk4_projected: the fourth stage's accelerations (run_rk43's estimate)
   Vec a2_;  // run_rk4_stage_projected: accelerations at a two-step retake's end
   Vec mv_;  // project(mass_orth): M v
   Vec zero_c_;  // project(mass_orth): g = 0

@@ -343,4 +343,128 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
   return samples_dict(S, steps);
 }
 
+inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, double rtol,
+                               double atol, double h0, bp::object t_eval_obj, bool record_all,
+                               bp::object progress) {
+  check_sizes(q0, v0);
+  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
+  if (!(h0 > 0.0) || !(t_final > 0.0) || !(rtol > 0.0) || !(atol > 0.0))
+    throw BadArgument{"run_rk43: t_final, rtol, atol and h0 must be > 0"};
+  n_evals_ = 0;
+  begin_partitioning(true);  // as run_fixed: the stage-projected loop's checks
+  Samples S;
+  std::vector<double> stops;
+  bool record_start = true;
+  if (t_eval_obj.is_none()) {
+    stops.push_back(t_final);
+  } else {
+    Vec te = bp::extract<Vec>(t_eval_obj);
+    record_start = te.size() && te[0] <= 0.0;
+    for (Eigen::Index i = 0; i < te.size(); ++i)
+      if (te[i] > 0.0) stops.push_back(te[i]);
+  }
+  const bool every = t_eval_obj.is_none() || record_all;
+  for (Vec *b : {&dv_, &vs_, &k2v_, &k2a_, &k3v_, &k3a_, &k4v_, &k4a_}) b->resize(nv_);
+  qs_.resize(nq_);
+  Vec q = q0, v = v0, a(nv_), qn(nq_), vn(nv_), an(nv_), qm(nq_), q1(nq_), v1(nv_), a1(nv_);
+  Vec k5v(nv_), ex(nv_);
+  auto factor = [](double err) {
+    if (err == 0.0) return RK43_MAX_FACTOR;
+    return std::min(RK43_MAX_FACTOR,
+                    std::max(RK43_MIN_FACTOR, RK43_SAFETY * std::pow(err, RK43_ERROR_EXPONENT)));
+  };
+  // One projected rk4 step with its estimate (rk43._Estimator.step): (qb, vb, ab) at the
+  // end, err in scipy's weighted RMS norm, exm the largest position error [rad or m];
+  // returns the rank indicator at the projected midpoint.
+  auto step = [&](double t, const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb,
+                  Vec &vb, Vec &ab, double &err, double &exm) {
+    rk4_projected(t, qa, va, aa, h, qb, vb, qm);
+    const double mid = midpoint_indicator_;
+    accel(t + h, qb, vb);
+    ab = a_;
+    pinocchio::difference(model_, qa, qb, dv_);
+    chart_rate(qa, dv_, vb, k5v);
+    ex = (h / 6) * (k4v_ - k5v);
+    double sum = 0.0;  // positions in the chart about qa: 0 at the start, dv_ at the end
+    for (int i = 0; i < nv_; ++i) {
+      const double sx = atol + rtol * std::abs(dv_[i]);
+      const double sv = atol + rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
+      const double ev = (h / 6) * (k4a_[i] - ab[i]);
+      sum += (ex[i] / sx) * (ex[i] / sx) + (ev / sv) * (ev / sv);
+    }
+    err = nv_ ? std::sqrt(sum / (2.0 * nv_)) : 0.0;
+    exm = nv_ ? ex.cwiseAbs().maxCoeff() : 0.0;
+    return mid;
+  };
+  double t = 0.0;
+  accel(t, q, v);
+  a = a_;
+  if (record_start) record(S, t, q, v);
+  double rho_start = rank_indicator(q);
+  double h = h0, err_max = 0.0, err_sum = 0.0;
+  long steps = 0, rejected = 0, splits = 0;
+  for (const double t_stop : stops) {
+    while (t < t_stop) {
+      const double proposed = h;
+      const bool clipped = t + h >= t_stop * (1.0 - 1e-15);
+      if (clipped) h = t_stop - t;
+      if (!(h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
+        throw SimulationFailure{name_ + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
+                                    " s: the step fell below the spacing of the times",
+                                t};
+      double err = 0.0, exm = 0.0;
+      const double rho_mid = step(t, q, v, a, h, qn, vn, an, err, exm);
+      double rho_new = rank_indicator(qn);
+      bool plan = false, twice = false, sub = false;
+      double f = 0.0, span = 1.0;
+      if (stage_zone_ > 0)
+        plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), stage_zone_, twice, f);
+      if (plan) {
+        span = twice ? 2.0 : 1.0;
+        if (twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
+          h = 0.5 * (t_stop - t);  // re-plan with two steps ending at the stop
+          continue;
+        }
+        if (f < span) {
+          double e1 = 0.0, m1 = 0.0, e2 = 0.0, m2 = 0.0;
+          step(t, q, v, a, f * h, q1, v1, a1, e1, m1);
+          sub = true;
+          step(t + f * h, q1, v1, a1, (span - f) * h, qn, vn, an, e2, m2);
+          err = std::max(e1, e2);
+          exm = m1 + m2;
+        } else {  // one substep of two steps
+          step(t, q, v, a, span * h, qn, vn, an, err, exm);
+        }
+        rho_new = rank_indicator(qn);
+      }
+      if (err > 1.0) {
+        ++rejected;
+        h *= factor(err);
+        continue;
+      }
+      if (plan) ++splits;
+      if (sub) check_regular(q1, t + f * h);
+      t = (clipped || t + span * h >= t_stop) ? t_stop : t + span * h;
+      check_regular(qn, t);
+      q = qn;
+      v = vn;
+      a = an;
+      rho_start = rho_new;
+      ++steps;
+      err_max = std::max(err_max, err);
+      err_sum += exm;
+      if (every || t == t_stop) record(S, t, q, v);  // a_, lam_: the last accel, at q
+      poll(steps, t, progress);
+      h *= factor(err);
+      if (clipped) h = std::max(h, proposed);
+    }
+  }
+  bp::dict d = samples_dict(S, steps);
+  d["singular_splits"] = splits;
+  d["rejected_steps"] = rejected;
+  d["error_estimate_max"] = err_max;
+  d["error_estimate_sum"] = err_sum;
+  return d;
+}
+
 }  // namespace closedchain

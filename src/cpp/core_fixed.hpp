@@ -102,6 +102,7 @@ inline void Core::rk4_projected(double t, const Vec &q, const Vec &v, const Vec 
   project(qs_, vs_, true);
   accel(t + h, qs_, vs_);
   chart_rate(q, dv_, vs_, k4v_);
+  k4a_ = a_;
   dv_ = (h / 6) * (v + 2 * k2v_ + 2 * k3v_ + k4v_);
   pinocchio::integrate(model_, q, dv_, qn);
   vn = v + (h / 6) * (a0 + 2 * k2a_ + 2 * k3a_ + a_);

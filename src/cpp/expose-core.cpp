@@ -58,6 +58,10 @@ void expose_core() {
       .def("run_adaptive", &Core::run_adaptive,
            bp::args("self", "integrator", "q0", "v0", "t_final", "rtol", "atol", "t_eval",
                     "projects", "progress"))
+      .def("run_rk43", &Core::run_rk43,
+           bp::args("self", "q0", "v0", "t_final", "rtol", "atol", "h0", "t_eval", "record_all",
+                    "progress"),
+           "rk4 with stage projection and an embedded error estimate (simulate/rk43.py).")
       .def("set_partition", &Core::set_partition, bp::args("self", "independent", "names"),
            "The reduced method's partition (independent velocity indices) and coordinate names.")
       .def("set_alignment", &Core::set_alignment,

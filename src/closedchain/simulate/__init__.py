@@ -59,6 +59,7 @@ from .registry import (
 from .request import (
     BACKENDS,
     DEFAULT_ADAPTIVE_INTEGRATOR,
+    DEFAULT_FIXED_INTEGRATOR,
     DEFAULT_INTEGRATOR,
     MIN_ATOL,
     MIN_RTOL,
@@ -66,6 +67,7 @@ from .request import (
     check_request,
     check_start_velocity,
     check_t_eval,
+    default_integrator,
 )
 from .run import check_energy, run_request
 from .settings import (
@@ -83,6 +85,7 @@ __all__ = [
     "BACKENDS",
     "COMPILED_INTEGRATORS",
     "DEFAULT_ADAPTIVE_INTEGRATOR",
+    "DEFAULT_FIXED_INTEGRATOR",
     "DEFAULT_INTEGRATOR",
     "INTEGRATORS",
     "MIN_ATOL",
@@ -98,6 +101,7 @@ __all__ = [
     "check_positive",
     "check_start_velocity",
     "check_t_eval",
+    "default_integrator",
     "get_integrator",
     "get_stabilization",
     "register_integrator",
@@ -137,14 +141,18 @@ def simulate(
         method: forward-dynamics method (a name in ``closedchain.METHODS``).
             Default ``DEFAULT_METHOD`` (``"augmented-lagrangian"``, as
             :func:`~closedchain.forward_dynamics`): well posed where J loses rank.
-        integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk4"``
-            with ``dt = settings.dt`` (1 ms) and stage projection, which together
-            pass singular positions (see the README, "Singular positions"); or,
-            when ``rtol`` or ``atol`` is given, :data:`DEFAULT_ADAPTIVE_INTEGRATOR`
-            (``"DOP853"``), the adaptive integrator those tolerances are for.
+        integrator: a name in :data:`INTEGRATORS`. Default (None): ``"rk43"``, rk4
+            with stage projection whose step is chosen by an embedded error estimate
+            under ``rtol``/``atol`` (first trial step ``settings.dt``), which passes
+            singular positions (see the guide, "Singular positions"); with ``dt``,
+            ``"rk4"`` at that fixed step; with a stabilization rk43 does not
+            support, ``"rk4"`` (``"DOP853"`` when ``rtol`` or ``atol`` is given):
+            :func:`default_integrator`.
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
-        rtol: relative tolerance (adaptive integrators; default ``settings.rtol``).
-        atol: absolute tolerance (adaptive integrators; default ``settings.atol``).
+        rtol: relative tolerance (adaptive integrators; default: the integrator's
+            ``IntegratorSpec.tolerances``, 1e-9 for rk43, else ``settings.rtol``).
+        atol: absolute tolerance (adaptive integrators; default: the integrator's
+            ``IntegratorSpec.tolerances``, 1e-10 for rk43, else ``settings.atol``).
         stabilization: a name in :data:`STABILIZATIONS`; default: the
             integrator's ``default_stabilization`` (``"stage-projection"`` for
             the explicit fixed-step integrators, ``"mass-orthogonal"`` for

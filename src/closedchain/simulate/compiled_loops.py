@@ -28,6 +28,7 @@ from ..exceptions import RowCheckRequired
 from .fixed import output_grid
 from .problem import Problem
 from .registry import INTEGRATORS
+from .rk43 import record_outputs
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +62,9 @@ def _prepare(problem: Problem, info: dict, stab):
     return core
 
 
-def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
+def _finish(problem: Problem, core, recorder, out: dict, info: dict, keep: bool = True) -> int:
+    """Account for a compiled run ``out``; append its samples to ``recorder`` unless not
+    ``keep``; return its steps."""
     problem.n_evals += int(out["evaluations"])
     names = problem.mech.coordinate_names
     for t, ind in out["repartitions"]:  # as Problem.repartition logs and fixed.py records
@@ -75,9 +78,14 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict) -> int:
     if out["repartitions"]:
         ind, dep = core.partition
         problem.ind, problem.dep = np.array(ind, dtype=int), np.array(dep, dtype=int)
-    if "singular_splits" in out:  # rk4 with stage projection (fixed.py)
+    if "singular_splits" in out:  # rk4 with stage projection (fixed.py, rk43.py)
         info["singular_splits"] = int(out["singular_splits"])
-    recorder.extend(out)
+    if "rejected_steps" in out:  # rk43.py
+        info["rejected_steps"] = int(out["rejected_steps"])
+        info["error_estimate_max"] = float(out["error_estimate_max"])
+        info["error_estimate_sum"] = float(out["error_estimate_sum"])
+    if keep:
+        recorder.extend(out)
     return int(out["steps"])
 
 
@@ -187,6 +195,48 @@ def run_adaptive_compiled(
         args = (q0, v0, t_final, control, stab, t_eval, progress)
         return _numpy_fallback(exc, problem, recorder, args, spec, info)
     return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
+
+
+def run_rk43_compiled(
+    problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
+) -> int:
+    """rk43 in C++ (:mod:`.rk43`, step for step); return the accepted steps.
+
+    The core records every step end up to the last output time; the outputs before it
+    are interpolated from them here (:func:`.rk43.record_outputs`, as the numpy loop
+    does), the work of tau advanced over the step ends.
+    """
+    _start_work(problem, q0, v0)
+    core = _prepare(problem, info, stab)
+    try:
+        out = core.run_rk43(
+            np.asarray(q0, dtype=float),
+            np.asarray(v0, dtype=float),
+            float(t_final if t_eval is None else t_eval[-1]),
+            float(control.rtol),
+            float(control.atol),
+            float(problem.settings.dt),
+            None,
+            False,
+            progress,
+        )
+    except RowCheckRequired as exc:
+        args = (q0, v0, t_final, control, stab, t_eval, progress)
+        return _numpy_fallback(exc, problem, recorder, args, spec, info)
+    if t_eval is None:
+        return _finish(problem, core, recorder, out, info)
+    steps = _finish(problem, core, recorder, out, info, keep=False)
+    t, q, v, a = (np.asarray(out[k], dtype=float) for k in ("t", "q", "v", "a"))
+    t = t.ravel()
+    pending = [float(s) for s in t_eval]
+    if pending[0] <= 0.0:
+        recorder.add(0.0, q[0], v[0], a[0], np.asarray(out["lam"], dtype=float)[0])
+        pending.pop(0)
+    for k in range(1, len(t)):
+        problem.step_end(t[k], q[k], v[k], a[k])
+        start, end = (t[k - 1], q[k - 1], v[k - 1], a[k - 1]), (t[k], q[k], v[k], a[k])
+        record_outputs(problem, recorder, pending, start, end)
+    return steps
 
 
 def run_ali3p_compiled(

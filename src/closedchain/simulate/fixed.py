@@ -29,11 +29,16 @@ def step_semi_implicit(model, deriv, t, q, v, a, dt):
     return pin.integrate(model, q, dt * v_new), v_new
 
 
-def step_rk4(model, deriv, t, q, v, a, dt):
+def step_rk4(model, deriv, t, q, v, a, dt, last_stage=None):
     """Classical Runge-Kutta 4 in the chart x -> q (+) x about q (order 4; chart.py).
 
     The stages' position rates are D(x_i)^-1 v_i (the identity but on free-flyer,
     spherical and planar joints), so that they add up in one tangent space.
+
+    Args:
+        last_stage: a list to which the fourth stage's rates (k4x [rad/s or m/s] in the
+            chart about q, k4a [rad/s^2 or m/s^2]), shape (nv,) each, are appended (the
+            embedded error estimate of :mod:`.rk43`); None: not kept.
     """
     k1x, k1a = v, a
     x2 = dt / 2 * k1x
@@ -45,6 +50,8 @@ def step_rk4(model, deriv, t, q, v, a, dt):
     x4 = dt * k3x
     v4, k4a = deriv(t + dt, pin.integrate(model, q, x4), v + dt * k3a)
     k4x = tangent_rate(model, q, x4, v4)
+    if last_stage is not None:
+        last_stage.append((k4x, k4a))
     q_new = pin.integrate(model, q, dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x))
     return q_new, v + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
 
@@ -296,46 +303,46 @@ def run_fixed(
     return n_steps
 
 
+def rk4_projected(problem: Problem, t, q, v, a, h, last_stage=None):
+    """One rk4 step of length h [s] from (q, v) with accelerations a at t, every stage and
+    the end projected (mass-orthogonal); return (q+, v+, J at the projected midpoint).
+
+    Args:
+        last_stage: passed to :func:`step_rk4`.
+    """
+    mech = problem.mech
+    stages = []
+
+    def deriv(ts, qs, vs):
+        qs, vs = project(problem, qs, vs, ts, mass_orthogonal=True)
+        stages.append(problem.jacobian(qs))  # the projection's; the first: stage 2's
+        return vs, problem.accel(ts, qs, vs, multipliers=False)  # lam of stages: unread
+
+    q_new, v_new = step_rk4(mech.model, deriv, t, q, v, a, h, last_stage)
+    t_new = t + h
+    if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
+        raise SimulationError(f"{mech.name}: non-finite state at t = {t_new:.9g} s", t_new)
+    q_new, v_new = project(problem, q_new, v_new, t_new, mass_orthogonal=True)
+    return q_new, v_new, stages[0]
+
+
+def settle(problem: Problem, recorder, t, q, v):
+    """Check the state reached at t (a step's or substep's end) and return its
+    accelerations (the work of tau advanced to it)."""
+    phi = recorder.declared_phi(q)
+    problem.check_regular(q, t, phi)  # checks every declared row too
+    recorder.declared_residual(t, q, phi)  # drift limit, every declared row, every step
+    a = problem.accel(t, q, v)
+    problem.step_end(t, q, v, a)
+    return a
+
+
 def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, progress, info):
     """rk4 with stage projection whose evaluation points keep away from singular positions.
 
     See the comment above :data:`RANK_INDICATOR_CAP`. ``info["singular_splits"]``
     counts the steps taken as substeps.
     """
-    mech = problem.mech
-    model = mech.model
-
-    def stage(t, q, v):
-        q, v = project(problem, q, v, t, mass_orthogonal=True)
-        return q, v, problem.accel(t, q, v, multipliers=False)  # lam of stages: unread
-
-    def rk4(t, q, v, a, h):
-        """One projected rk4 step; return (q+, v+) projected and J at the projected
-        midpoint q."""
-        stages = []
-
-        def deriv(ts, qs, vs):
-            qs, vs, acc = stage(ts, qs, vs)
-            stages.append(problem.jacobian(qs))  # the projection's; the first: stage 2's
-            return vs, acc
-
-        q_new, v_new = step_rk4(model, deriv, t, q, v, a, h)
-        J2 = stages[0]
-        t_new = t + h
-        if not (np.all(np.isfinite(q_new)) and np.all(np.isfinite(v_new))):
-            raise SimulationError(f"{mech.name}: non-finite state at t = {t_new:.9g} s", t_new)
-        q_new, v_new = project(problem, q_new, v_new, t_new, mass_orthogonal=True)
-        return q_new, v_new, J2
-
-    def settle(t, q, v):
-        """Check the state reached at t (a step's or substep's end) and return its
-        accelerations (the work of tau advanced to it)."""
-        phi = recorder.declared_phi(q)
-        problem.check_regular(q, t, phi)  # checks every declared row too
-        recorder.declared_residual(t, q, phi)  # drift limit, every declared row, every step
-        a = problem.accel(t, q, v)
-        problem.step_end(t, q, v, a)
-        return a
 
     def rho(q):
         return rank_indicator(problem.jacobian(q), problem.normal_solver())
@@ -346,7 +353,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
     rho_start = rho(q)
     k = 1
     while k <= n_steps:
-        q_new, v_new, J_mid = rk4(t, q, v, a, dt)
+        q_new, v_new, J_mid = rk4_projected(problem, t, q, v, a, dt)
         rho_new = rho(q_new)
         plan = None
         if zone > 0:
@@ -357,12 +364,12 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
             span = 2 if double else 1
             h1, h2 = f * dt, span * dt - f * dt
             if f < span:
-                q1, v1, _ = rk4(t, q, v, a, h1)
-                a1 = settle(t + h1, q1, v1)
-                q_new, v_new, _ = rk4(t + h1, q1, v1, a1, h2)
+                q1, v1, _ = rk4_projected(problem, t, q, v, a, h1)
+                a1 = settle(problem, recorder, t + h1, q1, v1)
+                q_new, v_new, _ = rk4_projected(problem, t + h1, q1, v1, a1, h2)
             else:  # one substep of two grid steps
                 h1, h2, q1, v1, a1 = 0.0, span * dt, q, v, a
-                q_new, v_new, _ = rk4(t, q, v, a, h2)
+                q_new, v_new, _ = rk4_projected(problem, t, q, v, a, h2)
             rho_new = rho(q_new)
             splits += 1
             if double:
@@ -370,7 +377,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
                     if h1 >= dt:
                         sub = (t, h1, q, v, a, q1, v1, a1)
                     else:
-                        a_end = settle(t + 2 * dt, q_new, v_new)
+                        a_end = settle(problem, recorder, t + 2 * dt, q_new, v_new)
                         sub = (t + h1, h2, q1, v1, a1, q_new, v_new, a_end)
                     t0, h = sub[0], sub[1]
                     _record_interpolated(problem, recorder, k * dt, (k * dt - t0) / h, h, *sub[2:])
@@ -380,7 +387,7 @@ def _run_rk4_stage_projected(problem, recorder, q, v, a, dt, n_steps, outputs, p
                     break
                 k += 1
         t = k * dt
-        a = settle(t, q_new, v_new)
+        a = settle(problem, recorder, t, q_new, v_new)
         q, v = q_new, v_new
         rho_start = rho_new
         if outputs.take(k):

@@ -43,6 +43,8 @@ class IntegratorSpec:
             forward-dynamics method must declare to pair with this integrator.
         singular_robust: the scheme itself stays well posed where J loses rank
             (the simulator does not stop it on cond(J)).
+        tolerances: the default (rtol, atol) of an adaptive integrator; None:
+            ``SimulationSettings.rtol`` and ``atol``.
         description: one line for ``--help`` and the README.
     """
 
@@ -56,6 +58,7 @@ class IntegratorSpec:
     step: Callable | None = None
     method_capabilities: tuple[str, ...] = ()
     singular_robust: bool = False
+    tolerances: tuple[float, float] | None = None
     description: str = ""
 
 

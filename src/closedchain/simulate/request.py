@@ -37,9 +37,14 @@ from .settings import DEFAULT_SIMULATION_SETTINGS, SimulationSettings, TorqueInp
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
-#: The integrator of ``simulate(integrator=None)``: fixed-step rk4 with stage projection.
-DEFAULT_INTEGRATOR = "rk4"
-#: The integrator of ``simulate(integrator=None, rtol=..., atol=...)``.
+#: The integrator of ``simulate(integrator=None)``: rk4 with stage projection and an
+#: adaptive step under rtol/atol (:mod:`closedchain.simulate.rk43`).
+DEFAULT_INTEGRATOR = "rk43"
+#: The integrator of ``simulate(integrator=None, dt=...)``, and of a stabilization that
+#: the default does not support: fixed-step rk4.
+DEFAULT_FIXED_INTEGRATOR = "rk4"
+#: The integrator of ``simulate(integrator=None, rtol=..., stabilization=...)`` with a
+#: stabilization that the default does not support.
 DEFAULT_ADAPTIVE_INTEGRATOR = "DOP853"
 
 #: Values of ``simulate(backend=...)``.
@@ -126,8 +131,7 @@ def check_request(
     check_settings("settings", settings, SimulationSettings)
     check_settings("solver_settings", solver_settings, SolverSettings)
     if integrator is None:
-        adaptive = rtol is not None or atol is not None
-        integrator = DEFAULT_ADAPTIVE_INTEGRATOR if adaptive else DEFAULT_INTEGRATOR
+        integrator = default_integrator(dt, rtol, atol, stabilization)
     spec = get_integrator(integrator)
     if stabilization is None:
         stabilization = spec.default_stabilization
@@ -232,8 +236,9 @@ def _check_step_control(
     if fixed:
         dt = settings.dt if dt is None else dt
         return StepControl(dt=_check_dt(dt, t_final, t_eval, settings))
-    rtol = settings.rtol if rtol is None else rtol
-    atol = settings.atol if atol is None else atol
+    default_rtol, default_atol = spec.tolerances or (settings.rtol, settings.atol)
+    rtol = default_rtol if rtol is None else rtol
+    atol = default_atol if atol is None else atol
     check_positive("rtol", rtol, "the relative tolerance")
     check_positive("atol", atol, "the absolute tolerance")
     rtol, atol = float(rtol), float(atol)
@@ -389,3 +394,20 @@ def check_t_eval(
             f"t_eval spans [{t_eval[0]:g}, {t_eval[-1]:g}] s, outside [0, t_final]; {valid}"
         )
     return t_eval
+
+
+def default_integrator(
+    dt: float | None, rtol: float | None, atol: float | None, stabilization: str | None
+) -> str:
+    """Return the integrator of ``simulate(integrator=None, ...)``: :data:`DEFAULT_INTEGRATOR`
+    unless the request needs another kind (``dt``: :data:`DEFAULT_FIXED_INTEGRATOR`) or a
+    stabilization it does not support (then the fixed or, with ``rtol`` or ``atol``, the
+    adaptive :data:`DEFAULT_ADAPTIVE_INTEGRATOR`)."""
+    if dt is not None:
+        return DEFAULT_FIXED_INTEGRATOR
+    default = get_integrator(DEFAULT_INTEGRATOR)
+    if stabilization is None or get_stabilization(stabilization).name in default.stabilizations:
+        return default.name
+    if rtol is not None or atol is not None:
+        return DEFAULT_ADAPTIVE_INTEGRATOR
+    return DEFAULT_FIXED_INTEGRATOR

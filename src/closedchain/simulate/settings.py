@@ -19,9 +19,10 @@ class SimulationSettings:
     """Settings of :func:`simulate`.
 
     Attributes:
-        dt: default fixed step [s].
-        rtol: default relative tolerance of adaptive integrators.
-        atol: default absolute tolerance of adaptive integrators.
+        dt: default fixed step [s]; also the first trial step of ``"rk43"``.
+        rtol: default relative tolerance of the adaptive integrators without their own
+            (``IntegratorSpec.tolerances``: rk43 has 1e-9, 1e-10).
+        atol: default absolute tolerance of those adaptive integrators.
         baumgarte_alpha: velocity gain alpha [1/s] (2 alpha J v).
         baumgarte_beta: position gain beta [1/s] (beta^2 phi).
         projection_tol: target max |phi| of the position projection [m or -].
