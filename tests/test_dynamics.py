@@ -562,8 +562,13 @@ LIGHT_CUT = Path(__file__).resolve().parent / "data" / "light_cut_fourbar.urdf"
 #: Random consistent states of it compared with the MP_DIGITS KKT solve.
 N_LIGHT_STATES = 5
 #: Agreement of the default method with that solve there (rel_err) [rad/s^2 and N m];
-#: measured <= 2e-9 (a double-precision "kkt" errs by up to 3e-7 there).
-TOL_LIGHT_CUT = 1e-8
+#: measured <= 3e-15 (a double-precision "kkt" errs by up to 1e-6 there).
+TOL_LIGHT_CUT = 1e-12
+#: The same for the compiled core, whose M and h come from its own tree passes: the
+#: light pair's spin acceleration, (tau - h) along the spin over M ~ 1e-11 there, moves
+#: by eps |h| / 1e-11 with h's round-off (measured <= 1.1e-6); the other joints keep
+#: TOL_LIGHT_CUT.
+TOL_LIGHT_SPIN = 1e-5
 
 
 def _backend_forward(mech, backend: str):
@@ -597,6 +602,8 @@ def test_default_method_lowers_its_penalty_for_near_massless_links(backend):
     settings = SolverSettings()
     rng = np.random.default_rng(SEED)
     forward = _backend_forward(mech, backend)
+    heavy = np.array([not name.startswith("cut_") for name in mech.coordinate_names])
+    tol = TOL_LIGHT_SPIN if backend == "compiled" else TOL_LIGHT_CUT
     for k in range(N_LIGHT_STATES):
         q, v = (mech.q_ref, np.zeros(mech.nv)) if k == 0 else cc.random_consistent_state(mech, rng)
         tau = np.zeros(mech.nv)  # passive, as the corpus's robots are simulated
@@ -611,7 +618,8 @@ def test_default_method_lowers_its_penalty_for_near_massless_links(backend):
             assert solver.lowerings >= 1
         a, lam = forward(q, v, tau)
         a_ref, f_ref = mp_kkt(M, h, J, gamma, tau)
-        assert rel_err(np.asarray(a), a_ref) <= TOL_LIGHT_CUT
+        assert rel_err(np.asarray(a)[heavy], a_ref[heavy]) <= TOL_LIGHT_CUT
+        assert rel_err(np.asarray(a), a_ref) <= tol
         assert rel_err(J.T @ np.asarray(lam), f_ref) <= TOL_LIGHT_CUT
 
 
@@ -626,7 +634,7 @@ def test_default_method_refuses_a_massless_subtree_by_name(tmp_path, backend):
     forward = _backend_forward(mech, backend)
     with pytest.raises(
         cc.SingularConfigurationError,
-        match=r"M \+ alpha J\^T J is not numerically positive definite even at alpha = .*"
+        match=r"M \+ alpha J\^T J .*not numerically positive definite even at alpha = .*"
         r"\(lowered 8 times\).*massless subtree",
     ):
         forward(mech.q_ref, np.zeros(mech.nv), np.zeros(mech.nv))
