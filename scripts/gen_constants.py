@@ -20,6 +20,15 @@ OUT = Path(__file__).resolve().parent.parent / "src/cpp/constants.hpp"
 #: The shared constants: (C++ name, C++ type, Python module, Python name).
 SHARED = (
     ("AL_NORMAL_EQ_REG", "double", "closedchain.dynamics.augmented_lagrangian", "NORMAL_EQ_REG"),
+    ("AL_PIVOT_MIN", "double", "closedchain.dynamics.augmented_lagrangian", "PIVOT_MIN"),
+    ("AL_PENALTY_MARGIN", "double", "closedchain.dynamics.augmented_lagrangian", "PENALTY_MARGIN"),
+    ("AL_PENALTY_DROP", "double", "closedchain.dynamics.augmented_lagrangian", "PENALTY_DROP"),
+    (
+        "AL_MAX_PENALTY_LOWERINGS",
+        "int",
+        "closedchain.dynamics.augmented_lagrangian",
+        "MAX_PENALTY_LOWERINGS",
+    ),
     ("PIVOT_TIE_RTOL", "double", "closedchain.closure.partition", "PIVOT_TIE_RTOL"),
     ("RANK_INDICATOR_CAP", "double", "closedchain.simulate.fixed", "RANK_INDICATOR_CAP"),
     ("RETAKE_GRID", "int", "closedchain.simulate.fixed", "RETAKE_GRID"),

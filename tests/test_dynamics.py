@@ -563,3 +563,89 @@ def test_one_default_method_for_forward_dynamics_and_simulate(mechs, near_singul
     res = forward_dynamics(mech, q, v, tau)
     assert res.method == DEFAULT_METHOD
     assert np.all(np.isfinite(res.a))
+
+
+# -- the penalty follows M: a corpus-like cut through near-massless links -------------------
+
+#: example-parallel-robots' way of cutting a joint (tests/data/light_cut_fourbar.urdf): two
+#: near-massless half-joints welded together, free to spin together about the joint axis.
+LIGHT_CUT = Path(__file__).resolve().parent / "data" / "light_cut_fourbar.urdf"
+#: Random consistent states of it compared with the MP_DIGITS KKT solve.
+N_LIGHT_STATES = 5
+#: Agreement of the default method with that solve there (rel_err) [rad/s^2 and N m];
+#: measured <= 3e-15 (a double-precision "kkt" errs by up to 1e-6 there).
+TOL_LIGHT_CUT = 1e-12
+#: The same for the compiled core, whose M and h come from its own tree passes: the
+#: light pair's spin acceleration, (tau - h) along the spin over M ~ 1e-11 there, moves
+#: by eps |h| / 1e-11 with h's round-off (measured <= 1.1e-6); the other joints keep
+#: TOL_LIGHT_CUT.
+TOL_LIGHT_SPIN = 1e-5
+
+
+def _backend_forward(mech, backend: str):
+    """Return forward(q, v, tau) -> (a, lam) of the default method on one backend."""
+    if backend == "compiled":
+        from closedchain import compiled
+
+        if not compiled.available():
+            pytest.skip("the compiled core is not built")
+        return compiled.compiled_dynamics(mech, "augmented-lagrangian").forward
+
+    def forward(q, v, tau):
+        res = forward_dynamics(mech, q, v, tau)
+        return res.a, res.lam
+
+    return forward
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_default_method_lowers_its_penalty_for_near_massless_links(backend):
+    """P = M + alpha J^T J with alpha = rho tr(M) / tr(J^T J) is not positive definite in
+    double precision on the light cut (its spin has M ~ 1e-11); the default method lowers
+    alpha until P's Cholesky keeps its pivots and matches the 40-digit KKT solve (passive
+    motion: a torque on a near-massless joint would only measure its spin)."""
+    from closedchain.dynamics.augmented_lagrangian import (
+        PenalizedSolver,
+        relative_penalty,
+    )
+
+    mech = cc.load(LIGHT_CUT)
+    settings = SolverSettings()
+    rng = np.random.default_rng(SEED)
+    forward = _backend_forward(mech, backend)
+    heavy = np.array([not name.startswith("cut_") for name in mech.coordinate_names])
+    tol = TOL_LIGHT_SPIN if backend == "compiled" else TOL_LIGHT_CUT
+    for k in range(N_LIGHT_STATES):
+        q, v = (mech.q_ref, np.zeros(mech.nv)) if k == 0 else cc.random_consistent_state(mech, rng)
+        tau = np.zeros(mech.nv)  # passive, as the corpus's robots are simulated
+        ws = compute_terms(mech, q, v)
+        M, h, J, gamma = ws.M.copy(), ws.h.copy(), ws.J.copy(), ws.gamma.copy()
+        if k == 0:
+            solver = PenalizedSolver(mech)
+            alpha0 = relative_penalty(M, J, settings.al_penalty)
+            with pytest.raises(cc.SingularConfigurationError, match=r"not numerically positive"):
+                solver.factor(M, J, alpha0, mech, q)
+            assert solver.factor_relative(M, J, settings.al_penalty, mech, q) < alpha0
+            assert solver.lowerings >= 1
+        a, lam = forward(q, v, tau)
+        a_ref, f_ref = mp_kkt(M, h, J, gamma, tau)
+        assert rel_err(np.asarray(a)[heavy], a_ref[heavy]) <= TOL_LIGHT_CUT
+        assert rel_err(np.asarray(a), a_ref) <= tol
+        assert rel_err(J.T @ np.asarray(lam), f_ref) <= TOL_LIGHT_CUT
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_default_method_refuses_a_massless_subtree_by_name(tmp_path, backend):
+    """With the light links' mass and inertia set to zero M is singular along their spin:
+    no penalty makes P positive definite, and the error says so (never NaN)."""
+    text = LIGHT_CUT.read_text().replace('value="1e-9"', 'value="0"').replace('"1e-11"', '"0"')
+    path = tmp_path / "massless_cut.urdf"
+    path.write_text(text)
+    mech = cc.load(path)
+    forward = _backend_forward(mech, backend)
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"M \+ alpha J\^T J .*not numerically positive definite even at alpha = .*"
+        r"\(lowered 8 times\).*massless subtree",
+    ):
+        forward(mech.q_ref, np.zeros(mech.nv), np.zeros(mech.nv))

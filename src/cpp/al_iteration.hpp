@@ -7,7 +7,9 @@
 //   x_1 = P^-1 (rhs - alpha J^T g),   lam_1 = alpha (J x_1 + g),
 //   x_{k+1} = x_k + P^-1 (rhs - M x_k - J^T (lam_k + alpha (J x_k + g))),
 //   lam_{k+1} = lam_k + alpha (J x_{k+1} + g),
-// until max |x_{k+1} - x_k| <= tol (1 + max |x_{k+1}|) or max_iter iterates:
+// until max |x_{k+1} - x_k| <= tol (1 + max |x_{k+1}|), or the change stops shrinking
+// (max |x_{k+1} - x_k| >= max |x_k - x_{k-1}|: the round-off floor of an ill-conditioned
+// M, as in iterative refinement), or max_iter iterates:
 // min (x - x*)^T M (x - x*) s.t. J x + g = 0 for rhs = M x* (a projection), or the
 // accelerations for rhs = tau - h, g = gamma (the dynamics).
 //
@@ -25,6 +27,8 @@
 #pragma once
 
 #include <Eigen/Dense>
+
+#include <limits>
 
 namespace closedchain {
 
@@ -58,6 +62,7 @@ int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter,
   ops.add_j(x, rc);  // r_c = J x + g, kept for the next iterate (the same bits)
   lam = rc * alpha;
   int it = 1;
+  double last_change = std::numeric_limits<double>::infinity();
   for (; it < max_iter; ++it) {
     rc *= alpha;
     rc += lam;
@@ -69,7 +74,9 @@ int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter,
     rc = g;
     ops.add_j(x, rc);
     lam += alpha * rc;
-    if (delta.cwiseAbs().maxCoeff() <= tol * (1.0 + x.cwiseAbs().maxCoeff())) break;
+    const double change = delta.cwiseAbs().maxCoeff();
+    if (change <= tol * (1.0 + x.cwiseAbs().maxCoeff()) || change >= last_change) break;
+    last_change = change;
   }
   return it;
 }

@@ -67,6 +67,13 @@ class BandCholesky {
     return true;
   }
 
+  // Smallest relative pivot min_j L_jj^2 / A_jj (after a successful factor).
+  double min_pivot_ratio() const {
+    double r = 1.0;
+    for (int j = 0; j < n_; ++j) r = std::min(r, L_(0, j) * L_(0, j) / A(0, j));
+    return r;
+  }
+
   // x <- A^-1 x on the factor (O(n b)).
   template <typename V>
   void solve_in_place(V &x) const {

@@ -11,6 +11,26 @@ namespace closedchain {
 /// (closedchain.dynamics.augmented_lagrangian.NORMAL_EQ_REG)
 constexpr double AL_NORMAL_EQ_REG = 1e-14;
 
+/// Smallest relative pivot R_ii^2 / P_ii of P's Cholesky accepted by
+/// :meth:`PenalizedSolver.factor_relative`: a pivot that alpha J^T J has cancelled to
+/// this fraction of P_ii keeps about log10(PIVOT_MIN / eps) = 4 digits, which the
+/// iteration, in residual form, refines (chains of 30 links at 1e-14 did not converge).
+/// (closedchain.dynamics.augmented_lagrangian.PIVOT_MIN)
+constexpr double AL_PIVOT_MIN = 1e-13;
+
+/// A lowered penalty aims at relative pivots this many times :data:`PIVOT_MIN`.
+/// (closedchain.dynamics.augmented_lagrangian.PENALTY_MARGIN)
+constexpr double AL_PENALTY_MARGIN = 10.0;
+
+/// The largest lowering of alpha in one step (and the step after a failed Cholesky).
+/// (closedchain.dynamics.augmented_lagrangian.PENALTY_DROP)
+constexpr double AL_PENALTY_DROP = 0.0001;
+
+/// How many times :meth:`PenalizedSolver.factor_relative` may lower alpha before it
+/// reports P as not positive definite (M singular).
+/// (closedchain.dynamics.augmented_lagrangian.MAX_PENALTY_LOWERINGS)
+constexpr int AL_MAX_PENALTY_LOWERINGS = 8;
+
 /// Relative tolerance under which two candidate pivot columns of the re-partitioning QR
 /// count as tied (:func:`partition_coordinates` with ``tie_rtol``): the Agile Eye's
 /// columns tie exactly (platform columns of norm sqrt(2), distal ones of sqrt(2)/2), so

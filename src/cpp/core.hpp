@@ -218,7 +218,8 @@ class Core {
 
   /// Augmented Lagrangian at the acceleration level (closedchain/dynamics/
   /// augmented_lagrangian.py, Bayo & Ledesma 1996): P = M + alpha J^T J with
-  /// alpha = rho tr(M) / tr(J^T J); from lam_0 = 0,
+  /// alpha = rho tr(M) / tr(J^T J), lowered where P's Cholesky cannot take it
+  /// (al_factor); from lam_0 = 0,
   ///   a_1 = P^-1 (tau - h - alpha J^T gamma),  lam_1 = alpha (J a_1 + gamma),
   ///   a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T (lam_k + alpha (J a_k + gamma))),
   ///   lam_{k+1} = lam_k + alpha (J a_{k+1} + gamma),
@@ -272,10 +273,16 @@ class Core {
     void solve(Vec &x) { c.solve_penalized_band(x); }
   };
 
-  /// P = M + alpha J^T J at the last evaluation with alpha = al_penalty tr(M) / tr(J^T J),
-  /// factored (dense SmallLLT of P's lower triangle, or the band Cholesky) unless
-  /// the factor of these M_ and J_ is kept (p_fact_); returns alpha.
+  /// P = M + alpha J^T J at the last evaluation, factored (dense SmallLLT of P's lower
+  /// triangle, or the band Cholesky) unless the factor of these M_ and J_ is kept
+  /// (p_fact_); returns alpha. alpha starts at al_penalty tr(M) / tr(J^T J) and is
+  /// lowered (al_lowered_penalty, al_lowerings_ times) while the Cholesky fails or
+  /// shows a relative pivot below AL_PIVOT_MIN (constants.hpp; numpy's
+  /// PenalizedSolver.factor_relative).
   double al_factor(const RefV &q, double t);
+
+  /// The error of a P that is not positive definite at the lowest alpha.
+  [[noreturn]] void penalized_singular(const RefV &q, double alpha, double t);
 
   /// The augmented-Lagrangian iteration (al_iterate) at the last evaluation: x and
   /// lam_ with M x + J^T lam = rhs, J x + g = 0 (to al_tol), no multiplier polish;
@@ -698,6 +705,9 @@ class Core {
   Vec J_at_;  // the q of the last eval_phi_J (J_, phi_ and the placements valid there)
   bool J_at_valid_ = false;
   bool m_at_J_ = false;  // M_ at J_at_ too (with J_at_valid_)
+  /// al_factor's alpha and how many times it was lowered (valid while p_fact_).
+  double al_alpha_ = 0.0;
+  int al_lowerings_ = 0;
   bool p_fact_ = false;  // llt_p_ / penalized_band_ hold P = M_ + alpha J_^T J_ (solve_al's alpha)
   Eigen::VectorXi branch_cols_;  // set_branch_columns
   DenseLU lu_branch_;  // branch_sign's LU of J's branch columns

@@ -14,6 +14,15 @@
 
 namespace closedchain {
 
+/// The next augmented-Lagrangian penalty after P = M + alpha J^T J showed ``pivot``, its
+/// smallest relative pivot (0: not positive definite): the small pivots scale as
+/// 1 / alpha, so aim at AL_PENALTY_MARGIN AL_PIVOT_MIN, lowering by at most
+/// AL_PENALTY_DROP (lowered_penalty of dynamics/augmented_lagrangian.py).
+inline double al_lowered_penalty(double alpha, double pivot) {
+  const double f = pivot / (AL_PENALTY_MARGIN * AL_PIVOT_MIN);
+  return alpha * (f > AL_PENALTY_DROP ? f : AL_PENALTY_DROP);
+}
+
 inline void Core::solve(const RefV &q, const RefV &v, const Vec &tau, double t) {
   eval_terms(q, v);
   ++n_evals_;
@@ -103,19 +112,24 @@ inline bool Core::solve_al_small(const RefV &q, double t) {
     };
     const Eigen::Map<const MatN> M(M_.data());
     const Eigen::Map<const MatJ> J(J_.data());
-    const double alpha =
+    double alpha =
         al_penalty_ * M.trace() / std::max(J.squaredNorm(), std::numeric_limits<double>::min());
+    const MatN JtJ = J.transpose() * J;
     FixedLDLT<NV> llt;
-    if (!llt.compute(M + alpha * (J.transpose() * J)))
-      singular(q, "the penalized mass matrix M + alpha J^T J",
-               std::numeric_limits<double>::infinity(),
-               "it is not positive definite, so M itself is singular (a massless subtree)", t);
+    int lowerings = 0;
+    for (;; ++lowerings) {  // the penalty P can take (al_factor)
+      const bool ok = llt.compute(M + alpha * JtJ);
+      const double pivot = ok ? llt.min_pivot_ratio() : 0.0;
+      if (pivot >= AL_PIVOT_MIN) break;
+      if (lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(q, alpha, t);
+      alpha = al_lowered_penalty(alpha, pivot);
+    }
     Ops ops{M, J, llt};
     const VecN rhs = rhs_v_;
     const VecC g = gamma_;
     VecN x, delta;
     VecC lam, rc;
-    al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam, delta, rc);
+    al_iterate(ops, alpha, rhs, g, al_max_iter_ * (1 + lowerings), al_tol_, x, lam, delta, rc);
     // the multiplier polish: J J^T dlam = J (rhs - M a - J^T lam), regularized
     const VecN rd = rhs - M * x - J.transpose() * lam;
     MatC JJt = J * J.transpose();
@@ -132,34 +146,45 @@ inline bool Core::solve_al_small(const RefV &q, double t) {
 }
 
 inline double Core::al_factor(const RefV &q, double t) {
+  if (p_fact_) return al_alpha_;
   const double jj = band_p_ ? j_squared_norm() : J_.squaredNorm();
-  const double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-  if (p_fact_) return alpha;
-  bool ok;
-  if (band_p_) {
-    ok = factor_penalized_band(alpha);
-  } else {
-    P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
-    P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
-    ok = llt_p_.compute(P_);
+  double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
+  for (al_lowerings_ = 0;; ++al_lowerings_) {
+    double pivot = 0.0;
+    if (band_p_) {
+      if (factor_penalized_band(alpha)) pivot = penalized_band_.min_pivot_ratio();
+    } else {
+      P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
+      P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
+      if (llt_p_.compute(P_)) pivot = llt_p_.min_pivot_ratio(P_);
+    }
+    if (pivot >= AL_PIVOT_MIN) break;
+    if (al_lowerings_ == AL_MAX_PENALTY_LOWERINGS) penalized_singular(q, alpha, t);
+    alpha = al_lowered_penalty(alpha, pivot);
   }
-  if (!ok)
-    singular(q, "the penalized mass matrix M + alpha J^T J",
-             std::numeric_limits<double>::infinity(),
-             "it is not positive definite, so M itself is singular (a massless subtree)", t);
   p_fact_ = true;
+  al_alpha_ = alpha;
   return alpha;
+}
+
+inline void Core::penalized_singular(const RefV &q, double alpha, double t) {
+  singular(q, "the penalized mass matrix M + alpha J^T J", std::numeric_limits<double>::infinity(),
+           "it is not numerically positive definite even at alpha = " + fmt("%.3g", alpha) +
+               " (lowered " + std::to_string(AL_MAX_PENALTY_LOWERINGS) +
+               " times), so M itself is singular (a massless subtree)",
+           t);
 }
 
 inline void Core::al_solve(const RefV &q, double t, const Vec &rhs, const Vec &g, Vec &x,
                            bool from_x) {
   const double alpha = al_factor(q, t);
+  const int max_iter = al_max_iter_ * (1 + al_lowerings_);
   if (band_p_) {
     BandAlOps ops{*this};
-    al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_, from_x);
+    al_iterate(ops, alpha, rhs, g, max_iter, al_tol_, x, lam_, dq_, tmp_c_, from_x);
   } else {
     DenseAlOps ops{*this};
-    al_iterate(ops, alpha, rhs, g, al_max_iter_, al_tol_, x, lam_, dq_, tmp_c_, from_x);
+    al_iterate(ops, alpha, rhs, g, max_iter, al_tol_, x, lam_, dq_, tmp_c_, from_x);
   }
 }
 

@@ -67,6 +67,15 @@ class SmallLLT {
 
   bool ok() const { return ok_; }
 
+  // Smallest relative pivot min_k L_kk^2 / A_kk of the factor of A (after a successful
+  // compute(A)): how much of A's diagonal the elimination cancelled.
+  double min_pivot_ratio(const Eigen::MatrixXd &A) const {
+    double r = 1.0;
+    for (Eigen::Index k = 0; k < L_.rows(); ++k)
+      r = std::min(r, L_(k, k) * L_(k, k) / A(k, k));
+    return r;
+  }
+
   // x <- A^-1 x (after a successful compute).
   template <typename Derived>
   void solveInPlace(Eigen::MatrixBase<Derived> &x) const {
@@ -130,9 +139,11 @@ class FixedLDLT {
   // Factor A from its lower triangle; false when a pivot is not positive.
   bool compute(const Mat &A) {
     L_ = A;  // L below the diagonal, D on it (overwritten column by column)
+    min_pivot_ratio_ = 1.0;
     for (int k = 0; k < N; ++k) {
       const double d = L_(k, k);
       if (!(d > 0.0)) return false;
+      min_pivot_ratio_ = std::min(min_pivot_ratio_, d / A(k, k));
       inv_[k] = 1.0 / d;
       for (int j = k + 1; j < N; ++j) {
         const double ljk = L_(j, k) * inv_[k];
@@ -142,6 +153,9 @@ class FixedLDLT {
     }
     return true;
   }
+
+  // Smallest relative pivot min_k D_k / A_kk of the last successful compute.
+  double min_pivot_ratio() const { return min_pivot_ratio_; }
 
   // x <- A^-1 x (after a successful compute).
   template <typename Derived>
@@ -156,6 +170,7 @@ class FixedLDLT {
  private:
   Mat L_;
   Eigen::Matrix<double, N, 1> inv_;
+  double min_pivot_ratio_ = 1.0;
 };
 
 }  // namespace closedchain

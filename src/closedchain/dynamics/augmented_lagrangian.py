@@ -22,8 +22,14 @@ directions converge in one or two iterations and a direction of a nearly
 singular J more slowly but boundedly. The multipliers of redundant rows are
 not unique (their generalized force J^T lam is).
 
-The penalty is relative: :math:`\alpha = \rho\, \mathrm{tr}(M) /
-\mathrm{tr}(J^\top J)` with :math:`\rho` = ``SolverSettings.al_penalty``.
+The penalty starts relative, :math:`\alpha = \rho\, \mathrm{tr}(M) /
+\mathrm{tr}(J^\top J)` with :math:`\rho` = ``SolverSettings.al_penalty``, and is
+then chosen from P's Cholesky (:meth:`PenalizedSolver.factor_relative`): lowered
+while the factorization fails or shows a relative pivot :math:`L_{ii}^2 / P_{ii}`
+below :data:`PIVOT_MIN`, where :math:`\alpha J^\top J` has cancelled M's diagonal
+(near-massless links, long chains: M's small eigenvalues, not its trace, bound
+what P can take). Cholesky is invariant under diagonal scaling, so these pivots
+measure the digits lost whatever the units.
 
 :class:`PenalizedSolver` factorizes P (dense Cholesky, or banded Cholesky in
 a bandwidth-reducing order when the structure of M + J^T J is banded, as for
@@ -66,6 +72,19 @@ BANDED_FRACTION = 0.25
 
 #: Relative regularization of the normal equations that polish the multipliers.
 NORMAL_EQ_REG = 1e-14
+
+#: Smallest relative pivot R_ii^2 / P_ii of P's Cholesky accepted by
+#: :meth:`PenalizedSolver.factor_relative`: a pivot that alpha J^T J has cancelled to
+#: this fraction of P_ii keeps about log10(PIVOT_MIN / eps) = 4 digits, which the
+#: iteration, in residual form, refines (chains of 30 links at 1e-14 did not converge).
+PIVOT_MIN = 1e-13
+#: A lowered penalty aims at relative pivots this many times :data:`PIVOT_MIN`.
+PENALTY_MARGIN = 10.0
+#: The largest lowering of alpha in one step (and the step after a failed Cholesky).
+PENALTY_DROP = 1e-4
+#: How many times :meth:`PenalizedSolver.factor_relative` may lower alpha before it
+#: reports P as not positive definite (M singular).
+MAX_PENALTY_LOWERINGS = 8
 
 _TINY = float(np.finfo(float).tiny)
 
@@ -127,6 +146,8 @@ class PenalizedSolver:
         self.layer = mech.constraints
         self._fac: np.ndarray | None = None  # the Cholesky factor (band or dense)
         self.alpha = 0.0
+        #: How many times :meth:`factor_relative` lowered alpha for this factorization.
+        self.lowerings = 0
         #: The normal equations of the kept rows (multiplier polish, projections).
         self.normal = NormalSolver(mech)
 
@@ -143,38 +164,81 @@ class PenalizedSolver:
         Raises:
             SingularConfigurationError: P is not positive definite (M singular).
         """
+        if self._factor(M, J, alpha) <= 0.0:
+            raise self._error(mech, q)
+
+    def _factor(self, M: np.ndarray, J: np.ndarray, alpha: float) -> float:
+        """Factorize P = M + alpha J^T J; return its smallest relative pivot
+        min_i R_ii^2 / P_ii (in (0, 1]), or 0.0 when P is not numerically positive definite
+        (then no factorization is kept)."""
+        self.lowerings = 0
         self.alpha = alpha
         P = M + alpha * (J.T @ J)
         if self.banded:
             # Cholesky of the band of P in the order perm (LAPACK's band storage).
-            P_perm = P[np.ix_(self.perm, self.perm)]
-            self._fac, info = lapack.dpbtrf(upper_band(P_perm, self.bandwidth), lower=0)
+            ab = upper_band(P[np.ix_(self.perm, self.perm)], self.bandwidth)
+            self._fac, info = lapack.dpbtrf(ab, lower=0)
+            diag_p, diag_r = ab[-1], self._fac[-1]
         else:
             self._fac, info = lapack.dpotrf(P, lower=0, clean=0)
+            diag_p, diag_r = np.diagonal(P), np.diagonal(self._fac)
         if info != 0:
-            raise self._error(mech, q)
+            self._fac = None
+            return 0.0
+        return float(np.min(diag_r * diag_r / diag_p, initial=1.0))
 
     def factor_relative(self, M: np.ndarray, J: np.ndarray, rho: float, mech, q) -> float:
-        """Factorize P = M + alpha J^T J with alpha = :func:`relative_penalty` (M, J, rho)
-        and return alpha.
+        """Factorize P = M + alpha J^T J with the penalty that P can take and return alpha.
+
+        alpha starts at :func:`relative_penalty` (M, J, rho); while P's Cholesky fails or
+        shows a relative pivot R_ii^2 / P_ii below :data:`PIVOT_MIN` (the digits
+        that alpha J^T J cancels are lost), alpha is lowered (:func:`lowered_penalty`)
+        and P factorized again, at most :data:`MAX_PENALTY_LOWERINGS` times;
+        :attr:`lowerings` counts them.
 
         Args: as :meth:`factor`, with ``rho`` the dimensionless relative penalty.
+
+        Raises:
+            SingularConfigurationError: P is not positive definite even at the lowest
+                alpha (M singular: a massless subtree).
         """
         alpha = relative_penalty(M, J, rho)
-        self.factor(M, J, alpha, mech, q)
+        for lowerings in range(MAX_PENALTY_LOWERINGS + 1):
+            pivot = self._factor(M, J, alpha)
+            if pivot >= PIVOT_MIN:
+                break
+            if lowerings == MAX_PENALTY_LOWERINGS:
+                self._fac = None
+                raise self._error(mech, q, lowered=True)
+            alpha = lowered_penalty(alpha, pivot)
+        self.lowerings = lowerings
         return alpha
 
-    def _error(self, mech, q):
+    def max_iter(self, base: int) -> int:
+        """Return the iteration cap of the current factorization: ``base`` times one plus
+        :attr:`lowerings` (a lowered penalty converges more slowly)."""
+        return base * (1 + self.lowerings)
+
+    def _error(self, mech, q, *, lowered: bool = False):
+        if lowered:
+            state = (
+                f"is not numerically positive definite even at alpha = {self.alpha:.3g} "
+                f"(lowered {MAX_PENALTY_LOWERINGS} times)"
+            )
+            hint = "M is singular (a massless subtree); use method='kkt' to confirm"
+        else:
+            state = f"is not numerically positive definite (alpha = {self.alpha:.3g})"
+            hint = (
+                "M is singular (a massless subtree) or so ill-conditioned that alpha J^T J "
+                "swamps it; lower the penalty or use method='kkt'"
+            )
         return SingularConfigurationError.build(
             mech.name,
             "the penalized mass matrix M + alpha J^T J",
             q=q,
             cond=float("inf"),
-            state=f"is not numerically positive definite (alpha = {self.alpha:.3g})",
-            hint=(
-                "M is singular (a massless subtree) or so ill-conditioned that alpha J^T J "
-                "swamps it; lower SolverSettings.al_penalty or use method='kkt'"
-            ),
+            state=state,
+            hint=hint,
         )
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -313,6 +377,18 @@ def relative_penalty(M: np.ndarray, J: np.ndarray, rho: float) -> float:
     return rho * float(M.trace()) / max(jj, _TINY)
 
 
+def lowered_penalty(alpha: float, pivot: float) -> float:
+    """Return the next penalty after P = M + alpha J^T J showed ``pivot``, its smallest
+    relative pivot (0.0: not positive definite).
+
+    Where alpha J^T J dominates P's diagonal, the small relative pivots (directions
+    that J does not constrain) scale as 1 / alpha: alpha is lowered to bring the
+    smallest to :data:`PENALTY_MARGIN` times :data:`PIVOT_MIN`, and at least by
+    ``1 / PENALTY_MARGIN``, at most by :data:`PENALTY_DROP`.
+    """
+    return alpha * max(PENALTY_DROP, pivot / (PENALTY_MARGIN * PIVOT_MIN))
+
+
 def solve_augmented_lagrangian(
     solver: PenalizedSolver,
     M: np.ndarray,
@@ -335,7 +411,8 @@ def solve_augmented_lagrangian(
         rhs: tau - h, shape (nv,).
         gamma: right-hand side of J a + gamma = 0, shape (nc,).
         alpha: the penalty used in ``solver``.
-        tol: stop when max |a_k - a_{k-1}| <= tol (1 + max |a_k|).
+        tol: stop when max |a_k - a_{k-1}| <= tol (1 + max |a_k|) (or when that change
+            no longer shrinks: the round-off floor).
         max_iter: iteration cap.
         polish: correct the multipliers by the normal equations (below); off
             when only ``a`` is wanted (the projections of ALI3-P).
@@ -361,6 +438,7 @@ def solve_augmented_lagrangian(
     lam = alpha * r_c
     step = lam  # alpha r_c: the last update of lam
     it = 1
+    last_change = np.inf
     while it < max_iter:
         delta = solve(rhs - M @ a - J.T @ (lam + step))  # lam + alpha r_c
         a += delta
@@ -368,8 +446,12 @@ def solve_augmented_lagrangian(
         step = alpha * r_c
         lam += step
         it += 1
-        if float(np.abs(delta).max()) <= tol * (1.0 + float(np.abs(a).max())):
+        change = float(np.abs(delta).max())
+        # Converged, or the change stopped shrinking: the round-off floor of an
+        # ill-conditioned M (as iterative refinement stops), which tol may lie below.
+        if change <= tol * (1.0 + float(np.abs(a).max())) or change >= last_change:
             break
+        last_change = change
     # The update alpha (J a + gamma) carries the round-off of J a times alpha (1e-4 N
     # on the 4-bar with rho = 1e11): correct lam so that J^T lam matches the dynamics,
     # J^T dlam = tau - h - M a - J^T lam, by regularized normal equations (the
@@ -418,7 +500,7 @@ def augmented_lagrangian(
         ws.gamma,
         alpha,
         tol=settings.al_tol,
-        max_iter=settings.al_max_iter,
+        max_iter=solver.max_iter(settings.al_max_iter),
         polish=settings.al_polish,
     )
     return a, lam

@@ -45,7 +45,9 @@ class SolverSettings:
         pinocchio_accuracy: absolute accuracy of its proximal iterations.
         pinocchio_max_iter: its iteration cap.
         al_penalty: relative penalty rho of the augmented-Lagrangian method,
-            alpha = rho tr(M) / tr(J^T J) (dimensionless). Larger: fewer
+            alpha = rho tr(M) / tr(J^T J) (dimensionless) to start with; alpha is
+            lowered where P's Cholesky shows that M cannot take it
+            (``PenalizedSolver.factor_relative``). Larger: fewer
             iterations, but P = M + alpha J^T J is worse conditioned (each solve
             loses about log10(rho) digits, which the iteration, written in
             residual form, recovers). A direction of J with singular value sigma
@@ -56,7 +58,8 @@ class SolverSettings:
         al_tol: the augmented-Lagrangian iteration stops when the largest
             change of an acceleration is below al_tol (1 + max |a|).
         al_max_iter: its iteration cap (reached only along directions where J
-            is nearly rank-deficient; the result is then the best iterate).
+            is nearly rank-deficient; the result is then the best iterate), times one
+            plus the number of times the penalty was lowered.
         al_polish: correct its multipliers by the normal equations of J^T lam (their
             update alpha (J a + gamma) carries alpha times the round-off of J a); the
             accelerations do not depend on it. The numpy simulator turns it off where

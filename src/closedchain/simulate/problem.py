@@ -548,7 +548,7 @@ def project(
                 np.zeros(mech.nc),
                 alpha,
                 tol=ss.al_tol,
-                max_iter=ss.al_max_iter,
+                max_iter=solver.max_iter(ss.al_max_iter),
                 polish=False,
                 a0=v,
             )
