@@ -592,7 +592,7 @@ def _backend_forward(mech, backend: str):
         return compiled.compiled_dynamics(mech, "augmented-lagrangian").forward
 
     def forward(q, v, tau):
-        res = forward_dynamics(mech, q, v, tau)
+        res = forward_dynamics(mech, q, v, tau, backend="numpy")
         return res.a, res.lam
 
     return forward

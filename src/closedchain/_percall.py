@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .exceptions import InvalidArgumentError, resolve_choice
+from .exceptions import ClosedChainError, InvalidArgumentError, resolve_choice
 
 if TYPE_CHECKING:
     from .compiled import CompiledDynamics
@@ -83,7 +83,10 @@ def _make(mech: Mechanism, method: str, settings: SolverSettings):
         return None, reason
     from .compiled import CompiledDynamics
 
-    return CompiledDynamics(mech, method, settings), None
+    try:
+        return CompiledDynamics(mech, method, settings), None
+    except ClosedChainError as exc:  # e.g. declared rows of rank below their count
+        return None, f"the compiled core cannot hold this mechanism ({exc})"
 
 
 def rows_evaluator(mech: Mechanism, backend: str) -> CompiledDynamics | None:
