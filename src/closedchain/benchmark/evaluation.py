@@ -124,24 +124,25 @@ def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Cal
                 note,
             )
         )
+    mj_forward = mujoco_forward(mech, q, v)
+    if mj_forward is not None:
+        calls.append(("mujoco.mj_forward (default solref)", "C", mj_forward, "soft constraints"))
+    return calls
+
+
+def mujoco_forward(mech: Mechanism, q, v) -> Callable[[], object] | None:
+    """``mujoco.mj_forward`` on the exported model at (q, v), as a call of no argument;
+    None (with a warning) when MuJoCo is not installed."""
     try:
         import mujoco
 
         from ..export.mjcf import load_mujoco, mujoco_state
-
-        m, d = load_mujoco(mech)
-        d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)
-        calls.append(
-            (
-                "mujoco.mj_forward (default solref)",
-                "C",
-                lambda: mujoco.mj_forward(m, d),
-                "soft constraints",
-            )
-        )
     except ImportError:
         logger.warning("MuJoCo not installed: mj_forward left out")
-    return calls
+        return None
+    m, d = load_mujoco(mech)
+    d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)
+    return lambda: mujoco.mj_forward(m, d)
 
 
 def time_evaluations(

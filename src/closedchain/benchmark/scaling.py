@@ -29,7 +29,7 @@ from ..dynamics.base import DEFAULT_METHOD, DEFAULT_SETTINGS, get_method
 from ..kinematics import assemble, project_velocity
 from ..mechanism import Mechanism, load
 from . import write_rows
-from .evaluation import cheapest_exact_settings, compiled_methods
+from .evaluation import cheapest_exact_settings, compiled_methods, mujoco_forward
 from .families import FAMILIES
 
 logger = logging.getLogger(__name__)
@@ -140,16 +140,9 @@ def scaling_calls(mech: Mechanism, q, v, methods=SCALING_METHODS) -> list[tuple]
             False,
         )
     )
-    try:
-        import mujoco
-
-        from ..export.mjcf import load_mujoco, mujoco_state
-
-        m, d = load_mujoco(mech)
-        d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)
-        calls.append((MUJOCO_CALL, "C", lambda: mujoco.mj_forward(m, d), False))
-    except ImportError:
-        logger.warning("MuJoCo not installed: mj_forward left out")
+    mj_forward = mujoco_forward(mech, q, v)
+    if mj_forward is not None:
+        calls.append((MUJOCO_CALL, "C", mj_forward, False))
     return calls
 
 
