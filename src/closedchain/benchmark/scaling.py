@@ -26,6 +26,7 @@ from threadpoolctl import threadpool_limits
 
 from .._io import atomic_write
 from ..dynamics.base import DEFAULT_METHOD, DEFAULT_SETTINGS, get_method
+from ..exceptions import SingularConfigurationError
 from ..kinematics import assemble, project_velocity
 from ..mechanism import Mechanism, load
 from . import write_rows
@@ -129,8 +130,12 @@ def scaling_calls(mech: Mechanism, q, v, methods=SCALING_METHODS) -> list[tuple]
             calls.append((name, "compiled", lambda fd=fd: fd.forward(q, v, tau), False))
             calls.append((name, IN_SIMULATE, _in_simulate(mech, name, q, v), True))
     cms, cds, _, data = mech.pinocchio_constraints()
-    a_ref = get_method("kkt")(mech, q, v, tau, DEFAULT_SETTINGS)[0]
-    prox, _note = cheapest_exact_settings(mech, q, v, tau, a_ref, cms, cds, data)
+    prox = None
+    try:  # the reference of the cheapest exact settings: the default method
+        a_ref = get_method(DEFAULT_METHOD)(mech, q, v, tau, DEFAULT_SETTINGS)[0]
+        prox, _note = cheapest_exact_settings(mech, q, v, tau, a_ref, cms, cds, data)
+    except SingularConfigurationError as exc:
+        logger.warning("scaling: no reference for Pinocchio's exact settings: %s", exc)
     prox = prox or DEFAULT_SETTINGS.pinocchio_proximal()
     calls.append(
         (
