@@ -103,3 +103,20 @@ def test_cli_export_mjcf(tmp_path, mechanism_files):
     m = mujoco.MjModel.from_xml_path(str(out))
     assert m.neq == 2
     assert np.allclose(m.eq_solref[:, 0], STIFF.solref[0])
+
+
+def test_export_nests_deeper_than_the_recursion_limit(tmp_path):
+    """A chain of 1200 links nests 1200 bodies (written with an explicit stack, not by
+    recursion): every body is opened and closed once, in order."""
+    import sys
+
+    from closedchain.benchmark.families import chain_urdf
+
+    n = 1200
+    assert n > sys.getrecursionlimit()
+    path = tmp_path / "chain.urdf"
+    path.write_text(chain_urdf(n, length=float(n)))
+    text = export_mjcf(cc.load(path))
+    assert text.count("<body ") == n
+    assert text.count("</body>") == n
+    assert text.index('<body name="j0"') < text.index(f'<body name="j{n - 1}"')

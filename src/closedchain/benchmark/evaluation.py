@@ -132,7 +132,7 @@ def evaluation_calls(mech: Mechanism, seed: int = 0) -> list[tuple[str, str, Cal
 
 def mujoco_forward(mech: Mechanism, q, v) -> Callable[[], object] | None:
     """``mujoco.mj_forward`` on the exported model at (q, v), as a call of no argument;
-    None (with a warning) when MuJoCo is not installed."""
+    None (with a warning) when MuJoCo is not installed or cannot load the model."""
     try:
         import mujoco
 
@@ -140,7 +140,11 @@ def mujoco_forward(mech: Mechanism, q, v) -> Callable[[], object] | None:
     except ImportError:
         logger.warning("MuJoCo not installed: mj_forward left out")
         return None
-    m, d = load_mujoco(mech)
+    try:
+        m, d = load_mujoco(mech)
+    except ValueError as exc:  # e.g. MuJoCo's XML parser nests at most about 1000 bodies
+        logger.warning("MuJoCo cannot load %s: %s", mech.name, str(exc).splitlines()[-1])
+        return None
     d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)
     return lambda: mujoco.mj_forward(m, d)
 

@@ -247,7 +247,7 @@ def export_mjcf(
 
     lines: list[str] = []
 
-    def body(j: int, indent: str) -> None:
+    def open_body(j: int, indent: str) -> None:
         M = model.jointPlacements[j]
         lines.append(
             f'{indent}<body name={quoteattr(model.names[j])} pos="{_fmt(M.translation)}" '
@@ -261,12 +261,19 @@ def export_mjcf(
         for p in points[j]:
             lines.append(inner + _capsule_xml(p, CAPSULE_RADIUS))
         lines.extend(inner + s for s in sites[j])
-        for c in children[j]:
-            body(c, inner)
-        lines.append(f"{indent}</body>")
 
-    for c in children[0]:
-        body(c, "    ")
+    # Depth first with an explicit stack (a 1000-link chain nests 1000 bodies, deeper
+    # than Python's recursion limit): ("open", j, indent) writes body j and stacks its
+    # closing tag and then its children, first child on top.
+    stack = [("open", c, "    ") for c in reversed(children[0])]
+    while stack:
+        what, j, indent = stack.pop()
+        if what == "close":
+            lines.append(f"{indent}</body>")
+            continue
+        open_body(j, indent)
+        stack.append(("close", j, indent))
+        stack.extend(("open", c, indent + "  ") for c in reversed(children[j]))
     g = model.gravity.linear
     text = "\n".join(
         [
