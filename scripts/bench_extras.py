@@ -79,7 +79,7 @@ def write_scaling_page(out: Path, quiet: bool = False) -> None:
     )
     text = "\n".join(
         [
-            head,
+            *head,
             "CPU microseconds per forward-dynamics evaluation (median of interleaved "
             "repeats, same process), against nv; p is the least-squares slope of "
             "log(us) against log(nv). *compiled* is the compiled core called from Python "
