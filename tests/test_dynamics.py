@@ -605,6 +605,7 @@ def test_default_method_lowers_its_penalty_for_near_massless_links(backend):
     alpha until P's Cholesky keeps its pivots and matches the 40-digit KKT solve (passive
     motion: a torque on a near-massless joint would only measure its spin)."""
     from closedchain.dynamics.augmented_lagrangian import (
+        PIVOT_MIN,
         PenalizedSolver,
         relative_penalty,
     )
@@ -623,8 +624,9 @@ def test_default_method_lowers_its_penalty_for_near_massless_links(backend):
         if k == 0:
             solver = PenalizedSolver(mech)
             alpha0 = relative_penalty(M, J, settings.al_penalty)
-            with pytest.raises(cc.SingularConfigurationError, match=r"not numerically positive"):
-                solver.factor(M, J, alpha0, mech, q)
+            # At alpha0 the Cholesky of P fails or keeps a pivot below PIVOT_MIN: which of
+            # the two depends on the BLAS kernel's round-off (Haswell's factorizes it).
+            assert solver._factor(M, J, alpha0) < PIVOT_MIN
             assert solver.factor_relative(M, J, settings.al_penalty, mech, q) < alpha0
             assert solver.lowerings >= 1
         a, lam = forward(q, v, tau)
