@@ -33,6 +33,13 @@ SEED = 20251121
 N_STATES = 30
 #: Round trip: |a_forward - a_inverse|_2 <= TOL_ROUND_TRIP max(1, |a|) [rad/s^2].
 TOL_ROUND_TRIP = 1e-9
+#: Methods that form the Delassus matrix D = J M^-1 J^T and solve with it: their
+#: round-off grows as eps cond(D) (cond(J) squared), so near a singular position
+#: the round trip is judged against DELASSUS_ROUNDOFF eps cond(D) where that is
+#: larger than TOL_ROUND_TRIP. Measured: 1.9 eps cond(D) (schur, agile_eye,
+#: cond(D) 3.9e6, OpenBLAS Haswell kernel).
+DELASSUS_METHODS = frozenset({"schur", "proximal", "pinocchio"})
+DELASSUS_ROUNDOFF = 10.0
 #: Hand computation vs code, statics of the 4-bar [N, N m].
 TOL_STATICS = 1e-10
 #: Our reaction vs Pinocchio's contact forces (its proximal solve, mu = 1e-8) [N].
@@ -270,13 +277,26 @@ def states(mechs):
     return out
 
 
+def round_trip_bound(mech, q: np.ndarray, method: str) -> float:
+    """Return the round trip's error bound at q for method (see DELASSUS_ROUNDOFF)."""
+    if method not in DELASSUS_METHODS:
+        return TOL_ROUND_TRIP
+    data = mech.model.createData()
+    M = pin.crba(mech.model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T  # crba fills the upper triangle
+    J = cc.compute_jacobian(mech, q, backend="numpy")
+    D = J @ np.linalg.solve(M, J.T)
+    return max(TOL_ROUND_TRIP, DELASSUS_ROUNDOFF * np.finfo(float).eps * np.linalg.cond(D))
+
+
 @pytest.mark.parametrize("method", sorted(METHODS))
 @pytest.mark.parametrize("model", MODEL_NAMES)
 def test_round_trip(mechs, states, model, method):
     mech = mechs[model]
-    worst_a = worst_lam = 0.0
+    worst_a = worst_lam = 0.0  # errors divided by their bound
     for q, v, a_ind in states[model]:
         inv = inverse_dynamics(mech, q, v, a_ind)
+        bound = round_trip_bound(mech, q, method)
         assert isinstance(inv, InverseDynamicsResult)
         assert inv.dynamics_residual <= TOL_RESIDUAL * max(1.0, np.abs(inv.tau).max())
         assert inv.constraint_residual <= TOL_RESIDUAL * max(1.0, np.abs(inv.gamma).max())
@@ -284,13 +304,13 @@ def test_round_trip(mechs, states, model, method):
         np.testing.assert_array_equal(inv.tau[off], 0.0)
         np.testing.assert_array_equal(inv.a[mech.independent_idx_v], a_ind)
         fwd = forward_dynamics(mech, q, v, inv.tau, method=method)
-        worst_a = max(worst_a, rel_err(fwd.a, inv.a))
+        worst_a = max(worst_a, rel_err(fwd.a, inv.a) / bound)
         worst_lam = max(
             worst_lam,
-            rel_err(fwd.generalized_constraint_force(), inv.generalized_constraint_force()),
+            rel_err(fwd.generalized_constraint_force(), inv.generalized_constraint_force()) / bound,
         )
-    assert worst_a <= TOL_ROUND_TRIP, f"{method}: round trip a error {worst_a:.2e}"
-    assert worst_lam <= TOL_ROUND_TRIP, f"{method}: round trip J^T lam error {worst_lam:.2e}"
+    assert worst_a <= 1.0, f"{method}: round trip a error {worst_a:.2f} x its bound"
+    assert worst_lam <= 1.0, f"{method}: round trip J^T lam error {worst_lam:.2f} x its bound"
 
 
 def well_posed_platform_states(mech, rng, n):
