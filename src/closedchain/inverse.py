@@ -217,6 +217,46 @@ def _cached_indices(mech: Mechanism, coordinates, actuated) -> tuple:
     return P, F, A
 
 
+def _balance_weak_directions(b, s, V, A, Z, tau_A, settings: SolverSettings) -> np.ndarray:
+    r"""Return the spare actuator torques that balance the load along J's near-null directions.
+
+    With more actuators than degrees of freedom, the torques that produce the motion
+    form the affine set tau_A + Z y (Z: orthonormal basis of the spare torques, which
+    do nothing along the motion space). The loops carry the rest of the load b, with
+    multipliers lam_i = v_i^T (B tau - b) / sigma_i along each right singular vector
+    v_i of J. Along the weak directions W (sigma_i < ``weak_rcond`` sigma_1) that
+    is load / sigma: a stance whose rows are nearly redundant then squeezes its loops
+    with forces of 1e6 N, and the geometric stiffness of those forces makes it
+    unstable at hundreds per second. y is the minimum-norm least-squares solution of
+
+    .. math::
+
+        W^T B Z\, y = W^T (b - B \tau_A)
+
+    keeping only the singular values of W^T B Z (cosines between the spare torques
+    and W) above ``weak_rcond``.
+
+    Args:
+        b: M a + h - tau_passive, shape (nv,).
+        s: singular values of J, shape (nc,), largest first.
+        V: right singular vectors of J, shape (nc, nv) (rows).
+        A: actuated velocity indices, shape (n_act,).
+        Z: spare torques, shape (n_act, n_act - mobility).
+        tau_A: the minimum-norm torques, shape (n_act,).
+        settings: ``weak_rcond``.
+
+    Returns:
+        Z y, shape (n_act,) [N m or N] (zero without weak directions).
+    """
+    W = V[s < settings.weak_rcond * s[0]]
+    if not W.shape[0]:
+        return np.zeros(len(A))
+    Uc, sc, Vct = _svd(W[:, A] @ Z)
+    k = int(np.count_nonzero(sc > settings.weak_rcond))
+    r = W @ b - W[:, A] @ tau_A
+    return Z @ (Vct[:k].T @ ((Uc[:, :k].T @ r) / sc[:k]))
+
+
 def _svd(A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     U, s, Vt, info = lapack.dgesdd(A)
     if info != 0:  # pragma: no cover - LAPACK convergence failure
@@ -259,7 +299,10 @@ def inverse_dynamics(
             joint springs' :func:`closedchain.spring_torque`), shape (nv,) [N m or
             N], or None: the torques returned produce the motion with them.
         settings: ``cond_max`` bounds cond(J_F) (the other coordinates' block
-            of J), cond(J) and cond(N^T B).
+            of J), cond(J) and cond(N^T B); over-actuated, the torques are the
+            minimum-norm ones plus the spare torques that balance the load along J's
+            near-null directions (``weak_rcond``), so that the multipliers stay of
+            the size of the loads.
 
     Returns:
         The torques (zero off the actuated coordinates), full accelerations,
@@ -354,7 +397,8 @@ def inverse_dynamics(
         N = Vt[nc:].T
     else:
         N = np.eye(nv)
-    # (N^T B) tau_A = N^T b: unique when square, minimum-norm when over-actuated.
+    # (N^T B) tau_A = N^T b: unique when square, minimum-norm when over-actuated (plus
+    # the spare torques that balance J's near-null directions, _balance_weak_directions).
     # The singular values of N^T B are the cosines of the principal angles
     # between the actuated directions and the motion space (N orthonormal, B a
     # selection), so 1 / sigma_min is its condition relative to the ideal 1;
@@ -374,6 +418,8 @@ def inverse_dynamics(
             + " cannot produce every motion here (an actuation singularity)",
         )
     tau_A = Vgt[:mob].T @ ((Ug.T @ (N.T @ b)) / sg)
+    if nc and len(A) > mob:
+        tau_A += _balance_weak_directions(b, s, Vt[:nc], A, Vgt[mob:].T, tau_A, settings)
     tau = np.zeros(nv)
     tau[A] = tau_A
     f = tau - b  # = J^T lam

@@ -686,6 +686,7 @@ def load(
                 loops,
                 max_nv=max_nv(settings),
                 cut_joints=cut,
+                fixed_joints=entry.fixed_joints if entry is not None else (),
                 root=robot,
             )
     except ModelTooLargeError as exc:

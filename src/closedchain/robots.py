@@ -69,6 +69,8 @@ class RobotEntry:
             start of ``q_ref``, or None (then Pinocchio's neutral configuration).
         cut_joints: for an SDF model, joints to cut in preference (see
             :mod:`closedchain.sdf`).
+        fixed_joints: for an SDF model, joints read as ``fixed`` at their zero
+            position (``fixed_joints`` of :func:`closedchain.sdf.read_sdf`).
         springs: whether the model's joint springs are kept (False: left out, with a
             logged note; for a file whose springs contradict its own geometry).
     """
@@ -78,6 +80,7 @@ class RobotEntry:
     reference: str | None = None
     cut_joints: tuple[str, ...] = ()
     springs: bool = True
+    fixed_joints: tuple[str, ...] = ()
 
 
 #: Models found by ``erd:<name>``.
@@ -91,15 +94,19 @@ ERD_MODELS: dict[str, RobotEntry] = {
     "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
     # SDF: the achilles and plantar rods close with ball joints, the knee spring with a
     # revolute one; its gearbox joints (motor rotors) are left out (closedchain.sdf).
-    # The SRDF of cassie_v2 names the same joints with the same signs. Its springs are
-    # left out: at that standing state the loops lock the knee and heel springs and hold
-    # the heel springs 0.63 rad from their spring_reference (790 N m); with them, a run
-    # from rest leaves the manifold within 0.07 s (docs/guide/robots-and-moving-bases.md).
+    # The SRDF of cassie_v2 names the same joints with the same signs. The knee springs
+    # (knee-shin joints) are held: the file's leaf-spring linkage (knee-spring link on a
+    # revolute and a prismatic joint) locks the shin at a toggle (sigma_min(J) 9e-7) that
+    # carries the shin's load with forces of 1e7 N; held, it closes with one clean row.
+    # Its springs are left out: the achilles loops lock the heel springs, and at that
+    # standing state hold them 0.63 rad from their spring_reference (790 N m)
+    # (docs/guide/robots-and-moving-bases.md).
     "cassie": RobotEntry(
         "cassie_description/robots/cassie.sdf",
         "cassie_description/srdf/cassie_v2.srdf",
         "standing",
         springs=False,
+        fixed_joints=("left-knee-shin-joint", "right-knee-shin-joint"),
     ),
 }
 
@@ -175,20 +182,22 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
     return np.array(probe.referenceConfigurations[entry.reference], dtype=float)
 
 
-def read_base(base: Path, *, cut_joints: tuple[str, ...] = ()):
+def read_base(base: Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tuple[str, ...] = ()):
     """Return the ``<robot>`` element of a base model: a URDF, or an SDF or MJCF read as URDF+.
 
     Args:
         base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`; root
             ``<mujoco>``: :func:`closedchain.mjcf.read_model`).
         cut_joints: SDF only: joints to cut in preference.
+        fixed_joints: SDF only (a registry entry's): joints read as ``fixed``
+            (:func:`closedchain.sdf.read_sdf`).
 
     Raises:
         URDFError: see :func:`closedchain.urdf.read_xml` and :func:`closedchain.sdf.read_sdf`;
             ``cut_joints`` given for a URDF.
     """
     if is_sdf(base):
-        return read_sdf(base, cut_joints=cut_joints)[0]
+        return read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints)[0]
     if cut_joints:
         raise URDFError(
             f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
@@ -203,6 +212,7 @@ def merge_overlay(
     *,
     max_nv: int | None = None,
     cut_joints: tuple[str, ...] = (),
+    fixed_joints: tuple[str, ...] = (),
     root=None,
 ) -> URDFPlus:
     """Merge an overlay's elements into a base URDF and parse the result.
@@ -215,6 +225,7 @@ def merge_overlay(
             is still read as URDF+).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
         cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
+        fixed_joints: SDF base only: joints read as ``fixed`` (see :mod:`closedchain.sdf`).
         root: the base's ``<robot>`` element, already read (an MJCF base translated by
             :func:`closedchain.mjcf.read_model`); None: :func:`read_base` reads it.
 
@@ -227,7 +238,8 @@ def merge_overlay(
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
             (lists the valid ones), or a link or joint name the base already uses.
     """
-    root = read_base(base, cut_joints=cut_joints) if root is None else root
+    if root is None:
+        root = read_base(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
     path = base
     edits: dict[str, tuple[str, ...]] = {}
     if overlay is not None and is_loops_yaml(overlay):

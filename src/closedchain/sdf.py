@@ -56,6 +56,13 @@ they are left out with a logged warning (the rotor link then turns freely on
 its own joint) and listed in :attr:`SDFTree.gearboxes`; a model that needs a
 gearbox to hold a link at all is refused.
 
+Held joints: ``fixed_joints`` names joints read as ``fixed`` at their zero
+position (the pose the file draws), e.g. a spring joint held stiff, or a joint
+of a linkage that only draws a part and would otherwise lock the mechanism at
+a near-singular toggle (erd:cassie's knee springs; see
+:data:`closedchain.robots.ERD_MODELS`). A spring on a held joint is left out
+with the logged warning below.
+
 Joint springs: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has a
 ``spring_stiffness`` > 0 gets ``<dynamics spring_stiffness spring_reference>`` in the
 URDF+ (:class:`closedchain.urdf.JointSpring`; the generalized force
@@ -122,6 +129,9 @@ LOOP_TYPE_OF = {
 #: gives SDF's "unlimited" (-1 for effort and velocity).
 SDF_UNLIMITED = 1e16
 
+#: Joint types that ``fixed_joints`` may hold (read as ``fixed``).
+HOLDABLE_TYPES = ("revolute", "continuous", "prismatic")
+
 #: Model children that cannot be read (they would change the mechanism if ignored).
 SDF_REFUSED_ELEMENTS = ("model", "include", "frame")
 
@@ -174,6 +184,7 @@ class SDFTree:
         reversed_joints: tree joints whose SDF child is their URDF parent.
         cut_joints: joints cut, each a ``<loop>`` of the same name.
         gearboxes: gearbox joints left out (no coupling loop yet).
+        held_joints: joints read as ``fixed`` (``fixed_joints`` of :func:`read_sdf`).
     """
 
     model_name: str
@@ -182,15 +193,20 @@ class SDFTree:
     reversed_joints: tuple[str, ...]
     cut_joints: tuple[str, ...]
     gearboxes: tuple[str, ...]
+    held_joints: tuple[str, ...] = ()
 
 
-def read_sdf(path: str | Path, *, cut_joints: tuple[str, ...] = ()) -> tuple[object, SDFTree]:
+def read_sdf(
+    path: str | Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tuple[str, ...] = ()
+) -> tuple[object, SDFTree]:
     """Read an SDF file and write its URDF+ ``<robot>`` element.
 
     Args:
         path: the SDF file (one ``<model>``, under ``<sdf>`` or ``<sdf><world>``).
         cut_joints: joints to cut in preference to the rule's choice (see the
             module doc); each must be a joint of the model.
+        fixed_joints: joints read as ``fixed`` at their zero position (see the
+            module doc); each must be a revolute, continuous or prismatic joint.
 
     Returns:
         ``(robot, tree)``: the URDF+ ``<robot>`` element (lxml) and how the
@@ -199,7 +215,8 @@ def read_sdf(path: str | Path, *, cut_joints: tuple[str, ...] = ()) -> tuple[obj
     Raises:
         URDFError: unsafe or malformed XML, an unsupported version, element or
             joint type, a bad number, a link not connected to the root, a
-            ``cut_joints`` name that is not a joint, a ball joint the tree
+            ``cut_joints`` name that is not a joint, a ``fixed_joints`` name that is
+            not a revolute, continuous or prismatic joint, a ball joint the tree
             needs or a universal joint that has to be cut. The message names
             the file, line and element and the valid choices.
     """
@@ -215,7 +232,7 @@ def read_sdf(path: str | Path, *, cut_joints: tuple[str, ...] = ()) -> tuple[obj
     models = root.findall("model") + root.findall("world/model")
     if len(models) != 1:
         raise URDFError(f"{path}: {len(models)} <model> elements; valid: exactly one")
-    reader = _Reader(path, models[0])
+    reader = _Reader(path, models[0], tuple(fixed_joints))
     return reader.robot(tuple(cut_joints))
 
 
@@ -257,7 +274,7 @@ def _vector(values) -> str:
 class _Reader:
     """One SDF ``<model>``: its frames, joint graph, spanning tree and URDF+ text."""
 
-    def __init__(self, path: Path, model) -> None:
+    def __init__(self, path: Path, model, fixed_joints: tuple[str, ...] = ()) -> None:
         self.path = path
         self.model = model
         self.name = _check_name(path, model, "model")
@@ -275,6 +292,14 @@ class _Reader:
         joint_elements = model.findall("joint")
         _unique_names(path, joint_elements, "joint")
         self.joint_elements = {e.get("name"): e for e in joint_elements}
+        holdable = [n for n, e in self.joint_elements.items() if e.get("type") in HOLDABLE_TYPES]
+        for name in fixed_joints:
+            if name not in holdable:
+                raise URDFError(
+                    f"{path}: fixed_joints names {name!r}, which is not a "
+                    f"{', '.join(HOLDABLE_TYPES)} joint; valid: {', '.join(holdable)}"
+                )
+        self.fixed_joints = fixed_joints
         self._poses: dict[str, pin.SE3] = {}
         self._resolving: list[str] = []
         self.joints = [self._joint(i, e) for i, e in enumerate(joint_elements)]
@@ -350,7 +375,7 @@ class _Reader:
     # -- joints ------------------------------------------------------------------
     def _joint(self, index: int, element) -> SDFJoint:
         where = _where(self.path, element)
-        jtype = element.get("type")
+        jtype = "fixed" if element.get("name") in self.fixed_joints else element.get("type")
         if jtype not in SDF_JOINT_TYPES:
             raise URDFError(
                 f"{where}: joint type {jtype!r} is not read; valid: {', '.join(SDF_JOINT_TYPES)}"
@@ -528,6 +553,7 @@ class _Reader:
             reversed_joints=tuple(reversed_),
             cut_joints=tuple(j.name for j in sorted(cut, key=lambda j: j.index)),
             gearboxes=gearboxes,
+            held_joints=self.fixed_joints,
         )
 
     # -- the URDF+ document ----------------------------------------------------
@@ -573,8 +599,9 @@ class _Reader:
         if sprung:
             logger.warning(
                 "%s: the springs of %s are left out: a cut joint (a <loop>), a gearbox, a "
-                "continuous or universal joint has no spring coordinate; valid: revolute or "
-                "prismatic tree joints (cut_joints chooses which joint of a cycle is cut)",
+                "continuous, universal or held (fixed_joints) joint has no spring coordinate; "
+                "valid: revolute or prismatic tree joints (cut_joints chooses which joint of a "
+                "cycle is cut)",
                 self.path,
                 ", ".join(sprung),
             )

@@ -70,6 +70,14 @@ class SolverSettings:
         prox_tol: its convergence threshold on the change of the multipliers'
             generalized force, relative to max |tau - h| + 1.
         prox_max_iter: its iteration cap.
+        weak_rcond: inverse dynamics of an over-actuated mechanism
+            (:func:`closedchain.inverse_dynamics`, :func:`closedchain.gravity_torque`):
+            directions of J whose singular value is below ``weak_rcond`` times the
+            largest are near-null (a loop near a singular position, or rows a rounded
+            file makes nearly redundant); the spare actuators balance the load along
+            them too, which the loops could carry only with multipliers of order
+            load / sigma. Also the smallest cosine between the spare torques and those
+            directions that is used (dimensionless).
     """
 
     cond_max: float = 1e12
@@ -84,6 +92,7 @@ class SolverSettings:
     prox_mu: float = 1e-8
     prox_tol: float = 1e-13
     prox_max_iter: int = 50
+    weak_rcond: float = 1e-3
 
     def pinocchio_proximal(self) -> pin.ProximalSettings:
         """Pinocchio's ProximalSettings of these settings: absolute accuracy
