@@ -8,6 +8,9 @@ Companion of ``closedchain bench`` (run by scripts/make_bench_figures.sh):
 * ``scaling.csv`` / ``scaling.png`` / ``scaling.md``: cost per evaluation against size
   for the families of ``closedchain bench --scaling`` (chain, leg pair, N-four-bar), with
   growth exponents: a generated page of its own;
+* ``percall.csv`` / ``percall.md``: microseconds per call of the public per-call functions
+  (compiled core and numpy reference) on the chain family, beside the tuned
+  pinocchio.constraintDynamics call and pinocchio.rnea: a generated page of its own;
 * ``results.md`` (part ``report``): the documentation site's generated results page
   (docs/bench/results.md): every table above, the work-precision run's ratio table,
   reference agreements and charts, under a header with the command, machine, date, load
@@ -57,7 +60,16 @@ from closedchain.benchmark.stability import (
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
-PARTS = ("evaluation", "stability", "scaling")
+PARTS = ("evaluation", "stability", "scaling", "percall")
+#: Chain sizes of the per-call page.
+PERCALL_SIZES = (10, 30, 100, 300)
+#: Pinocchio's proximal settings of the per-call page's reference call (absolute and
+#: relative accuracy, mu, iterations): the cheapest that still matches kkt on the chain
+#: (the page gives the difference).
+PERCALL_PROXIMAL = (0.0, 0.0, 1e-8, 3)
+#: Size of the random move of the assembly's start off the closed configuration [rad].
+PERCALL_ASSEMBLY_OFFSET = 1e-3
+PERCALL_COLUMNS = ("n", "nv", "nc", "call", "backend", "us", "reference", "ratio")
 
 
 def write_scaling_page(out: Path, quiet: bool = False) -> None:
@@ -93,6 +105,190 @@ def write_scaling_page(out: Path, quiet: bool = False) -> None:
         ]
     )
     with atomic_write(out / "scaling.md", "w") as f:
+        f.write(text)
+
+
+def percall_entries(n: int) -> tuple[list[tuple], dict]:
+    """The timed calls on the n-link chain: ``(call, backend, reference, fn)``, the
+    references first (``reference`` None), and facts for the page (sizes, the reference
+    call's agreement with kkt)."""
+    import tempfile
+
+    import numpy as np
+    import pinocchio as pin
+
+    import closedchain as cc
+    from closedchain.benchmark.families import FAMILIES
+    from closedchain.benchmark.scaling import _start
+    from closedchain.dynamics.base import METHOD_CAPABILITIES
+
+    family = FAMILIES["chain"]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"chain{n}.urdf"
+        path.write_text(family.urdf(n))
+        mech = cc.load(path)
+    q, v = _start(mech, family.start)
+    tau = np.zeros(mech.nv)
+    a_P = np.ones(mech.mobility)
+    guess = pin.integrate(
+        mech.model, q, PERCALL_ASSEMBLY_OFFSET * np.random.default_rng(0).standard_normal(mech.nv)
+    )
+    cms, cds, _, data = mech.pinocchio_constraints()
+    prox = pin.ProximalSettings(*PERCALL_PROXIMAL)
+    rnea_data = pin.Data(mech.model)
+    pin_call = "pin.constraintDynamics"
+    entries = [
+        (
+            pin_call,
+            "C++",
+            None,
+            lambda: pin.constraintDynamics(mech.model, data, q, v, tau, cms, cds, prox),
+        ),
+        ("pin.rnea", "C++", None, lambda: pin.rnea(mech.model, rnea_data, q, v, tau)),
+    ]
+    methods = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
+    for backend in ("compiled", "numpy"):
+        for m in methods:
+            entries.append(
+                (
+                    f"forward_dynamics {m}",
+                    backend,
+                    pin_call,
+                    lambda m=m, b=backend: cc.forward_dynamics(
+                        mech, q, v, tau, method=m, backend=b
+                    ),
+                )
+            )
+        b = backend
+        entries += [
+            (
+                "inverse_dynamics",
+                b,
+                "pin.rnea",
+                lambda b=b: cc.inverse_dynamics(mech, q, v, a_P, actuated="independent", backend=b),
+            ),
+            ("compute_phi", b, pin_call, lambda b=b: cc.compute_phi(mech, q, backend=b)),
+            ("compute_jacobian", b, pin_call, lambda b=b: cc.compute_jacobian(mech, q, backend=b)),
+            ("compute_gamma", b, pin_call, lambda b=b: cc.compute_gamma(mech, q, v, backend=b)),
+            (
+                "project_velocity",
+                b,
+                pin_call,
+                lambda b=b: cc.project_velocity(mech, q, v, backend=b),
+            ),
+            (
+                "assemble",
+                b,
+                pin_call,
+                lambda b=b: cc.assemble(mech, guess, fixed="independent", backend=b),
+            ),
+        ]
+    a_pin = pin.constraintDynamics(mech.model, data, q, v, tau, cms, cds, prox)
+    a_kkt = cc.forward_dynamics(mech, q, v, tau, method="kkt", backend="numpy").a
+    facts = dict(nv=mech.nv, nc=mech.nc, pin_error=float(np.max(np.abs(a_pin - a_kkt))))
+    return entries, facts
+
+
+def run_percall(repeats: int = 5) -> tuple[list[dict], dict]:
+    """Time :func:`percall_entries` at every size of :data:`PERCALL_SIZES`, interleaved
+    (every call of every size once per repeat; median of the repeats), CPU time of this
+    process, BLAS on one thread. Returns tidy rows and the facts of each size."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from closedchain.benchmark.scaling import _time_entries
+
+    entries, facts = [], {}
+    for n in PERCALL_SIZES:
+        mine, facts[n] = percall_entries(n)
+        entries += [(n, call, backend, ref, fn, False, []) for call, backend, ref, fn in mine]
+    with threadpool_limits(limits=1, user_api="blas"):
+        _time_entries(entries, repeats)
+    us = {(n, call, backend): float(np.median(runs)) for n, call, backend, *_, runs in entries}
+    return [
+        dict(
+            n=n,
+            nv=facts[n]["nv"],
+            nc=facts[n]["nc"],
+            call=call,
+            backend=backend,
+            us=us[n, call, backend],
+            reference=ref or "",
+            ratio=us[n, call, backend] / us[n, ref, "C++"] if ref else float("nan"),
+        )
+        for n, call, backend, ref, *_ in entries
+    ], facts
+
+
+def percall_markdown(rows: list[dict], facts: dict) -> str:
+    """The per-call tables: one per backend, a row per call, a column per size."""
+    sizes = sorted(facts)
+    head = " | ".join(f"n = {n} (nv {facts[n]['nv']})" for n in sizes)
+    cell = {(r["n"], r["call"], r["backend"]): r for r in rows}
+
+    def fmt(r: dict) -> str:
+        us = r["us"]
+        text = "failed" if us != us else (f"{us:.1f}" if us < 1000 else f"{us:.0f}")
+        return text + (f" ({r['ratio']:.2f}x)" if r["reference"] and us == us else "")
+
+    parts = []
+    for backend, title in (
+        ("C++", "References"),
+        ("compiled", "Compiled core"),
+        ("numpy", "numpy reference"),
+    ):
+        calls = list(dict.fromkeys(r["call"] for r in rows if r["backend"] == backend))
+        lines = [
+            f"### {title}",
+            "",
+            f"| call | reference | {head} |",
+            "| --- | --- |" + " --- |" * len(sizes),
+        ]
+        for call in calls:
+            first = cell[sizes[0], call, backend]
+            cells = " | ".join(fmt(cell[n, call, backend]) for n in sizes)
+            lines.append(f"| {call} | {first['reference'] or '-'} | {cells} |")
+        parts.append("\n".join(lines))
+    agree = ", ".join(f"{facts[n]['pin_error']:.1e} (n = {n})" for n in sizes)
+    parts.append(
+        "max |a_pin - a_kkt| of the reference call against closedchain's numpy kkt: " + agree + "."
+    )
+    return "\n\n".join(parts) + "\n"
+
+
+def write_percall_page(out: Path) -> None:
+    """Time the per-call functions (:func:`run_percall`) and write ``percall.csv`` and
+    the generated page ``percall.md`` into ``out``."""
+    command = "python scripts/bench_extras.py --parts percall"
+    date = bench_page.today()
+    load_before = bench_page.load_average()
+    rows, facts = run_percall()
+    write_rows(rows, out / "percall.csv", PERCALL_COLUMNS)
+    head = bench_page.run_header(
+        "Per-call cost of the public API",
+        command=command,
+        date=date,
+        load_before=load_before,
+        about="What runs where: [Backends of the per-call functions]"
+        "(../guide/dynamics-methods.md#backends-of-the-per-call-functions).",
+    )
+    text = "\n".join(
+        [
+            *head,
+            "CPU microseconds per call from Python (median of 5 interleaved repeats, same "
+            "process, BLAS on one thread) on the n-link chain of the scaling page at its "
+            "assembled start, moving; in brackets the ratio to the reference call: "
+            "`pin.constraintDynamics` with one CONTACT_3D at the tip and ProximalSettings"
+            f"{PERCALL_PROXIMAL} (containers, its own Data) for forward dynamics and rows, "
+            "`pin.rnea` for inverse dynamics (actuated = the independent coordinates). "
+            "`assemble` starts "
+            f"{PERCALL_ASSEMBLY_OFFSET:g} rad (random directions) off the closure, holding "
+            "the independent coordinates.",
+            "",
+            percall_markdown(rows, facts),
+        ]
+    )
+    with atomic_write(out / "percall.md", "w") as f:
         f.write(text)
 
 
@@ -258,6 +454,8 @@ def main() -> None:
         (out / "stability.md").write_text(stability_summary(rows))
     if "scaling" in args.parts:
         write_scaling_page(out, args.no_progress)
+    if "percall" in args.parts:
+        write_percall_page(out)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ SHARED = (
     ("RK43_MIN_FACTOR", "double", "closedchain.simulate.rk43", "MIN_FACTOR"),
     ("RK43_MAX_FACTOR", "double", "closedchain.simulate.rk43", "MAX_FACTOR"),
     ("RK43_ERROR_EXPONENT", "double", "closedchain.simulate.rk43", "ERROR_EXPONENT"),
+    ("NORMALIZATION_TOL", "double", "closedchain.mechanism", "NORMALIZATION_TOL"),
 )
 
 HEADER = """\

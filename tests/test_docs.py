@@ -35,6 +35,7 @@ GENERATED_PAGES = (
     DOCS / "bench" / "results.md",
     DOCS / "bench" / "nfourbar.md",
     DOCS / "bench" / "corpus.md",  # scripts/check_corpus.py --out
+    DOCS / "bench" / "percall.md",  # scripts/bench_extras.py --parts percall
 )
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300

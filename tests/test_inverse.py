@@ -29,6 +29,8 @@ from closedchain.validation import pinocchio_forward_dynamics
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 MODEL_NAMES = ("fourbar", "agile_eye")
+#: The compiled core where it is built ("auto"), and the numpy reference.
+BACKENDS = ("auto", "numpy")
 SEED = 20251121
 N_STATES = 30
 #: Round trip: |a_forward - a_inverse|_2 <= TOL_ROUND_TRIP max(1, |a|) [rad/s^2].
@@ -474,7 +476,8 @@ def fourbar_rocker_dead_centre() -> np.ndarray:
     return np.array([theta2, 0.0, theta4])
 
 
-def test_actuation_singularity(mechs):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_actuation_singularity(mechs, backend):
     """At the rocker's extreme, a rocker motor cannot move the linkage."""
     mech = mechs["fourbar"]
     q = fourbar_rocker_dead_centre()
@@ -483,12 +486,13 @@ def test_actuation_singularity(mechs):
         match=r"(?s)N\^T B .* is singular at q = \[.*condition number .*actuated coordinates "
         r"rocker_joint cannot produce every motion",
     ):
-        inverse_dynamics(mech, q, np.zeros(3), [0.0], actuated=["rocker_joint"])
+        inverse_dynamics(mech, q, np.zeros(3), [0.0], actuated=["rocker_joint"], backend=backend)
     # the crank motor can
-    inverse_dynamics(mech, q, np.zeros(3), [0.0])
+    inverse_dynamics(mech, q, np.zeros(3), [0.0], backend=backend)
 
 
-def test_prescribed_coordinates_do_not_determine_motion(mechs):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_prescribed_coordinates_do_not_determine_motion(mechs, backend):
     """At the rocker's extreme, the rocker's acceleration does not determine the others."""
     mech = mechs["fourbar"]
     q = fourbar_rocker_dead_centre()
@@ -497,7 +501,7 @@ def test_prescribed_coordinates_do_not_determine_motion(mechs):
         match=r"(?s)J_F .*crank_joint, coupler_joint.* is singular at q = \[.*condition number"
         r".*rocker_joint do not determine the motion",
     ) as info:
-        inverse_dynamics(mech, q, np.zeros(3), [0.0], coordinates=["rocker_joint"])
+        inverse_dynamics(mech, q, np.zeros(3), [0.0], coordinates=["rocker_joint"], backend=backend)
     np.testing.assert_array_equal(info.value.q, q)
 
 

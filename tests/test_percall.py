@@ -4,8 +4,9 @@ reference, the backend argument, and results that do not change with later calls
 from __future__ import annotations
 
 import numpy as np
+import pinocchio as pin
 import pytest
-from conftest import MODELS
+from conftest import DATA_DIR, MODELS
 
 import closedchain as cc
 from closedchain import compiled
@@ -21,6 +22,10 @@ needs_core = pytest.mark.skipif(not compiled.available(), reason="compiled core 
 BACKEND_PARITY_TOL = 1e-10
 #: phi, J and gamma: the same formulas evaluated in C++ and by numpy (round-off).
 ROWS_TOL = 1e-13
+#: Assembled configurations of the two backends [rad or m]: Gauss-Newton stops at
+#: max |phi| <= AssemblySettings.tol = 1e-12 from iterates that differ by round-off, so
+#: the two end points differ by about tol / sigma_min(J) along the rows.
+ASSEMBLY_PARITY_TOL = 1e-9
 COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
 
 
@@ -29,7 +34,15 @@ def mechanisms(tmp_path_factory):
     chain = tmp_path_factory.mktemp("chain") / "chain10.urdf"
     chain.write_text(chain_urdf(10))
     paths = [MODELS / "fourbar.urdf", MODELS / "agile_eye.urdf", MODELS / "nfourbar_2.urdf"]
-    return {p.stem: cc.load(p) for p in [*paths, chain]}
+    out = {p.stem: cc.load(p) for p in [*paths, chain, DATA_DIR / "slider_crank.urdf"]}
+    # a free-floating base: quaternion in q (nq = nv + 1)
+    out["free_fourbar"] = cc.load(MODELS / "fourbar.urdf", root_joint="free")
+    return out
+
+
+#: Models of the inverse-dynamics and assembly parity tests: planar, a prismatic loop,
+#: a long chain, a free-floating base, 3-D (spherical) loops.
+PARITY_MODELS = ["fourbar", "slider_crank", "chain10", "free_fourbar", "agile_eye"]
 
 
 def _state(mech, seed=0):
@@ -72,8 +85,8 @@ def test_rows_compiled_equal_numpy(mechanisms):
 
 @needs_core
 def test_result_keeps_the_rows_of_its_own_state(fourbar):
-    """J and gamma of a compiled result are evaluated on first access from a copy of the
-    state: changing q afterwards, or later calls, do not change them."""
+    """J and gamma of a compiled result are those of its own state: changing q
+    afterwards, or later calls, do not change them."""
     q, v, tau = _state(fourbar)
     ref = cc.forward_dynamics(fourbar, q, v, tau, method="kkt", backend="numpy")
     res = cc.forward_dynamics(fourbar, q, v, tau, method="kkt", backend="compiled")
@@ -123,3 +136,109 @@ def test_project_velocity_compiled_equals_numpy(mechanisms):
             c = cc.project_velocity(mech, q, v, fixed=fixed, backend="compiled")
             n = cc.project_velocity(mech, q, v, fixed=fixed, backend="numpy")
             assert np.max(np.abs(c - n)) <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(n)))
+
+
+@needs_core
+@pytest.mark.parametrize("name", PARITY_MODELS)
+def test_inverse_dynamics_compiled_equals_numpy(mechanisms, name):
+    mech = mechanisms[name]
+    q, v, _ = _state(mech, seed=4)
+    a_P = np.random.default_rng(5).standard_normal(mech.mobility)
+    tau_passive = np.random.default_rng(6).standard_normal(mech.nv)
+    for passive in (None, tau_passive):
+        kw = dict(actuated="independent", tau_passive=passive)
+        c = cc.inverse_dynamics(mech, q, v, a_P, backend="compiled", **kw)
+        n = cc.inverse_dynamics(mech, q, v, a_P, backend="numpy", **kw)
+        for field in ("tau", "a", "lam"):
+            x, ref = getattr(c, field), getattr(n, field)
+            assert np.max(np.abs(x - ref)) <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(ref)))
+        assert np.max(np.abs(c.J - n.J)) <= ROWS_TOL
+        assert np.max(np.abs(c.gamma - n.gamma)) <= ROWS_TOL * (1 + np.max(np.abs(n.gamma)))
+        assert c.dynamics_residual <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(n.tau)))
+        assert c.constraint_residual <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(n.a)))
+        np.testing.assert_array_equal(c.actuated_idx_v, n.actuated_idx_v)
+        # "auto" is the compiled core where it is built
+        auto = cc.inverse_dynamics(mech, q, v, a_P, **kw)
+        assert np.array_equal(auto.tau, c.tau)
+
+
+@needs_core
+def test_inverse_dynamics_redundant_actuation_is_numpy(mechanisms):
+    """More actuators than degrees of freedom (minimum-norm torques): numpy's; "compiled"
+    says so."""
+    mech = mechanisms["fourbar"]
+    q, v, _ = _state(mech, seed=4)
+    kw = dict(actuated=["crank_joint", "rocker_joint"])
+    with pytest.raises(InvalidArgumentError, match="redundant actuation.*backend='numpy'"):
+        cc.inverse_dynamics(mech, q, v, [1.0], backend="compiled", **kw)
+    auto = cc.inverse_dynamics(mech, q, v, [1.0], **kw)
+    ref = cc.inverse_dynamics(mech, q, v, [1.0], backend="numpy", **kw)
+    assert np.array_equal(auto.tau, ref.tau)
+
+
+@needs_core
+@pytest.mark.parametrize("name", PARITY_MODELS)
+def test_assemble_compiled_equals_numpy(mechanisms, name):
+    mech = mechanisms[name]
+    q, _, _ = _state(mech, seed=7)
+    guess = pin.integrate(mech.model, q, 0.05 * np.random.default_rng(8).standard_normal(mech.nv))
+    for fixed in ((), "independent"):
+        c = cc.assemble(mech, guess, fixed=fixed, backend="compiled")
+        n = cc.assemble(mech, guess, fixed=fixed, backend="numpy")
+        assert np.max(np.abs(c - n)) <= ASSEMBLY_PARITY_TOL
+        phi = cc.compute_phi(mech, c, backend="numpy")
+        assert np.max(np.abs(phi)) <= cc.AssemblySettings().tol
+
+
+def _message(fn, *args, **kwargs) -> tuple[type, str]:
+    with pytest.raises(cc.ClosedChainError) as info:
+        fn(*args, **kwargs)
+    return type(info.value), str(info.value)
+
+
+@needs_core
+def test_argument_errors_are_the_same_on_both_backends(mechanisms):
+    """The compiled entry points check shapes, finiteness and normalization in C++ with
+    the numpy path's exception classes and messages."""
+    free = mechanisms["free_fourbar"]
+    q, v, tau = _state(free)
+    nan = v.copy()
+    nan[1] = np.nan
+    off_sphere = q.copy()
+    off_sphere[3:7] *= 1.01  # the base's quaternion
+    cases = [
+        ("q has shape", (q[:-1], v, tau)),
+        ("q has shape", (q[:, None], v, tau)),
+        ("v contains non-finite values", (q, nan, tau)),
+        ("tau contains non-finite values", (q, v, nan)),
+        ("tau has shape", (q, v, tau[:3])),
+        ("has norm 1.01", (off_sphere, v, tau)),
+        ("overflowed to non-finite", (q, 1e200 * np.ones(free.nv), tau)),
+    ]
+    for match, args in cases:
+        c = _message(cc.forward_dynamics, free, *args, method="kkt", backend="compiled")
+        n = _message(cc.forward_dynamics, free, *args, method="kkt", backend="numpy")
+        assert c == n
+        assert match in c[1]
+    for fn, args in ((cc.compute_phi, (off_sphere,)), (cc.compute_gamma, (q, nan))):
+        assert _message(fn, free, *args, backend="compiled") == _message(
+            fn, free, *args, backend="numpy"
+        )
+
+
+@needs_core
+def test_compiled_calls_take_what_numpy_takes(mechanisms):
+    """Lists, integer and strided arrays: converted as numpy.asarray(x, dtype=float)."""
+    mech = mechanisms["chain10"]
+    q, v, tau = _state(mech)
+    ref = cc.forward_dynamics(mech, q, v, tau, method="kkt", backend="compiled")
+    strided = np.zeros((mech.nv, 2))
+    strided[:, 0] = v
+    for args in ((list(q), list(v), list(tau)), (q, strided[:, 0], np.zeros(mech.nv, int))):
+        res = cc.forward_dynamics(mech, *args, method="kkt", backend="compiled")
+        exp = cc.forward_dynamics(mech, *args, method="kkt", backend="numpy")
+        assert np.max(np.abs(res.a - exp.a)) <= BACKEND_PARITY_TOL * (1 + np.max(np.abs(exp.a)))
+    backwards = v[::-1].copy()[::-1]  # a negative stride
+    res = cc.forward_dynamics(mech, q, backwards, None, method="kkt", backend="compiled")
+    assert np.array_equal(res.a, cc.forward_dynamics(mech, q, v, method="kkt").a)
+    assert not np.array_equal(ref.a, res.a)  # tau mattered

@@ -23,6 +23,8 @@ if TYPE_CHECKING:
 BACKENDS = ("auto", "compiled", "numpy")
 #: Compiled evaluators kept per mechanism (other settings objects make new ones).
 MAX_EVALUATORS = 8
+#: A member of the compiled Core that has the per-call entry points (src/cpp/percall.hpp).
+PERCALL_ENTRY = "forward_checked"
 
 
 def backend_name(backend: str) -> str:
@@ -37,6 +39,8 @@ def why_not_compiled(mech: Mechanism, method: str) -> str | None:
 
     if not compiled.available():
         return f"the compiled core is not available ({compiled.IMPORT_ERROR})"
+    if not compiled.has(PERCALL_ENTRY):
+        return "the compiled core was built from an older tree (rebuild it: pip install -e .)"
     capabilities = METHOD_CAPABILITIES.get(method)
     if capabilities is None or not capabilities.compiled:
         valid = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
@@ -92,6 +96,18 @@ def _make(mech: Mechanism, method: str, settings: SolverSettings):
 def rows_evaluator(mech: Mechanism, backend: str) -> CompiledDynamics | None:
     """The compiled evaluator of the kept rows' phi, J and gamma (no Baumgarte terms),
     or None where they are evaluated by numpy."""
-    from .dynamics.base import DEFAULT_SETTINGS
+    return evaluator(mech, "kkt", _default_settings(), backend)
 
-    return evaluator(mech, "kkt", DEFAULT_SETTINGS, backend)
+
+def _default_settings() -> SolverSettings:
+    """``dynamics.base.DEFAULT_SETTINGS`` (imported on first use: that package imports
+    this module)."""
+    global _DEFAULT_SETTINGS
+    if _DEFAULT_SETTINGS is None:
+        from .dynamics.base import DEFAULT_SETTINGS
+
+        _DEFAULT_SETTINGS = DEFAULT_SETTINGS
+    return _DEFAULT_SETTINGS
+
+
+_DEFAULT_SETTINGS: SolverSettings | None = None

@@ -153,18 +153,24 @@ def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
     The same rows as ``closure.layer_phi`` / ``layer_jacobian`` of ``mech.declared``
     (tests/test_compiled.py: to 1e-12) at a few microseconds instead of about 100:
-    ``simulate``'s start checks on the compiled backend. The core that evaluates them
-    holds the declared rows only, is built once per mechanism and never runs a
-    simulation (nothing of a run's settings enters it).
+    ``simulate``'s start checks on the compiled backend.
     """
+    phi, J, _ = declared_core(mech).rows(np.asarray(q, dtype=float), np.zeros(mech.nv))
+    return phi, J
+
+
+def declared_core(mech: Mechanism):
+    """Return the core of every declared row of ``mech`` (:func:`declared_rows`; its
+    ``phi_checked`` and ``jacobian_checked`` serve :func:`closedchain.assemble` and
+    :func:`closedchain.project_velocity`). Built once per mechanism; it never runs a
+    simulation (nothing of a run's settings enters it)."""
     if _core is None:
         raise ClosedChainError(f"the compiled core is not available: {IMPORT_ERROR}")
     entry = mech.__dict__.get("_compiled_declared_core")
     if entry is None or entry[0] is not mech.declared:
-        entry = (mech.declared, _core_of_rows(mech, mech.declared), np.zeros(mech.nv))
+        entry = (mech.declared, _core_of_rows(mech, mech.declared))
         mech.__dict__["_compiled_declared_core"] = entry
-    phi, J, _ = entry[1].rows(np.asarray(q, dtype=float), entry[2])
-    return phi, J
+    return entry[1]
 
 
 def set_band(core, mech: Mechanism) -> tuple[int, int]:

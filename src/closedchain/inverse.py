@@ -66,13 +66,14 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pinocchio as pin
 from scipy.linalg import lapack
 
 from ._locking import exclusive
+from ._percall import backend_name, rows_evaluator
 from .dynamics.base import (
     DEFAULT_SETTINGS,
     SolverSettings,
@@ -80,7 +81,7 @@ from .dynamics.base import (
     singular_error,
     workspace,
 )
-from .exceptions import ClosedChainError, NonFiniteError, check_settings
+from .exceptions import ClosedChainError, InvalidArgumentError, NonFiniteError, check_settings
 from .urdf import COUPLING
 
 if TYPE_CHECKING:
@@ -198,23 +199,42 @@ def _resolve_ordered(mech: Mechanism, spec: Iterable[str | int] | str, what: str
     return np.array(out, dtype=int)
 
 
-def _cached_indices(mech: Mechanism, coordinates, actuated) -> tuple:
-    """Return (P, F, A) for these specs, resolved once per mechanism (controllers call
+class _Indices(NamedTuple):
+    """Velocity indices of one (coordinates, actuated) spec: prescribed P, the others F,
+    actuated A, and (int32, for the compiled core) the same and the unactuated Abar."""
+
+    P: np.ndarray
+    F: np.ndarray
+    A: np.ndarray
+    P32: np.ndarray
+    F32: np.ndarray
+    A32: np.ndarray
+    Abar32: np.ndarray
+
+
+def _cached_indices(mech: Mechanism, coordinates, actuated) -> _Indices:
+    """Return the indices of these specs, resolved once per mechanism (controllers call
     inverse_dynamics every evaluation with the same specs)."""
-    try:
-        key = tuple(x if isinstance(x, str) else tuple(x) for x in (coordinates, actuated))
-        hash(key)
-    except TypeError:
-        key = None
     cache = workspace(mech).method_buffers.setdefault("inverse_indices", {})
-    if key is not None and key in cache:
-        return cache[key]
+    key = (coordinates, actuated)
+    if isinstance(coordinates, str) and isinstance(actuated, str):
+        hit = cache.get(key)  # the keywords: no conversion
+    else:
+        try:
+            key = tuple(x if isinstance(x, str) else tuple(x) for x in key)
+            hit = cache.get(key)
+        except TypeError:
+            key, hit = None, None
+    if hit is not None:
+        return hit
     P = _resolve_ordered(mech, coordinates, "coordinates")
     F = np.setdiff1d(np.arange(mech.nv), P)
     A = mech.coordinate_indices(actuated)
+    Abar = np.setdiff1d(np.arange(mech.nv), A)
+    out = _Indices(P, F, A, *(x.astype(np.int32) for x in (P, F, A, Abar)))
     if key is not None:
-        cache[key] = (P, F, A)
-    return P, F, A
+        cache[key] = out
+    return out
 
 
 def _balance_weak_directions(b, s, V, A, Z, tau_A, settings: SolverSettings) -> np.ndarray:
@@ -281,6 +301,7 @@ def inverse_dynamics(
     coordinates: Iterable[str | int] | str = "independent",
     tau_passive: np.ndarray | None = None,
     settings: SolverSettings = DEFAULT_SETTINGS,
+    backend: str = "auto",
 ) -> InverseDynamicsResult:
     """Compute the actuator torques that produce prescribed accelerations.
 
@@ -303,6 +324,10 @@ def inverse_dynamics(
             minimum-norm ones plus the spare torques that balance the load along J's
             near-null directions (``weak_rcond``), so that the multipliers stay of
             the size of the loads.
+        backend: ``"auto"`` (the compiled core when it is built, holds the mechanism's
+            rows and there are as many actuated coordinates as degrees of freedom; else
+            numpy), ``"compiled"`` or ``"numpy"`` (the reference implementation), as
+            :func:`~closedchain.forward_dynamics`. The two agree to round-off.
 
     Returns:
         The torques (zero off the actuated coordinates), full accelerations,
@@ -312,20 +337,22 @@ def inverse_dynamics(
         ClosedChainError: the mechanism has no degree of freedom (mobility 0),
             wrong number of prescribed coordinates or accelerations, or fewer
             actuators than degrees of freedom (names both).
+        InvalidArgumentError: ``backend="compiled"`` where the core cannot run it
+            (more actuators than degrees of freedom: the minimum-norm torques are numpy's).
         SingularConfigurationError: the prescribed coordinates do not determine
             the motion (J_F singular), J has lost rank, or the actuators cannot
             produce every motion at q (N^T B singular, an actuation singularity).
     """
     check_settings("settings", settings, SolverSettings)
-    q = mech.check_q(q, "q")
-    v = mech.check_v(v, "v")
-    nv, nc, mob = mech.nv, mech.nc, mech.mobility
+    backend = backend_name(backend)
+    mob = mech.mobility
     if mob == 0:
         raise ClosedChainError(
             f"{mech.name}: the mechanism has no degree of freedom (mobility 0): no actuator "
             "torque moves or holds it, the loops carry every load; valid: mobility >= 1"
         )
-    P, F, A = _cached_indices(mech, coordinates, actuated)
+    idx = _cached_indices(mech, coordinates, actuated)
+    P, A = idx.P, idx.A
     if len(P) != mob:
         raise ClosedChainError(
             f"{mech.name}: coordinates names {len(P)} coordinates "
@@ -333,7 +360,7 @@ def inverse_dynamics(
             f"give the accelerations of exactly {mob} coordinates"
         )
     a_P = np.asarray(a_independent, dtype=float).reshape(-1)
-    if a_P.shape != (mob,) or not np.all(np.isfinite(a_P)):
+    if a_P.shape != (mob,) or not np.isfinite(a_P).all():
         raise ClosedChainError(
             f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
             f"got {np.asarray(a_independent)}"
@@ -344,7 +371,45 @@ def inverse_dynamics(
             f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
             f"the accelerations of {mob} degrees of freedom; actuated must name at least {mob}"
         )
+    if len(A) > mob and backend == "compiled":
+        raise InvalidArgumentError(
+            f"{mech.name}: backend='compiled': {len(A)} actuated coordinates for {mob} degrees "
+            "of freedom (redundant actuation: the minimum-norm torques); valid: "
+            "backend='numpy' or 'auto'"
+        )
+    fd = rows_evaluator(mech, backend) if len(A) == mob else None
+    if fd is not None:
+        # The core checks q, v and tau_passive, and solves the loop rows (percall.hpp).
+        status, cond, a, tau, lam, J, gamma, dyn, con = fd.core.inverse_checked(
+            q, v, a_P, idx.P32, idx.F32, idx.A32, idx.Abar32, tau_passive, settings.cond_max
+        )
+        if status != INVERSE_OK:
+            q = np.asarray(q, dtype=float)
+            raise _failure(status, mech, q, v, a_P, idx, cond, settings)
+    else:
+        tau, a, lam, J, gamma, dyn, con = _inverse_numpy(
+            mech, q, v, a_P, idx, tau_passive, settings
+        )
+    return InverseDynamicsResult(
+        tau=tau,
+        a=a,
+        lam=lam,
+        actuated_idx_v=A,
+        prescribed_idx_v=P,
+        J=J,
+        gamma=gamma,
+        dynamics_residual=dyn,
+        constraint_residual=con,
+    )
 
+
+def _inverse_numpy(mech: Mechanism, q, v, a_P, idx, tau_passive, settings) -> tuple:
+    """The numpy reference of :func:`inverse_dynamics`: (tau, a, lam, J, gamma, dynamics
+    residual, constraint residual)."""
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    nv, nc, mob = mech.nv, mech.nc, mech.mobility
+    P, F, A = idx.P, idx.F, idx.A
     ws = compute_terms(mech, q, v)
     M, h = ws.M.copy(), ws.h.copy()
     J, gamma = ws.J.copy(), ws.gamma.copy()
@@ -358,42 +423,19 @@ def inverse_dynamics(
         rcond = lapack.dgecon(lu, lapack.dlange("1", JF))[0] if info == 0 else 0.0
         cond = 1.0 / rcond if rcond > 0.0 else float("inf")
         if cond > settings.cond_max:
-            raise singular_error(
-                mech,
-                q,
-                "J_F (constraint-Jacobian columns of the coordinates not prescribed: "
-                + ", ".join(mech.coordinate_names[i] for i in F)
-                + ")",
-                cond,
-                settings.cond_max,
-                "the prescribed coordinates "
-                + ", ".join(mech.coordinate_names[i] for i in P)
-                + " do not determine the motion here; prescribe other coordinates",
-            )
+            raise _failure(INVERSE_JF_SINGULAR, mech, q, v, a_P, idx, cond, settings)
         a[F] = lapack.dgetrs(lu, piv, -gamma - J[:, P] @ a_P)[0]
 
     b = M @ a + h  # = B tau_A - J^T lam
     if tau_passive is not None:
         b -= mech.check_v(tau_passive, "tau_passive")
     if not np.all(np.isfinite(b)):
-        raise NonFiniteError(
-            f"{mech.name}: inverse dynamics overflowed to non-finite M a + h at "
-            f"max|v| = {np.max(np.abs(v), initial=0):.3g}, "
-            f"max|a_independent| = {np.max(np.abs(a_P), initial=0):.3g}: the motion must be "
-            "small enough for M a + h to stay finite in double precision"
-        )
+        raise _failure(INVERSE_NON_FINITE, mech, q, v, a_P, idx, 0.0, settings)
     if nc:
         U, s, Vt = _svd(J)
         cond = _condition(s)
         if cond > settings.cond_max:
-            raise singular_error(
-                mech,
-                q,
-                "the constraint Jacobian J",
-                cond,
-                settings.cond_max,
-                "the loops have lost rank, so their multipliers are not unique",
-            )
+            raise _failure(INVERSE_J_SINGULAR, mech, q, v, a_P, idx, cond, settings)
         N = Vt[nc:].T
     else:
         N = np.eye(nv)
@@ -407,16 +449,7 @@ def inverse_dynamics(
     Ug, sg, Vgt = _svd(G)
     cond = 1.0 / sg[-1] if sg[-1] > 0.0 else float("inf")
     if cond > settings.cond_max:
-        raise singular_error(
-            mech,
-            q,
-            "N^T B (the actuators' reach into the motion space)",
-            cond,
-            settings.cond_max,
-            "the actuated coordinates "
-            + ", ".join(mech.coordinate_names[i] for i in A)
-            + " cannot produce every motion here (an actuation singularity)",
-        )
+        raise _failure(INVERSE_ACTUATION_SINGULAR, mech, q, v, a_P, idx, cond, settings)
     tau_A = Vgt[:mob].T @ ((Ug.T @ (N.T @ b)) / sg)
     if nc and len(A) > mob:
         tau_A += _balance_weak_directions(b, s, Vt[:nc], A, Vgt[mob:].T, tau_A, settings)
@@ -426,17 +459,50 @@ def inverse_dynamics(
     lam = U @ ((Vt[:nc] @ f) / s) if nc else np.zeros(0)
     dyn = float(np.max(np.abs(b + J.T @ lam - tau)))
     con = float(np.max(np.abs(J @ a + gamma), initial=0.0))
-    return InverseDynamicsResult(
-        tau=tau,
-        a=a,
-        lam=lam,
-        actuated_idx_v=A,
-        prescribed_idx_v=P,
-        J=J,
-        gamma=gamma,
-        dynamics_residual=dyn,
-        constraint_residual=con,
-    )
+    return tau, a, lam, J, gamma, dyn, con
+
+
+#: The outcomes of the compiled core's inverse_checked (src/cpp/percall.hpp), which the
+#: numpy path reports with the same codes (:func:`_failure`).
+INVERSE_OK = 0
+INVERSE_JF_SINGULAR = 1
+INVERSE_NON_FINITE = 2
+INVERSE_J_SINGULAR = 3
+INVERSE_ACTUATION_SINGULAR = 4
+
+
+def _failure(
+    status: int, mech: Mechanism, q, v, a_P, idx: _Indices, cond: float, settings
+) -> ClosedChainError:
+    """The error of inverse_dynamics' failure ``status``, shared by the two backends."""
+    if status == INVERSE_NON_FINITE:
+        return NonFiniteError(
+            f"{mech.name}: inverse dynamics overflowed to non-finite M a + h at "
+            f"max|v| = {np.max(np.abs(v), initial=0):.3g}, "
+            f"max|a_independent| = {np.max(np.abs(a_P), initial=0):.3g}: the motion must be "
+            "small enough for M a + h to stay finite in double precision"
+        )
+
+    def names(indices: np.ndarray) -> str:
+        return ", ".join(mech.coordinate_names[i] for i in indices)
+
+    what, hint = {
+        INVERSE_JF_SINGULAR: (
+            f"J_F (constraint-Jacobian columns of the coordinates not prescribed: {names(idx.F)})",
+            f"the prescribed coordinates {names(idx.P)} do not determine the motion here; "
+            "prescribe other coordinates",
+        ),
+        INVERSE_J_SINGULAR: (
+            "the constraint Jacobian J",
+            "the loops have lost rank, so their multipliers are not unique",
+        ),
+        INVERSE_ACTUATION_SINGULAR: (
+            "N^T B (the actuators' reach into the motion space)",
+            f"the actuated coordinates {names(idx.A)} cannot produce every motion here "
+            "(an actuation singularity)",
+        ),
+    }[status]
+    return singular_error(mech, q, what, cond, settings.cond_max, hint)
 
 
 @exclusive

@@ -29,6 +29,7 @@ from ._locking import exclusive
 from ._percall import backend_name, rows_evaluator
 from .closure import (
     DEFAULT_ASSEMBLY_SETTINGS,
+    RowFunctions,
     SelectionSettings,
     assemble_closure,
     layer_jacobian,
@@ -37,7 +38,7 @@ from .closure import (
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
-from .compiled import declared_rows
+from .compiled import declared_core
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
 if TYPE_CHECKING:
@@ -55,6 +56,7 @@ def assemble(
     *,
     fixed: Iterable[str | int] | str = (),
     settings: AssemblySettings = DEFAULT_ASSEMBLY_SETTINGS,
+    backend: str = "auto",
 ) -> np.ndarray:
     """Bring a configuration onto the constraint manifold phi(q) = 0.
 
@@ -65,6 +67,9 @@ def assemble(
         fixed: coordinates held at their value in ``q_guess``: joint names,
             velocity indices, or ``"actuated"`` / ``"independent"``.
         settings: tolerances (defaults: :class:`AssemblySettings`).
+        backend: where Gauss-Newton evaluates phi and J, as :func:`compute_phi` (the
+            steps, the line search and the far-from-closure least-squares solve are
+            numpy's).
 
     Returns:
         q with max |phi(q)| <= settings.tol over every declared row (the
@@ -77,9 +82,9 @@ def assemble(
             smallest closure residual reached, ``exc.q`` its configuration).
     """
     check_settings("settings", settings, AssemblySettings)
+    rows = _declared_rows(mech, backend)
     q_guess = mech.check_q(q_guess, "q_guess")
-    held = mech.coordinate_indices(fixed)
-    free = np.setdiff1d(np.arange(mech.nv), held)
+    free, held, _ = _free_coordinates(mech, fixed)
     try:
         # Every declared row, not only the independent ones: a configuration on
         # another solution branch of the kept rows with a dropped row open is
@@ -92,7 +97,7 @@ def assemble(
             settings = replace(settings, mismatch_tol=mech.closure.mismatch_tol)
             polish = mech.constraints
         return assemble_closure(
-            mech.model, mech.data, mech.declared, q_guess, free, settings, polish=polish
+            mech.model, mech.data, mech.declared, q_guess, free, settings, polish=polish, rows=rows
         )
     except AssemblyError as exc:
         raise AssemblyError(
@@ -114,9 +119,9 @@ def compute_phi(mech: Mechanism, q: np.ndarray, *, backend: str = "auto") -> np.
             or ``"numpy"``, as :func:`~closedchain.forward_dynamics`.
     """
     rows = rows_evaluator(mech, backend_name(backend))
-    q = mech.check_q(q, "q")
     if rows is not None:
-        return rows.rows(q, np.zeros(mech.nv))[0]
+        return rows.core.phi_checked(q)
+    q = mech.check_q(q, "q")
     return layer_phi(mech.model, mech.data, mech.constraints, q)
 
 
@@ -130,9 +135,9 @@ def compute_jacobian(mech: Mechanism, q: np.ndarray, *, backend: str = "auto") -
         backend: as :func:`compute_phi`.
     """
     rows = rows_evaluator(mech, backend_name(backend))
-    q = mech.check_q(q, "q")
     if rows is not None:
-        return rows.rows(q, np.zeros(mech.nv))[1]
+        return rows.core.jacobian_checked(q)
+    q = mech.check_q(q, "q")
     return layer_jacobian(mech.model, mech.data, mech.constraints, q)
 
 
@@ -149,10 +154,10 @@ def compute_gamma(
         backend: as :func:`compute_phi`.
     """
     rows = rows_evaluator(mech, backend_name(backend))
+    if rows is not None:
+        return rows.core.gamma_checked(q, v)
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
-    if rows is not None:
-        return rows.rows(q, v)[2]
     pin.forwardKinematics(mech.model, mech.data, q, v, np.zeros(mech.nv))
     out = np.zeros(mech.nc)
     mech.constraints.evaluate(mech.model, mech.data, gamma=out)
@@ -189,33 +194,69 @@ def project_velocity(
         ClosedChainError: the held coordinates admit no velocity with J v = 0.
     """
     compiled_rows = rows_evaluator(mech, backend_name(backend)) is not None
-    q = mech.check_q(q, "q")
-    v = np.array(mech.check_v(v, "v"), dtype=float)
-    if mech.nc == 0:
-        return v
-    # Every declared row: the same tangent space as the independent rows
-    # wherever they describe the loops, and the right one where they do not.
-    if compiled_rows:
-        J = declared_rows(mech, q)[1]
-    else:
-        J = layer_jacobian(mech.model, mech.data, mech.declared, q)
-    held = mech.coordinate_indices(fixed)
-    free = np.setdiff1d(np.arange(mech.nv), held)
+    free, held, free32 = _free_coordinates(mech, fixed)
     # The declared rows are redundant (rank < rows): singular values below the
     # rank tolerance of the row selection are round-off, not directions to project
     # along (lstsq's default cutoff, ~1e-15, amplified Bricard's 1e-13 one to 1e-3).
     rcond = SelectionSettings().rank_tol
-    v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=rcond)[0]
-    residual = float(np.max(np.abs(J @ v), initial=0.0))
-    scale = max(1.0, float(np.linalg.norm(J, 2) * np.linalg.norm(v)))
+    # Every declared row: the same tangent space as the independent rows
+    # wherever they describe the loops, and the right one where they do not.
+    if compiled_rows:
+        core = declared_core(mech)
+        v, residual, row, sigma_max = core.project_checked(q, v, free32, rcond)
+        if mech.nc == 0:
+            return v
+    else:
+        q = mech.check_q(q, "q")
+        v = np.array(mech.check_v(v, "v"), dtype=float)
+        if mech.nc == 0:
+            return v
+        J = layer_jacobian(mech.model, mech.data, mech.declared, q)
+        v[free] -= np.linalg.lstsq(J[:, free], J @ v, rcond=rcond)[0]
+        Jv = np.abs(J @ v)
+        row, residual = int(np.argmax(Jv)), float(np.max(Jv, initial=0.0))
+        sigma_max = float(np.linalg.norm(J, 2))
+    scale = max(1.0, sigma_max * float(np.linalg.norm(v)))
     if residual > VELOCITY_TOL * scale:
-        row = mech.declared.declared_rows[int(np.argmax(np.abs(J @ v)))].label
         raise ClosedChainError(
             f"{mech.name}: no velocity with J v = 0 keeps the held coordinates "
-            f"({', '.join(mech.coordinate_names[i] for i in held)}): row {row} keeps "
-            f"|J v| = {residual:.3e}"
+            f"({', '.join(mech.coordinate_names[i] for i in held)}): row "
+            f"{mech.declared.declared_rows[row].label} keeps |J v| = {residual:.3e}"
         )
     return v
+
+
+def _free_coordinates(mech: Mechanism, fixed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(free, held, free as int32) velocity indices of ``fixed`` (as :func:`assemble`'s),
+    resolved once per constraint layer for a hashable ``fixed`` (controllers project every
+    step; a new row selection may change the independent coordinates)."""
+    entry = mech.__dict__.get("_free_coordinates")
+    if entry is None or entry[0] is not mech.constraints:
+        entry = mech.__dict__["_free_coordinates"] = (mech.constraints, {})
+    cache = entry[1]
+    try:
+        key = fixed if isinstance(fixed, str) else tuple(fixed)
+        hit = cache.get(key)
+    except TypeError:
+        key, hit = None, None
+    if hit is None:
+        held = mech.coordinate_indices(fixed)
+        free = np.setdiff1d(np.arange(mech.nv), held)
+        hit = (free, held, free.astype(np.int32))
+        for x in hit:
+            x.setflags(write=False)  # shared by later calls
+        if key is not None:
+            cache[key] = hit
+    return hit
+
+
+def _declared_rows(mech: Mechanism, backend: str) -> RowFunctions | None:
+    """The compiled core's :class:`RowFunctions` of every declared row, or None where
+    ``backend`` (as :func:`compute_phi`) has them evaluated by numpy."""
+    if rows_evaluator(mech, backend_name(backend)) is None:
+        return None
+    core = declared_core(mech)
+    return RowFunctions(core.phi_checked, core.jacobian_checked)
 
 
 @dataclass(frozen=True)

@@ -112,6 +112,11 @@ constexpr double RK43_MAX_FACTOR = 5.0;
 /// (closedchain.simulate.rk43.ERROR_EXPONENT)
 constexpr double RK43_ERROR_EXPONENT = -0.25;
 
+/// Largest accepted deviation from 1 of the norm of a continuous joint's
+/// (cos, sin) or a quaternion in a configuration passed to closedchain.
+/// (closedchain.mechanism.NORMALIZATION_TOL)
+constexpr double NORMALIZATION_TOL = 1e-09;
+
 /// How to pass singular positions, appended to the partitioning stabilization's
 /// singular errors (closedchain.simulate.problem.passing_hint()).
 static const char *const PASSING_HINT =

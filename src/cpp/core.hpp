@@ -126,6 +126,8 @@ class Core {
   int nv() const { return nv_; }
   /// The mechanism's name, the first word of every error message.
   const std::string &name() const { return name_; }
+  /// The configured forward-dynamics method's name ("kkt", ...).
+  const std::string &method_name() const { return method_name_; }
   /// Mass matrix M, shape (nv, nv), at the last evaluation [kg, kg m, kg m^2].
   const Mat &mass_matrix() const { return M_; }
   /// Bias forces h = C(q, v) v + g(q), shape (nv,), at the last evaluation [N, N m].

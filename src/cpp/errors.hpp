@@ -29,6 +29,11 @@ struct BadArgument {
   std::string message;
 };
 
+// A per-call result overflowed to inf or NaN (closedchain.exceptions.NonFiniteError).
+struct NonFinite {
+  std::string message;
+};
+
 // The kept rows stopped describing the loops at t (a dropped row opened, or the
 // kept rows degenerate): the Python side re-selects them (closedchain.closure).
 struct RowCheckRequired {

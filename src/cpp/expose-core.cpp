@@ -13,6 +13,7 @@
 
 #include "core_all.hpp"
 #include "expose.hpp"
+#include "percall.hpp"
 
 namespace closedchain {
 
@@ -42,6 +43,20 @@ void expose_core() {
       .def("rows", &Core::py_rows, bp::args("self", "q", "v"),
            "(phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.")
       .def("forward", &Core::py_forward, bp::args("self", "q", "v", "tau"), "(a, lam) at (q, v).")
+      .def("forward_checked", &forward_checked, bp::args("self", "q", "v", "tau"),
+           "(a, lam, J, gamma) at (q, v) with tau (None: zeros), the arguments checked: "
+           "closedchain.forward_dynamics.")
+      .def("phi_checked", &phi_checked, bp::args("self", "q"), "phi(q), q checked.")
+      .def("jacobian_checked", &jacobian_checked, bp::args("self", "q"), "J(q), q checked.")
+      .def("gamma_checked", &gamma_checked, bp::args("self", "q", "v"),
+           "gamma(q, v), the arguments checked.")
+      .def("project_checked", &project_checked, bp::args("self", "q", "v", "free", "rcond"),
+           "(v projected onto J v = 0 moving the free entries, max |J v|, its row, "
+           "sigma_max(J)): closedchain.project_velocity.")
+      .def("inverse_checked", &inverse_checked,
+           bp::args("self", "q", "v", "a_P", "P", "F", "A", "Abar", "tau_passive", "cond_max"),
+           "(status, cond, a, tau, lam, J, gamma, dynamics residual, constraint residual): "
+           "closedchain.inverse_dynamics with as many actuators as degrees of freedom.")
       .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),
            "a at (q, v) after n evaluations inside C++ (timing).")
       .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),

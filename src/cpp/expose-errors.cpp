@@ -46,6 +46,11 @@ void translate_bad(const BadArgument &e) {
   set_error(cls, cls(e.message));
 }
 
+void translate_non_finite(const NonFinite &e) {
+  bp::object cls = exception_class("NonFiniteError");
+  set_error(cls, cls(e.message));
+}
+
 }  // namespace
 
 void expose_errors() {
@@ -53,6 +58,7 @@ void expose_errors() {
   bp::register_exception_translator<SimulationFailure>(&translate_simulation);
   bp::register_exception_translator<RowCheckRequired>(&translate_row_check);
   bp::register_exception_translator<BadArgument>(&translate_bad);
+  bp::register_exception_translator<NonFinite>(&translate_non_finite);
 }
 
 }  // namespace closedchain

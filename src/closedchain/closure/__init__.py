@@ -43,6 +43,7 @@ from __future__ import annotations
 from .assembly import DEFAULT_ASSEMBLY_SETTINGS as DEFAULT_ASSEMBLY_SETTINGS
 from .assembly import (
     AssemblySettings,
+    RowFunctions,
     SelectionSettings,
     assemble_closure,
     closure_error,
@@ -69,6 +70,7 @@ from .selection import (
 __all__ = [
     "LoopClosure",
     "RowCheckSettings",
+    "RowFunctions",
     "RowSelection",
     "SelectionSettings",
     "layer_jacobian",

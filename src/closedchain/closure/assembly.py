@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
@@ -123,6 +124,27 @@ def layer_jacobian(model, data, layer: ConstraintLayer, q: np.ndarray) -> np.nda
     return out
 
 
+class RowFunctions(NamedTuple):
+    """Evaluators of a layer's rows that Gauss-Newton may use in place of
+    :func:`layer_phi` and :func:`layer_jacobian` (the compiled core's, for
+    :func:`closedchain.assemble`): the same rows, equal to round-off.
+
+    Attributes:
+        phi: ``phi(q)``, shape (nc,) [m or -].
+        jacobian: ``jacobian(q)``, shape (nc, nv).
+    """
+
+    phi: Callable[[np.ndarray], np.ndarray]
+    jacobian: Callable[[np.ndarray], np.ndarray]
+
+
+def layer_rows(model, data, layer: ConstraintLayer) -> RowFunctions:
+    """The numpy :class:`RowFunctions` of ``layer`` (on ``data``, overwritten)."""
+    return RowFunctions(
+        lambda q: layer_phi(model, data, layer, q), lambda q: layer_jacobian(model, data, layer, q)
+    )
+
+
 def solve_closure(
     model: pin.Model,
     data: pin.Data,
@@ -130,6 +152,8 @@ def solve_closure(
     q_guess: np.ndarray,
     free: np.ndarray,
     settings: AssemblySettings,
+    *,
+    rows: RowFunctions | None = None,
 ) -> np.ndarray:
     """Gauss-Newton onto phi(q) = 0 moving only the ``free`` velocity coordinates.
 
@@ -140,6 +164,7 @@ def solve_closure(
         q_guess: start configuration, shape (nq,).
         free: velocity indices allowed to move.
         settings: tolerances.
+        rows: evaluators of ``layer``'s phi and J (None: :func:`layer_rows`).
 
     Returns:
         The assembled configuration, shape (nq,).
@@ -151,7 +176,7 @@ def solve_closure(
     q = np.array(q_guess, dtype=float)
     if layer.nc == 0:
         return q
-    q = _newton(model, data, layer, q, free, settings)
+    q = _newton(model, q, free, settings, rows or layer_rows(model, data, layer))
     pin.forwardKinematics(model, data, q)
     flipped = layer.misaligned_loops(model, data)
     if flipped:
@@ -175,6 +200,7 @@ def assemble_closure(
     *,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
     polish: ConstraintLayer | None = None,
+    rows: RowFunctions | None = None,
 ) -> np.ndarray:
     r"""Close every loop from a guess, also far from the closure.
 
@@ -201,6 +227,7 @@ def assemble_closure(
             or None.
         polish: with ``settings.mismatch_tol``, the consistent rows (the kept ones)
             that Gauss-Newton closes from a least-squares minimum below it, or None.
+        rows: evaluators of ``layer``'s phi and J for Gauss-Newton (None: numpy's).
 
     Returns:
         A closed configuration, shape (nq,): max |phi| <= ``settings.tol`` and max
@@ -220,7 +247,7 @@ def assemble_closure(
     if bounds is not None:
         q0 = _clip_into(model, q0, free, lower, upper)
     try:
-        q = solve_closure(model, data, layer, q0, free, settings)
+        q = solve_closure(model, data, layer, q0, free, settings, rows=rows)
         if closure_error(model, data, layer, q) <= settings.closure_tol and _inside(
             model, q, free, lower, upper
         ):
@@ -230,7 +257,7 @@ def assemble_closure(
     q_ls = _least_squares(model, data, layer, q0, free, settings, lower, upper)
     res = closure_error(model, data, layer, q_ls)
     try:
-        q = solve_closure(model, data, layer, q_ls, free, settings)
+        q = solve_closure(model, data, layer, q_ls, free, settings, rows=rows)
         if closure_error(model, data, layer, q) <= settings.closure_tol:
             return q
     except AssemblyError:
@@ -368,8 +395,8 @@ def _held_q(model: pin.Model, free: np.ndarray) -> np.ndarray:
 _UNBOUNDED = 1e300
 
 
-def _newton(model, data, layer, q, free, settings) -> np.ndarray:
-    phi = layer_phi(model, data, layer, q)
+def _newton(model, q, free, settings, rows: RowFunctions) -> np.ndarray:
+    phi = rows.phi(q)
     res = float(np.max(np.abs(phi)))
     dv = np.zeros(model.nv)
     # Configuration entries of joints held entirely: pin.integrate with zero
@@ -379,7 +406,7 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
     for _ in range(settings.max_iter):
         if res <= settings.tol:
             return q
-        J = layer_jacobian(model, data, layer, q)
+        J = rows.jacobian(q)
         # Accept on the sum of squares, the merit function the Gauss-Newton step
         # descends (the max norm need not decrease along it).
         sq = float(phi @ phi)
@@ -400,7 +427,7 @@ def _newton(model, data, layer, q, free, settings) -> np.ndarray:
             for _ in range(settings.max_halvings):
                 q_try = pin.integrate(model, q, alpha * dv)
                 q_try[held_q] = q_held
-                phi_try = layer_phi(model, data, layer, q_try)
+                phi_try = rows.phi(q_try)
                 res_try = float(np.max(np.abs(phi_try)))
                 sq_try = float(phi_try @ phi_try)
                 if sq_try < sq or res_try <= settings.tol:

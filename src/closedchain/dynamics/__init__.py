@@ -5,7 +5,6 @@ Use :func:`forward_dynamics`; :data:`METHODS` lists the registered names.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -81,19 +80,17 @@ def forward_dynamics(
     check_settings("settings", settings, SolverSettings)
     method = method_name(method)
     fd = evaluator(mech, method, settings, backend_name(backend))
+    if fd is not None:
+        # The core checks q, v and tau (the messages below) and the result's finiteness.
+        a, lam, J, gamma = fd.core.forward_checked(q, v, tau)
+        return ForwardDynamicsResult(a, lam, method, J, gamma)
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
-    if fd is not None:
-        a, lam = fd.forward(q, v, tau)
-        rows = partial(_compiled_rows, fd, q.copy(), v.copy())
-    else:
-        # An overflow is reported by the finiteness check below, not as a warning.
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            a, lam = METHODS[method](mech, q, v, tau, settings)
-        a, lam = np.array(a), np.array(lam)
-        ws = workspace(mech)
-        rows = partial(tuple, (ws.J.copy(), ws.gamma.copy()))
+    # An overflow is reported by the finiteness check below, not as a warning.
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        a, lam = METHODS[method](mech, q, v, tau, settings)
+    a, lam = np.array(a), np.array(lam)
     if not (np.isfinite(a).all() and np.isfinite(lam).all()):
         raise NonFiniteError(
             f"{mech.name}: method {method!r} overflowed to non-finite accelerations or "
@@ -101,9 +98,5 @@ def forward_dynamics(
             f"max|tau| = {np.max(np.abs(tau), initial=0):.3g}: v and tau must be small enough "
             "for M a + h (quadratic in v) to stay finite in double precision"
         )
-    return ForwardDynamicsResult(a=a, lam=lam, method=method, _rows=rows)
-
-
-def _compiled_rows(fd, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    _phi, J, gamma = fd.rows(q, v)
-    return J, gamma
+    ws = workspace(mech)
+    return ForwardDynamicsResult(a, lam, method, ws.J.copy(), ws.gamma.copy())

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -116,30 +115,15 @@ class ForwardDynamicsResult:
         lam: multipliers of the independent constraint rows, shape (nc,), in
             the convention ``M a + h + J^T lam = tau``.
         method: name of the method that produced them.
-
-    ``J`` and ``gamma`` (the rows used) are evaluated on first access on the
-    compiled backend, from a copy of the state.
+        J: constraint Jacobian used, shape (nc, nv).
+        gamma: Jdot v used, shape (nc,) [m/s^2 or 1/s^2 per row].
     """
 
     a: np.ndarray
     lam: np.ndarray
     method: str
-    #: () -> (J, gamma) at the evaluation's state.
-    _rows: Callable[[], tuple[np.ndarray, np.ndarray]] = field(repr=False, compare=False)
-
-    @cached_property
-    def _J_gamma(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._rows()
-
-    @property
-    def J(self) -> np.ndarray:
-        """Constraint Jacobian used, shape (nc, nv)."""
-        return self._J_gamma[0]
-
-    @property
-    def gamma(self) -> np.ndarray:
-        """Jdot v used, shape (nc,)."""
-        return self._J_gamma[1]
+    J: np.ndarray = field(repr=False, compare=False)
+    gamma: np.ndarray = field(repr=False, compare=False)
 
     def constraint_residual(self) -> float:
         """Return max |J a + gamma|, the acceleration-level constraint violation."""

@@ -1,0 +1,187 @@
+// closedchain._core: the per-call entry points of the public API (closedchain._percall):
+// forward dynamics, the rows phi / J / gamma, the velocity projection and the inverse
+// dynamics of one state, each checking its arguments in C++ (arg_checks.hpp: the
+// messages of the numpy path) and returning fresh arrays. Free functions over a Core
+// (core_all.hpp), bound as its methods by expose-core.cpp.
+
+#pragma once
+
+#include <Eigen/SVD>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "arg_checks.hpp"
+#include "core_all.hpp"
+
+namespace closedchain {
+
+/// Largest |x_i|, 0 for an empty x.
+inline double max_abs(const Vec &x) { return x.size() ? x.cwiseAbs().maxCoeff() : 0.0; }
+
+/// (a, lam, J, gamma) at (q, v) with generalized force tau (None: zero), one whole
+/// evaluation of the configured method; NonFinite when a or lam overflowed (the message
+/// of closedchain.forward_dynamics).
+inline bp::tuple forward_checked(Core &core, bp::object q, bp::object v, bp::object tau) {
+  const ConfigurationArg qa(q, core.model());
+  const VectorArg va(v, "v", core.nv());
+  Vec t = Vec::Zero(core.nv());
+  if (!tau.is_none()) t = VectorArg(tau, "tau", core.nv()).map();
+  core.invalidate_kinematics();  // one whole evaluation per call
+  core.solve(qa.map(), va.map(), t, std::numeric_limits<double>::quiet_NaN());
+  const Vec &a = core.accelerations(), &lam = core.multipliers();
+  if (!(a.allFinite() && lam.allFinite())) {
+    const bp::object msg =
+        bp::str("{}: method {!r} overflowed to non-finite accelerations or multipliers at "
+                "max|v| = {:.3g}, max|tau| = {:.3g}: v and tau must be small enough for "
+                "M a + h (quadratic in v) to stay finite in double precision")
+            .attr("format")(core.name(), core.method_name(), max_abs(va.map()), max_abs(t));
+    throw NonFinite{bp::extract<std::string>(msg)};
+  }
+  return bp::make_tuple(Vec(a), Vec(lam), Mat(core.jacobian()), Vec(core.gamma()));
+}
+
+/// phi(q) of the core's rows, shape (nc,).
+inline Vec phi_checked(Core &core, bp::object q) {
+  const ConfigurationArg qa(q, core.model());
+  core.invalidate_kinematics();
+  core.eval_phi(qa.map());
+  return core.phi();
+}
+
+/// J(q) of the core's rows, shape (nc, nv).
+inline Mat jacobian_checked(Core &core, bp::object q) {
+  const ConfigurationArg qa(q, core.model());
+  core.invalidate_kinematics();
+  core.eval_phi_J(qa.map());
+  return core.jacobian();
+}
+
+/// gamma(q, v) = Jdot v of the core's rows, shape (nc,) (Baumgarte terms when configured).
+inline Vec gamma_checked(Core &core, bp::object q, bp::object v) {
+  const ConfigurationArg qa(q, core.model());
+  const VectorArg va(v, "v", core.nv());
+  core.invalidate_kinematics();
+  core.eval_terms(qa.map(), va.map());
+  return core.gamma();
+}
+
+/// The projection of closedchain.project_velocity on the core's rows J(q): v with its
+/// ``free`` entries corrected by the least-squares minimum-norm solution of
+/// J_free dv = J v (singular values at most rcond sigma_max(J_free) dropped, as
+/// numpy.linalg.lstsq). Returns (v, max |J v|, argmax row, sigma_max(J)).
+inline bp::tuple project_checked(Core &core, bp::object q, bp::object v,
+                                 const Eigen::VectorXi &free, double rcond) {
+  const ConfigurationArg qa(q, core.model());
+  const VectorArg va(v, "v", core.nv());
+  core.invalidate_kinematics();
+  core.eval_phi_J(qa.map());
+  const Mat &J = core.jacobian();
+  Vec out = va.map();
+  const Eigen::Index nc = J.rows();
+  if (nc == 0) return bp::make_tuple(out, 0.0, 0, 0.0);
+  Mat Jf(nc, free.size());
+  for (Eigen::Index k = 0; k < free.size(); ++k) Jf.col(k) = J.col(free[k]);
+  if (free.size()) {
+    Eigen::JacobiSVD<Mat> svd(Jf, Eigen::ComputeThinU | Eigen::ComputeThinV);
+    svd.setThreshold(rcond);
+    const Vec dv = svd.solve(J * out);
+    for (Eigen::Index k = 0; k < free.size(); ++k) out[free[k]] -= dv[k];
+  }
+  const Vec Jv = (J * out).cwiseAbs();
+  Eigen::Index row = 0;
+  const double residual = Jv.maxCoeff(&row);
+  const double sigma_max = Eigen::JacobiSVD<Mat>(J).singularValues()(0);
+  return bp::make_tuple(out, residual, static_cast<int>(row), sigma_max);
+}
+
+/// Outcome codes of inverse_checked (closedchain.inverse reads them).
+enum InverseStatus {
+  INVERSE_OK = 0,
+  INVERSE_JF_SINGULAR = 1,  // cond(J_F) > cond_max
+  INVERSE_NON_FINITE = 2,  // M a + h - tau_passive overflowed
+  INVERSE_J_SINGULAR = 3,  // cond(J) > cond_max
+  INVERSE_ACTUATION_SINGULAR = 4,  // cond(N^T B) > cond_max
+};
+
+/// Condition number 1 / rcond of an LU factorization (Eigen's 1-norm estimate, as
+/// LAPACK's dgecon), inf when it is singular.
+inline double lu_cond(const Eigen::PartialPivLU<Mat> &lu) {
+  const double rc = lu.rcond();
+  return rc > 0.0 ? 1.0 / rc : std::numeric_limits<double>::infinity();
+}
+
+/// Closed-chain inverse dynamics (closedchain/inverse.py's equations) with as many
+/// actuated coordinates A as degrees of freedom, on the core's rows:
+///   J_F a_F = -gamma - J_P a_P,   b = M a + h - tau_passive,
+///   J_Abar^T lam = -b_Abar,   tau_A = b_A + J_A^T lam
+/// (the rows of [B -J^T] [tau_A; lam] = b off and on A; Abar, the other coordinates,
+/// has nc entries). The actuation's condition number is that of the numpy path,
+/// 1 / sigma_min(N^T B) = sqrt(1 + ||J_Abar^-1 J_A||_2^2) for an orthonormal null-space
+/// basis N of J. Returns (status, cond, a, tau, lam, J, gamma, max |M a + h + J^T lam -
+/// tau|, max |J a + gamma|); with status != INVERSE_OK, cond is the failed matrix's
+/// condition number and the arrays are not meaningful.
+inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const Vec &a_P,
+                                 const Eigen::VectorXi &P, const Eigen::VectorXi &F,
+                                 const Eigen::VectorXi &A, const Eigen::VectorXi &Abar,
+                                 bp::object tau_passive, double cond_max) {
+  const ConfigurationArg qa(q, core.model());
+  const VectorArg va(v, "v", core.nv());
+  const int nv = core.nv();
+  core.invalidate_kinematics();
+  core.eval_terms(qa.map(), va.map());
+  const Mat &M = core.mass_matrix(), &J = core.jacobian();
+  const Vec &h = core.bias_forces(), &gamma = core.gamma();
+  const Eigen::Index nc = J.rows();
+  auto fail = [&](InverseStatus status, double cond) {
+    return bp::make_tuple(static_cast<int>(status), cond, bp::object(), bp::object(),
+                          bp::object(), bp::object(), bp::object(), 0.0, 0.0);
+  };
+  Vec a = Vec::Zero(nv);
+  for (Eigen::Index i = 0; i < P.size(); ++i) a[P[i]] = a_P[i];
+  if (nc) {
+    Mat JF(nc, F.size());
+    for (Eigen::Index k = 0; k < F.size(); ++k) JF.col(k) = J.col(F[k]);
+    const Eigen::PartialPivLU<Mat> lu(JF);
+    const double cond = lu_cond(lu);
+    if (cond > cond_max) return fail(INVERSE_JF_SINGULAR, cond);
+    Vec rhs = -gamma;
+    for (Eigen::Index i = 0; i < P.size(); ++i) rhs -= J.col(P[i]) * a_P[i];
+    const Vec aF = lu.solve(rhs);
+    for (Eigen::Index k = 0; k < F.size(); ++k) a[F[k]] = aF[k];
+  }
+  Vec b = M * a + h;
+  if (!tau_passive.is_none()) b -= VectorArg(tau_passive, "tau_passive", nv).map();
+  if (!b.allFinite()) return fail(INVERSE_NON_FINITE, 0.0);
+  Vec lam = Vec::Zero(nc), tau = Vec::Zero(nv);
+  if (nc) {
+    const Vec s = Eigen::JacobiSVD<Mat>(J).singularValues();
+    const double cond =
+        s[nc - 1] > 0.0 ? s[0] / s[nc - 1] : std::numeric_limits<double>::infinity();
+    if (cond > cond_max) return fail(INVERSE_J_SINGULAR, cond);
+    Mat JA(nc, A.size()), JAbar(nc, Abar.size());
+    for (Eigen::Index k = 0; k < A.size(); ++k) JA.col(k) = J.col(A[k]);
+    for (Eigen::Index k = 0; k < Abar.size(); ++k) JAbar.col(k) = J.col(Abar[k]);
+    const Eigen::PartialPivLU<Mat> lu(JAbar);
+    const Mat K = lu.solve(JA);
+    double cond_g = std::numeric_limits<double>::infinity();
+    if (std::isfinite(lu_cond(lu)) && K.allFinite()) {
+      const double k2 = K.size() ? Eigen::JacobiSVD<Mat>(K).singularValues()(0) : 0.0;
+      cond_g = std::sqrt(1.0 + k2 * k2);
+    }
+    if (cond_g > cond_max) return fail(INVERSE_ACTUATION_SINGULAR, cond_g);
+    Vec b_bar(Abar.size());
+    for (Eigen::Index k = 0; k < Abar.size(); ++k) b_bar[k] = -b[Abar[k]];
+    lam = lu.transpose().solve(b_bar);
+  }
+  const Vec JtLam = J.transpose() * lam;
+  for (Eigen::Index k = 0; k < A.size(); ++k) tau[A[k]] = b[A[k]] + JtLam[A[k]];
+  const double dyn = max_abs(b + JtLam - tau);
+  const double con = max_abs(J * a + gamma);
+  return bp::make_tuple(static_cast<int>(INVERSE_OK), 1.0, a, tau, lam, Mat(J), Vec(gamma), dyn,
+                        con);
+}
+
+}  // namespace closedchain
