@@ -1,6 +1,6 @@
 // closedchain._core: the adaptive loops (RK45, DOP853 with scipy's error control) and the
 // chart of q when nq != nv.
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
@@ -10,63 +10,66 @@
 #include <cmath>
 #include <limits>
 
-#include "core.hpp"
+#include "core_chart.hpp"
+#include "core_data.hpp"
+#include "core_fixed.hpp"
+#include "core_methods.hpp"
+#include "core_model.hpp"
+#include "core_partitioning.hpp"
+#include "core_projection.hpp"
+#include "core_recording.hpp"
+#include "core_rows.hpp"
 #include "rk_coefficients.hpp"
 
 namespace closedchain {
 
-inline void Core::chart_start(const Vec &q0) {
-  chart_ = nq_ != nv_;
-  if (!chart_) return;
-  q_c_ = q0;
-  q_x_ = q0;
-}
+// -- declarations ------------------------------------------------------------
 
-inline void Core::chart_rate(const Vec &q_c, const Eigen::Ref<const Vec> &x,
-                             const Eigen::Ref<const Vec> &v, Eigen::Ref<Vec> out) {
-  out = v;
-  if (curved_.empty()) return;
-  pinocchio::dIntegrate(model_, q_c, x, D_chart_, pinocchio::ARG1);
-  for (const auto &b : curved_) {
-    SmallMat Db = D_chart_.block(b.first, b.first, b.second, b.second);
-    out.segment(b.first, b.second) = Db.partialPivLu().solve(v.segment(b.first, b.second));
-  }
-}
+/// Root mean square of x (scipy's norm of the error estimate).
+double rms(const Vec &x);
 
-inline RefV Core::chart_q(const Eigen::Ref<const Vec> &x) {
-  if (!chart_) return x;
-  pinocchio::integrate(model_, q_c_, x, q_x_);
-  return q_x_;
-}
+/// The right-hand side dy/dt = f(t, y) of the adaptive loops: y = (q or the chart's x, v),
+/// or (q_I, v_I) with partitioning (fun_partitioned).
+void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, Eigen::Ref<Vec> f);
 
-inline bool Core::chart_recentre(Eigen::Ref<Vec> x) {
-  bool far = false;
-  for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > RECENTRE_NORM;
-  if (!far) return false;
-  pinocchio::integrate(model_, q_c_, x, q_x_);
-  q_c_ = q_x_;
-  x.setZero();
-  return true;
-}
+/// Integrate with RK45 or DOP853 (scipy's RungeKutta: the same error control, step-size
+/// rule and dense output) from (q0, v0) at t = 0 to t_final, recording at every step or at
+/// the times t_eval; projects: project onto the constraint manifold after every step.
+bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
+                      const Vec &v0, double t_final, double rtol, double atol,
+                      bp::object t_eval_obj, bool projects, bp::object progress);
 
-inline void Core::fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
-  if (partitions_) {
-    fun_partitioned(t, y, f);
+/// rk43 (simulate/rk43.py, step for step): rk4 with stage projection and the retakes near
+/// singular positions, its step chosen by the embedded third-order estimate
+/// (h / 6) (k4 - k5); first trial step h0 [s]; the steps land on every time of t_eval (or
+/// t_final), recorded there, and at every step end with record_all.
+bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
+                  double t_final, double rtol, double atol, double h0, bp::object t_eval_obj,
+                  bool record_all, bp::object progress);
+
+// -- definitions -------------------------------------------------------------
+
+inline double rms(const Vec &x) { return x.norm() / std::sqrt(static_cast<double>(x.size())); }
+
+inline void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, Eigen::Ref<Vec> f) {
+  if (model.partitions) {
+    fun_partitioned(model, data, t, y, f);
     return;
   }
-  accel(t, chart_q(y.head(nv_)), y.tail(nv_));
-  if (chart_)
-    chart_rate(q_c_, y.head(nv_), y.tail(nv_), f.head(nv_));
+  accel(model, data, t, chart_q(model, data, y.head(model.nv)), y.tail(model.nv));
+  if (data.chart)
+    chart_rate(model, data, data.chart_centre, y.head(model.nv), y.tail(model.nv),
+               f.head(model.nv));
   else
-    f.head(nv_) = y.tail(nv_);
-  f.tail(nv_) = a_;
+    f.head(model.nv) = y.tail(model.nv);
+  f.tail(model.nv) = data.a;
 }
 
-inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0, double t_final,
-                                   double rtol, double atol, bp::object t_eval_obj, bool projects,
-                                   bp::object progress) {
-  check_sizes(q0, v0);
-  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
+inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
+                             const Vec &v0, double t_final, double rtol, double atol,
+                             bp::object t_eval_obj, bool projects, bp::object progress) {
+  check_sizes(model, q0, v0);
+  invalidate_kinematics(data);  // nothing kept from before the run (data.M, the factor of P)
   if (integrator != RK45 && integrator != DOP853)
     throw BadArgument{"run_adaptive: unknown integrator"};
   const bool dop = integrator == DOP853;
@@ -77,13 +80,13 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
   const double eps = std::numeric_limits<double>::epsilon();
   if (rtol < 100 * eps) rtol = 100 * eps;  // scipy's validate_tol
   const std::string iname = dop ? "DOP853" : "RK45";
-  n_evals_ = 0;
+  data.n_evals = 0;
   Samples S;
-  begin_partitioning(false);
+  begin_partitioning(model, data, false);
   // Partitioning integrates (q_I, v_I) only; (q_D, v_D) follow at every evaluation.
-  const int ns = partitions_ ? nv_ - nc_ : nv_;
+  const int ns = model.partitions ? model.nv - model.nc : model.nv;
   const int n = 2 * ns;
-  Vec qc(nv_), vc(nv_);
+  Vec qc(model.nv), vc(model.nv);
   std::vector<double> pending;
   const bool dense = !t_eval_obj.is_none();
   if (dense) {
@@ -92,44 +95,44 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
   }
   std::size_t ip = 0;
   Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
-  Vec q_out(nq_), v_out(nv_), x_out(nv_);
-  chart_start(q0);  // partitioning needs nq == nv (refused in Python): no chart then
-  if (partitions_) {
+  Vec q_out(model.nq), v_out(model.nv), x_out(model.nv);
+  chart_start(model, data, q0);  // partitioning needs nq == nv (refused in Python): no chart then
+  if (model.partitions) {
     qc = q0;
     vc = v0;
-    complete(qc, vc, 0.0);
-    warm_q_ = q0;  // the dependent solves start from the last evaluation's q
-    pack(qc, vc, y);
+    complete(model, data, qc, vc, 0.0);
+    data.warm_q = q0;  // the dependent solves start from the last evaluation's q
+    pack(model, data, qc, vc, y);
   } else {
-    y.head(nv_) = chart_ ? Vec::Zero(nv_) : q0;
-    y.tail(nv_) = v0;
+    y.head(model.nv) = data.chart ? Vec::Zero(model.nv) : q0;
+    y.tail(model.nv) = v0;
   }
   Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
-  stage_dependent_v_ = Mat::Zero(nc_, K.cols());
+  data.stage_dependent_v = Mat::Zero(model.nc, K.cols());
   Mat F(n, dop853::INTERPOLATOR_POWER);
   // partitioning: the same dense output of q_D from its rates v_D at the stages
-  // (stage_dependent_v_),
+  // (data.stage_dependent_v),
   // the guess of the output's dependent solve (as stage_guess for the stages)
-  Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
+  Mat FD(model.nc, model.partitions ? dop853::INTERPOLATOR_POWER : 0);
   auto output = [&](double t, const Vec &yy) {
-    if (partitions_) {
-      unpack(yy, t, qc, vc);
-      accel(t, qc, vc);
-      record(S, t, qc, vc);
+    if (model.partitions) {
+      unpack(model, data, yy, t, qc, vc);
+      accel(model, data, t, qc, vc);
+      record(model, data, S, t, qc, vc);
       return;
     }
-    q_out = chart_q(yy.head(nv_));
-    v_out = yy.tail(nv_);
-    accel(t, q_out, v_out);
-    record(S, t, q_out, v_out);
+    q_out = chart_q(model, data, yy.head(model.nv));
+    v_out = yy.tail(model.nv);
+    accel(model, data, t, q_out, v_out);
+    record(model, data, S, t, q_out, v_out);
   };
   double t = 0.0;
   if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
     output(0.0, y);
     if (dense) ++ip;
   }
-  fun(t, y, f);
-  if (partitions_) step_start_from_last();
+  fun(model, data, t, y, f);
+  if (model.partitions) step_start_from_last(data);
   // scipy's select_initial_step
   double h_abs;
   {
@@ -140,11 +143,11 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     h0 = std::min(h0, interval);
     Vec y1 = y + h0 * f;
     Vec f1(n);
-    fun(t + h0, y1, f1);
+    fun(model, data, t + h0, y1, f1);
     double d2 = rms((f1 - f).cwiseQuotient(scale)) / h0;
-    double h1 = (d1 <= 1e-15 && d2 <= 1e-15) ? std::max(1e-6, h0 * 1e-3)
-                                              : std::pow(0.01 / std::max(d1, d2),
-                                                         1.0 / (error_order + 1));
+    double h1 = (d1 <= 1e-15 && d2 <= 1e-15)
+                    ? std::max(1e-6, h0 * 1e-3)
+                    : std::pow(0.01 / std::max(d1, d2), 1.0 / (error_order + 1));
     h_abs = std::min(std::min(100 * h0, h1), interval);
   }
   long steps = 0;
@@ -156,8 +159,8 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     double t_new = t, h = 0.0;
     while (!accepted) {
       if (h_abs < min_step)
-        throw SimulationFailure{name_ + ": integrator " + iname + " failed at t = " +
-                                    fmt("%.9g", t) +
+        throw SimulationFailure{model.name + ": integrator " + iname +
+                                    " failed at t = " + fmt("%.9g", t) +
                                     " s: Required step size is less than spacing between "
                                     "numbers.",
                                 t};
@@ -168,7 +171,7 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
       h_abs = std::abs(h);
       // rk_step
       K.col(0) = f;
-      if (partitions_) stage_dependent_v_.col(0) = start_dependent_v_;
+      if (model.partitions) data.stage_dependent_v.col(0) = data.start_dependent_v;
       for (int s = 1; s < n_stages; ++s) {
         dy.setZero();
         for (int j = 0; j < s; ++j) {
@@ -176,9 +179,9 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
           if (c != 0.0) dy += c * K.col(j);
         }
         ye = y + h * dy;
-        if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
-        fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
-        if (partitions_) stage_dependent_v_.col(s) = vD_last_;
+        if (model.partitions) stage_guess(model, data, dop ? dop853::A[s] : rk45::A[s], s, h);
+        fun(model, data, t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
+        if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
       }
       dy.setZero();
       for (int j = 0; j < n_stages; ++j) {
@@ -186,9 +189,9 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
         if (b != 0.0) dy += b * K.col(j);
       }
       y_new = y + h * dy;
-      if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
-      fun(t + h, y_new, f_new);
-      if (partitions_) stage_dependent_v_.col(n_stages) = vD_last_;
+      if (model.partitions) stage_guess(model, data, dop ? dop853::B : rk45::B, n_stages, h);
+      fun(model, data, t + h, y_new, f_new);
+      if (model.partitions) data.stage_dependent_v.col(n_stages) = data.vD_last;
       K.col(n_stages) = f_new;
       scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
       double err;
@@ -225,9 +228,9 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     }
     ++steps;
     const double t_old = t;
-    if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
-      qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
-      start_dependent_v_ = stage_dependent_v_.col(n_stages);
+    if (model.partitions) {  // the dependent state at y_new and its rate: the next step's start
+      data.qD_end = data.qD_new;  // (data.qD0 stays the step start's for the dense-output stages)
+      data.start_dependent_v = data.stage_dependent_v.col(n_stages);
     }
     // dense output at the t_eval within the step, from the unprojected step
     if (dense && ip < pending.size() && pending[ip] <= t_new) {
@@ -237,9 +240,9 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
           for (int j = 0; j < s; ++j)
             if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
           ye = y + h * dy;
-          if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
-          fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
-          if (partitions_) stage_dependent_v_.col(s) = vD_last_;
+          if (model.partitions) stage_guess(model, data, dop853::A_EXTRA[e], s, h);
+          fun(model, data, t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
+          if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
         }
         F.col(0) = y_new - y;
         F.col(1) = h * K.col(0) - F.col(0);
@@ -250,16 +253,16 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
             if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
           F.col(3 + i) = h * tmp;
         }
-        if (partitions_ && nc_) {
-          FD.col(0) = qD_end_ - qD0_;
-          FD.col(1) = h * stage_dependent_v_.col(0) - FD.col(0);
+        if (model.partitions && model.nc) {
+          FD.col(0) = data.qD_end - data.qD0;
+          FD.col(1) = h * data.stage_dependent_v.col(0) - FD.col(0);
           FD.col(2) = 2 * FD.col(0) -
-                      h * (stage_dependent_v_.col(n_stages) + stage_dependent_v_.col(0));
+                      h * (data.stage_dependent_v.col(n_stages) + data.stage_dependent_v.col(0));
           for (int i = 0; i < 4; ++i) {
             FD.col(3 + i).setZero();
             for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
               if (dop853::D[i][j] != 0.0)
-                FD.col(3 + i) += (h * dop853::D[i][j]) * stage_dependent_v_.col(j);
+                FD.col(3 + i) += (h * dop853::D[i][j]) * data.stage_dependent_v.col(j);
           }
         }
       } else {
@@ -268,39 +271,39 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
           for (int j = 0; j <= n_stages; ++j)
             if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
           F.col(i) = tmp;
-          if (partitions_ && nc_) {
+          if (model.partitions && model.nc) {
             FD.col(i).setZero();
             for (int j = 0; j <= n_stages; ++j)
-              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * stage_dependent_v_.col(j);
+              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * data.stage_dependent_v.col(j);
           }
         }
       }
       while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
         double x = (pending[ip] - t_old) / h;
-        const bool guess = partitions_ && nc_;
+        const bool guess = model.partitions && model.nc;
         if (dop) {
           ye.setZero();
-          if (guess) guess_qD_.setZero();
+          if (guess) data.guess_qD.setZero();
           for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
             ye += F.col(i);
             ye *= (r % 2 == 0) ? x : 1 - x;
             if (guess) {
-              guess_qD_ += FD.col(i);
-              guess_qD_ *= (r % 2 == 0) ? x : 1 - x;
+              data.guess_qD += FD.col(i);
+              data.guess_qD *= (r % 2 == 0) ? x : 1 - x;
             }
           }
           ye += y;
-          if (guess) guess_qD_ += qD0_;
+          if (guess) data.guess_qD += data.qD0;
         } else {
           double p = x;
           ye = y;
-          if (guess) guess_qD_ = qD0_;
+          if (guess) data.guess_qD = data.qD0;
           for (int i = 0; i < 4; ++i, p *= x) {
             ye += (h * p) * F.col(i);
-            if (guess) guess_qD_ += (h * p) * FD.col(i);
+            if (guess) data.guess_qD += (h * p) * FD.col(i);
           }
         }
-        use_out_guess_ = guess;
+        data.use_out_guess = guess;
         output(pending[ip], ye);
         ++ip;
       }
@@ -308,50 +311,50 @@ inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0,
     t = t_new;
     y = y_new;
     f = f_new;
-    if (partitions_) {
-      qD0_ = qD_end_;
-      check_finite(y.head(ns), y.tail(ns), t);
+    if (model.partitions) {
+      data.qD0 = data.qD_end;
+      check_finite(model, y.head(ns), y.tail(ns), t);
     } else {
-      q_out = chart_q(y.head(nv_));
-      v_out = y.tail(nv_);
-      check_finite(q_out, v_out, t);
+      q_out = chart_q(model, data, y.head(model.nv));
+      v_out = y.tail(model.nv);
+      check_finite(model, q_out, v_out, t);
     }
     if (projects) {
-      project(q_out, v_out);
-      if (chart_)
-        pinocchio::difference(model_, q_c_, q_out, x_out);
-      y.head(nv_) = chart_ ? x_out : q_out;
-      y.tail(nv_) = v_out;
-      fun(t, y, f);
+      project(model, data, q_out, v_out);
+      if (data.chart) pinocchio::difference(model.tree, data.chart_centre, q_out, x_out);
+      y.head(model.nv) = data.chart ? x_out : q_out;
+      y.tail(model.nv) = v_out;
+      fun(model, data, t, y, f);
     }
-    if (partitions_) {
-      unpack(y, t, qc, vc);
-      check_regular(qc, t);
+    if (model.partitions) {
+      unpack(model, data, y, t, qc, vc);
+      check_regular(model, data, qc, t);
     } else {
-      if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
-      check_regular(q_out, t);
+      if (data.chart && t < t_final && chart_recentre(model, data, y.head(model.nv)))
+        fun(model, data, t, y, f);
+      check_regular(model, data, q_out, t);
     }
     if (!dense) output(t, y);
     poll(steps, t, progress);
     // det(J_D) sign and re-partitioning; a new partition restarts the integrator
     // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
-    if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) {
-      fun(t, y, f);
-      step_start_from_last();
+    if (model.partitions && adaptive_partition_check(model, data, t, t_final, y, qc, vc)) {
+      fun(model, data, t, y, f);
+      step_start_from_last(data);
     }
   }
-  return samples_dict(S, steps);
+  return samples_dict(model, data, S, steps);
 }
 
-inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, double rtol,
-                               double atol, double h0, bp::object t_eval_obj, bool record_all,
-                               bp::object progress) {
-  check_sizes(q0, v0);
-  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
+inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
+                         double t_final, double rtol, double atol, double h0,
+                         bp::object t_eval_obj, bool record_all, bp::object progress) {
+  check_sizes(model, q0, v0);
+  invalidate_kinematics(data);  // nothing kept from before the run (M, the factor of P)
   if (!(h0 > 0.0) || !(t_final > 0.0) || !(rtol > 0.0) || !(atol > 0.0))
     throw BadArgument{"run_rk43: t_final, rtol, atol and h0 must be > 0"};
-  n_evals_ = 0;
-  begin_partitioning(true);  // as run_fixed: the stage-projected loop's checks
+  data.n_evals = 0;
+  begin_partitioning(model, data, true);  // as run_fixed: the stage-projected loop's checks
   Samples S;
   std::vector<double> stops;
   bool record_start = true;
@@ -364,10 +367,13 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
       if (te[i] > 0.0) stops.push_back(te[i]);
   }
   const bool every = t_eval_obj.is_none() || record_all;
-  for (Vec *b : {&dv_, &vs_, &k2v_, &k2a_, &k3v_, &k3a_, &k4v_, &k4a_}) b->resize(nv_);
-  qs_.resize(nq_);
-  Vec q = q0, v = v0, a(nv_), qn(nq_), vn(nv_), an(nv_), qm(nq_), q1(nq_), v1(nv_), a1(nv_);
-  Vec k5v(nv_), ex(nv_);
+  for (Vec *b : {&data.dv, &data.vs, &data.k2v, &data.k2a, &data.k3v, &data.k3a, &data.k4v,
+                 &data.k4a})
+    b->resize(model.nv);
+  data.qs.resize(model.nq);
+  const int nq = model.nq, nv = model.nv;
+  Vec q = q0, v = v0, a(nv), qn(nq), vn(nv), an(nv), qm(nq), q1(nq), v1(nv), a1(nv);
+  Vec k5v(nv), ex(nv);
   auto factor = [](double err) {
     if (err == 0.0) return RK43_MAX_FACTOR;
     return std::min(RK43_MAX_FACTOR,
@@ -378,29 +384,29 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
   // returns the rank indicator at the projected midpoint.
   auto step = [&](double t, const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb,
                   Vec &vb, Vec &ab, double &err, double &exm) {
-    rk4_projected(t, qa, va, aa, h, qb, vb, qm);
-    const double mid = midpoint_indicator_;
-    accel(t + h, qb, vb);
-    ab = a_;
-    pinocchio::difference(model_, qa, qb, dv_);
-    chart_rate(qa, dv_, vb, k5v);
-    ex = (h / 6) * (k4v_ - k5v);
-    double sum = 0.0;  // positions in the chart about qa: 0 at the start, dv_ at the end
-    for (int i = 0; i < nv_; ++i) {
-      const double sx = atol + rtol * std::abs(dv_[i]);
+    rk4_projected(model, data, t, qa, va, aa, h, qb, vb, qm);
+    const double mid = data.midpoint_indicator;
+    accel(model, data, t + h, qb, vb);
+    ab = data.a;
+    pinocchio::difference(model.tree, qa, qb, data.dv);
+    chart_rate(model, data, qa, data.dv, vb, k5v);
+    ex = (h / 6) * (data.k4v - k5v);
+    double sum = 0.0;  // positions in the chart about qa: 0 at the start, data.dv at the end
+    for (int i = 0; i < model.nv; ++i) {
+      const double sx = atol + rtol * std::abs(data.dv[i]);
       const double sv = atol + rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
-      const double ev = (h / 6) * (k4a_[i] - ab[i]);
+      const double ev = (h / 6) * (data.k4a[i] - ab[i]);
       sum += (ex[i] / sx) * (ex[i] / sx) + (ev / sv) * (ev / sv);
     }
-    err = nv_ ? std::sqrt(sum / (2.0 * nv_)) : 0.0;
-    exm = nv_ ? ex.cwiseAbs().maxCoeff() : 0.0;
+    err = model.nv ? std::sqrt(sum / (2.0 * model.nv)) : 0.0;
+    exm = model.nv ? ex.cwiseAbs().maxCoeff() : 0.0;
     return mid;
   };
   double t = 0.0;
-  accel(t, q, v);
-  a = a_;
-  if (record_start) record(S, t, q, v);
-  double rho_start = rank_indicator(q);
+  accel(model, data, t, q, v);
+  a = data.a;
+  if (record_start) record(model, data, S, t, q, v);
+  double rho_start = rank_indicator(model, data, q);
   double h = h0, err_max = 0.0, err_sum = 0.0;
   long steps = 0, rejected = 0, splits = 0;
   for (const double t_stop : stops) {
@@ -409,16 +415,17 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
       const bool clipped = t + h >= t_stop * (1.0 - 1e-15);
       if (clipped) h = t_stop - t;
       if (!(h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
-        throw SimulationFailure{name_ + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
+        throw SimulationFailure{model.name + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
                                     " s: the step fell below the spacing of the times",
                                 t};
       double err = 0.0, exm = 0.0;
       const double rho_mid = step(t, q, v, a, h, qn, vn, an, err, exm);
-      double rho_new = rank_indicator(qn);
+      double rho_new = rank_indicator(model, data, qn);
       bool plan = false, twice = false, sub = false;
       double f = 0.0, span = 1.0;
-      if (stage_zone_ > 0)
-        plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), stage_zone_, twice, f);
+      if (model.stage_zone > 0)
+        plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), model.stage_zone,
+                           twice, f);
       if (plan) {
         span = twice ? 2.0 : 1.0;
         if (twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
@@ -435,7 +442,7 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
         } else {  // one substep of two steps
           step(t, q, v, a, span * h, qn, vn, an, err, exm);
         }
-        rho_new = rank_indicator(qn);
+        rho_new = rank_indicator(model, data, qn);
       }
       if (err > 1.0) {
         ++rejected;
@@ -443,9 +450,9 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
         continue;
       }
       if (plan) ++splits;
-      if (sub) check_regular(q1, t + f * h);
+      if (sub) check_regular(model, data, q1, t + f * h);
       t = (clipped || t + span * h >= t_stop) ? t_stop : t + span * h;
-      check_regular(qn, t);
+      check_regular(model, data, qn, t);
       q = qn;
       v = vn;
       a = an;
@@ -453,13 +460,14 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
       ++steps;
       err_max = std::max(err_max, err);
       err_sum += exm;
-      if (every || t == t_stop) record(S, t, q, v);  // a_, lam_: the last accel, at q
+      // data.a, data.lam: the last evaluation's, at q
+      if (every || t == t_stop) record(model, data, S, t, q, v);
       poll(steps, t, progress);
       h *= factor(err);
       if (clipped) h = std::max(h, proposed);
     }
   }
-  bp::dict d = samples_dict(S, steps);
+  bp::dict d = samples_dict(model, data, S, steps);
   d["singular_splits"] = splits;
   d["rejected_steps"] = rejected;
   d["error_estimate_max"] = err_max;
