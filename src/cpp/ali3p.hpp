@@ -336,9 +336,7 @@ inline bp::dict run_ali3p(const CoreModel &model, CoreData &data, const Vec &q0,
   invalidate_kinematics(data);  // nothing kept from before the run (data.M, the factor of P)
   if (!(dt > 0.0) || n_steps < 0 || s.max_iter < 1)
     throw BadArgument{"run_ali3p: dt > 0, n_steps >= 0 and ali3p_max_iter >= 1 required"};
-  std::vector<char> out(n_steps + 1, 0);
-  for (Eigen::Index i = 0; i < out_steps.size(); ++i)
-    if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+  const std::vector<char> out = output_mask(out_steps, n_steps);
   return Ali3pLoop(model, data, s).run(q0, v0, dt, n_steps, out, progress);
 }
 

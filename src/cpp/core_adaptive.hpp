@@ -9,6 +9,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <string>
+#include <vector>
 
 #include "core_chart.hpp"
 #include "core_data.hpp"
@@ -31,6 +33,88 @@ double rms(const Vec &x);
 /// The right-hand side dy/dt = f(t, y) of the adaptive loops: y = (q or the chart's x, v),
 /// or (q_I, v_I) with partitioning (fun_partitioned).
 void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, Eigen::Ref<Vec> f);
+
+/// The state of one adaptive run (scipy's RungeKutta): the tableau, the tolerances, the
+/// integrated state y and its rate f, the stages, the dense-output coefficients and the
+/// samples. y is (q or the chart's x, v), or (q_I, v_I) with partitioning.
+struct AdaptiveRun {
+  /// The tableau of `integrator` (RK45 or DOP853), the tolerances (rtol at least 100 eps,
+  /// scipy's validate_tol) and the output times t_eval (None: every step).
+  AdaptiveRun(const CoreModel &model, int integrator, double rtol, double atol,
+              bp::object t_eval_obj);
+
+  /// DOP853 (else RK45); its stages; the step-size exponent -1 / (error order + 1).
+  bool dop;
+  int n_stages;
+  double error_exponent;
+  /// Relative and absolute tolerances.
+  double rtol, atol;
+  /// The integrator's name, for messages.
+  std::string name;
+  /// Size of the integrated positions (nv, or nv - nc with partitioning) and of y.
+  int ns, n;
+  /// Output at the times `pending` (the next one pending[ip]), else at every step.
+  bool dense;
+  std::vector<double> pending;
+  std::size_t ip = 0;
+  /// Time [s] of y, end of the step being taken, its length and the next step's size.
+  double t = 0.0, t_new = 0.0, h = 0.0, h_abs = 0.0;
+  /// State and rate at t and at t_new; error scale; work vectors (shape (n,)).
+  Vec y, y_new, f, f_new, scale, dy, ye, tmp, e5, e3;
+  /// The full state (q, v) completed from y (partitioning), the output's (q, v), the
+  /// chart coordinates of a projected q.
+  Vec qc, vc, q_out, v_out, x_out;
+  /// The stages' rates, shape (n, stages); the dense-output coefficients of y and of q_D.
+  Mat K, F, FD;
+  /// The samples recorded.
+  Samples samples;
+};
+
+/// The run's initial state y: (q0, v0), in the chart when nq != nv, or (q_I, v_I) after
+/// completing (q0, v0) with partitioning.
+void adaptive_start(const CoreModel &model, CoreData &data, AdaptiveRun &run, const Vec &q0,
+                    const Vec &v0);
+
+/// Evaluate and record the state y at t (completed with partitioning).
+void adaptive_output(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t,
+                     const Vec &y);
+
+/// The first step's size [s] (scipy's select_initial_step) from y and f at run.t.
+double initial_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final);
+
+/// The Runge-Kutta stages of the step of length run.h from (run.t, run.y): run.K, y_new and
+/// f_new (rk_step), the stages' v_D with partitioning.
+void rk_stages(const CoreModel &model, CoreData &data, AdaptiveRun &run);
+
+/// The error norm of the step just taken (scipy's _estimate_error_norm; DOP853's with
+/// its 5th- and 3rd-order estimates).
+double error_norm(AdaptiveRun &run);
+
+/// Take one step of scipy's RungeKutta._step_impl: steps of size run.h_abs until one is
+/// accepted; run.t_new, run.h of the step taken, run.h_abs the next step's size.
+/// SimulationFailure when the step size falls below the spacing of numbers at t.
+void accepted_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final);
+
+/// DOP853's dense-output coefficients of the step (its three extra stages), of q_D too with
+/// partitioning (from the stages' v_D).
+void dop853_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                               double t_old);
+
+/// RK45's dense-output coefficients Q = K^T P of the step, of q_D too with partitioning.
+void rk45_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run);
+
+/// The interpolated state at the fraction x of the step into run.ye, and the guess of q_D
+/// for its dependent solve (data.guess_qD) with partitioning.
+void dense_state(const CoreModel &model, CoreData &data, AdaptiveRun &run, double x);
+
+/// Record the output times within the step from t_old to run.t_new by dense output (from
+/// the unprojected step).
+void dense_outputs(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_old);
+
+/// After an accepted step (y at run.t): check that it is finite, project it (projects),
+/// re-centre the chart, and check the step (check_regular).
+void finish_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final,
+                 bool projects);
 
 /// Integrate with RK45 or DOP853 (scipy's RungeKutta: the same error control, step-size
 /// rule and dense output) from (q0, v0) at t = 0 to t_final, recording at every step or at
@@ -65,6 +149,297 @@ inline void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, 
   f.tail(model.nv) = data.a;
 }
 
+inline AdaptiveRun::AdaptiveRun(const CoreModel &model, int integrator, double relative_tol,
+                                double absolute_tol, bp::object t_eval_obj)
+    : dop(integrator == DOP853),
+      n_stages(dop ? dop853::N_STAGES : rk45::N_STAGES),
+      error_exponent(-1.0 / ((dop ? 7 : 4) + 1)),
+      rtol(std::max(relative_tol, 100 * std::numeric_limits<double>::epsilon())),  // validate_tol
+      atol(absolute_tol),
+      name(dop ? "DOP853" : "RK45"),
+      ns(model.partitions ? model.nv - model.nc : model.nv),
+      n(2 * ns),
+      dense(!t_eval_obj.is_none()) {
+  if (dense) {
+    Vec te = bp::extract<Vec>(t_eval_obj);
+    pending.assign(te.data(), te.data() + te.size());
+  }
+  y.resize(n);
+  y_new.resize(n);
+  f.resize(n);
+  f_new.resize(n);
+  scale.resize(n);
+  dy.resize(n);
+  ye.resize(n);
+  tmp.resize(n);
+  e5.resize(n);
+  e3.resize(n);
+  qc.resize(model.nv);
+  vc.resize(model.nv);
+  q_out.resize(model.nq);
+  v_out.resize(model.nv);
+  x_out.resize(model.nv);
+  K.resize(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+  F.resize(n, dop853::INTERPOLATOR_POWER);
+  FD.resize(model.nc, model.partitions ? dop853::INTERPOLATOR_POWER : 0);
+}
+
+inline void adaptive_start(const CoreModel &model, CoreData &data, AdaptiveRun &run, const Vec &q0,
+                           const Vec &v0) {
+  begin_partitioning(model, data, false);
+  chart_start(model, data, q0);  // partitioning needs nq == nv (refused in Python): no chart then
+  if (model.partitions) {
+    run.qc = q0;
+    run.vc = v0;
+    complete(model, data, run.qc, run.vc, 0.0);
+    data.warm_q = q0;  // the dependent solves start from the last evaluation's q
+    pack(model, data, run.qc, run.vc, run.y);
+  } else {
+    run.y.head(model.nv) = data.chart ? Vec::Zero(model.nv) : q0;
+    run.y.tail(model.nv) = v0;
+  }
+  data.stage_dependent_v = Mat::Zero(model.nc, run.K.cols());
+}
+
+inline void adaptive_output(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t,
+                            const Vec &yy) {
+  if (model.partitions) {
+    unpack(model, data, yy, t, run.qc, run.vc);
+    accel(model, data, t, run.qc, run.vc);
+    record(model, data, run.samples, t, run.qc, run.vc);
+    return;
+  }
+  run.q_out = chart_q(model, data, yy.head(model.nv));
+  run.v_out = yy.tail(model.nv);
+  accel(model, data, t, run.q_out, run.v_out);
+  record(model, data, run.samples, t, run.q_out, run.v_out);
+}
+
+inline double initial_step(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                           double t_final) {
+  const double t = run.t;
+  double interval = std::abs(t_final - t);
+  run.scale = run.atol + run.y.cwiseAbs().array() * run.rtol;
+  double d0 = rms(run.y.cwiseQuotient(run.scale)), d1 = rms(run.f.cwiseQuotient(run.scale));
+  double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
+  h0 = std::min(h0, interval);
+  Vec y1 = run.y + h0 * run.f;
+  Vec f1(run.n);
+  fun(model, data, t + h0, y1, f1);
+  double d2 = rms((f1 - run.f).cwiseQuotient(run.scale)) / h0;
+  const int error_order = run.dop ? 7 : 4;
+  double h1 = (d1 <= 1e-15 && d2 <= 1e-15)
+                  ? std::max(1e-6, h0 * 1e-3)
+                  : std::pow(0.01 / std::max(d1, d2), 1.0 / (error_order + 1));
+  return std::min(std::min(100 * h0, h1), interval);
+}
+
+inline void rk_stages(const CoreModel &model, CoreData &data, AdaptiveRun &run) {
+  const bool dop = run.dop;
+  const int n_stages = run.n_stages;
+  const double t = run.t, h = run.h;
+  run.K.col(0) = run.f;
+  if (model.partitions) data.stage_dependent_v.col(0) = data.start_dependent_v;
+  for (int s = 1; s < n_stages; ++s) {
+    run.dy.setZero();
+    for (int j = 0; j < s; ++j) {
+      double c = dop ? dop853::A[s][j] : rk45::A[s][j];
+      if (c != 0.0) run.dy += c * run.K.col(j);
+    }
+    run.ye = run.y + h * run.dy;
+    if (model.partitions) stage_guess(model, data, dop ? dop853::A[s] : rk45::A[s], s, h);
+    fun(model, data, t + (dop ? dop853::C[s] : rk45::C[s]) * h, run.ye, run.K.col(s));
+    if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
+  }
+  run.dy.setZero();
+  for (int j = 0; j < n_stages; ++j) {
+    double b = dop ? dop853::B[j] : rk45::B[j];
+    if (b != 0.0) run.dy += b * run.K.col(j);
+  }
+  run.y_new = run.y + h * run.dy;
+  if (model.partitions) stage_guess(model, data, dop ? dop853::B : rk45::B, n_stages, h);
+  fun(model, data, t + h, run.y_new, run.f_new);
+  if (model.partitions) data.stage_dependent_v.col(n_stages) = data.vD_last;
+  run.K.col(n_stages) = run.f_new;
+}
+
+inline double error_norm(AdaptiveRun &run) {
+  const int n_stages = run.n_stages;
+  const double h = run.h;
+  run.scale = run.atol + run.y.cwiseAbs().cwiseMax(run.y_new.cwiseAbs()).array() * run.rtol;
+  if (run.dop) {
+    run.e5.setZero();
+    run.e3.setZero();
+    for (int j = 0; j <= n_stages; ++j) {
+      run.e5 += dop853::E5[j] * run.K.col(j);
+      run.e3 += dop853::E3[j] * run.K.col(j);
+    }
+    run.e5 = run.e5.cwiseQuotient(run.scale);
+    run.e3 = run.e3.cwiseQuotient(run.scale);
+    double n5 = run.e5.squaredNorm(), n3 = run.e3.squaredNorm();
+    if (n5 == 0 && n3 == 0) return 0.0;
+    return std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * run.n);
+  }
+  run.tmp.setZero();
+  for (int j = 0; j <= n_stages; ++j) run.tmp += rk45::E[j] * run.K.col(j);
+  run.tmp *= h;
+  return rms(run.tmp.cwiseQuotient(run.scale));
+}
+
+inline void accepted_step(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                          double t_final) {
+  constexpr double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
+  const double t = run.t;
+  double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
+  if (run.h_abs < min_step) run.h_abs = min_step;
+  bool accepted = false, rejected = false;
+  run.t_new = t;
+  run.h = 0.0;
+  while (!accepted) {
+    if (run.h_abs < min_step)
+      throw SimulationFailure{model.name + ": integrator " + run.name +
+                                  " failed at t = " + fmt("%.9g", t) +
+                                  " s: Required step size is less than spacing between "
+                                  "numbers.",
+                              t};
+    run.h = run.h_abs;
+    run.t_new = t + run.h;
+    if (run.t_new - t_final > 0) run.t_new = t_final;
+    run.h = run.t_new - t;
+    run.h_abs = std::abs(run.h);
+    rk_stages(model, data, run);
+    const double err = error_norm(run);
+    if (err < 1) {
+      double factor =
+          err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, run.error_exponent));
+      if (rejected) factor = std::min(1.0, factor);
+      run.h_abs *= factor;
+      accepted = true;
+    } else {
+      run.h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, run.error_exponent));
+      rejected = true;
+    }
+  }
+}
+
+inline void dop853_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                                      double t_old) {
+  const int n_stages = run.n_stages;
+  const double h = run.h;
+  for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
+    run.dy.setZero();
+    for (int j = 0; j < s; ++j)
+      if (dop853::A_EXTRA[e][j] != 0.0) run.dy += dop853::A_EXTRA[e][j] * run.K.col(j);
+    run.ye = run.y + h * run.dy;
+    if (model.partitions) stage_guess(model, data, dop853::A_EXTRA[e], s, h);
+    fun(model, data, t_old + dop853::C_EXTRA[e] * h, run.ye, run.K.col(s));
+    if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
+  }
+  run.F.col(0) = run.y_new - run.y;
+  run.F.col(1) = h * run.K.col(0) - run.F.col(0);
+  run.F.col(2) = 2 * run.F.col(0) - h * (run.f_new + run.K.col(0));
+  for (int i = 0; i < 4; ++i) {
+    run.tmp.setZero();
+    for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+      if (dop853::D[i][j] != 0.0) run.tmp += dop853::D[i][j] * run.K.col(j);
+    run.F.col(3 + i) = h * run.tmp;
+  }
+  if (!(model.partitions && model.nc)) return;
+  const Mat &V = data.stage_dependent_v;
+  run.FD.col(0) = data.qD_end - data.qD0;
+  run.FD.col(1) = h * V.col(0) - run.FD.col(0);
+  run.FD.col(2) = 2 * run.FD.col(0) - h * (V.col(n_stages) + V.col(0));
+  for (int i = 0; i < 4; ++i) {
+    run.FD.col(3 + i).setZero();
+    for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+      if (dop853::D[i][j] != 0.0) run.FD.col(3 + i) += (h * dop853::D[i][j]) * V.col(j);
+  }
+}
+
+inline void rk45_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run) {
+  const int n_stages = run.n_stages;
+  for (int i = 0; i < 4; ++i) {  // Q = K^T P
+    run.tmp.setZero();
+    for (int j = 0; j <= n_stages; ++j)
+      if (rk45::P[j][i] != 0.0) run.tmp += rk45::P[j][i] * run.K.col(j);
+    run.F.col(i) = run.tmp;
+    if (model.partitions && model.nc) {
+      run.FD.col(i).setZero();
+      for (int j = 0; j <= n_stages; ++j)
+        if (rk45::P[j][i] != 0.0) run.FD.col(i) += rk45::P[j][i] * data.stage_dependent_v.col(j);
+    }
+  }
+}
+
+inline void dense_state(const CoreModel &model, CoreData &data, AdaptiveRun &run, double x) {
+  const bool guess = model.partitions && model.nc;
+  const double h = run.h;
+  if (run.dop) {
+    run.ye.setZero();
+    if (guess) data.guess_qD.setZero();
+    for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
+      run.ye += run.F.col(i);
+      run.ye *= (r % 2 == 0) ? x : 1 - x;
+      if (guess) {
+        data.guess_qD += run.FD.col(i);
+        data.guess_qD *= (r % 2 == 0) ? x : 1 - x;
+      }
+    }
+    run.ye += run.y;
+    if (guess) data.guess_qD += data.qD0;
+  } else {
+    double p = x;
+    run.ye = run.y;
+    if (guess) data.guess_qD = data.qD0;
+    for (int i = 0; i < 4; ++i, p *= x) {
+      run.ye += (h * p) * run.F.col(i);
+      if (guess) data.guess_qD += (h * p) * run.FD.col(i);
+    }
+  }
+  data.use_out_guess = guess;
+}
+
+inline void dense_outputs(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_old) {
+  if (!(run.dense && run.ip < run.pending.size() && run.pending[run.ip] <= run.t_new)) return;
+  if (run.dop)
+    dop853_dense_coefficients(model, data, run, t_old);
+  else
+    rk45_dense_coefficients(model, data, run);
+  while (run.ip < run.pending.size() && run.pending[run.ip] <= run.t_new * (1 + 1e-15)) {
+    dense_state(model, data, run, (run.pending[run.ip] - t_old) / run.h);
+    adaptive_output(model, data, run, run.pending[run.ip], run.ye);
+    ++run.ip;
+  }
+}
+
+inline void finish_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final,
+                        bool projects) {
+  const double t = run.t;
+  if (model.partitions) {
+    data.qD0 = data.qD_end;
+    check_finite(model, run.y.head(run.ns), run.y.tail(run.ns), t);
+  } else {
+    run.q_out = chart_q(model, data, run.y.head(model.nv));
+    run.v_out = run.y.tail(model.nv);
+    check_finite(model, run.q_out, run.v_out, t);
+  }
+  if (projects) {
+    project(model, data, run.q_out, run.v_out);
+    if (data.chart) pinocchio::difference(model.tree, data.chart_centre, run.q_out, run.x_out);
+    run.y.head(model.nv) = data.chart ? run.x_out : run.q_out;
+    run.y.tail(model.nv) = run.v_out;
+    fun(model, data, t, run.y, run.f);
+  }
+  if (model.partitions) {
+    unpack(model, data, run.y, t, run.qc, run.vc);
+    check_regular(model, data, run.qc, t);
+  } else {
+    if (data.chart && t < t_final && chart_recentre(model, data, run.y.head(model.nv)))
+      fun(model, data, t, run.y, run.f);
+    check_regular(model, data, run.q_out, t);
+  }
+}
+
 inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
                              const Vec &v0, double t_final, double rtol, double atol,
                              bp::object t_eval_obj, bool projects, bp::object progress) {
@@ -72,278 +447,41 @@ inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integra
   invalidate_kinematics(data);  // nothing kept from before the run (data.M, the factor of P)
   if (integrator != RK45 && integrator != DOP853)
     throw BadArgument{"run_adaptive: unknown integrator"};
-  const bool dop = integrator == DOP853;
-  const int n_stages = dop ? dop853::N_STAGES : rk45::N_STAGES;
-  const int error_order = dop ? 7 : 4;
-  const double error_exponent = -1.0 / (error_order + 1);
-  const double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
-  const double eps = std::numeric_limits<double>::epsilon();
-  if (rtol < 100 * eps) rtol = 100 * eps;  // scipy's validate_tol
-  const std::string iname = dop ? "DOP853" : "RK45";
   data.n_evals = 0;
-  Samples S;
-  begin_partitioning(model, data, false);
-  // Partitioning integrates (q_I, v_I) only; (q_D, v_D) follow at every evaluation.
-  const int ns = model.partitions ? model.nv - model.nc : model.nv;
-  const int n = 2 * ns;
-  Vec qc(model.nv), vc(model.nv);
-  std::vector<double> pending;
-  const bool dense = !t_eval_obj.is_none();
-  if (dense) {
-    Vec te = bp::extract<Vec>(t_eval_obj);
-    pending.assign(te.data(), te.data() + te.size());
+  AdaptiveRun run(model, integrator, rtol, atol, t_eval_obj);
+  adaptive_start(model, data, run, q0, v0);
+  if (!run.dense || (run.ip < run.pending.size() && run.pending[run.ip] <= 0.0)) {
+    adaptive_output(model, data, run, 0.0, run.y);
+    if (run.dense) ++run.ip;
   }
-  std::size_t ip = 0;
-  Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
-  Vec q_out(model.nq), v_out(model.nv), x_out(model.nv);
-  chart_start(model, data, q0);  // partitioning needs nq == nv (refused in Python): no chart then
-  if (model.partitions) {
-    qc = q0;
-    vc = v0;
-    complete(model, data, qc, vc, 0.0);
-    data.warm_q = q0;  // the dependent solves start from the last evaluation's q
-    pack(model, data, qc, vc, y);
-  } else {
-    y.head(model.nv) = data.chart ? Vec::Zero(model.nv) : q0;
-    y.tail(model.nv) = v0;
-  }
-  Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
-  data.stage_dependent_v = Mat::Zero(model.nc, K.cols());
-  Mat F(n, dop853::INTERPOLATOR_POWER);
-  // partitioning: the same dense output of q_D from its rates v_D at the stages
-  // (data.stage_dependent_v),
-  // the guess of the output's dependent solve (as stage_guess for the stages)
-  Mat FD(model.nc, model.partitions ? dop853::INTERPOLATOR_POWER : 0);
-  auto output = [&](double t, const Vec &yy) {
-    if (model.partitions) {
-      unpack(model, data, yy, t, qc, vc);
-      accel(model, data, t, qc, vc);
-      record(model, data, S, t, qc, vc);
-      return;
-    }
-    q_out = chart_q(model, data, yy.head(model.nv));
-    v_out = yy.tail(model.nv);
-    accel(model, data, t, q_out, v_out);
-    record(model, data, S, t, q_out, v_out);
-  };
-  double t = 0.0;
-  if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
-    output(0.0, y);
-    if (dense) ++ip;
-  }
-  fun(model, data, t, y, f);
+  fun(model, data, run.t, run.y, run.f);
   if (model.partitions) step_start_from_last(data);
-  // scipy's select_initial_step
-  double h_abs;
-  {
-    double interval = std::abs(t_final - t);
-    scale = atol + y.cwiseAbs().array() * rtol;
-    double d0 = rms(y.cwiseQuotient(scale)), d1 = rms(f.cwiseQuotient(scale));
-    double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
-    h0 = std::min(h0, interval);
-    Vec y1 = y + h0 * f;
-    Vec f1(n);
-    fun(model, data, t + h0, y1, f1);
-    double d2 = rms((f1 - f).cwiseQuotient(scale)) / h0;
-    double h1 = (d1 <= 1e-15 && d2 <= 1e-15)
-                    ? std::max(1e-6, h0 * 1e-3)
-                    : std::pow(0.01 / std::max(d1, d2), 1.0 / (error_order + 1));
-    h_abs = std::min(std::min(100 * h0, h1), interval);
-  }
+  run.h_abs = initial_step(model, data, run, t_final);  // scipy's select_initial_step
   long steps = 0;
-  while (t < t_final) {
-    // one step of scipy's RungeKutta._step_impl
-    double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
-    if (h_abs < min_step) h_abs = min_step;
-    bool accepted = false, rejected = false;
-    double t_new = t, h = 0.0;
-    while (!accepted) {
-      if (h_abs < min_step)
-        throw SimulationFailure{model.name + ": integrator " + iname +
-                                    " failed at t = " + fmt("%.9g", t) +
-                                    " s: Required step size is less than spacing between "
-                                    "numbers.",
-                                t};
-      h = h_abs;
-      t_new = t + h;
-      if (t_new - t_final > 0) t_new = t_final;
-      h = t_new - t;
-      h_abs = std::abs(h);
-      // rk_step
-      K.col(0) = f;
-      if (model.partitions) data.stage_dependent_v.col(0) = data.start_dependent_v;
-      for (int s = 1; s < n_stages; ++s) {
-        dy.setZero();
-        for (int j = 0; j < s; ++j) {
-          double c = dop ? dop853::A[s][j] : rk45::A[s][j];
-          if (c != 0.0) dy += c * K.col(j);
-        }
-        ye = y + h * dy;
-        if (model.partitions) stage_guess(model, data, dop ? dop853::A[s] : rk45::A[s], s, h);
-        fun(model, data, t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
-        if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
-      }
-      dy.setZero();
-      for (int j = 0; j < n_stages; ++j) {
-        double b = dop ? dop853::B[j] : rk45::B[j];
-        if (b != 0.0) dy += b * K.col(j);
-      }
-      y_new = y + h * dy;
-      if (model.partitions) stage_guess(model, data, dop ? dop853::B : rk45::B, n_stages, h);
-      fun(model, data, t + h, y_new, f_new);
-      if (model.partitions) data.stage_dependent_v.col(n_stages) = data.vD_last;
-      K.col(n_stages) = f_new;
-      scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
-      double err;
-      if (dop) {
-        e5.setZero();
-        e3.setZero();
-        for (int j = 0; j <= n_stages; ++j) {
-          e5 += dop853::E5[j] * K.col(j);
-          e3 += dop853::E3[j] * K.col(j);
-        }
-        e5 = e5.cwiseQuotient(scale);
-        e3 = e3.cwiseQuotient(scale);
-        double n5 = e5.squaredNorm(), n3 = e3.squaredNorm();
-        if (n5 == 0 && n3 == 0)
-          err = 0.0;
-        else
-          err = std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * n);
-      } else {
-        tmp.setZero();
-        for (int j = 0; j <= n_stages; ++j) tmp += rk45::E[j] * K.col(j);
-        tmp *= h;
-        err = rms(tmp.cwiseQuotient(scale));
-      }
-      if (err < 1) {
-        double factor =
-            err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, error_exponent));
-        if (rejected) factor = std::min(1.0, factor);
-        h_abs *= factor;
-        accepted = true;
-      } else {
-        h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, error_exponent));
-        rejected = true;
-      }
-    }
+  while (run.t < t_final) {
+    accepted_step(model, data, run, t_final);  // one step of scipy's RungeKutta._step_impl
     ++steps;
-    const double t_old = t;
+    const double t_old = run.t;
     if (model.partitions) {  // the dependent state at y_new and its rate: the next step's start
       data.qD_end = data.qD_new;  // (data.qD0 stays the step start's for the dense-output stages)
-      data.start_dependent_v = data.stage_dependent_v.col(n_stages);
+      data.start_dependent_v = data.stage_dependent_v.col(run.n_stages);
     }
-    // dense output at the t_eval within the step, from the unprojected step
-    if (dense && ip < pending.size() && pending[ip] <= t_new) {
-      if (dop) {
-        for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
-          dy.setZero();
-          for (int j = 0; j < s; ++j)
-            if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
-          ye = y + h * dy;
-          if (model.partitions) stage_guess(model, data, dop853::A_EXTRA[e], s, h);
-          fun(model, data, t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
-          if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
-        }
-        F.col(0) = y_new - y;
-        F.col(1) = h * K.col(0) - F.col(0);
-        F.col(2) = 2 * F.col(0) - h * (f_new + K.col(0));
-        for (int i = 0; i < 4; ++i) {
-          tmp.setZero();
-          for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
-            if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
-          F.col(3 + i) = h * tmp;
-        }
-        if (model.partitions && model.nc) {
-          FD.col(0) = data.qD_end - data.qD0;
-          FD.col(1) = h * data.stage_dependent_v.col(0) - FD.col(0);
-          FD.col(2) = 2 * FD.col(0) -
-                      h * (data.stage_dependent_v.col(n_stages) + data.stage_dependent_v.col(0));
-          for (int i = 0; i < 4; ++i) {
-            FD.col(3 + i).setZero();
-            for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
-              if (dop853::D[i][j] != 0.0)
-                FD.col(3 + i) += (h * dop853::D[i][j]) * data.stage_dependent_v.col(j);
-          }
-        }
-      } else {
-        for (int i = 0; i < 4; ++i) {  // Q = K^T P
-          tmp.setZero();
-          for (int j = 0; j <= n_stages; ++j)
-            if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
-          F.col(i) = tmp;
-          if (model.partitions && model.nc) {
-            FD.col(i).setZero();
-            for (int j = 0; j <= n_stages; ++j)
-              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * data.stage_dependent_v.col(j);
-          }
-        }
-      }
-      while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
-        double x = (pending[ip] - t_old) / h;
-        const bool guess = model.partitions && model.nc;
-        if (dop) {
-          ye.setZero();
-          if (guess) data.guess_qD.setZero();
-          for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
-            ye += F.col(i);
-            ye *= (r % 2 == 0) ? x : 1 - x;
-            if (guess) {
-              data.guess_qD += FD.col(i);
-              data.guess_qD *= (r % 2 == 0) ? x : 1 - x;
-            }
-          }
-          ye += y;
-          if (guess) data.guess_qD += data.qD0;
-        } else {
-          double p = x;
-          ye = y;
-          if (guess) data.guess_qD = data.qD0;
-          for (int i = 0; i < 4; ++i, p *= x) {
-            ye += (h * p) * F.col(i);
-            if (guess) data.guess_qD += (h * p) * FD.col(i);
-          }
-        }
-        data.use_out_guess = guess;
-        output(pending[ip], ye);
-        ++ip;
-      }
-    }
-    t = t_new;
-    y = y_new;
-    f = f_new;
-    if (model.partitions) {
-      data.qD0 = data.qD_end;
-      check_finite(model, y.head(ns), y.tail(ns), t);
-    } else {
-      q_out = chart_q(model, data, y.head(model.nv));
-      v_out = y.tail(model.nv);
-      check_finite(model, q_out, v_out, t);
-    }
-    if (projects) {
-      project(model, data, q_out, v_out);
-      if (data.chart) pinocchio::difference(model.tree, data.chart_centre, q_out, x_out);
-      y.head(model.nv) = data.chart ? x_out : q_out;
-      y.tail(model.nv) = v_out;
-      fun(model, data, t, y, f);
-    }
-    if (model.partitions) {
-      unpack(model, data, y, t, qc, vc);
-      check_regular(model, data, qc, t);
-    } else {
-      if (data.chart && t < t_final && chart_recentre(model, data, y.head(model.nv)))
-        fun(model, data, t, y, f);
-      check_regular(model, data, q_out, t);
-    }
-    if (!dense) output(t, y);
-    poll(steps, t, progress);
+    dense_outputs(model, data, run, t_old);  // the t_eval within the step, unprojected
+    run.t = run.t_new;
+    run.y = run.y_new;
+    run.f = run.f_new;
+    finish_step(model, data, run, t_final, projects);
+    if (!run.dense) adaptive_output(model, data, run, run.t, run.y);
+    poll(steps, run.t, progress);
     // det(J_D) sign and re-partitioning; a new partition restarts the integrator
     // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
-    if (model.partitions && adaptive_partition_check(model, data, t, t_final, y, qc, vc)) {
-      fun(model, data, t, y, f);
+    if (model.partitions &&
+        adaptive_partition_check(model, data, run.t, t_final, run.y, run.qc, run.vc)) {
+      fun(model, data, run.t, run.y, run.f);
       step_start_from_last(data);
     }
   }
-  return samples_dict(model, data, S, steps);
+  return samples_dict(model, data, run.samples, steps);
 }
 
 inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,

@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <vector>
 
 #include "core_chart.hpp"
 #include "core_data.hpp"
@@ -56,6 +57,27 @@ void record_interpolated(const CoreModel &model, CoreData &data, Samples &S, dou
 bp::dict run_rk4_stage_projected(const CoreModel &model, CoreData &data, const Vec &q0,
                                  const Vec &v0, double dt, long n_steps,
                                  const std::vector<char> &out, bp::object progress);
+
+/// rk4's stage buffers of run_fixed, sized once per run.
+struct Rk4Stages {
+  /// Buffers of shapes (nq,) (qs) and (nv,) (the others).
+  explicit Rk4Stages(const CoreModel &model);
+  /// A stage's state; the increment of q along a stage's rate.
+  Vec qs, vs, dv;
+  /// The stages' rates of q (in the chart about the step's q) and of v.
+  Vec k1v, k1a, k2v, k2a, k3v, k3a, k4v, k4a;
+};
+
+/// One rk4 stage of the step from (q, v) at t: the state at t + c along the previous
+/// stage's rates (kv_prev, ka_prev), projected (stage projection) or completed
+/// (partitioning), and its rates (kv, ka).
+void rk4_stage(const CoreModel &model, CoreData &data, double t, const Vec &q, const Vec &v,
+               double c, const Vec &kv_prev, const Vec &ka_prev, Vec &kv, Vec &ka, Rk4Stages &st);
+
+/// One step of length dt of euler, semi-implicit Euler or rk4 from (q, v) at t with the
+/// accelerations data.a there, to (qn, vn).
+void explicit_step(const CoreModel &model, CoreData &data, int integrator, double t, double dt,
+                   const Vec &q, const Vec &v, Vec &qn, Vec &vn, Rk4Stages &st);
 
 /// Integrate with a fixed step dt for n_steps, recording at the steps in `out`.
 bp::dict run_fixed(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
@@ -255,6 +277,56 @@ inline bp::dict run_rk4_stage_projected(const CoreModel &model, CoreData &data, 
   return d;
 }
 
+inline Rk4Stages::Rk4Stages(const CoreModel &model)
+    : qs(model.nq),
+      vs(model.nv),
+      dv(model.nv),
+      k1v(model.nv),
+      k1a(model.nv),
+      k2v(model.nv),
+      k2a(model.nv),
+      k3v(model.nv),
+      k3a(model.nv),
+      k4v(model.nv),
+      k4a(model.nv) {}
+
+inline void rk4_stage(const CoreModel &model, CoreData &data, double t, const Vec &q, const Vec &v,
+                      double c, const Vec &kv_prev, const Vec &ka_prev, Vec &kv, Vec &ka,
+                      Rk4Stages &st) {
+  st.dv = c * kv_prev;
+  pinocchio::integrate(model.tree, q, st.dv, st.qs);
+  st.vs = v + c * ka_prev;
+  if (model.stage_projects)
+    project(model, data, st.qs, st.vs, true);
+  else if (model.partitions)
+    complete(model, data, st.qs, st.vs, t + c);
+  accel(model, data, t + c, st.qs, st.vs);
+  chart_rate(model, data, q, st.dv, st.vs, kv);  // the chart about q (simulate/chart.py)
+  ka = data.a;
+}
+
+inline void explicit_step(const CoreModel &model, CoreData &data, int integrator, double t,
+                          double dt, const Vec &q, const Vec &v, Vec &qn, Vec &vn, Rk4Stages &st) {
+  if (integrator == EULER) {
+    st.dv = dt * v;
+    pinocchio::integrate(model.tree, q, st.dv, qn);
+    vn = v + dt * data.a;
+  } else if (integrator == SEMI_IMPLICIT) {
+    vn = v + dt * data.a;
+    st.dv = dt * vn;
+    pinocchio::integrate(model.tree, q, st.dv, qn);
+  } else {
+    st.k1v = v;
+    st.k1a = data.a;
+    rk4_stage(model, data, t, q, v, dt / 2, st.k1v, st.k1a, st.k2v, st.k2a, st);
+    rk4_stage(model, data, t, q, v, dt / 2, st.k2v, st.k2a, st.k3v, st.k3a, st);
+    rk4_stage(model, data, t, q, v, dt, st.k3v, st.k3a, st.k4v, st.k4a, st);
+    st.dv = (dt / 6) * (st.k1v + 2 * st.k2v + 2 * st.k3v + st.k4v);
+    pinocchio::integrate(model.tree, q, st.dv, qn);
+    vn = v + (dt / 6) * (st.k1a + 2 * st.k2a + 2 * st.k3a + st.k4a);
+  }
+}
+
 inline bp::dict run_fixed(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
                           const Vec &v0, double dt, long n_steps, const Eigen::VectorXi &out_steps,
                           bool projects, bp::object progress) {
@@ -263,67 +335,20 @@ inline bp::dict run_fixed(const CoreModel &model, CoreData &data, int integrator
   if (integrator < EULER || integrator > RK4) throw BadArgument{"run_fixed: unknown integrator"};
   data.n_evals = 0;
   Samples S;
-  std::vector<char> out(n_steps + 1, 0);
-  for (Eigen::Index i = 0; i < out_steps.size(); ++i)
-    if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+  const std::vector<char> out = output_mask(out_steps, n_steps);
   // Every run starts from its own configuration: a previous partitioning run's
   // data.rows_only left set would skip the stage-projected loop's singularity check.
   begin_partitioning(model, data, true);
   if (integrator == RK4 && model.stage_projects && projects && model.nc)
     return run_rk4_stage_projected(model, data, q0, v0, dt, n_steps, out, progress);
-  Vec q = q0, v = v0, qn(model.nq), vn(model.nv), qs(model.nq), vs(model.nv);
-  Vec k1v(model.nv), k1a(model.nv), k2v(model.nv), k2a(model.nv), k3v(model.nv), k3a(model.nv),
-      k4v(model.nv), k4a(model.nv), dv(model.nv);
+  Vec q = q0, v = v0, qn(model.nq), vn(model.nv);
+  Rk4Stages stages(model);
   double t = 0.0;
   if (model.partitions) complete(model, data, q, v, t);
   accel(model, data, t, q, v);
   if (out[0]) record(model, data, S, t, q, v);
   for (long k = 1; k <= n_steps; ++k) {
-    if (integrator == EULER) {
-      dv = dt * v;
-      pinocchio::integrate(model.tree, q, dv, qn);
-      vn = v + dt * data.a;
-    } else if (integrator == SEMI_IMPLICIT) {
-      vn = v + dt * data.a;
-      dv = dt * vn;
-      pinocchio::integrate(model.tree, q, dv, qn);
-    } else {
-      k1v = v;
-      k1a = data.a;
-      dv = (dt / 2) * k1v;
-      pinocchio::integrate(model.tree, q, dv, qs);
-      vs = v + (dt / 2) * k1a;
-      if (model.stage_projects)
-        project(model, data, qs, vs, true);
-      else if (model.partitions)
-        complete(model, data, qs, vs, t + dt / 2);
-      accel(model, data, t + dt / 2, qs, vs);
-      chart_rate(model, data, q, dv, vs, k2v);  // the chart about q (simulate/chart.py)
-      k2a = data.a;
-      dv = (dt / 2) * k2v;
-      pinocchio::integrate(model.tree, q, dv, qs);
-      vs = v + (dt / 2) * k2a;
-      if (model.stage_projects)
-        project(model, data, qs, vs, true);
-      else if (model.partitions)
-        complete(model, data, qs, vs, t + dt / 2);
-      accel(model, data, t + dt / 2, qs, vs);
-      chart_rate(model, data, q, dv, vs, k3v);
-      k3a = data.a;
-      dv = dt * k3v;
-      pinocchio::integrate(model.tree, q, dv, qs);
-      vs = v + dt * k3a;
-      if (model.stage_projects)
-        project(model, data, qs, vs, true);
-      else if (model.partitions)
-        complete(model, data, qs, vs, t + dt);
-      accel(model, data, t + dt, qs, vs);
-      chart_rate(model, data, q, dv, vs, k4v);
-      k4a = data.a;
-      dv = (dt / 6) * (k1v + 2 * k2v + 2 * k3v + k4v);
-      pinocchio::integrate(model.tree, q, dv, qn);
-      vn = v + (dt / 6) * (k1a + 2 * k2a + 2 * k3a + k4a);
-    }
+    explicit_step(model, data, integrator, t, dt, q, v, qn, vn, stages);
     t = k * dt;
     check_finite(model, qn, vn, t);
     if (projects)

@@ -43,6 +43,26 @@ void configure_partitioning(CoreModel &model, CoreData &data, const RunOptions &
 /// The names of the coordinates idx, comma separated (their indices without names).
 std::string join_names(const CoreModel &model, const std::vector<int> &idx);
 
+/// The dependent solve's iteration limit, halvings of a step, rcond of its fallback step
+/// and the contraction of |phi|^2 that makes the full step enough (closure.solve_closure).
+constexpr int DEPENDENT_MAX_ITER = 20, DEPENDENT_MAX_HALVINGS = 12;
+constexpr double DEPENDENT_FALLBACK_RCOND = 1e-2, DEPENDENT_CONTRACTION = 0.25;
+
+/// The Gauss-Newton step of the dependent solve into data.step_c, -J_D^+ phi_n: by LU where
+/// J_D is regular (pass 0), else lstsq's solution with rcond eps nc (pass 0) or
+/// DEPENDENT_FALLBACK_RCOND (pass 1: without J_D's weak directions).
+void dependent_step(const CoreModel &model, CoreData &data, int pass);
+
+/// Halve the step data.step_c from q until the trial point lowers |phi|^2 below sq or meets
+/// tol; a point better than the best so far (have, best_sq, best_res) becomes the best
+/// (data.q_best, data.phi_best).
+void dependent_line_search(const CoreModel &model, CoreData &data, const Vec &q, double sq,
+                           double tol, bool &have, double &best_sq, double &best_res);
+
+/// SimulationFailure when the assembly at q is a spurious closure of a loop: an alignment
+/// check (R_p u) . (R_s u) <= 0 (the cut-joint frames turned by 180 degrees).
+void check_alignment(const CoreModel &model, CoreData &data, const Vec &q, double t);
+
 /// Gauss-Newton on phi(q) = 0 moving the dependent coordinates data.dependent only, to
 /// dependent_tol (closure.solve_closure with AssemblySettings(tol=dependent_tol,
 /// max_iter=20): the full step, then, unless it contracts the sum of squares by
@@ -199,66 +219,73 @@ inline std::string join_names(const CoreModel &model, const std::vector<int> &id
   return s;
 }
 
+inline void dependent_step(const CoreModel &model, CoreData &data, int pass) {
+  // a regular J_D (rcond above eps nc; the factors' bound shows it cheaply
+  // away from singular J_D): lstsq's solution is the LU solution
+  const double eps_n = std::numeric_limits<double>::epsilon() * model.nc;
+  if (pass == 0 && data.lu_jd.factor(data.JD) &&
+      (data.lu_jd.anorm * data.lu_jd.inverse_norm_bound() * eps_n < 1.0 ||
+       data.lu_jd.rcond() > eps_n)) {
+    data.step_c = -data.phi_n;
+    data.lu_jd.solve(data.step_c);  // = lstsq's solution for a regular J_D
+    return;
+  }
+  // lstsq with rcond: singular values below rcond s_max dropped (rcond None:
+  // eps nc, numpy's default)
+  const double rc =
+      pass == 0 ? std::numeric_limits<double>::epsilon() * model.nc : DEPENDENT_FALLBACK_RCOND;
+  data.svd_jd_uv.compute(data.JD, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Vec &sv = data.svd_jd_uv.singularValues();
+  data.step_c.setZero();
+  for (Eigen::Index i = 0; i < sv.size(); ++i)
+    if (sv[i] > rc * sv[0])
+      data.step_c -= (data.svd_jd_uv.matrixU().col(i).dot(data.phi_n) / sv[i]) *
+                     data.svd_jd_uv.matrixV().col(i);
+}
+
+inline void dependent_line_search(const CoreModel &model, CoreData &data, const Vec &q, double sq,
+                                  double tol, bool &have, double &best_sq, double &best_res) {
+  data.dv_n.setZero();
+  for (int i = 0; i < model.nc; ++i) data.dv_n[data.dependent[i]] = data.step_c[i];
+  double alpha = 1.0;
+  for (int k = 0; k < DEPENDENT_MAX_HALVINGS; ++k) {
+    data.dq = alpha * data.dv_n;
+    if (model.vector_space)
+      data.q_try = q + data.dq;  // pinocchio::integrate on revolute/prismatic joints: q + dq
+    else
+      pinocchio::integrate(model.tree, q, data.dq, data.q_try);
+    eval_phi_J_trial(model, data, data.q_try);
+    const double res_try = data.phi.cwiseAbs().maxCoeff(), sq_try = data.phi.squaredNorm();
+    if (sq_try < sq || res_try <= tol) {
+      if (!have || sq_try < best_sq) {
+        have = true;
+        best_sq = sq_try;
+        best_res = res_try;
+        data.q_best = data.q_try;
+        data.phi_best = data.phi;
+      }
+      return;
+    }
+    alpha *= 0.5;
+  }
+}
+
 inline void newton_dependent(const CoreModel &model, CoreData &data, Vec &q, double t) {
   if (model.nc == 0) return;
-  constexpr int MAX_ITER = 20, MAX_HALVINGS = 12;
-  constexpr double FALLBACK_RCOND = 1e-2, CONTRACTION = 0.25;
   const double tol = model.dependent_tol;
   eval_phi_J(model, data, q);
   data.phi_n = data.phi;
   double res = data.phi_n.cwiseAbs().maxCoeff();
-  for (int it = 0; it < MAX_ITER && !(res <= tol); ++it) {
+  for (int it = 0; it < DEPENDENT_MAX_ITER && !(res <= tol); ++it) {
     eval_phi_J(model, data, q);
     gather_JD(model, data, data.dependent);
     const double sq = data.phi_n.squaredNorm();
     bool have = false;
     double best_sq = 0.0, best_res = 0.0;
     for (int pass = 0; pass < 2; ++pass) {
-      // a regular J_D (rcond above eps nc; the factors' bound shows it cheaply
-      // away from singular J_D): lstsq's solution is the LU solution
-      const double eps_n = std::numeric_limits<double>::epsilon() * model.nc;
-      if (pass == 0 && data.lu_jd.factor(data.JD) &&
-          (data.lu_jd.anorm * data.lu_jd.inverse_norm_bound() * eps_n < 1.0 ||
-           data.lu_jd.rcond() > eps_n)) {
-        data.step_c = -data.phi_n;
-        data.lu_jd.solve(data.step_c);  // = lstsq's solution for a regular J_D
-      } else {
-        // lstsq with rcond: singular values below rcond s_max dropped (rcond None:
-        // eps nc, numpy's default)
-        const double rc =
-            pass == 0 ? std::numeric_limits<double>::epsilon() * model.nc : FALLBACK_RCOND;
-        data.svd_jd_uv.compute(data.JD, Eigen::ComputeFullU | Eigen::ComputeFullV);
-        const Vec &sv = data.svd_jd_uv.singularValues();
-        data.step_c.setZero();
-        for (Eigen::Index i = 0; i < sv.size(); ++i)
-          if (sv[i] > rc * sv[0])
-            data.step_c -= (data.svd_jd_uv.matrixU().col(i).dot(data.phi_n) / sv[i]) *
-                           data.svd_jd_uv.matrixV().col(i);
-      }
-      data.dv_n.setZero();
-      for (int i = 0; i < model.nc; ++i) data.dv_n[data.dependent[i]] = data.step_c[i];
-      double alpha = 1.0;
-      for (int k = 0; k < MAX_HALVINGS; ++k) {
-        data.dq = alpha * data.dv_n;
-        if (model.vector_space)
-          data.q_try = q + data.dq;  // pinocchio::integrate on revolute/prismatic joints: q + dq
-        else
-          pinocchio::integrate(model.tree, q, data.dq, data.q_try);
-        eval_phi_J_trial(model, data, data.q_try);
-        const double res_try = data.phi.cwiseAbs().maxCoeff(), sq_try = data.phi.squaredNorm();
-        if (sq_try < sq || res_try <= tol) {
-          if (!have || sq_try < best_sq) {
-            have = true;
-            best_sq = sq_try;
-            best_res = res_try;
-            data.q_best = data.q_try;
-            data.phi_best = data.phi;
-          }
-          break;
-        }
-        alpha *= 0.5;
-      }
-      if (have && (best_res <= tol || best_sq <= CONTRACTION * sq)) break;
+      dependent_step(model, data, pass);
+      dependent_line_search(model, data, q, sq, tol, have, best_sq, best_res);
+      if (have && (best_res <= tol || best_sq <= DEPENDENT_CONTRACTION * sq)) break;
     }
     if (!have) break;
     q = data.q_best;
@@ -271,9 +298,13 @@ inline void newton_dependent(const CoreModel &model, CoreData &data, Vec &q, dou
                                 "did not converge: max |phi| = " +
                                 fmt("%.3e", res) + " > tol " + fmt("%.1e", tol),
                             t};
+  check_alignment(model, data, q, t);
+}
+
+inline void check_alignment(const CoreModel &model, CoreData &data, const Vec &q, double t) {
   if (model.alignments.empty()) return;
-  eval_phi_J(model, data,
-             q);  // the placements at q (from the memo unless a later trial moved them)
+  // the placements at q (from the memo unless a later trial moved them)
+  eval_phi_J(model, data, q);
   std::string bad;
   int last = -1;
   for (const LoopAlignment &al : model.alignments) {

@@ -55,6 +55,9 @@ void poll(long k, double t, const bp::object &progress);
 /// SimulationFailure when q or v is not finite at t.
 void check_finite(const CoreModel &model, const Vec &q, const Vec &v, double t);
 
+/// out[k] = 1 for the steps k of out_steps within 0..n_steps: where a fixed-step run records.
+std::vector<char> output_mask(const Eigen::VectorXi &out_steps, long n_steps);
+
 // -- definitions -------------------------------------------------------------
 
 inline void set_branch_columns(CoreModel &model, CoreData &data, const Eigen::VectorXi &cols) {
@@ -165,6 +168,13 @@ inline void poll(long k, double t, const bp::object &progress) {
 inline void check_finite(const CoreModel &model, const Vec &q, const Vec &v, double t) {
   if (!(q.allFinite() && v.allFinite()))
     throw SimulationFailure{model.name + ": non-finite state at t = " + fmt("%.9g", t) + " s", t};
+}
+
+inline std::vector<char> output_mask(const Eigen::VectorXi &out_steps, long n_steps) {
+  std::vector<char> out(n_steps + 1, 0);
+  for (Eigen::Index i = 0; i < out_steps.size(); ++i)
+    if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+  return out;
 }
 
 }  // namespace closedchain
