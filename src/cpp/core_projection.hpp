@@ -129,13 +129,7 @@ inline void check_regular(const CoreModel &model, CoreData &data, const RefV &q,
   } else {
     res = model.nc ? data.phi.cwiseAbs().maxCoeff() : 0.0;
   }
-  if (!std::isfinite(res) || res > model.drift_limit)
-    throw SimulationFailure{model.name + ": the state left the constraint manifold at t = " +
-                                fmt("%.9g", t) + " s (max |phi| = " + fmt("%.3e", res) +
-                                " > drift_limit " + fmt("%.1e", model.drift_limit) +
-                                (worst >= 0 ? ", row " + model.declared_labels[worst] : "") +
-                                "); use a stabilization or a smaller step",
-                            t};
+  check_drift(model, res, worst, t);
   const bool has_dropped = nd > model.nc;
   if (has_dropped && drop_res > std::max(model.dropped_tol, model.dropped_ratio * kept_res))
     throw RowCheckRequired{"dropped row " + model.declared_labels[worst_drop] + " open by " +

@@ -11,7 +11,6 @@
 #include "core_data.hpp"
 #include "core_model.hpp"
 #include "core_partitioning.hpp"
-#include "core_projection.hpp"
 #include "core_rows.hpp"
 #include "errors.hpp"
 
@@ -102,13 +101,7 @@ inline void record(const CoreModel &model, CoreData &data, Samples &out, double 
       vres = data.vel_c.cwiseAbs().maxCoeff();
     }
   }
-  if (!std::isfinite(res) || res > model.drift_limit)
-    throw SimulationFailure{model.name + ": the state left the constraint manifold at t = " +
-                                fmt("%.9g", t) + " s (max |phi| = " + fmt("%.3e", res) +
-                                " > drift_limit " + fmt("%.1e", model.drift_limit) +
-                                (worst >= 0 ? ", row " + model.declared_labels[worst] : "") +
-                                "); use a stabilization or a smaller step",
-                            t};
+  check_drift(model, res, worst, t);
   // Energies: from the last eval_terms when it was at (q, v) (the loops record
   // right after accel there), else from Pinocchio's own passes.
   double ke, pe;

@@ -6,6 +6,7 @@
 
 #include <pinocchio/algorithm/kinematics.hpp>
 
+#include <cmath>
 #include <limits>
 
 #include "core_data.hpp"
@@ -93,6 +94,11 @@ void row_jacobian(const CoreModel &model, CoreData &data, const Row &row, RowXpr
 
 /// Fill data.phi, data.J, data.gamma from the per-frame quantities.
 void fill_rows(const CoreModel &model, CoreData &data, bool want_phi, bool want_J, bool want_gamma);
+
+/// SimulationFailure when res, the largest |phi| over the declared rows (at declared row
+/// `worst`; -1: over the kept rows), is not finite or exceeds drift_limit at t: the state
+/// left the constraint manifold.
+void check_drift(const CoreModel &model, double res, int worst, double t);
 
 // -- definitions -------------------------------------------------------------
 
@@ -310,6 +316,16 @@ inline void fill_rows(const CoreModel &model, CoreData &data, bool want_phi, boo
       }
     }
   }
+}
+
+inline void check_drift(const CoreModel &model, double res, int worst, double t) {
+  if (std::isfinite(res) && res <= model.drift_limit) return;
+  throw SimulationFailure{model.name + ": the state left the constraint manifold at t = " +
+                              fmt("%.9g", t) + " s (max |phi| = " + fmt("%.3e", res) +
+                              " > drift_limit " + fmt("%.1e", model.drift_limit) +
+                              (worst >= 0 ? ", row " + model.declared_labels[worst] : "") +
+                              "); use a stabilization or a smaller step",
+                          t};
 }
 
 }  // namespace closedchain
