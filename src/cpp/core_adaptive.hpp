@@ -123,6 +123,89 @@ bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, co
                       const Vec &v0, double t_final, double rtol, double atol,
                       bp::object t_eval_obj, bool projects, bp::object progress);
 
+/// The state of one rk43 run (simulate/rk43.py): the tolerances, the times the steps land
+/// on, the state at t and at the end of the step being taken, the step size and the run's
+/// counters.
+struct Rk43Run {
+  /// The tolerances, the first trial step h0 [s] and the stops: every time of t_eval > 0
+  /// (None: t_final alone).
+  Rk43Run(const CoreModel &model, double t_final, double rtol, double atol, double h0,
+          bp::object t_eval_obj, bool record_all);
+
+  /// Relative and absolute tolerances of the error estimate.
+  double rtol, atol;
+  /// The times [s] the steps land on, in order; the start is recorded (t_eval is None or
+  /// starts at 0); every step end is recorded (t_eval None or record_all).
+  std::vector<double> stops;
+  bool record_start = true, every = true;
+  /// Time [s] of (q, v, a) and the next trial step [s].
+  double t = 0.0, h;
+  /// The state at t: q (nq,), v and a (nv,).
+  Vec q, v, a;
+  /// The state at the end of the step being taken.
+  Vec qn, vn, an;
+  /// The end of the first substep of a retake around a singular position.
+  Vec q1, v1, a1;
+  /// rk4_projected's projected midpoint q; the chart rate at the step's end; the position
+  /// part of the error estimate.
+  Vec qm, k5v, ex;
+  /// The rank indicator at q.
+  double rho_start = 0.0;
+  /// Largest accepted error norm; sum of the accepted steps' largest position errors.
+  double err_max = 0.0, err_sum = 0.0;
+  /// Accepted steps, rejected trials, steps retaken around a singular position.
+  long steps = 0, rejected = 0, splits = 0;
+  /// The samples recorded.
+  Samples samples;
+};
+
+/// One trial of rk43 from run.t: its error norm (scipy's weighted RMS), the largest
+/// position error [rad or m], the rank indicator at its end, and the retake around a
+/// singular position it plans (retake_plan: twice, the first substep f [steps], span).
+struct Rk43Trial {
+  /// Error norm (accepted at most 1); largest position error [rad or m]; rank indicator
+  /// at the trial's end.
+  double err = 0.0, exm = 0.0, rho_new = 0.0;
+  /// A retake is planned; it spans two steps; it is split in two substeps.
+  bool plan = false, twice = false, sub = false;
+  /// The first substep [steps] and the retake's length [steps].
+  double f = 0.0, span = 1.0;
+};
+
+/// The step-size factor after a trial with error norm err (rk43.py: SAFETY err^(-1/4)
+/// within [MIN_FACTOR, MAX_FACTOR]).
+double rk43_factor(double err);
+
+/// One projected rk4 step from (qa, va, aa) at t of length h with its estimate
+/// (rk43._Estimator.step): (qb, vb, ab) at the end, err in scipy's weighted RMS norm of
+/// (h / 6) (k4 - k5), exm the largest position error [rad or m]; returns the rank
+/// indicator at the projected midpoint.
+double rk43_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t, const Vec &qa,
+                 const Vec &va, const Vec &aa, double h, Vec &qb, Vec &vb, Vec &ab, double &err,
+                 double &exm);
+
+/// The state at t = 0: the stage buffers sized, (q0, v0) evaluated, recorded unless t_eval
+/// starts later, and the rank indicator there.
+void rk43_start(const CoreModel &model, CoreData &data, Rk43Run &run, const Vec &q0,
+                const Vec &v0);
+
+/// Retake the step around a singular position as trial.plan says: one step of span steps
+/// or two substeps split at trial.f; false when the step must be re-planned (two steps
+/// would pass t_stop: run.h halved to end there).
+bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                 Rk43Trial &trial);
+
+/// Accept the trial: check the substep's and the step's ends (check_regular), move the
+/// state to the end, record it, and the next step size.
+void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run, const Rk43Trial &trial,
+                 double t_stop, bool clipped, double proposed, const bp::object &progress);
+
+/// One trial step toward t_stop (clipped to land on it); true when accepted, false when
+/// rejected (run.h reduced) or re-planned. SimulationFailure when the step falls below the
+/// spacing of the times.
+bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                   const bp::object &progress);
+
 /// rk43 (simulate/rk43.py, step for step): rk4 with stage projection and the retakes near
 /// singular positions, its step chosen by the embedded third-order estimate
 /// (h / 6) (k4 - k5); first trial step h0 [s]; the steps land on every time of t_eval (or
@@ -484,6 +567,138 @@ inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integra
   return samples_dict(model, data, run.samples, steps);
 }
 
+inline Rk43Run::Rk43Run(const CoreModel &model, double t_final, double relative_tol,
+                        double absolute_tol, double h0, bp::object t_eval_obj, bool record_all)
+    : rtol(relative_tol), atol(absolute_tol), h(h0) {
+  if (t_eval_obj.is_none()) {
+    stops.push_back(t_final);
+  } else {
+    Vec te = bp::extract<Vec>(t_eval_obj);
+    record_start = te.size() && te[0] <= 0.0;
+    for (Eigen::Index i = 0; i < te.size(); ++i)
+      if (te[i] > 0.0) stops.push_back(te[i]);
+  }
+  every = t_eval_obj.is_none() || record_all;
+  const int nq = model.nq, nv = model.nv;
+  for (Vec *x : {&q, &qn, &q1, &qm}) x->resize(nq);
+  for (Vec *x : {&v, &a, &vn, &an, &v1, &a1, &k5v, &ex}) x->resize(nv);
+}
+
+inline double rk43_factor(double err) {
+  if (err == 0.0) return RK43_MAX_FACTOR;
+  return std::min(RK43_MAX_FACTOR,
+                  std::max(RK43_MIN_FACTOR, RK43_SAFETY * std::pow(err, RK43_ERROR_EXPONENT)));
+}
+
+inline double rk43_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t,
+                        const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb, Vec &vb,
+                        Vec &ab, double &err, double &exm) {
+  rk4_projected(model, data, t, qa, va, aa, h, qb, vb, run.qm);
+  const double mid = data.midpoint_indicator;
+  accel(model, data, t + h, qb, vb);
+  ab = data.a;
+  pinocchio::difference(model.tree, qa, qb, data.dv);
+  chart_rate(model, data, qa, data.dv, vb, run.k5v);
+  run.ex = (h / 6) * (data.k4v - run.k5v);
+  double sum = 0.0;  // positions in the chart about qa: 0 at the start, data.dv at the end
+  for (int i = 0; i < model.nv; ++i) {
+    const double sx = run.atol + run.rtol * std::abs(data.dv[i]);
+    const double sv = run.atol + run.rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
+    const double ev = (h / 6) * (data.k4a[i] - ab[i]);
+    sum += (run.ex[i] / sx) * (run.ex[i] / sx) + (ev / sv) * (ev / sv);
+  }
+  err = model.nv ? std::sqrt(sum / (2.0 * model.nv)) : 0.0;
+  exm = model.nv ? run.ex.cwiseAbs().maxCoeff() : 0.0;
+  return mid;
+}
+
+inline void rk43_start(const CoreModel &model, CoreData &data, Rk43Run &run, const Vec &q0,
+                       const Vec &v0) {
+  for (Vec *b : {&data.dv, &data.vs, &data.k2v, &data.k2a, &data.k3v, &data.k3a, &data.k4v,
+                 &data.k4a})
+    b->resize(model.nv);
+  data.qs.resize(model.nq);
+  run.q = q0;
+  run.v = v0;
+  accel(model, data, run.t, run.q, run.v);
+  run.a = data.a;
+  if (run.record_start) record(model, data, run.samples, run.t, run.q, run.v);
+  run.rho_start = rank_indicator(model, data, run.q);
+}
+
+inline bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                        Rk43Trial &trial) {
+  const double t = run.t, h = run.h;
+  trial.span = trial.twice ? 2.0 : 1.0;
+  if (trial.twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
+    run.h = 0.5 * (t_stop - t);  // re-plan with two steps ending at the stop
+    return false;
+  }
+  if (trial.f < trial.span) {
+    double e1 = 0.0, m1 = 0.0, e2 = 0.0, m2 = 0.0;
+    rk43_step(model, data, run, t, run.q, run.v, run.a, trial.f * h, run.q1, run.v1, run.a1, e1,
+              m1);
+    trial.sub = true;
+    rk43_step(model, data, run, t + trial.f * h, run.q1, run.v1, run.a1,
+              (trial.span - trial.f) * h, run.qn, run.vn, run.an, e2, m2);
+    trial.err = std::max(e1, e2);
+    trial.exm = m1 + m2;
+  } else {  // one substep of two steps
+    rk43_step(model, data, run, t, run.q, run.v, run.a, trial.span * h, run.qn, run.vn, run.an,
+              trial.err, trial.exm);
+  }
+  trial.rho_new = rank_indicator(model, data, run.qn);
+  return true;
+}
+
+inline void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run,
+                        const Rk43Trial &trial, double t_stop, bool clipped, double proposed,
+                        const bp::object &progress) {
+  const double h = run.h, span = trial.span;
+  if (trial.plan) ++run.splits;
+  if (trial.sub) check_regular(model, data, run.q1, run.t + trial.f * h);
+  run.t = (clipped || run.t + span * h >= t_stop) ? t_stop : run.t + span * h;
+  check_regular(model, data, run.qn, run.t);
+  run.q = run.qn;
+  run.v = run.vn;
+  run.a = run.an;
+  run.rho_start = trial.rho_new;
+  ++run.steps;
+  run.err_max = std::max(run.err_max, trial.err);
+  run.err_sum += trial.exm;
+  // data.a, data.lam: the last evaluation's, at q
+  if (run.every || run.t == t_stop) record(model, data, run.samples, run.t, run.q, run.v);
+  poll(run.steps, run.t, progress);
+  run.h *= rk43_factor(trial.err);
+  if (clipped) run.h = std::max(run.h, proposed);
+}
+
+inline bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                          const bp::object &progress) {
+  const double proposed = run.h, t = run.t;
+  const bool clipped = t + run.h >= t_stop * (1.0 - 1e-15);
+  if (clipped) run.h = t_stop - t;
+  if (!(run.h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
+    throw SimulationFailure{model.name + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
+                                " s: the step fell below the spacing of the times",
+                            t};
+  Rk43Trial trial;
+  const double rho_mid = rk43_step(model, data, run, t, run.q, run.v, run.a, run.h, run.qn,
+                                   run.vn, run.an, trial.err, trial.exm);
+  trial.rho_new = rank_indicator(model, data, run.qn);
+  if (model.stage_zone > 0)
+    trial.plan = retake_plan(crossing_estimate(run.rho_start, rho_mid, trial.rho_new),
+                             model.stage_zone, trial.twice, trial.f);
+  if (trial.plan && !rk43_retake(model, data, run, t_stop, trial)) return false;
+  if (trial.err > 1.0) {
+    ++run.rejected;
+    run.h *= rk43_factor(trial.err);
+    return false;
+  }
+  rk43_accept(model, data, run, trial, t_stop, clipped, proposed, progress);
+  return true;
+}
+
 inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
                          double t_final, double rtol, double atol, double h0,
                          bp::object t_eval_obj, bool record_all, bp::object progress) {
@@ -493,123 +708,15 @@ inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, 
     throw BadArgument{"run_rk43: t_final, rtol, atol and h0 must be > 0"};
   data.n_evals = 0;
   begin_partitioning(model, data, true);  // as run_fixed: the stage-projected loop's checks
-  Samples S;
-  std::vector<double> stops;
-  bool record_start = true;
-  if (t_eval_obj.is_none()) {
-    stops.push_back(t_final);
-  } else {
-    Vec te = bp::extract<Vec>(t_eval_obj);
-    record_start = te.size() && te[0] <= 0.0;
-    for (Eigen::Index i = 0; i < te.size(); ++i)
-      if (te[i] > 0.0) stops.push_back(te[i]);
-  }
-  const bool every = t_eval_obj.is_none() || record_all;
-  for (Vec *b : {&data.dv, &data.vs, &data.k2v, &data.k2a, &data.k3v, &data.k3a, &data.k4v,
-                 &data.k4a})
-    b->resize(model.nv);
-  data.qs.resize(model.nq);
-  const int nq = model.nq, nv = model.nv;
-  Vec q = q0, v = v0, a(nv), qn(nq), vn(nv), an(nv), qm(nq), q1(nq), v1(nv), a1(nv);
-  Vec k5v(nv), ex(nv);
-  auto factor = [](double err) {
-    if (err == 0.0) return RK43_MAX_FACTOR;
-    return std::min(RK43_MAX_FACTOR,
-                    std::max(RK43_MIN_FACTOR, RK43_SAFETY * std::pow(err, RK43_ERROR_EXPONENT)));
-  };
-  // One projected rk4 step with its estimate (rk43._Estimator.step): (qb, vb, ab) at the
-  // end, err in scipy's weighted RMS norm, exm the largest position error [rad or m];
-  // returns the rank indicator at the projected midpoint.
-  auto step = [&](double t, const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb,
-                  Vec &vb, Vec &ab, double &err, double &exm) {
-    rk4_projected(model, data, t, qa, va, aa, h, qb, vb, qm);
-    const double mid = data.midpoint_indicator;
-    accel(model, data, t + h, qb, vb);
-    ab = data.a;
-    pinocchio::difference(model.tree, qa, qb, data.dv);
-    chart_rate(model, data, qa, data.dv, vb, k5v);
-    ex = (h / 6) * (data.k4v - k5v);
-    double sum = 0.0;  // positions in the chart about qa: 0 at the start, data.dv at the end
-    for (int i = 0; i < model.nv; ++i) {
-      const double sx = atol + rtol * std::abs(data.dv[i]);
-      const double sv = atol + rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
-      const double ev = (h / 6) * (data.k4a[i] - ab[i]);
-      sum += (ex[i] / sx) * (ex[i] / sx) + (ev / sv) * (ev / sv);
-    }
-    err = model.nv ? std::sqrt(sum / (2.0 * model.nv)) : 0.0;
-    exm = model.nv ? ex.cwiseAbs().maxCoeff() : 0.0;
-    return mid;
-  };
-  double t = 0.0;
-  accel(model, data, t, q, v);
-  a = data.a;
-  if (record_start) record(model, data, S, t, q, v);
-  double rho_start = rank_indicator(model, data, q);
-  double h = h0, err_max = 0.0, err_sum = 0.0;
-  long steps = 0, rejected = 0, splits = 0;
-  for (const double t_stop : stops) {
-    while (t < t_stop) {
-      const double proposed = h;
-      const bool clipped = t + h >= t_stop * (1.0 - 1e-15);
-      if (clipped) h = t_stop - t;
-      if (!(h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
-        throw SimulationFailure{model.name + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
-                                    " s: the step fell below the spacing of the times",
-                                t};
-      double err = 0.0, exm = 0.0;
-      const double rho_mid = step(t, q, v, a, h, qn, vn, an, err, exm);
-      double rho_new = rank_indicator(model, data, qn);
-      bool plan = false, twice = false, sub = false;
-      double f = 0.0, span = 1.0;
-      if (model.stage_zone > 0)
-        plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), model.stage_zone,
-                           twice, f);
-      if (plan) {
-        span = twice ? 2.0 : 1.0;
-        if (twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
-          h = 0.5 * (t_stop - t);  // re-plan with two steps ending at the stop
-          continue;
-        }
-        if (f < span) {
-          double e1 = 0.0, m1 = 0.0, e2 = 0.0, m2 = 0.0;
-          step(t, q, v, a, f * h, q1, v1, a1, e1, m1);
-          sub = true;
-          step(t + f * h, q1, v1, a1, (span - f) * h, qn, vn, an, e2, m2);
-          err = std::max(e1, e2);
-          exm = m1 + m2;
-        } else {  // one substep of two steps
-          step(t, q, v, a, span * h, qn, vn, an, err, exm);
-        }
-        rho_new = rank_indicator(model, data, qn);
-      }
-      if (err > 1.0) {
-        ++rejected;
-        h *= factor(err);
-        continue;
-      }
-      if (plan) ++splits;
-      if (sub) check_regular(model, data, q1, t + f * h);
-      t = (clipped || t + span * h >= t_stop) ? t_stop : t + span * h;
-      check_regular(model, data, qn, t);
-      q = qn;
-      v = vn;
-      a = an;
-      rho_start = rho_new;
-      ++steps;
-      err_max = std::max(err_max, err);
-      err_sum += exm;
-      // data.a, data.lam: the last evaluation's, at q
-      if (every || t == t_stop) record(model, data, S, t, q, v);
-      poll(steps, t, progress);
-      h *= factor(err);
-      if (clipped) h = std::max(h, proposed);
-    }
-  }
-  bp::dict d = samples_dict(model, data, S, steps);
-  d["singular_splits"] = splits;
-  d["rejected_steps"] = rejected;
-  d["error_estimate_max"] = err_max;
-  d["error_estimate_sum"] = err_sum;
+  Rk43Run run(model, t_final, rtol, atol, h0, t_eval_obj, record_all);
+  rk43_start(model, data, run, q0, v0);
+  for (const double t_stop : run.stops)
+    while (run.t < t_stop) rk43_try_step(model, data, run, t_stop, progress);
+  bp::dict d = samples_dict(model, data, run.samples, run.steps);
+  d["singular_splits"] = run.splits;
+  d["rejected_steps"] = run.rejected;
+  d["error_estimate_max"] = run.err_max;
+  d["error_estimate_sum"] = run.err_sum;
   return d;
 }
 
