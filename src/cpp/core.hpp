@@ -71,8 +71,8 @@ class Core {
 
   /// (banded_p, banded_n, b_p, b_n) as set by set_band.
   bp::tuple band_info() const {
-    return bp::make_tuple(model_.banded_penalized, model_.banded_normal, model_.penalized_bandwidth,
-                          model_.normal_bandwidth);
+    return bp::make_tuple(model_.banded_penalized, model_.banded_normal,
+                          model_.penalized_bandwidth, model_.normal_bandwidth);
   }
 
   /// (phi, J, gamma) at (q, v) (py_rows).
