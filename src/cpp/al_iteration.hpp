@@ -1,7 +1,7 @@
 // closedchain._core: the augmented-Lagrangian iteration (Bayo & Ledesma 1996), written
-// once for Core::solve_al (its dense and band paths), the mass-orthogonal velocity step
-// of the stage projection (Core::project) and the ALI3-P projections (ali3p.hpp);
-// included by expose-core.cpp before ali3p.hpp.
+// once for solve_al (core_methods.hpp: its dense and band paths), the mass-orthogonal
+// velocity step of the stage projection (project, core_projection.hpp) and the ALI3-P
+// projections (ali3p.hpp).
 //
 // With P = M + alpha J^T J factored, from lam_0 = 0:
 //   x_1 = P^-1 (rhs - alpha J^T g),   lam_1 = alpha (J x_1 + g),

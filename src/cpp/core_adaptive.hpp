@@ -1,6 +1,6 @@
 // closedchain._core: the adaptive loops (RK45, DOP853 with scipy's error control) and the
 // chart of q when nq != nv.
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
@@ -9,352 +9,567 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <string>
+#include <vector>
 
-#include "core.hpp"
+#include "core_chart.hpp"
+#include "core_data.hpp"
+#include "core_fixed.hpp"
+#include "core_methods.hpp"
+#include "core_model.hpp"
+#include "core_partitioning.hpp"
+#include "core_projection.hpp"
+#include "core_recording.hpp"
+#include "core_rows.hpp"
 #include "rk_coefficients.hpp"
 
 namespace closedchain {
 
-inline void Core::chart_start(const Vec &q0) {
-  chart_ = nq_ != nv_;
-  if (!chart_) return;
-  q_c_ = q0;
-  q_x_ = q0;
-}
+// -- declarations ------------------------------------------------------------
 
-inline void Core::chart_rate(const Vec &q_c, const Eigen::Ref<const Vec> &x,
-                             const Eigen::Ref<const Vec> &v, Eigen::Ref<Vec> out) {
-  out = v;
-  if (curved_.empty()) return;
-  pinocchio::dIntegrate(model_, q_c, x, D_chart_, pinocchio::ARG1);
-  for (const auto &b : curved_) {
-    SmallMat Db = D_chart_.block(b.first, b.first, b.second, b.second);
-    out.segment(b.first, b.second) = Db.partialPivLu().solve(v.segment(b.first, b.second));
-  }
-}
+/// Root mean square of x (scipy's norm of the error estimate).
+double rms(const Vec &x);
 
-inline RefV Core::chart_q(const Eigen::Ref<const Vec> &x) {
-  if (!chart_) return x;
-  pinocchio::integrate(model_, q_c_, x, q_x_);
-  return q_x_;
-}
+/// The right-hand side dy/dt = f(t, y) of the adaptive loops: y = (q or the chart's x, v),
+/// or (q_I, v_I) with partitioning (fun_partitioned).
+void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, Eigen::Ref<Vec> f);
 
-inline bool Core::chart_recentre(Eigen::Ref<Vec> x) {
-  bool far = false;
-  for (const auto &b : curved_) far = far || x.segment(b.first, b.second).norm() > RECENTRE_NORM;
-  if (!far) return false;
-  pinocchio::integrate(model_, q_c_, x, q_x_);
-  q_c_ = q_x_;
-  x.setZero();
-  return true;
-}
+/// The state of one adaptive run (scipy's RungeKutta): the tableau, the tolerances, the
+/// integrated state y and its rate f, the stages, the dense-output coefficients and the
+/// samples. y is (q or the chart's x, v), or (q_I, v_I) with partitioning.
+struct AdaptiveRun {
+  /// The tableau of `integrator` (RK45 or DOP853), the tolerances (rtol at least 100 eps,
+  /// scipy's validate_tol) and the output times t_eval (None: every step).
+  AdaptiveRun(const CoreModel &model, int integrator, double rtol, double atol,
+              bp::object t_eval_obj);
 
-inline void Core::fun(double t, const Vec &y, Eigen::Ref<Vec> f) {
-  if (partitions_) {
-    fun_partitioned(t, y, f);
+  /// DOP853 (else RK45); its stages; the step-size exponent -1 / (error order + 1).
+  bool dop;
+  int n_stages;
+  double error_exponent;
+  /// Relative and absolute tolerances.
+  double rtol, atol;
+  /// The integrator's name, for messages.
+  std::string name;
+  /// Size of the integrated positions (nv, or nv - nc with partitioning) and of y.
+  int ns, n;
+  /// Output at the times `pending` (the next one pending[ip]), else at every step.
+  bool dense;
+  std::vector<double> pending;
+  std::size_t ip = 0;
+  /// Time [s] of y, end of the step being taken, its length and the next step's size.
+  double t = 0.0, t_new = 0.0, h = 0.0, h_abs = 0.0;
+  /// State and rate at t and at t_new; error scale; work vectors (shape (n,)).
+  Vec y, y_new, f, f_new, scale, dy, ye, tmp, e5, e3;
+  /// The full state (q, v) completed from y (partitioning), the output's (q, v), the
+  /// chart coordinates of a projected q.
+  Vec qc, vc, q_out, v_out, x_out;
+  /// The stages' rates, shape (n, stages); the dense-output coefficients of y and of q_D.
+  Mat K, F, FD;
+  /// The samples recorded.
+  Samples samples;
+};
+
+/// The run's initial state y: (q0, v0), in the chart when nq != nv, or (q_I, v_I) after
+/// completing (q0, v0) with partitioning.
+void adaptive_start(const CoreModel &model, CoreData &data, AdaptiveRun &run, const Vec &q0,
+                    const Vec &v0);
+
+/// Evaluate and record the state y at t (completed with partitioning).
+void adaptive_output(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t,
+                     const Vec &y);
+
+/// The first step's size [s] (scipy's select_initial_step) from y and f at run.t.
+double initial_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final);
+
+/// The Runge-Kutta stages of the step of length run.h from (run.t, run.y): run.K, y_new and
+/// f_new (rk_step), the stages' v_D with partitioning.
+void rk_stages(const CoreModel &model, CoreData &data, AdaptiveRun &run);
+
+/// The error norm of the step just taken (scipy's _estimate_error_norm; DOP853's with
+/// its 5th- and 3rd-order estimates).
+double error_norm(AdaptiveRun &run);
+
+/// Take one step of scipy's RungeKutta._step_impl: steps of size run.h_abs until one is
+/// accepted; run.t_new, run.h of the step taken, run.h_abs the next step's size.
+/// SimulationFailure when the step size falls below the spacing of numbers at t.
+void accepted_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final);
+
+/// DOP853's dense-output coefficients of the step (its three extra stages), of q_D too with
+/// partitioning (from the stages' v_D).
+void dop853_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                               double t_old);
+
+/// RK45's dense-output coefficients Q = K^T P of the step, of q_D too with partitioning.
+void rk45_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run);
+
+/// The interpolated state at the fraction x of the step into run.ye, and the guess of q_D
+/// for its dependent solve (data.guess_qD) with partitioning.
+void dense_state(const CoreModel &model, CoreData &data, AdaptiveRun &run, double x);
+
+/// Record the output times within the step from t_old to run.t_new by dense output (from
+/// the unprojected step).
+void dense_outputs(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_old);
+
+/// After an accepted step (y at run.t): check that it is finite, project it (projects),
+/// re-centre the chart, and check the step (check_regular).
+void finish_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final,
+                 bool projects);
+
+/// Integrate with RK45 or DOP853 (scipy's RungeKutta: the same error control, step-size
+/// rule and dense output) from (q0, v0) at t = 0 to t_final, recording at every step or at
+/// the times t_eval; projects: project onto the constraint manifold after every step.
+bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
+                      const Vec &v0, double t_final, double rtol, double atol,
+                      bp::object t_eval_obj, bool projects, bp::object progress);
+
+/// The state of one rk43 run (simulate/rk43.py): the tolerances, the times the steps land
+/// on, the state at t and at the end of the step being taken, the step size and the run's
+/// counters.
+struct Rk43Run {
+  /// The tolerances, the first trial step h0 [s] and the stops: every time of t_eval > 0
+  /// (None: t_final alone).
+  Rk43Run(const CoreModel &model, double t_final, double rtol, double atol, double h0,
+          bp::object t_eval_obj, bool record_all);
+
+  /// Relative and absolute tolerances of the error estimate.
+  double rtol, atol;
+  /// The times [s] the steps land on, in order; the start is recorded (t_eval is None or
+  /// starts at 0); every step end is recorded (t_eval None or record_all).
+  std::vector<double> stops;
+  bool record_start = true, every = true;
+  /// Time [s] of (q, v, a) and the next trial step [s].
+  double t = 0.0, h;
+  /// The state at t: q (nq,), v and a (nv,).
+  Vec q, v, a;
+  /// The state at the end of the step being taken.
+  Vec qn, vn, an;
+  /// The end of the first substep of a retake around a singular position.
+  Vec q1, v1, a1;
+  /// rk4_projected's projected midpoint q; the chart rate at the step's end; the position
+  /// part of the error estimate.
+  Vec qm, k5v, ex;
+  /// The rank indicator at q.
+  double rho_start = 0.0;
+  /// Largest accepted error norm; sum of the accepted steps' largest position errors.
+  double err_max = 0.0, err_sum = 0.0;
+  /// Accepted steps, rejected trials, steps retaken around a singular position.
+  long steps = 0, rejected = 0, splits = 0;
+  /// The samples recorded.
+  Samples samples;
+};
+
+/// One trial of rk43 from run.t: its error norm (scipy's weighted RMS), the largest
+/// position error [rad or m], the rank indicator at its end, and the retake around a
+/// singular position it plans (retake_plan: twice, the first substep f [steps], span).
+struct Rk43Trial {
+  /// Error norm (accepted at most 1); largest position error [rad or m]; rank indicator
+  /// at the trial's end.
+  double err = 0.0, exm = 0.0, rho_new = 0.0;
+  /// A retake is planned; it spans two steps; it is split in two substeps.
+  bool plan = false, twice = false, sub = false;
+  /// The first substep [steps] and the retake's length [steps].
+  double f = 0.0, span = 1.0;
+};
+
+/// The step-size factor after a trial with error norm err (rk43.py: SAFETY err^(-1/4)
+/// within [MIN_FACTOR, MAX_FACTOR]).
+double rk43_factor(double err);
+
+/// One projected rk4 step from (qa, va, aa) at t of length h with its estimate
+/// (rk43._Estimator.step): (qb, vb, ab) at the end, err in scipy's weighted RMS norm of
+/// (h / 6) (k4 - k5), exm the largest position error [rad or m]; returns the rank
+/// indicator at the projected midpoint.
+double rk43_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t, const Vec &qa,
+                 const Vec &va, const Vec &aa, double h, Vec &qb, Vec &vb, Vec &ab, double &err,
+                 double &exm);
+
+/// The state at t = 0: the stage buffers sized, (q0, v0) evaluated, recorded unless t_eval
+/// starts later, and the rank indicator there.
+void rk43_start(const CoreModel &model, CoreData &data, Rk43Run &run, const Vec &q0,
+                const Vec &v0);
+
+/// Retake the step around a singular position as trial.plan says: one step of span steps
+/// or two substeps split at trial.f; false when the step must be re-planned (two steps
+/// would pass t_stop: run.h halved to end there).
+bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                 Rk43Trial &trial);
+
+/// Accept the trial: check the substep's and the step's ends (check_regular), move the
+/// state to the end, record it, and the next step size.
+void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run, const Rk43Trial &trial,
+                 double t_stop, bool clipped, double proposed, const bp::object &progress);
+
+/// One trial step toward t_stop (clipped to land on it); true when accepted, false when
+/// rejected (run.h reduced) or re-planned. SimulationFailure when the step falls below the
+/// spacing of the times.
+bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                   const bp::object &progress);
+
+/// rk43 (simulate/rk43.py, step for step): rk4 with stage projection and the retakes near
+/// singular positions, its step chosen by the embedded third-order estimate
+/// (h / 6) (k4 - k5); first trial step h0 [s]; the steps land on every time of t_eval (or
+/// t_final), recorded there, and at every step end with record_all.
+bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
+                  double t_final, double rtol, double atol, double h0, bp::object t_eval_obj,
+                  bool record_all, bp::object progress);
+
+// -- definitions -------------------------------------------------------------
+
+inline double rms(const Vec &x) { return x.norm() / std::sqrt(static_cast<double>(x.size())); }
+
+inline void fun(const CoreModel &model, CoreData &data, double t, const Vec &y, Eigen::Ref<Vec> f) {
+  if (model.partitions) {
+    fun_partitioned(model, data, t, y, f);
     return;
   }
-  accel(t, chart_q(y.head(nv_)), y.tail(nv_));
-  if (chart_)
-    chart_rate(q_c_, y.head(nv_), y.tail(nv_), f.head(nv_));
+  accel(model, data, t, chart_q(model, data, y.head(model.nv)), y.tail(model.nv));
+  if (data.chart)
+    chart_rate(model, data, data.chart_centre, y.head(model.nv), y.tail(model.nv),
+               f.head(model.nv));
   else
-    f.head(nv_) = y.tail(nv_);
-  f.tail(nv_) = a_;
+    f.head(model.nv) = y.tail(model.nv);
+  f.tail(model.nv) = data.a;
 }
 
-inline bp::dict Core::run_adaptive(int integrator, const Vec &q0, const Vec &v0, double t_final,
-                                   double rtol, double atol, bp::object t_eval_obj, bool projects,
-                                   bp::object progress) {
-  check_sizes(q0, v0);
-  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
-  if (integrator != RK45 && integrator != DOP853)
-    throw BadArgument{"run_adaptive: unknown integrator"};
-  const bool dop = integrator == DOP853;
-  const int n_stages = dop ? dop853::N_STAGES : rk45::N_STAGES;
-  const int error_order = dop ? 7 : 4;
-  const double error_exponent = -1.0 / (error_order + 1);
-  const double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
-  const double eps = std::numeric_limits<double>::epsilon();
-  if (rtol < 100 * eps) rtol = 100 * eps;  // scipy's validate_tol
-  const std::string iname = dop ? "DOP853" : "RK45";
-  n_evals_ = 0;
-  Samples S;
-  begin_partitioning(false);
-  // Partitioning integrates (q_I, v_I) only; (q_D, v_D) follow at every evaluation.
-  const int ns = partitions_ ? nv_ - nc_ : nv_;
-  const int n = 2 * ns;
-  Vec qc(nv_), vc(nv_);
-  std::vector<double> pending;
-  const bool dense = !t_eval_obj.is_none();
+inline AdaptiveRun::AdaptiveRun(const CoreModel &model, int integrator, double relative_tol,
+                                double absolute_tol, bp::object t_eval_obj)
+    : dop(integrator == DOP853),
+      n_stages(dop ? dop853::N_STAGES : rk45::N_STAGES),
+      error_exponent(-1.0 / ((dop ? 7 : 4) + 1)),
+      rtol(std::max(relative_tol, 100 * std::numeric_limits<double>::epsilon())),  // validate_tol
+      atol(absolute_tol),
+      name(dop ? "DOP853" : "RK45"),
+      ns(model.partitions ? model.nv - model.nc : model.nv),
+      n(2 * ns),
+      dense(!t_eval_obj.is_none()) {
   if (dense) {
     Vec te = bp::extract<Vec>(t_eval_obj);
     pending.assign(te.data(), te.data() + te.size());
   }
-  std::size_t ip = 0;
-  Vec y(n), y_new(n), f(n), f_new(n), scale(n), dy(n), ye(n), tmp(n), e5(n), e3(n);
-  Vec q_out(nq_), v_out(nv_), x_out(nv_);
-  chart_start(q0);  // partitioning needs nq == nv (refused in Python): no chart then
-  if (partitions_) {
-    qc = q0;
-    vc = v0;
-    complete(qc, vc, 0.0);
-    warm_q_ = q0;  // the dependent solves start from the last evaluation's q
-    pack(qc, vc, y);
-  } else {
-    y.head(nv_) = chart_ ? Vec::Zero(nv_) : q0;
-    y.tail(nv_) = v0;
-  }
-  Mat K(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
-  stage_dependent_v_ = Mat::Zero(nc_, K.cols());
-  Mat F(n, dop853::INTERPOLATOR_POWER);
-  // partitioning: the same dense output of q_D from its rates v_D at the stages
-  // (stage_dependent_v_),
-  // the guess of the output's dependent solve (as stage_guess for the stages)
-  Mat FD(nc_, partitions_ ? dop853::INTERPOLATOR_POWER : 0);
-  auto output = [&](double t, const Vec &yy) {
-    if (partitions_) {
-      unpack(yy, t, qc, vc);
-      accel(t, qc, vc);
-      record(S, t, qc, vc);
-      return;
-    }
-    q_out = chart_q(yy.head(nv_));
-    v_out = yy.tail(nv_);
-    accel(t, q_out, v_out);
-    record(S, t, q_out, v_out);
-  };
-  double t = 0.0;
-  if (!dense || (ip < pending.size() && pending[ip] <= 0.0)) {
-    output(0.0, y);
-    if (dense) ++ip;
-  }
-  fun(t, y, f);
-  if (partitions_) step_start_from_last();
-  // scipy's select_initial_step
-  double h_abs;
-  {
-    double interval = std::abs(t_final - t);
-    scale = atol + y.cwiseAbs().array() * rtol;
-    double d0 = rms(y.cwiseQuotient(scale)), d1 = rms(f.cwiseQuotient(scale));
-    double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
-    h0 = std::min(h0, interval);
-    Vec y1 = y + h0 * f;
-    Vec f1(n);
-    fun(t + h0, y1, f1);
-    double d2 = rms((f1 - f).cwiseQuotient(scale)) / h0;
-    double h1 = (d1 <= 1e-15 && d2 <= 1e-15) ? std::max(1e-6, h0 * 1e-3)
-                                              : std::pow(0.01 / std::max(d1, d2),
-                                                         1.0 / (error_order + 1));
-    h_abs = std::min(std::min(100 * h0, h1), interval);
-  }
-  long steps = 0;
-  while (t < t_final) {
-    // one step of scipy's RungeKutta._step_impl
-    double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
-    if (h_abs < min_step) h_abs = min_step;
-    bool accepted = false, rejected = false;
-    double t_new = t, h = 0.0;
-    while (!accepted) {
-      if (h_abs < min_step)
-        throw SimulationFailure{name_ + ": integrator " + iname + " failed at t = " +
-                                    fmt("%.9g", t) +
-                                    " s: Required step size is less than spacing between "
-                                    "numbers.",
-                                t};
-      h = h_abs;
-      t_new = t + h;
-      if (t_new - t_final > 0) t_new = t_final;
-      h = t_new - t;
-      h_abs = std::abs(h);
-      // rk_step
-      K.col(0) = f;
-      if (partitions_) stage_dependent_v_.col(0) = start_dependent_v_;
-      for (int s = 1; s < n_stages; ++s) {
-        dy.setZero();
-        for (int j = 0; j < s; ++j) {
-          double c = dop ? dop853::A[s][j] : rk45::A[s][j];
-          if (c != 0.0) dy += c * K.col(j);
-        }
-        ye = y + h * dy;
-        if (partitions_) stage_guess(dop ? dop853::A[s] : rk45::A[s], s, h);
-        fun(t + (dop ? dop853::C[s] : rk45::C[s]) * h, ye, K.col(s));
-        if (partitions_) stage_dependent_v_.col(s) = vD_last_;
-      }
-      dy.setZero();
-      for (int j = 0; j < n_stages; ++j) {
-        double b = dop ? dop853::B[j] : rk45::B[j];
-        if (b != 0.0) dy += b * K.col(j);
-      }
-      y_new = y + h * dy;
-      if (partitions_) stage_guess(dop ? dop853::B : rk45::B, n_stages, h);
-      fun(t + h, y_new, f_new);
-      if (partitions_) stage_dependent_v_.col(n_stages) = vD_last_;
-      K.col(n_stages) = f_new;
-      scale = atol + y.cwiseAbs().cwiseMax(y_new.cwiseAbs()).array() * rtol;
-      double err;
-      if (dop) {
-        e5.setZero();
-        e3.setZero();
-        for (int j = 0; j <= n_stages; ++j) {
-          e5 += dop853::E5[j] * K.col(j);
-          e3 += dop853::E3[j] * K.col(j);
-        }
-        e5 = e5.cwiseQuotient(scale);
-        e3 = e3.cwiseQuotient(scale);
-        double n5 = e5.squaredNorm(), n3 = e3.squaredNorm();
-        if (n5 == 0 && n3 == 0)
-          err = 0.0;
-        else
-          err = std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * n);
-      } else {
-        tmp.setZero();
-        for (int j = 0; j <= n_stages; ++j) tmp += rk45::E[j] * K.col(j);
-        tmp *= h;
-        err = rms(tmp.cwiseQuotient(scale));
-      }
-      if (err < 1) {
-        double factor =
-            err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, error_exponent));
-        if (rejected) factor = std::min(1.0, factor);
-        h_abs *= factor;
-        accepted = true;
-      } else {
-        h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, error_exponent));
-        rejected = true;
-      }
-    }
-    ++steps;
-    const double t_old = t;
-    if (partitions_) {  // the dependent state at y_new and its rate: the next step's start
-      qD_end_ = qD_new_;  // (qD0_ stays the step start's for the dense-output stages)
-      start_dependent_v_ = stage_dependent_v_.col(n_stages);
-    }
-    // dense output at the t_eval within the step, from the unprojected step
-    if (dense && ip < pending.size() && pending[ip] <= t_new) {
-      if (dop) {
-        for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
-          dy.setZero();
-          for (int j = 0; j < s; ++j)
-            if (dop853::A_EXTRA[e][j] != 0.0) dy += dop853::A_EXTRA[e][j] * K.col(j);
-          ye = y + h * dy;
-          if (partitions_) stage_guess(dop853::A_EXTRA[e], s, h);
-          fun(t_old + dop853::C_EXTRA[e] * h, ye, K.col(s));
-          if (partitions_) stage_dependent_v_.col(s) = vD_last_;
-        }
-        F.col(0) = y_new - y;
-        F.col(1) = h * K.col(0) - F.col(0);
-        F.col(2) = 2 * F.col(0) - h * (f_new + K.col(0));
-        for (int i = 0; i < 4; ++i) {
-          tmp.setZero();
-          for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
-            if (dop853::D[i][j] != 0.0) tmp += dop853::D[i][j] * K.col(j);
-          F.col(3 + i) = h * tmp;
-        }
-        if (partitions_ && nc_) {
-          FD.col(0) = qD_end_ - qD0_;
-          FD.col(1) = h * stage_dependent_v_.col(0) - FD.col(0);
-          FD.col(2) = 2 * FD.col(0) -
-                      h * (stage_dependent_v_.col(n_stages) + stage_dependent_v_.col(0));
-          for (int i = 0; i < 4; ++i) {
-            FD.col(3 + i).setZero();
-            for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
-              if (dop853::D[i][j] != 0.0)
-                FD.col(3 + i) += (h * dop853::D[i][j]) * stage_dependent_v_.col(j);
-          }
-        }
-      } else {
-        for (int i = 0; i < 4; ++i) {  // Q = K^T P
-          tmp.setZero();
-          for (int j = 0; j <= n_stages; ++j)
-            if (rk45::P[j][i] != 0.0) tmp += rk45::P[j][i] * K.col(j);
-          F.col(i) = tmp;
-          if (partitions_ && nc_) {
-            FD.col(i).setZero();
-            for (int j = 0; j <= n_stages; ++j)
-              if (rk45::P[j][i] != 0.0) FD.col(i) += rk45::P[j][i] * stage_dependent_v_.col(j);
-          }
-        }
-      }
-      while (ip < pending.size() && pending[ip] <= t_new * (1 + 1e-15)) {
-        double x = (pending[ip] - t_old) / h;
-        const bool guess = partitions_ && nc_;
-        if (dop) {
-          ye.setZero();
-          if (guess) guess_qD_.setZero();
-          for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
-            ye += F.col(i);
-            ye *= (r % 2 == 0) ? x : 1 - x;
-            if (guess) {
-              guess_qD_ += FD.col(i);
-              guess_qD_ *= (r % 2 == 0) ? x : 1 - x;
-            }
-          }
-          ye += y;
-          if (guess) guess_qD_ += qD0_;
-        } else {
-          double p = x;
-          ye = y;
-          if (guess) guess_qD_ = qD0_;
-          for (int i = 0; i < 4; ++i, p *= x) {
-            ye += (h * p) * F.col(i);
-            if (guess) guess_qD_ += (h * p) * FD.col(i);
-          }
-        }
-        use_out_guess_ = guess;
-        output(pending[ip], ye);
-        ++ip;
-      }
-    }
-    t = t_new;
-    y = y_new;
-    f = f_new;
-    if (partitions_) {
-      qD0_ = qD_end_;
-      check_finite(y.head(ns), y.tail(ns), t);
-    } else {
-      q_out = chart_q(y.head(nv_));
-      v_out = y.tail(nv_);
-      check_finite(q_out, v_out, t);
-    }
-    if (projects) {
-      project(q_out, v_out);
-      if (chart_)
-        pinocchio::difference(model_, q_c_, q_out, x_out);
-      y.head(nv_) = chart_ ? x_out : q_out;
-      y.tail(nv_) = v_out;
-      fun(t, y, f);
-    }
-    if (partitions_) {
-      unpack(y, t, qc, vc);
-      check_regular(qc, t);
-    } else {
-      if (chart_ && t < t_final && chart_recentre(y.head(nv_))) fun(t, y, f);
-      check_regular(q_out, t);
-    }
-    if (!dense) output(t, y);
-    poll(steps, t, progress);
-    // det(J_D) sign and re-partitioning; a new partition restarts the integrator
-    // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
-    if (partitions_ && adaptive_partition_check(t, t_final, y, qc, vc)) {
-      fun(t, y, f);
-      step_start_from_last();
-    }
-  }
-  return samples_dict(S, steps);
+  y.resize(n);
+  y_new.resize(n);
+  f.resize(n);
+  f_new.resize(n);
+  scale.resize(n);
+  dy.resize(n);
+  ye.resize(n);
+  tmp.resize(n);
+  e5.resize(n);
+  e3.resize(n);
+  qc.resize(model.nv);
+  vc.resize(model.nv);
+  q_out.resize(model.nq);
+  v_out.resize(model.nv);
+  x_out.resize(model.nv);
+  K.resize(n, dop ? dop853::N_STAGES_EXTENDED : n_stages + 1);
+  F.resize(n, dop853::INTERPOLATOR_POWER);
+  FD.resize(model.nc, model.partitions ? dop853::INTERPOLATOR_POWER : 0);
 }
 
-inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, double rtol,
-                               double atol, double h0, bp::object t_eval_obj, bool record_all,
-                               bp::object progress) {
-  check_sizes(q0, v0);
-  invalidate_kinematics();  // nothing kept from before the run (M_, the factor of P)
-  if (!(h0 > 0.0) || !(t_final > 0.0) || !(rtol > 0.0) || !(atol > 0.0))
-    throw BadArgument{"run_rk43: t_final, rtol, atol and h0 must be > 0"};
-  n_evals_ = 0;
-  begin_partitioning(true);  // as run_fixed: the stage-projected loop's checks
-  Samples S;
-  std::vector<double> stops;
-  bool record_start = true;
+inline void adaptive_start(const CoreModel &model, CoreData &data, AdaptiveRun &run, const Vec &q0,
+                           const Vec &v0) {
+  begin_partitioning(model, data, false);
+  chart_start(model, data, q0);  // partitioning needs nq == nv (refused in Python): no chart then
+  if (model.partitions) {
+    run.qc = q0;
+    run.vc = v0;
+    complete(model, data, run.qc, run.vc, 0.0);
+    data.warm_q = q0;  // the dependent solves start from the last evaluation's q
+    pack(model, data, run.qc, run.vc, run.y);
+  } else {
+    run.y.head(model.nv) = data.chart ? Vec::Zero(model.nv) : q0;
+    run.y.tail(model.nv) = v0;
+  }
+  data.stage_dependent_v = Mat::Zero(model.nc, run.K.cols());
+}
+
+inline void adaptive_output(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t,
+                            const Vec &yy) {
+  if (model.partitions) {
+    unpack(model, data, yy, t, run.qc, run.vc);
+    accel(model, data, t, run.qc, run.vc);
+    record(model, data, run.samples, t, run.qc, run.vc);
+    return;
+  }
+  run.q_out = chart_q(model, data, yy.head(model.nv));
+  run.v_out = yy.tail(model.nv);
+  accel(model, data, t, run.q_out, run.v_out);
+  record(model, data, run.samples, t, run.q_out, run.v_out);
+}
+
+inline double initial_step(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                           double t_final) {
+  const double t = run.t;
+  double interval = std::abs(t_final - t);
+  run.scale = run.atol + run.y.cwiseAbs().array() * run.rtol;
+  double d0 = rms(run.y.cwiseQuotient(run.scale)), d1 = rms(run.f.cwiseQuotient(run.scale));
+  double h0 = (d0 < 1e-5 || d1 < 1e-5) ? 1e-6 : 0.01 * d0 / d1;
+  h0 = std::min(h0, interval);
+  Vec y1 = run.y + h0 * run.f;
+  Vec f1(run.n);
+  fun(model, data, t + h0, y1, f1);
+  double d2 = rms((f1 - run.f).cwiseQuotient(run.scale)) / h0;
+  const int error_order = run.dop ? 7 : 4;
+  double h1 = (d1 <= 1e-15 && d2 <= 1e-15)
+                  ? std::max(1e-6, h0 * 1e-3)
+                  : std::pow(0.01 / std::max(d1, d2), 1.0 / (error_order + 1));
+  return std::min(std::min(100 * h0, h1), interval);
+}
+
+inline void rk_stages(const CoreModel &model, CoreData &data, AdaptiveRun &run) {
+  const bool dop = run.dop;
+  const int n_stages = run.n_stages;
+  const double t = run.t, h = run.h;
+  run.K.col(0) = run.f;
+  if (model.partitions) data.stage_dependent_v.col(0) = data.start_dependent_v;
+  for (int s = 1; s < n_stages; ++s) {
+    run.dy.setZero();
+    for (int j = 0; j < s; ++j) {
+      double c = dop ? dop853::A[s][j] : rk45::A[s][j];
+      if (c != 0.0) run.dy += c * run.K.col(j);
+    }
+    run.ye = run.y + h * run.dy;
+    if (model.partitions) stage_guess(model, data, dop ? dop853::A[s] : rk45::A[s], s, h);
+    fun(model, data, t + (dop ? dop853::C[s] : rk45::C[s]) * h, run.ye, run.K.col(s));
+    if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
+  }
+  run.dy.setZero();
+  for (int j = 0; j < n_stages; ++j) {
+    double b = dop ? dop853::B[j] : rk45::B[j];
+    if (b != 0.0) run.dy += b * run.K.col(j);
+  }
+  run.y_new = run.y + h * run.dy;
+  if (model.partitions) stage_guess(model, data, dop ? dop853::B : rk45::B, n_stages, h);
+  fun(model, data, t + h, run.y_new, run.f_new);
+  if (model.partitions) data.stage_dependent_v.col(n_stages) = data.vD_last;
+  run.K.col(n_stages) = run.f_new;
+}
+
+inline double error_norm(AdaptiveRun &run) {
+  const int n_stages = run.n_stages;
+  const double h = run.h;
+  run.scale = run.atol + run.y.cwiseAbs().cwiseMax(run.y_new.cwiseAbs()).array() * run.rtol;
+  if (run.dop) {
+    run.e5.setZero();
+    run.e3.setZero();
+    for (int j = 0; j <= n_stages; ++j) {
+      run.e5 += dop853::E5[j] * run.K.col(j);
+      run.e3 += dop853::E3[j] * run.K.col(j);
+    }
+    run.e5 = run.e5.cwiseQuotient(run.scale);
+    run.e3 = run.e3.cwiseQuotient(run.scale);
+    double n5 = run.e5.squaredNorm(), n3 = run.e3.squaredNorm();
+    if (n5 == 0 && n3 == 0) return 0.0;
+    return std::abs(h) * n5 / std::sqrt((n5 + 0.01 * n3) * run.n);
+  }
+  run.tmp.setZero();
+  for (int j = 0; j <= n_stages; ++j) run.tmp += rk45::E[j] * run.K.col(j);
+  run.tmp *= h;
+  return rms(run.tmp.cwiseQuotient(run.scale));
+}
+
+inline void accepted_step(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                          double t_final) {
+  constexpr double SAFETY = 0.9, MIN_FACTOR = 0.2, MAX_FACTOR = 10.0;
+  const double t = run.t;
+  double min_step = 10 * std::abs(std::nextafter(t, std::numeric_limits<double>::infinity()) - t);
+  if (run.h_abs < min_step) run.h_abs = min_step;
+  bool accepted = false, rejected = false;
+  run.t_new = t;
+  run.h = 0.0;
+  while (!accepted) {
+    if (run.h_abs < min_step)
+      throw SimulationFailure{model.name + ": integrator " + run.name +
+                                  " failed at t = " + fmt("%.9g", t) +
+                                  " s: Required step size is less than spacing between "
+                                  "numbers.",
+                              t};
+    run.h = run.h_abs;
+    run.t_new = t + run.h;
+    if (run.t_new - t_final > 0) run.t_new = t_final;
+    run.h = run.t_new - t;
+    run.h_abs = std::abs(run.h);
+    rk_stages(model, data, run);
+    const double err = error_norm(run);
+    if (err < 1) {
+      double factor =
+          err == 0 ? MAX_FACTOR : std::min(MAX_FACTOR, SAFETY * std::pow(err, run.error_exponent));
+      if (rejected) factor = std::min(1.0, factor);
+      run.h_abs *= factor;
+      accepted = true;
+    } else {
+      run.h_abs *= std::max(MIN_FACTOR, SAFETY * std::pow(err, run.error_exponent));
+      rejected = true;
+    }
+  }
+}
+
+inline void dop853_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run,
+                                      double t_old) {
+  const int n_stages = run.n_stages;
+  const double h = run.h;
+  for (int s = n_stages + 1, e = 0; e < 3; ++s, ++e) {
+    run.dy.setZero();
+    for (int j = 0; j < s; ++j)
+      if (dop853::A_EXTRA[e][j] != 0.0) run.dy += dop853::A_EXTRA[e][j] * run.K.col(j);
+    run.ye = run.y + h * run.dy;
+    if (model.partitions) stage_guess(model, data, dop853::A_EXTRA[e], s, h);
+    fun(model, data, t_old + dop853::C_EXTRA[e] * h, run.ye, run.K.col(s));
+    if (model.partitions) data.stage_dependent_v.col(s) = data.vD_last;
+  }
+  run.F.col(0) = run.y_new - run.y;
+  run.F.col(1) = h * run.K.col(0) - run.F.col(0);
+  run.F.col(2) = 2 * run.F.col(0) - h * (run.f_new + run.K.col(0));
+  for (int i = 0; i < 4; ++i) {
+    run.tmp.setZero();
+    for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+      if (dop853::D[i][j] != 0.0) run.tmp += dop853::D[i][j] * run.K.col(j);
+    run.F.col(3 + i) = h * run.tmp;
+  }
+  if (!(model.partitions && model.nc)) return;
+  const Mat &V = data.stage_dependent_v;
+  run.FD.col(0) = data.qD_end - data.qD0;
+  run.FD.col(1) = h * V.col(0) - run.FD.col(0);
+  run.FD.col(2) = 2 * run.FD.col(0) - h * (V.col(n_stages) + V.col(0));
+  for (int i = 0; i < 4; ++i) {
+    run.FD.col(3 + i).setZero();
+    for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j)
+      if (dop853::D[i][j] != 0.0) run.FD.col(3 + i) += (h * dop853::D[i][j]) * V.col(j);
+  }
+}
+
+inline void rk45_dense_coefficients(const CoreModel &model, CoreData &data, AdaptiveRun &run) {
+  const int n_stages = run.n_stages;
+  for (int i = 0; i < 4; ++i) {  // Q = K^T P
+    run.tmp.setZero();
+    for (int j = 0; j <= n_stages; ++j)
+      if (rk45::P[j][i] != 0.0) run.tmp += rk45::P[j][i] * run.K.col(j);
+    run.F.col(i) = run.tmp;
+    if (model.partitions && model.nc) {
+      run.FD.col(i).setZero();
+      for (int j = 0; j <= n_stages; ++j)
+        if (rk45::P[j][i] != 0.0) run.FD.col(i) += rk45::P[j][i] * data.stage_dependent_v.col(j);
+    }
+  }
+}
+
+inline void dense_state(const CoreModel &model, CoreData &data, AdaptiveRun &run, double x) {
+  const bool guess = model.partitions && model.nc;
+  const double h = run.h;
+  if (run.dop) {
+    run.ye.setZero();
+    if (guess) data.guess_qD.setZero();
+    for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
+      run.ye += run.F.col(i);
+      run.ye *= (r % 2 == 0) ? x : 1 - x;
+      if (guess) {
+        data.guess_qD += run.FD.col(i);
+        data.guess_qD *= (r % 2 == 0) ? x : 1 - x;
+      }
+    }
+    run.ye += run.y;
+    if (guess) data.guess_qD += data.qD0;
+  } else {
+    double p = x;
+    run.ye = run.y;
+    if (guess) data.guess_qD = data.qD0;
+    for (int i = 0; i < 4; ++i, p *= x) {
+      run.ye += (h * p) * run.F.col(i);
+      if (guess) data.guess_qD += (h * p) * run.FD.col(i);
+    }
+  }
+  data.use_out_guess = guess;
+}
+
+inline void dense_outputs(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_old) {
+  if (!(run.dense && run.ip < run.pending.size() && run.pending[run.ip] <= run.t_new)) return;
+  if (run.dop)
+    dop853_dense_coefficients(model, data, run, t_old);
+  else
+    rk45_dense_coefficients(model, data, run);
+  while (run.ip < run.pending.size() && run.pending[run.ip] <= run.t_new * (1 + 1e-15)) {
+    dense_state(model, data, run, (run.pending[run.ip] - t_old) / run.h);
+    adaptive_output(model, data, run, run.pending[run.ip], run.ye);
+    ++run.ip;
+  }
+}
+
+inline void finish_step(const CoreModel &model, CoreData &data, AdaptiveRun &run, double t_final,
+                        bool projects) {
+  const double t = run.t;
+  if (model.partitions) {
+    data.qD0 = data.qD_end;
+    check_finite(model, run.y.head(run.ns), run.y.tail(run.ns), t);
+  } else {
+    run.q_out = chart_q(model, data, run.y.head(model.nv));
+    run.v_out = run.y.tail(model.nv);
+    check_finite(model, run.q_out, run.v_out, t);
+  }
+  if (projects) {
+    project(model, data, run.q_out, run.v_out);
+    if (data.chart) pinocchio::difference(model.tree, data.chart_centre, run.q_out, run.x_out);
+    run.y.head(model.nv) = data.chart ? run.x_out : run.q_out;
+    run.y.tail(model.nv) = run.v_out;
+    fun(model, data, t, run.y, run.f);
+  }
+  if (model.partitions) {
+    unpack(model, data, run.y, t, run.qc, run.vc);
+    check_regular(model, data, run.qc, t);
+  } else {
+    if (data.chart && t < t_final && chart_recentre(model, data, run.y.head(model.nv)))
+      fun(model, data, t, run.y, run.f);
+    check_regular(model, data, run.q_out, t);
+  }
+}
+
+inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integrator, const Vec &q0,
+                             const Vec &v0, double t_final, double rtol, double atol,
+                             bp::object t_eval_obj, bool projects, bp::object progress) {
+  check_sizes(model, q0, v0);
+  invalidate_kinematics(data);  // nothing kept from before the run (data.M, the factor of P)
+  if (integrator != RK45 && integrator != DOP853)
+    throw BadArgument{"run_adaptive: unknown integrator"};
+  data.n_evals = 0;
+  AdaptiveRun run(model, integrator, rtol, atol, t_eval_obj);
+  adaptive_start(model, data, run, q0, v0);
+  if (!run.dense || (run.ip < run.pending.size() && run.pending[run.ip] <= 0.0)) {
+    adaptive_output(model, data, run, 0.0, run.y);
+    if (run.dense) ++run.ip;
+  }
+  fun(model, data, run.t, run.y, run.f);
+  if (model.partitions) step_start_from_last(data);
+  run.h_abs = initial_step(model, data, run, t_final);  // scipy's select_initial_step
+  long steps = 0;
+  while (run.t < t_final) {
+    accepted_step(model, data, run, t_final);  // one step of scipy's RungeKutta._step_impl
+    ++steps;
+    const double t_old = run.t;
+    if (model.partitions) {  // the dependent state at y_new and its rate: the next step's start
+      data.qD_end = data.qD_new;  // (data.qD0 stays the step start's for the dense-output stages)
+      data.start_dependent_v = data.stage_dependent_v.col(run.n_stages);
+    }
+    dense_outputs(model, data, run, t_old);  // the t_eval within the step, unprojected
+    run.t = run.t_new;
+    run.y = run.y_new;
+    run.f = run.f_new;
+    finish_step(model, data, run, t_final, projects);
+    if (!run.dense) adaptive_output(model, data, run, run.t, run.y);
+    poll(steps, run.t, progress);
+    // det(J_D) sign and re-partitioning; a new partition restarts the integrator
+    // from (t, y) with the step size it proposed (as the numpy loop restarts scipy's).
+    if (model.partitions &&
+        adaptive_partition_check(model, data, run.t, t_final, run.y, run.qc, run.vc)) {
+      fun(model, data, run.t, run.y, run.f);
+      step_start_from_last(data);
+    }
+  }
+  return samples_dict(model, data, run.samples, steps);
+}
+
+inline Rk43Run::Rk43Run(const CoreModel &model, double t_final, double relative_tol,
+                        double absolute_tol, double h0, bp::object t_eval_obj, bool record_all)
+    : rtol(relative_tol), atol(absolute_tol), h(h0) {
   if (t_eval_obj.is_none()) {
     stops.push_back(t_final);
   } else {
@@ -363,107 +578,145 @@ inline bp::dict Core::run_rk43(const Vec &q0, const Vec &v0, double t_final, dou
     for (Eigen::Index i = 0; i < te.size(); ++i)
       if (te[i] > 0.0) stops.push_back(te[i]);
   }
-  const bool every = t_eval_obj.is_none() || record_all;
-  for (Vec *b : {&dv_, &vs_, &k2v_, &k2a_, &k3v_, &k3a_, &k4v_, &k4a_}) b->resize(nv_);
-  qs_.resize(nq_);
-  Vec q = q0, v = v0, a(nv_), qn(nq_), vn(nv_), an(nv_), qm(nq_), q1(nq_), v1(nv_), a1(nv_);
-  Vec k5v(nv_), ex(nv_);
-  auto factor = [](double err) {
-    if (err == 0.0) return RK43_MAX_FACTOR;
-    return std::min(RK43_MAX_FACTOR,
-                    std::max(RK43_MIN_FACTOR, RK43_SAFETY * std::pow(err, RK43_ERROR_EXPONENT)));
-  };
-  // One projected rk4 step with its estimate (rk43._Estimator.step): (qb, vb, ab) at the
-  // end, err in scipy's weighted RMS norm, exm the largest position error [rad or m];
-  // returns the rank indicator at the projected midpoint.
-  auto step = [&](double t, const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb,
-                  Vec &vb, Vec &ab, double &err, double &exm) {
-    rk4_projected(t, qa, va, aa, h, qb, vb, qm);
-    const double mid = midpoint_indicator_;
-    accel(t + h, qb, vb);
-    ab = a_;
-    pinocchio::difference(model_, qa, qb, dv_);
-    chart_rate(qa, dv_, vb, k5v);
-    ex = (h / 6) * (k4v_ - k5v);
-    double sum = 0.0;  // positions in the chart about qa: 0 at the start, dv_ at the end
-    for (int i = 0; i < nv_; ++i) {
-      const double sx = atol + rtol * std::abs(dv_[i]);
-      const double sv = atol + rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
-      const double ev = (h / 6) * (k4a_[i] - ab[i]);
-      sum += (ex[i] / sx) * (ex[i] / sx) + (ev / sv) * (ev / sv);
-    }
-    err = nv_ ? std::sqrt(sum / (2.0 * nv_)) : 0.0;
-    exm = nv_ ? ex.cwiseAbs().maxCoeff() : 0.0;
-    return mid;
-  };
-  double t = 0.0;
-  accel(t, q, v);
-  a = a_;
-  if (record_start) record(S, t, q, v);
-  double rho_start = rank_indicator(q);
-  double h = h0, err_max = 0.0, err_sum = 0.0;
-  long steps = 0, rejected = 0, splits = 0;
-  for (const double t_stop : stops) {
-    while (t < t_stop) {
-      const double proposed = h;
-      const bool clipped = t + h >= t_stop * (1.0 - 1e-15);
-      if (clipped) h = t_stop - t;
-      if (!(h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
-        throw SimulationFailure{name_ + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
-                                    " s: the step fell below the spacing of the times",
-                                t};
-      double err = 0.0, exm = 0.0;
-      const double rho_mid = step(t, q, v, a, h, qn, vn, an, err, exm);
-      double rho_new = rank_indicator(qn);
-      bool plan = false, twice = false, sub = false;
-      double f = 0.0, span = 1.0;
-      if (stage_zone_ > 0)
-        plan = retake_plan(crossing_estimate(rho_start, rho_mid, rho_new), stage_zone_, twice, f);
-      if (plan) {
-        span = twice ? 2.0 : 1.0;
-        if (twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
-          h = 0.5 * (t_stop - t);  // re-plan with two steps ending at the stop
-          continue;
-        }
-        if (f < span) {
-          double e1 = 0.0, m1 = 0.0, e2 = 0.0, m2 = 0.0;
-          step(t, q, v, a, f * h, q1, v1, a1, e1, m1);
-          sub = true;
-          step(t + f * h, q1, v1, a1, (span - f) * h, qn, vn, an, e2, m2);
-          err = std::max(e1, e2);
-          exm = m1 + m2;
-        } else {  // one substep of two steps
-          step(t, q, v, a, span * h, qn, vn, an, err, exm);
-        }
-        rho_new = rank_indicator(qn);
-      }
-      if (err > 1.0) {
-        ++rejected;
-        h *= factor(err);
-        continue;
-      }
-      if (plan) ++splits;
-      if (sub) check_regular(q1, t + f * h);
-      t = (clipped || t + span * h >= t_stop) ? t_stop : t + span * h;
-      check_regular(qn, t);
-      q = qn;
-      v = vn;
-      a = an;
-      rho_start = rho_new;
-      ++steps;
-      err_max = std::max(err_max, err);
-      err_sum += exm;
-      if (every || t == t_stop) record(S, t, q, v);  // a_, lam_: the last accel, at q
-      poll(steps, t, progress);
-      h *= factor(err);
-      if (clipped) h = std::max(h, proposed);
-    }
+  every = t_eval_obj.is_none() || record_all;
+  const int nq = model.nq, nv = model.nv;
+  for (Vec *x : {&q, &qn, &q1, &qm}) x->resize(nq);
+  for (Vec *x : {&v, &a, &vn, &an, &v1, &a1, &k5v, &ex}) x->resize(nv);
+}
+
+inline double rk43_factor(double err) {
+  if (err == 0.0) return RK43_MAX_FACTOR;
+  return std::min(RK43_MAX_FACTOR,
+                  std::max(RK43_MIN_FACTOR, RK43_SAFETY * std::pow(err, RK43_ERROR_EXPONENT)));
+}
+
+inline double rk43_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t,
+                        const Vec &qa, const Vec &va, const Vec &aa, double h, Vec &qb, Vec &vb,
+                        Vec &ab, double &err, double &exm) {
+  rk4_projected(model, data, t, qa, va, aa, h, qb, vb, run.qm);
+  const double mid = data.midpoint_indicator;
+  accel(model, data, t + h, qb, vb);
+  ab = data.a;
+  pinocchio::difference(model.tree, qa, qb, data.dv);
+  chart_rate(model, data, qa, data.dv, vb, run.k5v);
+  run.ex = (h / 6) * (data.k4v - run.k5v);
+  double sum = 0.0;  // positions in the chart about qa: 0 at the start, data.dv at the end
+  for (int i = 0; i < model.nv; ++i) {
+    const double sx = run.atol + run.rtol * std::abs(data.dv[i]);
+    const double sv = run.atol + run.rtol * std::max(std::abs(va[i]), std::abs(vb[i]));
+    const double ev = (h / 6) * (data.k4a[i] - ab[i]);
+    sum += (run.ex[i] / sx) * (run.ex[i] / sx) + (ev / sv) * (ev / sv);
   }
-  bp::dict d = samples_dict(S, steps);
-  d["singular_splits"] = splits;
-  d["rejected_steps"] = rejected;
-  d["error_estimate_max"] = err_max;
-  d["error_estimate_sum"] = err_sum;
+  err = model.nv ? std::sqrt(sum / (2.0 * model.nv)) : 0.0;
+  exm = model.nv ? run.ex.cwiseAbs().maxCoeff() : 0.0;
+  return mid;
+}
+
+inline void rk43_start(const CoreModel &model, CoreData &data, Rk43Run &run, const Vec &q0,
+                       const Vec &v0) {
+  for (Vec *b : {&data.dv, &data.vs, &data.k2v, &data.k2a, &data.k3v, &data.k3a, &data.k4v,
+                 &data.k4a})
+    b->resize(model.nv);
+  data.qs.resize(model.nq);
+  run.q = q0;
+  run.v = v0;
+  accel(model, data, run.t, run.q, run.v);
+  run.a = data.a;
+  if (run.record_start) record(model, data, run.samples, run.t, run.q, run.v);
+  run.rho_start = rank_indicator(model, data, run.q);
+}
+
+inline bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                        Rk43Trial &trial) {
+  const double t = run.t, h = run.h;
+  trial.span = trial.twice ? 2.0 : 1.0;
+  if (trial.twice && t + 2.0 * h > t_stop * (1.0 + 1e-15)) {
+    run.h = 0.5 * (t_stop - t);  // re-plan with two steps ending at the stop
+    return false;
+  }
+  if (trial.f < trial.span) {
+    double e1 = 0.0, m1 = 0.0, e2 = 0.0, m2 = 0.0;
+    rk43_step(model, data, run, t, run.q, run.v, run.a, trial.f * h, run.q1, run.v1, run.a1, e1,
+              m1);
+    trial.sub = true;
+    rk43_step(model, data, run, t + trial.f * h, run.q1, run.v1, run.a1,
+              (trial.span - trial.f) * h, run.qn, run.vn, run.an, e2, m2);
+    trial.err = std::max(e1, e2);
+    trial.exm = m1 + m2;
+  } else {  // one substep of two steps
+    rk43_step(model, data, run, t, run.q, run.v, run.a, trial.span * h, run.qn, run.vn, run.an,
+              trial.err, trial.exm);
+  }
+  trial.rho_new = rank_indicator(model, data, run.qn);
+  return true;
+}
+
+inline void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run,
+                        const Rk43Trial &trial, double t_stop, bool clipped, double proposed,
+                        const bp::object &progress) {
+  const double h = run.h, span = trial.span;
+  if (trial.plan) ++run.splits;
+  if (trial.sub) check_regular(model, data, run.q1, run.t + trial.f * h);
+  run.t = (clipped || run.t + span * h >= t_stop) ? t_stop : run.t + span * h;
+  check_regular(model, data, run.qn, run.t);
+  run.q = run.qn;
+  run.v = run.vn;
+  run.a = run.an;
+  run.rho_start = trial.rho_new;
+  ++run.steps;
+  run.err_max = std::max(run.err_max, trial.err);
+  run.err_sum += trial.exm;
+  // data.a, data.lam: the last evaluation's, at q
+  if (run.every || run.t == t_stop) record(model, data, run.samples, run.t, run.q, run.v);
+  poll(run.steps, run.t, progress);
+  run.h *= rk43_factor(trial.err);
+  if (clipped) run.h = std::max(run.h, proposed);
+}
+
+inline bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
+                          const bp::object &progress) {
+  const double proposed = run.h, t = run.t;
+  const bool clipped = t + run.h >= t_stop * (1.0 - 1e-15);
+  if (clipped) run.h = t_stop - t;
+  if (!(run.h > 10 * std::abs(std::nextafter(t, t_stop) - t)))
+    throw SimulationFailure{model.name + ": integrator rk43 failed at t = " + fmt("%.9g", t) +
+                                " s: the step fell below the spacing of the times",
+                            t};
+  Rk43Trial trial;
+  const double rho_mid = rk43_step(model, data, run, t, run.q, run.v, run.a, run.h, run.qn,
+                                   run.vn, run.an, trial.err, trial.exm);
+  trial.rho_new = rank_indicator(model, data, run.qn);
+  if (model.stage_zone > 0)
+    trial.plan = retake_plan(crossing_estimate(run.rho_start, rho_mid, trial.rho_new),
+                             model.stage_zone, trial.twice, trial.f);
+  if (trial.plan && !rk43_retake(model, data, run, t_stop, trial)) return false;
+  if (trial.err > 1.0) {
+    ++run.rejected;
+    run.h *= rk43_factor(trial.err);
+    return false;
+  }
+  rk43_accept(model, data, run, trial, t_stop, clipped, proposed, progress);
+  return true;
+}
+
+inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
+                         double t_final, double rtol, double atol, double h0,
+                         bp::object t_eval_obj, bool record_all, bp::object progress) {
+  check_sizes(model, q0, v0);
+  invalidate_kinematics(data);  // nothing kept from before the run (M, the factor of P)
+  if (!(h0 > 0.0) || !(t_final > 0.0) || !(rtol > 0.0) || !(atol > 0.0))
+    throw BadArgument{"run_rk43: t_final, rtol, atol and h0 must be > 0"};
+  data.n_evals = 0;
+  begin_partitioning(model, data, true);  // as run_fixed: the stage-projected loop's checks
+  Rk43Run run(model, t_final, rtol, atol, h0, t_eval_obj, record_all);
+  rk43_start(model, data, run, q0, v0);
+  for (const double t_stop : run.stops)
+    while (run.t < t_stop) rk43_try_step(model, data, run, t_stop, progress);
+  bp::dict d = samples_dict(model, data, run.samples, run.steps);
+  d["singular_splits"] = run.splits;
+  d["rejected_steps"] = run.rejected;
+  d["error_estimate_max"] = run.err_max;
+  d["error_estimate_sum"] = run.err_sum;
   return d;
 }
 

@@ -1,16 +1,6 @@
-// closedchain._core: class Core with every member function (one translation unit,
-// expose-core.cpp, includes this: Pinocchio's algorithms are instantiated once).
+// closedchain._core: everything the bindings use (the facade Core and, through it, every
+// concept header); expose-core.cpp, the one translation unit, includes this.
 
 #pragma once
 
 #include "core.hpp"
-
-#include "core_interface.hpp"
-#include "core_rows.hpp"
-#include "core_structure.hpp"
-#include "core_methods.hpp"
-#include "core_projection.hpp"
-#include "core_partitioning.hpp"
-#include "core_recording.hpp"
-#include "core_fixed.hpp"
-#include "core_adaptive.hpp"

@@ -1,5 +1,4 @@
 // closedchain._core: construction, settings and the one-evaluation Python entry points.
-// (Member functions of Core, declared in core.hpp.)
 
 #pragma once
 
@@ -7,170 +6,129 @@
 #include <limits>
 #include <string>
 
-#include "core.hpp"
-#include "lean_data.hpp"
+#include "core_data.hpp"
+#include "core_methods.hpp"
+#include "core_model.hpp"
+#include "core_partitioning.hpp"
+#include "core_rows.hpp"
+#include "settings.hpp"
 
 namespace closedchain {
 
-inline Core::Core(bp::object model_obj, const std::string &name, const Eigen::VectorXi &kinds,
-                  const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &vec1,
-                  const Mat &vec2): model_obj_(model_obj),
-      model_(bp::extract<Model &>(model_obj)()),
-      data_(lean_data(model_)),  // no nv^3 tensors: see lean_data.cpp
-      plan_(model_),
-      name_(name) {
-  const Model &model = model_;
-  nq_ = model.nq;
-  nv_ = model.nv;
-  nc_ = static_cast<int>(kinds.size());
-  if (fid_p.size() != nc_ || fid_s.size() != nc_ || vec1.rows() != nc_ ||
-      vec2.rows() != nc_ || (nc_ && (vec1.cols() != 3 || vec2.cols() != 3)))
-    throw BadArgument{"Core: row tables of inconsistent shapes"};
-  for (int r = 0; r < nc_; ++r) rows_.push_back(make_row(r, kinds, fid_p, fid_s, vec1, vec2));
-  if (!model.mimicking_joints.empty())
-    throw BadArgument{"compiled core: models with mimic joints are not supported "
-                      "(use backend='numpy')"};
-  frame_buffers();
-  M_ = Mat::Zero(nv_, nv_);
-  h_ = Vec::Zero(nv_);
-  J_ = Mat::Zero(nc_, nv_);
-  phi_ = Vec::Zero(nc_);
-  gamma_ = Vec::Zero(nc_);
-  a_ = Vec::Zero(nv_);
-  lam_ = Vec::Zero(nc_);
-  tau_ = Vec::Zero(nv_);
-  tau_const_ = Vec::Zero(nv_);
-  zero_v_ = Vec::Zero(nv_);
-  kkt_.resize(nv_ + nc_);
-  kkt_solution_ = Vec::Zero(nv_ + nc_);
-  nullspace_a_ = Vec::Zero(std::max(nv_ - nc_, 0));
-  llt_m_ = Eigen::LLT<Mat>(nv_);
-  llt_c_ = Eigen::LLT<Mat>(nc_);
-  schur_solves_ = Mat::Zero(nv_, nc_ + 1);
-  delassus_ = Mat::Zero(nc_, nc_);
-  svd_ = Eigen::JacobiSVD<Mat>(nc_, nv_, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  llt_r_ = Eigen::LLT<Mat>(nv_ - nc_ > 0 ? nv_ - nc_ : 0);
-  reduced_mass_ = Mat::Zero(std::max(nv_ - nc_, 0), std::max(nv_ - nc_, 0));
-  JJt_ = Mat::Zero(nc_, nc_);
-  eig_ = Eigen::SelfAdjointEigenSolver<Mat>(nc_);
-  dq_ = Vec::Zero(nv_);
-  tmp_c_ = Vec::Zero(nc_);
-  tmp_v_ = Vec::Zero(nv_);
-  mv_ = Vec::Zero(nv_);
-  zero_c_ = Vec::Zero(nc_);
-  al_wc_ = Vec::Zero(nc_);
-  al_wv_ = Vec::Zero(nv_);
-  rhs_v_ = Vec::Zero(nv_);
-  P_ = Mat::Zero(nv_, nv_);
-  llt_p_.resize(nv_);
-  llt_jj_.resize(nc_);
-  J_at_ = Vec::Zero(nq_);
-  terms_q_ = Vec::Constant(nq_, std::numeric_limits<double>::quiet_NaN());
-  terms_v_ = Vec::Zero(nv_);
-  q_prev_ = Vec::Zero(nq_);
-  vel_c_ = Vec::Zero(nc_);
-  rhs_work_ = Vec::Zero(nv_ + nc_);
-  for (std::size_t j = 1; j < model.joints.size(); ++j) {
-    const auto &jm = model.joints[j];
-    if (jm.nv() > 1 && jm.nq() != jm.nv()) {
-      if (jm.nv() > 6) throw BadArgument{"Core: a curved joint with more than 6 velocities"};
-      curved_.emplace_back(jm.idx_v(), jm.nv());
-    }
-  }
-  D_chart_ = Mat::Zero(curved_.empty() ? 0 : nv_, curved_.empty() ? 0 : nv_);
-  vector_space_ = true;
-  for (std::size_t j = 1; j < model.joints.size(); ++j) {
-    const std::string jn = model.joints[j].shortname();
-    if (!(plan_.revolute(j) || jn == "JointModelPX" || jn == "JointModelPY" ||
-          jn == "JointModelPZ" || jn == "JointModelPrismaticUnaligned"))
-      vector_space_ = false;
-  }
-  init_partitioning();
-  sparsity();
-}
+// -- declarations ------------------------------------------------------------
 
-inline void Core::configure(const RunOptions &run, const SolverSettings &solver,
-                            const SimulationSettings &sim) {
+/// Settings: the method and the run's options, the solver settings (cond_max, Baumgarte
+/// gains, the augmented Lagrangian's), the simulation settings (settings.hpp); the kept
+/// factor of M + alpha J^T J is dropped.
+void configure(CoreModel &model, CoreData &data, const RunOptions &run,
+               const SolverSettings &solver, const SimulationSettings &sim);
+
+/// tau: None, a constant (nv,) array or a callable tau(t, q, v).
+void set_tau(CoreModel &model, bp::object tau);
+
+/// (phi, J, gamma) at (q, v); gamma includes the Baumgarte terms when configured.
+bp::tuple py_rows(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v);
+
+/// (a, lam) at (q, v) with generalized force tau: one whole evaluation.
+bp::tuple py_forward(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                     const Vec &tau);
+
+/// a at (q, v) for n_eval repetitions inside C++ (the per-evaluation cost in the loop).
+Vec py_repeat(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v, const Vec &tau,
+              int n);
+
+/// Mean wall time [ns] of each stage of one evaluation over n repetitions
+/// (profiling): the sequence of solve(), with a clock between its stages.
+bp::dict py_profile(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                    const Vec &tau, int n);
+
+// -- definitions -------------------------------------------------------------
+
+inline void configure(CoreModel &model, CoreData &data, const RunOptions &run,
+                      const SolverSettings &solver, const SimulationSettings &sim) {
   const std::string &m = run.method;
   if (m == "kkt")
-    method_ = KKT;
+    model.method = KKT;
   else if (m == "schur")
-    method_ = SCHUR;
+    model.method = SCHUR;
   else if (m == "nullspace")
-    method_ = NULLSPACE;
+    model.method = NULLSPACE;
   else if (m == "augmented-lagrangian")
-    method_ = AUGMENTED_LAGRANGIAN;
+    model.method = AUGMENTED_LAGRANGIAN;
   else if (m == "reduced")
-    method_ = REDUCED;
+    model.method = REDUCED;
   else
     throw BadArgument{"compiled core: unknown method '" + m +
                       "'; compiled: kkt, schur, nullspace, augmented-lagrangian, reduced"};
-  method_name_ = m;
-  cond_max_ = solver.cond_max;
-  baumgarte_ = solver.baumgarte;
-  if (baumgarte_) {
-    alpha_ = solver.baumgarte_alpha;
-    beta_ = solver.baumgarte_beta;
+  model.method_name = m;
+  model.cond_max = solver.cond_max;
+  model.baumgarte = solver.baumgarte;
+  if (model.baumgarte) {
+    model.baumgarte_alpha = solver.baumgarte_alpha;
+    model.baumgarte_beta = solver.baumgarte_beta;
   }
-  projection_tol_ = sim.projection_tol;
-  projection_iters_ = sim.projection_iters;
-  project_velocities_ = sim.project_velocities;
-  singular_cond_ = sim.singular_cond;
-  drift_limit_ = sim.drift_limit;
-  al_penalty_ = solver.al_penalty;
-  al_tol_ = solver.al_tol;
-  al_max_iter_ = solver.al_max_iter;
-  stage_projects_ = run.stage_projects;
-  singular_zone_ = sim.singular_zone;
-  stage_zone_ = sim.stage_singular_zone;
-  singular_robust_ = run.singular_robust;
-  dropped_tol_ = sim.dropped_row_tol;
-  dropped_ratio_ = sim.dropped_row_ratio;
-  configure_partitioning(run, sim);
-  invalidate_kinematics();  // the kept factor of M + alpha J^T J has the old al_penalty
+  model.projection_tol = sim.projection_tol;
+  model.projection_iters = sim.projection_iters;
+  model.project_velocities = sim.project_velocities;
+  model.singular_cond = sim.singular_cond;
+  model.drift_limit = sim.drift_limit;
+  model.al_penalty = solver.al_penalty;
+  model.al_tol = solver.al_tol;
+  model.al_max_iter = solver.al_max_iter;
+  model.stage_projects = run.stage_projects;
+  model.singular_zone = sim.singular_zone;
+  model.stage_zone = sim.stage_singular_zone;
+  model.singular_robust = run.singular_robust;
+  model.dropped_tol = sim.dropped_row_tol;
+  model.dropped_ratio = sim.dropped_row_ratio;
+  configure_partitioning(model, data, run, sim);
+  invalidate_kinematics(data);  // the kept factor of M + alpha J^T J has the old al_penalty
 }
 
-inline void Core::set_tau(bp::object tau) {
-  tau_obj_ = bp::object();
-  tau_mode_ = 0;
+inline void set_tau(CoreModel &model, bp::object tau) {
+  model.tau_function = bp::object();
+  model.tau_mode = 0;
   if (tau.is_none()) return;
   if (PyCallable_Check(tau.ptr())) {
-    tau_obj_ = tau;
-    np_asarray_ = bp::import("numpy").attr("asarray");
-    tau_mode_ = 2;
+    model.tau_function = tau;
+    model.np_asarray = bp::import("numpy").attr("asarray");
+    model.tau_mode = 2;
     return;
   }
   Vec c = bp::extract<Vec>(tau);
-  if (c.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
-  tau_const_ = c;
-  tau_mode_ = 1;
+  if (c.size() != model.nv) throw BadArgument{"tau must have shape (nv,)"};
+  model.tau_constant = c;
+  model.tau_mode = 1;
 }
 
-inline bp::tuple Core::py_rows(const Vec &q, const Vec &v) {
-  check_sizes(q, v);
-  eval_terms(q, v);
-  return bp::make_tuple(Vec(phi_), Mat(J_), Vec(gamma_));
+inline bp::tuple py_rows(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v) {
+  check_sizes(model, q, v);
+  eval_terms(model, data, q, v);
+  return bp::make_tuple(Vec(data.phi), Mat(data.J), Vec(data.gamma));
 }
 
-inline bp::tuple Core::py_forward(const Vec &q, const Vec &v, const Vec &tau) {
-  check_sizes(q, v);
-  if (tau.size() != nv_) throw BadArgument{"tau must have shape (nv,)"};
-  invalidate_kinematics();  // one whole evaluation per call
-  solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
-  return bp::make_tuple(Vec(a_), Vec(lam_));
+inline bp::tuple py_forward(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                            const Vec &tau) {
+  check_sizes(model, q, v);
+  if (tau.size() != model.nv) throw BadArgument{"tau must have shape (nv,)"};
+  invalidate_kinematics(data);  // one whole evaluation per call
+  solve(model, data, q, v, tau, std::numeric_limits<double>::quiet_NaN());
+  return bp::make_tuple(Vec(data.a), Vec(data.lam));
 }
 
-inline Vec Core::py_repeat(const Vec &q, const Vec &v, const Vec &tau, int n) {
-  check_sizes(q, v);
+inline Vec py_repeat(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                     const Vec &tau, int n) {
+  check_sizes(model, q, v);
   for (int i = 0; i < n; ++i) {
-    invalidate_kinematics();  // a whole evaluation each time (not the kinematics' reuse)
-    solve(q, v, tau, std::numeric_limits<double>::quiet_NaN());
+    invalidate_kinematics(data);  // a whole evaluation each time (not the kinematics' reuse)
+    solve(model, data, q, v, tau, std::numeric_limits<double>::quiet_NaN());
   }
-  return a_;
+  return data.a;
 }
 
-inline bp::dict Core::py_profile(const Vec &q, const Vec &v, const Vec &tau, int n) {
-  check_sizes(q, v);
+inline bp::dict py_profile(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                           const Vec &tau, int n) {
+  check_sizes(model, q, v);
   using clock = std::chrono::steady_clock;
   double acc[4] = {0, 0, 0, 0};
   clock::time_point last;
@@ -180,10 +138,10 @@ inline bp::dict Core::py_profile(const Vec &q, const Vec &v, const Vec &tau, int
     last = now;
   };
   for (int i = 0; i < n; ++i) {
-    invalidate_kinematics();
+    invalidate_kinematics(data);
     last = clock::now();
-    eval_terms(q, v, mark);
-    dispatch(q, tau, std::numeric_limits<double>::quiet_NaN());
+    eval_terms(model, data, q, v, mark);
+    dispatch(model, data, q, tau, std::numeric_limits<double>::quiet_NaN());
     mark(3);
   }
   bp::dict d;

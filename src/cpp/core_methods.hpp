@@ -1,6 +1,6 @@
 // closedchain._core: the forward-dynamics methods: KKT, Schur, null space, augmented
 // Lagrangian (the reduced method is in core_partitioning.hpp).
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
@@ -9,89 +9,247 @@
 #include <limits>
 
 #include "al_iteration.hpp"
-#include "core.hpp"
+#include "core_data.hpp"
+#include "core_model.hpp"
+#include "core_rows.hpp"
+#include "core_structure.hpp"
+#include "dense_lu.hpp"
+#include "errors.hpp"
 #include "small_llt.hpp"
 
 namespace closedchain {
 
-/// The next augmented-Lagrangian penalty after P = M + alpha J^T J showed ``pivot``, its
+// solve_al for nv <= AL_FIXED_MAX (the 4-bar: nv 3, nc 2) on fixed-size matrices:
+// the same iteration (al_iterate), penalty, acceptance test of P's Cholesky and
+// multiplier polish, with Eigen's unrolled fixed-size products and small_llt.hpp's
+// FixedLDLT in place of the dynamic-size ones (on the 4-bar the solve is the larger
+// part of one evaluation's cost). The results differ from the dynamic path by
+// round-off. P is factored here each time (a few dozen operations);
+// the factor kept for the stage projection (data.P_factored, data.llt_p) is left as it is.
+/// The largest nv solved on fixed-size matrices by solve_al_small.
+constexpr int AL_FIXED_MAX = 6;
+
+/// al_iterate's products (al_iteration.hpp) for the dense path: coefficient-based
+/// (lazyProduct; small dynamic sizes, no BLAS-style kernels) on P's SmallLLT.
+struct DenseAlOps {
+  /// The mechanism (unused by the dense products; the band ones need it).
+  const CoreModel &model;
+  /// M, J and the factor of P (data.llt_p) of the last evaluation.
+  CoreData &data;
+  /// y += J x.
+  void add_j(const Vec &x, Vec &y) { y.noalias() += data.J.lazyProduct(x); }
+  /// y -= M x.
+  void sub_m(const Vec &x, Vec &y) { y.noalias() -= data.M.lazyProduct(x); }
+  /// x -= J^T y.
+  void sub_jt(const Vec &y, Vec &x) { x.noalias() -= data.J.transpose().lazyProduct(y); }
+  /// x -= s J^T y.
+  void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+    x.noalias() -= s * data.J.transpose().lazyProduct(y);
+  }
+  /// x <- P^-1 x.
+  void solve(Vec &x) { data.llt_p.solveInPlace(x); }
+};
+
+/// ... and for the band path (set_band): the products over the structural hulls, P's
+/// band Cholesky in the order model.perm (O(nv) per iterate for a chain of loops).
+struct BandAlOps {
+  /// The structure (hulls, band order).
+  const CoreModel &model;
+  /// M, J, the band factor of P and the products' work vectors (al_wc, al_wv).
+  CoreData &data;
+  /// y += J x.
+  void add_j(const Vec &x, Vec &y) {
+    j_mul(model, data, x, data.al_wc);
+    y += data.al_wc;
+  }
+  /// y -= M x.
+  void sub_m(const Vec &x, Vec &y) { m_mul_sub(model, data, x, y); }
+  /// x -= J^T y.
+  void sub_jt(const Vec &y, Vec &x) {
+    jt_mul(model, data, y, data.al_wv);
+    x -= data.al_wv;
+  }
+  /// x -= s J^T y.
+  void sub_scaled_jt(double s, const Vec &y, Vec &x) {
+    jt_mul(model, data, y, data.al_wv);
+    x -= s * data.al_wv;
+  }
+  /// x <- P^-1 x.
+  void solve(Vec &x) { solve_penalized_band(model, data, x); }
+};
+
+// -- declarations ------------------------------------------------------------
+
+/// Accelerations data.a and multipliers data.lam at (q, v) with generalized force tau.
+void solve(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, const Vec &tau,
+           double t);
+
+/// The configured method's solve at the terms of the last evaluation (model.method).
+void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+/// Augmented Lagrangian at the acceleration level (closedchain/dynamics/
+/// augmented_lagrangian.py, Bayo & Ledesma 1996): P = M + alpha J^T J with
+/// alpha = rho tr(M) / tr(J^T J), lowered where P's Cholesky cannot take it
+/// (al_factor); from lam_0 = 0,
+///   a_1 = P^-1 (tau - h - alpha J^T gamma),  lam_1 = alpha (J a_1 + gamma),
+///   a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T (lam_k + alpha (J a_k + gamma))),
+///   lam_{k+1} = lam_k + alpha (J a_{k+1} + gamma),
+/// until max |a_{k+1} - a_k| <= al_tol (1 + max |a_{k+1}|); then lam is polished by
+/// the regularized normal equations J J^T dlam = J (tau - h - M a - J^T lam).
+void solve_al(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+/// solve_al on fixed-size matrices for (nv, nc) = (NV, NC) and up (see AL_FIXED_MAX);
+/// false when (nv, nc) is not among the sizes compiled or the polish's factor fails.
+template <int NV, int NC>
+bool solve_al_small(const CoreModel &model, CoreData &data, const RefV &q, double t);
+
+/// The next augmented-Lagrangian penalty after P = M + alpha J^T J showed `pivot`, its
 /// smallest relative pivot (0: not positive definite): the small pivots scale as
 /// 1 / alpha, so aim at AL_PENALTY_MARGIN AL_PIVOT_MIN, lowering by at most
 /// AL_PENALTY_DROP (lowered_penalty of dynamics/augmented_lagrangian.py).
+double al_lowered_penalty(double alpha, double pivot);
+
+/// P = M + alpha J^T J at the last evaluation, factored (dense SmallLLT of P's lower
+/// triangle, or the band Cholesky) unless the factor of these data.M and data.J is kept
+/// (data.P_factored); returns alpha. alpha starts at al_penalty tr(M) / tr(J^T J) and is
+/// lowered (al_lowered_penalty, data.al_lowerings times) while the Cholesky fails or shows
+/// a relative pivot below AL_PIVOT_MIN (constants.hpp; numpy's
+/// PenalizedSolver.factor_relative); data.al_alpha keeps it while data.P_factored.
+double al_factor(const CoreModel &model, CoreData &data, const RefV &q, double t);
+
+/// Throw SingularError: P = M + alpha J^T J is not positive definite at the lowest alpha.
+[[noreturn]] void penalized_singular(const CoreModel &model, const RefV &q, double alpha,
+                                     double t);
+
+/// The augmented-Lagrangian iteration (al_iterate) at the last evaluation: x and
+/// data.lam with M x + J^T lam = rhs, J x + g = 0 (to al_tol), no multiplier polish;
+/// from_x: start from x as given (al_iterate).
+void al_solve(const CoreModel &model, CoreData &data, const RefV &q, double t, const Vec &rhs,
+              const Vec &g, Vec &x, bool from_x = false);
+
+/// Throw SingularError: `what` is singular at q (condition number cond > cond_max); hint
+/// says what to do; t NaN outside a simulation.
+[[noreturn]] void singular(const CoreModel &model, const RefV &q, const std::string &what,
+                           double cond, const std::string &hint, double t);
+
+/// singular() unless the condition number 1 / rcond is at most cond_max.
+void check_rcond(const CoreModel &model, const RefV &q, const std::string &what, double rcond,
+                 double t);
+
+/// The KKT method: [[M, J^T], [J, 0]] [a; lam] = [tau - h; -gamma] by LU (dense_lu.hpp).
+void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+/// The Schur complement: lam from (J M^-1 J^T) lam = J M^-1 (tau - h) + gamma, then
+/// a = M^-1 (tau - h - J^T lam).
+void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+/// The null-space method: J = U S V^T; a = a_p + N z with a_p = -V_r S^-1 U^T gamma,
+/// (N^T M N) z = N^T (tau - h - M a_p), lam from the range rows.
+void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                     double t);
+
+/// The generalized force at (t, q, v) into data.tau.
+const Vec &tau_at(const CoreModel &model, CoreData &data, double t, const RefV &q, const RefV &v);
+
+/// The right-hand side of a simulation: data.a (and data.lam) at (t, q, v).
+void accel(const CoreModel &model, CoreData &data, double t, const RefV &q, const RefV &v);
+
+/// J_D: the columns dep of data.J into data.JD.
+void gather_JD(const CoreModel &model, CoreData &data, const std::vector<int> &dep);
+
+/// Reduced coordinates (dynamics/reduced.py): a = S a_I + c with S = [I; -J_D^-1 J_I],
+/// c = [0; -J_D^-1 gamma]; (S^T M S) a_I = S^T (tau - h - M c); lam = J_D^-T (tau - h - M a)_D.
+void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+// -- definitions -------------------------------------------------------------
+
 inline double al_lowered_penalty(double alpha, double pivot) {
   const double f = pivot / (AL_PENALTY_MARGIN * AL_PIVOT_MIN);
   return alpha * (f > AL_PENALTY_DROP ? f : AL_PENALTY_DROP);
 }
 
-inline void Core::solve(const RefV &q, const RefV &v, const Vec &tau, double t) {
-  eval_terms(q, v);
-  ++n_evals_;
-  dispatch(q, tau, t);
+inline void solve(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v,
+                  const Vec &tau, double t) {
+  eval_terms(model, data, q, v);
+  ++data.n_evals;
+  dispatch(model, data, q, tau, t);
 }
 
-inline void Core::dispatch(const RefV &q, const Vec &tau, double t) {
-  switch (method_) {
-    case KKT: solve_kkt(q, tau, t); break;
-    case SCHUR: solve_schur(q, tau, t); break;
-    case NULLSPACE: solve_nullspace(q, tau, t); break;
-    case AUGMENTED_LAGRANGIAN: solve_al(q, tau, t); break;
-    case REDUCED: solve_reduced(q, tau, t); break;
+inline void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                     double t) {
+  switch (model.method) {
+    case KKT:
+      solve_kkt(model, data, q, tau, t);
+      break;
+    case SCHUR:
+      solve_schur(model, data, q, tau, t);
+      break;
+    case NULLSPACE:
+      solve_nullspace(model, data, q, tau, t);
+      break;
+    case AUGMENTED_LAGRANGIAN:
+      solve_al(model, data, q, tau, t);
+      break;
+    case REDUCED:
+      solve_reduced(model, data, q, tau, t);
+      break;
   }
 }
 
-inline void Core::solve_al(const RefV &q, const Vec &tau, double t) {
-  if (nc_ == 0) {
-    llt_m_.compute(M_);
-    if (llt_m_.info() != Eigen::Success)
-      singular(q, "the mass matrix M", std::numeric_limits<double>::infinity(),
+inline void solve_al(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                     double t) {
+  if (model.nc == 0) {
+    data.llt_m.compute(data.M);
+    if (data.llt_m.info() != Eigen::Success)
+      singular(model, q, "the mass matrix M", std::numeric_limits<double>::infinity(),
                "it is not positive definite (a massless subtree)", t);
-    a_ = tau - h_;
-    llt_m_.solveInPlace(a_);
+    data.a = tau - data.h;
+    data.llt_m.solveInPlace(data.a);
     return;
   }
-  rhs_v_ = tau - h_;
-  if (!band_p_ && solve_al_small<1, 1>(q, t)) return;
-  al_solve(q, t, rhs_v_, gamma_, a_);
-  if (band_p_) {  // the multiplier polish on the band normal equations
-    tmp_v_ = rhs_v_;
-    m_mul_sub(a_, tmp_v_);
-    jt_mul(lam_, dq_);
-    tmp_v_ -= dq_;  // r_d
-    j_mul(tmp_v_, tmp_c_);
-    if (band_n_ && factor_normal_band(AL_NORMAL_EQ_REG)) {
-      normal_band_.solve_in_place(tmp_c_);
+  data.rhs_v = tau - data.h;
+  if (!model.banded_penalized && solve_al_small<1, 1>(model, data, q, t)) return;
+  al_solve(model, data, q, t, data.rhs_v, data.gamma, data.a);
+  if (model.banded_penalized) {  // the multiplier polish on the band normal equations
+    data.tmp_v = data.rhs_v;
+    m_mul_sub(model, data, data.a, data.tmp_v);
+    jt_mul(model, data, data.lam, data.dq);
+    data.tmp_v -= data.dq;  // r_d
+    j_mul(model, data, data.tmp_v, data.tmp_c);
+    if (model.banded_normal && factor_normal_band(model, data, AL_NORMAL_EQ_REG)) {
+      data.normal_band.solve_in_place(data.tmp_c);
     } else {  // dense normal equations (no narrow row band, or the band factor failed)
-      JJt_.noalias() = J_ * J_.transpose();
-      JJt_.diagonal().array() +=
-          AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
-      llt_c_.compute(JJt_);
-      llt_c_.solveInPlace(tmp_c_);
+      data.JJt.noalias() = data.J * data.J.transpose();
+      data.JJt.diagonal().array() +=
+          AL_NORMAL_EQ_REG * std::max(data.JJt.trace(), 1.0) / static_cast<double>(model.nc);
+      data.llt_c.compute(data.JJt);
+      data.llt_c.solveInPlace(data.tmp_c);
     }
-    lam_ += tmp_c_;
+    data.lam += data.tmp_c;
     return;
   }
-  tmp_v_ = rhs_v_;
-  tmp_v_.noalias() -= M_.lazyProduct(a_);
-  tmp_v_.noalias() -= J_.transpose().lazyProduct(lam_);  // r_d
-  JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
-  JJt_.diagonal().array() +=
-      AL_NORMAL_EQ_REG * std::max(JJt_.trace(), 1.0) / static_cast<double>(nc_);
-  llt_jj_.compute(JJt_);
-  tmp_c_.noalias() = J_.lazyProduct(tmp_v_);
-  llt_jj_.solveInPlace(tmp_c_);
-  lam_ += tmp_c_;
+  data.tmp_v = data.rhs_v;
+  data.tmp_v.noalias() -= data.M.lazyProduct(data.a);
+  data.tmp_v.noalias() -= data.J.transpose().lazyProduct(data.lam);  // r_d
+  data.JJt.triangularView<Eigen::Lower>() = data.J.lazyProduct(data.J.transpose());
+  data.JJt.diagonal().array() +=
+      AL_NORMAL_EQ_REG * std::max(data.JJt.trace(), 1.0) / static_cast<double>(model.nc);
+  data.llt_jj.compute(data.JJt);
+  data.tmp_c.noalias() = data.J.lazyProduct(data.tmp_v);
+  data.llt_jj.solveInPlace(data.tmp_c);
+  data.lam += data.tmp_c;
 }
 
 template <int NV, int NC>
-inline bool Core::solve_al_small(const RefV &q, double t) {
+inline bool solve_al_small(const CoreModel &model, CoreData &data, const RefV &q, double t) {
   if constexpr (NV > AL_FIXED_MAX) {
     return false;
   } else {
-    if (nv_ != NV || nc_ != NC) {
+    if (model.nv != NV || model.nc != NC) {
       if constexpr (NC < NV)
-        return solve_al_small<NV, NC + 1>(q, t);
+        return solve_al_small<NV, NC + 1>(model, data, q, t);
       else
-        return solve_al_small<NV + 1, 1>(q, t);
+        return solve_al_small<NV + 1, 1>(model, data, q, t);
     }
     using MatN = Eigen::Matrix<double, NV, NV>;
     using MatC = Eigen::Matrix<double, NC, NC>;
@@ -110,10 +268,10 @@ inline bool Core::solve_al_small(const RefV &q, double t) {
       }
       void solve(VecN &x) { llt.solveInPlace(x); }
     };
-    const Eigen::Map<const MatN> M(M_.data());
-    const Eigen::Map<const MatJ> J(J_.data());
-    double alpha =
-        al_penalty_ * M.trace() / std::max(J.squaredNorm(), std::numeric_limits<double>::min());
+    const Eigen::Map<const MatN> M(data.M.data());
+    const Eigen::Map<const MatJ> J(data.J.data());
+    double alpha = model.al_penalty * M.trace() /
+                   std::max(J.squaredNorm(), std::numeric_limits<double>::min());
     const MatN JtJ = J.transpose() * J;
     FixedLDLT<NV> llt;
     int lowerings = 0;
@@ -121,15 +279,16 @@ inline bool Core::solve_al_small(const RefV &q, double t) {
       const bool ok = llt.compute(M + alpha * JtJ);
       const double pivot = ok ? llt.min_pivot_ratio() : 0.0;
       if (pivot >= AL_PIVOT_MIN) break;
-      if (lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(q, alpha, t);
+      if (lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(model, q, alpha, t);
       alpha = al_lowered_penalty(alpha, pivot);
     }
     Ops ops{M, J, llt};
-    const VecN rhs = rhs_v_;
-    const VecC g = gamma_;
+    const VecN rhs = data.rhs_v;
+    const VecC g = data.gamma;
     VecN x, delta;
     VecC lam, rc;
-    al_iterate(ops, alpha, rhs, g, al_max_iter_ * (1 + lowerings), al_tol_, x, lam, delta, rc);
+    al_iterate(ops, alpha, rhs, g, model.al_max_iter * (1 + lowerings), model.al_tol, x, lam,
+               delta, rc);
     // the multiplier polish: J J^T dlam = J (rhs - M a - J^T lam), regularized
     const VecN rd = rhs - M * x - J.transpose() * lam;
     MatC JJt = J * J.transpose();
@@ -139,189 +298,250 @@ inline bool Core::solve_al_small(const RefV &q, double t) {
     VecC dlam = J * rd;
     llt_c.solveInPlace(dlam);
     lam += dlam;
-    a_ = x;
-    lam_ = lam;
+    data.a = x;
+    data.lam = lam;
     return true;
   }
 }
 
-inline double Core::al_factor(const RefV &q, double t) {
-  if (p_fact_) return al_alpha_;
-  const double jj = band_p_ ? j_squared_norm() : J_.squaredNorm();
-  double alpha = al_penalty_ * M_.trace() / std::max(jj, std::numeric_limits<double>::min());
-  for (al_lowerings_ = 0;; ++al_lowerings_) {
+inline double al_factor(const CoreModel &model, CoreData &data, const RefV &q, double t) {
+  if (data.P_factored) return data.al_alpha;
+  const double jj = model.banded_penalized ? j_squared_norm(model, data) : data.J.squaredNorm();
+  double alpha =
+      model.al_penalty * data.M.trace() / std::max(jj, std::numeric_limits<double>::min());
+  for (data.al_lowerings = 0;; ++data.al_lowerings) {
     double pivot = 0.0;
-    if (band_p_) {
-      if (factor_penalized_band(alpha)) pivot = penalized_band_.min_pivot_ratio();
+    if (model.banded_penalized) {
+      if (factor_penalized_band(model, data, alpha))
+        pivot = data.penalized_band.min_pivot_ratio();
     } else {
-      P_.triangularView<Eigen::Lower>() = J_.transpose().lazyProduct(J_);
-      P_.triangularView<Eigen::Lower>() = alpha * P_ + M_;
-      if (llt_p_.compute(P_)) pivot = llt_p_.min_pivot_ratio(P_);
+      data.P.triangularView<Eigen::Lower>() = data.J.transpose().lazyProduct(data.J);
+      data.P.triangularView<Eigen::Lower>() = alpha * data.P + data.M;
+      if (data.llt_p.compute(data.P)) pivot = data.llt_p.min_pivot_ratio(data.P);
     }
     if (pivot >= AL_PIVOT_MIN) break;
-    if (al_lowerings_ == AL_MAX_PENALTY_LOWERINGS) penalized_singular(q, alpha, t);
+    if (data.al_lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(model, q, alpha, t);
     alpha = al_lowered_penalty(alpha, pivot);
   }
-  p_fact_ = true;
-  al_alpha_ = alpha;
+  data.P_factored = true;
+  data.al_alpha = alpha;
   return alpha;
 }
 
-inline void Core::penalized_singular(const RefV &q, double alpha, double t) {
-  singular(q, "the penalized mass matrix M + alpha J^T J", std::numeric_limits<double>::infinity(),
+inline void penalized_singular(const CoreModel &model, const RefV &q, double alpha, double t) {
+  singular(model, q, "the penalized mass matrix M + alpha J^T J",
+           std::numeric_limits<double>::infinity(),
            "it is not numerically positive definite even at alpha = " + fmt("%.3g", alpha) +
                " (lowered " + std::to_string(AL_MAX_PENALTY_LOWERINGS) +
                " times), so M itself is singular (a massless subtree)",
            t);
 }
 
-inline void Core::al_solve(const RefV &q, double t, const Vec &rhs, const Vec &g, Vec &x,
-                           bool from_x) {
-  const double alpha = al_factor(q, t);
-  const int max_iter = al_max_iter_ * (1 + al_lowerings_);
-  if (band_p_) {
-    BandAlOps ops{*this};
-    al_iterate(ops, alpha, rhs, g, max_iter, al_tol_, x, lam_, dq_, tmp_c_, from_x);
+inline void al_solve(const CoreModel &model, CoreData &data, const RefV &q, double t,
+                     const Vec &rhs, const Vec &g, Vec &x, bool from_x) {
+  const double alpha = al_factor(model, data, q, t);
+  const int max_iter = model.al_max_iter * (1 + data.al_lowerings);
+  if (model.banded_penalized) {
+    BandAlOps ops{model, data};
+    al_iterate(ops, alpha, rhs, g, max_iter, model.al_tol, x, data.lam, data.dq, data.tmp_c,
+               from_x);
   } else {
-    DenseAlOps ops{*this};
-    al_iterate(ops, alpha, rhs, g, max_iter, al_tol_, x, lam_, dq_, tmp_c_, from_x);
+    DenseAlOps ops{model, data};
+    al_iterate(ops, alpha, rhs, g, max_iter, model.al_tol, x, data.lam, data.dq, data.tmp_c,
+               from_x);
   }
 }
 
-inline void Core::singular(const RefV &q, const std::string &what, double cond,
-                           const std::string &hint, double t) {
-  std::string msg = name_ + ": " + what + " is singular at q = " + vec_str(q) +
+inline void singular(const CoreModel &model, const RefV &q, const std::string &what, double cond,
+                     const std::string &hint, double t) {
+  std::string msg = model.name + ": " + what + " is singular at q = " + vec_str(q) +
                     " (condition number " + fmt("%.3e", cond) + " > cond_max " +
-                    fmt("%.1e", cond_max_) + "); " + hint;
+                    fmt("%.1e", model.cond_max) + "); " + hint;
   if (!std::isnan(t)) msg = "at t = " + fmt("%.9g", t) + " s: " + msg;
   throw SingularError{msg, cond, t, Vec(q)};
 }
 
-inline void Core::check_rcond(const RefV &q, const std::string &what, double rcond, double t) {
-  double cond = (rcond > 0 && std::isfinite(rcond)) ? 1.0 / rcond
-                                                     : std::numeric_limits<double>::infinity();
-  if (!(cond <= cond_max_))
-    singular(q, what, cond,
+inline void check_rcond(const CoreModel &model, const RefV &q, const std::string &what,
+                        double rcond, double t) {
+  double cond =
+      (rcond > 0 && std::isfinite(rcond)) ? 1.0 / rcond : std::numeric_limits<double>::infinity();
+  if (!(cond <= model.cond_max))
+    singular(model, q, what, cond,
              "the constraint Jacobian has lost rank or the configuration is a singularity", t);
 }
 
-inline void Core::solve_kkt(const RefV &q, const Vec &tau, double t) {
+inline void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                      double t) {
   // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
   // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
-  const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
-  double *k = kkt_.A.data();
+  const Eigen::Index nv = model.nv, nc = model.nc, n = nv + nc;
+  double *k = data.kkt.A.data();
   for (Eigen::Index j = 0; j < nv; ++j) {
     double *col = k + j * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = M_(i, j);
-    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = J_(r, j);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = data.M(i, j);
+    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = data.J(r, j);
   }
   for (Eigen::Index r = 0; r < nc; ++r) {
     double *col = k + (nv + r) * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = J_(r, i);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = data.J(r, i);
     for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
   }
-  for (Eigen::Index i = 0; i < nv; ++i) kkt_solution_[i] = tau[i] - h_[i];
-  for (Eigen::Index r = 0; r < nc; ++r) kkt_solution_[nv + r] = -gamma_[r];
+  for (Eigen::Index i = 0; i < nv; ++i) data.kkt_solution[i] = tau[i] - data.h[i];
+  for (Eigen::Index r = 0; r < nc; ++r) data.kkt_solution[nv + r] = -data.gamma[r];
   // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
   // Away from singular configurations a cheap upper bound of cond_1(K) already
   // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
   // cond_max; only otherwise is the estimate computed.
-  if (!kkt_.factor_in_place()) {
-    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
-  } else if (!(kkt_.anorm * kkt_.inverse_norm_bound() <= cond_max_)) {
-    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", kkt_.rcond(), t);
+  if (!data.kkt.factor_in_place()) {
+    check_rcond(model, q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
+  } else if (!(data.kkt.anorm * data.kkt.inverse_norm_bound() <= model.cond_max)) {
+    check_rcond(model, q, "the KKT matrix [[M, J^T], [J, 0]]", data.kkt.rcond(), t);
   }
-  kkt_.solve(kkt_solution_);
-  a_ = kkt_solution_.head(nv_);
-  lam_ = kkt_solution_.tail(nc_);
+  data.kkt.solve(data.kkt_solution);
+  data.a = data.kkt_solution.head(model.nv);
+  data.lam = data.kkt_solution.tail(model.nc);
 }
 
-inline void Core::solve_schur(const RefV &q, const Vec &tau, double t) {
-  llt_m_.compute(M_);
-  check_rcond(q, "the mass matrix M", llt_m_.info() == Eigen::Success ? llt_m_.rcond() : 0.0, t);
-  schur_solves_.leftCols(nc_) = J_.transpose();
-  schur_solves_.col(nc_) = tau - h_;
-  llt_m_.solveInPlace(schur_solves_);
-  if (nc_ == 0) {
-    a_ = schur_solves_.col(0);
+inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                        double t) {
+  data.llt_m.compute(data.M);
+  check_rcond(model, q, "the mass matrix M",
+              data.llt_m.info() == Eigen::Success ? data.llt_m.rcond() : 0.0, t);
+  data.schur_solves.leftCols(model.nc) = data.J.transpose();
+  data.schur_solves.col(model.nc) = tau - data.h;
+  data.llt_m.solveInPlace(data.schur_solves);
+  if (model.nc == 0) {
+    data.a = data.schur_solves.col(0);
     return;
   }
-  delassus_.noalias() = J_ * schur_solves_.leftCols(nc_);
-  tmp_c_.noalias() = J_ * schur_solves_.col(nc_);
-  tmp_c_ += gamma_;
-  llt_c_.compute(delassus_);
-  check_rcond(q, "the Delassus matrix J M^-1 J^T",
-              llt_c_.info() == Eigen::Success ? llt_c_.rcond() : 0.0, t);
-  lam_ = tmp_c_;
-  llt_c_.solveInPlace(lam_);
-  a_ = schur_solves_.col(nc_);
-  a_.noalias() -= schur_solves_.leftCols(nc_) * lam_;
+  data.delassus.noalias() = data.J * data.schur_solves.leftCols(model.nc);
+  data.tmp_c.noalias() = data.J * data.schur_solves.col(model.nc);
+  data.tmp_c += data.gamma;
+  data.llt_c.compute(data.delassus);
+  check_rcond(model, q, "the Delassus matrix J M^-1 J^T",
+              data.llt_c.info() == Eigen::Success ? data.llt_c.rcond() : 0.0, t);
+  data.lam = data.tmp_c;
+  data.llt_c.solveInPlace(data.lam);
+  data.a = data.schur_solves.col(model.nc);
+  data.a.noalias() -= data.schur_solves.leftCols(model.nc) * data.lam;
 }
 
-inline void Core::solve_nullspace(const RefV &q, const Vec &tau, double t) {
-  const int nr = nv_ - nc_;
-  if (nc_ == 0) {
-    llt_m_.compute(M_);
-    a_ = llt_m_.solve(tau - h_);
+inline void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                            double t) {
+  const int nr = model.nv - model.nc;
+  if (model.nc == 0) {
+    data.llt_m.compute(data.M);
+    data.a = data.llt_m.solve(tau - data.h);
     return;
   }
-  svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Vec &s = svd_.singularValues();
-  double cond = s[nc_ - 1] > 0 ? s[0] / s[nc_ - 1] : std::numeric_limits<double>::infinity();
-  if (!(cond <= cond_max_))
-    singular(q, "the constraint Jacobian J", cond,
+  data.svd.compute(data.J, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Vec &s = data.svd.singularValues();
+  double cond =
+      s[model.nc - 1] > 0 ? s[0] / s[model.nc - 1] : std::numeric_limits<double>::infinity();
+  if (!(cond <= model.cond_max))
+    singular(model, q, "the constraint Jacobian J", cond,
              "it has lost rank: a singular configuration", t);
-  const Mat &U = svd_.matrixU();
-  const Mat &V = svd_.matrixV();
+  const Mat &U = data.svd.matrixU();
+  const Mat &V = data.svd.matrixV();
   // a_p = -V_r S^-1 U^T gamma
-  tmp_c_.noalias() = U.transpose() * gamma_;
-  tmp_c_.array() /= s.head(nc_).array();
-  a_.noalias() = -(V.leftCols(nc_) * tmp_c_);
+  data.tmp_c.noalias() = U.transpose() * data.gamma;
+  data.tmp_c.array() /= s.head(model.nc).array();
+  data.a.noalias() = -(V.leftCols(model.nc) * data.tmp_c);
   if (nr > 0) {
     auto N = V.rightCols(nr);
-    reduced_mass_.noalias() = N.transpose() * M_ * N;
-    llt_r_.compute(reduced_mass_);
-    check_rcond(q, "the reduced mass matrix N^T M N",
-                llt_r_.info() == Eigen::Success ? llt_r_.rcond() : 0.0, t);
-    tmp_v_ = tau - h_;
-    tmp_v_.noalias() -= M_ * a_;
-    nullspace_a_.noalias() = N.transpose() * tmp_v_;
-    llt_r_.solveInPlace(nullspace_a_);
-    a_.noalias() += N * nullspace_a_;
+    data.reduced_mass.noalias() = N.transpose() * data.M * N;
+    data.llt_r.compute(data.reduced_mass);
+    check_rcond(model, q, "the reduced mass matrix N^T M N",
+                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, t);
+    data.tmp_v = tau - data.h;
+    data.tmp_v.noalias() -= data.M * data.a;
+    data.nullspace_a.noalias() = N.transpose() * data.tmp_v;
+    data.llt_r.solveInPlace(data.nullspace_a);
+    data.a.noalias() += N * data.nullspace_a;
   }
-  tmp_v_ = tau - h_;
-  tmp_v_.noalias() -= M_ * a_;
-  tmp_c_.noalias() = V.leftCols(nc_).transpose() * tmp_v_;
-  tmp_c_.array() /= s.head(nc_).array();
-  lam_.noalias() = U * tmp_c_;
+  data.tmp_v = tau - data.h;
+  data.tmp_v.noalias() -= data.M * data.a;
+  data.tmp_c.noalias() = V.leftCols(model.nc).transpose() * data.tmp_v;
+  data.tmp_c.array() /= s.head(model.nc).array();
+  data.lam.noalias() = U * data.tmp_c;
 }
 
-inline const Vec &Core::tau_at(double t, const RefV &q, const RefV &v) {
-  if (tau_mode_ == 0) return zero_v_;
-  if (tau_mode_ == 1) return tau_const_;
-  bp::object r = np_asarray_(tau_obj_(t, to_numpy(q), to_numpy(v)), "float64");
+inline const Vec &tau_at(const CoreModel &model, CoreData &data, double t, const RefV &q,
+                         const RefV &v) {
+  if (model.tau_mode == 0) return data.zero_v;
+  if (model.tau_mode == 1) return model.tau_constant;
+  bp::object r = model.np_asarray(model.tau_function(t, to_numpy(q), to_numpy(v)), "float64");
   bp::extract<Vec> ex(r);
   bool ok = bp::len(r.attr("shape")) == 1 && ex.check();
   if (ok) {
-    tau_ = ex();
-    ok = tau_.size() == nv_ && tau_.allFinite();
+    data.tau = ex();
+    ok = data.tau.size() == model.nv && data.tau.allFinite();
   }
   if (!ok) {
     std::string rep = bp::extract<std::string>(bp::str(r));
     throw SimulationFailure{"tau(t, q, v) returned " + rep + " at t = " + fmt("%.6g", t) +
-                                " s; expected finite shape (" + std::to_string(nv_) + ",)",
+                                " s; expected finite shape (" + std::to_string(model.nv) + ",)",
                             t};
   }
-  return tau_;
+  return data.tau;
 }
 
-inline void Core::accel(double t, const RefV &q, const RefV &v) {
-  const Vec &tau = tau_at(t, q, v);
-  solve(q, v, tau, t);
-  if (!a_.allFinite())
-    throw SimulationFailure{"non-finite acceleration at t = " + fmt("%.9g", t) +
-                                " s, q = " + vec_str(q),
-                            t};
+inline void accel(const CoreModel &model, CoreData &data, double t, const RefV &q, const RefV &v) {
+  const Vec &tau = tau_at(model, data, t, q, v);
+  solve(model, data, q, v, tau, t);
+  if (!data.a.allFinite())
+    throw SimulationFailure{
+        "non-finite acceleration at t = " + fmt("%.9g", t) + " s, q = " + vec_str(q), t};
+}
+
+inline void gather_JD(const CoreModel &model, CoreData &data, const std::vector<int> &dep) {
+  for (int c = 0; c < model.nc; ++c) data.JD.col(c) = data.J.col(dep[c]);
+}
+
+inline void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
+                          double t) {
+  const int m = model.nv - model.nc;
+  data.reduced_force = tau - data.h;
+  if (model.nc) {
+    gather_JD(model, data, model.method_dependent);
+    const double rcond = data.lu_jd.factor(data.JD) ? data.lu_jd.rcond() : 0.0;
+    const double cond = rcond > 0.0 ? 1.0 / rcond : std::numeric_limits<double>::infinity();
+    if (!(cond <= model.cond_max))
+      singular(model, q, model.method_jd_label, cond,
+               "this partition cannot describe the motion here (seed Problem 4): "
+               "re-partition with choose_partition(mech, q), or the configuration is a "
+               "singularity of the mechanism",
+               t);
+    for (int k = 0; k < m; ++k) {
+      data.tmp_c = data.J.col(model.method_independent[k]);
+      data.lu_jd.solve(data.tmp_c);
+      for (int i = 0; i < model.nc; ++i)
+        data.reduced_basis(model.method_dependent[i], k) = -data.tmp_c[i];
+    }
+    data.tmp_c = data.gamma;
+    data.lu_jd.solve(data.tmp_c);
+    for (int i = 0; i < model.nc; ++i)
+      data.reduced_offset[model.method_dependent[i]] = -data.tmp_c[i];
+    data.reduced_force.noalias() -= data.M * data.reduced_offset;
+  }
+  if (m) {
+    data.mass_reduced_basis.noalias() = data.M * data.reduced_basis;
+    data.reduced_mass.noalias() = data.reduced_basis.transpose() * data.mass_reduced_basis;
+    data.llt_r.compute(data.reduced_mass);
+    check_rcond(model, q, "the reduced mass matrix S^T M S",
+                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, t);
+    data.independent_a.noalias() = data.reduced_basis.transpose() * data.reduced_force;
+    data.llt_r.solveInPlace(data.independent_a);
+    data.a.noalias() = data.reduced_basis * data.independent_a;
+    data.a += data.reduced_offset;
+    if (!model.nc) return;
+    data.reduced_force.noalias() -= data.mass_reduced_basis * data.independent_a;
+  } else {
+    data.a = data.reduced_offset;
+  }
+  for (int i = 0; i < model.nc; ++i) data.tmp_c[i] = data.reduced_force[model.method_dependent[i]];
+  data.lu_jd.solve_transposed(data.tmp_c);
+  data.lam = data.tmp_c;
 }
 
 }  // namespace closedchain

@@ -1,6 +1,6 @@
 // closedchain._core: projection onto the constraint manifold and the checks of every step
 // (drift, dropped rows, singular positions, rank indicator).
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
@@ -10,51 +10,116 @@
 #include <cmath>
 #include <limits>
 
-#include "core.hpp"
+#include "core_data.hpp"
+#include "core_methods.hpp"
+#include "core_model.hpp"
+#include "core_rows.hpp"
+#include "core_structure.hpp"
+#include "errors.hpp"
 #include "stage_terms.hpp"
 
 namespace closedchain {
 
-inline double Core::cond_J() {
-  if (nc_ == 0) return 1.0;
-  JJt_.noalias() = J_ * J_.transpose();
-  eig_.compute(JJt_, Eigen::EigenvaluesOnly);
-  const Vec &ev = eig_.eigenvalues();
+// -- declarations ------------------------------------------------------------
+
+/// cond_2(J) from the eigenvalues of J J^T.
+double cond_J(const CoreModel &model, CoreData &data);
+
+/// True when cond_2(J) < limit is certain, in O(nc b^2) on the band of A = J J^T
+/// (model.banded_normal): lambda_max(A) <= ||A||_1, and A - (||A||_1 / limit^2) I is positive
+/// definite (its Cholesky factor exists) iff lambda_min(A) > ||A||_1 / limit^2
+/// (Sylvester's law of inertia), which gives cond_2(J)^2 = lambda_max / lambda_min
+/// < limit^2. False means "not certain": cond_J() decides (only within a factor
+/// sqrt(||A||_1 / lambda_max) <= sqrt(nc) of the limit, i.e. near singular positions).
+bool cond_J_below(const CoreModel &model, CoreData &data, double limit);
+
+/// The step's checks at q (Problem.check_regular and LoopClosure.check_rows of the
+/// numpy backend), plus the drift limit over every declared row at every step:
+/// - every declared row (dropped ones too) within drift_limit, else SimulationFailure
+///   naming the row;
+/// - a dropped row open by more than max(dropped_row_tol, dropped_row_ratio x the kept
+///   rows' residual), or kept rows degenerate (cond(J) > singular_cond while there are
+///   dropped rows): RowCheckRequired (the Python side re-selects the rows);
+/// - unless singular_robust, cond(J) > singular_cond: SingularError.
+void check_regular(const CoreModel &model, CoreData &data, const RefV &q, double t);
+
+/// Condition number of the nc largest singular values of the declared rows' J at the
+/// last eval_phi_J (LoopClosure.check_rows): above singular_cond the mechanism itself
+/// is singular there, no re-selection of rows helps.
+double declared_cond(const CoreModel &model, CoreData &data);
+
+/// Minimum-norm solution x of J x = b (J full row rank): J^T (J J^T)^-1 b.
+/// Where J J^T is ill-conditioned (J nearly rank-deficient, e.g. passing a singular
+/// position with stage projection) it is numpy.linalg.lstsq's minimum-norm solution
+/// from the SVD, singular values below eps max(nc, nv) s_max treated as zero.
+/// The test "the estimate rcond of J J^T exceeds MIN_NORM_RCOND" is decided by an
+/// upper bound of cond_1 from the Cholesky factor where it can (rcond >= 1 / that
+/// bound), so Eigen's estimator runs only near singular positions.
+void min_norm(const CoreModel &model, CoreData &data, const Vec &b, Vec &x);
+
+/// numpy.linalg.lstsq's minimum-norm solution of J x = b (dense SVD of J: only where
+/// J J^T is ill-conditioned, i.e. within a step or two of a singular position).
+void min_norm_svd(const CoreModel &model, CoreData &data, const Vec &b, Vec &x);
+
+/// Gauss-Newton (minimum-norm) projection of q onto phi = 0, then v onto J v = 0.
+/// With mass_orth (the stage projection; problem.project's mass_orthogonal) v is
+/// projected in the metric of M: the augmented-Lagrangian iteration (al_solve) at q
+/// with right-hand side M v and g = 0. Only where the run passes singular positions
+/// (model.singular_robust), as problem.project. data.M (mass_at_kinematics: no velocity pass)
+/// and the factor of M + alpha J^T J are then those of q and stay for the evaluation
+/// at q that follows (eval_terms: the bias forces only; solve_al: no second
+/// factorization); data.lam is overwritten.
+void project(const CoreModel &model, CoreData &data, Vec &q, Vec &v, bool mass_orth = false);
+
+/// sqrt(mu / mean eigenvalue of J J^T) at q, capped: mu the Rayleigh quotient after
+/// RANK_INDICATOR_ITERS inverse iterations from the ones vector (fixed.rank_indicator).
+/// With a narrow row band (set_band's banded_n) J J^T is factorized as a band and
+/// x^T J J^T x = |J^T x|^2: O(nc) instead of the dense product and Cholesky, O(nc^3)
+/// (the same quantity to round-off; also the ALI3-P loop's indicator).
+double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q);
+
+// -- definitions -------------------------------------------------------------
+
+inline double cond_J(const CoreModel &model, CoreData &data) {
+  if (model.nc == 0) return 1.0;
+  data.JJt.noalias() = data.J * data.J.transpose();
+  data.eig.compute(data.JJt, Eigen::EigenvaluesOnly);
+  const Vec &ev = data.eig.eigenvalues();
   if (!(ev[0] > 0)) return std::numeric_limits<double>::infinity();
-  return std::sqrt(ev[nc_ - 1] / ev[0]);
+  return std::sqrt(ev[model.nc - 1] / ev[0]);
 }
 
-inline bool Core::cond_J_below(double limit) {
-  const int b = normal_band_.bandwidth();
-  assemble_normal_band(0.0);
-  Mat &A = normal_band_.A;
+inline bool cond_J_below(const CoreModel &model, CoreData &data, double limit) {
+  const int b = data.normal_band.bandwidth();
+  assemble_normal_band(model, data, 0.0);
+  Mat &A = data.normal_band.A;
   double anorm = 0.0;
-  for (int j = 0; j < nc_; ++j) {
+  for (int j = 0; j < model.nc; ++j) {
     double s = 0.0;
-    for (int k = 0; k <= b && j + k < nc_; ++k) s += std::abs(A(k, j));
+    for (int k = 0; k <= b && j + k < model.nc; ++k) s += std::abs(A(k, j));
     for (int k = 1; k <= b && j - k >= 0; ++k) s += std::abs(A(k, j - k));
     anorm = std::max(anorm, s);
   }
   if (!(anorm > 0.0) || !std::isfinite(anorm)) return false;
   A.row(0).array() -= anorm / (limit * limit);
-  return normal_band_.factor();
+  return data.normal_band.factor();
 }
 
-inline void Core::check_regular(const RefV &q, double t) {
-  if (nc_ == 0 && drows_.empty()) return;
-  eval_phi_J(q);  // placements at q for the declared rows too
-  const int nd = static_cast<int>(drows_.size());
+inline void check_regular(const CoreModel &model, CoreData &data, const RefV &q, double t) {
+  if (model.nc == 0 && model.declared_rows.empty()) return;
+  eval_phi_J(model, data, q);  // placements at q for the declared rows too
+  const int nd = static_cast<int>(model.declared_rows.size());
   double res = 0.0, kept_res = 0.0, drop_res = 0.0;
   int worst = -1, worst_drop = -1;
   if (nd) {
-    declared_phi();
+    declared_phi(model, data);
     for (int r = 0; r < nd; ++r) {
-      const double x = std::abs(dphi_[r]);
+      const double x = std::abs(data.declared_residuals[r]);
       if (!(x <= res)) {  // NaN is the worst
         res = x;
         worst = r;
       }
-      if (dkept_[r]) {
+      if (model.declared_kept[r]) {
         kept_res = std::max(kept_res, x);
       } else if (!(x <= drop_res)) {
         drop_res = x;
@@ -62,167 +127,166 @@ inline void Core::check_regular(const RefV &q, double t) {
       }
     }
   } else {
-    res = nc_ ? phi_.cwiseAbs().maxCoeff() : 0.0;
+    res = model.nc ? data.phi.cwiseAbs().maxCoeff() : 0.0;
   }
-  if (!std::isfinite(res) || res > drift_limit_)
-    throw SimulationFailure{
-        name_ + ": the state left the constraint manifold at t = " + fmt("%.9g", t) +
-            " s (max |phi| = " + fmt("%.3e", res) + " > drift_limit " +
-            fmt("%.1e", drift_limit_) + (worst >= 0 ? ", row " + dlabels_[worst] : "") +
-            "); use a stabilization or a smaller step",
-        t};
-  const bool has_dropped = nd > nc_;
-  if (has_dropped && drop_res > std::max(dropped_tol_, dropped_ratio_ * kept_res))
-    throw RowCheckRequired{"dropped row " + dlabels_[worst_drop] + " open by " +
+  check_drift(model, res, worst, t);
+  const bool has_dropped = nd > model.nc;
+  if (has_dropped && drop_res > std::max(model.dropped_tol, model.dropped_ratio * kept_res))
+    throw RowCheckRequired{"dropped row " + model.declared_labels[worst_drop] + " open by " +
                                fmt("%.3e", drop_res) + " (kept rows " + fmt("%.3e", kept_res) +
                                ") at t = " + fmt("%.9g", t) + " s",
                            t};
-  if (singular_robust_ || rows_only_ || nc_ == 0) return;
-  if (band_n_ && cond_J_below(singular_cond_)) return;
-  double cond = cond_J();
-  if (!(cond <= singular_cond_)) {
-    if (has_dropped && declared_cond() <= singular_cond_)
+  if (model.singular_robust || data.rows_only || model.nc == 0) return;
+  if (model.banded_normal && cond_J_below(model, data, model.singular_cond)) return;
+  double cond = cond_J(model, data);
+  if (!(cond <= model.singular_cond)) {
+    if (has_dropped && declared_cond(model, data) <= model.singular_cond)
       throw RowCheckRequired{"kept rows degenerate (condition number " + fmt("%.3e", cond) +
                                  ") at t = " + fmt("%.9g", t) + " s",
                              t};
     std::string msg =
-        name_ + ": at t = " + fmt("%.9g", t) +
+        model.name + ": at t = " + fmt("%.9g", t) +
         " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
         " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
-        fmt("%.1e", singular_cond_) +
+        fmt("%.1e", model.singular_cond) +
         "): a singular configuration, where the motion is not determined by the equations "
-        "and method '" + method_name_ + "' loses accuracy without any error estimate "
+        "and method '" +
+        model.method_name +
+        "' loses accuracy without any error estimate "
         "noticing; to pass singular positions use method='augmented-lagrangian' with "
         "stabilization='stage-projection' (and a fixed-step integrator)";
     throw SingularError{msg, cond, t, Vec(q)};
   }
 }
 
-inline double Core::declared_cond() {
-  const int nd = static_cast<int>(drows_.size());
-  Mat Jd(nd, nv_);  // only where the kept rows degenerate: not the hot path
-  for (int r = 0; r < nd; ++r) row_jacobian(drows_[r], Jd.row(r));
+inline double declared_cond(const CoreModel &model, CoreData &data) {
+  const int nd = static_cast<int>(model.declared_rows.size());
+  Mat Jd(nd, model.nv);  // only where the kept rows degenerate: not the hot path
+  for (int r = 0; r < nd; ++r) row_jacobian(model, data, model.declared_rows[r], Jd.row(r));
   Eigen::JacobiSVD<Mat> svd(Jd);
   const Vec &sv = svd.singularValues();
-  if (nc_ == 0 || sv.size() < nc_ || !(sv[nc_ - 1] > 0))
+  if (model.nc == 0 || sv.size() < model.nc || !(sv[model.nc - 1] > 0))
     return std::numeric_limits<double>::infinity();
-  return sv[0] / sv[nc_ - 1];
+  return sv[0] / sv[model.nc - 1];
 }
 
-inline void Core::min_norm(const Vec &b, Vec &x) {
-  if (band_n_) {
+inline void min_norm(const CoreModel &model, CoreData &data, const Vec &b, Vec &x) {
+  if (model.banded_normal) {
     // The same test and solve on the band of J J^T. Where it is ill-conditioned the
     // SVD below, as the dense path: the numpy backend's regularized normal equations
     // (J J^T + eps I) there were measured less accurate through the N-four-bar's
     // flat positions (N = 10, 20 s: B0 error 2.2e-6 m against 3.1e-8 m) and barely
     // cheaper (N = 40: 5 %).
-    if (factor_normal_band(0.0) && normal_band_.rcond() > MIN_NORM_RCOND) {
-      tmp_c_ = b;
-      normal_band_.solve_in_place(tmp_c_);
-      jt_mul(tmp_c_, x);
+    if (factor_normal_band(model, data, 0.0) && data.normal_band.rcond() > MIN_NORM_RCOND) {
+      data.tmp_c = b;
+      data.normal_band.solve_in_place(data.tmp_c);
+      jt_mul(model, data, data.tmp_c, x);
       return;
     }
   } else {
-    JJt_.triangularView<Eigen::Lower>() = J_.lazyProduct(J_.transpose());
+    data.JJt.triangularView<Eigen::Lower>() = data.J.lazyProduct(data.J.transpose());
     bool regular = false;
-    if (llt_jj_.compute(JJt_)) {
+    if (data.llt_jj.compute(data.JJt)) {
       double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
-      for (Eigen::Index j = 0; j < nc_; ++j) {
+      for (Eigen::Index j = 0; j < model.nc; ++j) {
         double c = 0.0;
-        for (Eigen::Index i = 0; i < nc_; ++i) c += std::abs(i >= j ? JJt_(i, j) : JJt_(j, i));
+        for (Eigen::Index i = 0; i < model.nc; ++i)
+          c += std::abs(i >= j ? data.JJt(i, j) : data.JJt(j, i));
         anorm = std::max(anorm, c);
       }
-      if (anorm * llt_jj_.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
+      if (anorm * data.llt_jj.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
         regular = true;
       } else {
-        JJt_.triangularView<Eigen::StrictlyUpper>() = JJt_.transpose();
-        llt_c_.compute(JJt_);
-        regular = llt_c_.info() == Eigen::Success && llt_c_.rcond() > MIN_NORM_RCOND;
+        data.JJt.triangularView<Eigen::StrictlyUpper>() = data.JJt.transpose();
+        data.llt_c.compute(data.JJt);
+        regular = data.llt_c.info() == Eigen::Success && data.llt_c.rcond() > MIN_NORM_RCOND;
       }
     }
     if (regular) {
-      tmp_c_ = b;
-      llt_jj_.solveInPlace(tmp_c_);
-      x.noalias() = J_.transpose().lazyProduct(tmp_c_);
+      data.tmp_c = b;
+      data.llt_jj.solveInPlace(data.tmp_c);
+      x.noalias() = data.J.transpose().lazyProduct(data.tmp_c);
       return;
     }
   }
-  min_norm_svd(b, x);
+  min_norm_svd(model, data, b, x);
 }
 
-inline void Core::min_norm_svd(const Vec &b, Vec &x) {
-  svd_.compute(J_, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Vec &sv = svd_.singularValues();
-  const double cut = std::numeric_limits<double>::epsilon() * std::max(nc_, nv_) *
+inline void min_norm_svd(const CoreModel &model, CoreData &data, const Vec &b, Vec &x) {
+  data.svd.compute(data.J, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Vec &sv = data.svd.singularValues();
+  const double cut = std::numeric_limits<double>::epsilon() * std::max(model.nc, model.nv) *
                      (sv.size() ? sv[0] : 0.0);
   x.setZero();
   for (Eigen::Index i = 0; i < sv.size(); ++i)
-    if (sv[i] > cut)
-      x += (svd_.matrixU().col(i).dot(b) / sv[i]) * svd_.matrixV().col(i);
+    if (sv[i] > cut) x += (data.svd.matrixU().col(i).dot(b) / sv[i]) * data.svd.matrixV().col(i);
 }
 
-inline void Core::project(Vec &q, Vec &v, bool mass_orth) {
-  mass_orth = mass_orth && singular_robust_;
-  if (nc_ == 0) return;
-  for (int it = 0; it < projection_iters_; ++it) {
-    eval_phi_J(q);
-    if (phi_.cwiseAbs().maxCoeff() <= projection_tol_) break;
-    tmp_c_ = -phi_;
-    min_norm(tmp_c_, dq_);
-    q_prev_ = q;
-    pinocchio::integrate(model_, q_prev_, dq_, q);
+inline void project(const CoreModel &model, CoreData &data, Vec &q, Vec &v, bool mass_orth) {
+  mass_orth = mass_orth && model.singular_robust;
+  if (model.nc == 0) return;
+  for (int it = 0; it < model.projection_iters; ++it) {
+    eval_phi_J(model, data, q);
+    if (data.phi.cwiseAbs().maxCoeff() <= model.projection_tol) break;
+    data.tmp_c = -data.phi;
+    min_norm(model, data, data.tmp_c, data.dq);
+    data.q_prev = q;
+    pinocchio::integrate(model.tree, data.q_prev, data.dq, q);
   }
-  if (project_velocities_ && mass_orth) {
-    eval_phi_J(q);
-    if (!m_at_J_) {
-      mass_at_kinematics(plan_, model_, data_, M_);
-      m_at_J_ = true;
-      p_fact_ = false;
-      terms_q_.setConstant(std::numeric_limits<double>::quiet_NaN());  // M_, not potential_energy_
+  if (model.project_velocities && mass_orth) {
+    eval_phi_J(model, data, q);
+    if (!data.M_at_J) {
+      mass_at_kinematics(model.tree_plan, model.tree, data.tree, data.M);
+      data.M_at_J = true;
+      data.P_factored = false;
+      data.terms_q.setConstant(
+          std::numeric_limits<double>::quiet_NaN());  // data.M, not data.potential_energy
     }
-    mv_.noalias() = M_ * v;
+    data.mv.noalias() = data.M * v;
     // From v itself (problem.project's a0): its correction is small here.
-    al_solve(q, std::numeric_limits<double>::quiet_NaN(), mv_, zero_c_, v, true);
-  } else if (project_velocities_) {
-    eval_phi_J(q);
-    if (band_n_)
-      j_mul(v, vel_c_);
+    al_solve(model, data, q, std::numeric_limits<double>::quiet_NaN(), data.mv, data.zero_c, v,
+             true);
+  } else if (model.project_velocities) {
+    eval_phi_J(model, data, q);
+    if (model.banded_normal)
+      j_mul(model, data, v, data.vel_c);
     else
-      vel_c_.noalias() = J_ * v;
-    min_norm(vel_c_, dq_);
-    v -= dq_;
+      data.vel_c.noalias() = data.J * v;
+    min_norm(model, data, data.vel_c, data.dq);
+    v -= data.dq;
   }
 }
 
-inline double Core::rank_indicator(const Vec &q) {
-  if (nc_ == 0) return RANK_INDICATOR_CAP;
-  eval_phi_J(q);
-  if (band_n_) {
-    assemble_normal_band(0.0);
-    const double ref = normal_band_.A.row(0).sum() / nc_;
+inline double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q) {
+  if (model.nc == 0) return RANK_INDICATOR_CAP;
+  eval_phi_J(model, data, q);
+  if (model.banded_normal) {
+    assemble_normal_band(model, data, 0.0);
+    const double ref = data.normal_band.A.row(0).sum() / model.nc;
     if (!(ref > 0.0)) return 0.0;
-    if (!normal_band_.factor()) return 0.0;
-    al_wc_.setConstant(1.0 / std::sqrt(static_cast<double>(nc_)));
+    if (!data.normal_band.factor()) return 0.0;
+    data.al_wc.setConstant(1.0 / std::sqrt(static_cast<double>(model.nc)));
     for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
-      normal_band_.solve_in_place(al_wc_);
-      al_wc_ /= al_wc_.norm();
+      data.normal_band.solve_in_place(data.al_wc);
+      data.al_wc /= data.al_wc.norm();
     }
-    jt_mul(al_wc_, al_wv_);
-    const double mu = al_wv_.squaredNorm();
+    jt_mul(model, data, data.al_wc, data.al_wv);
+    const double mu = data.al_wv.squaredNorm();
     return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
   }
-  JJt_.noalias() = J_.lazyProduct(J_.transpose());  // small (no row band): coefficient-based
-  const double ref = JJt_.trace() / nc_;
+  data.JJt.noalias() =
+      data.J.lazyProduct(data.J.transpose());  // small (no row band): coefficient-based
+  const double ref = data.JJt.trace() / model.nc;
   if (!(ref > 0.0)) return 0.0;
-  llt_c_.compute(JJt_);
-  if (llt_c_.info() != Eigen::Success) return 0.0;
-  tmp_c_.setConstant(1.0 / std::sqrt(static_cast<double>(nc_)));
+  data.llt_c.compute(data.JJt);
+  if (data.llt_c.info() != Eigen::Success) return 0.0;
+  data.tmp_c.setConstant(1.0 / std::sqrt(static_cast<double>(model.nc)));
   for (int i = 0; i < RANK_INDICATOR_ITERS; ++i) {
-    llt_c_.solveInPlace(tmp_c_);
-    tmp_c_ /= tmp_c_.norm();
+    data.llt_c.solveInPlace(data.tmp_c);
+    data.tmp_c /= data.tmp_c.norm();
   }
-  vel_c_.noalias() = JJt_ * tmp_c_;
-  const double mu = tmp_c_.dot(vel_c_);
+  data.vel_c.noalias() = data.JJt * data.tmp_c;
+  const double mu = data.tmp_c.dot(data.vel_c);
   return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
 }
 

@@ -1,120 +1,173 @@
 // closedchain._core: the samples of a run (state, residuals, energy, branch sign) and progress.
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
 #include <pinocchio/algorithm/energy.hpp>
 
 #include <cmath>
+#include <vector>
 
-#include "core.hpp"
+#include "core_data.hpp"
+#include "core_model.hpp"
+#include "core_partitioning.hpp"
+#include "core_rows.hpp"
+#include "errors.hpp"
 
 namespace closedchain {
 
-inline void Core::set_branch_columns(const Eigen::VectorXi &cols) {
-  if (cols.size() != 0 && cols.size() != nc_)
-    throw BadArgument{"Core.set_branch_columns: need nc = " + std::to_string(nc_) + " columns"};
+/// The samples of a run, one entry (or one row of nq, nv or nc entries) per output time.
+struct Samples {
+  /// Time [s]; max |phi| over the declared rows [m or 1]; max |J v| [m/s or 1/s]; total and
+  /// kinetic energy [J]; sign of det(J[:, branch_columns]).
+  std::vector<double> t, res, vres, e, ke, branch;
+  /// State, accelerations and multipliers, row-major.
+  std::vector<double> q, v, a, lam;
+};
+
+// -- declarations ------------------------------------------------------------
+
+/// The columns D of J whose sign of det(J[:, D]) is recorded with every sample (the
+/// assembly branch, Recorder._add_branch); empty: none recorded.
+void set_branch_columns(CoreModel &model, CoreData &data, const Eigen::VectorXi &cols);
+
+/// Sign of det(data.J[:, model.branch_columns]) (data.J at the sample's q): the parity of the row
+/// swaps of an LU with partial pivoting times the signs of its pivots, 0 for an
+/// exactly zero pivot (numpy.linalg.slogdet's sign).
+double branch_sign(const CoreModel &model, CoreData &data);
+
+/// Append the sample at (t, q, v) with the last solve's (a, lam): residuals over every
+/// declared row (SimulationFailure beyond drift_limit), energies, branch sign.
+void record(const CoreModel &model, CoreData &data, Samples &out, double t, const Vec &q,
+            const Vec &v);
+
+/// The row-major values x as a (rows, cols) numpy array.
+bp::object sample_matrix(const std::vector<double> &x, long rows, long cols);
+
+/// The dict of a run's samples (t, q, v, a, lam, res, vres, e, ke, branch), steps,
+/// evaluations and re-partitions.
+bp::dict samples_dict(const CoreModel &model, const CoreData &data, const Samples &s, long steps);
+
+/// Call progress(t) (when given) and, every 64 steps, check for Ctrl-C.
+void poll(long k, double t, const bp::object &progress);
+
+/// SimulationFailure when q or v is not finite at t.
+void check_finite(const CoreModel &model, const Vec &q, const Vec &v, double t);
+
+/// out[k] = 1 for the steps k of out_steps within 0..n_steps: where a fixed-step run records.
+std::vector<char> output_mask(const Eigen::VectorXi &out_steps, long n_steps);
+
+// -- definitions -------------------------------------------------------------
+
+inline void set_branch_columns(CoreModel &model, CoreData &data, const Eigen::VectorXi &cols) {
+  if (cols.size() != 0 && cols.size() != model.nc)
+    throw BadArgument{"Core.set_branch_columns: need nc = " + std::to_string(model.nc) +
+                      " columns"};
   for (Eigen::Index i = 0; i < cols.size(); ++i)
-    if (cols[i] < 0 || cols[i] >= nv_)
+    if (cols[i] < 0 || cols[i] >= model.nv)
       throw BadArgument{"Core.set_branch_columns: column out of range"};
-  branch_cols_ = cols;
-  lu_branch_.resize(cols.size());
+  model.branch_columns = cols;
+  data.lu_branch.resize(cols.size());
 }
 
-inline double Core::branch_sign() {
-  for (Eigen::Index j = 0; j < branch_cols_.size(); ++j)
-    lu_branch_.A.col(j) = J_.col(branch_cols_[j]);
-  lu_branch_.factor_in_place();
-  return lu_branch_.det_sign();
+inline double branch_sign(const CoreModel &model, CoreData &data) {
+  for (Eigen::Index j = 0; j < model.branch_columns.size(); ++j)
+    data.lu_branch.A.col(j) = data.J.col(model.branch_columns[j]);
+  data.lu_branch.factor_in_place();
+  return data.lu_branch.det_sign();
 }
 
-inline void Core::record(Samples &out, double t, const Vec &q, const Vec &v) {
-  // a_ and lam_ are those at (t, q, v)
+inline void record(const CoreModel &model, CoreData &data, Samples &out, double t, const Vec &q,
+                   const Vec &v) {
+  // data.a and data.lam are those at (t, q, v)
   // res: max |phi| over every declared row (a loop is never reported closed while
   // a dropped row is open); vres: max |J v| over the kept rows.
   double res = 0.0, vres = 0.0;
   int worst = -1;
-  if (nc_ || !drows_.empty()) {
-    eval_phi_J(q);
-    if (!drows_.empty()) {
-      declared_phi();
-      for (Eigen::Index r = 0; r < dphi_.size(); ++r)
-        if (!(std::abs(dphi_[r]) <= res)) {
-          res = std::abs(dphi_[r]);
+  if (model.nc || !model.declared_rows.empty()) {
+    eval_phi_J(model, data, q);
+    if (!model.declared_rows.empty()) {
+      declared_phi(model, data);
+      for (Eigen::Index r = 0; r < data.declared_residuals.size(); ++r)
+        if (!(std::abs(data.declared_residuals[r]) <= res)) {
+          res = std::abs(data.declared_residuals[r]);
           worst = static_cast<int>(r);
         }
     } else {
-      res = phi_.cwiseAbs().maxCoeff();
+      res = data.phi.cwiseAbs().maxCoeff();
     }
-    if (nc_) {
-      vel_c_.noalias() = J_ * v;
-      vres = vel_c_.cwiseAbs().maxCoeff();
+    if (model.nc) {
+      data.vel_c.noalias() = data.J * v;
+      vres = data.vel_c.cwiseAbs().maxCoeff();
     }
   }
-  if (!std::isfinite(res) || res > drift_limit_)
-    throw SimulationFailure{
-        name_ + ": the state left the constraint manifold at t = " + fmt("%.9g", t) +
-            " s (max |phi| = " + fmt("%.3e", res) + " > drift_limit " +
-            fmt("%.1e", drift_limit_) + (worst >= 0 ? ", row " + dlabels_[worst] : "") +
-            "); use a stabilization or a smaller step",
-        t};
+  check_drift(model, res, worst, t);
   // Energies: from the last eval_terms when it was at (q, v) (the loops record
   // right after accel there), else from Pinocchio's own passes.
   double ke, pe;
-  if (q == terms_q_ && v == terms_v_) {
-    ke = 0.5 * v.dot(M_.lazyProduct(v));
-    pe = potential_energy_;
+  if (q == data.terms_q && v == data.terms_v) {
+    ke = 0.5 * v.dot(data.M.lazyProduct(v));
+    pe = data.potential_energy;
   } else {
-    ke = pinocchio::computeKineticEnergy(model_, data_, q, v);
-    pe = pinocchio::computePotentialEnergy(model_, data_, q);
-    invalidate_kinematics();  // Pinocchio's passes moved data_'s placements to q
+    ke = pinocchio::computeKineticEnergy(model.tree, data.tree, q, v);
+    pe = pinocchio::computePotentialEnergy(model.tree, data.tree, q);
+    invalidate_kinematics(data);  // Pinocchio's passes moved data.tree's placements to q
   }
   out.t.push_back(t);
   out.res.push_back(res);
   out.vres.push_back(vres);
   out.e.push_back(ke + pe);
   out.ke.push_back(ke);
-  out.q.insert(out.q.end(), q.data(), q.data() + nq_);
-  out.v.insert(out.v.end(), v.data(), v.data() + nv_);
-  out.a.insert(out.a.end(), a_.data(), a_.data() + nv_);
-  out.lam.insert(out.lam.end(), lam_.data(), lam_.data() + nc_);
-  if (branch_cols_.size() && nc_) out.branch.push_back(branch_sign());  // J_ at q (eval_phi_J)
+  out.q.insert(out.q.end(), q.data(), q.data() + model.nq);
+  out.v.insert(out.v.end(), v.data(), v.data() + model.nv);
+  out.a.insert(out.a.end(), data.a.data(), data.a.data() + model.nv);
+  out.lam.insert(out.lam.end(), data.lam.data(), data.lam.data() + model.nc);
+  if (model.branch_columns.size() && model.nc)
+    out.branch.push_back(branch_sign(model, data));  // data.J at q (eval_phi_J)
 }
 
-inline bp::object Core::block(const std::vector<double> &x, long rows, long cols) {
+inline bp::object sample_matrix(const std::vector<double> &x, long rows, long cols) {
   Mat m(rows, cols);
   for (long i = 0; i < rows; ++i)
     for (long j = 0; j < cols; ++j) m(i, j) = x[i * cols + j];
   return bp::object(m);
 }
 
-inline bp::dict Core::samples_dict(const Samples &s, long steps) {
+inline bp::dict samples_dict(const CoreModel &model, const CoreData &data, const Samples &s,
+                             long steps) {
   long n = static_cast<long>(s.t.size());
   bp::dict d;
-  d["t"] = block(s.t, n, 1);
-  d["q"] = block(s.q, n, nq_);
-  d["v"] = block(s.v, n, nv_);
-  d["a"] = block(s.a, n, nv_);
-  d["lam"] = block(s.lam, n, nc_);
-  d["res"] = block(s.res, n, 1);
-  d["vres"] = block(s.vres, n, 1);
-  d["e"] = block(s.e, n, 1);
-  d["ke"] = block(s.ke, n, 1);
-  if (branch_cols_.size() && nc_) d["branch"] = block(s.branch, n, 1);
+  d["t"] = sample_matrix(s.t, n, 1);
+  d["q"] = sample_matrix(s.q, n, model.nq);
+  d["v"] = sample_matrix(s.v, n, model.nv);
+  d["a"] = sample_matrix(s.a, n, model.nv);
+  d["lam"] = sample_matrix(s.lam, n, model.nc);
+  d["res"] = sample_matrix(s.res, n, 1);
+  d["vres"] = sample_matrix(s.vres, n, 1);
+  d["e"] = sample_matrix(s.e, n, 1);
+  d["ke"] = sample_matrix(s.ke, n, 1);
+  if (model.branch_columns.size() && model.nc) d["branch"] = sample_matrix(s.branch, n, 1);
   d["steps"] = steps;
-  d["evaluations"] = n_evals_;
-  d["repartitions"] = repartitions_list();
+  d["evaluations"] = data.n_evals;
+  d["repartitions"] = repartitions_list(data);
   return d;
 }
 
-inline void Core::poll(long k, double t, const bp::object &progress) {
+inline void poll(long k, double t, const bp::object &progress) {
   if (!progress.is_none()) progress(t);
   if ((k & 63) == 0 && PyErr_CheckSignals() != 0) bp::throw_error_already_set();
 }
 
-inline void Core::check_finite(const Vec &q, const Vec &v, double t) {
+inline void check_finite(const CoreModel &model, const Vec &q, const Vec &v, double t) {
   if (!(q.allFinite() && v.allFinite()))
-    throw SimulationFailure{name_ + ": non-finite state at t = " + fmt("%.9g", t) + " s", t};
+    throw SimulationFailure{model.name + ": non-finite state at t = " + fmt("%.9g", t) + " s", t};
+}
+
+inline std::vector<char> output_mask(const Eigen::VectorXi &out_steps, long n_steps) {
+  std::vector<char> out(n_steps + 1, 0);
+  for (Eigen::Index i = 0; i < out_steps.size(); ++i)
+    if (out_steps[i] >= 0 && out_steps[i] <= n_steps) out[out_steps[i]] = 1;
+  return out;
 }
 
 }  // namespace closedchain

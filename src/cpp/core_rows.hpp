@@ -1,263 +1,331 @@
 // closedchain._core: the constraint rows: cut frames, their placements and motion, phi,
 // J, gamma, and the evaluation of the tree terms.
-// (Member functions of Core, declared in core.hpp.)
+// (Functions over (CoreModel, CoreData): their declarations, then their definitions.)
 
 #pragma once
 
 #include <pinocchio/algorithm/kinematics.hpp>
 
+#include <cmath>
 #include <limits>
 
-#include "core.hpp"
+#include "core_data.hpp"
+#include "core_model.hpp"
+#include "errors.hpp"
 #include "stage_terms.hpp"
 #include "tree_terms.hpp"
 
 namespace closedchain {
 
-inline void Core::set_declared(const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
-                               const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2,
-                               const Eigen::VectorXi &kept, bp::list labels) {
+// -- declarations ------------------------------------------------------------
+
+/// Every declared row (the kept ones and those dropped as redundant), checked at
+/// every step: kinds/frames/vectors as for the kept rows, kept[i] = 1 for a row
+/// the methods use, labels "loop.kind" for messages.
+void set_declared(CoreModel &model, CoreData &data, const Eigen::VectorXi &kinds,
+                  const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s, const Mat &vec1,
+                  const Mat &vec2, const Eigen::VectorXi &kept, bp::list labels);
+
+/// data.tree's kinematics, data.J and data.M no longer known to be at data.J_at; the factor of
+/// M + alpha J^T J dropped.
+void invalidate_kinematics(CoreData &data);
+
+/// phi only: placements from the kinematics pass (tree_terms.hpp's joint_kinematics,
+/// the same placements as eval_phi_J and eval_terms).
+void eval_phi(const CoreModel &model, CoreData &data, const RefV &q);
+
+/// phi and J: joint_kinematics(q) (placements and world joint Jacobians, as
+/// pinocchio::computeJointJacobians; revolute joints by tree_terms.hpp's own path).
+/// Each step asks several times at one q (projection, regularity check, declared
+/// rows, output): the last evaluation is reused while q is the same.
+void eval_phi_J(const CoreModel &model, CoreData &data, const RefV &q);
+
+/// eval_phi_J at a trial point of the dependent solve, which moves only the
+/// dependent coordinates data.dependent: when the kinematics in data.tree (data.J_at) agree with q
+/// on every independent coordinate, the joints whose supports hold no dependent coordinate keep
+/// their placements and Jacobian columns (the same values a full pass computes: same inputs, same
+/// arithmetic) and only the others are recomputed.
+void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &q);
+
+/// M, h, phi, J, gamma at (q, v): one pass over the tree (tree_terms.hpp: M, h,
+/// the joints' placements, world Jacobian columns, velocities and bias
+/// accelerations), then the cut frames' placements, velocities and classical
+/// accelerations, then the rows. `mark(stage)` is called after each stage
+/// (0 tree, 1 frames, 2 rows): a no-op, or py_profile's clock.
+///
+/// When the last kinematics pass was at q (eval_phi_J(q): the dependent solve of
+/// the partitioning stabilization ends there), data.tree already holds the joints'
+/// placements and Jacobian columns and data.phi, data.J and the frame placements are
+/// those of q: only the velocity-dependent part of the tree pass and gamma are
+/// computed (tree_terms_at_kinematics; the same arithmetic, the same results); when
+/// data.M is at q too (data.M_at_J: the stage projection's velocity step computed it, or an
+/// evaluation at q with another v), only h (bias_at_kinematics, stage_terms.hpp),
+/// and data.M and the factor of M + alpha J^T J (data.P_factored) stay.
+template <class Mark>
+void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, Mark &&mark);
+
+void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v);
+
+/// phi of every declared row from the placements of the last kinematics pass.
+void declared_phi(const CoreModel &model, CoreData &data);
+
+/// BadArgument unless q has shape (nq,) and v shape (nv,).
+void check_sizes(const CoreModel &model, const Vec &q, const Vec &v);
+
+/// World placement (data.frame_R, data.frame_p) of every cut frame from data.tree.oMi.
+void placements(const CoreModel &model, CoreData &data);
+
+/// Velocity data.frame_v and classical acceleration data.frame_a (at a = 0) of every cut frame's
+/// origin p, world axes (LOCAL_WORLD_ALIGNED), from its joint's world spatial
+/// velocity (v_o, w) = data.tree.ov and bias acceleration (a_o, al) = data.tree.oa:
+///   v_p = v_o + w x p,   a_p = a_o + al x p + w x v_p   (linear; angular w, al).
+void frame_motion(const CoreModel &model, CoreData &data);
+
+/// Row J of `row` from the world Jacobian columns data.tree.J (of the last kinematics
+/// pass) and the frame placements. A frame's LOCAL_WORLD_ALIGNED Jacobian at p
+/// has, on its joint's support, linear columns J_lin + J_ang x p and angular
+/// columns J_ang, so a row c . (linear) + e . (angular) of it is the 6-vector
+/// (c, p x c + e) applied to the world columns: the row is that of the
+/// predecessor frame minus that of the successor.
+///   kinds 0, 1: U^T (Jlin_p - Jlin_s) + [kind 1] (U x d)^T Jang_p,
+///   kind 2:     (W x U)^T (Jang_s - Jang_p).
+template <typename RowXpr>
+void row_jacobian(const CoreModel &model, CoreData &data, const Row &row, RowXpr &&out);
+
+/// Fill data.phi, data.J, data.gamma from the per-frame quantities.
+void fill_rows(const CoreModel &model, CoreData &data, bool want_phi, bool want_J, bool want_gamma);
+
+/// SimulationFailure when res, the largest |phi| over the declared rows (at declared row
+/// `worst`; -1: over the kept rows), is not finite or exceeds drift_limit at t: the state
+/// left the constraint manifold.
+void check_drift(const CoreModel &model, double res, int worst, double t);
+
+// -- definitions -------------------------------------------------------------
+
+inline void set_declared(CoreModel &model, CoreData &data, const Eigen::VectorXi &kinds,
+                         const Eigen::VectorXi &fid_p, const Eigen::VectorXi &fid_s,
+                         const Mat &vec1, const Mat &vec2, const Eigen::VectorXi &kept,
+                         bp::list labels) {
   const int nd = static_cast<int>(kinds.size());
   if (fid_p.size() != nd || fid_s.size() != nd || vec1.rows() != nd || vec2.rows() != nd ||
       kept.size() != nd || bp::len(labels) != nd || (nd && (vec1.cols() != 3 || vec2.cols() != 3)))
     throw BadArgument{"Core.set_declared: row tables of inconsistent shapes"};
-  drows_.clear();
-  dlabels_.clear();
+  model.declared_rows.clear();
+  model.declared_labels.clear();
   for (int r = 0; r < nd; ++r) {
-    drows_.push_back(make_row(r, kinds, fid_p, fid_s, vec1, vec2));
-    dlabels_.push_back(bp::extract<std::string>(labels[r]));
+    model.declared_rows.push_back(model.make_row(r, kinds, fid_p, fid_s, vec1, vec2));
+    model.declared_labels.push_back(bp::extract<std::string>(labels[r]));
   }
-  dkept_ = kept;
-  dphi_ = Vec::Zero(nd);
-  frame_buffers();
-  invalidate_kinematics();
+  model.declared_kept = kept;
+  data.declared_residuals = Vec::Zero(nd);
+  model.frame_supports();
+  data.resize_frames(model);
+  invalidate_kinematics(data);
 }
 
-inline void Core::invalidate_kinematics() {
-  J_at_valid_ = false;
-  m_at_J_ = false;
-  p_fact_ = false;
+inline void invalidate_kinematics(CoreData &data) {
+  data.J_at_valid = false;
+  data.M_at_J = false;
+  data.P_factored = false;
 }
 
-inline void Core::eval_phi(const RefV &q) {
-  invalidate_kinematics();
-  joint_kinematics(plan_, model_, data_, q);
-  placements();
-  rows(true, false, false);
+inline void eval_phi(const CoreModel &model, CoreData &data, const RefV &q) {
+  invalidate_kinematics(data);
+  joint_kinematics(model.tree_plan, model.tree, data.tree, q);
+  placements(model, data);
+  fill_rows(model, data, true, false, false);
 }
 
-inline void Core::eval_phi_J(const RefV &q) {
-  if (J_at_valid_ && q == J_at_) return;
-  invalidate_kinematics();
-  joint_kinematics(plan_, model_, data_, q);
-  placements();
-  rows(true, true, false);
-  J_at_ = q;
-  J_at_valid_ = true;
+inline void eval_phi_J(const CoreModel &model, CoreData &data, const RefV &q) {
+  if (data.J_at_valid && q == data.J_at) return;
+  invalidate_kinematics(data);
+  joint_kinematics(model.tree_plan, model.tree, data.tree, q);
+  placements(model, data);
+  fill_rows(model, data, true, true, false);
+  data.J_at = q;
+  data.J_at_valid = true;
 }
 
-inline void Core::eval_phi_J_trial(const Vec &q) {
-  bool same = J_at_valid_ && nq_ == nv_;  // coordinates are velocity indices
-  for (std::size_t k = 0; same && k < ind_.size(); ++k) same = J_at_[ind_[k]] == q[ind_[k]];
-  if (!same || q == J_at_) return eval_phi_J(q);
-  if (moved_for_ != dep_) {  // the joints moved by dep_ (allocates: once per partition)
-    moved_for_ = dep_;
-    moved_.assign(static_cast<std::size_t>(model_.njoints), 0);
-    std::vector<char> is_dep(static_cast<std::size_t>(nv_), 0);
-    for (int d : dep_) is_dep[static_cast<std::size_t>(d)] = 1;
-    for (std::size_t j = 1; j < static_cast<std::size_t>(model_.njoints); ++j) {
-      char m = moved_[model_.parents[j]];
-      for (int c = 0; c < model_.nvs[j]; ++c) m |= is_dep[model_.idx_vs[j] + c];
-      moved_[j] = m;
+inline void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &q) {
+  bool same = data.J_at_valid && model.nq == model.nv;  // coordinates are velocity indices
+  for (std::size_t k = 0; same && k < data.independent.size(); ++k)
+    same = data.J_at[data.independent[k]] == q[data.independent[k]];
+  if (!same || q == data.J_at) return eval_phi_J(model, data, q);
+  if (data.moved_for !=
+      data.dependent) {  // the joints moved by data.dependent (allocates: once per partition)
+    data.moved_for = data.dependent;
+    data.moved.assign(static_cast<std::size_t>(model.tree.njoints), 0);
+    std::vector<char> is_dep(static_cast<std::size_t>(model.nv), 0);
+    for (int d : data.dependent) is_dep[static_cast<std::size_t>(d)] = 1;
+    for (std::size_t j = 1; j < static_cast<std::size_t>(model.tree.njoints); ++j) {
+      char m = data.moved[model.tree.parents[j]];
+      for (int c = 0; c < model.tree.nvs[j]; ++c) m |= is_dep[model.tree.idx_vs[j] + c];
+      data.moved[j] = m;
     }
   }
-  invalidate_kinematics();
-  joint_kinematics(plan_, model_, data_, q, &moved_);
-  placements();
-  rows(true, true, false);
-  J_at_ = q;
-  J_at_valid_ = true;
+  invalidate_kinematics(data);
+  joint_kinematics(model.tree_plan, model.tree, data.tree, q, &data.moved);
+  placements(model, data);
+  fill_rows(model, data, true, true, false);
+  data.J_at = q;
+  data.J_at_valid = true;
 }
 
 template <class Mark>
-inline void Core::eval_terms(const RefV &q, const RefV &v, Mark &&mark) {
-  if (J_at_valid_ && q == J_at_) {
-    if (m_at_J_) {
-      bias_at_kinematics(plan_, model_, data_, q, v, h_);
+inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v,
+                       Mark &&mark) {
+  if (data.J_at_valid && q == data.J_at) {
+    if (data.M_at_J) {
+      bias_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.h);
     } else {
-      tree_terms_at_kinematics(plan_, model_, data_, q, v, M_, h_);
-      m_at_J_ = true;
-      p_fact_ = false;
+      tree_terms_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
+      data.M_at_J = true;
+      data.P_factored = false;
     }
     mark(0);
-    frame_motion();
+    frame_motion(model, data);
     mark(1);
-    rows(false, false, true);
+    fill_rows(model, data, false, false, true);
   } else {
-    invalidate_kinematics();
-    tree_terms(plan_, model_, data_, q, v, M_, h_);
+    invalidate_kinematics(data);
+    tree_terms(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
     mark(0);
-    placements();
-    frame_motion();
+    placements(model, data);
+    frame_motion(model, data);
     mark(1);
-    rows(true, true, true);
+    fill_rows(model, data, true, true, true);
   }
-  if (baumgarte_ && nc_) {
-    tmp_c_.noalias() = J_ * v;
-    gamma_ += (2.0 * alpha_) * tmp_c_ + (beta_ * beta_) * phi_;
+  if (model.baumgarte && model.nc) {
+    data.tmp_c.noalias() = data.J * v;
+    data.gamma += (2.0 * model.baumgarte_alpha) * data.tmp_c +
+                  (model.baumgarte_beta * model.baumgarte_beta) * data.phi;
   }
-  // phi_, J_ and the placements are those eval_phi_J(q) would compute; M_ and the
-  // potential energy (total mass and centre of mass in data_.oYcrb[0]) serve record().
-  J_at_ = q;
-  J_at_valid_ = true;
-  m_at_J_ = true;
-  terms_q_ = q;
-  terms_v_ = v;
-  potential_energy_ = -data_.oYcrb[0].mass() * model_.gravity.linear().dot(data_.oYcrb[0].lever());
+  // data.phi, data.J and the placements are those eval_phi_J(q) would compute; data.M and the
+  // potential energy (total mass and centre of mass in data.tree.oYcrb[0]) serve record().
+  data.J_at = q;
+  data.J_at_valid = true;
+  data.M_at_J = true;
+  data.terms_q = q;
+  data.terms_v = v;
+  data.potential_energy =
+      -data.tree.oYcrb[0].mass() * model.tree.gravity.linear().dot(data.tree.oYcrb[0].lever());
   mark(2);
 }
 
-inline void Core::eval_terms(const RefV &q, const RefV &v) {
-  eval_terms(q, v, [](int) {});
+inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v) {
+  eval_terms(model, data, q, v, [](int) {});
 }
 
-inline void Core::declared_phi() {
-  for (std::size_t r = 0; r < drows_.size(); ++r) {
-    const Row &row = drows_[r];
+inline void declared_phi(const CoreModel &model, CoreData &data) {
+  for (std::size_t r = 0; r < model.declared_rows.size(); ++r) {
+    const Row &row = model.declared_rows[r];
     if (row.kind != 2) {
-      const Vector3d d = p_[row.p] - p_[row.s];
-      dphi_[r] = row.kind == 0 ? row.n.dot(d) : (R_[row.p] * row.n).dot(d);
+      const Vector3d d = data.frame_p[row.p] - data.frame_p[row.s];
+      data.declared_residuals[r] =
+          row.kind == 0 ? row.n.dot(d) : (data.frame_R[row.p] * row.n).dot(d);
     } else {
-      dphi_[r] = (R_[row.p] * row.n).dot(R_[row.s] * row.w);
+      data.declared_residuals[r] = (data.frame_R[row.p] * row.n).dot(data.frame_R[row.s] * row.w);
     }
   }
 }
 
-inline Row Core::make_row(int r, const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
-                          const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2) {
-  if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
-  for (int f : {fid_p[r], fid_s[r]})
-    if (f < 0 || f >= static_cast<int>(model_.nframes))
-      throw BadArgument{"Core: frame id out of range"};
-  Row row;
-  row.kind = kinds[r];
-  row.p = frame_index(fid_p[r]);
-  row.s = frame_index(fid_s[r]);
-  row.n = vec1.row(r).transpose();
-  row.w = vec2.row(r).transpose();
-  return row;
+inline void check_sizes(const CoreModel &model, const Vec &q, const Vec &v) {
+  if (q.size() != model.nq || v.size() != model.nv)
+    throw BadArgument{"q must have shape (" + std::to_string(model.nq) + ",) and v shape (" +
+                      std::to_string(model.nv) + ",)"};
 }
 
-inline int Core::frame_index(int fid) {
-  for (std::size_t k = 0; k < fids_.size(); ++k)
-    if (fids_[k] == static_cast<pinocchio::FrameIndex>(fid)) return static_cast<int>(k);
-  fids_.push_back(static_cast<pinocchio::FrameIndex>(fid));
-  return static_cast<int>(fids_.size() - 1);
-}
-
-inline void Core::check_sizes(const Vec &q, const Vec &v) const {
-  if (q.size() != nq_ || v.size() != nv_)
-    throw BadArgument{"q must have shape (" + std::to_string(nq_) + ",) and v shape (" +
-                      std::to_string(nv_) + ",)"};
-}
-
-inline void Core::frame_buffers() {
-  const std::size_t nf = fids_.size();
-  R_.resize(nf);
-  p_.resize(nf);
-  vf_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
-  af_.resize(nf, Eigen::Matrix<double, 6, 1>::Zero());
-  fjoint_.resize(nf);
-  fcols_.resize(nf);
-  for (std::size_t k = 0; k < nf; ++k) {
-    const pinocchio::JointIndex j = model_.frames[fids_[k]].parentJoint;
-    fjoint_[k] = j;
-    fcols_[k].clear();
-    for (pinocchio::JointIndex s : model_.supports[j]) {
-      if (s == 0) continue;
-      for (int c = 0; c < model_.nvs[s]; ++c) fcols_[k].push_back(model_.idx_vs[s] + c);
-    }
+inline void placements(const CoreModel &model, CoreData &data) {
+  for (std::size_t k = 0; k < model.frame_ids.size(); ++k) {
+    const pinocchio::SE3 oMf =
+        data.tree.oMi[model.frame_joint[k]] * model.tree.frames[model.frame_ids[k]].placement;
+    data.frame_R[k] = oMf.rotation();
+    data.frame_p[k] = oMf.translation();
   }
 }
 
-inline void Core::placements() {
-  for (std::size_t k = 0; k < fids_.size(); ++k) {
-    const pinocchio::SE3 oMf = data_.oMi[fjoint_[k]] * model_.frames[fids_[k]].placement;
-    R_[k] = oMf.rotation();
-    p_[k] = oMf.translation();
-  }
-}
-
-inline void Core::frame_motion() {
-  for (std::size_t k = 0; k < fids_.size(); ++k) {
-    const pinocchio::Motion &ov = data_.ov[fjoint_[k]], &oa = data_.oa[fjoint_[k]];
+inline void frame_motion(const CoreModel &model, CoreData &data) {
+  for (std::size_t k = 0; k < model.frame_ids.size(); ++k) {
+    const pinocchio::Motion &ov = data.tree.ov[model.frame_joint[k]],
+                            &oa = data.tree.oa[model.frame_joint[k]];
     const Vector3d w = ov.angular(), al = oa.angular();
-    const Vector3d vp = ov.linear() + w.cross(p_[k]);
-    vf_[k].head<3>() = vp;
-    vf_[k].tail<3>() = w;
-    af_[k].head<3>() = oa.linear() + al.cross(p_[k]) + w.cross(vp);
-    af_[k].tail<3>() = al;
+    const Vector3d vp = ov.linear() + w.cross(data.frame_p[k]);
+    data.frame_v[k].head<3>() = vp;
+    data.frame_v[k].tail<3>() = w;
+    data.frame_a[k].head<3>() = oa.linear() + al.cross(data.frame_p[k]) + w.cross(vp);
+    data.frame_a[k].tail<3>() = al;
   }
 }
 
 template <typename RowXpr>
-inline void Core::row_jacobian(const Row &row, RowXpr &&out) {
+inline void row_jacobian(const CoreModel &model, CoreData &data, const Row &row, RowXpr &&out) {
   Eigen::Matrix<double, 6, 1> wp, ws;
   const int P = row.p, S = row.s;
   if (row.kind != 2) {
-    const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
+    const Vector3d U = row.kind == 0 ? row.n : Vector3d(data.frame_R[P] * row.n);
     wp.head<3>() = U;
     ws.head<3>() = U;
-    wp.tail<3>() = p_[P].cross(U);
-    if (row.kind == 1) wp.tail<3>() += U.cross(p_[P] - p_[S]);
-    ws.tail<3>() = p_[S].cross(U);
+    wp.tail<3>() = data.frame_p[P].cross(U);
+    if (row.kind == 1) wp.tail<3>() += U.cross(data.frame_p[P] - data.frame_p[S]);
+    ws.tail<3>() = data.frame_p[S].cross(U);
   } else {
-    const Vector3d WxU = (R_[S] * row.w).cross(R_[P] * row.n);
+    const Vector3d WxU = (data.frame_R[S] * row.w).cross(data.frame_R[P] * row.n);
     wp.head<3>().setZero();
     ws.head<3>().setZero();
     wp.tail<3>() = -WxU;
     ws.tail<3>() = -WxU;
   }
   out.setZero();
-  const Data::Matrix6x &Jw = data_.J;
-  for (Eigen::Index c : fcols_[P]) out(c) += wp.dot(Jw.col(c));
-  for (Eigen::Index c : fcols_[S]) out(c) -= ws.dot(Jw.col(c));
+  const Data::Matrix6x &Jw = data.tree.J;
+  for (Eigen::Index c : model.frame_columns[P]) out(c) += wp.dot(Jw.col(c));
+  for (Eigen::Index c : model.frame_columns[S]) out(c) -= ws.dot(Jw.col(c));
 }
 
-inline void Core::rows(bool want_phi, bool want_J, bool want_gamma) {
-  for (int r = 0; r < nc_; ++r) {
-    const Row &row = rows_[r];
+inline void fill_rows(const CoreModel &model, CoreData &data, bool want_phi, bool want_J,
+                      bool want_gamma) {
+  for (int r = 0; r < model.nc; ++r) {
+    const Row &row = model.rows[r];
     const int P = row.p, S = row.s;
-    if (want_J) row_jacobian(row, J_.row(r));
+    if (want_J) row_jacobian(model, data, row, data.J.row(r));
     if (row.kind != 2) {
-      const Vector3d d = p_[P] - p_[S];
-      const Vector3d U = row.kind == 0 ? row.n : Vector3d(R_[P] * row.n);
-      if (want_phi) phi_[r] = U.dot(d);
+      const Vector3d d = data.frame_p[P] - data.frame_p[S];
+      const Vector3d U = row.kind == 0 ? row.n : Vector3d(data.frame_R[P] * row.n);
+      if (want_phi) data.phi[r] = U.dot(d);
       if (want_gamma) {
-        const Vector3d dd = af_[P].head<3>() - af_[S].head<3>();
+        const Vector3d dd = data.frame_a[P].head<3>() - data.frame_a[S].head<3>();
         double g = U.dot(dd);
         if (row.kind == 1) {
-          const Vector3d wp = vf_[P].tail<3>(), alp = af_[P].tail<3>();
+          const Vector3d wp = data.frame_v[P].tail<3>(), alp = data.frame_a[P].tail<3>();
           const Vector3d Ud = wp.cross(U);
           const Vector3d Udd = alp.cross(U) + wp.cross(Ud);
-          const Vector3d ddot = vf_[P].head<3>() - vf_[S].head<3>();
+          const Vector3d ddot = data.frame_v[P].head<3>() - data.frame_v[S].head<3>();
           g += Udd.dot(d) + 2.0 * Ud.dot(ddot);
         }
-        gamma_[r] = g;
+        data.gamma[r] = g;
       }
     } else {
-      const Vector3d U = R_[P] * row.n, W = R_[S] * row.w;
+      const Vector3d U = data.frame_R[P] * row.n, W = data.frame_R[S] * row.w;
       const double UW = U.dot(W);
-      if (want_phi) phi_[r] = UW;
+      if (want_phi) data.phi[r] = UW;
       if (want_gamma) {
         const Vector3d WxU = W.cross(U);
-        const Vector3d wp = vf_[P].tail<3>(), ws = vf_[S].tail<3>();
+        const Vector3d wp = data.frame_v[P].tail<3>(), ws = data.frame_v[S].tail<3>();
         const double pu = wp.dot(U), pw = wp.dot(W), su = ws.dot(U), sw = ws.dot(W);
-        gamma_[r] = WxU.dot(af_[S].tail<3>() - af_[P].tail<3>()) + pu * pw + su * sw -
-                    2.0 * pw * su - (wp - ws).squaredNorm() * UW;
+        data.gamma[r] = WxU.dot(data.frame_a[S].tail<3>() - data.frame_a[P].tail<3>()) + pu * pw +
+                        su * sw - 2.0 * pw * su - (wp - ws).squaredNorm() * UW;
       }
     }
   }
+}
+
+inline void check_drift(const CoreModel &model, double res, int worst, double t) {
+  if (std::isfinite(res) && res <= model.drift_limit) return;
+  throw SimulationFailure{model.name + ": the state left the constraint manifold at t = " +
+                              fmt("%.9g", t) + " s (max |phi| = " + fmt("%.3e", res) +
+                              " > drift_limit " + fmt("%.1e", model.drift_limit) +
+                              (worst >= 0 ? ", row " + model.declared_labels[worst] : "") +
+                              "); use a stabilization or a smaller step",
+                          t};
 }
 
 }  // namespace closedchain

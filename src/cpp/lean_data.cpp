@@ -130,11 +130,8 @@ void compute_supports_from_row(const Model& model, Data& d) {
   }
 }
 
-}  // namespace
-
-Data lean_data(const Model& model) {
-  Data d;
-  // The member initializer list of DataTpl(const Model&), in its order.
+// The fields of the kinematics and the spatial quantities of the joints (q_in ... liMi).
+void init_kinematics(const Model& model, Data& d) {
   d.q_in = decltype(d.q_in)(neutral(model));
   d.v_in = decltype(d.v_in)(VectorXs::Zero(model.nv));
   d.a_in = decltype(d.a_in)(VectorXs::Zero(model.nv));
@@ -154,6 +151,10 @@ Data lean_data(const Model& model) {
   d.oh = decltype(d.oh)((std::size_t)model.njoints, Force::Zero());
   d.oMi = decltype(d.oMi)((std::size_t)model.njoints, SE3::Identity());
   d.liMi = decltype(d.liMi)((std::size_t)model.njoints, SE3::Identity());
+}
+
+// The fields of the dynamics: generalized forces, frames, CRBA, ABA and centroidal terms (tau ... Fcrb).
+void init_dynamics(const Model& model, Data& d) {
   d.tau = decltype(d.tau)(VectorXs::Zero(model.nv));
   d.nle = decltype(d.nle)(VectorXs::Zero(model.nv));
   d.g = decltype(d.g)(VectorXs::Zero(model.nv));
@@ -189,6 +190,10 @@ Data lean_data(const Model& model) {
   d.dhg = decltype(d.dhg)(Force::Zero());
   d.Ig = decltype(d.Ig)(Inertia::Zero());
   d.Fcrb = decltype(d.Fcrb)((std::size_t)model.njoints, Matrix6x::Zero(6, model.nv));
+}
+
+// The fields of the index maps of the tree and its rows (lastChild ... nvSubtree_fromRow).
+void init_tree_indices(const Model& model, Data& d) {
   d.lastChild = decltype(d.lastChild)((std::size_t)model.njoints, -1);
   d.nvSubtree = decltype(d.nvSubtree)((std::size_t)model.njoints, 0);
   d.start_idx_v_fromRow = decltype(d.start_idx_v_fromRow)((std::size_t)model.nvExtended, -1);
@@ -203,6 +208,10 @@ Data lean_data(const Model& model) {
   d.non_mimic_parents_fromRow = decltype(d.non_mimic_parents_fromRow)((std::size_t)model.nvExtended, -1);
   d.supports_fromRow = decltype(d.supports_fromRow)((std::size_t)model.nv);
   d.nvSubtree_fromRow = decltype(d.nvSubtree_fromRow)((std::size_t)model.nvExtended, -1);
+}
+
+// The fields of Jacobians, their derivatives and the first-order dynamics derivatives, centre of mass and energies (J ... mechanical_energy).
+void init_derivatives(const Model& model, Data& d) {
   d.J = decltype(d.J)(Matrix6x::Zero(6, model.nvExtended));
   d.dJ = decltype(d.dJ)(Matrix6x::Zero(6, model.nvExtended));
   d.ddJ = decltype(d.ddJ)(Matrix6x::Zero(6, model.nvExtended));
@@ -225,6 +234,10 @@ Data lean_data(const Model& model) {
   d.kinetic_energy = decltype(d.kinetic_energy)(Scalar(0));
   d.potential_energy = decltype(d.potential_energy)(Scalar(0));
   d.mechanical_energy = decltype(d.mechanical_energy)(Scalar(0));
+}
+
+// The fields of the contact and constraint quantities (JMinvJt ... impulse_c).
+void init_contacts(const Model& model, Data& d) {
   d.JMinvJt = decltype(d.JMinvJt)();
   d.llt_JMinvJt = decltype(d.llt_JMinvJt)();
   d.lambda_c = decltype(d.lambda_c)();
@@ -234,11 +247,19 @@ Data lean_data(const Model& model) {
   d.torque_residual = decltype(d.torque_residual)(VectorXs::Zero(model.nv));
   d.dq_after = decltype(d.dq_after)(VectorXs::Zero(model.nv));
   d.impulse_c = decltype(d.impulse_c)();
+}
+
+// The fields of the regressors (staticRegressor ... potentialEnergyRegressor).
+void init_regressors(const Model& model, Data& d) {
   d.staticRegressor = decltype(d.staticRegressor)(Matrix3x::Zero(3, 4 * (model.njoints - 1)));
   d.bodyRegressor = decltype(d.bodyRegressor)(BodyRegressorType::Zero());
   d.jointTorqueRegressor = decltype(d.jointTorqueRegressor)(MatrixXs::Zero(model.nv, 10 * (model.njoints - 1)));
   d.kineticEnergyRegressor = decltype(d.kineticEnergyRegressor)(RowVectorXs::Zero(10 * (model.njoints - 1)));
   d.potentialEnergyRegressor = decltype(d.potentialEnergyRegressor)(RowVectorXs::Zero(10 * (model.njoints - 1)));
+}
+
+// The fields of the constrained-dynamics solver's quantities (KA ... joint_apparent_inertia).
+void init_constraint_solver(const Model& model, Data& d) {
   d.KA = decltype(d.KA)((std::size_t)model.njoints, Matrix6x::Zero(6, 0));
   d.LA = decltype(d.LA)((std::size_t)model.njoints, MatrixXs::Zero(0, 0));
   d.lA = decltype(d.lA)((std::size_t)model.njoints, VectorXs::Zero(0));
@@ -262,7 +283,10 @@ Data lean_data(const Model& model) {
   d.joint_coupling_info = decltype(d.joint_coupling_info)(MatrixXb::Zero(model.njoints, model.njoints));
   d.projected_joint_cross_coupling = decltype(d.projected_joint_cross_coupling)(model.njoints, model.njoints);
   d.joint_apparent_inertia = decltype(d.joint_apparent_inertia)(std::size_t(model.njoints), std::size_t(PINOCCHIO_SQUARE(*std::max_element(model.nvs.begin(), model.nvs.end()))));
-  // The constructor's body.
+}
+
+// The constructor's body: the joints' data, the zeroed matrices and the index maps.
+void init_joints(const Model& model, Data& d) {
   d.joints.reserve((std::size_t)model.njoints);
   for (std::size_t i = 0; i < (std::size_t)model.njoints; ++i) {
     d.joints.push_back(model.joints[i].createData());
@@ -279,6 +303,22 @@ Data lean_data(const Model& model) {
   compute_supports_from_row(model, d);
   d.a_gf[0] = -model.gravity;
   d.kinematic_hessians.setZero();
+
+}
+
+}  // namespace
+
+Data lean_data(const Model& model) {
+  Data d;
+  // The member initializer list of DataTpl(const Model&), in its order, then its body.
+  init_kinematics(model, d);
+  init_dynamics(model, d);
+  init_tree_indices(model, d);
+  init_derivatives(model, d);
+  init_contacts(model, d);
+  init_regressors(model, d);
+  init_constraint_solver(model, d);
+  init_joints(model, d);
   return d;
 }
 

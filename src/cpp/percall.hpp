@@ -1,8 +1,8 @@
 // closedchain._core: the per-call entry points of the public API (closedchain._percall):
 // forward dynamics, the rows phi / J / gamma, the velocity projection and the inverse
 // dynamics of one state, each checking its arguments in C++ (arg_checks.hpp: the
-// messages of the numpy path) and returning fresh arrays. Free functions over a Core
-// (core_all.hpp), bound as its methods by expose-core.cpp.
+// messages of the numpy path) and returning fresh arrays. Free functions over a Core's
+// model and data (core_all.hpp), bound as its methods by expose-core.cpp.
 
 #pragma once
 
@@ -25,47 +25,55 @@ inline double max_abs(const Vec &x) { return x.size() ? x.cwiseAbs().maxCoeff() 
 /// evaluation of the configured method; NonFinite when a or lam overflowed (the message
 /// of closedchain.forward_dynamics).
 inline bp::tuple forward_checked(Core &core, bp::object q, bp::object v, bp::object tau) {
-  const ConfigurationArg qa(q, core.model());
-  const VectorArg va(v, "v", core.nv());
-  Vec t = Vec::Zero(core.nv());
-  if (!tau.is_none()) t = VectorArg(tau, "tau", core.nv()).map();
-  core.invalidate_kinematics();  // one whole evaluation per call
-  core.solve(qa.map(), va.map(), t, std::numeric_limits<double>::quiet_NaN());
-  const Vec &a = core.accelerations(), &lam = core.multipliers();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  const VectorArg va(v, "v", model.nv);
+  Vec t = Vec::Zero(model.nv);
+  if (!tau.is_none()) t = VectorArg(tau, "tau", model.nv).map();
+  invalidate_kinematics(data);  // one whole evaluation per call
+  solve(model, data, qa.map(), va.map(), t, std::numeric_limits<double>::quiet_NaN());
+  const Vec &a = data.a, &lam = data.lam;
   if (!(a.allFinite() && lam.allFinite())) {
     const bp::object msg =
         bp::str("{}: method {!r} overflowed to non-finite accelerations or multipliers at "
                 "max|v| = {:.3g}, max|tau| = {:.3g}: v and tau must be small enough for "
                 "M a + h (quadratic in v) to stay finite in double precision")
-            .attr("format")(core.name(), core.method_name(), max_abs(va.map()), max_abs(t));
+            .attr("format")(model.name, model.method_name, max_abs(va.map()), max_abs(t));
     throw NonFinite{bp::extract<std::string>(msg)};
   }
-  return bp::make_tuple(Vec(a), Vec(lam), Mat(core.jacobian()), Vec(core.gamma()));
+  return bp::make_tuple(Vec(a), Vec(lam), Mat(data.J), Vec(data.gamma));
 }
 
 /// phi(q) of the core's rows, shape (nc,).
 inline Vec phi_checked(Core &core, bp::object q) {
-  const ConfigurationArg qa(q, core.model());
-  core.invalidate_kinematics();
-  core.eval_phi(qa.map());
-  return core.phi();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  invalidate_kinematics(data);
+  eval_phi(model, data, qa.map());
+  return data.phi;
 }
 
 /// J(q) of the core's rows, shape (nc, nv).
 inline Mat jacobian_checked(Core &core, bp::object q) {
-  const ConfigurationArg qa(q, core.model());
-  core.invalidate_kinematics();
-  core.eval_phi_J(qa.map());
-  return core.jacobian();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  invalidate_kinematics(data);
+  eval_phi_J(model, data, qa.map());
+  return data.J;
 }
 
 /// gamma(q, v) = Jdot v of the core's rows, shape (nc,) (Baumgarte terms when configured).
 inline Vec gamma_checked(Core &core, bp::object q, bp::object v) {
-  const ConfigurationArg qa(q, core.model());
-  const VectorArg va(v, "v", core.nv());
-  core.invalidate_kinematics();
-  core.eval_terms(qa.map(), va.map());
-  return core.gamma();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  const VectorArg va(v, "v", model.nv);
+  invalidate_kinematics(data);
+  eval_terms(model, data, qa.map(), va.map());
+  return data.gamma;
 }
 
 /// The projection of closedchain.project_velocity on the core's rows J(q): v with its
@@ -74,11 +82,13 @@ inline Vec gamma_checked(Core &core, bp::object q, bp::object v) {
 /// numpy.linalg.lstsq). Returns (v, max |J v|, argmax row, sigma_max(J)).
 inline bp::tuple project_checked(Core &core, bp::object q, bp::object v,
                                  const Eigen::VectorXi &free, double rcond) {
-  const ConfigurationArg qa(q, core.model());
-  const VectorArg va(v, "v", core.nv());
-  core.invalidate_kinematics();
-  core.eval_phi_J(qa.map());
-  const Mat &J = core.jacobian();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  const VectorArg va(v, "v", model.nv);
+  invalidate_kinematics(data);
+  eval_phi_J(model, data, qa.map());
+  const Mat &J = data.J;
   Vec out = va.map();
   const Eigen::Index nc = J.rows();
   if (nc == 0) return bp::make_tuple(out, 0.0, 0, 0.0);
@@ -127,13 +137,15 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
                                  const Eigen::VectorXi &P, const Eigen::VectorXi &F,
                                  const Eigen::VectorXi &A, const Eigen::VectorXi &Abar,
                                  bp::object tau_passive, double cond_max) {
-  const ConfigurationArg qa(q, core.model());
-  const VectorArg va(v, "v", core.nv());
-  const int nv = core.nv();
-  core.invalidate_kinematics();
-  core.eval_terms(qa.map(), va.map());
-  const Mat &M = core.mass_matrix(), &J = core.jacobian();
-  const Vec &h = core.bias_forces(), &gamma = core.gamma();
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q, model.tree);
+  const VectorArg va(v, "v", model.nv);
+  const int nv = model.nv;
+  invalidate_kinematics(data);
+  eval_terms(model, data, qa.map(), va.map());
+  const Mat &M = data.M, &J = data.J;
+  const Vec &h = data.h, &gamma = data.gamma;
   const Eigen::Index nc = J.rows();
   auto fail = [&](InverseStatus status, double cond) {
     return bp::make_tuple(static_cast<int>(status), cond, bp::object(), bp::object(),
