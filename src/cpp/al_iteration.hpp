@@ -32,16 +32,16 @@
 
 namespace closedchain {
 
-// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
-// iterate is computed once (for lam and for the next correction's r_c). Returns the
-// number of iterates.
-// XV, CV: the nv- and nc-vectors (Eigen::VectorXd, or fixed-size for Core's small
-// dense path).
-// from_x: x holds a start x_0 on entry, and x_1 (the same iterate) is computed as its
-// correction, x_1 = x_0 + P^-1 (rhs - M x_0 - alpha J^T (J x_0 + g)): P's round-off
-// (about rho eps) is then relative to the correction, not to x_1 (the stage
-// projection's velocity step from the velocity it projects: two iterates instead of
-// four on the N-four-bar; solve_augmented_lagrangian's a0).
+/// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
+/// iterate is computed once (for lam and for the next correction's r_c). Returns the
+/// number of iterates.
+/// XV, CV: the nv- and nc-vectors (Eigen::VectorXd, or fixed-size for Core's small
+/// dense path).
+/// from_x: x holds a start x_0 on entry, and x_1 (the same iterate) is computed as its
+/// correction, x_1 = x_0 + P^-1 (rhs - M x_0 - alpha J^T (J x_0 + g)): P's round-off
+/// (about rho eps) is then relative to the correction, not to x_1 (the stage
+/// projection's velocity step from the velocity it projects: two iterates instead of
+/// four on the N-four-bar; solve_augmented_lagrangian's a0).
 template <class Ops, class XV, class CV>
 int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter, double tol,
                XV &x, CV &lam, XV &delta, CV &rc, bool from_x = false) {

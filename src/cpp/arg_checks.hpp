@@ -32,8 +32,10 @@ inline bp::object numpy_module() {
 /// contains non-finite values: <array>".
 class VectorArg {
  public:
+  /// The argument's values in place: a strided view of the Python buffer.
   using Map = Eigen::Map<const Vec, 0, Eigen::InnerStride<>>;
 
+  /// Check obj as argument `name` of length n; throws BadArgument (see the class).
   VectorArg(bp::object obj, const std::string &name, Eigen::Index n) : obj_(obj) {
     if (!take_view()) {
       obj_ = numpy_module().attr("asarray")(obj, "float64");
@@ -51,6 +53,7 @@ class VectorArg {
                         std::string(bp::extract<std::string>(bp::str(arr)))};
     }
   }
+  /// Not copyable: it holds a Python buffer.
   VectorArg(const VectorArg &) = delete;
   VectorArg &operator=(const VectorArg &) = delete;
 
@@ -81,6 +84,7 @@ class VectorArg {
     return true;
   }
 
+  /// Throw BadArgument: "<name> has shape <shape>, expected (n,)".
   [[noreturn]] static void shape_error(const std::string &name, const bp::object &shape,
                                        Eigen::Index n) {
     throw BadArgument{name + " has shape " + std::string(bp::extract<std::string>(bp::str(shape))) +
@@ -90,9 +94,10 @@ class VectorArg {
   /// The buffer taken from obj_, released on destruction (also when the constructor
   /// throws: a member, it is destroyed then).
   struct Buffer {
-    Py_buffer view{};
-    bool held = false;
+    Py_buffer view{};   ///< The exporter's buffer description.
+    bool held = false;  ///< Whether view holds a buffer to release.
     Buffer() = default;
+    /// Not copyable: a buffer is released once.
     Buffer(const Buffer &) = delete;
     Buffer &operator=(const Buffer &) = delete;
     ~Buffer() {
@@ -100,8 +105,8 @@ class VectorArg {
     }
   };
 
-  bp::object obj_;
-  Buffer buffer_;
+  bp::object obj_;  ///< The object whose buffer is viewed (the argument or its float64 copy).
+  Buffer buffer_;   ///< Its buffer, while held.
 };
 
 /// Throw BadArgument, with Mechanism.check_q's message, when a joint whose configuration is

@@ -1,4 +1,4 @@
-// closedchain._core: symmetric positive definite band matrices (included by expose-core.cpp).
+// closedchain._core: symmetric positive definite band matrices.
 //
 // Many loops in a chain (the N-four-bar) give a penalized mass matrix
 // M + alpha J^T J and normal equations J J^T whose structural nonzeros lie in a
@@ -18,11 +18,12 @@
 
 namespace closedchain {
 
-// A symmetric n x n matrix of half bandwidth b, stored by lower diagonals:
-// A(k, j) = matrix entry (j + k, j), k = 0..b (entries beyond n unused), and its
-// Cholesky factor L in the same layout. Buffers are sized once (resize).
+/// A symmetric n x n matrix of half bandwidth b, stored by lower diagonals:
+/// A(k, j) = matrix entry (j + k, j), k = 0..b (entries beyond n unused), and its
+/// Cholesky factor L in the same layout. Buffers are sized once (resize).
 class BandCholesky {
  public:
+  /// Storage for n x n matrices of half bandwidth b, zeroed.
   void resize(int n, int b) {
     n_ = n;
     b_ = b;
@@ -34,13 +35,15 @@ class BandCholesky {
     old_sign_.setZero(n);
   }
 
+  /// The matrix size n.
   int n() const { return n_; }
+  /// The half bandwidth b.
   int bandwidth() const { return b_; }
 
-  // Entry (i, j) of the matrix, |i - j| <= b (symmetric).
+  /// Entry (i, j) of the matrix, |i - j| <= b (symmetric).
   double &at(int i, int j) { return i >= j ? A(i - j, j) : A(j - i, i); }
 
-  // Factorize A = L L^T (left-looking, O(n b^2)); false when a pivot is not positive.
+  /// Factorize A = L L^T (left-looking, O(n b^2)); false when a pivot is not positive.
   bool factor() {
     const int n = n_, b = b_;
     anorm_ = 0.0;  // 1-norm (= infinity norm) of A, for rcond
@@ -67,14 +70,14 @@ class BandCholesky {
     return true;
   }
 
-  // Smallest relative pivot min_j L_jj^2 / A_jj (after a successful factor).
+  /// Smallest relative pivot min_j L_jj^2 / A_jj (after a successful factor).
   double min_pivot_ratio() const {
     double r = 1.0;
     for (int j = 0; j < n_; ++j) r = std::min(r, L_(0, j) * L_(0, j) / A(0, j));
     return r;
   }
 
-  // x <- A^-1 x on the factor (O(n b)).
+  /// x <- A^-1 x on the factor (O(n b)).
   template <typename V>
   void solve_in_place(V &x) const {
     const int n = n_, b = b_;
@@ -91,10 +94,10 @@ class BandCholesky {
     }
   }
 
-  // Reciprocal 1-norm condition number estimate of the factored A: Higham's
-  // estimator of ||A^-1||_1 (LAPACK's dlacon), the steps of Eigen's
-  // LLT::rcond (internal::rcond_invmatrix_L1_norm_estimate) on the band solves,
-  // so the banded and dense paths take the same decisions up to round-off.
+  /// Reciprocal 1-norm condition number estimate of the factored A: Higham's
+  /// estimator of ||A^-1||_1 (LAPACK's dlacon), the steps of Eigen's
+  /// LLT::rcond (internal::rcond_invmatrix_L1_norm_estimate) on the band solves,
+  /// so the banded and dense paths take the same decisions up to round-off.
   double rcond() {
     const int n = n_;
     if (n == 0) return 1.0;
@@ -132,16 +135,16 @@ class BandCholesky {
     return lower > 0.0 ? (1.0 / lower) / anorm_ : 0.0;
   }
 
-  // The 1-norm of A at the last factor().
+  /// The 1-norm of A at the last factor().
   double anorm() const { return anorm_; }
 
-  Eigen::MatrixXd A;  // the matrix, lower band (assembled by the caller)
+  Eigen::MatrixXd A;  ///< The matrix, lower band (assembled by the caller), (b + 1, n).
 
  private:
-  int n_ = 0, b_ = 0;
-  double anorm_ = 0.0;
-  Eigen::MatrixXd L_;
-  Eigen::VectorXd w1_, w2_, sign_, old_sign_;
+  int n_ = 0, b_ = 0;    ///< Size and half bandwidth.
+  double anorm_ = 0.0;  ///< 1-norm of A at the last factor().
+  Eigen::MatrixXd L_;   ///< The Cholesky factor, in A's layout.
+  Eigen::VectorXd w1_, w2_, sign_, old_sign_;  ///< Workspace of the condition estimate.
 };
 
 }  // namespace closedchain

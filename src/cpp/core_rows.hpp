@@ -64,6 +64,7 @@ void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &q);
 template <class Mark>
 void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, Mark &&mark);
 
+/// eval_terms without a mark (no caller to tell which joints moved).
 void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v);
 
 /// phi of every declared row from the placements of the last kinematics pass.

@@ -24,42 +24,46 @@
 
 namespace closedchain {
 
+/// P A = L U of a square matrix, in place, with its solves and condition estimates.
 struct DenseLU {
-  Eigen::MatrixXd A;  // the factors (column-major), L unit lower, U upper
-  std::vector<int> piv;
-  Eigen::VectorXd ex, ey, ez;  // estimator workspace
-  double anorm = 0.0;         // 1-norm of the factored matrix
-  bool regular = false;       // no zero pivot
+  Eigen::MatrixXd A;           ///< The factors (column-major): L unit lower, U upper.
+  std::vector<int> piv;        ///< Row k was swapped with row piv[k] at step k.
+  Eigen::VectorXd ex, ey, ez;  ///< Workspace of the condition estimators.
+  double anorm = 0.0;          ///< 1-norm of the factored matrix.
+  bool regular = false;        ///< Whether every pivot is nonzero.
 
+  /// Storage for n x n matrices (n = 0: none yet).
   explicit DenseLU(Eigen::Index n = 0) { resize(n); }
 
+  /// Storage for n x n matrices, zeroed; the previous factors are lost.
   void resize(Eigen::Index n) {
     A = Eigen::MatrixXd::Zero(n, n);
     piv.assign(static_cast<std::size_t>(n), 0);
     ex = ey = ez = Eigen::VectorXd::Zero(n);
   }
 
-  //: Size from which the factorization uses Eigen's blocked LU instead of dgetf2's loop.
+  ///: Size from which the factorization uses Eigen's blocked LU instead of dgetf2's loop.
   static constexpr Eigen::Index BLOCKED_MIN = 96;
 
-  // Factor M (square, the size given at construction). Returns false on a zero pivot.
+  /// Factor M (square, the size given at construction). Returns false on a zero pivot.
   template <class Derived>
   bool factor(const Eigen::MatrixBase<Derived> &M) {
     A = M;
     return factor_in_place();
   }
 
-  // Factor A as it stands (assembled in place by the caller). Written out for small
-  // matrices: Eigen's PartialPivLU and its solves spend more on dynamic-size
-  // bookkeeping (and heap copies of the permutation) than on arithmetic there. From
-  // BLOCKED_MIN (trees of hundreds of joints) Eigen's blocked LU with GEMM updates and
-  // the same row swaps in piv (its workspace may come from the heap, negligible against
-  // the O(n^3) work; the loop is 4x slower at n = 1000).
-  // Sizes up to FIXED_MAX run the same loops with the size a compile-time constant
-  // (unrolled by the compiler: the kkt method's K of a small linkage, J_D): the
-  // same operations in the same order, so the same results as the generic loops.
+  /// Factor A as it stands (assembled in place by the caller). Written out for small
+  /// matrices: Eigen's PartialPivLU and its solves spend more on dynamic-size
+  /// bookkeeping (and heap copies of the permutation) than on arithmetic there. From
+  /// BLOCKED_MIN (trees of hundreds of joints) Eigen's blocked LU with GEMM updates and
+  /// the same row swaps in piv (its workspace may come from the heap, negligible against
+  /// the O(n^3) work; the loop is 4x slower at n = 1000).
+  /// Sizes up to FIXED_MAX run the same loops with the size a compile-time constant
+  /// (unrolled by the compiler: the kkt method's K of a small linkage, J_D): the
+  /// same operations in the same order, so the same results as the generic loops.
   static constexpr int FIXED_MAX = 8;
 
+  /// Factor A in place (see FIXED_MAX). Returns false on a zero pivot.
   bool factor_in_place() {
     switch (A.rows()) {
       case 1: return factor_n<1>();
@@ -74,6 +78,7 @@ struct DenseLU {
     }
   }
 
+  /// x <- A^-1 x with the factors (regular), in place.
   template <class V>
   void solve(V &&x) const {
     switch (A.rows()) {
@@ -89,6 +94,7 @@ struct DenseLU {
     }
   }
 
+  /// z <- A^-T z with the factors (regular), in place.
   template <class V>
   void solve_transposed(V &&z) const {
     switch (A.rows()) {
@@ -104,11 +110,11 @@ struct DenseLU {
     }
   }
 
-  // Upper bound of ||A^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1 through
-  // the comparison matrices: |T^-1| <= M(T)^-1 elementwise for triangular T (Higham,
-  // Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so ||T^-1||_1 <=
-  // max(M(T)^-T e), one small triangular solve each; a relative margin of 1e-8 covers
-  // its own round-off. Cheaper than rcond().
+  /// Upper bound of ||A^-1||_1 from the factors (regular): ||U^-1||_1 ||L^-1||_1 through
+  /// the comparison matrices: |T^-1| <= M(T)^-1 elementwise for triangular T (Higham,
+  /// Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so ||T^-1||_1 <=
+  /// max(M(T)^-T e), one small triangular solve each; a relative margin of 1e-8 covers
+  /// its own round-off. Cheaper than rcond().
   double inverse_norm_bound() {
     switch (A.rows()) {
       case 1: return inverse_norm_bound_n<1>();
@@ -124,12 +130,14 @@ struct DenseLU {
   }
 
  private:
-  // N > 0: the size as a compile-time constant (== A.rows()); N == 0: A.rows().
+  /// N > 0: the size as a compile-time constant (== A.rows()); N == 0: A.rows().
   template <int N>
   Eigen::Index size() const {
     return N > 0 ? static_cast<Eigen::Index>(N) : A.rows();
   }
 
+  /// dgetf2 on A at size size<N>(): the first largest pivot of each column, row swaps in
+  /// piv, anorm from A before it is overwritten. Returns regular.
   template <int N>
   bool factor_n() {
     const Eigen::Index n = size<N>();
@@ -181,6 +189,7 @@ struct DenseLU {
     return regular;
   }
 
+  /// x <- A^-1 x: the row swaps, then L and U by columns.
   template <int N, class V>
   void solve_n(V &x) const {
     const Eigen::Index n = size<N>();
@@ -205,6 +214,7 @@ struct DenseLU {
     }
   }
 
+  /// z <- A^-T z: U^T and L^T by rows, then the row swaps in reverse.
   template <int N, class V>
   void solve_transposed_n(V &z) const {
     const Eigen::Index n = size<N>();
@@ -228,6 +238,7 @@ struct DenseLU {
       if (piv[k] != k) std::swap(z[k], z[piv[k]]);
   }
 
+  /// inverse_norm_bound at size size<N>().
   template <int N>
   double inverse_norm_bound_n() {
     const Eigen::Index n = size<N>();
@@ -254,6 +265,7 @@ struct DenseLU {
   }
 
  public:
+  /// Sign of det(A) from the factors (+1 or -1); 0 when A is singular.
   double det_sign() const {
     if (!regular) return 0.0;
     double s = 1.0;
@@ -264,7 +276,7 @@ struct DenseLU {
     return s;
   }
 
-  // Reciprocal 1-norm condition estimate (dgecon; 0 when singular).
+  /// Reciprocal 1-norm condition estimate (dgecon; 0 when singular).
   double rcond() {
     const Eigen::Index n = A.rows();
     if (!regular || anorm == 0.0) return 0.0;

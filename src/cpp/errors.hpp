@@ -12,41 +12,45 @@
 
 namespace closedchain {
 
-
+/// A singular configuration (closedchain.exceptions.SingularConfigurationError).
 struct SingularError {
-  std::string message;
-  double cond;
-  double t;  // NaN outside a simulation
-  Vec q;
+  std::string message;  ///< One line naming the matrix, its condition and the remedy.
+  double cond;          ///< The condition estimate that failed the limit.
+  double t;             ///< Time of the failure in s; NaN outside a simulation.
+  Vec q;                ///< Configuration at the failure.
 };
 
+/// A simulation that cannot go on (closedchain.exceptions.SimulationError).
 struct SimulationFailure {
-  std::string message;
-  double t;
+  std::string message;  ///< One line: what failed and the remedy.
+  double t;             ///< Time of the failure in s.
 };
 
+/// An argument that fails its check (closedchain.exceptions.ClosedChainError).
 struct BadArgument {
-  std::string message;
+  std::string message;  ///< One line naming the argument and what it takes.
 };
 
-// A per-call result overflowed to inf or NaN (closedchain.exceptions.NonFiniteError).
+/// A per-call result overflowed to inf or NaN (closedchain.exceptions.NonFiniteError).
 struct NonFinite {
-  std::string message;
+  std::string message;  ///< One line naming the result and the input sizes.
 };
 
-// The kept rows stopped describing the loops at t (a dropped row opened, or the
-// kept rows degenerate): the Python side re-selects them (closedchain.closure).
+/// The kept rows stopped describing the loops at t (a dropped row opened, or the
+/// kept rows degenerate): the Python side re-selects them (closedchain.closure).
 struct RowCheckRequired {
-  std::string message;
-  double t;
+  std::string message;  ///< Which row check failed.
+  double t;             ///< Time of the check in s.
 };
 
+/// x formatted by the printf format f (one number).
 inline std::string fmt(const char *f, double x) {
   char buf[64];
   std::snprintf(buf, sizeof buf, f, x);
   return buf;
 }
 
+/// q as "[a b c]", each entry to 6 significant digits, for error messages.
 inline std::string vec_str(const Vec &q) {
   std::ostringstream s;
   s << "[";
@@ -55,6 +59,7 @@ inline std::string vec_str(const Vec &q) {
   return s.str();
 }
 
+/// A copy of x as a numpy array.
 inline bp::object to_numpy(const Vec &x) { return bp::object(Vec(x)); }
 
 }  // namespace closedchain

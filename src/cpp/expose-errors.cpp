@@ -22,6 +22,7 @@ void set_error(const bp::object &cls, const bp::object &inst) {
   PyErr_SetObject(cls.ptr(), inst.ptr());
 }
 
+/// SingularError -> SingularConfigurationError with q, condition_number and t.
 void translate_singular(const SingularError &e) {
   bp::object cls = exception_class("SingularConfigurationError");
   bp::dict kw;
@@ -31,21 +32,25 @@ void translate_singular(const SingularError &e) {
   set_error(cls, cls(*bp::make_tuple(e.message), **kw));
 }
 
+/// SimulationFailure -> SimulationError(message, t).
 void translate_simulation(const SimulationFailure &e) {
   bp::object cls = exception_class("SimulationError");
   set_error(cls, cls(e.message, e.t));
 }
 
+/// RowCheckRequired -> closedchain's RowCheckRequired(message, t).
 void translate_row_check(const RowCheckRequired &e) {
   bp::object cls = exception_class("RowCheckRequired");
   set_error(cls, cls(e.message, e.t));
 }
 
+/// BadArgument -> ClosedChainError(message).
 void translate_bad(const BadArgument &e) {
   bp::object cls = exception_class("ClosedChainError");
   set_error(cls, cls(e.message));
 }
 
+/// NonFinite -> NonFiniteError(message).
 void translate_non_finite(const NonFinite &e) {
   bp::object cls = exception_class("NonFiniteError");
   set_error(cls, cls(e.message));

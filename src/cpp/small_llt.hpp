@@ -1,5 +1,5 @@
 // closedchain._core: Cholesky factorization of the small symmetric positive
-// definite matrices of one evaluation (M + alpha J^T J, J J^T), used by class Core.
+// definite matrices of one evaluation (M + alpha J^T J, J J^T), used by the core's methods.
 //
 // Eigen's LLT on dynamic-size matrices spends more on blocking and expression
 // bookkeeping than on arithmetic at the sizes of a linkage (nv, nc ~ 2 to 20):
@@ -19,13 +19,16 @@
 
 namespace closedchain {
 
+/// A = L L^T of a symmetric positive definite matrix on preallocated storage (see above).
 class SmallLLT {
  public:
-  //: Size from which Eigen's blocked LLT is used.
+  ///: Size from which Eigen's blocked LLT is used.
   static constexpr Eigen::Index BLOCKED_MIN = 64;
 
+  /// Storage for n x n matrices (n = 0: none yet).
   explicit SmallLLT(Eigen::Index n = 0) { resize(n); }
 
+  /// Storage for n x n matrices; the previous factor is lost.
   void resize(Eigen::Index n) {
     L_.setZero(n, n);
     y_.setZero(n);
@@ -33,8 +36,8 @@ class SmallLLT {
     eigen_ = Eigen::LLT<Eigen::MatrixXd>(n >= BLOCKED_MIN ? n : 0);
   }
 
-  // Factor A = L L^T from A's lower triangle (A: n x n, the size given to resize).
-  // Returns false when a pivot is not positive (A not numerically positive definite).
+  /// Factor A = L L^T from A's lower triangle (A: n x n, the size given to resize).
+  /// Returns false when a pivot is not positive (A not numerically positive definite).
   bool compute(const Eigen::MatrixXd &A) {
     const Eigen::Index n = L_.rows();
     if (n >= BLOCKED_MIN) {
@@ -65,10 +68,11 @@ class SmallLLT {
     return true;
   }
 
+  /// Whether the last compute succeeded.
   bool ok() const { return ok_; }
 
-  // Smallest relative pivot min_k L_kk^2 / A_kk of the factor of A (after a successful
-  // compute(A)): how much of A's diagonal the elimination cancelled.
+  /// Smallest relative pivot min_k L_kk^2 / A_kk of the factor of A (after a successful
+  /// compute(A)): how much of A's diagonal the elimination cancelled.
   double min_pivot_ratio(const Eigen::MatrixXd &A) const {
     double r = 1.0;
     for (Eigen::Index k = 0; k < L_.rows(); ++k)
@@ -76,7 +80,7 @@ class SmallLLT {
     return r;
   }
 
-  // x <- A^-1 x (after a successful compute).
+  /// x <- A^-1 x (after a successful compute).
   template <typename Derived>
   void solveInPlace(Eigen::MatrixBase<Derived> &x) const {
     const Eigen::Index n = L_.rows();
@@ -94,11 +98,11 @@ class SmallLLT {
     }
   }
 
-  // Upper bound of ||A^-1||_1 = ||L^-T L^-1||_1 <= ||L^-1||_inf ||L^-1||_1, each
-  // bounded through the comparison matrix of L: |L^-1| <= M(L)^-1 elementwise
-  // (Higham, Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so
-  // ||L^-1||_inf <= max(M(L)^-1 e) and ||L^-1||_1 <= max(M(L)^-T e). `margin`
-  // (relative) covers the bound's own round-off.
+  /// Upper bound of ||A^-1||_1 = ||L^-T L^-1||_1 <= ||L^-1||_inf ||L^-1||_1, each
+  /// bounded through the comparison matrix of L: |L^-1| <= M(L)^-1 elementwise
+  /// (Higham, Accuracy and Stability of Numerical Algorithms, 2002, Thm 8.12), so
+  /// ||L^-1||_inf <= max(M(L)^-1 e) and ||L^-1||_1 <= max(M(L)^-T e). `margin`
+  /// (relative) covers the bound's own round-off.
   double inverse_norm_bound(double margin) {
     const Eigen::Index n = L_.rows();
     const double *a = L_.data();
@@ -119,24 +123,24 @@ class SmallLLT {
   }
 
  private:
-  Eigen::MatrixXd L_;
-  Eigen::VectorXd y_, z_;
-  Eigen::LLT<Eigen::MatrixXd> eigen_;
-  bool ok_ = false;
+  Eigen::MatrixXd L_;                  ///< The factor L (lower triangle), below BLOCKED_MIN.
+  Eigen::VectorXd y_, z_;              ///< Workspace of the condition estimate.
+  Eigen::LLT<Eigen::MatrixXd> eigen_;  ///< Eigen's factorization, from BLOCKED_MIN.
+  bool ok_ = false;                    ///< Whether the last compute succeeded.
 };
 
-// For a size N known at compile time (Core's fixed-size augmented-Lagrangian path,
-// nv <= 6): A = L D L^T (L unit lower triangular), without square roots, with the
-// reciprocals of D kept so that a solve multiplies instead of dividing; the loops
-// unroll. The square roots and the 2N divisions per solve of the factorization above
-// would be the longest dependency chains of the 4-bar's evaluation. Accepts A when
-// every pivot d_k > 0 (as LLT does); the results differ from SmallLLT's by round-off.
+/// For a size N known at compile time (Core's fixed-size augmented-Lagrangian path,
+/// nv <= 6): A = L D L^T (L unit lower triangular), without square roots, with the
+/// reciprocals of D kept so that a solve multiplies instead of dividing; the loops
+/// unroll. The square roots and the 2N divisions per solve of the factorization above
+/// would be the longest dependency chains of the 4-bar's evaluation. Accepts A when
+/// every pivot d_k > 0 (as LLT does); the results differ from SmallLLT's by round-off.
 template <int N>
 class FixedLDLT {
  public:
-  using Mat = Eigen::Matrix<double, N, N>;
+  using Mat = Eigen::Matrix<double, N, N>;  ///< The fixed-size matrix type.
 
-  // Factor A from its lower triangle; false when a pivot is not positive.
+  /// Factor A from its lower triangle; false when a pivot is not positive.
   bool compute(const Mat &A) {
     L_ = A;  // L below the diagonal, D on it (overwritten column by column)
     min_pivot_ratio_ = 1.0;
@@ -154,10 +158,10 @@ class FixedLDLT {
     return true;
   }
 
-  // Smallest relative pivot min_k D_k / A_kk of the last successful compute.
+  /// Smallest relative pivot min_k D_k / A_kk of the last successful compute.
   double min_pivot_ratio() const { return min_pivot_ratio_; }
 
-  // x <- A^-1 x (after a successful compute).
+  /// x <- A^-1 x (after a successful compute).
   template <typename Derived>
   void solveInPlace(Eigen::MatrixBase<Derived> &x) const {
     for (int j = 0; j < N; ++j)  // L y = x
@@ -168,9 +172,9 @@ class FixedLDLT {
   }
 
  private:
-  Mat L_;
-  Eigen::Matrix<double, N, 1> inv_;
-  double min_pivot_ratio_ = 1.0;
+  Mat L_;                          ///< L below the diagonal, D on it.
+  Eigen::Matrix<double, N, 1> inv_;  ///< The reciprocals 1 / D_k.
+  double min_pivot_ratio_ = 1.0;   ///< min_k D_k / A_kk of the last successful compute.
 };
 
 }  // namespace closedchain

@@ -17,8 +17,8 @@
 
 namespace closedchain {
 
-// M (full, symmetric, armature included) at the kinematics in data: tree_terms' M
-// without the velocity pass; data.oYcrb left composite (as tree_terms leaves it).
+/// M (full, symmetric, armature included) at the kinematics in data: tree_terms' M
+/// without the velocity pass; data.oYcrb left composite (as tree_terms leaves it).
 inline void mass_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
                                pinocchio::Data &data, Eigen::MatrixXd &M) {
   data.oYcrb[0].setZero();
@@ -28,8 +28,8 @@ inline void mass_at_kinematics(const TreePlan &plan, const pinocchio::Model &mod
   tree_terms_detail::backward<true, false>(plan, model, data, M, no_h);
 }
 
-// h = nonLinearEffects(q, v) and data.ov, data.oa, data.of at the kinematics in data
-// (tree_terms_at_kinematics without M).
+/// h = nonLinearEffects(q, v) and data.ov, data.oa, data.of at the kinematics in data
+/// (tree_terms_at_kinematics without M).
 template <typename ConfigVectorType, typename TangentVectorType>
 void bias_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
                         pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q,

@@ -49,17 +49,20 @@
 
 namespace closedchain {
 
-// Which joints of a model take the revolute path, and their constants.
+/// Which joints of a model take the revolute path, and their constants.
 class TreePlan {
  public:
+  /// The constants of one revolute joint.
   struct Revolute {
-    int idx_q = 0, idx_v = 0;
-    Eigen::Matrix3d A0, A1, A2;  // liMi.R = A2 + cos q A0 + sin q A1
-    Eigen::Vector3d b;           // Rp a: the axis in the parent joint's frame
-    Eigen::Vector3d pp;          // the joint placement's translation
+    int idx_q = 0, idx_v = 0;    ///< Its coordinate and velocity index.
+    Eigen::Matrix3d A0, A1, A2;  ///< liMi.R = A2 + cos q A0 + sin q A1.
+    Eigen::Vector3d b;           ///< Rp a: the axis in the parent joint's frame.
+    Eigen::Vector3d pp;          ///< The joint placement's translation.
   };
 
+  /// No joints (for default-constructed owners).
   TreePlan() = default;
+  /// The plan of model: which joints are revolute, and their constants.
   explicit TreePlan(const pinocchio::Model &model)
       : revolute_(model.joints.size(), 0), rev_(model.joints.size()) {
     for (std::size_t i = 1; i < model.joints.size(); ++i) {
@@ -91,21 +94,23 @@ class TreePlan {
     }
   }
 
+  /// Whether joint i takes the revolute path.
   bool revolute(std::size_t i) const { return revolute_[i] != 0; }
+  /// Joint i's constants (valid where revolute(i)).
   const Revolute &rev(std::size_t i) const { return rev_[i]; }
 
  private:
-  std::vector<char> revolute_;
-  std::vector<Revolute> rev_;
+  std::vector<char> revolute_;  ///< 1 for the joints that take the revolute path.
+  std::vector<Revolute> rev_;   ///< Their constants, by joint index.
 };
 
 namespace tree_terms_detail {
 
 using Model = pinocchio::Model;
 using Data = pinocchio::Data;
-using Vec3 = Eigen::Vector3d;
+using Vec3 = Eigen::Vector3d;  ///< A 3-vector.
 
-// Revolute joint i at q: liMi, oMi and its world Jacobian column data.J.col(idx_v).
+/// Revolute joint i at q: liMi, oMi and its world Jacobian column data.J.col(idx_v).
 template <typename ConfigVectorType>
 inline void revolute_kinematics(const TreePlan::Revolute &r, const Model &model, Data &data,
                                 pinocchio::JointIndex i,
@@ -133,7 +138,7 @@ inline void revolute_kinematics(const TreePlan::Revolute &r, const Model &model,
   col.tail<3>() = w;
 }
 
-// Revolute joint i at (q, v) after revolute_kinematics: ov, oa, oYcrb, of.
+/// Revolute joint i at (q, v) after revolute_kinematics: ov, oa, oYcrb, of.
 template <typename TangentVectorType>
 inline void revolute_motion(const TreePlan::Revolute &r, const Model &model, Data &data,
                             pinocchio::JointIndex i,
@@ -150,8 +155,8 @@ inline void revolute_motion(const TreePlan::Revolute &r, const Model &model, Dat
   data.of[i] = oY * (oa - model.gravity) + ov.cross(oh);
 }
 
-// Revolute joint i of the backward pass: Ag column and row i of M over its subtree
-// (WithM), h_i (WithH), and the parent's composite inertia (always) and force (WithH).
+/// Revolute joint i of the backward pass: Ag column and row i of M over its subtree
+/// (WithM), h_i (WithH), and the parent's composite inertia (always) and force (WithH).
 template <bool WithM, bool WithH>
 inline void revolute_backward(const TreePlan::Revolute &r, const Model &model, Data &data,
                               pinocchio::JointIndex i, Eigen::MatrixXd &M, Eigen::VectorXd &h) {
@@ -167,8 +172,8 @@ inline void revolute_backward(const TreePlan::Revolute &r, const Model &model, D
   if constexpr (WithH) data.of[parent] += data.of[i];
 }
 
-// The velocity-dependent quantities of joint i (world frame) from its calc's v_J and
-// c_J and its placement data.oMi[i]: ov, oa, oYcrb, of (the formulas above).
+/// The velocity-dependent quantities of joint i (world frame) from its calc's v_J and
+/// c_J and its placement data.oMi[i]: ov, oa, oYcrb, of (the formulas above).
 template <typename JointData>
 inline void forward_motion(const pinocchio::JointDataBase<JointData> &jdata, const Model &model,
                            Data &data, pinocchio::JointIndex i) {
@@ -182,8 +187,8 @@ inline void forward_motion(const pinocchio::JointDataBase<JointData> &jdata, con
   data.of[i] = data.oYcrb[i] * (data.oa[i] - model.gravity) + data.ov[i].cross(oh);
 }
 
-// Joint i's placements and world Jacobian columns from its calc (jdata.M(), S):
-// liMi, oMi = oMi_parent liMi, J_i = oMi S (after calc(q) or calc(q, v)).
+/// Joint i's placements and world Jacobian columns from its calc (jdata.M(), S):
+/// liMi, oMi = oMi_parent liMi, J_i = oMi S (after calc(q) or calc(q, v)).
 template <typename JointModel>
 inline void place_joint(const pinocchio::JointModelBase<JointModel> &jmodel,
                         const pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
@@ -201,14 +206,18 @@ inline void place_joint(const pinocchio::JointModelBase<JointModel> &jmodel,
   J_cols = data.oMi[i].act(jdata.S());
 }
 
+/// Pinocchio's visitor for one non-revolute joint of the forward pass at (q, v): calc,
+/// placements, Jacobian columns and the velocity-dependent quantities.
 template <typename ConfigVectorType, typename TangentVectorType>
 struct ForwardStep
     : public pinocchio::fusion::JointUnaryVisitorBase<
           ForwardStep<ConfigVectorType, TangentVectorType>> {
+  /// The visitor\'s arguments after the joint model and data.
   typedef boost::fusion::vector<const Model &, Data &, const ConfigVectorType &,
                                 const TangentVectorType &>
       ArgsType;
 
+  /// The step for one joint (Pinocchio calls it through run()).
   template <typename JointModel>
   static void algo(const pinocchio::JointModelBase<JointModel> &jmodel,
                    pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
@@ -221,13 +230,15 @@ struct ForwardStep
   }
 };
 
-// ForwardStep without the velocity part: calc(q), liMi, oMi, J (the kinematics of
-// pinocchio::computeJointJacobians(q)).
+/// ForwardStep without the velocity part: calc(q), liMi, oMi, J (the kinematics of
+/// pinocchio::computeJointJacobians(q)).
 template <typename ConfigVectorType>
 struct KinematicsStep
     : public pinocchio::fusion::JointUnaryVisitorBase<KinematicsStep<ConfigVectorType>> {
+  /// The visitor\'s arguments after the joint model and data.
   typedef boost::fusion::vector<const Model &, Data &, const ConfigVectorType &> ArgsType;
 
+  /// The step for one joint (Pinocchio calls it through run()).
   template <typename JointModel>
   static void algo(const pinocchio::JointModelBase<JointModel> &jmodel,
                    pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
@@ -238,20 +249,22 @@ struct KinematicsStep
   }
 };
 
-// The velocity-dependent part of ForwardStep at (q, v) when the kinematics at q
-// (calc(q), liMi, oMi, J: pinocchio::computeJointJacobians(q)) are already in data:
-// the joint's velocity from calc(Blank, v) where its bias c is structurally zero
-// (revolute, prismatic, helical, planar, spherical, translation, free-flyer: v_J
-// = S qdot, the same arithmetic as calc(q, v)), else from the full calc(q, v) (c
-// depends on q and v: spherical-ZYX, universal, ellipsoid, composite).
+/// The velocity-dependent part of ForwardStep at (q, v) when the kinematics at q
+/// (calc(q), liMi, oMi, J: pinocchio::computeJointJacobians(q)) are already in data:
+/// the joint's velocity from calc(Blank, v) where its bias c is structurally zero
+/// (revolute, prismatic, helical, planar, spherical, translation, free-flyer: v_J
+/// = S qdot, the same arithmetic as calc(q, v)), else from the full calc(q, v) (c
+/// depends on q and v: spherical-ZYX, universal, ellipsoid, composite).
 template <typename ConfigVectorType, typename TangentVectorType>
 struct MotionStep
     : public pinocchio::fusion::JointUnaryVisitorBase<
           MotionStep<ConfigVectorType, TangentVectorType>> {
+  /// The visitor\'s arguments after the joint model and data.
   typedef boost::fusion::vector<const Model &, Data &, const ConfigVectorType &,
                                 const TangentVectorType &>
       ArgsType;
 
+  /// The step for one joint (Pinocchio calls it through run()).
   template <typename JointModel>
   static void algo(const pinocchio::JointModelBase<JointModel> &jmodel,
                    pinocchio::JointDataBase<typename JointModel::JointDataDerived> &jdata,
@@ -267,12 +280,16 @@ struct MotionStep
   }
 };
 
+/// Pinocchio's visitor for one non-revolute joint of the backward pass (as
+/// revolute_backward).
 template <bool WithM, bool WithH>
 struct BackwardStep
     : public pinocchio::fusion::JointUnaryVisitorBase<BackwardStep<WithM, WithH>> {
+  /// The visitor\'s arguments after the joint model and data.
   typedef boost::fusion::vector<const Model &, Data &, Eigen::MatrixXd &, Eigen::VectorXd &>
       ArgsType;
 
+  /// The step for one joint (Pinocchio calls it through run()).
   template <typename JointModel>
   static void algo(const pinocchio::JointModelBase<JointModel> &jmodel, const Model &model,
                    Data &data, Eigen::MatrixXd &M, Eigen::VectorXd &h) {
@@ -294,7 +311,7 @@ struct BackwardStep
   }
 };
 
-// The root's quantities before the forward pass.
+/// The root's quantities before the forward pass.
 inline void start(Data &data) {
   data.ov[0].setZero();
   data.oa[0].setZero();
@@ -302,9 +319,9 @@ inline void start(Data &data) {
   data.of[0].setZero();
 }
 
-// The velocity-dependent forward pass (ov, oa, oYcrb, of of every joint, from the
-// root) when data holds the kinematics at q (joint_kinematics): revolute joints by
-// their own path, the others by Pinocchio's visitor (MotionStep).
+/// The velocity-dependent forward pass (ov, oa, oYcrb, of of every joint, from the
+/// root) when data holds the kinematics at q (joint_kinematics): revolute joints by
+/// their own path, the others by Pinocchio's visitor (MotionStep).
 template <typename ConfigVectorType, typename TangentVectorType>
 inline void motion_pass(const TreePlan &plan, const Model &model, Data &data,
                         const Eigen::MatrixBase<ConfigVectorType> &q,
@@ -320,9 +337,9 @@ inline void motion_pass(const TreePlan &plan, const Model &model, Data &data,
   }
 }
 
-// The backward pass after the forward one: M (armature on the diagonal, both
-// triangles; WithM) and h (WithH); the composite inertias always (the potential
-// energy reads data.oYcrb[0]). The argument not asked for is not touched.
+/// The backward pass after the forward one: M (armature on the diagonal, both
+/// triangles; WithM) and h (WithH); the composite inertias always (the potential
+/// energy reads data.oYcrb[0]). The argument not asked for is not touched.
 template <bool WithM = true, bool WithH = true>
 inline void backward(const TreePlan &plan, const Model &model, Data &data, Eigen::MatrixXd &M,
                      Eigen::VectorXd &h) {
@@ -341,10 +358,10 @@ inline void backward(const TreePlan &plan, const Model &model, Data &data, Eigen
 
 }  // namespace tree_terms_detail
 
-// M (full, symmetric) and h = nonLinearEffects(q, v) into M, h; data.oMi, data.J
-// (world columns), data.ov and data.oa (bias accelerations, a = 0, gravity
-// excluded) of every joint. M: (nv, nv), h: (nv,), sized by the caller.
-// plan: TreePlan(model).
+/// M (full, symmetric) and h = nonLinearEffects(q, v) into M, h; data.oMi, data.J
+/// (world columns), data.ov and data.oa (bias accelerations, a = 0, gravity
+/// excluded) of every joint. M: (nv, nv), h: (nv,), sized by the caller.
+/// plan: TreePlan(model).
 template <typename ConfigVectorType, typename TangentVectorType>
 void tree_terms(const TreePlan &plan, const pinocchio::Model &model, pinocchio::Data &data,
                 const Eigen::MatrixBase<ConfigVectorType> &q,
@@ -365,12 +382,12 @@ void tree_terms(const TreePlan &plan, const pinocchio::Model &model, pinocchio::
   backward(plan, model, data, M, h);
 }
 
-// The kinematics at q: liMi, oMi and the world Jacobian columns data.J of every
-// joint (what pinocchio::computeJointJacobians(q) computes, the revolute joints by
-// the same arithmetic as tree_terms, so the two passes give the same placements).
-// only (optional, one flag per joint): recompute only the flagged joints, the others
-// keep what data holds (valid when data holds the kinematics at a q that agrees with
-// this q on every coordinate of the unflagged joints' supports: the caller's check).
+/// The kinematics at q: liMi, oMi and the world Jacobian columns data.J of every
+/// joint (what pinocchio::computeJointJacobians(q) computes, the revolute joints by
+/// the same arithmetic as tree_terms, so the two passes give the same placements).
+/// only (optional, one flag per joint): recompute only the flagged joints, the others
+/// keep what data holds (valid when data holds the kinematics at a q that agrees with
+/// this q on every coordinate of the unflagged joints' supports: the caller's check).
 template <typename ConfigVectorType>
 void joint_kinematics(const TreePlan &plan, const pinocchio::Model &model,
                       pinocchio::Data &data, const Eigen::MatrixBase<ConfigVectorType> &q,
@@ -387,10 +404,10 @@ void joint_kinematics(const TreePlan &plan, const pinocchio::Model &model,
   }
 }
 
-// tree_terms(q, v) when data already holds the kinematics at q (calc(q), liMi,
-// oMi and J of joint_kinematics(plan, model, data, q), e.g. the last
-// Newton iterate of the dependent-coordinate solve): the velocity-dependent
-// forward quantities and the backward pass only; the same M, h, ov, oa.
+/// tree_terms(q, v) when data already holds the kinematics at q (calc(q), liMi,
+/// oMi and J of joint_kinematics(plan, model, data, q), e.g. the last
+/// Newton iterate of the dependent-coordinate solve): the velocity-dependent
+/// forward quantities and the backward pass only; the same M, h, ov, oa.
 template <typename ConfigVectorType, typename TangentVectorType>
 void tree_terms_at_kinematics(const TreePlan &plan, const pinocchio::Model &model,
                               pinocchio::Data &data,
