@@ -653,6 +653,8 @@ class Core {
   Vec h_, phi_, gamma_, a_, lam_, tau_, tau_const_, zero_v_, dq_, tmp_c_, tmp_v_;
   /// solve_kkt: the right-hand side [tau - h, -gamma], then the solution [a, lam].
   Vec kkt_solution_;
+  /// solve_kkt: the equilibration D = diag(d_v, d_c) of K (dynamics/kkt.py kkt_scaling).
+  Vec kkt_scale_;
   Eigen::LLT<Mat> llt_m_, llt_c_, llt_r_;
   SmallLLT llt_p_, llt_jj_;  // M + alpha J^T J; J J^T (+ regularization)
   Mat P_;

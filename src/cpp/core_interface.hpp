@@ -43,6 +43,7 @@ inline Core::Core(bp::object model_obj, const std::string &name, const Eigen::Ve
   zero_v_ = Vec::Zero(nv_);
   kkt_.resize(nv_ + nc_);
   kkt_solution_ = Vec::Zero(nv_ + nc_);
+  kkt_scale_ = Vec::Ones(nv_ + nc_);
   nullspace_a_ = Vec::Zero(std::max(nv_ - nc_, 0));
   llt_m_ = Eigen::LLT<Mat>(nv_);
   llt_c_ = Eigen::LLT<Mat>(nc_);

@@ -206,34 +206,53 @@ inline void Core::check_rcond(const RefV &q, const std::string &what, double rco
 }
 
 inline void Core::solve_kkt(const RefV &q, const Vec &tau, double t) {
-  // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
-  // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
+  // K = [[M, J^T], [J, 0]] equilibrated, D K D with D = diag(d_v, d_c), d_v = M_ii^-1/2,
+  // d_c = 1 / |row of J D_v| (each floored at KKT_SCALE_FLOOR of the largest: kkt.py's
+  // kkt_scaling), so that its condition estimate does not depend on the mass unit;
+  // assembled column by column (written out: the block assignments cost more than the
+  // copy at these sizes), factored in place by DenseLU (dense_lu.hpp); K x = r is
+  // solved as (D K D) y = D r, x = D y.
   const Eigen::Index nv = nv_, nc = nc_, n = nv + nc;
+  double *d = kkt_scale_.data();
+  double top = 0.0;
+  for (Eigen::Index i = 0; i < nv; ++i) top = std::max(top, M_(i, i));
+  for (Eigen::Index i = 0; i < nv; ++i)
+    d[i] = top > 0 ? 1.0 / std::sqrt(std::max(M_(i, i), KKT_SCALE_FLOOR * top)) : 1.0;
+  top = 0.0;
+  for (Eigen::Index r = 0; r < nc; ++r) {
+    double s = 0.0;
+    for (Eigen::Index i = 0; i < nv; ++i) s += (J_(r, i) * d[i]) * (J_(r, i) * d[i]);
+    d[nv + r] = std::sqrt(s);
+    top = std::max(top, d[nv + r]);
+  }
+  for (Eigen::Index r = 0; r < nc; ++r)
+    d[nv + r] = top > 0 ? 1.0 / std::max(d[nv + r], KKT_SCALE_FLOOR * top) : 1.0;
   double *k = kkt_.A.data();
   for (Eigen::Index j = 0; j < nv; ++j) {
     double *col = k + j * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = M_(i, j);
-    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = J_(r, j);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = d[i] * M_(i, j) * d[j];
+    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = d[nv + r] * J_(r, j) * d[j];
   }
   for (Eigen::Index r = 0; r < nc; ++r) {
     double *col = k + (nv + r) * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = J_(r, i);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = d[nv + r] * J_(r, i) * d[i];
     for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
   }
-  for (Eigen::Index i = 0; i < nv; ++i) kkt_solution_[i] = tau[i] - h_[i];
-  for (Eigen::Index r = 0; r < nc; ++r) kkt_solution_[nv + r] = -gamma_[r];
+  for (Eigen::Index i = 0; i < nv; ++i) kkt_solution_[i] = d[i] * (tau[i] - h_[i]);
+  for (Eigen::Index r = 0; r < nc; ++r) kkt_solution_[nv + r] = -d[nv + r] * gamma_[r];
   // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
   // Away from singular configurations a cheap upper bound of cond_1(K) already
   // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
   // cond_max; only otherwise is the estimate computed.
+  const char *what = "the KKT matrix [[M, J^T], [J, 0]] (equilibrated)";
   if (!kkt_.factor_in_place()) {
-    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
+    check_rcond(q, what, 0.0, t);
   } else if (!(kkt_.anorm * kkt_.inverse_norm_bound() <= cond_max_)) {
-    check_rcond(q, "the KKT matrix [[M, J^T], [J, 0]]", kkt_.rcond(), t);
+    check_rcond(q, what, kkt_.rcond(), t);
   }
   kkt_.solve(kkt_solution_);
-  a_ = kkt_solution_.head(nv_);
-  lam_ = kkt_solution_.tail(nc_);
+  a_ = kkt_solution_.head(nv_).cwiseProduct(kkt_scale_.head(nv_));
+  lam_ = kkt_solution_.tail(nc_).cwiseProduct(kkt_scale_.tail(nc_));
 }
 
 inline void Core::solve_schur(const RefV &q, const Vec &tau, double t) {
