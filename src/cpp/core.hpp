@@ -343,6 +343,15 @@ class Core {
   /// - unless singular_robust, cond(J) > singular_cond: SingularError.
   void check_regular(const RefV &q, double t);
 
+  /// cond(J) of the kept rows at a projected stage point q of rk4_projected (unless
+  /// singular_robust): above singular_cond, check_regular's SingularError (an adaptive
+  /// step's ends can straddle a singular position that its stages come close to),
+  /// unless the declared rows stay regular (the step's end re-selects the rows).
+  void check_stage_regular(const RefV &q, double t);
+
+  /// Throw check_regular's SingularError: cond(J) = cond > singular_cond at (t, q).
+  [[noreturn]] void throw_singular_J(const RefV &q, double t, double cond);
+
   /// Condition number of the nc largest singular values of the declared rows' J at the
   /// last eval_phi_J (LoopClosure.check_rows): above singular_cond the mechanism itself
   /// is singular there, no re-selection of rows helps.

@@ -86,6 +86,7 @@ inline void Core::rk4_projected(double t, const Vec &q, const Vec &v, const Vec 
   project(qm, vs_, true);
   // the retake rule's midpoint indicator, while J is at qm (no kinematics pass later)
   if (stage_zone_ > 0) midpoint_indicator_ = rank_indicator(qm);
+  check_stage_regular(qm, t + h / 2);
   accel(t + h / 2, qm, vs_);
   chart_rate(q, dv_, vs_, k2v_);  // the stages' rates in the chart about q (run_fixed)
   k2a_ = a_;
@@ -93,6 +94,7 @@ inline void Core::rk4_projected(double t, const Vec &q, const Vec &v, const Vec 
   pinocchio::integrate(model_, q, dv_, qs_);
   vs_ = v + (h / 2) * k2a_;
   project(qs_, vs_, true);
+  check_stage_regular(qs_, t + h / 2);
   accel(t + h / 2, qs_, vs_);
   chart_rate(q, dv_, vs_, k3v_);
   k3a_ = a_;
@@ -100,6 +102,7 @@ inline void Core::rk4_projected(double t, const Vec &q, const Vec &v, const Vec 
   pinocchio::integrate(model_, q, dv_, qs_);
   vs_ = v + h * k3a_;
   project(qs_, vs_, true);
+  check_stage_regular(qs_, t + h);
   accel(t + h, qs_, vs_);
   chart_rate(q, dv_, vs_, k4v_);
   k4a_ = a_;

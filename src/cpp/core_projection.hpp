@@ -85,17 +85,32 @@ inline void Core::check_regular(const RefV &q, double t) {
       throw RowCheckRequired{"kept rows degenerate (condition number " + fmt("%.3e", cond) +
                                  ") at t = " + fmt("%.9g", t) + " s",
                              t};
-    std::string msg =
-        name_ + ": at t = " + fmt("%.9g", t) +
-        " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
-        " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
-        fmt("%.1e", singular_cond_) +
-        "): a singular configuration, where the motion is not determined by the equations "
-        "and method '" + method_name_ + "' loses accuracy without any error estimate "
-        "noticing; to pass singular positions use method='augmented-lagrangian' with "
-        "stabilization='stage-projection' (and a fixed-step integrator)";
-    throw SingularError{msg, cond, t, Vec(q)};
+    throw_singular_J(q, t, cond);
   }
+}
+
+inline void Core::throw_singular_J(const RefV &q, double t, double cond) {
+  std::string msg =
+      name_ + ": at t = " + fmt("%.9g", t) +
+      " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
+      " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
+      fmt("%.1e", singular_cond_) +
+      "): a singular configuration, where the motion is not determined by the equations "
+      "and method '" + method_name_ + "' loses accuracy without any error estimate "
+      "noticing; to pass singular positions use method='augmented-lagrangian' with "
+      "stabilization='stage-projection' (and a fixed-step integrator)";
+  throw SingularError{msg, cond, t, Vec(q)};
+}
+
+inline void Core::check_stage_regular(const RefV &q, double t) {
+  if (singular_robust_ || rows_only_ || nc_ == 0) return;
+  eval_phi_J(q);
+  if (band_n_ && cond_J_below(singular_cond_)) return;
+  const double cond = cond_J();
+  if (cond <= singular_cond_) return;
+  // Kept rows that degenerate where the declared ones do not: the step's end re-selects.
+  if (static_cast<int>(drows_.size()) > nc_ && declared_cond() <= singular_cond_) return;
+  throw_singular_J(q, t, cond);
 }
 
 inline double Core::declared_cond() {
