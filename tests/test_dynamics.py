@@ -440,6 +440,9 @@ def test_singular_error_builder_format():
     assert "(condition number 3.000e+00, cond_max 1.0e+12)" in str(ok)
     later = ok.at_time(1.5)
     assert str(later).startswith("at t = 1.5 s: m: solver is singular") and later.t == 1.5
+    # One line however long q is (a corpus robot's nq of 50 wrapped numpy's 75 columns).
+    long_q = cc.SingularConfigurationError.build("m", "J", q=np.linspace(0, 1, 50), cond=1.0)
+    assert "\n" not in str(long_q) and "1.      ]" in str(long_q)
 
 
 # -- terms kept from the stage projection; the multiplier polish ---------------------------

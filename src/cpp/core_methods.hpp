@@ -338,9 +338,14 @@ inline void Core::accel(double t, const RefV &q, const RefV &v) {
   const Vec &tau = tau_at(t, q, v);
   solve(q, v, tau, t);
   if (!a_.allFinite())
-    throw SimulationFailure{"non-finite acceleration at t = " + fmt("%.9g", t) +
-                                " s, q = " + vec_str(q),
-                            t};
+    // simulate.problem.nonfinite_message
+    throw SimulationFailure{
+        name_ + ": non-finite acceleration at t = " + fmt("%.9g", t) + " s (max |q| = " +
+            fmt("%.3e", q.size() ? q.cwiseAbs().maxCoeff() : 0.0) + ", max |v| = " +
+            fmt("%.3e", v.size() ? v.cwiseAbs().maxCoeff() : 0.0) +
+            "): the state diverged or the method failed there; a fixed step beyond the "
+            "motion's stability limit diverges: use integrator='rk43' or a smaller dt",
+        t};
 }
 
 }  // namespace closedchain

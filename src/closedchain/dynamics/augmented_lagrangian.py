@@ -521,7 +521,10 @@ def augmented_lagrangian(
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
     if mech.nc == 0:
-        return scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos"), np.zeros(0)
+        # Non-finite terms (a diverged state) give non-finite a, which the callers
+        # report with the state, not scipy's ValueError.
+        a = scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos", check_finite=False)
+        return a, np.zeros(0)
     solver = penalized_solver(mech)
     alpha = solver.factor_relative(ws.M, ws.J, settings.al_penalty, mech, q)
     a, lam, it = solve_augmented_lagrangian(
