@@ -29,6 +29,13 @@ SHARED = (
         "closedchain.dynamics.augmented_lagrangian",
         "MAX_PENALTY_LOWERINGS",
     ),
+    (
+        "AL_DIVERGENCE_RTOL",
+        "double",
+        "closedchain.dynamics.augmented_lagrangian",
+        "DIVERGENCE_RTOL",
+    ),
+    ("KKT_SCALE_FLOOR", "double", "closedchain.dynamics.kkt", "KKT_SCALE_FLOOR"),
     ("PIVOT_TIE_RTOL", "double", "closedchain.closure.partition", "PIVOT_TIE_RTOL"),
     ("RANK_INDICATOR_CAP", "double", "closedchain.simulate.fixed", "RANK_INDICATOR_CAP"),
     ("RETAKE_GRID", "int", "closedchain.simulate.fixed", "RETAKE_GRID"),

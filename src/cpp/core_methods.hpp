@@ -139,6 +139,11 @@ void check_rcond(const CoreModel &model, const RefV &q, const std::string &what,
 /// The KKT method: [[M, J^T], [J, 0]] [a; lam] = [tau - h; -gamma] by LU (dense_lu.hpp).
 void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
+/// The equilibration D = diag(d_v, d_c) of K into data.kkt_scale (dynamics/kkt.py
+/// kkt_scaling): d_v = M_ii^-1/2, d_c = 1 / |row of J D_v|, each floored at
+/// KKT_SCALE_FLOOR of the largest.
+void kkt_equilibration(const CoreModel &model, CoreData &data);
+
 /// The Schur complement: lam from (J M^-1 J^T) lam = J M^-1 (tau - h) + gamma, then
 /// a = M^-1 (tau - h - J^T lam).
 void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
@@ -370,36 +375,60 @@ inline void check_rcond(const CoreModel &model, const RefV &q, const std::string
              "the constraint Jacobian has lost rank or the configuration is a singularity", t);
 }
 
+inline void kkt_equilibration(const CoreModel &model, CoreData &data) {
+  const Eigen::Index nv = model.nv, nc = model.nc;
+  double *d = data.kkt_scale.data();
+  double top = 0.0;
+  for (Eigen::Index i = 0; i < nv; ++i) top = std::max(top, data.M(i, i));
+  for (Eigen::Index i = 0; i < nv; ++i)
+    d[i] = top > 0 ? 1.0 / std::sqrt(std::max(data.M(i, i), KKT_SCALE_FLOOR * top)) : 1.0;
+  top = 0.0;
+  for (Eigen::Index r = 0; r < nc; ++r) {
+    double s = 0.0;
+    for (Eigen::Index i = 0; i < nv; ++i) s += (data.J(r, i) * d[i]) * (data.J(r, i) * d[i]);
+    d[nv + r] = std::sqrt(s);
+    top = std::max(top, d[nv + r]);
+  }
+  for (Eigen::Index r = 0; r < nc; ++r)
+    d[nv + r] = top > 0 ? 1.0 / std::max(d[nv + r], KKT_SCALE_FLOOR * top) : 1.0;
+}
+
 inline void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                       double t) {
-  // K = [[M, J^T], [J, 0]] column by column (written out: the block assignments cost
-  // more than the copy at these sizes), factored in place by DenseLU (dense_lu.hpp).
+  // K = [[M, J^T], [J, 0]] equilibrated, D K D with D = data.kkt_scale
+  // (kkt_equilibration), so that its condition estimate does not depend on the mass
+  // unit; assembled column by column (written out: the block assignments cost more than
+  // the copy at these sizes), factored in place by DenseLU (dense_lu.hpp); K x = r is
+  // solved as (D K D) y = D r, x = D y.
   const Eigen::Index nv = model.nv, nc = model.nc, n = nv + nc;
+  kkt_equilibration(model, data);
+  const double *d = data.kkt_scale.data();
   double *k = data.kkt.A.data();
   for (Eigen::Index j = 0; j < nv; ++j) {
     double *col = k + j * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = data.M(i, j);
-    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = data.J(r, j);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = d[i] * data.M(i, j) * d[j];
+    for (Eigen::Index r = 0; r < nc; ++r) col[nv + r] = d[nv + r] * data.J(r, j) * d[j];
   }
   for (Eigen::Index r = 0; r < nc; ++r) {
     double *col = k + (nv + r) * n;
-    for (Eigen::Index i = 0; i < nv; ++i) col[i] = data.J(r, i);
+    for (Eigen::Index i = 0; i < nv; ++i) col[i] = d[nv + r] * data.J(r, i) * d[i];
     for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
   }
-  for (Eigen::Index i = 0; i < nv; ++i) data.kkt_solution[i] = tau[i] - data.h[i];
-  for (Eigen::Index r = 0; r < nc; ++r) data.kkt_solution[nv + r] = -data.gamma[r];
+  for (Eigen::Index i = 0; i < nv; ++i) data.kkt_solution[i] = d[i] * (tau[i] - data.h[i]);
+  for (Eigen::Index r = 0; r < nc; ++r) data.kkt_solution[nv + r] = -d[nv + r] * data.gamma[r];
   // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).
   // Away from singular configurations a cheap upper bound of cond_1(K) already
   // shows that the dgecon-style estimate (a lower bound of it) cannot exceed
   // cond_max; only otherwise is the estimate computed.
+  const char *what = "the KKT matrix [[M, J^T], [J, 0]] (equilibrated)";
   if (!data.kkt.factor_in_place()) {
-    check_rcond(model, q, "the KKT matrix [[M, J^T], [J, 0]]", 0.0, t);
+    check_rcond(model, q, what, 0.0, t);
   } else if (!(data.kkt.anorm * data.kkt.inverse_norm_bound() <= model.cond_max)) {
-    check_rcond(model, q, "the KKT matrix [[M, J^T], [J, 0]]", data.kkt.rcond(), t);
+    check_rcond(model, q, what, data.kkt.rcond(), t);
   }
   data.kkt.solve(data.kkt_solution);
-  data.a = data.kkt_solution.head(model.nv);
-  data.lam = data.kkt_solution.tail(model.nc);
+  data.a = data.kkt_solution.head(model.nv).cwiseProduct(data.kkt_scale.head(model.nv));
+  data.lam = data.kkt_solution.tail(model.nc).cwiseProduct(data.kkt_scale.tail(model.nc));
 }
 
 inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
@@ -490,8 +519,14 @@ inline void accel(const CoreModel &model, CoreData &data, double t, const RefV &
   const Vec &tau = tau_at(model, data, t, q, v);
   solve(model, data, q, v, tau, t);
   if (!data.a.allFinite())
+    // simulate.problem.nonfinite_message
     throw SimulationFailure{
-        "non-finite acceleration at t = " + fmt("%.9g", t) + " s, q = " + vec_str(q), t};
+        model.name + ": non-finite acceleration at t = " + fmt("%.9g", t) + " s (max |q| = " +
+            fmt("%.3e", q.size() ? q.cwiseAbs().maxCoeff() : 0.0) + ", max |v| = " +
+            fmt("%.3e", v.size() ? v.cwiseAbs().maxCoeff() : 0.0) +
+            "): the state diverged or the method failed there; a fixed step beyond the "
+            "motion's stability limit diverges: use integrator='rk43' or a smaller dt",
+        t};
 }
 
 inline void gather_JD(const CoreModel &model, CoreData &data, const std::vector<int> &dep) {
