@@ -30,6 +30,12 @@ SHARED = (
         "MAX_PENALTY_LOWERINGS",
     ),
     (
+        "AL_DIVERGENCE_GROWTH",
+        "double",
+        "closedchain.dynamics.augmented_lagrangian",
+        "DIVERGENCE_GROWTH",
+    ),
+    (
         "AL_DIVERGENCE_RTOL",
         "double",
         "closedchain.dynamics.augmented_lagrangian",

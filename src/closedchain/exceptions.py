@@ -111,7 +111,7 @@ class SingularConfigurationError(ClosedChainError):
         else:
             versus = f", {bound_name} {bound:.1e}"
         message = (
-            f"{name}: {when}{what} {state} at q = {one_line(q)} "
+            f"{name}: {when}{what} {state} at q = {_one_line(q)} "
             f"(condition number {cond:.3e}{versus}{detail})" + (f"; {hint}" if hint else "")
         )
         return cls(message, q=q, condition_number=cond, t=t)
@@ -232,7 +232,7 @@ def format_upper_bound(x: float, digits: int = 6) -> str:
     return repr(x)
 
 
-def one_line(x) -> str:
+def _one_line(x) -> str:
     """Return the array ``x`` as numpy prints it (6 digits), on one line however long."""
     import sys
 

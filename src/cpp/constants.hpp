@@ -32,12 +32,17 @@ constexpr double AL_PENALTY_DROP = 0.0001;
 constexpr int AL_MAX_PENALTY_LOWERINGS = 8;
 
 /// The iteration has diverged (:func:`solve_augmented_lagrangian` raises) when a
-/// correction is larger than the previous one while above this fraction of (1 + max |a|)
-/// [-]: in exact arithmetic the corrections shrink (by 1 / (1 + alpha sigma^2) along each
-/// direction of J), and they stop shrinking at the round-off floor of an ill-conditioned P
-/// (about cond(P) eps times the previous correction, far below this); a correction that
-/// grows above it means a solve with P wrong by more than its own size, and the iterate
-/// carries that error.
+/// correction is more than DIVERGENCE_GROWTH times the previous one while above
+/// DIVERGENCE_RTOL (1 + max |a|). In exact arithmetic the corrections shrink (by
+/// 1 / (1 + alpha sigma^2) along each direction of J): they stall near a singular
+/// position (robot_delta: 2.082e-2 then 2.083e-2 rad/s^2, iterate 4) and stop shrinking
+/// at the round-off floor of an ill-conditioned P (about cond(P) eps times the previous
+/// correction); they grow by more only when the solve with P is wrong by more than its
+/// own size, and the iterate then carries that error.
+/// (closedchain.dynamics.augmented_lagrangian.DIVERGENCE_GROWTH)
+constexpr double AL_DIVERGENCE_GROWTH = 2.0;
+
+/// See :data:`DIVERGENCE_GROWTH` [-].
 /// (closedchain.dynamics.augmented_lagrangian.DIVERGENCE_RTOL)
 constexpr double AL_DIVERGENCE_RTOL = 1e-06;
 

@@ -87,12 +87,15 @@ PENALTY_DROP = 1e-4
 MAX_PENALTY_LOWERINGS = 8
 
 #: The iteration has diverged (:func:`solve_augmented_lagrangian` raises) when a
-#: correction is larger than the previous one while above this fraction of (1 + max |a|)
-#: [-]: in exact arithmetic the corrections shrink (by 1 / (1 + alpha sigma^2) along each
-#: direction of J), and they stop shrinking at the round-off floor of an ill-conditioned P
-#: (about cond(P) eps times the previous correction, far below this); a correction that
-#: grows above it means a solve with P wrong by more than its own size, and the iterate
-#: carries that error.
+#: correction is more than DIVERGENCE_GROWTH times the previous one while above
+#: DIVERGENCE_RTOL (1 + max |a|). In exact arithmetic the corrections shrink (by
+#: 1 / (1 + alpha sigma^2) along each direction of J): they stall near a singular
+#: position (robot_delta: 2.082e-2 then 2.083e-2 rad/s^2, iterate 4) and stop shrinking
+#: at the round-off floor of an ill-conditioned P (about cond(P) eps times the previous
+#: correction); they grow by more only when the solve with P is wrong by more than its
+#: own size, and the iterate then carries that error.
+DIVERGENCE_GROWTH = 2.0
+#: See :data:`DIVERGENCE_GROWTH` [-].
 DIVERGENCE_RTOL = 1e-6
 
 _TINY = float(np.finfo(float).tiny)
@@ -435,8 +438,9 @@ def solve_augmented_lagrangian(
         ``(a, lam, iterations)``.
 
     Raises:
-        SingularConfigurationError: the iteration diverged (a correction grew while
-            above :data:`DIVERGENCE_RTOL` (1 + max abs(a)): no round-off floor).
+        SingularConfigurationError: the iteration diverged (a correction grew more than
+            :data:`DIVERGENCE_GROWTH` times while above :data:`DIVERGENCE_RTOL` (1 +
+            max abs(a)): no stall and no round-off floor).
     """
     # Written as corrections, a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T lam_k
     # - alpha J^T (J a_k + gamma)), the same iteration in exact arithmetic: the
@@ -460,7 +464,9 @@ def solve_augmented_lagrangian(
         lam += step
         it += 1
         change = float(np.abs(delta).max())
-        if change > last_change and change > DIVERGENCE_RTOL * (1.0 + float(np.abs(a).max())):
+        if change > DIVERGENCE_GROWTH * last_change and change > DIVERGENCE_RTOL * (
+            1.0 + float(np.abs(a).max())
+        ):
             raise SingularConfigurationError(diverged_message(last_change, change, it, alpha))
         # Converged, or the change stopped shrinking: the round-off floor of an
         # ill-conditioned M (as iterative refinement stops), which tol may lie below.
