@@ -17,7 +17,7 @@ import mpmath
 import numpy as np
 import pytest
 import scipy.linalg
-from conftest import ALL_METHODS
+from conftest import ALL_METHODS, DATA_DIR
 
 import closedchain as cc
 from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
@@ -686,17 +686,26 @@ def _scaled_masses(path: Path, scale: float, out: Path) -> Path:
     return out
 
 
+#: (URDF, loops overlay) of the mass-unit test: the 4-bar, and a five-bar closed by a 6d
+#: weld between two fixed-joint frames (5bar_linkage of example-parallel-robots, whose
+#: 6.5e5 kg spheres made the unequilibrated KKT matrix look singular).
+MASS_UNIT_MECHANISMS = {
+    "fourbar": (MODELS_DIR / "fourbar.urdf", None),
+    "fivebar_6d": (DATA_DIR / "yaml_fivebar.urdf", DATA_DIR / "yaml_fivebar_6d.yaml"),
+}
+
+
 @pytest.mark.parametrize("backend", ["numpy", "compiled"])
-def test_kkt_does_not_depend_on_the_mass_unit(tmp_path, backend):
-    """The 4-bar with every mass and inertia times 1e6 moves as the unscaled one under
+@pytest.mark.parametrize("name", MASS_UNIT_MECHANISMS)
+def test_kkt_does_not_depend_on_the_mass_unit(tmp_path, name, backend):
+    """A mechanism with every mass and inertia times 1e6 moves as the unscaled one under
     gravity (kkt, both backends), and the condition number kkt judges (of the
     equilibrated KKT matrix) is the same: a heavy mechanism is not a singular one."""
     from closedchain.dynamics.kkt import solve_kkt
 
-    light = cc.load(MODELS_DIR / "fourbar.urdf")
-    heavy = cc.load(
-        _scaled_masses(MODELS_DIR / "fourbar.urdf", MASS_SCALE, tmp_path / "heavy.urdf")
-    )
+    urdf, loops = MASS_UNIT_MECHANISMS[name]
+    light = cc.load(urdf, loops=loops)
+    heavy = cc.load(_scaled_masses(urdf, MASS_SCALE, tmp_path / "heavy.urdf"), loops=loops)
     if backend == "compiled":
         from closedchain import compiled
 
@@ -716,7 +725,7 @@ def test_kkt_does_not_depend_on_the_mass_unit(tmp_path, backend):
             assert info == 0
             conds.append(1.0 / rcond)
         assert conds[1] == pytest.approx(conds[0], rel=COND_MASS_UNIT_RTOL)
-        # Each backend judges this estimate: just below it, the heavy 4-bar is refused.
+        # Each backend judges this estimate: just below it, the heavy mechanism is refused.
         with pytest.raises(cc.SingularConfigurationError, match=r"KKT matrix .*equilibrated"):
             forward_dynamics(
                 heavy,

@@ -6,14 +6,16 @@
     \\begin{bmatrix} a \\\\ \\lambda \\end{bmatrix}
     = \\begin{bmatrix} \\tau - h \\\\ -\\gamma \\end{bmatrix}
 
-solved by LU with partial pivoting (LAPACK ``dgesv``) after a symmetric
-equilibration (:func:`kkt_scaling`); the 1-norm condition number of the
-equilibrated matrix is estimated from the factors (``dgecon``) and a singular or
-ill-conditioned one raises :class:`SingularConfigurationError`. Equilibrated, the
-estimate does not depend on the units: scaling every mass and inertia by s scales
-M by s and leaves the equilibrated matrix unchanged, so a heavy mechanism (the
-5-bar of example-parallel-robots, 6.5e5 kg spheres: 2.7e11 unscaled, 1.0e6
-equilibrated at rest) is not reported singular for its mass unit.
+solved by LU with partial pivoting (LAPACK ``dgetrf``/``dgetrs``, as ``dgesv``) of K
+as it stands; a singular or ill-conditioned K raises
+:class:`SingularConfigurationError`. What is judged is the 1-norm condition number of
+the equilibrated matrix D K D (:func:`kkt_scaling`), estimated from K's own factors
+(:func:`estimate_scaled_inverse_norm`): it does not depend on the units (scaling every
+mass and inertia by s scales M by s and leaves D K D unchanged), so a heavy mechanism
+(the 5-bar of example-parallel-robots, 6.5e5 kg spheres: 2.7e11 unscaled, 1.0e6
+equilibrated at rest) is not reported singular for its mass unit. The solve itself is
+not equilibrated: near a singular J, solving D K D loses digits that the pivoted LU of
+K keeps (tests/test_validation.py compares both with a 40-digit solve).
 """
 
 from __future__ import annotations
@@ -57,6 +59,58 @@ def kkt_scaling(M: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d_v, d_c
 
 
+#: Sign iterations of :func:`estimate_scaled_inverse_norm` at most (LAPACK's dlacn2 ITMAX).
+ESTIMATE_MAX_ITER = 5
+
+
+def estimate_scaled_inverse_norm(lu: np.ndarray, piv: np.ndarray, s: np.ndarray) -> float:
+    r"""Estimate \|S A^{-1} S\|_1, S = diag(s), from the LU factors of A (``dgetrf``).
+
+    Hager's method as refined by Higham (LAPACK's ``dlacn2``, which ``dgecon`` runs with
+    S = I): a few sign iterations x -> sign(B x) -> B^T, each a solve with the factors
+    wrapped by S on both sides, then the alternating test vector
+    :math:`x_i = (-1)^i (1 + i / (n - 1))`. A lower bound of the norm, almost always
+    within a factor 3 of it (Higham, Accuracy and Stability of Numerical Algorithms,
+    2002, Sec. 15.3). The compiled core runs the same steps (dense_lu.hpp
+    ``inverse_norm_estimate``).
+
+    Args:
+        lu: LU factors of A, shape (n, n), as ``dgetrf`` returns them (regular).
+        piv: ``dgetrf``'s pivot indices, shape (n,).
+        s: the scaling, shape (n,), positive.
+
+    Returns:
+        The estimate (inf where a solve overflows).
+    """
+    n = len(s)
+    if n == 0:
+        return 0.0
+
+    def apply(x: np.ndarray, trans: int) -> np.ndarray:
+        return s * lapack.dgetrs(lu, piv, s * x, trans=trans)[0]
+
+    x = np.full(n, 1.0 / n)
+    est = 0.0
+    j_last = -1
+    with np.errstate(over="ignore", invalid="ignore"):
+        for it in range(ESTIMATE_MAX_ITER):
+            y = apply(x, 0)
+            e = float(np.abs(y).sum())
+            if it > 0 and e <= est:
+                break
+            est = e
+            z = apply(np.where(y >= 0, 1.0, -1.0), 1)
+            j = int(np.argmax(np.abs(z)))
+            if it > 0 and j == j_last:
+                break
+            j_last = j
+            x = np.zeros(n)
+            x[j] = 1.0
+        alternating = (-1.0) ** np.arange(n) * (1.0 + np.arange(n) / max(n - 1, 1))
+        est = max(est, 2.0 * float(np.abs(apply(alternating, 0)).sum()) / (3.0 * n))
+    return est if np.isfinite(est) else float("inf")
+
+
 def solve_kkt(
     M: np.ndarray,
     J: np.ndarray,
@@ -66,7 +120,16 @@ def solve_kkt(
     K: np.ndarray | None = None,
     rhs: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """Solve the KKT system of the seed's C++ ``solveKKT`` (Section 8).
+    r"""Solve the KKT system of the seed's C++ ``solveKKT`` (Section 8).
+
+    K is factorized and solved as it stands (one ``dgetrf``); its condition is judged on
+    the equilibrated D K D (:func:`kkt_scaling`), independent of the units:
+
+    .. math::
+
+        \kappa_1(D K D) = \lVert D K D \rVert_1 \, \lVert D^{-1} K^{-1} D^{-1} \rVert_1,
+
+    the second factor estimated with K's factors (:func:`estimate_scaled_inverse_norm`).
 
     Args:
         M: mass matrix, shape (nv, nv), symmetric positive definite.
@@ -79,26 +142,28 @@ def solve_kkt(
 
     Returns:
         ``(a, lam, rcond, info)``: accelerations (nv,), multipliers (nc,), the
-        LAPACK reciprocal 1-norm condition estimate of the equilibrated K (D K D,
-        :func:`kkt_scaling`, which is the matrix factorized: K x = r is solved as
-        (D K D) y = D r, x = D y) and dgesv's info (> 0: K exactly singular).
-        Callers decide what condition is acceptable.
+        reciprocal of the estimate of the equilibrated matrix's 1-norm condition number
+        above and dgetrf's info (> 0: K exactly singular). Callers decide what condition
+        is acceptable.
     """
     nv, nc = M.shape[0], J.shape[0]
     K = np.empty((nv + nc, nv + nc), order="F") if K is None else K
     rhs = np.empty(nv + nc) if rhs is None else rhs
-    d_v, d_c = kkt_scaling(M, J)
-    Js = d_c[:, None] * J * d_v
-    K[:nv, :nv] = d_v[:, None] * M * d_v
-    K[:nv, nv:] = Js.T
-    K[nv:, :nv] = Js
+    K[:nv, :nv] = M
+    K[:nv, nv:] = J.T
+    K[nv:, :nv] = J
     K[nv:, nv:] = 0.0
-    rhs[:nv] = d_v * tau_minus_h
-    rhs[nv:] = -d_c * gamma
-    anorm = lapack.dlange("1", K)  # K in Fortran order: no copy
-    lu, _, x, info = lapack.dgesv(K, rhs)
-    rcond = lapack.dgecon(lu, anorm)[0] if info == 0 else 0.0
-    return d_v * x[:nv], d_c * x[nv:], float(rcond), int(info)
+    rhs[:nv] = tau_minus_h
+    rhs[nv:] = -gamma
+    d = np.concatenate(kkt_scaling(M, J))
+    scaled_norm = float(np.max(d * (d @ np.abs(K)), initial=0.0))  # ||D K D||_1
+    lu, piv, info = lapack.dgetrf(K)
+    x = lapack.dgetrs(lu, piv, rhs)[0] if info == 0 else np.full(nv + nc, np.nan)
+    rcond = 0.0
+    if info == 0 and scaled_norm > 0:
+        est = estimate_scaled_inverse_norm(lu, piv, 1.0 / d)
+        rcond = 1.0 / (est * scaled_norm) if 0 < est < float("inf") else 0.0
+    return x[:nv], x[nv:], float(rcond), int(info)
 
 
 @register("kkt", MethodCapabilities(compiled=True))
