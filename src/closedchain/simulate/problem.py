@@ -340,15 +340,13 @@ class Problem:
         J = self.jacobian(q)
         _, dep, cond = self.mech.closure.partition_at(J)
         if cond > self.settings.partition_singular_cond:
-            raise SingularConfigurationError.build(
-                self.mech.name,
+            raise self._singular(
                 "the best-conditioned J_D of any partition of the coordinates",
-                q=q,
-                cond=cond,
-                bound=self.settings.partition_singular_cond,
-                bound_name="partition_singular_cond",
-                hint=f"no partition has a regular J_D: a singular configuration; {passing_hint()}",
-                t=t,
+                q,
+                t,
+                cond,
+                "partition_singular_cond",
+                f"no partition has a regular J_D: a singular configuration; {passing_hint()}",
             )
         if np.array_equal(dep, self.dep):
             return False
@@ -484,17 +482,40 @@ class Problem:
     def _singular_J(self, q: np.ndarray, t: float, cond: float) -> SingularConfigurationError:
         """Return the error of a constraint Jacobian with cond(J) = ``cond`` above
         ``settings.singular_cond`` at (t, q)."""
-        return SingularConfigurationError.build(
-            self.mech.name,
+        return self._singular(
             "the constraint Jacobian",
-            q=q,
-            cond=cond,
-            bound=self.settings.singular_cond,
-            bound_name="singular_cond",
-            state="is close to losing rank",
-            hint="a singular configuration, where the motion is not determined by the "
+            q,
+            t,
+            cond,
+            "singular_cond",
+            "a singular configuration, where the motion is not determined by the "
             f"equations and method {self.method!r} loses accuracy without any error "
             f"estimate noticing; {passing_hint()}",
+            state="is close to losing rank",
+        )
+
+    def _singular(
+        self,
+        what: str,
+        q: np.ndarray,
+        t: float,
+        cond: float,
+        bound_name: str,
+        hint: str,
+        *,
+        state: str = "is singular",
+    ) -> SingularConfigurationError:
+        """Return the error of ``what`` with condition number ``cond`` above the setting
+        ``bound_name`` at (t, q)."""
+        return SingularConfigurationError.build(
+            self.mech.name,
+            what,
+            q=q,
+            cond=cond,
+            bound=getattr(self.settings, bound_name),
+            bound_name=bound_name,
+            state=state,
+            hint=hint,
             t=t,
         )
 
