@@ -64,15 +64,16 @@ ESTIMATE_MAX_ITER = 5
 
 
 def estimate_scaled_inverse_norm(lu: np.ndarray, piv: np.ndarray, s: np.ndarray) -> float:
-    r"""Estimate \|S A^{-1} S\|_1, S = diag(s), from the LU factors of A (``dgetrf``).
+    """Estimate the 1-norm of S A^-1 S, S = diag(s), from the LU factors of A (``dgetrf``).
 
     Hager's method as refined by Higham (LAPACK's ``dlacn2``, which ``dgecon`` runs with
-    S = I): a few sign iterations x -> sign(B x) -> B^T, each a solve with the factors
-    wrapped by S on both sides, then the alternating test vector
-    :math:`x_i = (-1)^i (1 + i / (n - 1))`. A lower bound of the norm, almost always
-    within a factor 3 of it (Higham, Accuracy and Stability of Numerical Algorithms,
-    2002, Sec. 15.3). The compiled core runs the same steps (dense_lu.hpp
-    ``inverse_norm_estimate``).
+    S = I) on B = S A^-1 S: from x = (1/n, ..., 1/n), at most :data:`ESTIMATE_MAX_ITER`
+    steps of y = B x, z = B^T sign(y), x = the unit vector at the largest abs(z_j), while
+    the 1-norm of y grows; then the alternating test vector
+    :math:`x_i = (-1)^i (1 + i / (n - 1))`. Each product with B is a solve with A's
+    factors wrapped by S on both sides. A lower bound of the norm, almost always within a
+    factor 3 of it (Higham, Accuracy and Stability of Numerical Algorithms, 2002, Sec.
+    15.3). The compiled core runs the same steps (dense_lu.hpp ``inverse_norm_estimate``).
 
     Args:
         lu: LU factors of A, shape (n, n), as ``dgetrf`` returns them (regular).
