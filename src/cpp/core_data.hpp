@@ -102,7 +102,7 @@ struct CoreData {
   Vec kkt_solution;
   /// solve_kkt: the equilibration D = diag(d_v, d_c) of K (kkt_equilibration).
   Vec kkt_scale;
-  /// solve_kkt: D^-1, the scaling of K^-1 in its equilibrated condition estimate.
+  /// solve_kkt: D^-1 (kkt_equilibration), the scaling of K^-1 in its condition estimate.
   Vec kkt_unscale;
   /// Work vectors, shapes (nv,) and (nc,).
   Vec dq, tmp_v, tmp_c;

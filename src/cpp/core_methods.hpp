@@ -140,9 +140,9 @@ void check_rcond(const CoreModel &model, const RefV &q, const std::string &what,
 /// singular where cond(D K D) > cond_max (D: kkt_equilibration), estimated on K's factors.
 void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
-/// The equilibration D = diag(d_v, d_c) of K into data.kkt_scale (dynamics/kkt.py
-/// kkt_scaling): d_v = M_ii^-1/2, d_c = 1 / |row of J D_v|, each floored at
-/// KKT_SCALE_FLOOR of the largest.
+/// The equilibration D = diag(d_v, d_c) of K into data.kkt_scale, D^-1 into
+/// data.kkt_unscale (dynamics/kkt.py kkt_scaling): d_v = M_ii^-1/2, d_c = 1 / |row of
+/// J D_v|, each floored at KKT_SCALE_FLOOR of the largest.
 void kkt_equilibration(const CoreModel &model, CoreData &data);
 
 /// The Schur complement: lam from (J M^-1 J^T) lam = J M^-1 (tau - h) + gamma, then
@@ -378,20 +378,24 @@ inline void check_rcond(const CoreModel &model, const RefV &q, const std::string
 
 inline void kkt_equilibration(const CoreModel &model, CoreData &data) {
   const Eigen::Index nv = model.nv, nc = model.nc;
-  double *d = data.kkt_scale.data();
+  double *d = data.kkt_scale.data(), *u = data.kkt_unscale.data();
   double top = 0.0;
   for (Eigen::Index i = 0; i < nv; ++i) top = std::max(top, data.M(i, i));
-  for (Eigen::Index i = 0; i < nv; ++i)
-    d[i] = top > 0 ? 1.0 / std::sqrt(std::max(data.M(i, i), KKT_SCALE_FLOOR * top)) : 1.0;
+  for (Eigen::Index i = 0; i < nv; ++i) {
+    u[i] = top > 0 ? std::sqrt(std::max(data.M(i, i), KKT_SCALE_FLOOR * top)) : 1.0;
+    d[i] = 1.0 / u[i];
+  }
   top = 0.0;
   for (Eigen::Index r = 0; r < nc; ++r) {
     double s = 0.0;
     for (Eigen::Index i = 0; i < nv; ++i) s += (data.J(r, i) * d[i]) * (data.J(r, i) * d[i]);
-    d[nv + r] = std::sqrt(s);
-    top = std::max(top, d[nv + r]);
+    u[nv + r] = std::sqrt(s);
+    top = std::max(top, u[nv + r]);
   }
-  for (Eigen::Index r = 0; r < nc; ++r)
-    d[nv + r] = top > 0 ? 1.0 / std::max(d[nv + r], KKT_SCALE_FLOOR * top) : 1.0;
+  for (Eigen::Index r = 0; r < nc; ++r) {
+    u[nv + r] = top > 0 ? std::max(u[nv + r], KKT_SCALE_FLOOR * top) : 1.0;
+    d[nv + r] = 1.0 / u[nv + r];
+  }
 }
 
 inline void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
@@ -431,7 +435,6 @@ inline void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, con
     for (Eigen::Index i = nv; i < n; ++i) col[i] = 0.0;
     scaled_norm = std::max(scaled_norm, s * d[nv + r]);
   }
-  for (Eigen::Index i = 0; i < n; ++i) data.kkt_unscale[i] = 1.0 / d[i];
   for (Eigen::Index i = 0; i < nv; ++i) data.kkt_solution[i] = tau[i] - data.h[i];
   for (Eigen::Index r = 0; r < nc; ++r) data.kkt_solution[nv + r] = -data.gamma[r];
   // An exactly singular K leaves a zero pivot: rcond 0 (as LAPACK's info > 0).

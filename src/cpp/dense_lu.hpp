@@ -327,24 +327,46 @@ struct DenseLU {
   // matrices, as inverse_norm_bound), whose 1-norm, its largest column sum, is
   // max_j s_j (P^T z)_j for M(U)^T y = s, M(L)^T z = y (two triangular solves); a
   // relative margin of 1e-8 covers its own round-off. Above the estimate (a lower bound
-  // of the same norm), so bound <= limit shows the estimate is too. Generic loops.
+  // of the same norm), so bound <= limit shows the estimate is too.
   double scaled_inverse_norm_bound(const double *s) {
-    const Eigen::Index n = A.rows();
+    switch (A.rows()) {
+      case 1: return scaled_inverse_norm_bound_n<1>(s);
+      case 2: return scaled_inverse_norm_bound_n<2>(s);
+      case 3: return scaled_inverse_norm_bound_n<3>(s);
+      case 4: return scaled_inverse_norm_bound_n<4>(s);
+      case 5: return scaled_inverse_norm_bound_n<5>(s);
+      case 6: return scaled_inverse_norm_bound_n<6>(s);
+      case 7: return scaled_inverse_norm_bound_n<7>(s);
+      case 8: return scaled_inverse_norm_bound_n<8>(s);
+      default: return scaled_inverse_norm_bound_n<0>(s);
+    }
+  }
+
+ private:
+  template <int N>
+  double scaled_inverse_norm_bound_n(const double *s) {
+    const Eigen::Index n = size<N>();
     const double *a = A.data();
     double *z = ez.data();
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) {
       double t = s[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = 0; i < j; ++i) t += std::abs(a[i + j * n]) * z[i];
       z[j] = t / std::abs(a[j + j * n]);
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = n - 1; j >= 0; --j) {
       double t = z[j];
+      CLOSEDCHAIN_UNROLL
       for (Eigen::Index i = j + 1; i < n; ++i) t += std::abs(a[i + j * n]) * z[i];
       z[j] = t;
     }
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index k = n - 1; k >= 0; --k)
       if (piv[k] != k) std::swap(z[k], z[piv[k]]);
     double bound = 0.0;
+    CLOSEDCHAIN_UNROLL
     for (Eigen::Index j = 0; j < n; ++j) bound = std::max(bound, s[j] * z[j]);
     return bound * (1.0 + 1e-8);
   }
