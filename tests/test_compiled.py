@@ -333,16 +333,16 @@ def test_forward_singular_raises(fourbar):
     assert exc.value.t is None
 
 
-#: cond_max just above / below the LAPACK estimate of cond_1(K) (relative).
+#: cond_max just above / below the numpy estimate of cond_1(D K D) (relative).
 COND_EDGE = 1e-6
 
 
 @pytest.mark.parametrize("name", ALL_MECHS)
 def test_kkt_condition_decision_at_the_bound(load_mechanism, name, rng):
-    """The compiled kkt's condition decision (a cheap bound of cond_1(K) from the LU
-    factors, else the dgecon-style estimate) is LAPACK's: at a cond_max just above
-    the estimate of dgecon (numpy backend) it solves as numpy does, just below it
-    raises with that estimate, as numpy does."""
+    """The compiled kkt's condition decision (a cheap bound of cond_1(D K D) from K's LU
+    factors, else the dlacn2-style estimate) is numpy's: at a cond_max just above the
+    numpy backend's estimate (solve_kkt) it solves as numpy does, just below it raises
+    with that estimate, as numpy does."""
     from closedchain.dynamics.kkt import solve_kkt
 
     mech = load_mechanism(name)

@@ -17,7 +17,7 @@ import mpmath
 import numpy as np
 import pytest
 import scipy.linalg
-from conftest import ALL_METHODS
+from conftest import ALL_METHODS, DATA_DIR
 
 import closedchain as cc
 from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
@@ -440,6 +440,9 @@ def test_singular_error_builder_format():
     assert "(condition number 3.000e+00, cond_max 1.0e+12)" in str(ok)
     later = ok.at_time(1.5)
     assert str(later).startswith("at t = 1.5 s: m: solver is singular") and later.t == 1.5
+    # One line however long q is (a corpus robot's nq of 50 wrapped numpy's 75 columns).
+    long_q = cc.SingularConfigurationError.build("m", "J", q=np.linspace(0, 1, 50), cond=1.0)
+    assert "\n" not in str(long_q) and "1.      ]" in str(long_q)
 
 
 # -- terms kept from the stage projection; the multiplier polish ---------------------------
@@ -651,3 +654,155 @@ def test_default_method_refuses_a_massless_subtree_by_name(tmp_path, backend):
         r"\(lowered 8 times\).*massless subtree",
     ):
         forward(mech.q_ref, np.zeros(mech.nv), np.zeros(mech.nv))
+
+
+# -- the unit of mass: kkt's equilibrated condition estimate -------------------------------
+
+#: Every mass and inertia of the 4-bar times this (the 5-bar of example-parallel-robots
+#: has 6.5e5 kg spheres).
+MASS_SCALE = 1e6
+#: Accelerations of the heavy 4-bar against the unscaled one (the same motion: M and h
+#: both scale): |a_s - a|_2 <= TOL_MASS_UNIT max(1, |a|_2) [rad/s^2].
+TOL_MASS_UNIT = 1e-10
+#: The equilibrated KKT matrix is the same for both: its condition estimate agrees to
+#: round-off (unequilibrated it moves by about MASS_SCALE).
+COND_MASS_UNIT_RTOL = 1e-6
+#: Random consistent states of the mass-unit test.
+N_MASS_STATES = 5
+
+
+def _scaled_masses(path: Path, scale: float, out: Path) -> Path:
+    """Write ``path`` with every <mass value> and <inertia> entry times ``scale``."""
+    from lxml import etree
+
+    tree = etree.parse(str(path))
+    for mass in tree.iter("mass"):
+        mass.set("value", repr(scale * float(mass.get("value"))))
+    for inertia in tree.iter("inertia"):
+        for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
+            if inertia.get(key) is not None:
+                inertia.set(key, repr(scale * float(inertia.get(key))))
+    tree.write(str(out))
+    return out
+
+
+#: (URDF, loops overlay) of the mass-unit test: the 4-bar, and a five-bar closed by a 6d
+#: weld between two fixed-joint frames (5bar_linkage of example-parallel-robots, whose
+#: 6.5e5 kg spheres made the unequilibrated KKT matrix look singular).
+MASS_UNIT_MECHANISMS = {
+    "fourbar": (MODELS_DIR / "fourbar.urdf", None),
+    "fivebar_6d": (DATA_DIR / "yaml_fivebar.urdf", DATA_DIR / "yaml_fivebar_6d.yaml"),
+}
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+@pytest.mark.parametrize("name", MASS_UNIT_MECHANISMS)
+def test_kkt_does_not_depend_on_the_mass_unit(tmp_path, name, backend):
+    """A mechanism with every mass and inertia times 1e6 moves as the unscaled one under
+    gravity (kkt, both backends), and the condition number kkt judges (of the
+    equilibrated KKT matrix) is the same: a heavy mechanism is not a singular one."""
+    from closedchain.dynamics.kkt import solve_kkt
+
+    urdf, loops = MASS_UNIT_MECHANISMS[name]
+    light = cc.load(urdf, loops=loops)
+    heavy = cc.load(_scaled_masses(urdf, MASS_SCALE, tmp_path / "heavy.urdf"), loops=loops)
+    if backend == "compiled":
+        from closedchain import compiled
+
+        if not compiled.available():
+            pytest.skip("the compiled core is not built")
+    rng = np.random.default_rng(SEED)
+    for _ in range(N_MASS_STATES):
+        q, v = cc.random_consistent_state(light, rng)
+        tau = np.zeros(light.nv)
+        a = forward_dynamics(light, q, v, tau, method="kkt", backend=backend).a
+        a_heavy = forward_dynamics(heavy, q, v, tau, method="kkt", backend=backend).a
+        assert np.linalg.norm(a_heavy - a) <= TOL_MASS_UNIT * max(1.0, np.linalg.norm(a))
+        conds = []
+        for mech in (light, heavy):
+            ws = compute_terms(mech, q, v)
+            _, _, rcond, info = solve_kkt(ws.M, ws.J, tau - ws.h, ws.gamma)
+            assert info == 0
+            conds.append(1.0 / rcond)
+        assert conds[1] == pytest.approx(conds[0], rel=COND_MASS_UNIT_RTOL)
+        # Each backend judges this estimate: just below it, the heavy mechanism is refused.
+        with pytest.raises(cc.SingularConfigurationError, match=r"KKT matrix .*equilibrated"):
+            forward_dynamics(
+                heavy,
+                q,
+                v,
+                tau,
+                method="kkt",
+                backend=backend,
+                settings=SolverSettings(cond_max=conds[1] * (1 - COND_MASS_UNIT_RTOL)),
+            )
+
+
+# -- the augmented-Lagrangian iteration's divergence ---------------------------------------
+
+#: The iteration's penalty over the one P is factorized at: its solve is then wrong by
+#: more than its own size along J's rows (as round-off makes it where cond(P) eps > 1),
+#: and the corrections grow.
+PENALTY_MISMATCH = 10.0
+#: Relative penalty of the divergence test: P well conditioned, a few iterations.
+AL_TEST_RHO = 1e6
+
+
+def _diverging_al(backend: str, request):
+    """Return (run, a_ref, alpha): run(alpha_factor, alpha) -> a of the AL iteration on
+    the 4-bar at q_ref under gravity with P = M + alpha_factor J^T J factorized and the
+    penalty alpha, the KKT accelerations a_ref and the penalty at AL_TEST_RHO."""
+    from closedchain.dynamics.augmented_lagrangian import (
+        PenalizedSolver,
+        relative_penalty,
+        solve_augmented_lagrangian,
+    )
+
+    mech = cc.load(MODELS_DIR / "fourbar.urdf")
+    ws = compute_terms(mech, mech.q_ref, np.zeros(mech.nv))
+    M, h, J, gamma = ws.M.copy(), ws.h.copy(), ws.J.copy(), ws.gamma.copy()
+    settings = SolverSettings()
+    if backend == "compiled":
+        testing = request.getfixturevalue("core_testing")  # fails, never skips, if unbuilt
+
+        def run(alpha_factor, alpha):
+            return testing._al_iterate(
+                M, J, -h, gamma, alpha_factor, alpha, settings.al_tol, settings.al_max_iter
+            )[0]
+    else:
+
+        def run(alpha_factor, alpha):
+            solver = PenalizedSolver(mech)
+            solver.factor(M, J, alpha_factor, mech, mech.q_ref)
+            return solve_augmented_lagrangian(
+                solver,
+                M,
+                J,
+                -h,
+                gamma,
+                alpha,
+                tol=settings.al_tol,
+                max_iter=settings.al_max_iter,
+            )[0]
+
+    a_ref = np.linalg.solve(
+        np.block([[M, J.T], [J, np.zeros((len(J), len(J)))]]), np.r_[-h, -gamma]
+    )[: mech.nv]
+    return run, a_ref, relative_penalty(M, J, AL_TEST_RHO)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_augmented_lagrangian_iteration_reports_its_divergence(backend, request):
+    """With its own P the iteration converges to the KKT accelerations; with P factorized
+    at a tenth of its penalty its corrections grow, and it raises one line saying so
+    (it used to stop there and return the grown iterate)."""
+    run, a_ref, alpha = _diverging_al(backend, request)
+    a = np.asarray(run(alpha, alpha))
+    assert np.linalg.norm(a - a_ref) <= TOL_A * max(1.0, np.linalg.norm(a_ref))
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"^the augmented-Lagrangian iteration diverged: its correction grew from "
+        r"\S+ to \S+ at iterate \d+ \(alpha = \S+\); .*method='kkt'$",
+    ) as exc:
+        run(alpha, PENALTY_MISMATCH * alpha)
+    assert "\n" not in str(exc.value)

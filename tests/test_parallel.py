@@ -449,12 +449,28 @@ def test_leg_forward_kinematics_is_its_four_bars(leg, motors):
     assert fk.closure_residual <= ANGLE_TOL
 
 
+def test_motor_order_is_name_mot_everywhere(leg):
+    """The leg's name_mot order is not its coordinates' order; actuated_joints,
+    actuated_idx_v, forward_kinematics' motors and inverse_dynamics(coordinates=
+    "actuated") all follow name_mot."""
+    idx_tree = [leg.model.joints[leg.model.getJointId(n)].idx_v for n in LEG_MOTORS]
+    assert idx_tree != sorted(idx_tree)  # else this test could not fail
+    assert tuple(leg.actuated_joints) == LEG_MOTORS
+    assert leg.actuated_idx_v.tolist() == idx_tree
+    assert [leg.coordinate_names[i] for i in leg.actuated_idx_v] == list(LEG_MOTORS)
+    motors = np.array([0.2, -0.1, 0.4, 0.3, -0.2])
+    fk = cc.forward_kinematics(leg, motors)
+    idx_q = [leg.model.joints[leg.model.getJointId(n)].idx_q for n in leg.actuated_joints]
+    assert np.max(np.abs(wrap(fk.q[idx_q] - motors))) <= ANGLE_TOL
+    a_motors = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    res = cc.inverse_dynamics(leg, fk.q, np.zeros(leg.nv), a_motors, coordinates="actuated")
+    assert np.max(np.abs(res.a[leg.actuated_idx_v] - a_motors)) <= LEG_ACCEL_TOL
+
+
 def test_leg_motor_torques_at_rest_are_virtual_work(leg):
     motors = np.array([0.2, -0.1, 0.4, 0.3, -0.2])
     q = cc.forward_kinematics(leg, motors).q
-    # actuated_idx_v is in the order of the coordinates; the motors in name_mot's order.
-    idx_v = [leg.model.joints[leg.model.getJointId(n)].idx_v for n in LEG_MOTORS]
-    tau = cc.gravity_torque(leg, q)[idx_v]
+    tau = cc.gravity_torque(leg, q)[leg.actuated_idx_v]  # in name_mot's order, as motors
     data = leg.model.createData()
 
     def V(m):

@@ -722,6 +722,37 @@ def test_huge_velocity_or_torque_is_an_error_never_nan(
         simulate(fourbar, q_crossed, v0, 0.2, integrator=integrator, tau=tau)
 
 
+#: A fixed step far beyond the pendulum's stability limit (sqrt(g / l) ~ 3 /s): rk4
+#: amplifies each step about (dt lambda)^4 / 24 times and overflows within a few steps.
+DIVERGING_DT = 1.0
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_a_diverging_fixed_step_stops_in_one_line(backend):
+    """A state that rk4 blows up ends with one line naming the time, the size of the
+    state and the remedy (it ended with scipy's ValueError on an open chain, and with q
+    printed over several lines on a closed one: 5bar_linkage at dt = 1 ms)."""
+    if backend == "compiled" and not cc.compiled.available():
+        pytest.skip("the compiled core is not built")
+    mech = cc.load(MODELS / "pendulum3.urdf")
+    with pytest.raises(
+        SimulationError,
+        match=r"^pendulum3: non-finite acceleration at t = \S+ s \(max \|q\| = \S+, "
+        r"max \|v\| = \S+\): the state diverged .*use integrator='rk43' or a smaller dt$",
+    ) as exc:
+        simulate(
+            mech,
+            mech.q_ref + 0.3,
+            np.zeros(mech.nv),
+            100.0,
+            integrator="rk4",
+            dt=DIVERGING_DT,
+            backend=backend,
+        )
+    assert "\n" not in str(exc.value)
+
+
 def test_fixed_step_output_memory_is_proportional_to_outputs(fourbar, q_crossed):
     """Output indices are an array of the outputs, not a set of every step (issue 12)."""
     from closedchain.simulate.fixed import output_grid

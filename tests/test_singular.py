@@ -525,6 +525,9 @@ def test_change_point_fourbar_default_passes(load_mechanism, q_open):
 CHANGE_POINT_TABLE = {
     "kkt-rk4-stage": (dict(method="kkt", dt=1e-3), "singular"),
     "kkt-dop853": (dict(method="kkt", integrator="DOP853", rtol=1e-10, atol=1e-10), "singular"),
+    # rk43's step ends straddle the change point; its stages are checked too.
+    "kkt-rk43": (dict(method="kkt", integrator="rk43"), "singular"),
+    "kkt-rk43-numpy": (dict(method="kkt", integrator="rk43", backend="numpy"), "singular"),
     "al-dop853-none": (
         dict(integrator="DOP853", rtol=1e-10, atol=1e-10, stabilization="none"),
         "singular",

@@ -500,7 +500,8 @@ def test_cli_reads_the_yaml(capsys):
     urdf, loops = DATA_DIR / "yaml_ujoint_leg.urdf", DATA_DIR / "yaml_ujoint_leg.yaml"
     assert main(["info", str(urdf), "--loops", str(loops), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
-    assert s["mobility"] == 2 and s["actuated"] == ["crank_mot", "hip"]
+    # name_mot's order (the YAML's), not the coordinates' (crank_mot comes first there).
+    assert s["mobility"] == 2 and s["actuated"] == ["hip", "crank_mot"]
     assert s["loops"][0]["predecessor"] == "rod_tip" and s["loops"][0]["type"] == "spherical"
 
 

@@ -111,7 +111,7 @@ class SingularConfigurationError(ClosedChainError):
         else:
             versus = f", {bound_name} {bound:.1e}"
         message = (
-            f"{name}: {when}{what} {state} at q = {np.array2string(q, precision=6)} "
+            f"{name}: {when}{what} {state} at q = {_one_line(q)} "
             f"(condition number {cond:.3e}{versus}{detail})" + (f"; {hint}" if hint else "")
         )
         return cls(message, q=q, condition_number=cond, t=t)
@@ -230,6 +230,15 @@ def format_upper_bound(x: float, digits: int = 6) -> str:
         if not (math.isfinite(x) and float(text) > x):
             return text
     return repr(x)
+
+
+def _one_line(x) -> str:
+    """Return the array ``x`` as numpy prints it (6 digits), on one line however long."""
+    import sys
+
+    import numpy as np
+
+    return np.array2string(np.asarray(x, dtype=float), precision=6, max_line_width=sys.maxsize)
 
 
 def check_settings(name: str, value: object, cls: type) -> None:

@@ -171,8 +171,12 @@ class Mechanism:
         nq, nv: configuration and velocity sizes.
         nc: number of independent constraint rows.
         mobility: nv - nc, degrees of freedom of the closed mechanism.
-        actuated_joints: joints named by ``<transmission>`` elements.
-        actuated_idx_v: their velocity indices, shape (na,).
+        actuated_joints: joints named by ``<transmission>`` elements, in the order
+            they are declared (the URDF's, or ``name_mot``'s for a loops YAML): the
+            order of every motor vector (:func:`~closedchain.forward_kinematics`'s
+            ``motors``, ``inverse_dynamics(coordinates="actuated")``, ``--torque``).
+        actuated_idx_v: their velocity indices in the same order (not sorted), shape
+            (na,): ``tau[mech.actuated_idx_v] = motor_torques``.
         independent_idx_v: velocity indices of the independent coordinates, shape (mobility,).
         dependent_idx_v: the others, shape (nc,).
         root_joint: the root joint :func:`load` added (None, ``"free"``, ``"planar"``).
@@ -217,7 +221,11 @@ class Mechanism:
         #: One name per configuration entry (differs from coordinate_names when nq != nv).
         self.configuration_names: tuple[str, ...] = tuple(qnames)
         self.actuated_joints = urdf.actuated
-        self.actuated_idx_v = self.coordinate_indices(urdf.actuated)
+        # In actuated_joints' order (not coordinate_indices' sorted one): motor vectors
+        # index tau and a by it.
+        self.actuated_idx_v = np.array(
+            [i for name in urdf.actuated for i in self.joint_indices_v(name)], dtype=int
+        )
         self.q_ref = pin.neutral(model)
         self.root_joint: str | None = None
         self._pin_constraints: tuple | None = None
@@ -300,7 +308,8 @@ class Mechanism:
                 iterable of joint names and integer velocity indices.
 
         Returns:
-            Sorted unique velocity indices.
+            Sorted unique velocity indices; for a keyword, that attribute as it is
+            (``"actuated"``: :attr:`actuated_idx_v`, in ``actuated_joints``' order).
         """
         if isinstance(spec, str):
             keywords = {
@@ -923,7 +932,7 @@ def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -
     marked = mech.coordinate_indices(mech.urdf.independent) if mech.urdf.independent else None
     closure.choose_partition(
         independent=marked,
-        actuated=mech.actuated_idx_v,
+        actuated=np.sort(mech.actuated_idx_v),
         J_ref=J_ref,
         cond_max=settings.cond_JD_max,
         where=str(mech.path),

@@ -60,6 +60,7 @@ differ by 2e-11 of :math:`\|a\|_M` (docs/guide/validation.md).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -237,6 +238,28 @@ def mass_norm(M: np.ndarray, x: np.ndarray) -> float:
 
 
 @exclusive
+def _validation_states(
+    mech: Mechanism, n_samples: int, seed: int, velocity_scale: float, tau_scale: float | None
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Yield :func:`validate`'s random states ``(q, v, tau)`` (its arguments' meaning).
+
+    Shapes (nq,), (nv,), (nv,); q assembled to VALIDATION_PHI_TOL, v consistent.
+    """
+    rng = np.random.default_rng(seed)
+    # Generalized forces on the coordinates of a root joint added by load().
+    root_nv = mech.model.joints[1].nv if mech.root_joint is not None else 0
+    unactuated_root = tau_scale is None
+    if tau_scale is None:
+        tau_scale = mech.gravity_torque_scale() or 1.0
+    assembly = AssemblySettings(tol=VALIDATION_PHI_TOL)
+    for _ in range(n_samples):
+        q, v = random_consistent_state(mech, rng, velocity_scale=velocity_scale, assembly=assembly)
+        tau = tau_scale * rng.standard_normal(mech.nv)
+        if unactuated_root:
+            tau[:root_nv] = 0.0
+        yield q, v, tau
+
+
 def validate(
     mech: Mechanism,
     *,
@@ -301,20 +324,9 @@ def validate(
             [m for m in METHODS if m != "pinocchio"],
         )
     mech.pinocchio_constraints()  # raise early for prismatic loops
-    rng = np.random.default_rng(seed)
-    # Generalized forces on the coordinates of a root joint added by load().
-    root_nv = mech.model.joints[1].nv if mech.root_joint is not None else 0
-    unactuated_root = tau_scale is None
-    if tau_scale is None:
-        tau_scale = mech.gravity_torque_scale() or 1.0
     max_da = max_da_m = max_df = max_res = max_pres = max_da_raw = 0.0
     singular = 0
-    assembly = AssemblySettings(tol=VALIDATION_PHI_TOL)
-    for _ in range(n_samples):
-        q, v = random_consistent_state(mech, rng, velocity_scale=velocity_scale, assembly=assembly)
-        tau = tau_scale * rng.standard_normal(mech.nv)
-        if unactuated_root:
-            tau[:root_nv] = 0.0
+    for q, v, tau in _validation_states(mech, n_samples, seed, velocity_scale, tau_scale):
         try:
             ours = forward_dynamics(mech, q, v, tau, method=method, settings=settings)
         except SingularConfigurationError:

@@ -9,7 +9,10 @@
 //   lam_{k+1} = lam_k + alpha (J x_{k+1} + g),
 // until max |x_{k+1} - x_k| <= tol (1 + max |x_{k+1}|), or the change stops shrinking
 // (max |x_{k+1} - x_k| >= max |x_k - x_{k-1}|: the round-off floor of an ill-conditioned
-// M, as in iterative refinement), or max_iter iterates:
+// M, as in iterative refinement), or max_iter iterates; a correction more than
+// AL_DIVERGENCE_GROWTH times the previous one while above AL_DIVERGENCE_RTOL (1 + max |x|)
+// is a divergence (P's solve wrong by more than its size): SingularError, with the message of
+// augmented_lagrangian.diverged_message:
 // min (x - x*)^T M (x - x*) s.t. J x + g = 0 for rhs = M x* (a projection), or the
 // accelerations for rhs = tau - h, g = gamma (the dynamics).
 //
@@ -29,6 +32,9 @@
 #include <Eigen/Dense>
 
 #include <limits>
+
+#include "constants.hpp"
+#include "errors.hpp"
 
 namespace closedchain {
 
@@ -75,6 +81,16 @@ int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter,
     ops.add_j(x, rc);
     lam += alpha * rc;
     const double change = delta.cwiseAbs().maxCoeff();
+    if (change > AL_DIVERGENCE_GROWTH * last_change &&
+        change > AL_DIVERGENCE_RTOL * (1.0 + x.cwiseAbs().maxCoeff()))
+      throw SingularError{
+          "the augmented-Lagrangian iteration diverged: its correction grew from " +
+              fmt("%.3e", last_change) + " to " + fmt("%.3e", change) + " at iterate " +
+              std::to_string(it + 1) + " (alpha = " + fmt("%.3e", alpha) +
+              "); the penalized mass matrix M + alpha J^T J is too ill-conditioned for its "
+              "solve: lower the penalty (SolverSettings.al_penalty) or use method='kkt'",
+          std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN(),
+          Vec()};
     if (change <= tol * (1.0 + x.cwiseAbs().maxCoeff()) || change >= last_change) break;
     last_change = change;
   }

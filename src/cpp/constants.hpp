@@ -31,6 +31,28 @@ constexpr double AL_PENALTY_DROP = 0.0001;
 /// (closedchain.dynamics.augmented_lagrangian.MAX_PENALTY_LOWERINGS)
 constexpr int AL_MAX_PENALTY_LOWERINGS = 8;
 
+/// The iteration has diverged (:func:`solve_augmented_lagrangian` raises) when a
+/// correction is more than DIVERGENCE_GROWTH times the previous one while above
+/// DIVERGENCE_RTOL (1 + max |a|). In exact arithmetic the corrections shrink (by
+/// 1 / (1 + alpha sigma^2) along each direction of J): they stall near a singular
+/// position (robot_delta: 2.082e-2 then 2.083e-2 rad/s^2, iterate 4) and stop shrinking
+/// at the round-off floor of an ill-conditioned P (about cond(P) eps times the previous
+/// correction); they grow by more only when the solve with P is wrong by more than its
+/// own size, and the iterate then carries that error.
+/// (closedchain.dynamics.augmented_lagrangian.DIVERGENCE_GROWTH)
+constexpr double AL_DIVERGENCE_GROWTH = 2.0;
+
+/// See :data:`DIVERGENCE_GROWTH` [-].
+/// (closedchain.dynamics.augmented_lagrangian.DIVERGENCE_RTOL)
+constexpr double AL_DIVERGENCE_RTOL = 1e-06;
+
+/// Equilibration floor of the KKT matrix (:func:`kkt_scaling`): a diagonal entry of M, or a
+/// row norm of J D_v, below this fraction of the largest is scaled as if it were that
+/// fraction, so that a row holding only round-off (a lost rank) is not blown up to unit
+/// norm and still shows in the condition number [-].
+/// (closedchain.dynamics.kkt.KKT_SCALE_FLOOR)
+constexpr double KKT_SCALE_FLOOR = 1e-08;
+
 /// Relative tolerance under which two candidate pivot columns of the re-partitioning QR
 /// count as tied (:func:`partition_coordinates` with ``tie_rtol``): the Agile Eye's
 /// columns tie exactly (platform columns of norm sqrt(2), distal ones of sqrt(2)/2), so

@@ -100,6 +100,10 @@ struct CoreData {
   DenseLU kkt;
   /// solve_kkt: the right-hand side [tau - h, -gamma], then the solution [a, lam].
   Vec kkt_solution;
+  /// solve_kkt: the equilibration D = diag(d_v, d_c) of K (kkt_equilibration).
+  Vec kkt_scale;
+  /// solve_kkt: D^-1 (kkt_equilibration), the scaling of K^-1 in its condition estimate.
+  Vec kkt_unscale;
   /// Work vectors, shapes (nv,) and (nc,).
   Vec dq, tmp_v, tmp_c;
   /// Cholesky factors of M, of an (nc, nc) matrix (Delassus, J J^T) and of the reduced mass.
@@ -201,6 +205,8 @@ inline CoreData::CoreData(const CoreModel &model)
   for (Vec *x : {&nullspace_a, &independent_a, &independent_dq}) *x = Vec::Zero(m);
   terms_q = Vec::Constant(nq, std::numeric_limits<double>::quiet_NaN());
   kkt_solution = Vec::Zero(nv + nc);
+  kkt_scale = Vec::Ones(nv + nc);
+  kkt_unscale = Vec::Ones(nv + nc);
   unpack_y = Vec::Zero(2 * m);
   M = Mat::Zero(nv, nv);
   P = Mat::Zero(nv, nv);

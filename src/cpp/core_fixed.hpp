@@ -157,6 +157,7 @@ inline void rk4_projected(const CoreModel &model, CoreData &data, double t, cons
   project(model, data, qm, data.vs, true);
   // the retake rule's midpoint indicator, while J is at qm (no kinematics pass later)
   if (model.stage_zone > 0) data.midpoint_indicator = rank_indicator(model, data, qm);
+  check_stage_regular(model, data, qm, t + h / 2);
   accel(model, data, t + h / 2, qm, data.vs);
   chart_rate(model, data, q, data.dv, data.vs,
              data.k2v);  // the stages' rates in the chart about q (run_fixed)
@@ -165,6 +166,7 @@ inline void rk4_projected(const CoreModel &model, CoreData &data, double t, cons
   pinocchio::integrate(model.tree, q, data.dv, data.qs);
   data.vs = v + (h / 2) * data.k2a;
   project(model, data, data.qs, data.vs, true);
+  check_stage_regular(model, data, data.qs, t + h / 2);
   accel(model, data, t + h / 2, data.qs, data.vs);
   chart_rate(model, data, q, data.dv, data.vs, data.k3v);
   data.k3a = data.a;
@@ -172,6 +174,7 @@ inline void rk4_projected(const CoreModel &model, CoreData &data, double t, cons
   pinocchio::integrate(model.tree, q, data.dv, data.qs);
   data.vs = v + h * data.k3a;
   project(model, data, data.qs, data.vs, true);
+  check_stage_regular(model, data, data.qs, t + h);
   accel(model, data, t + h, data.qs, data.vs);
   chart_rate(model, data, q, data.dv, data.vs, data.k4v);
   data.k4a = data.a;

@@ -43,6 +43,15 @@ bool cond_J_below(const CoreModel &model, CoreData &data, double limit);
 /// - unless singular_robust, cond(J) > singular_cond: SingularError.
 void check_regular(const CoreModel &model, CoreData &data, const RefV &q, double t);
 
+/// cond(J) of the kept rows at a projected stage point q of rk4_projected (unless
+/// singular_robust): above singular_cond, check_regular's SingularError (an adaptive
+/// step's ends can straddle a singular position that its stages come close to),
+/// unless the declared rows stay regular (the step's end re-selects the rows).
+void check_stage_regular(const CoreModel &model, CoreData &data, const RefV &q, double t);
+
+/// Throw check_regular's SingularError: cond(J) = cond > singular_cond at (t, q).
+[[noreturn]] void throw_singular_J(const CoreModel &model, const RefV &q, double t, double cond);
+
 /// Condition number of the nc largest singular values of the declared rows' J at the
 /// last eval_phi_J (LoopClosure.check_rows): above singular_cond the mechanism itself
 /// is singular there, no re-selection of rows helps.
@@ -144,19 +153,34 @@ inline void check_regular(const CoreModel &model, CoreData &data, const RefV &q,
       throw RowCheckRequired{"kept rows degenerate (condition number " + fmt("%.3e", cond) +
                                  ") at t = " + fmt("%.9g", t) + " s",
                              t};
-    std::string msg =
-        model.name + ": at t = " + fmt("%.9g", t) +
-        " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
-        " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
-        fmt("%.1e", model.singular_cond) +
-        "): a singular configuration, where the motion is not determined by the equations "
-        "and method '" +
-        model.method_name +
-        "' loses accuracy without any error estimate "
-        "noticing; to pass singular positions use method='augmented-lagrangian' with "
-        "stabilization='stage-projection' (and a fixed-step integrator)";
-    throw SingularError{msg, cond, t, Vec(q)};
+    throw_singular_J(model, q, t, cond);
   }
+}
+
+inline void throw_singular_J(const CoreModel &model, const RefV &q, double t, double cond) {
+  std::string msg =
+      model.name + ": at t = " + fmt("%.9g", t) +
+      " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
+      " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
+      fmt("%.1e", model.singular_cond) +
+      "): a singular configuration, where the motion is not determined by the equations "
+      "and method '" + model.method_name + "' loses accuracy without any error estimate "
+      "noticing; to pass singular positions use method='augmented-lagrangian' with "
+      "stabilization='stage-projection' (and a fixed-step integrator)";
+  throw SingularError{msg, cond, t, Vec(q)};
+}
+
+inline void check_stage_regular(const CoreModel &model, CoreData &data, const RefV &q, double t) {
+  if (model.singular_robust || data.rows_only || model.nc == 0) return;
+  eval_phi_J(model, data, q);
+  if (model.banded_normal && cond_J_below(model, data, model.singular_cond)) return;
+  const double cond = cond_J(model, data);
+  if (cond <= model.singular_cond) return;
+  // Kept rows that degenerate where the declared ones do not: the step's end re-selects.
+  if (static_cast<int>(model.declared_rows.size()) > model.nc &&
+      declared_cond(model, data) <= model.singular_cond)
+    return;
+  throw_singular_J(model, q, t, cond);
 }
 
 inline double declared_cond(const CoreModel &model, CoreData &data) {

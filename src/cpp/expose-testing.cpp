@@ -2,11 +2,13 @@
 // built only with -DCLOSEDCHAIN_TESTING=ON (scripts/setup_venv.sh test, the test install).
 // tests/test_compiled.py compares tree_terms.hpp's passes with pinocchio.crba,
 // nonLinearEffects, computeJointJacobians and forwardKinematics; tests/test_pindata.py
-// compares lean_data with pinocchio.Data field by field.
+// compares lean_data with pinocchio.Data field by field; tests/test_dynamics.py runs
+// al_iteration.hpp's iteration with P factored at another penalty (a divergence).
 
 #include <boost/python.hpp>
 #include <eigenpy/eigenpy.hpp>
 
+#include "al_iteration.hpp"
 #include "common.hpp"
 #include "errors.hpp"
 #include "lean_data.hpp"
@@ -86,6 +88,35 @@ bool lean_data_matches_full(const Model &model) {
   return lean == full;
 }
 
+/// al_iterate's products on dense M, J and the Cholesky factor of P.
+struct DenseTestOps {
+  const Mat &M, &J;
+  const Eigen::LLT<Mat> &P;
+  void add_j(const Vec &x, Vec &y) const { y += J * x; }
+  void sub_m(const Vec &x, Vec &y) const { y -= M * x; }
+  void sub_jt(const Vec &y, Vec &x) const { x -= J.transpose() * y; }
+  void sub_scaled_jt(double s, const Vec &y, Vec &x) const { x -= s * (J.transpose() * y); }
+  void solve(Vec &x) const { x = P.solve(x); }
+};
+
+/// al_iterate from x = 0 with P = M + alpha_factor J^T J factored and the iteration's
+/// penalty alpha: (x, lam, iterates); its SingularError as SingularConfigurationError.
+bp::tuple al_iterate_py(const Mat &M, const Mat &J, const Vec &rhs, const Vec &g,
+                        double alpha_factor, double alpha, double tol, int max_iter) {
+  Eigen::LLT<Mat> P(M + alpha_factor * J.transpose() * J);
+  DenseTestOps ops{M, J, P};
+  Vec x = Vec::Zero(M.rows()), delta = x, lam = Vec::Zero(J.rows()), rc = lam;
+  int it = 0;
+  try {
+    it = al_iterate(ops, alpha, rhs, g, max_iter, tol, x, lam, delta, rc);
+  } catch (const SingularError &e) {
+    bp::object cls = bp::import("closedchain.exceptions").attr("SingularConfigurationError");
+    PyErr_SetObject(cls.ptr(), cls(e.message).ptr());
+    bp::throw_error_already_set();
+  }
+  return bp::make_tuple(x, lam, it);
+}
+
 }  // namespace
 
 }  // namespace closedchain
@@ -103,4 +134,7 @@ BOOST_PYTHON_MODULE(_core_testing) {
           "Test helper: per joint, whether tree_terms.hpp's revolute path computes it.");
   bp::def("_lean_data_matches_full", &lean_data_matches_full, bp::args("model"),
           "Test helper: lean_data(model) equals pinocchio.Data(model) apart from those tensors.");
+  bp::def("_al_iterate", &al_iterate_py,
+          bp::args("M", "J", "rhs", "g", "alpha_factor", "alpha", "tol", "max_iter"),
+          "Test helper: (x, lam, iterates) of al_iteration.hpp with P factored at alpha_factor.");
 }

@@ -244,6 +244,18 @@ class LoopClosure:
         dropped rows of a rounded model stay open by it)."""
         return max(tol, self.mismatch_tol)
 
+    def declared_cond(self, model: pin.Model, data: pin.Data, q: np.ndarray) -> float:
+        """Return the condition number of the declared rows' J at q, shape (n_declared, nv),
+        over its :attr:`rank` largest singular values (inf when the rank-th is below the
+        rank tolerance): above the singular bound the mechanism itself is singular at q."""
+        return self._rank_cond(layer_jacobian(model, data, self.declared, q))
+
+    def _rank_cond(self, J: np.ndarray) -> float:
+        """Return s_1 / s_rank of J, shape (n_declared, nv) (inf: s_rank below tolerance)."""
+        s_all = np.linalg.svd(J, compute_uv=False)
+        r = self.rank
+        return float(s_all[0] / s_all[r - 1]) if s_all[r - 1] > self._tol else math.inf
+
     def declared_residuals(self, model: pin.Model, data: pin.Data, q: np.ndarray) -> np.ndarray:
         """Return phi(q) of every declared row, shape (n_declared,) [m or -]."""
         return layer_phi(model, data, self.declared, q)
@@ -308,9 +320,8 @@ class LoopClosure:
         if not (open_row or degenerate):
             return False
         J = layer_jacobian(model, data, self.declared, q)
-        s_all = np.linalg.svd(J, compute_uv=False)
         r = self.rank
-        cond_all = s_all[0] / s_all[r - 1] if s_all[r - 1] > self._tol else np.inf
+        cond_all = self._rank_cond(J)
         if cond_all > settings.cond_max:
             raise SingularConfigurationError.build(
                 self.name,

@@ -86,6 +86,18 @@ PENALTY_DROP = 1e-4
 #: reports P as not positive definite (M singular).
 MAX_PENALTY_LOWERINGS = 8
 
+#: The iteration has diverged (:func:`solve_augmented_lagrangian` raises) when a
+#: correction is more than DIVERGENCE_GROWTH times the previous one while above
+#: DIVERGENCE_RTOL (1 + max |a|). In exact arithmetic the corrections shrink (by
+#: 1 / (1 + alpha sigma^2) along each direction of J): they stall near a singular
+#: position (robot_delta: 2.082e-2 then 2.083e-2 rad/s^2, iterate 4) and stop shrinking
+#: at the round-off floor of an ill-conditioned P (about cond(P) eps times the previous
+#: correction); they grow by more only when the solve with P is wrong by more than its
+#: own size, and the iterate then carries that error.
+DIVERGENCE_GROWTH = 2.0
+#: See :data:`DIVERGENCE_GROWTH` [-].
+DIVERGENCE_RTOL = 1e-6
+
 _TINY = float(np.finfo(float).tiny)
 
 
@@ -424,6 +436,11 @@ def solve_augmented_lagrangian(
 
     Returns:
         ``(a, lam, iterations)``.
+
+    Raises:
+        SingularConfigurationError: the iteration diverged (a correction grew more than
+            :data:`DIVERGENCE_GROWTH` times while above :data:`DIVERGENCE_RTOL` (1 +
+            max abs(a)): no stall and no round-off floor).
     """
     # Written as corrections, a_{k+1} = a_k + P^-1 (tau - h - M a_k - J^T lam_k
     # - alpha J^T (J a_k + gamma)), the same iteration in exact arithmetic: the
@@ -447,6 +464,10 @@ def solve_augmented_lagrangian(
         lam += step
         it += 1
         change = float(np.abs(delta).max())
+        if change > DIVERGENCE_GROWTH * last_change and change > DIVERGENCE_RTOL * (
+            1.0 + float(np.abs(a).max())
+        ):
+            raise SingularConfigurationError(diverged_message(last_change, change, it, alpha))
         # Converged, or the change stopped shrinking: the round-off floor of an
         # ill-conditioned M (as iterative refinement stops), which tol may lie below.
         if change <= tol * (1.0 + float(np.abs(a).max())) or change >= last_change:
@@ -462,6 +483,23 @@ def solve_augmented_lagrangian(
     r_d = rhs - M @ a - J.T @ lam
     lam += solver.normal.solve(J, J @ r_d)
     return a, lam, it
+
+
+def diverged_message(last_change: float, change: float, it: int, alpha: float) -> str:
+    """Return the one-line message of a diverged iteration (the compiled core's too).
+
+    Args:
+        last_change: the previous correction, max abs [rad/s^2 or m/s^2].
+        change: the correction that grew, max abs.
+        it: its iterate number.
+        alpha: the penalty.
+    """
+    return (
+        f"the augmented-Lagrangian iteration diverged: its correction grew from "
+        f"{last_change:.3e} to {change:.3e} at iterate {it} (alpha = {alpha:.3e}); the "
+        "penalized mass matrix M + alpha J^T J is too ill-conditioned for its solve: lower "
+        "the penalty (SolverSettings.al_penalty) or use method='kkt'"
+    )
 
 
 @register(
@@ -489,7 +527,10 @@ def augmented_lagrangian(
     """
     ws = compute_terms(mech, q, v, settings.baumgarte)
     if mech.nc == 0:
-        return scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos"), np.zeros(0)
+        # Non-finite terms (a diverged state) give non-finite a, which the callers
+        # report with the state, not scipy's ValueError.
+        a = scipy.linalg.solve(ws.M, tau - ws.h, assume_a="pos", check_finite=False)
+        return a, np.zeros(0)
     solver = penalized_solver(mech)
     alpha = solver.factor_relative(ws.M, ws.J, settings.al_penalty, mech, q)
     a, lam, it = solve_augmented_lagrangian(

@@ -307,6 +307,9 @@ def rk4_projected(problem: Problem, t, q, v, a, h, last_stage=None):
     """One rk4 step of length h [s] from (q, v) with accelerations a at t, every stage and
     the end projected (mass-orthogonal); return (q+, v+, J at the projected midpoint).
 
+    Each projected stage is checked for a singular position
+    (:meth:`~.problem.Problem.check_stage_regular`).
+
     Args:
         last_stage: passed to :func:`step_rk4`.
     """
@@ -316,6 +319,7 @@ def rk4_projected(problem: Problem, t, q, v, a, h, last_stage=None):
     def deriv(ts, qs, vs):
         qs, vs = project(problem, qs, vs, ts, mass_orthogonal=True)
         stages.append(problem.jacobian(qs))  # the projection's; the first: stage 2's
+        problem.check_stage_regular(qs, ts, stages[-1])  # the ends can straddle a singularity
         return vs, problem.accel(ts, qs, vs, multipliers=False)  # lam of stages: unread
 
     q_new, v_new = step_rk4(mech.model, deriv, t, q, v, a, h, last_stage)

@@ -299,7 +299,7 @@ class Problem:
                 raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1
         if not np.all(np.isfinite(a)):
-            raise SimulationError(f"non-finite acceleration at t = {t:.9g} s, q = {q}", t)
+            raise SimulationError(nonfinite_message(self.mech.name, t, q, v), t)
         self.lam = lam
         return a
 
@@ -340,15 +340,13 @@ class Problem:
         J = self.jacobian(q)
         _, dep, cond = self.mech.closure.partition_at(J)
         if cond > self.settings.partition_singular_cond:
-            raise SingularConfigurationError.build(
-                self.mech.name,
+            raise self._singular(
                 "the best-conditioned J_D of any partition of the coordinates",
-                q=q,
-                cond=cond,
-                bound=self.settings.partition_singular_cond,
-                bound_name="partition_singular_cond",
-                hint=f"no partition has a regular J_D: a singular configuration; {passing_hint()}",
-                t=t,
+                q,
+                t,
+                cond,
+                "partition_singular_cond",
+                f"no partition has a regular J_D: a singular configuration; {passing_hint()}",
             )
         if np.array_equal(dep, self.dep):
             return False
@@ -448,25 +446,104 @@ class Problem:
         if self.singular_robust:
             self.check_rows(q, t, phi=phi)
             return
-        s = np.linalg.svd(self.jacobian(q), compute_uv=False)
-        cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+        cond = _cond(self.jacobian(q))
         if self.check_rows(q, t, kept_cond=cond, phi=phi):
-            s = np.linalg.svd(self.jacobian(q), compute_uv=False)
-            cond = float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+            cond = _cond(self.jacobian(q))
         if cond > self.settings.singular_cond:
-            raise SingularConfigurationError.build(
-                self.mech.name,
-                "the constraint Jacobian",
-                q=q,
-                cond=cond,
-                bound=self.settings.singular_cond,
-                bound_name="singular_cond",
-                state="is close to losing rank",
-                hint="a singular configuration, where the motion is not determined by the "
-                f"equations and method {self.method!r} loses accuracy without any error "
-                f"estimate noticing; {passing_hint()}",
-                t=t,
-            )
+            raise self._singular_J(q, t, cond)
+
+    def check_stage_regular(self, q: np.ndarray, t: float, J: np.ndarray) -> None:
+        """Raise :meth:`check_regular`'s error when cond(J) of the kept rows at a projected
+        stage point (t, q) of a projected rk4 step exceeds ``settings.singular_cond``.
+
+        The step's ends alone can straddle a singular position that its stages come
+        close to (rk43's steps pass the 4-bar's change point so). Not when
+        :attr:`singular_robust`; nor where the kept rows degenerate while the declared
+        ones do not (the step's end re-selects them).
+
+        Args:
+            q: the stage's configuration, shape (nq,).
+            t: its time [s].
+            J: the kept rows' J at q, shape (nc, nv).
+        """
+        if self.mech.nc == 0 or self.singular_robust:
+            return
+        cond = _cond(J)
+        if cond <= self.settings.singular_cond:
+            return
+        mech = self.mech
+        closure = mech.closure
+        if closure.declared.nc > closure.active.nc and (
+            closure.declared_cond(mech.model, mech.data, q) <= self.settings.singular_cond
+        ):
+            return
+        raise self._singular_J(q, t, cond)
+
+    def _singular_J(self, q: np.ndarray, t: float, cond: float) -> SingularConfigurationError:
+        """Return the error of a constraint Jacobian with cond(J) = ``cond`` above
+        ``settings.singular_cond`` at (t, q)."""
+        return self._singular(
+            "the constraint Jacobian",
+            q,
+            t,
+            cond,
+            "singular_cond",
+            "a singular configuration, where the motion is not determined by the "
+            f"equations and method {self.method!r} loses accuracy without any error "
+            f"estimate noticing; {passing_hint()}",
+            state="is close to losing rank",
+        )
+
+    def _singular(
+        self,
+        what: str,
+        q: np.ndarray,
+        t: float,
+        cond: float,
+        bound_name: str,
+        hint: str,
+        *,
+        state: str = "is singular",
+    ) -> SingularConfigurationError:
+        """Return the error of ``what`` with condition number ``cond`` above the setting
+        ``bound_name`` at (t, q)."""
+        return SingularConfigurationError.build(
+            self.mech.name,
+            what,
+            q=q,
+            cond=cond,
+            bound=getattr(self.settings, bound_name),
+            bound_name=bound_name,
+            state=state,
+            hint=hint,
+            t=t,
+        )
+
+
+def _cond(J: np.ndarray) -> float:
+    """Return the 2-norm condition number of J, shape (nc, nv) (inf when rank-deficient)."""
+    s = np.linalg.svd(J, compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+
+
+def nonfinite_message(name: str, t: float, q: np.ndarray, v: np.ndarray) -> str:
+    """Return the one-line message of non-finite accelerations at (t, q, v) (the compiled
+    core's too): the size of the state says whether the integration diverged before.
+
+    Args:
+        name: the mechanism's name.
+        t: time [s].
+        q: configuration, shape (nq,).
+        v: velocity, shape (nv,) [rad/s or m/s].
+    """
+    with np.errstate(invalid="ignore"):
+        q_max = float(np.max(np.abs(q), initial=0.0))
+        v_max = float(np.max(np.abs(v), initial=0.0))
+    return (
+        f"{name}: non-finite acceleration at t = {t:.9g} s (max |q| = {q_max:.3e}, max |v| = "
+        f"{v_max:.3e}): the state diverged or the method failed there; a fixed step beyond "
+        "the motion's stability limit diverges: use integrator='rk43' or a smaller dt"
+    )
 
 
 def passing_hint() -> str:
