@@ -284,18 +284,18 @@ struct DenseLU {
     return reciprocal(anorm, inverse_norm_estimate(nullptr));
   }
 
-  // 1 / (bnorm est), or 0 where est is 0 or not finite (a singular matrix).
+  /// 1 / (bnorm est), or 0 where est is 0 or not finite (a singular matrix).
   static double reciprocal(double bnorm, double est) {
     if (!std::isfinite(est)) return 0.0;
     return est > 0 ? 1.0 / (est * bnorm) : 0.0;
   }
 
-  // Estimate of ||S A^-1 S||_1 for S = diag(s) (s == nullptr: S = I, dgecon's
-  // ||A^-1||_1) from the factors (regular, n > 0): Hager's method as refined by Higham
-  // (LAPACK's dlacn2: at most 5 sign iterations, then the alternating test vector), a
-  // lower bound of the norm, with solves by the factors wrapped by S on both sides
-  // (S A^-T S for the transpose). The kkt method's cond(D K D) = ||D K D||_1 ||D^-1
-  // K^-1 D^-1||_1 with s = 1 / d, on K's own factors. No heap allocation.
+  /// Estimate of ||S A^-1 S||_1 for S = diag(s) (s == nullptr: S = I, dgecon's
+  /// ||A^-1||_1) from the factors (regular, n > 0): Hager's method as refined by Higham
+  /// (LAPACK's dlacn2: at most 5 sign iterations, then the alternating test vector), a
+  /// lower bound of the norm, with solves by the factors wrapped by S on both sides
+  /// (S A^-T S for the transpose). The kkt method's cond(D K D) = ||D K D||_1 ||D^-1
+  /// K^-1 D^-1||_1 with s = 1 / d, on K's own factors. No heap allocation.
   double inverse_norm_estimate(const double *s) {
     const Eigen::Index n = A.rows();
     auto apply = [&](Eigen::VectorXd &x, bool transposed) {
@@ -334,12 +334,12 @@ struct DenseLU {
     return std::max(est, 2.0 * ey.lpNorm<1>() / (3.0 * static_cast<double>(n)));
   }
 
-  // Upper bound of ||S A^-1 S||_1 for S = diag(s), s > 0, from the factors (regular):
-  // A = P^T L U, so |S A^-1 S| <= S M(U)^-1 M(L)^-1 P S elementwise (the comparison
-  // matrices, as inverse_norm_bound), whose 1-norm, its largest column sum, is
-  // max_j s_j (P^T z)_j for M(U)^T y = s, M(L)^T z = y (two triangular solves); a
-  // relative margin of 1e-8 covers its own round-off. Above the estimate (a lower bound
-  // of the same norm), so bound <= limit shows the estimate is too.
+  /// Upper bound of ||S A^-1 S||_1 for S = diag(s), s > 0, from the factors (regular):
+  /// A = P^T L U, so |S A^-1 S| <= S M(U)^-1 M(L)^-1 P S elementwise (the comparison
+  /// matrices, as inverse_norm_bound), whose 1-norm, its largest column sum, is
+  /// max_j s_j (P^T z)_j for M(U)^T y = s, M(L)^T z = y (two triangular solves); a
+  /// relative margin of 1e-8 covers its own round-off. Above the estimate (a lower bound
+  /// of the same norm), so bound <= limit shows the estimate is too.
   double scaled_inverse_norm_bound(const double *s) {
     switch (A.rows()) {
       case 1: return scaled_inverse_norm_bound_n<1>(s);
@@ -355,6 +355,7 @@ struct DenseLU {
   }
 
  private:
+  /// scaled_inverse_norm_bound at size size<N>().
   template <int N>
   double scaled_inverse_norm_bound_n(const double *s) {
     const Eigen::Index n = size<N>();
