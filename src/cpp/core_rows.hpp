@@ -198,10 +198,12 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
     fill_rows(model, data, false, false, true);
   } else {
     invalidate_kinematics(data);
-    if (tree)
-      tree_terms<false>(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
-    else
+    if (tree) {  // tree_terms without M: its two halves, the same arithmetic
+      joint_kinematics(model.tree_plan, model.tree, data.tree, q);
+      bias_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.h);
+    } else {
       tree_terms(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
+    }
     mark(0);
     placements(model, data);
     frame_motion(model, data);

@@ -19,17 +19,6 @@
 
 namespace closedchain {
 
-/// ||A||_1 of a symmetric matrix A, shape (n, n), from its lower triangle.
-inline double lower_norm1(const Eigen::MatrixXd &A) {
-  double anorm = 0.0;
-  for (Eigen::Index j = 0; j < A.cols(); ++j) {
-    double c = 0.0;
-    for (Eigen::Index i = 0; i < A.rows(); ++i) c += std::abs(i >= j ? A(i, j) : A(j, i));
-    anorm = std::max(anorm, c);
-  }
-  return anorm;
-}
-
 class SmallLLT {
  public:
   //: Size from which Eigen's blocked LLT is used.
@@ -183,5 +172,16 @@ class FixedLDLT {
   Eigen::Matrix<double, N, 1> inv_;
   double min_pivot_ratio_ = 1.0;
 };
+
+/// ||A||_1 of a symmetric matrix A, shape (n, n), from its lower triangle.
+inline double lower_norm1(const Eigen::MatrixXd &A) {
+  double anorm = 0.0;
+  for (Eigen::Index j = 0; j < A.cols(); ++j) {
+    double c = 0.0;
+    for (Eigen::Index i = 0; i < A.rows(); ++i) c += std::abs(i >= j ? A(i, j) : A(j, i));
+    anorm = std::max(anorm, c);
+  }
+  return anorm;
+}
 
 }  // namespace closedchain

@@ -344,8 +344,8 @@ inline void backward(const TreePlan &plan, const Model &model, Data &data, Eigen
 // M (full, symmetric) and h = nonLinearEffects(q, v) into M, h; data.oMi, data.J
 // (world columns), data.ov and data.oa (bias accelerations, a = 0, gravity
 // excluded) of every joint. M: (nv, nv), h: (nv,), sized by the caller.
-// plan: TreePlan(model). WithM = false: M not touched (the tree path, core_tree.hpp).
-template <bool WithM = true, typename ConfigVectorType, typename TangentVectorType>
+// plan: TreePlan(model).
+template <typename ConfigVectorType, typename TangentVectorType>
 void tree_terms(const TreePlan &plan, const pinocchio::Model &model, pinocchio::Data &data,
                 const Eigen::MatrixBase<ConfigVectorType> &q,
                 const Eigen::MatrixBase<TangentVectorType> &v, Eigen::MatrixXd &M,
@@ -362,7 +362,7 @@ void tree_terms(const TreePlan &plan, const pinocchio::Model &model, pinocchio::
                  typename Pass1::ArgsType(model, data, q.derived(), v.derived()));
     }
   }
-  backward<WithM, true>(plan, model, data, M, h);
+  backward(plan, model, data, M, h);
 }
 
 // The kinematics at q: liMi, oMi and the world Jacobian columns data.J of every
