@@ -57,6 +57,8 @@ SHARED = (
     ("RK43_MIN_FACTOR", "double", "closedchain.simulate.rk43", "MIN_FACTOR"),
     ("RK43_MAX_FACTOR", "double", "closedchain.simulate.rk43", "MAX_FACTOR"),
     ("RK43_ERROR_EXPONENT", "double", "closedchain.simulate.rk43", "ERROR_EXPONENT"),
+    ("TREE_SOLVE_MIN_NV", "int", "closedchain.compiled", "TREE_SOLVE_MIN_NV"),
+    ("TREE_SOLVE_NV_PER_ROW", "int", "closedchain.compiled", "TREE_SOLVE_NV_PER_ROW"),
     ("NORMALIZATION_TOL", "double", "closedchain.mechanism", "NORMALIZATION_TOL"),
 )
 

@@ -403,6 +403,36 @@ def test_scaling_run_writes_every_series(tmp_path):
     assert (tmp_path / "scaling.csv").read_text().startswith("family,n,nv,nc,method")
 
 
+@pytest.mark.skipif(not cc_compiled.available(), reason="compiled core not built")
+@pytest.mark.parametrize(("family", "n", "method"), [("chain", 300, None), ("leg-pair", 30, "kkt")])
+def test_scaling_start_runs_the_timed_span(tmp_path, family, n, method):
+    """The scaling page's timed state runs the longest in-simulate span (rk4 at 1 ms):
+    with unit independent rates the 300-link chain left its manifold at t = 2 ms and the
+    30-link leg pair reached a flat (singular) position at 0.15 s, both reported refused."""
+    from closedchain import load, simulate
+    from closedchain.benchmark.families import FAMILIES
+    from closedchain.benchmark.scaling import EXTRA_STEPS, SIMULATE_DT, SIMULATE_STEPS, _start
+    from closedchain.dynamics.base import DEFAULT_METHOD
+
+    path = tmp_path / f"{family}{n}.urdf"
+    path.write_text(FAMILIES[family].urdf(n))
+    mech = load(path)
+    q, v = _start(mech, FAMILIES[family].start)
+    steps = SIMULATE_STEPS + EXTRA_STEPS[1]
+    traj = simulate(
+        mech,
+        q,
+        v,
+        steps * SIMULATE_DT,
+        method=method or DEFAULT_METHOD,
+        integrator="rk4",
+        dt=SIMULATE_DT,
+        backend="compiled",
+    )
+    assert traj.info.steps == steps
+    assert traj.max_constraint_residual <= 1e-9
+
+
 def test_bench_scaling_refuses_an_unknown_family(capsys):
     with pytest.raises(SystemExit):
         cli.main(["bench", "--scaling", "tripod"])

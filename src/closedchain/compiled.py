@@ -48,6 +48,14 @@ _CORE_KIND = np.zeros(max(ROW_TRANSLATION, ROW_ROTATION) + 1, dtype=np.int32)
 _CORE_KIND[ROW_TRANSLATION] = 1
 _CORE_KIND[ROW_ROTATION] = 2
 
+#: The compiled core's tree path (src/cpp/core_tree.hpp: M^-1 x by the articulated-body
+#: recursion in O(nv), M never formed, a dense solve of the loop rows only) serves kkt and
+#: augmented-lagrangian on a mechanism of more than TREE_SOLVE_MIN_NV velocities and at
+#: most nv / TREE_SOLVE_NV_PER_ROW rows, unless the band path was chosen: where it costs
+#: less than the dense path (docs/design/compiled-core.md).
+TREE_SOLVE_MIN_NV = 12
+TREE_SOLVE_NV_PER_ROW = 4
+
 #: Integrator codes of the compiled loops.
 INTEGRATOR_CODES = (
     {}

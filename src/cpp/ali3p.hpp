@@ -145,7 +145,7 @@ class Ali3pLoop {
     data_.n_evals = 0;
     accel(model_, data_, t, q, v);  // M, J at q0 from its evaluation
     a = data_.a;
-    alpha_ = nc ? settings_.penalty * data_.M.trace() /
+    alpha_ = nc ? settings_.penalty * mass_at_J(model_, data_).trace() /
                       std::max(data_.J.squaredNorm(), std::numeric_limits<double>::min())
                 : 0.0;
     // The multiplier estimate, warm-started from the method's multipliers.
@@ -229,7 +229,7 @@ class Ali3pLoop {
       closedchain::m_mul_sub(model_, data_, x, f);
       f = -f;
     } else {
-      f.noalias() = data_.M * x;
+      f.noalias() = mass_at_J(model_, data_) * x;
     }
   }
 
@@ -259,6 +259,7 @@ class Ali3pLoop {
   /// Factorize P = M + alpha J^T J at the last evaluation (at q, for the error); the
   /// data's own factor (its solve_al's alpha) is gone.
   void factor(const Vec &q, double t) {
+    mass_at_J(model_, data_);  // M itself (the tree path does not form it)
     if (!factor_penalized(model_, data_, alpha_))
       singular(model_, q, "the penalized mass matrix M + alpha J^T J",
                std::numeric_limits<double>::infinity(),

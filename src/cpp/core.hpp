@@ -7,6 +7,7 @@
 //   core_rows.hpp                   cut frames, phi, J, gamma, the tree terms (eval_terms)
 //   core_structure.hpp              sparsity, band paths, products over the structure
 //   core_methods.hpp                KKT, Schur, null space, augmented Lagrangian, reduced
+//   core_tree.hpp                   the tree path of kkt and augmented-lagrangian
 //   core_projection.hpp             projection and the checks of every step
 //   core_partitioning.hpp           coordinate partitioning (dependent solve, re-partitioning)
 //   core_recording.hpp              the samples of a run
@@ -34,6 +35,7 @@
 #include "core_recording.hpp"
 #include "core_rows.hpp"
 #include "core_structure.hpp"
+#include "core_tree.hpp"
 #include "settings.hpp"
 
 namespace closedchain {
@@ -68,6 +70,12 @@ class Core {
   bp::tuple set_band(const Eigen::VectorXi &perm, bool banded_p, bool banded_n) {
     return closedchain::set_band(model_, data_, perm, banded_p, banded_n);
   }
+
+  /// True when kkt and augmented-lagrangian take the tree path (CoreModel::tree_solves).
+  bool tree_solves() const { return model_.tree_solves(); }
+
+  /// Allow the tree path (chosen at construction by size) or not (set_tree_path).
+  void set_tree_path(bool on) { closedchain::set_tree_path(model_, data_, on); }
 
   /// (banded_p, banded_n, b_p, b_n) as set by set_band.
   bp::tuple band_info() const {

@@ -20,6 +20,8 @@
 #include "dense_lu.hpp"
 #include "lean_data.hpp"
 #include "small_llt.hpp"
+#include "tree_rows.hpp"
+#include "tree_solve.hpp"
 
 namespace closedchain {
 
@@ -124,9 +126,21 @@ struct CoreData {
   BandCholesky penalized_band, normal_band;
   /// solve_penalized_band: the right-hand side in the order perm, shape (nv,).
   Vec band_work;
-  /// SVD of J (null space, minimum-norm solutions); eigenvalues of J J^T (cond_J).
+  /// SVD of J (null space, minimum-norm solutions); eigenvalues of J J^T (cond_J) or of the
+  /// tree path's Delassus matrix.
   Eigen::JacobiSVD<Mat> svd;
   Eigen::SelfAdjointEigenSolver<Mat> eig;
+
+  // -- the tree path (core_tree.hpp) -------------------------------------------------------
+
+  /// The articulated-body factorization of M at data.J_at (tree_solve.hpp).
+  TreeFactor mass_factor;
+  /// W = M^-1 J^T, the Delassus matrix D and the factors of D and of I / alpha + D at
+  /// data.J_at (tree_rows.hpp).
+  TreeRows tree_rows;
+  /// mass_factor, W and D are at data.J_at; so is the factor of D (its condition checked),
+  /// and that of I / alpha + D.
+  bool tree_factored = false, delassus_factored = false, tree_penalized = false;
 
   // -- the integrators ---------------------------------------------------------------------
 
@@ -191,7 +205,9 @@ struct CoreData {
 };
 
 inline CoreData::CoreData(const CoreModel &model)
-    : tree(lean_data(model.tree)) {  // no nv^3 tensors: see lean_data.cpp
+    : tree(lean_data(model.tree)),  // no nv^3 tensors: see lean_data.cpp
+      mass_factor(model.tree),
+      tree_rows(model.nv, model.nc) {
   const int nq = model.nq, nv = model.nv, nc = model.nc, m = std::max(nv - nc, 0);
   resize_frames(model);
   for (Vec *x : {&h, &a, &tau, &zero_v, &dq, &tmp_v, &mv, &al_wv, &rhs_v, &terms_v,

@@ -84,8 +84,12 @@ struct BandAlOps {
 void solve(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, const Vec &tau,
            double t);
 
-/// The configured method's solve at the terms of the last evaluation (model.method).
+/// The configured method's solve at the terms of the last evaluation (model.method; kkt and
+/// augmented-lagrangian on the tree path where model.tree_solves()).
 void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
+
+/// kkt or the augmented Lagrangian on the tree path (defined in core_tree.hpp).
+void solve_tree(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
 /// Augmented Lagrangian at the acceleration level (closedchain/dynamics/
 /// augmented_lagrangian.py, Bayo & Ledesma 1996): P = M + alpha J^T J with
@@ -183,6 +187,7 @@ inline void solve(const CoreModel &model, CoreData &data, const RefV &q, const R
 
 inline void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                      double t) {
+  if (model.tree_solves()) return solve_tree(model, data, q, tau, t);
   switch (model.method) {
     case KKT:
       solve_kkt(model, data, q, tau, t);

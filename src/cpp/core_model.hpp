@@ -139,6 +139,19 @@ struct CoreModel {
   /// Half bandwidths of M + alpha J^T J in the order perm and of J J^T.
   int penalized_bandwidth = 0, normal_bandwidth = 0;
 
+  // -- the tree path (core_tree.hpp) -------------------------------------------------------
+
+  /// kkt and augmented-lagrangian may solve by the articulated-body recursion, M never
+  /// formed: chosen at construction for nv > TREE_SOLVE_MIN_NV and nc <= nv /
+  /// TREE_SOLVE_NV_PER_ROW (constants.hpp), changed by set_tree_path.
+  bool tree_path = false;
+
+  /// The configured method's solve takes the tree path: tree_path, a method that has one
+  /// (kkt, augmented-lagrangian) and no band path (set_band).
+  bool tree_solves() const {
+    return tree_path && !banded_penalized && (method == KKT || method == AUGMENTED_LAGRANGIAN);
+  }
+
   // -- settings (Core::configure) ----------------------------------------------------------
 
   /// The dynamics method and its name.
@@ -236,6 +249,7 @@ inline CoreModel::CoreModel(bp::object model_obj, const std::string &mechanism_n
   split_indices(nv, ind, method_independent, method_dependent);
   start_independent = method_independent;
   sparsity();
+  tree_path = nv > TREE_SOLVE_MIN_NV && nc * TREE_SOLVE_NV_PER_ROW <= nv;
 }
 
 inline int CoreModel::frame_index(int fid) {

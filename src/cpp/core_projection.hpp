@@ -15,6 +15,7 @@
 #include "core_model.hpp"
 #include "core_rows.hpp"
 #include "core_structure.hpp"
+#include "core_tree.hpp"
 #include "errors.hpp"
 #include "stage_terms.hpp"
 
@@ -211,13 +212,7 @@ inline void min_norm(const CoreModel &model, CoreData &data, const Vec &b, Vec &
     data.JJt.triangularView<Eigen::Lower>() = data.J.lazyProduct(data.J.transpose());
     bool regular = false;
     if (data.llt_jj.compute(data.JJt)) {
-      double anorm = 0.0;  // ||J J^T||_1 from its lower triangle
-      for (Eigen::Index j = 0; j < model.nc; ++j) {
-        double c = 0.0;
-        for (Eigen::Index i = 0; i < model.nc; ++i)
-          c += std::abs(i >= j ? data.JJt(i, j) : data.JJt(j, i));
-        anorm = std::max(anorm, c);
-      }
+      const double anorm = lower_norm1(data.JJt);
       if (anorm * data.llt_jj.inverse_norm_bound(INVERSE_BOUND_MARGIN) < 1.0 / MIN_NORM_RCOND) {
         regular = true;
       } else {
@@ -259,14 +254,8 @@ inline void project(const CoreModel &model, CoreData &data, Vec &q, Vec &v, bool
   }
   if (model.project_velocities && mass_orth) {
     eval_phi_J(model, data, q);
-    if (!data.M_at_J) {
-      mass_at_kinematics(model.tree_plan, model.tree, data.tree, data.M);
-      data.M_at_J = true;
-      data.P_factored = false;
-      data.terms_q.setConstant(
-          std::numeric_limits<double>::quiet_NaN());  // data.M, not data.potential_energy
-    }
-    data.mv.noalias() = data.M * v;
+    if (model.tree_solves()) return tree_project_velocity(model, data, q, v);
+    data.mv.noalias() = mass_at_J(model, data) * v;
     // From v itself (problem.project's a0): its correction is small here.
     al_solve(model, data, q, std::numeric_limits<double>::quiet_NaN(), data.mv, data.zero_c, v,
              true);

@@ -12,6 +12,7 @@
 #include "core_model.hpp"
 #include "core_partitioning.hpp"
 #include "core_rows.hpp"
+#include "core_tree.hpp"
 #include "errors.hpp"
 
 namespace closedchain {
@@ -103,10 +104,14 @@ inline void record(const CoreModel &model, CoreData &data, Samples &out, double 
   }
   check_drift(model, res, worst, t);
   // Energies: from the last eval_terms when it was at (q, v) (the loops record
-  // right after accel there), else from Pinocchio's own passes.
+  // right after accel there), else from Pinocchio's own passes. On the tree path (M not
+  // formed) the kinetic energy is the Newton-Euler product's, while the factorization is
+  // at q.
   double ke, pe;
-  if (q == data.terms_q && v == data.terms_v) {
-    ke = 0.5 * v.dot(data.M.lazyProduct(v));
+  const bool tree_ke = model.tree_solves() && !data.M_at_J;
+  if (q == data.terms_q && v == data.terms_v &&
+      (!tree_ke || (data.tree_factored && data.J_at_valid && q == data.J_at))) {
+    ke = tree_ke ? tree_kinetic_energy(model, data, v) : 0.5 * v.dot(data.M.lazyProduct(v));
     pe = data.potential_energy;
   } else {
     ke = pinocchio::computeKineticEnergy(model.tree, data.tree, q, v);

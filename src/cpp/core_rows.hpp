@@ -60,12 +60,20 @@ void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &q);
 /// computed (tree_terms_at_kinematics; the same arithmetic, the same results); when
 /// data.M is at q too (data.M_at_J: the stage projection's velocity step computed it, or an
 /// evaluation at q with another v), only h (bias_at_kinematics, stage_terms.hpp),
-/// and data.M and the factor of M + alpha J^T J (data.P_factored) stay.
+/// and data.M and the factor of M + alpha J^T J (data.P_factored) stay. On the tree
+/// path (model.tree_solves()) M is not formed: data.M_at_J stays false (mass_at_J).
 template <class Mark>
 void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, Mark &&mark);
 
 /// eval_terms without a mark (no caller to tell which joints moved).
 void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v);
+
+/// data.M at the kinematics in data.tree (those of data.J_at), formed there by the CRBA
+/// (mass_at_kinematics) unless it is already (data.M_at_J); when formed, the factor of
+/// M + alpha J^T J is dropped and data.terms_q forgotten (record() must not pair this M
+/// with data.potential_energy). Where the tree path skipped M (the stage projection's
+/// dense path, ALI3-P, inverse dynamics).
+const Mat &mass_at_J(const CoreModel &model, CoreData &data);
 
 /// phi of every declared row from the placements of the last kinematics pass.
 void declared_phi(const CoreModel &model, CoreData &data);
@@ -128,6 +136,7 @@ inline void invalidate_kinematics(CoreData &data) {
   data.J_at_valid = false;
   data.M_at_J = false;
   data.P_factored = false;
+  data.tree_factored = data.delassus_factored = data.tree_penalized = false;
 }
 
 inline void eval_phi(const CoreModel &model, CoreData &data, const RefV &q) {
@@ -175,8 +184,9 @@ inline void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &
 template <class Mark>
 inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v,
                        Mark &&mark) {
+  const bool tree = model.tree_solves();  // M not formed: the tree path factors it implicitly
   if (data.J_at_valid && q == data.J_at) {
-    if (data.M_at_J) {
+    if (data.M_at_J || tree) {
       bias_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.h);
     } else {
       tree_terms_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
@@ -189,7 +199,12 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
     fill_rows(model, data, false, false, true);
   } else {
     invalidate_kinematics(data);
-    tree_terms(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
+    if (tree) {  // tree_terms without M: its two halves, the same arithmetic
+      joint_kinematics(model.tree_plan, model.tree, data.tree, q);
+      bias_at_kinematics(model.tree_plan, model.tree, data.tree, q, v, data.h);
+    } else {
+      tree_terms(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
+    }
     mark(0);
     placements(model, data);
     frame_motion(model, data);
@@ -205,7 +220,7 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
   // potential energy (total mass and centre of mass in data.tree.oYcrb[0]) serve record().
   data.J_at = q;
   data.J_at_valid = true;
-  data.M_at_J = true;
+  if (!tree) data.M_at_J = true;
   data.terms_q = q;
   data.terms_v = v;
   data.potential_energy =
@@ -215,6 +230,16 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
 
 inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v) {
   eval_terms(model, data, q, v, [](int) {});
+}
+
+inline const Mat &mass_at_J(const CoreModel &model, CoreData &data) {
+  if (!data.M_at_J) {
+    mass_at_kinematics(model.tree_plan, model.tree, data.tree, data.M);
+    data.M_at_J = true;
+    data.P_factored = false;
+    data.terms_q.setConstant(std::numeric_limits<double>::quiet_NaN());
+  }
+  return data.M;
 }
 
 inline void declared_phi(const CoreModel &model, CoreData &data) {

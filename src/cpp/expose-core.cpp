@@ -38,6 +38,10 @@ void expose_core() {
       .def("set_band", &Core::set_band, bp::args("self", "perm", "banded_p", "banded_n"),
            "Use band Cholesky factorizations: of M + alpha J^T J in the order perm "
            "(banded_p) and of J J^T (banded_n); returns their half bandwidths.")
+      .def("tree_solves", &Core::tree_solves, bp::args("self"),
+           "True when kkt and augmented-lagrangian take the tree path (core_tree.hpp).")
+      .def("set_tree_path", &Core::set_tree_path, bp::args("self", "on"),
+           "Allow the tree path (chosen at construction by size) or not (the dense path).")
       .def("band_info", &Core::band_info, bp::args("self"),
            "(banded_p, banded_n, b_p, b_n) as set by set_band.")
       .def("rows", &Core::py_rows, bp::args("self", "q", "v"),

@@ -144,7 +144,7 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
   const int nv = model.nv;
   invalidate_kinematics(data);
   eval_terms(model, data, qa.map(), va.map());
-  const Mat &M = data.M, &J = data.J;
+  const Mat &M = mass_at_J(model, data), &J = data.J;
   const Vec &h = data.h, &gamma = data.gamma;
   const Eigen::Index nc = J.rows();
   auto fail = [&](InverseStatus status, double cond) {

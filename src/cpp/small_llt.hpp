@@ -177,4 +177,15 @@ class FixedLDLT {
   double min_pivot_ratio_ = 1.0;   ///< min_k D_k / A_kk of the last successful compute.
 };
 
+/// ||A||_1 of a symmetric matrix A, shape (n, n), from its lower triangle.
+inline double lower_norm1(const Eigen::MatrixXd &A) {
+  double anorm = 0.0;
+  for (Eigen::Index j = 0; j < A.cols(); ++j) {
+    double c = 0.0;
+    for (Eigen::Index i = 0; i < A.rows(); ++i) c += std::abs(i >= j ? A(i, j) : A(j, i));
+    anorm = std::max(anorm, c);
+  }
+  return anorm;
+}
+
 }  // namespace closedchain

@@ -1,0 +1,201 @@
+"""The compiled core's tree path (src/cpp/tree_solve.hpp, core_tree.hpp): kkt and the
+default method on a long tree with few loop rows, M^-1 by the articulated-body
+recursion and M never formed, against the dense path of the same core and the numpy
+reference -- one evaluation, and whole runs of the default integrator (rk43), of rk4 with
+the stage projection's mass-orthogonal velocity step, and of ALI3-P."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import MODELS
+
+import closedchain as cc
+from closedchain import compiled
+from closedchain.benchmark.families import chain_urdf, leg_pair_urdf
+from closedchain.dynamics.base import SolverSettings, compute_terms
+
+pytestmark = pytest.mark.skipif(not compiled.available(), reason="compiled core not built")
+
+#: One evaluation, tree path against the dense path or the numpy reference: a
+#: round-off bound, ROUNDOFF_FACTOR eps kappa relative to the largest |a| or |W lam|
+#: (|lam| for lam), kappa the larger condition number of the KKT matrix and of the
+#: Delassus matrix J M^-1 J^T, and never below EVAL_RTOL.
+EVAL_RTOL = 1e-12
+ROUNDOFF_FACTOR = 10.0
+#: A fixed-step run (rk4 or ALI3-P at 1 ms), tree path against the dense path: the same
+#: steps, the round-off of the solves carried along; max |q - q_dense| [rad] (measured
+#: 1.5e-12 on the 30-link chain) and max |v - v_dense| relative to max |v| (3.5e-11).
+FIXED_STEP_TOL = 1e-10
+FIXED_STEP_VTOL = 1e-9
+#: A default run (rk43: adaptive step), tree path against the dense path and the numpy
+#: reference, max |q - q_ref| at the outputs [rad], and the energies relative to max |E|:
+#: measured 1.3e-11 and 7e-15 (the same steps), the bound allows for a step end that
+#: round-off moves (the local errors are held to rtol 1e-9, atol 1e-10).
+ADAPTIVE_TOL = 1e-8
+#: The recorded energy of a fixed-step run, tree path (1/2 v^T M v by Newton-Euler)
+#: against the dense path (the CRBA's M), relative to max |E| [1] (measured 4e-15).
+ENERGY_RTOL = 1e-12
+#: The test states: q_ref moved by about STATE_SPREAD / nv per independent joint [rad]
+#: (larger moves do not assemble the 100-link chain).
+STATE_SPREAD = 3.0
+#: ALI3-P's relative penalty on the 30-link chain (the default, 1e11, is more than its
+#: P = M + alpha J^T J takes: M's smallest eigenvalue is 2e-5).
+ALI3P_PENALTY = 1e6
+#: Simulated time of the runs [s].
+RUN_T = 0.02
+#: Chains (n links, one loop: 2 rows) and leg pairs (m links per leg, 4 loops: 8 rows).
+FAMILIES = {
+    "chain_30": (chain_urdf, 30),
+    "chain_100": (chain_urdf, 100),
+    "legs_30": (leg_pair_urdf, 30),
+}
+METHODS = ["kkt", "augmented-lagrangian"]
+
+
+@pytest.fixture(scope="module")
+def family(tmp_path_factory):
+    """``get(name)``: a mechanism of :data:`FAMILIES` (or ``chain_<n>``), loaded once."""
+    cache: dict[str, cc.Mechanism] = {}
+
+    def get(name: str) -> cc.Mechanism:
+        if name not in cache:
+            make, n = FAMILIES.get(name, (chain_urdf, int(name.rsplit("_", 1)[-1])))
+            path = tmp_path_factory.mktemp("tree") / f"{name}.urdf"
+            path.write_text(make(n))
+            cache[name] = cc.load(path)
+        return cache[name]
+
+    return get
+
+
+def _state(mech, rng):
+    """A consistent state near the reference pose (random states of long chains are hard
+    to assemble): q_ref moved along the independent coordinates, then assembled."""
+    q = mech.q_ref.copy()
+    step = STATE_SPREAD / mech.nv
+    q[mech.independent_idx_v] += step * rng.standard_normal(len(mech.independent_idx_v))
+    q = cc.assemble(mech, q, fixed="independent")
+    v = rng.standard_normal(mech.nv)
+    return q, cc.project_velocity(mech, q, v)
+
+
+def _tolerances(mech, q, v, lam_ref):
+    """(rtol, scale of a) of a comparison of one evaluation at (q, v)."""
+    ws = compute_terms(mech, q, v)
+    M, J = ws.M, ws.J
+    K = np.block([[M, J.T], [J, np.zeros((mech.nc, mech.nc))]])
+    W = np.linalg.solve(M, J.T)
+    kappa = max(np.linalg.cond(K), np.linalg.cond(J @ W))
+    rtol = max(EVAL_RTOL, ROUNDOFF_FACTOR * np.finfo(float).eps * kappa)
+    return rtol, float(np.max(np.abs(W @ lam_ref), initial=1.0))
+
+
+def _assert_close(mech, q, v, a, lam, a_ref, lam_ref):
+    rtol, scale = _tolerances(mech, q, v, lam_ref)
+    scale = max(1.0, scale, float(np.max(np.abs(a_ref))))
+    assert np.max(np.abs(a - a_ref)) <= rtol * scale
+    assert np.max(np.abs(lam - lam_ref)) <= rtol * max(1.0, float(np.max(np.abs(lam_ref))))
+
+
+class dense_path:
+    """Context: ``mech``'s shared compiled core (simulate's) without the tree path."""
+
+    def __init__(self, mech):
+        self.core = compiled.make_core(mech)
+
+    def __enter__(self):
+        self.core.set_tree_path(False)
+
+    def __exit__(self, *exc):
+        self.core.set_tree_path(True)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_tree_path_matches_the_dense_path_and_numpy(family, name, method, rng):
+    mech = family(name)
+    fd = compiled.compiled_dynamics(mech, method)
+    assert fd.core.tree_solves()
+    for _ in range(3):
+        q, v = _state(mech, rng)
+        tau = rng.standard_normal(mech.nv)
+        a, lam = fd.forward(q, v, tau)
+        fd.core.set_tree_path(False)
+        assert not fd.core.tree_solves()
+        a_dense, lam_dense = fd.forward(q, v, tau)
+        fd.core.set_tree_path(True)
+        ref = cc.forward_dynamics(mech, q, v, tau, method=method, backend="numpy")
+        _assert_close(mech, q, v, a, lam, a_dense, lam_dense)
+        _assert_close(mech, q, v, a, lam, ref.a, ref.lam)
+
+
+def test_tree_path_is_chosen_by_size(family, fourbar):
+    """More than TREE_SOLVE_MIN_NV velocities and at most nv / TREE_SOLVE_NV_PER_ROW rows;
+    the methods without a tree path never take it."""
+    assert compiled.TREE_SOLVE_MIN_NV == 12 and compiled.TREE_SOLVE_NV_PER_ROW == 4
+    assert not compiled.compiled_dynamics(fourbar, "kkt").core.tree_solves()  # nv 3
+    assert not compiled.compiled_dynamics(family("chain_12"), "kkt").core.tree_solves()
+    assert compiled.compiled_dynamics(family("chain_13"), "kkt").core.tree_solves()
+    assert not compiled.compiled_dynamics(family("chain_30"), "schur").core.tree_solves()
+    nfourbar = cc.load(MODELS / "nfourbar_2.urdf")  # nv 5, nc 4
+    assert not compiled.compiled_dynamics(nfourbar, "augmented-lagrangian").core.tree_solves()
+
+
+def test_tree_path_kkt_checks_the_delassus_matrix(family, rng):
+    """kkt on the tree path refuses a Delassus matrix above cond_max, naming it."""
+    mech = family("chain_30")
+    q, v = _state(mech, rng)
+    fd = compiled.compiled_dynamics(mech, "kkt", SolverSettings(cond_max=1.0))
+    with pytest.raises(cc.SingularConfigurationError, match=r"the Delassus matrix J M\^-1 J\^T"):
+        fd.forward(q, v, np.zeros(mech.nv))
+
+
+@pytest.mark.parametrize("name", ["chain_30", "legs_30"])
+def test_default_run_on_the_tree_path(family, name, rng):
+    """The default integrator (rk43, stage projection with the mass-orthogonal velocity
+    step) follows the dense path's and the numpy reference's trajectory; the recorded
+    energy (Newton-Euler's 1/2 v^T M v) is the CRBA's."""
+    mech = family(name)
+    q, v = _state(mech, rng)
+    t_eval = np.linspace(0.0, RUN_T, 5)
+    traj = cc.simulate(mech, q, v, RUN_T, t_eval=t_eval, backend="compiled")
+    with dense_path(mech):
+        dense = cc.simulate(mech, q, v, RUN_T, t_eval=t_eval, backend="compiled")
+    ref = cc.simulate(mech, q, v, RUN_T, t_eval=t_eval, backend="numpy")
+    assert traj.info.method == "augmented-lagrangian" and traj.info.integrator == "rk43"
+    assert np.max(np.abs(traj.q - dense.q)) <= ADAPTIVE_TOL
+    assert np.max(np.abs(traj.q - ref.q)) <= ADAPTIVE_TOL
+    assert traj.max_constraint_residual <= 1e-9
+    e_scale = max(1.0, float(np.max(np.abs(dense.energy))))
+    assert np.max(np.abs(traj.energy - dense.energy)) <= ADAPTIVE_TOL * e_scale
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_fixed_step_run_on_the_tree_path(family, method, rng):
+    """rk4 at a fixed step (the default method: stage projection with the mass-orthogonal
+    velocity step; kkt: end-of-step projection) takes the dense path's steps."""
+    mech = family("chain_30")
+    q, v = _state(mech, rng)
+    kw = dict(method=method, integrator="rk4", dt=1e-3, backend="compiled")
+    traj = cc.simulate(mech, q, v, RUN_T, **kw)
+    with dense_path(mech):
+        dense = cc.simulate(mech, q, v, RUN_T, **kw)
+    assert traj.info.steps == dense.info.steps
+    assert np.max(np.abs(traj.q - dense.q)) <= FIXED_STEP_TOL
+    assert np.max(np.abs(traj.v - dense.v)) <= FIXED_STEP_VTOL * max(1.0, np.max(np.abs(dense.v)))
+    e_scale = max(1.0, float(np.max(np.abs(dense.energy))))
+    assert np.max(np.abs(traj.energy - dense.energy)) <= ENERGY_RTOL * e_scale
+
+
+def test_ali3p_on_the_tree_path(family, rng):
+    """ALI3-P forms M where it needs it (Core::mass_matrix on the tree path). Its own
+    P = M + alpha J^T J keeps a fixed penalty: ALI3P_PENALTY, which the chain's P takes."""
+    mech = family("chain_30")
+    q, v = _state(mech, rng)
+    settings = cc.SimulationSettings(ali3p_penalty=ALI3P_PENALTY)
+    kw = dict(integrator="ali3p", dt=1e-3, backend="compiled", settings=settings)
+    traj = cc.simulate(mech, q, v, RUN_T, **kw)
+    with dense_path(mech):
+        dense = cc.simulate(mech, q, v, RUN_T, **kw)
+    assert np.max(np.abs(traj.q - dense.q)) <= FIXED_STEP_TOL
