@@ -164,10 +164,9 @@ inline void throw_singular_J(const CoreModel &model, const RefV &q, double t, do
       " s the constraint Jacobian is close to losing rank at q = " + vec_str(q) +
       " (condition number " + fmt("%.3e", cond) + " > singular_cond " +
       fmt("%.1e", model.singular_cond) +
-      "): a singular configuration, where the motion is not determined by the equations "
+      "); a singular configuration, where the motion is not determined by the equations "
       "and method '" + model.method_name + "' loses accuracy without any error estimate "
-      "noticing; to pass singular positions use method='augmented-lagrangian' with "
-      "stabilization='stage-projection' (and a fixed-step integrator)";
+      "noticing; " + PASSING_HINT;
   throw SingularError{msg, cond, t, Vec(q)};
 }
 
