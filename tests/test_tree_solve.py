@@ -13,6 +13,7 @@ from conftest import MODELS
 import closedchain as cc
 from closedchain import compiled
 from closedchain.benchmark.families import chain_urdf, leg_pair_urdf
+from closedchain.dynamics.augmented_lagrangian import PenalizedSolver
 from closedchain.dynamics.base import SolverSettings, compute_terms
 
 pytestmark = pytest.mark.skipif(not compiled.available(), reason="compiled core not built")
@@ -140,6 +141,20 @@ def test_tree_path_is_chosen_by_size(family, fourbar):
     assert not compiled.compiled_dynamics(family("chain_30"), "schur").core.tree_solves()
     nfourbar = cc.load(MODELS / "nfourbar_2.urdf")  # nv 5, nc 4
     assert not compiled.compiled_dynamics(nfourbar, "augmented-lagrangian").core.tree_solves()
+
+
+@pytest.mark.parametrize("name", ["chain_30", "legs_30", "chain_10", "nfourbar"])
+def test_band_exclusion_agrees_with_the_band_search(family, nfourbar, name):
+    """compiled._band_excluded (a clique bound, no pattern formed) never excludes a band
+    the numpy backend's search would choose, and excludes the chains' and leg pairs'."""
+    mech = nfourbar(10) if name == "nfourbar" else family(name)
+    solver = PenalizedSolver(mech)
+    excluded = compiled._band_excluded(mech)
+    if excluded:
+        assert not solver.banded and not solver.normal.banded
+    assert excluded == (name != "nfourbar")
+    banded_p, banded_n, _, _ = compiled.make_core(mech, shared=False).band_info()
+    assert (banded_p, banded_n) == (solver.banded, solver.normal.banded)
 
 
 def test_tree_path_kkt_checks_the_delassus_matrix(family, rng):

@@ -192,7 +192,7 @@ def set_band(core, mech: Mechanism) -> tuple[int, int]:
     """
     from .dynamics.augmented_lagrangian import PenalizedSolver
 
-    if mech.nc == 0:
+    if mech.nc == 0 or _band_excluded(mech):
         return 0, 0
     solver = PenalizedSolver(mech)
     return tuple(
@@ -200,6 +200,27 @@ def set_band(core, mech: Mechanism) -> tuple[int, int]:
             np.asarray(solver.perm, dtype=np.int32), bool(solver.banded), bool(solver.normal.banded)
         )
     )
+
+
+def _band_excluded(mech: Mechanism) -> bool:
+    """True when neither band factorization of :func:`set_band` can be chosen, judged in
+    O(njoints) without forming the patterns (quadratic in nv: seconds at nv = 1000).
+
+    In any order, a symmetric pattern holding a clique of k columns has half bandwidth at
+    least k - 1; the velocity columns of the joints on one root path are a clique of M's
+    pattern (the CRBA couples every pair). So M + alpha J^T J is not banded when the deepest
+    path holds more than ``BANDED_FRACTION nv + 1`` columns; J J^T is never banded with at
+    most BANDED_MIN_SIZE rows (:class:`~closedchain.dynamics.augmented_lagrangian.NormalSolver`).
+    """
+    from .dynamics.augmented_lagrangian import BANDED_FRACTION, BANDED_MIN_SIZE
+
+    if mech.nc > BANDED_MIN_SIZE:
+        return False
+    model = mech.model
+    depth = [0] * model.njoints  # velocity columns from the root to each joint
+    for j in range(1, model.njoints):
+        depth[j] = depth[model.parents[j]] + model.joints[j].nv
+    return mech.nv <= BANDED_MIN_SIZE or max(depth) - 1 > BANDED_FRACTION * mech.nv
 
 
 def set_declared_rows(core, mech: Mechanism, kept: np.ndarray) -> None:

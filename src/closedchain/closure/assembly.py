@@ -340,8 +340,9 @@ def _free_bounds(model: pin.Model, free: np.ndarray, bounds) -> tuple[np.ndarray
     if bounds is None:
         return lower, upper
     lo, hi = bounds
+    owner = _joints_of_v(model)
     for n, i in enumerate(free):
-        jm = model.joints[_joint_of_v(model, int(i))]
+        jm = model.joints[int(owner[i])]
         k = jm.idx_q
         if jm.nq == jm.nv == 1 and max(abs(lo[k]), abs(hi[k])) < _UNBOUNDED and hi[k] > lo[k]:
             lower[n], upper[n] = lo[k], hi[k]
@@ -350,16 +351,12 @@ def _free_bounds(model: pin.Model, free: np.ndarray, bounds) -> tuple[np.ndarray
 
 def _q_of_v(model: pin.Model, free: np.ndarray) -> np.ndarray:
     """Configuration index of each free velocity coordinate's joint (its first entry)."""
-    return np.array([model.joints[_joint_of_v(model, int(i))].idx_q for i in free], dtype=int)
+    return np.asarray(model.idx_qs)[_joints_of_v(model)[free]]
 
 
-def _joint_of_v(model: pin.Model, i: int) -> int:
-    """Return the joint id owning velocity coordinate i."""
-    for j in range(1, model.njoints):
-        jm = model.joints[j]
-        if jm.idx_v <= i < jm.idx_v + jm.nv:
-            return j
-    raise IndexError(f"velocity index {i} out of range 0..{model.nv - 1}")
+def _joints_of_v(model: pin.Model) -> np.ndarray:
+    """The joint id owning each velocity coordinate, shape (nv,)."""
+    return np.repeat(np.arange(model.njoints), np.asarray(model.nvs))
 
 
 def _clip_into(model, q, free, lower, upper) -> np.ndarray:

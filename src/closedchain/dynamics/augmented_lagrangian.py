@@ -68,6 +68,8 @@ _NAME = "augmented-lagrangian"
 #: Use the banded factorization when the half bandwidth (after reverse
 #: Cuthill-McKee) is at most this fraction of nv; dense LAPACK otherwise.
 BANDED_FRACTION = 0.25
+#: Matrices of at most this size are factored dense, never as a band.
+BANDED_MIN_SIZE = 8
 
 
 #: Relative regularization of the normal equations that polish the multipliers.
@@ -152,7 +154,7 @@ class PenalizedSolver:
         b_rcm = _bandwidth(pattern[np.ix_(perm, perm)])
         if b_rcm < self.bandwidth:
             self.perm, self.bandwidth = np.asarray(perm), b_rcm
-        self.banded = nv > 8 and self.bandwidth <= BANDED_FRACTION * nv
+        self.banded = nv > BANDED_MIN_SIZE and self.bandwidth <= BANDED_FRACTION * nv
         self.nv = nv
         #: The kept rows this solver is for (see :func:`penalized_solver`).
         self.layer = mech.constraints
@@ -326,7 +328,7 @@ class NormalSolver:
         pattern = _couplings(cols)
         self.nc = len(pattern)
         self.bandwidth = _bandwidth(pattern)
-        self.banded = self.nc > 8 and self.bandwidth <= BANDED_FRACTION * self.nc
+        self.banded = self.nc > BANDED_MIN_SIZE and self.bandwidth <= BANDED_FRACTION * self.nc
 
     def solve(self, J: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """Return x with (J J^T + eps I) x = rhs.
