@@ -120,3 +120,41 @@ def test_export_nests_deeper_than_the_recursion_limit(tmp_path):
     assert text.count("<body ") == n
     assert text.count("</body>") == n
     assert text.index('<body name="j0"') < text.index(f'<body name="j{n - 1}"')
+
+
+@pytest.mark.parametrize("family", ["chain", "leg_pair"])
+def test_load_mujoco_in_pieces_is_the_model_of_the_whole_text(tmp_path, monkeypatch, family):
+    """MuJoCo's XML parser nests a few hundred bodies at most: load_mujoco parses deeper
+    trees in pieces of XML_DEPTH nested bodies joined with MjSpec. Cut every 4 bodies, a
+    14-link chain and a leg pair (branched, 4 loops) give the model MuJoCo parses from the
+    whole text: the same bodies, joints, sites and equalities by name, the same
+    accelerations."""
+    from closedchain.benchmark.families import chain_urdf, leg_pair_urdf
+    from closedchain.export import mjcf
+
+    path = tmp_path / f"{family}.urdf"
+    path.write_text(chain_urdf(14) if family == "chain" else leg_pair_urdf(6))
+    mech = cc.load(path)
+    whole = mujoco.MjModel.from_xml_string(export_mjcf(mech))
+    monkeypatch.setattr(mjcf, "XML_DEPTH", 4)
+    pieces, _ = load_mujoco(mech)
+    for kind, count in (
+        (mujoco.mjtObj.mjOBJ_BODY, "nbody"),
+        (mujoco.mjtObj.mjOBJ_JOINT, "njnt"),
+        (mujoco.mjtObj.mjOBJ_SITE, "nsite"),
+        (mujoco.mjtObj.mjOBJ_EQUALITY, "neq"),
+    ):
+        assert getattr(pieces, count) == getattr(whole, count) > 0
+        names = [
+            [mujoco.mj_id2name(m, kind, i) for i in range(getattr(m, count))]
+            for m in (whole, pieces)
+        ]
+        assert names[0] == names[1]
+    q, v = cc.random_consistent_state(mech, np.random.default_rng(3))
+    qacc = []
+    for m in (whole, pieces):
+        d = mujoco.MjData(m)
+        d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)
+        mujoco.mj_forward(m, d)
+        qacc.append(d.qacc.copy())
+    np.testing.assert_array_equal(qacc[0], qacc[1])

@@ -142,7 +142,7 @@ def mujoco_forward(mech: Mechanism, q, v) -> Callable[[], object] | None:
         return None
     try:
         m, d = load_mujoco(mech)
-    except ValueError as exc:  # e.g. MuJoCo's XML parser nests at most about 1000 bodies
+    except ValueError as exc:  # a model MuJoCo refuses
         logger.warning("MuJoCo cannot load %s: %s", mech.name, str(exc).splitlines()[-1])
         return None
     d.qpos[:], d.qvel[:] = mujoco_state(mech, q, v)

@@ -35,7 +35,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -56,6 +56,11 @@ REVOLUTE_CONNECT_OFFSET = 0.1
 CAPSULE_RADIUS = 0.01
 #: Shortest link drawn as a capsule [m] (shorter ones get a small sphere).
 MIN_CAPSULE_LENGTH = 1e-6
+#: Most nested bodies in one piece of MJCF that :func:`load_mujoco` gives MuJoCo's XML
+#: parser (400 parse, 600 do not).
+XML_DEPTH = 200
+#: Name prefix of the pieces :func:`load_mujoco` attaches (removed again).
+_PIECE_PREFIX = "closedchain_piece_"
 #: Bodies lighter than this get MuJoCo's minimum mass and inertia (massless
 #: intermediate links, e.g. Euler-angle gimbals) [kg, kg m^2].
 MIN_MASS = 1e-9
@@ -179,12 +184,49 @@ def export_mjcf(
         settings: solver parameters of the equalities and options.
 
     Returns:
-        The MJCF text.
+        The MJCF text. A tree deeper than a few hundred bodies (a 600-link chain) nests
+        deeper than MuJoCo's XML parser reads; :func:`load_mujoco` loads it in pieces.
 
     Raises:
         ClosedChainError: a joint or loop type MuJoCo cannot express (prismatic loops).
     """
     check_settings("settings", settings, MjcfSettings)
+    parts = _parts(mech, settings)
+    text, _ = _document(mech, settings, parts)
+    if path is not None:
+        with atomic_write(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        logger.info(
+            "wrote %s (%d bodies, %d equalities)",
+            path,
+            mech.model.njoints - 1,
+            len(parts.equalities),
+        )
+    return text
+
+
+class _Parts(NamedTuple):
+    """What the MJCF of a mechanism is made of (:func:`_parts`).
+
+    Attributes:
+        children: the child joints of each joint (0: the world).
+        sites: the site elements on each joint's body.
+        points: the loop points on each joint's body (drawn as capsules).
+        equalities: the equality elements of the loops.
+    """
+
+    children: dict[int, list[int]]
+    sites: dict[int, list[str]]
+    points: dict[int, list[np.ndarray]]
+    equalities: list[str]
+
+
+def _parts(mech: Mechanism, settings: MjcfSettings) -> _Parts:
+    """The bodies' children, sites and loop points and the loop equalities of ``mech``.
+
+    Raises:
+        ClosedChainError: a prismatic loop (no MuJoCo equality).
+    """
     model = mech.model
     layer = mech.declared
     children: dict[int, list[int]] = {j: [] for j in range(model.njoints)}
@@ -245,7 +287,28 @@ def export_mjcf(
                 f"site2={quoteattr(shifted[1])}{attrs}/>"
             )
 
+    return _Parts(children, sites, points, equalities)
+
+
+def _document(
+    mech: Mechanism,
+    settings: MjcfSettings,
+    parts: _Parts,
+    roots: list[int] | None = None,
+    depth: int | None = None,
+) -> tuple[str, list[tuple[int, int]]]:
+    """The MJCF text of the bodies of ``roots`` and their subtrees (None: the whole
+    mechanism, with the world's sites and the equalities), nesting at most ``depth``
+    bodies (None: no limit).
+
+    Returns:
+        The text and the cuts ``(parent joint, child joint)``: the subtrees left out below
+        the depth limit, in depth-first order.
+    """
+    model = mech.model
+    children, sites, points, equalities = parts
     lines: list[str] = []
+    cuts: list[tuple[int, int]] = []
 
     def open_body(j: int, indent: str) -> None:
         M = model.jointPlacements[j]
@@ -263,17 +326,22 @@ def export_mjcf(
         lines.extend(inner + s for s in sites[j])
 
     # Depth first with an explicit stack (a 1000-link chain nests 1000 bodies, deeper
-    # than Python's recursion limit): ("open", j, indent) writes body j and stacks its
+    # than Python's recursion limit): ("open", j, level) writes body j and stacks its
     # closing tag and then its children, first child on top.
-    stack = [("open", c, "    ") for c in reversed(children[0])]
+    whole = roots is None
+    stack = [("open", c, 1) for c in reversed(children[0] if whole else roots)]
     while stack:
-        what, j, indent = stack.pop()
+        what, j, level = stack.pop()
+        indent = "  " * (level + 1)
         if what == "close":
             lines.append(f"{indent}</body>")
             continue
         open_body(j, indent)
-        stack.append(("close", j, indent))
-        stack.extend(("open", c, indent + "  ") for c in reversed(children[j]))
+        stack.append(("close", j, level))
+        if depth is not None and level == depth:
+            cuts.extend((j, c) for c in children[j])
+        else:
+            stack.extend(("open", c, level + 1) for c in reversed(children[j]))
     g = model.gravity.linear
     text = "\n".join(
         [
@@ -282,21 +350,19 @@ def export_mjcf(
             f'  <option gravity="{_fmt(g)}" timestep="{settings.timestep:.17g}" '
             f'integrator="{settings.integrator}"/>',
             "  <worldbody>",
-            *["    " + s.replace("<site ", "<site ") for s in sites[0]],
+            *(["    " + s for s in sites[0]] if whole else []),
             *lines,
             "  </worldbody>",
-            "  <equality>",
-            *["    " + e for e in equalities],
-            "  </equality>",
+            *(
+                ["  <equality>", *["    " + e for e in equalities], "  </equality>"]
+                if whole
+                else []
+            ),
             "</mujoco>",
             "",
         ]
     )
-    if path is not None:
-        with atomic_write(path, "w", encoding="utf-8") as f:
-            f.write(text)
-        logger.info("wrote %s (%d bodies, %d equalities)", path, model.njoints - 1, len(equalities))
-    return text
+    return text, cuts
 
 
 def _require_mujoco():
@@ -310,10 +376,37 @@ def _require_mujoco():
     return mujoco
 
 
+@exclusive
 def load_mujoco(mech: Mechanism, *, settings: MjcfSettings = DEFAULT_MJCF_SETTINGS):
-    """Return ``(mjModel, mjData)`` of the exported mechanism (needs the ``mujoco`` package)."""
+    """Return ``(mjModel, mjData)`` of the exported mechanism (needs the ``mujoco`` package).
+
+    MuJoCo's XML parser nests a few hundred bodies at most (a 600-link chain does not
+    parse): the MJCF of :func:`export_mjcf` is parsed in pieces of at most
+    :data:`XML_DEPTH` nested bodies, each piece attached to its parent body with
+    ``mujoco.MjSpec`` (``MjsFrame.attach_body``), and compiled once: the model of the
+    whole text.
+    """
+    check_settings("settings", settings, MjcfSettings)
     mujoco = _require_mujoco()
-    model = mujoco.MjModel.from_xml_string(export_mjcf(mech, settings=settings))
+    parts = _parts(mech, settings)
+    text, cuts = _document(mech, settings, parts, depth=XML_DEPTH)
+    if not cuts:
+        model = mujoco.MjModel.from_xml_string(text)
+        return model, mujoco.MjData(model)
+    spec = mujoco.MjSpec.from_string(text)
+    names = mech.model.names
+    while cuts:
+        parent, child = cuts.pop(0)
+        piece, more = _document(mech, settings, parts, [child], XML_DEPTH)
+        body = mujoco.MjSpec.from_string(piece).body(names[child])
+        # attach_body prefixes every name it copies (an empty prefix warns and writes
+        # MUJOCO_LOG.TXT): take the names back, so that the equalities find their sites.
+        body = spec.body(names[parent]).add_frame().attach_body(body, _PIECE_PREFIX, "")
+        kinds = (mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_SITE)
+        for element in [body, *(e for kind in kinds for e in body.find_all(kind))]:
+            element.name = element.name.removeprefix(_PIECE_PREFIX)
+        cuts += more
+    model = spec.compile()
     return model, mujoco.MjData(model)
 
 
