@@ -164,7 +164,7 @@ def percall_entries(n: int) -> tuple[list[tuple], dict]:
             (
                 "inverse_dynamics",
                 b,
-                "pin.rnea",
+                pin_call,
                 lambda b=b: cc.inverse_dynamics(mech, q, v, a_P, actuated="independent", backend=b),
             ),
             ("compute_phi", b, pin_call, lambda b=b: cc.compute_phi(mech, q, backend=b)),
@@ -279,8 +279,9 @@ def write_percall_page(out: Path) -> None:
             "process, BLAS on one thread) on the n-link chain of the scaling page at its "
             "assembled start, moving; in brackets the ratio to the reference call: "
             "`pin.constraintDynamics` with one CONTACT_3D at the tip and ProximalSettings"
-            f"{PERCALL_PROXIMAL} (containers, its own Data) for forward dynamics and rows, "
-            "`pin.rnea` for inverse dynamics (actuated = the independent coordinates). "
+            f"{PERCALL_PROXIMAL} (containers, its own Data), for every call; `pin.rnea` (tree "
+            "inverse dynamics) is listed beside it. `inverse_dynamics` prescribes and "
+            "actuates the independent coordinates. "
             "`assemble` starts "
             f"{PERCALL_ASSEMBLY_OFFSET:g} rad (random directions) off the closure, holding "
             "the independent coordinates.",

@@ -37,8 +37,10 @@ def main() -> None:
         arr("P", RK45.P, "Dense-output polynomial coefficients, row-major (7, 4)."),
         "}  // namespace rk45\n\nnamespace dop853 {\n",
         f"/// Stages of a step.\nconstexpr int N_STAGES = {n};\n",
-        f"/// Stages including the dense output's extra ones.\nconstexpr int N_STAGES_EXTENDED = {d.N_STAGES_EXTENDED};\n",
-        f"/// Degree of the dense-output polynomial.\nconstexpr int INTERPOLATOR_POWER = {d.INTERPOLATOR_POWER};\n",
+        "/// Stages including the dense output's extra ones.\n"
+        f"constexpr int N_STAGES_EXTENDED = {d.N_STAGES_EXTENDED};\n",
+        "/// Degree of the dense-output polynomial.\n"
+        f"constexpr int INTERPOLATOR_POWER = {d.INTERPOLATOR_POWER};\n",
         arr("C", d.C[:n], "Nodes c_i of the 12 stages."),
         arr("A", d.A[:n, :n], "Runge-Kutta matrix a_ij of the 12 stages, row-major."),
         arr("B", d.B, "Weights b_i of the eighth-order solution."),

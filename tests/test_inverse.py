@@ -10,6 +10,7 @@ motion on both models.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -435,12 +436,33 @@ def test_wrong_number_of_coordinates(mechs):
         )
 
 
-def test_wrong_number_of_accelerations(mechs):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_result_has_every_field(mechs, states, backend):
+    """The result (made without the dataclass __init__ on the hot path) sets every field."""
+    mech = mechs["fourbar"]
+    q, v, a_P = states["fourbar"][0]
+    res = inverse_dynamics(mech, q, v, a_P, backend=backend)
+    assert set(vars(res)) == {f.name for f in dataclasses.fields(InverseDynamicsResult)}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.tau = None
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_wrong_number_of_accelerations(mechs, backend):
     mech = mechs["agile_eye"]
-    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
-        inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), [0.0, 0.0])
-    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
-        inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), [0.0, np.nan, 0.0])
+    for a_P in ([0.0, 0.0], [0.0, np.nan, 0.0], [np.inf, 0.0, 0.0]):
+        with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
+            inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), a_P, backend=backend)
+    # Checked before the singular J_F that the compiled core meets first.
+    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 1 finite numbers"):
+        inverse_dynamics(
+            mechs["fourbar"],
+            fourbar_rocker_dead_centre(),
+            np.zeros(3),
+            [np.nan],
+            coordinates=["rocker_joint"],
+            backend=backend,
+        )
 
 
 def test_duplicate_coordinate(mechs):

@@ -201,15 +201,13 @@ def _resolve_ordered(mech: Mechanism, spec: Iterable[str | int] | str, what: str
 
 class _Indices(NamedTuple):
     """Velocity indices of one (coordinates, actuated) spec: prescribed P, the others F,
-    actuated A, and (int32, for the compiled core) the same and the unactuated Abar."""
+    actuated A, and, for the compiled core, P, F, A and the unactuated Abar one after the
+    other (int32)."""
 
     P: np.ndarray
     F: np.ndarray
     A: np.ndarray
-    P32: np.ndarray
-    F32: np.ndarray
-    A32: np.ndarray
-    Abar32: np.ndarray
+    core: np.ndarray
 
 
 def _cached_indices(mech: Mechanism, coordinates, actuated) -> _Indices:
@@ -231,7 +229,7 @@ def _cached_indices(mech: Mechanism, coordinates, actuated) -> _Indices:
     F = np.setdiff1d(np.arange(mech.nv), P)
     A = mech.coordinate_indices(actuated)
     Abar = np.setdiff1d(np.arange(mech.nv), A)
-    out = _Indices(P, F, A, *(x.astype(np.int32) for x in (P, F, A, Abar)))
+    out = _Indices(P, F, A, np.concatenate([P, F, A, Abar]).astype(np.int32))
     if key is not None:
         cache[key] = out
     return out
@@ -359,38 +357,46 @@ def inverse_dynamics(
             f"({', '.join(mech.coordinate_names[i] for i in P)}) but the mobility is {mob}: "
             f"give the accelerations of exactly {mob} coordinates"
         )
-    a_P = np.asarray(a_independent, dtype=float).reshape(-1)
-    if a_P.shape != (mob,) or not np.isfinite(a_P).all():
-        raise ClosedChainError(
-            f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
-            f"got {np.asarray(a_independent)}"
-        )
-    if len(A) < mob:
-        raise ClosedChainError(
-            f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
-            f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
-            f"the accelerations of {mob} degrees of freedom; actuated must name at least {mob}"
-        )
-    if len(A) > mob and backend == "compiled":
-        raise InvalidArgumentError(
-            f"{mech.name}: backend='compiled': {len(A)} actuated coordinates for {mob} degrees "
-            "of freedom (redundant actuation: the minimum-norm torques); valid: "
-            "backend='numpy' or 'auto'"
-        )
-    fd = rows_evaluator(mech, backend) if len(A) == mob else None
+    a_P = np.asarray(a_independent, dtype=float)
+    if a_P.ndim != 1:
+        a_P = a_P.reshape(-1)
+    fd = rows_evaluator(mech, backend) if len(A) == mob and len(a_P) == mob else None
     if fd is not None:
-        # The core checks q, v and tau_passive, and solves the loop rows (percall.hpp).
+        # The core checks q, v and tau_passive, and solves the loop rows (percall.hpp). A
+        # non-finite a_independent makes M a + h non-finite: a failure status, checked below.
         status, cond, a, tau, lam, J, gamma, dyn, con = fd.core.inverse_checked(
-            q, v, a_P, idx.P32, idx.F32, idx.A32, idx.Abar32, tau_passive, settings.cond_max
+            q, v, a_P, idx.core, tau_passive, settings.cond_max
         )
         if status != INVERSE_OK:
-            q = np.asarray(q, dtype=float)
-            raise _failure(status, mech, q, v, a_P, idx, cond, settings)
+            _check_accelerations(a_P, a_independent, mob)
+            raise _failure(status, mech, np.asarray(q, dtype=float), v, a_P, idx, cond, settings)
     else:
+        _check_accelerations(a_P, a_independent, mob)
+        if len(A) < mob:
+            raise ClosedChainError(
+                f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
+                f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
+                f"the accelerations of {mob} degrees of freedom; actuated must name at least "
+                f"{mob}"
+            )
+        if len(A) > mob and backend == "compiled":
+            raise InvalidArgumentError(
+                f"{mech.name}: backend='compiled': {len(A)} actuated coordinates for {mob} "
+                "degrees of freedom (redundant actuation: the minimum-norm torques); valid: "
+                "backend='numpy' or 'auto'"
+            )
         tau, a, lam, J, gamma, dyn, con = _inverse_numpy(
             mech, q, v, a_P, idx, tau_passive, settings
         )
-    return InverseDynamicsResult(
+    return _new_result(tau, a, lam, A, P, J, gamma, dyn, con)
+
+
+def _new_result(tau, a, lam, A, P, J, gamma, dyn, con) -> InverseDynamicsResult:
+    """The :class:`InverseDynamicsResult` of these fields, made without the frozen
+    dataclass's ``__init__``, whose nine ``object.__setattr__`` calls cost 0.6 us of a
+    per-call budget of about 9 us (tests/test_inverse.py checks every field is set)."""
+    result = object.__new__(InverseDynamicsResult)
+    result.__dict__.update(
         tau=tau,
         a=a,
         lam=lam,
@@ -401,6 +407,16 @@ def inverse_dynamics(
         dynamics_residual=dyn,
         constraint_residual=con,
     )
+    return result
+
+
+def _check_accelerations(a_P: np.ndarray, a_independent, mob: int) -> None:
+    """Raise unless ``a_P`` (``a_independent`` as a flat float array) is ``mob`` finite numbers."""
+    if a_P.shape != (mob,) or not np.isfinite(a_P).all():
+        raise ClosedChainError(
+            f"a_independent must be {mob} finite numbers (one per prescribed coordinate), "
+            f"got {np.asarray(a_independent)}"
+        )
 
 
 def _inverse_numpy(mech: Mechanism, q, v, a_P, idx, tau_passive, settings) -> tuple:

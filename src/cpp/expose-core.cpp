@@ -58,7 +58,7 @@ void expose_core() {
            "(v projected onto J v = 0 moving the free entries, max |J v|, its row, "
            "sigma_max(J)): closedchain.project_velocity.")
       .def("inverse_checked", &inverse_checked,
-           bp::args("self", "q", "v", "a_P", "P", "F", "A", "Abar", "tau_passive", "cond_max"),
+           bp::args("self", "q", "v", "a_P", "indices", "tau_passive", "cond_max"),
            "(status, cond, a, tau, lam, J, gamma, dynamics residual, constraint residual): "
            "closedchain.inverse_dynamics with as many actuators as degrees of freedom.")
       .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),

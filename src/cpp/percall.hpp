@@ -6,6 +6,7 @@
 
 #pragma once
 
+#include <Eigen/Eigenvalues>
 #include <Eigen/SVD>
 
 #include <algorithm>
@@ -130,18 +131,24 @@ inline double lu_cond(const Eigen::PartialPivLU<Mat> &lu) {
 /// (the rows of [B -J^T] [tau_A; lam] = b off and on A; Abar, the other coordinates,
 /// has nc entries). The actuation's condition number is that of the numpy path,
 /// 1 / sigma_min(N^T B) = sqrt(1 + ||J_Abar^-1 J_A||_2^2) for an orthonormal null-space
-/// basis N of J. Returns (status, cond, a, tau, lam, J, gamma, max |M a + h + J^T lam -
+/// basis N of J. `indices` holds P, F, A and Abar one after the other (sizes mobility, nc,
+/// mobility, nc; mobility = a_P's size). Returns (status, cond, a, tau, lam, J, gamma, max |M a + h + J^T lam -
 /// tau|, max |J a + gamma|); with status != INVERSE_OK, cond is the failed matrix's
 /// condition number and the arrays are not meaningful.
 inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const Vec &a_P,
-                                 const Eigen::VectorXi &P, const Eigen::VectorXi &F,
-                                 const Eigen::VectorXi &A, const Eigen::VectorXi &Abar,
-                                 bp::object tau_passive, double cond_max) {
+                                 const Eigen::VectorXi &indices, bp::object tau_passive,
+                                 double cond_max) {
   const CoreModel &model = core.model();
   CoreData &data = core.data();
   const ConfigurationArg qa(q, model.tree);
   const VectorArg va(v, "v", model.nv);
   const int nv = model.nv;
+  const Eigen::Index n_P = a_P.size(), n_F = nv - n_P;
+  if (n_P > nv || indices.size() != 2 * nv)
+    throw BadArgument{"indices: expected P, F, A, Abar (" + std::to_string(2 * nv) +
+                      " entries), got " + std::to_string(indices.size())};
+  const auto P = indices.segment(0, n_P), F = indices.segment(n_P, n_F),
+             A = indices.segment(nv, n_P), Abar = indices.segment(nv + n_P, n_F);
   invalidate_kinematics(data);
   eval_terms(model, data, qa.map(), va.map());
   const Mat &M = mass_at_J(model, data), &J = data.J;
@@ -180,8 +187,15 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
     const Mat K = lu.solve(JA);
     double cond_g = std::numeric_limits<double>::infinity();
     if (std::isfinite(lu_cond(lu)) && K.allFinite()) {
-      const double k2 = K.size() ? Eigen::JacobiSVD<Mat>(K).singularValues()(0) : 0.0;
-      cond_g = std::sqrt(1.0 + k2 * k2);
+      // ||K||_2^2, the largest eigenvalue of the nc x nc K K^T (relatively accurate for
+      // the largest singular value, which is all the bound needs).
+      const Mat KKt = K * K.transpose();
+      const double k2 =
+          K.size() ? std::max(0.0, Eigen::SelfAdjointEigenSolver<Mat>(KKt, Eigen::EigenvaluesOnly)
+                                       .eigenvalues()
+                                       .maxCoeff())
+                   : 0.0;
+      cond_g = std::sqrt(1.0 + k2);
     }
     if (cond_g > cond_max) return fail(INVERSE_ACTUATION_SINGULAR, cond_g);
     Vec b_bar(Abar.size());
