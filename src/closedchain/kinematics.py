@@ -18,6 +18,7 @@ closure, then the same Gauss-Newton to polish
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
@@ -47,6 +48,8 @@ if TYPE_CHECKING:
 
 #: Largest relative |J v| (against |J| |v|) a projected velocity may keep.
 VELOCITY_TOL = 1e-12
+#: The row selection's rank tolerance (:class:`SelectionSettings`), read once.
+_RANK_TOL = SelectionSettings.rank_tol
 
 
 @exclusive
@@ -198,7 +201,7 @@ def project_velocity(
     # The declared rows are redundant (rank < rows): singular values below the
     # rank tolerance of the row selection are round-off, not directions to project
     # along (lstsq's default cutoff, ~1e-15, amplified Bricard's 1e-13 one to 1e-3).
-    rcond = SelectionSettings().rank_tol
+    rcond = _RANK_TOL
     # Every declared row: the same tangent space as the independent rows
     # wherever they describe the loops, and the right one where they do not.
     if compiled_rows:
@@ -216,7 +219,7 @@ def project_velocity(
         Jv = np.abs(J @ v)
         row, residual = int(np.argmax(Jv)), float(np.max(Jv, initial=0.0))
         sigma_max = float(np.linalg.norm(J, 2))
-    scale = max(1.0, sigma_max * float(np.linalg.norm(v)))
+    scale = max(1.0, sigma_max * math.sqrt(float(v @ v)))  # np.linalg.norm's formula
     if residual > VELOCITY_TOL * scale:
         raise ClosedChainError(
             f"{mech.name}: no velocity with J v = 0 keeps the held coordinates "
