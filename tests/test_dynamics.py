@@ -20,7 +20,7 @@ import scipy.linalg
 from conftest import ALL_METHODS, DATA_DIR
 
 import closedchain as cc
-from closedchain.dynamics import METHODS, SolverSettings, forward_dynamics
+from closedchain.dynamics import METHODS, SolverSettings, base, forward_dynamics
 from closedchain.dynamics.base import compute_terms
 from closedchain.dynamics.nullspace import check_rank
 from closedchain.dynamics.reduced import choose_partition, partition_condition, reduced_dynamics
@@ -219,6 +219,34 @@ def test_reduced_rejects_bad_partition(mechs, bad):
             settings=SolverSettings(),
             independent_idx_v=bad,
         )
+
+
+#: Why each checked matrix can be singular: the hint its error must give.
+HINTS = {
+    "KKT matrix": base.KKT_HINT,
+    "Delassus matrix": base.RANK_LOSS_HINT,
+    "reduced mass matrix": base.MASS_HINT,
+    "the mass matrix M ": base.MASS_HINT,
+}
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+@pytest.mark.parametrize("method", ["kkt", "schur", "nullspace", "reduced"])
+def test_ill_conditioning_hint_names_the_cause(mechs, method, backend):
+    """An ill-conditioned M is not blamed on J: each matrix's error gives the cause that
+    matrix can have (cond_max 1.01 makes the first check of each method fail)."""
+    mech = mechs["agile_eye"]
+    settings = SolverSettings(cond_max=1.01)
+    with pytest.raises(cc.SingularConfigurationError) as info:
+        forward_dynamics(
+            mech, mech.q_ref, np.zeros(mech.nv), method=method, settings=settings, backend=backend
+        )
+    message = str(info.value)
+    matched = [hint for what, hint in HINTS.items() if what in message]
+    if "constraint Jacobian J " in message or "J_D" in message:  # J's own checks
+        assert not matched
+    else:
+        assert len(matched) == 1 and matched[0] in message
 
 
 def test_nullspace_rank_threshold_message(mechs):

@@ -155,6 +155,21 @@ constexpr int TREE_SOLVE_NV_PER_ROW = 4;
 /// (closedchain.mechanism.NORMALIZATION_TOL)
 constexpr double NORMALIZATION_TOL = 1e-09;
 
+/// Why a matrix made of J (J, J_D, the Delassus matrix) is singular: the hint of its error.
+/// (closedchain.dynamics.base.RANK_LOSS_HINT)
+static const char *const RANK_LOSS_HINT =
+    "the constraint Jacobian has lost rank or the configuration is a singularity";
+
+/// Why the mass matrix M (or its restriction to the motion, N^T M N) is singular.
+/// (closedchain.dynamics.base.MASS_HINT)
+static const char *const MASS_HINT =
+    "the mass matrix is ill-conditioned: links far lighter or smaller than others (a long chain of light links) or a massless subtree";
+
+/// Why the KKT matrix [[M, J^T], [J, 0]] is singular: either.
+/// (closedchain.dynamics.base.KKT_HINT)
+static const char *const KKT_HINT =
+    "the constraint Jacobian has lost rank (a singular configuration) or the mass matrix is ill-conditioned (a long chain of light links; method='augmented-lagrangian' runs there)";
+
 /// How to pass singular positions, appended to the partitioning stabilization's
 /// singular errors (closedchain.simulate.problem.passing_hint()).
 static const char *const PASSING_HINT =

@@ -136,9 +136,10 @@ void al_solve(const CoreModel &model, CoreData &data, const RefV &q, double t, c
 [[noreturn]] void singular(const CoreModel &model, const RefV &q, const std::string &what,
                            double cond, const std::string &hint, double t);
 
-/// singular() unless the condition number 1 / rcond is at most cond_max.
+/// singular() with `hint` (RANK_LOSS_HINT, MASS_HINT or KKT_HINT: why `what` can be
+/// singular) unless the condition number 1 / rcond is at most cond_max.
 void check_rcond(const CoreModel &model, const RefV &q, const std::string &what, double rcond,
-                 double t);
+                 const char *hint, double t);
 
 /// The KKT method: [[M, J^T], [J, 0]] [a; lam] = [tau - h; -gamma] by LU (dense_lu.hpp);
 /// singular where cond(D K D) > cond_max (D: kkt_equilibration), estimated on K's factors.
@@ -373,12 +374,11 @@ inline void singular(const CoreModel &model, const RefV &q, const std::string &w
 }
 
 inline void check_rcond(const CoreModel &model, const RefV &q, const std::string &what,
-                        double rcond, double t) {
+                        double rcond, const char *hint, double t) {
   double cond =
       (rcond > 0 && std::isfinite(rcond)) ? 1.0 / rcond : std::numeric_limits<double>::infinity();
   if (!(cond <= model.cond_max))
-    singular(model, q, what, cond,
-             "the constraint Jacobian has lost rank or the configuration is a singularity", t);
+    singular(model, q, what, cond, hint, t);
 }
 
 inline void kkt_equilibration(const CoreModel &model, CoreData &data) {
@@ -449,10 +449,10 @@ inline void solve_kkt(const CoreModel &model, CoreData &data, const RefV &q, con
   const char *what = "the KKT matrix [[M, J^T], [J, 0]] (equilibrated)";
   const double *s = data.kkt_unscale.data();
   if (!data.kkt.factor_in_place()) {
-    check_rcond(model, q, what, 0.0, t);
+    check_rcond(model, q, what, 0.0, KKT_HINT, t);
   } else if (!(scaled_norm * data.kkt.scaled_inverse_norm_bound(s) <= model.cond_max)) {
     check_rcond(model, q, what,
-                DenseLU::reciprocal(scaled_norm, data.kkt.inverse_norm_estimate(s)), t);
+                DenseLU::reciprocal(scaled_norm, data.kkt.inverse_norm_estimate(s)), KKT_HINT, t);
   }
   data.kkt.solve(data.kkt_solution);
   data.a = data.kkt_solution.head(model.nv);
@@ -463,7 +463,7 @@ inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, c
                         double t) {
   data.llt_m.compute(data.M);
   check_rcond(model, q, "the mass matrix M",
-              data.llt_m.info() == Eigen::Success ? data.llt_m.rcond() : 0.0, t);
+              data.llt_m.info() == Eigen::Success ? data.llt_m.rcond() : 0.0, MASS_HINT, t);
   data.schur_solves.leftCols(model.nc) = data.J.transpose();
   data.schur_solves.col(model.nc) = tau - data.h;
   data.llt_m.solveInPlace(data.schur_solves);
@@ -476,7 +476,7 @@ inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, c
   data.tmp_c += data.gamma;
   data.llt_c.compute(data.delassus);
   check_rcond(model, q, "the Delassus matrix J M^-1 J^T",
-              data.llt_c.info() == Eigen::Success ? data.llt_c.rcond() : 0.0, t);
+              data.llt_c.info() == Eigen::Success ? data.llt_c.rcond() : 0.0, RANK_LOSS_HINT, t);
   data.lam = data.tmp_c;
   data.llt_c.solveInPlace(data.lam);
   data.a = data.schur_solves.col(model.nc);
@@ -509,7 +509,7 @@ inline void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &
     data.reduced_mass.noalias() = N.transpose() * data.M * N;
     data.llt_r.compute(data.reduced_mass);
     check_rcond(model, q, "the reduced mass matrix N^T M N",
-                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, t);
+                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, MASS_HINT, t);
     data.tmp_v = tau - data.h;
     data.tmp_v.noalias() -= data.M * data.a;
     data.nullspace_a.noalias() = N.transpose() * data.tmp_v;
@@ -592,7 +592,7 @@ inline void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q,
     data.reduced_mass.noalias() = data.reduced_basis.transpose() * data.mass_reduced_basis;
     data.llt_r.compute(data.reduced_mass);
     check_rcond(model, q, "the reduced mass matrix S^T M S",
-                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, t);
+                data.llt_r.info() == Eigen::Success ? data.llt_r.rcond() : 0.0, MASS_HINT, t);
     data.independent_a.noalias() = data.reduced_basis.transpose() * data.reduced_force;
     data.llt_r.solveInPlace(data.independent_a);
     data.a.noalias() = data.reduced_basis * data.independent_a;

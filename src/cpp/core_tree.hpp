@@ -84,7 +84,7 @@ inline void tree_factor_kkt(const CoreModel &model, CoreData &data, const RefV &
     data.eig.compute(data.tree_rows.D, Eigen::EigenvaluesOnly);  // reads the lower triangle
     const Vec &ev = data.eig.eigenvalues();
     check_rcond(model, q, "the Delassus matrix J M^-1 J^T",
-                ev.size() && ev[0] > 0.0 ? ev[0] / ev[ev.size() - 1] : 0.0, t);
+                ev.size() && ev[0] > 0.0 ? ev[0] / ev[ev.size() - 1] : 0.0, RANK_LOSS_HINT, t);
   }
   data.delassus_factored = true;
 }

@@ -245,7 +245,29 @@ def singular_error(
     )
 
 
-def check_condition(mech, q, what: str, rcond: float, info: int, settings: SolverSettings):
+#: Why a matrix made of J (J, J_D, the Delassus matrix) is singular: the hint of its error.
+RANK_LOSS_HINT = "the constraint Jacobian has lost rank or the configuration is a singularity"
+#: Why the mass matrix M (or its restriction to the motion, N^T M N) is singular.
+MASS_HINT = (
+    "the mass matrix is ill-conditioned: links far lighter or smaller than others (a long "
+    "chain of light links) or a massless subtree"
+)
+#: Why the KKT matrix [[M, J^T], [J, 0]] is singular: either.
+KKT_HINT = (
+    "the constraint Jacobian has lost rank (a singular configuration) or the mass matrix is "
+    "ill-conditioned (a long chain of light links; method='augmented-lagrangian' runs there)"
+)
+
+
+def check_condition(
+    mech,
+    q,
+    what: str,
+    rcond: float,
+    info: int,
+    settings: SolverSettings,
+    hint: str = RANK_LOSS_HINT,
+):
     """Raise SingularConfigurationError when ``rcond`` says the factorized matrix is singular.
 
     Args:
@@ -255,17 +277,12 @@ def check_condition(mech, q, what: str, rcond: float, info: int, settings: Solve
         rcond: LAPACK reciprocal condition estimate.
         info: LAPACK info of the factorization (> 0: exactly singular).
         settings: ``cond_max``.
+        hint: why the matrix can be singular (:data:`RANK_LOSS_HINT`, :data:`MASS_HINT`,
+            :data:`KKT_HINT`).
     """
     cond = float("inf") if info > 0 or rcond <= 0 else 1.0 / rcond
     if cond > settings.cond_max:
-        raise singular_error(
-            mech,
-            q,
-            what,
-            cond,
-            settings.cond_max,
-            "the constraint Jacobian has lost rank or the configuration is a singularity",
-        )
+        raise singular_error(mech, q, what, cond, settings.cond_max, hint)
 
 
 def workspace(mech: Mechanism) -> Workspace:

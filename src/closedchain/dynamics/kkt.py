@@ -23,7 +23,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import lapack
 
-from .base import MethodCapabilities, SolverSettings, check_condition, compute_terms, register
+from .base import (
+    KKT_HINT,
+    MethodCapabilities,
+    SolverSettings,
+    check_condition,
+    compute_terms,
+    register,
+)
 
 #: Equilibration floor of the KKT matrix (:func:`kkt_scaling`): a diagonal entry of M, or a
 #: row norm of J D_v, below this fraction of the largest is scaled as if it were that
@@ -173,6 +180,6 @@ def kkt(mech, q, v, tau, settings: SolverSettings):
     ws = compute_terms(mech, q, v, settings.baumgarte)
     a, lam, rcond, info = solve_kkt(ws.M, ws.J, tau - ws.h, ws.gamma, K=ws.K, rhs=ws.rhs)
     check_condition(
-        mech, q, "the KKT matrix [[M, J^T], [J, 0]] (equilibrated)", rcond, info, settings
+        mech, q, "the KKT matrix [[M, J^T], [J, 0]] (equilibrated)", rcond, info, settings, KKT_HINT
     )
     return a, lam

@@ -44,6 +44,7 @@ from scipy.linalg import lapack
 
 from ..exceptions import SingularConfigurationError
 from .base import (
+    MASS_HINT,
     MethodCapabilities,
     SolverSettings,
     check_condition,
@@ -123,7 +124,9 @@ def nullspace(
         Mr = N.T @ MN
         R, info = lapack.dpotrf(Mr, lower=0, clean=0)
         rcond = lapack.dpocon(R, lapack.dlange("1", Mr))[0] if info == 0 else 0.0
-        check_condition(mech, q, "the reduced mass matrix N^T M N", rcond, info, settings)
+        check_condition(
+            mech, q, "the reduced mass matrix N^T M N", rcond, info, settings, MASS_HINT
+        )
         z = lapack.dpotrs(R, f @ N)[0]
         a = a_p + N @ z
         f = f - MN @ z  # now tau - h - M a

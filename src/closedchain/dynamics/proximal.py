@@ -41,6 +41,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from .base import (
+    MASS_HINT,
     MethodCapabilities,
     SolverSettings,
     check_condition,
@@ -135,5 +136,5 @@ def proximal(
         tol=settings.prox_tol,
         max_iter=settings.prox_max_iter,
     )
-    check_condition(mech, q, "the mass matrix M", rcond, 0 if rcond > 0 else 1, settings)
+    check_condition(mech, q, "the mass matrix M", rcond, 0 if rcond > 0 else 1, settings, MASS_HINT)
     return a, lam

@@ -43,6 +43,7 @@ from scipy.linalg import lapack
 from ..exceptions import ClosedChainError
 from .base import (
     DEFAULT_SETTINGS,
+    MASS_HINT,
     MethodCapabilities,
     SolverSettings,
     check_condition,
@@ -231,7 +232,9 @@ def reduced_dynamics(
         Mr = np.dot(S.T, MS, out=part.Mr)
         R, info = lapack.dpotrf(Mr, lower=0, clean=0)
         rcond = lapack.dpocon(R, lapack.dlange("1", Mr))[0] if info == 0 else 0.0
-        check_condition(mech, q, "the reduced mass matrix S^T M S", rcond, info, settings)
+        check_condition(
+            mech, q, "the reduced mass matrix S^T M S", rcond, info, settings, MASS_HINT
+        )
         a_I = lapack.dpotrs(R, f @ S)[0]
         a = S @ a_I
         a += c

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from .base import (
+    MASS_HINT,
     MethodCapabilities,
     SolverSettings,
     check_condition,
@@ -69,7 +70,7 @@ def schur(
     # M is symmetric: its transpose is a Fortran-ordered view LAPACK reads without a copy.
     R, info = lapack.dpotrf(M.T, lower=0, clean=0)
     rcond = lapack.dpocon(R, lapack.dlange("1", M.T))[0] if info == 0 else 0.0
-    check_condition(mech, q, "the mass matrix M", rcond, info, settings)
+    check_condition(mech, q, "the mass matrix M", rcond, info, settings, MASS_HINT)
     f = tau - ws.h
     if nc == 0:
         return lapack.dpotrs(R, f)[0], np.zeros(0)
