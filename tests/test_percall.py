@@ -3,6 +3,8 @@ reference, the backend argument, and results that do not change with later calls
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -11,6 +13,7 @@ from conftest import DATA_DIR, MODELS
 import closedchain as cc
 from closedchain import compiled
 from closedchain.benchmark.families import chain_urdf
+from closedchain.closure import closure_error, max_declared_residual, solve_closure
 from closedchain.dynamics.base import METHOD_CAPABILITIES
 from closedchain.exceptions import InvalidArgumentError, UnknownChoiceError
 from closedchain.kinematics import random_consistent_state
@@ -26,6 +29,17 @@ ROWS_TOL = 1e-13
 #: max |phi| <= AssemblySettings.tol = 1e-12 from iterates that differ by round-off, so
 #: the two end points differ by about tol / sigma_min(J) along the rows.
 ASSEMBLY_PARITY_TOL = 1e-9
+#: Bricard's linkage with nothing held: where on its 1-dof motion Gauss-Newton ends is
+#: itself sensitive to round-off (J's fifth singular value, of the order of the distance to
+#: the motion, vanishes along the way): a 1e-15 change of the guess moves numpy's end point
+#: by up to 7e-6 from starts 1e-3 off. The two backends agree to this [rad].
+BRICARD_FREE_PARITY_TOL = 1e-4
+#: Starts of the assembly parity tests: distance from an assembled state [rad or m].
+ASSEMBLY_OFFSETS = (1e-3, 0.1)
+#: Bound of the closure residual e at an aligned point with max |phi| <= tol (kinematics.py
+#: _assemble_compiled): sqrt(3) tol, plus e's round-off [m or rad].
+CLOSURE_PER_TOL = np.sqrt(3.0)
+CLOSURE_ROUNDOFF = 1e-14
 COMPILED_METHODS = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
 
 
@@ -188,6 +202,166 @@ def test_assemble_compiled_equals_numpy(mechanisms, name):
         assert np.max(np.abs(c - n)) <= ASSEMBLY_PARITY_TOL
         phi = cc.compute_phi(mech, c, backend="numpy")
         assert np.max(np.abs(phi)) <= cc.AssemblySettings().tol
+
+
+@pytest.fixture(scope="module")
+def assembly_mechanisms(mechanisms, load_mechanism, tmp_path_factory):
+    """The shipped 3-D models, the 5-bar, one mechanism per loop type, chains of 10 and 100."""
+    chain = tmp_path_factory.mktemp("chain") / "chain100.urdf"
+    chain.write_text(chain_urdf(100))
+    out = {n: mechanisms[n] for n in ("fourbar", "agile_eye", "chain10", "slider_crank")}
+    for name in ("bricard", "spherical_chain", "fixed_branches"):
+        out[name] = load_mechanism(name)
+    out["five_bar"] = cc.load(DATA_DIR / "five_bar.urdf")
+    out["chain100"] = cc.load(chain)
+    return out
+
+
+def _assemble_or_error(mech, guess, **kwargs):
+    """cc.assemble's configuration, or its AssemblyError's (type, message)."""
+    try:
+        return cc.assemble(mech, guess, **kwargs)
+    except cc.AssemblyError as exc:
+        return type(exc), str(exc)
+
+
+@needs_core
+@pytest.mark.parametrize(
+    "name",
+    [
+        "fourbar",
+        "agile_eye",
+        "five_bar",
+        "bricard",
+        "slider_crank",
+        "spherical_chain",
+        "fixed_branches",
+        "chain10",
+        "chain100",
+    ],
+)
+def test_assemble_in_cxx_equals_numpy(assembly_mechanisms, name):
+    """Gauss-Newton in C++ (Core.assemble_checked) and numpy's: the same configuration to
+    round-off from starts near and far, holding nothing, the independent coordinates, a
+    joint by name or a velocity index; every declared row closed; where C++ gives up, the
+    same error."""
+    mech = assembly_mechanisms[name]
+    rng = np.random.default_rng(11)
+    settings = cc.AssemblySettings()
+    joint = mech.model.names[mech.model.njoints - 1]
+    closed_in_cxx = 0
+    for _ in range(3):
+        q, _ = random_consistent_state(mech, rng)
+        for offset in ASSEMBLY_OFFSETS:
+            guess = pin.integrate(mech.model, q, offset * rng.standard_normal(mech.nv))
+            for fixed in ((), "independent", [joint], [0]):
+                c = _assemble_or_error(mech, guess, fixed=fixed, backend="compiled")
+                n = _assemble_or_error(mech, guess, fixed=fixed, backend="numpy")
+                if isinstance(n, tuple):
+                    assert c == n
+                    continue
+                tol = BRICARD_FREE_PARITY_TOL if (name, fixed) == ("bricard", ()) else None
+                assert np.max(np.abs(c - n)) <= (tol or ASSEMBLY_PARITY_TOL)
+                assert max_declared_residual(mech, c[None]) <= settings.tol
+                closed_in_cxx += _in_cxx(mech, guess, fixed, settings) is not None
+    assert closed_in_cxx >= 12  # most starts close in C++: the path under test ran
+
+
+def _in_cxx(mech, guess, fixed, settings):
+    """Core.assemble_checked's result (None: Gauss-Newton failed or misaligned)."""
+    held = mech.coordinate_indices(fixed)
+    free = np.setdiff1d(np.arange(mech.nv), held).astype(np.int32)
+    return compiled.declared_core(mech).assemble_checked(
+        guess,
+        free,
+        settings.tol,
+        settings.max_iter,
+        settings.max_halvings,
+        settings.fallback_rcond,
+        settings.contraction,
+    )
+
+
+@needs_core
+@pytest.mark.parametrize("name", ["fourbar", "spherical_chain", "slider_crank", "fixed_branches"])
+def test_assembly_in_cxx_bounds_the_closure_residual(assembly_mechanisms, name):
+    """Revolute, spherical, prismatic and fixed loops: where C++ closes max |phi| <= tol on
+    an aligned point, the closure residual e is at most sqrt(3) tol (the argument in
+    kinematics._assemble_compiled), so assemble need not evaluate e."""
+    mech = assembly_mechanisms[name]
+    rng = np.random.default_rng(12)
+    settings = cc.AssemblySettings()
+    closed = 0
+    for _ in range(10):
+        q, _ = random_consistent_state(mech, rng)
+        guess = pin.integrate(mech.model, q, 0.1 * rng.standard_normal(mech.nv))
+        c = _in_cxx(mech, guess, (), settings)
+        if c is None:
+            continue
+        closed += 1
+        e = closure_error(mech.model, mech.data, mech.declared, c)
+        assert e <= CLOSURE_PER_TOL * settings.tol + CLOSURE_ROUNDOFF
+    assert closed >= 8
+
+
+@needs_core
+def test_assembly_in_cxx_checks_e_under_a_tight_closure_tol(assembly_mechanisms):
+    """closure_tol below kinematics.CLOSURE_PER_PHI tol: e is evaluated on the C++ result,
+    which is returned where it passes (the numpy path's result to round-off)."""
+    mech = assembly_mechanisms["fixed_branches"]
+    q, _ = random_consistent_state(mech, np.random.default_rng(13))
+    guess = pin.integrate(mech.model, q, np.full(mech.nv, 1e-3))
+    settings = cc.AssemblySettings(tol=1e-10, closure_tol=2e-10)
+    c = cc.assemble(mech, guess, settings=settings, backend="compiled")
+    n = cc.assemble(mech, guess, settings=settings, backend="numpy")
+    assert np.max(np.abs(c - n)) <= ASSEMBLY_PARITY_TOL
+    assert closure_error(mech.model, mech.data, mech.declared, c) <= settings.closure_tol
+
+
+@needs_core
+def test_spurious_closure_in_cxx_falls_back_to_least_squares():
+    """The welded 4-bar 2.5 rad off on the crank: Gauss-Newton ends on the 180-degree flip;
+    C++ reports it (None) as numpy's solve_closure does (its message), and assemble closes
+    by the least-squares solve on both backends, to the same configuration."""
+    mech = cc.load(DATA_DIR / "fourbar_fixed_loop.urdf")
+    q0 = mech.q_ref.copy()
+    q0[0] += 2.5
+    settings = cc.AssemblySettings()
+    with pytest.raises(cc.AssemblyError, match="spurious closure of loop.s. C"):
+        solve_closure(mech.model, mech.data, mech.declared, q0, np.arange(mech.nv), settings)
+    assert _in_cxx(mech, q0, (), settings) is None
+    c = cc.assemble(mech, q0, backend="compiled")
+    n = cc.assemble(mech, q0, backend="numpy")
+    assert np.max(np.abs(c - n)) <= ASSEMBLY_PARITY_TOL
+    assert closure_error(mech.model, mech.data, mech.declared, c) <= settings.closure_tol
+
+
+@needs_core
+def test_assembly_errors_are_the_same_on_both_backends(mechanisms):
+    """Arguments, an impossible closure, too few iterations: the numpy path's messages."""
+    fourbar, free = mechanisms["fourbar"], mechanisms["free_fourbar"]
+    off_sphere = free.q_ref.copy()
+    off_sphere[3:7] *= 1.01  # the base's quaternion
+    cases = [
+        (fourbar, (np.zeros(2),), {}, "q_guess has shape"),
+        (fourbar, (np.array([0.0, np.nan, 0.0]),), {}, "q_guess contains non-finite"),
+        (fourbar, (fourbar.q_ref,), dict(fixed=["crank"]), "unknown joint 'crank'"),
+        (fourbar, (fourbar.q_ref,), dict(fixed=[7]), "velocity index 7 out of range"),
+        (fourbar, (np.zeros(2),), dict(fixed=["crank"]), "q_guess has shape"),
+        (free, (off_sphere,), {}, "has norm 1.01"),
+        (fourbar, (np.zeros(3),), dict(fixed=["rocker_joint"]), "did not converge.*holding 1"),
+        (
+            fourbar,
+            (np.array([1.0, 2.0, -1.0]),),
+            dict(settings=cc.AssemblySettings(max_iter=1)),
+            "did not converge",
+        ),
+    ]
+    for mech, args, kwargs, match in cases:
+        c = _message(cc.assemble, mech, *args, backend="compiled", **kwargs)
+        n = _message(cc.assemble, mech, *args, backend="numpy", **kwargs)
+        assert c == n
+        assert re.search(match, c[1])
 
 
 def _message(fn, *args, **kwargs) -> tuple[type, str]:

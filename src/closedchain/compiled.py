@@ -169,14 +169,17 @@ def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def declared_core(mech: Mechanism):
     """Return the core of every declared row of ``mech`` (:func:`declared_rows`; its
-    ``phi_checked`` and ``jacobian_checked`` serve :func:`closedchain.assemble` and
-    :func:`closedchain.project_velocity`). Built once per mechanism; it never runs a
-    simulation (nothing of a run's settings enters it)."""
+    ``assemble_checked``, ``phi_checked`` and ``jacobian_checked`` serve
+    :func:`closedchain.assemble`, ``project_checked`` :func:`closedchain.project_velocity`),
+    with the loops' alignment checks (``ConstraintLayer.misaligned_loops``). Built once per
+    mechanism; it never runs a simulation (nothing of a run's settings enters it)."""
     if _core is None:
         raise ClosedChainError(f"the compiled core is not available: {IMPORT_ERROR}")
     entry = mech.__dict__.get("_compiled_declared_core")
     if entry is None or entry[0] is not mech.declared:
-        entry = (mech.declared, _core_of_rows(mech, mech.declared))
+        core = _core_of_rows(mech, mech.declared)
+        set_alignment(core, mech.declared)
+        entry = (mech.declared, core)
         mech.__dict__["_compiled_declared_core"] = entry
     return entry[1]
 

@@ -33,13 +33,14 @@ from .closure import (
     RowFunctions,
     SelectionSettings,
     assemble_closure,
+    closure_error,
     layer_jacobian,
     layer_phi,
 )
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
-from .compiled import declared_core
+from .compiled import declared_core, has
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
 if TYPE_CHECKING:
@@ -50,6 +51,14 @@ if TYPE_CHECKING:
 VELOCITY_TOL = 1e-12
 #: The row selection's rank tolerance (:class:`SelectionSettings`), read once.
 _RANK_TOL = SelectionSettings.rank_tol
+#: At an aligned closure with max |phi| <= tol the closure residual is at most sqrt(3) tol
+#: (:func:`_assemble_compiled`); the compiled assembly returns without evaluating it when
+#: ``closure_tol`` is at least this times ``tol`` (the rest of the factor covers e's
+#: round-off, eps times the cut frames' distance from the origin).
+CLOSURE_PER_PHI = 10.0
+#: The compiled core has the assembly's Gauss-Newton (src/cpp/closure_newton.hpp; a core
+#: built from an older tree does not).
+_COMPILED_ASSEMBLY = has("assemble_checked")
 
 
 @exclusive
@@ -70,9 +79,9 @@ def assemble(
         fixed: coordinates held at their value in ``q_guess``: joint names,
             velocity indices, or ``"actuated"`` / ``"independent"``.
         settings: tolerances (defaults: :class:`AssemblySettings`).
-        backend: where Gauss-Newton evaluates phi and J, as :func:`compute_phi` (the
-            steps, the line search and the far-from-closure least-squares solve are
-            numpy's).
+        backend: as :func:`compute_phi`. On the compiled core Gauss-Newton and the
+            alignment check run in C++; where they fail, the far-from-closure
+            least-squares solve is numpy's (on the compiled rows).
 
     Returns:
         q with max |phi(q)| <= settings.tol over every declared row (the
@@ -85,6 +94,14 @@ def assemble(
             smallest closure residual reached, ``exc.q`` its configuration).
     """
     check_settings("settings", settings, AssemblySettings)
+    if (
+        _COMPILED_ASSEMBLY
+        and mech.closure.mismatch_tol <= settings.mismatch_tol
+        and rows_evaluator(mech, backend_name(backend)) is not None
+    ):
+        q = _assemble_compiled(mech, q_guess, fixed, settings)
+        if q is not None:
+            return q
     rows = _declared_rows(mech, backend)
     q_guess = mech.check_q(q_guess, "q_guess")
     free, held, _ = _free_coordinates(mech, fixed)
@@ -227,6 +244,48 @@ def project_velocity(
             f"{mech.declared.declared_rows[row].label} keeps |J v| = {residual:.3e}"
         )
     return v
+
+
+def _assemble_compiled(
+    mech: Mechanism, q_guess, fixed, settings: AssemblySettings
+) -> np.ndarray | None:
+    """:func:`assemble`'s first try on the compiled core: Gauss-Newton on every declared row
+    and the alignment check in C++ (``Core.assemble_checked``). Returns the closed
+    configuration, shape (nq,), or None where Gauss-Newton did not converge or reached a
+    spurious closure (:func:`assemble` then runs :func:`assemble_closure`, its messages)."""
+    try:
+        free, _, free32 = _free_coordinates(mech, fixed)
+    except ClosedChainError:
+        mech.check_q(q_guess, "q_guess")  # the numpy path's order: q_guess's errors first
+        raise
+    q = declared_core(mech).assemble_checked(
+        q_guess,
+        free32,
+        settings.tol,
+        int(settings.max_iter),
+        int(settings.max_halvings),
+        settings.fallback_rcond,
+        settings.contraction,
+    )
+    # assemble_closure also asks max |e| <= closure_tol of the closure residual e
+    # (constraints.closure_residual). At an aligned point with max |phi| <= tol over every
+    # declared row, e is bounded by phi, loop by loop, with p = (R_p^T (p_s - p_p)) the
+    # position of c2 in c1 and R = R_p^T R_s: the translation rows are -p's components
+    # along the orthonormal (n1, n2, a), so |p| <= sqrt(3) tol (spherical e = p; revolute
+    # e = (p, R a - a); prismatic e's n1.p, n2.p are rows themselves). The tilt rows are
+    # (R a)'s components along n1, n2, and aligned means a.R a > 0, so
+    # |R a - a| = |(r1, r2, a.R a - 1)| <= sqrt(2) tol + tol^2. Fixed and prismatic loops add
+    # the twist r3 = n1.R n2; with n1.R n1, n2.R n2 > 0 too, R is within O(tol) of I and
+    # |log3(R)| = |(r1, r2, r3)| (1 + O(tol)) <= sqrt(3) tol (1 + O(tol)), and log6's
+    # translation is p to 1 + O(tol). So max |e| <= sqrt(3) tol (1 + O(tol)) for every
+    # frame loop type (coupling rows never reach the compiled core); tests/test_percall.py
+    # checks it on each loop type.
+    if q is None or (
+        settings.closure_tol < CLOSURE_PER_PHI * settings.tol
+        and closure_error(mech.model, mech.data, mech.declared, q) > settings.closure_tol
+    ):
+        return None
+    return q
 
 
 def _free_coordinates(mech: Mechanism, fixed) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

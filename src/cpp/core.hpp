@@ -10,6 +10,7 @@
 //   core_tree.hpp                   the tree path of kkt and augmented-lagrangian
 //   core_projection.hpp             projection and the checks of every step
 //   core_partitioning.hpp           coordinate partitioning (dependent solve, re-partitioning)
+//   closure_newton.hpp              the assembly's Gauss-Newton onto phi = 0 (free coordinates)
 //   core_recording.hpp              the samples of a run
 //   core_chart.hpp                  the chart of q when nq != nv
 //   core_fixed.hpp                  euler, semi-implicit, rk4 (with stage projection)
@@ -25,6 +26,7 @@
 #include <string>
 
 #include "ali3p.hpp"
+#include "closure_newton.hpp"
 #include "common.hpp"
 #include "core_adaptive.hpp"
 #include "core_data.hpp"

@@ -25,6 +25,28 @@
 
 namespace closedchain {
 
+/// The workspace of the assembly's Gauss-Newton (closure_newton.hpp), sized by
+/// closure_newton_resize for one set of free coordinates and reused by every iteration.
+struct ClosureNewtonData {
+  /// The free velocity indices it is sized for (empty before the first call).
+  std::vector<int> free;
+  /// The configuration entries of the joints none of whose velocity coordinates is free,
+  /// kept exact (pinocchio::integrate with a zero step may renormalize a continuous joint's
+  /// (cos, sin)), and their values in the start.
+  std::vector<int> held_q;
+  Vec q_held;
+  /// The free columns of J, shape (nc, n_free), and their SVD (thin U and V).
+  Mat J_free;
+  Eigen::JacobiSVD<Mat> svd;
+  /// The step of the free coordinates, shape (n_free,); on every coordinate (dv) and times the
+  /// line search's alpha (dq), shape (nv,).
+  Vec step, dv, dq;
+  /// The residuals phi at the iterate and at the best trial point, shape (nc,).
+  Vec phi, phi_best;
+  /// The trial point and the best one, shape (nq,).
+  Vec q_try, q_best;
+};
+
 /// The buffers, caches and counters of one mechanism's evaluations and runs.
 struct CoreData {
   /// Every buffer sized for `model`.
@@ -202,6 +224,11 @@ struct CoreData {
   /// The run's re-partitions: times [s] and the new independent indices (nv - nc each).
   std::vector<double> rep_t;
   std::vector<int> rep_ind;
+
+  // -- the assembly (closure_newton.hpp) ---------------------------------------------------
+
+  /// Gauss-Newton onto phi = 0 moving the free coordinates (closedchain.assemble).
+  ClosureNewtonData closure_newton;
 };
 
 inline CoreData::CoreData(const CoreModel &model)

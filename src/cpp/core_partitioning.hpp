@@ -8,7 +8,9 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <string>
 
+#include "closure_newton.hpp"
 #include "core_data.hpp"
 #include "core_methods.hpp"
 #include "core_model.hpp"
@@ -53,14 +55,20 @@ constexpr double DEPENDENT_FALLBACK_RCOND = 1e-2, DEPENDENT_CONTRACTION = 0.25;
 /// DEPENDENT_FALLBACK_RCOND (pass 1: without J_D's weak directions).
 void dependent_step(const CoreModel &model, CoreData &data, int pass);
 
-/// Halve the step data.step_c from q until the trial point lowers |phi|^2 below sq or meets
-/// tol; a point better than the best so far (have, best_sq, best_res) becomes the best
-/// (data.q_best, data.phi_best).
+/// Halve the step data.step_c from q until accept_trial (closure_newton.hpp: the trial point
+/// lowers |phi|^2 below sq or meets tol; the best so far in best, data.q_best, data.phi_best).
 void dependent_line_search(const CoreModel &model, CoreData &data, const Vec &q, double sq,
-                           double tol, bool &have, double &best_sq, double &best_res);
+                           double tol, TrialBest &best);
 
-/// SimulationFailure when the assembly at q is a spurious closure of a loop: an alignment
-/// check (R_p u) . (R_s u) <= 0 (the cut-joint frames turned by 180 degrees).
+/// The names of the loops whose alignment check fails at q, comma separated (empty when
+/// every loop is aligned or none is checked): phi = 0 there is a spurious closure, the
+/// cut-joint frames turned by 180 degrees against each other, (R_p u) . (R_s u) <= 0
+/// (ConstraintLayer.misaligned_loops). The one alignment check of the core: the dependent
+/// solve's (check_alignment) and the assembly's (closure_newton.hpp).
+std::string misaligned_loops(const CoreModel &model, CoreData &data, const RefV &q);
+
+/// SimulationFailure when the assembly at q is a spurious closure of a loop
+/// (misaligned_loops).
 void check_alignment(const CoreModel &model, CoreData &data, const Vec &q, double t);
 
 /// Gauss-Newton on phi(q) = 0 moving the dependent coordinates data.dependent only, to
@@ -235,38 +243,19 @@ inline void dependent_step(const CoreModel &model, CoreData &data, int pass) {
   const double rc =
       pass == 0 ? std::numeric_limits<double>::epsilon() * model.nc : DEPENDENT_FALLBACK_RCOND;
   data.svd_jd_uv.compute(data.JD, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  const Vec &sv = data.svd_jd_uv.singularValues();
-  data.step_c.setZero();
-  for (Eigen::Index i = 0; i < sv.size(); ++i)
-    if (sv[i] > rc * sv[0])
-      data.step_c -= (data.svd_jd_uv.matrixU().col(i).dot(data.phi_n) / sv[i]) *
-                     data.svd_jd_uv.matrixV().col(i);
+  gauss_newton_svd_step(data.svd_jd_uv, data.phi_n, rc, data.step_c);
 }
 
 inline void dependent_line_search(const CoreModel &model, CoreData &data, const Vec &q, double sq,
-                                  double tol, bool &have, double &best_sq, double &best_res) {
+                                  double tol, TrialBest &best) {
   data.dv_n.setZero();
   for (int i = 0; i < model.nc; ++i) data.dv_n[data.dependent[i]] = data.step_c[i];
   double alpha = 1.0;
-  for (int k = 0; k < DEPENDENT_MAX_HALVINGS; ++k) {
+  for (int k = 0; k < DEPENDENT_MAX_HALVINGS; ++k, alpha *= 0.5) {
     data.dq = alpha * data.dv_n;
-    if (model.vector_space)
-      data.q_try = q + data.dq;  // pinocchio::integrate on revolute/prismatic joints: q + dq
-    else
-      pinocchio::integrate(model.tree, q, data.dq, data.q_try);
+    integrate_trial(model, q, data.dq, data.q_try);
     eval_phi_J_trial(model, data, data.q_try);
-    const double res_try = data.phi.cwiseAbs().maxCoeff(), sq_try = data.phi.squaredNorm();
-    if (sq_try < sq || res_try <= tol) {
-      if (!have || sq_try < best_sq) {
-        have = true;
-        best_sq = sq_try;
-        best_res = res_try;
-        data.q_best = data.q_try;
-        data.phi_best = data.phi;
-      }
-      return;
-    }
-    alpha *= 0.5;
+    if (accept_trial(data, data.q_try, sq, tol, best, data.q_best, data.phi_best)) return;
   }
 }
 
@@ -280,17 +269,16 @@ inline void newton_dependent(const CoreModel &model, CoreData &data, Vec &q, dou
     eval_phi_J(model, data, q);
     gather_JD(model, data, data.dependent);
     const double sq = data.phi_n.squaredNorm();
-    bool have = false;
-    double best_sq = 0.0, best_res = 0.0;
+    TrialBest best;
     for (int pass = 0; pass < 2; ++pass) {
       dependent_step(model, data, pass);
-      dependent_line_search(model, data, q, sq, tol, have, best_sq, best_res);
-      if (have && (best_res <= tol || best_sq <= DEPENDENT_CONTRACTION * sq)) break;
+      dependent_line_search(model, data, q, sq, tol, best);
+      if (best.have && (best.res <= tol || best.sq <= DEPENDENT_CONTRACTION * sq)) break;
     }
-    if (!have) break;
+    if (!best.have) break;
     q = data.q_best;
     data.phi_n = data.phi_best;
-    res = best_res;
+    res = best.res;
   }
   if (!(res <= tol))
     throw SimulationFailure{"at t = " + fmt("%.9g", t) +
@@ -301,11 +289,11 @@ inline void newton_dependent(const CoreModel &model, CoreData &data, Vec &q, dou
   check_alignment(model, data, q, t);
 }
 
-inline void check_alignment(const CoreModel &model, CoreData &data, const Vec &q, double t) {
-  if (model.alignments.empty()) return;
+inline std::string misaligned_loops(const CoreModel &model, CoreData &data, const RefV &q) {
+  std::string bad;
+  if (model.alignments.empty()) return bad;
   // the placements at q (from the memo unless a later trial moved them)
   eval_phi_J(model, data, q);
-  std::string bad;
   int last = -1;
   for (const LoopAlignment &al : model.alignments) {
     if (al.loop == last) continue;  // that loop is already reported
@@ -315,6 +303,11 @@ inline void check_alignment(const CoreModel &model, CoreData &data, const Vec &q
       last = al.loop;
     }
   }
+  return bad;
+}
+
+inline void check_alignment(const CoreModel &model, CoreData &data, const Vec &q, double t) {
+  const std::string bad = misaligned_loops(model, data, q);
   if (!bad.empty())
     throw SimulationFailure{
         "at t = " + fmt("%.9g", t) +

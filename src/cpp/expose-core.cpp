@@ -57,6 +57,11 @@ void expose_core() {
       .def("project_checked", &project_checked, bp::args("self", "q", "v", "free", "rcond"),
            "(v projected onto J v = 0 moving the free entries, max |J v|, its row, "
            "sigma_max(J)): closedchain.project_velocity.")
+      .def("assemble_checked", &assemble_checked,
+           bp::args("self", "q_guess", "free", "tol", "max_iter", "max_halvings",
+                    "fallback_rcond", "contraction"),
+           "q closed by Gauss-Newton moving the free velocity indices and aligned, or None "
+           "(not converged, or a spurious closure): closedchain.assemble.")
       .def("inverse_checked", &inverse_checked,
            bp::args("self", "q", "v", "a_P", "indices", "tau_passive", "cond_max"),
            "(status, cond, a, tau, lam, J, gamma, dynamics residual, constraint residual): "

@@ -1,6 +1,6 @@
 // closedchain._core: the per-call entry points of the public API (closedchain._percall):
-// forward dynamics, the rows phi / J / gamma, the velocity projection and the inverse
-// dynamics of one state, each checking its arguments in C++ (arg_checks.hpp: the
+// forward dynamics, the rows phi / J / gamma, the velocity projection, the assembly and the
+// inverse dynamics of one state, each checking its arguments in C++ (arg_checks.hpp: the
 // messages of the numpy path) and returning fresh arrays. Free functions over a Core's
 // model and data (core_all.hpp), bound as its methods by expose-core.cpp.
 
@@ -15,6 +15,7 @@
 #include <string>
 
 #include "arg_checks.hpp"
+#include "closure_newton.hpp"
 #include "core_all.hpp"
 
 namespace closedchain {
@@ -106,6 +107,26 @@ inline bp::tuple project_checked(Core &core, bp::object q, bp::object v,
   const double residual = Jv.maxCoeff(&row);
   const double sigma_max = Eigen::JacobiSVD<Mat>(J).singularValues()(0);
   return bp::make_tuple(out, residual, static_cast<int>(row), sigma_max);
+}
+
+/// closedchain.assemble on the core's rows (a core of every declared row, compiled.declared_core):
+/// Gauss-Newton from q_guess moving the velocity coordinates `free` (closure_newton with the
+/// fields of AssemblySettings), then the loops' alignment checks (misaligned_loops). Returns
+/// the configuration, shape (nq,), where max |phi| <= tol was reached on an aligned closure;
+/// None where Gauss-Newton stopped above tol or on a spurious closure: the caller then runs
+/// closure.assemble_closure, whose least-squares solve and messages take over.
+inline bp::object assemble_checked(Core &core, bp::object q_guess, const Eigen::VectorXi &free,
+                                   double tol, int max_iter, int max_halvings,
+                                   double fallback_rcond, double contraction) {
+  const CoreModel &model = core.model();
+  CoreData &data = core.data();
+  const ConfigurationArg qa(q_guess, model.tree, "q_guess");
+  Vec q = qa.map();
+  invalidate_kinematics(data);
+  const ClosureNewtonSettings settings{tol, max_iter, max_halvings, fallback_rcond, contraction};
+  if (!closure_newton(model, data, q, free, settings) || !misaligned_loops(model, data, q).empty())
+    return bp::object();
+  return to_numpy(q);
 }
 
 /// Outcome codes of inverse_checked (closedchain.inverse reads them).
