@@ -382,6 +382,14 @@ def test_families_refuse_sizes_too_small(factory, bad, match):
         getattr(families, factory)(bad)
 
 
+@pytest.mark.parametrize("reach", [0.0, 1.5])
+def test_families_chain_refuses_a_reach_out_of_range(reach):
+    from closedchain.benchmark.families import chain_urdf
+
+    with pytest.raises(ValueError, match=r"reach must be in \(0, 1\] .*got"):
+        chain_urdf(5, reach=reach)
+
+
 def test_scaling_run_writes_every_series(tmp_path):
     """A small scaling run: one row per size and call, a table per family, the chart."""
     import numpy as np

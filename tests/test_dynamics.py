@@ -226,6 +226,7 @@ HINTS = {
     "KKT matrix": base.KKT_HINT,
     "Delassus matrix": base.RANK_LOSS_HINT,
     "reduced mass matrix": base.MASS_HINT,
+    "range-space matrix": base.MASS_HINT,
     "the mass matrix M ": base.MASS_HINT,
 }
 

@@ -1,20 +1,24 @@
-"""The compiled core's tree path (src/cpp/tree_solve.hpp, core_tree.hpp): kkt and the
-default method on a long tree with few loop rows, M^-1 by the articulated-body
-recursion and M never formed, against the dense path of the same core and the numpy
-reference -- one evaluation, and whole runs of the default integrator (rk43), of rk4 with
-the stage projection's mass-orthogonal velocity step, and of ALI3-P."""
+"""The compiled core's tree path (src/cpp/tree_solve.hpp, core_tree.hpp): kkt, the
+default method, null space and reduced coordinates (their range-space form) on a long tree
+with few loop rows, M^-1 by the articulated-body recursion and M never formed, against the
+dense path of the same core and the numpy reference -- one evaluation (and, near a singular
+J, a 40-digit solve), and whole runs of the default integrator (rk43), of rk4 with the
+stage projection's mass-orthogonal velocity step, and of ALI3-P."""
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 import pytest
 from conftest import MODELS
+from test_validation import mp_solve_kkt
 
 import closedchain as cc
 from closedchain import compiled
 from closedchain.benchmark.families import chain_urdf, leg_pair_urdf
 from closedchain.dynamics.augmented_lagrangian import PenalizedSolver
-from closedchain.dynamics.base import SolverSettings, compute_terms
+from closedchain.dynamics.base import MASS_HINT, RANK_LOSS_HINT, SolverSettings, compute_terms
 
 pytestmark = pytest.mark.skipif(not compiled.available(), reason="compiled core not built")
 
@@ -52,6 +56,19 @@ FAMILIES = {
     "legs_30": (leg_pair_urdf, 30),
 }
 METHODS = ["kkt", "augmented-lagrangian"]
+#: The methods solved in the range-space form on the tree path (tree_rows.hpp's tree_range).
+RANGE_METHODS = ["nullspace", "reduced"]
+#: Near a singular J (the chain pinned at REACH_SLACKS short of its full length): the
+#: null-space method's error against a 40-digit KKT solve of the same double M, h, J,
+#: gamma, relative to max(1, |reference|), stays below NEAR_SINGULAR_FACTOR eps cond_2(J)
+#: (errors that may grow like cond(J); measured at most 1.7 eps cond(J), 2.5e-12 at
+#: cond(J) 6.8e3, and 1e-12 to 2e-12 at the others).
+NEAR_SINGULAR_FACTOR = 20.0
+#: 1 - reach of the near-singular chains: cond_2(J) 6.8e3, 8.0e4, 3.0e5 (closer pins do
+#: not load without a least-squares warning).
+REACH_SLACKS = (1e-6, 1e-8, 1e-9)
+#: Links of the near-singular chain (nv 16: the tree path's smallest size plus a margin).
+NEAR_SINGULAR_LINKS = 16
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +129,7 @@ class dense_path:
         self.core.set_tree_path(True)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS + RANGE_METHODS)
 @pytest.mark.parametrize("name", list(FAMILIES))
 def test_tree_path_matches_the_dense_path_and_numpy(family, name, method, rng):
     mech = family(name)
@@ -139,6 +156,8 @@ def test_tree_path_is_chosen_by_size(family, fourbar):
     assert not compiled.compiled_dynamics(family("chain_12"), "kkt").core.tree_solves()
     assert compiled.compiled_dynamics(family("chain_13"), "kkt").core.tree_solves()
     assert not compiled.compiled_dynamics(family("chain_30"), "schur").core.tree_solves()
+    for method in RANGE_METHODS:
+        assert compiled.compiled_dynamics(family("chain_30"), method).core.tree_solves()
     nfourbar = cc.load(MODELS / "nfourbar_2.urdf")  # nv 5, nc 4
     assert not compiled.compiled_dynamics(nfourbar, "augmented-lagrangian").core.tree_solves()
 
@@ -162,8 +181,82 @@ def test_tree_path_kkt_checks_the_delassus_matrix(family, rng):
     mech = family("chain_30")
     q, v = _state(mech, rng)
     fd = compiled.compiled_dynamics(mech, "kkt", SolverSettings(cond_max=1.0))
-    with pytest.raises(cc.SingularConfigurationError, match=r"the Delassus matrix J M\^-1 J\^T"):
+    with pytest.raises(
+        cc.SingularConfigurationError,
+        match=r"the Delassus matrix J M\^-1 J\^T .*; " + re.escape(RANK_LOSS_HINT),
+    ):
         fd.forward(q, v, np.zeros(mech.nv))
+
+
+def _singular_message(fd, q, v):
+    """The message of fd.forward(q, v, 0)'s SingularConfigurationError."""
+    with pytest.raises(cc.SingularConfigurationError) as info:
+        fd.forward(q, v, np.zeros(len(v)))
+    return str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("method", "cond_max", "what"),
+    [
+        ("nullspace", 1.5, r"the constraint Jacobian J is singular .*it has lost rank"),
+        ("reduced", 1.0, r"J_D .*is singular"),
+        (
+            "nullspace",
+            5.0,
+            r"the tree path's range-space matrix V_r\^T M\^-1 V_r is singular.*; "
+            + re.escape(MASS_HINT),
+        ),
+        (
+            "reduced",
+            5.0,
+            r"the tree path's range-space matrix V_r\^T M\^-1 V_r is singular.*; "
+            + re.escape(MASS_HINT),
+        ),
+    ],
+)
+def test_range_methods_refuse_as_the_dense_path(family, rng, method, cond_max, what):
+    """cond(J) above cond_max (null space) and cond(J_D) (reduced) raise the dense path's
+    one-line message; G = V_r^T M^-1 V_r (the tree path's counterpart of the reduced mass
+    matrix: cond 10.7 on the 30-link chain, cond(J) 2.6, cond(J_D) < 5) is named as the
+    tree path's."""
+    mech = family("chain_30")
+    q, v = _state(mech, rng)
+    fd = compiled.compiled_dynamics(mech, method, SolverSettings(cond_max=cond_max))
+    assert fd.core.tree_solves()
+    msg = _singular_message(fd, q, v)
+    assert re.search(what, msg) and "\n" not in msg, msg
+    if "range-space" in what:
+        return
+    with dense_path(mech):
+        fd_dense = compiled.compiled_dynamics(mech, method, SolverSettings(cond_max=cond_max))
+        assert _singular_message(fd_dense, q, v) == msg
+
+
+def test_tree_nullspace_near_a_singular_J(tmp_path, rng):
+    """The chain pinned nearly at full stretch (cond_2(J) up to 3e5): the tree path's
+    null-space method agrees with a 40-digit KKT solve within eps cond(J) (times
+    NEAR_SINGULAR_FACTOR) in a and J^T lam."""
+    eps = np.finfo(float).eps
+    for slack in REACH_SLACKS:
+        path = tmp_path / f"chain_{slack:g}.urdf"
+        path.write_text(chain_urdf(NEAR_SINGULAR_LINKS, reach=1.0 - slack))
+        mech = cc.load(path)
+        q0 = np.zeros(mech.nq)
+        q0[0], q0[1:] = 0.3, -0.01  # straightens the chain's built-in bend
+        q = cc.assemble(mech, q0 + 0.01 * np.sin(np.arange(mech.nq)))
+        v = cc.project_velocity(mech, q, rng.standard_normal(mech.nv))
+        tau = rng.standard_normal(mech.nv)
+        fd = compiled.compiled_dynamics(mech, "nullspace")
+        assert fd.core.tree_solves()
+        a, lam = fd.forward(q, v, tau)
+        ws = compute_terms(mech, q, v)
+        sigma = np.linalg.svd(ws.J, compute_uv=False)
+        cond_j = sigma[0] / sigma[-1]
+        a_ref, lam_ref = mp_solve_kkt(ws.M, ws.h, ws.J, ws.gamma, tau)
+        f_ref = ws.J.T @ lam_ref
+        err_a = np.linalg.norm(a - a_ref) / max(1.0, np.linalg.norm(a_ref))
+        err_f = np.linalg.norm(ws.J.T @ lam - f_ref) / max(1.0, np.linalg.norm(f_ref))
+        assert max(err_a, err_f) <= NEAR_SINGULAR_FACTOR * eps * cond_j, (slack, err_a, err_f)
 
 
 @pytest.mark.parametrize("name", ["chain_30", "legs_30"])
@@ -186,10 +279,11 @@ def test_default_run_on_the_tree_path(family, name, rng):
     assert np.max(np.abs(traj.energy - dense.energy)) <= ADAPTIVE_TOL * e_scale
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS + RANGE_METHODS)
 def test_fixed_step_run_on_the_tree_path(family, method, rng):
     """rk4 at a fixed step (the default method: stage projection with the mass-orthogonal
-    velocity step; kkt: end-of-step projection) takes the dense path's steps."""
+    velocity step; kkt: end-of-step projection; null space and reduced: their range-space
+    solve inside the run) takes the dense path's steps."""
     mech = family("chain_30")
     q, v = _state(mech, rng)
     kw = dict(method=method, integrator="rk4", dt=1e-3, backend="compiled")

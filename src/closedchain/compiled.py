@@ -49,8 +49,8 @@ _CORE_KIND[ROW_TRANSLATION] = 1
 _CORE_KIND[ROW_ROTATION] = 2
 
 #: The compiled core's tree path (src/cpp/core_tree.hpp: M^-1 x by the articulated-body
-#: recursion in O(nv), M never formed, a dense solve of the loop rows only) serves kkt and
-#: augmented-lagrangian on a mechanism of more than TREE_SOLVE_MIN_NV velocities and at
+#: recursion in O(nv), M never formed, a dense solve of the loop rows only) serves every
+#: method but schur on a mechanism of more than TREE_SOLVE_MIN_NV velocities and at
 #: most nv / TREE_SOLVE_NV_PER_ROW rows, unless the band path was chosen: where it costs
 #: less than the dense path (docs/design/compiled-core.md).
 TREE_SOLVE_MIN_NV = 12

@@ -12,7 +12,8 @@
 // M, as in iterative refinement), or max_iter iterates; a correction more than
 // AL_DIVERGENCE_GROWTH times the previous one while above AL_DIVERGENCE_RTOL (1 + max |x|)
 // is a divergence (P's solve wrong by more than its size): SingularError, with the message of
-// augmented_lagrangian.diverged_message:
+// augmented_lagrangian.diverged_message (check_al_divergence, also the rule of the tree
+// path's dual form, tree_rows.hpp's tree_al_iterate):
 // min (x - x*)^T M (x - x*) s.t. J x + g = 0 for rhs = M x* (a projection), or the
 // accelerations for rhs = tau - h, g = gamma (the dynamics).
 //
@@ -37,6 +38,22 @@
 #include "errors.hpp"
 
 namespace closedchain {
+
+/// The divergence rule of the iteration above: SingularError (the message of
+/// augmented_lagrangian.diverged_message) when `change`, max |x_{k+1} - x_k| at iterate
+/// `iterate`, is more than AL_DIVERGENCE_GROWTH times `last_change` (the previous one) while
+/// above AL_DIVERGENCE_RTOL (1 + x_max), x_max = max |x_{k+1}|; alpha: the penalty.
+inline void check_al_divergence(double last_change, double change, double x_max, int iterate,
+                                double alpha) {
+  if (change > AL_DIVERGENCE_GROWTH * last_change && change > AL_DIVERGENCE_RTOL * (1.0 + x_max))
+    throw SingularError{
+        "the augmented-Lagrangian iteration diverged: its correction grew from " +
+            fmt("%.3e", last_change) + " to " + fmt("%.3e", change) + " at iterate " +
+            std::to_string(iterate) + " (alpha = " + fmt("%.3e", alpha) +
+            "); the penalized mass matrix M + alpha J^T J is too ill-conditioned for its "
+            "solve: lower the penalty (SolverSettings.al_penalty) or use method='kkt'",
+        std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN(), Vec()};
+}
 
 /// The iteration above into (x, lam); delta (nv) and rc (nc) are scratch. J x + g at an
 /// iterate is computed once (for lam and for the next correction's r_c). Returns the
@@ -81,17 +98,9 @@ int al_iterate(Ops &ops, double alpha, const XV &rhs, const CV &g, int max_iter,
     ops.add_j(x, rc);
     lam += alpha * rc;
     const double change = delta.cwiseAbs().maxCoeff();
-    if (change > AL_DIVERGENCE_GROWTH * last_change &&
-        change > AL_DIVERGENCE_RTOL * (1.0 + x.cwiseAbs().maxCoeff()))
-      throw SingularError{
-          "the augmented-Lagrangian iteration diverged: its correction grew from " +
-              fmt("%.3e", last_change) + " to " + fmt("%.3e", change) + " at iterate " +
-              std::to_string(it + 1) + " (alpha = " + fmt("%.3e", alpha) +
-              "); the penalized mass matrix M + alpha J^T J is too ill-conditioned for its "
-              "solve: lower the penalty (SolverSettings.al_penalty) or use method='kkt'",
-          std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN(),
-          Vec()};
-    if (change <= tol * (1.0 + x.cwiseAbs().maxCoeff()) || change >= last_change) break;
+    const double x_max = x.cwiseAbs().maxCoeff();
+    check_al_divergence(last_change, change, x_max, it + 1, alpha);
+    if (change <= tol * (1.0 + x_max) || change >= last_change) break;
     last_change = change;
   }
   return it;

@@ -7,7 +7,7 @@
 //   core_rows.hpp                   cut frames, phi, J, gamma, the tree terms (eval_terms)
 //   core_structure.hpp              sparsity, band paths, products over the structure
 //   core_methods.hpp                KKT, Schur, null space, augmented Lagrangian, reduced
-//   core_tree.hpp                   the tree path of kkt and augmented-lagrangian
+//   core_tree.hpp                   the tree path of every method but schur
 //   core_projection.hpp             projection and the checks of every step
 //   core_partitioning.hpp           coordinate partitioning (dependent solve, re-partitioning)
 //   closure_newton.hpp              the assembly's Gauss-Newton onto phi = 0 (free coordinates)
@@ -73,7 +73,7 @@ class Core {
     return closedchain::set_band(model_, data_, perm, banded_p, banded_n);
   }
 
-  /// True when kkt and augmented-lagrangian take the tree path (CoreModel::tree_solves).
+  /// True when the configured method takes the tree path (CoreModel::tree_solves).
   bool tree_solves() const { return model_.tree_solves(); }
 
   /// Allow the tree path (chosen at construction by size) or not (set_tree_path).

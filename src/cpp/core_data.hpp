@@ -157,12 +157,13 @@ struct CoreData {
 
   /// The articulated-body factorization of M at data.J_at (tree_solve.hpp).
   TreeFactor mass_factor;
-  /// W = M^-1 J^T, the Delassus matrix D and the factors of D and of I / alpha + D at
-  /// data.J_at (tree_rows.hpp).
+  /// W = M^-1 J^T, the Delassus matrix D and the factors of D and of I / alpha + D, the SVD
+  /// of J, W_r = M^-1 V_r, G = V_r^T W_r and its factor at data.J_at (tree_rows.hpp).
   TreeRows tree_rows;
-  /// mass_factor, W and D are at data.J_at; so is the factor of D (its condition checked),
-  /// and that of I / alpha + D.
-  bool tree_factored = false, delassus_factored = false, tree_penalized = false;
+  /// mass_factor is at data.J_at; so are W and D; the factor of D (its condition checked);
+  /// that of I / alpha + D; the SVD of J, W_r, G and G's factor (tree_factor_range).
+  bool tree_mass_factored = false, tree_factored = false, delassus_factored = false,
+       tree_penalized = false, tree_range_factored = false;
 
   // -- the integrators ---------------------------------------------------------------------
 

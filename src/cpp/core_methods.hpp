@@ -84,11 +84,11 @@ struct BandAlOps {
 void solve(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v, const Vec &tau,
            double t);
 
-/// The configured method's solve at the terms of the last evaluation (model.method; kkt and
-/// augmented-lagrangian on the tree path where model.tree_solves()).
+/// The configured method's solve at the terms of the last evaluation (model.method; on the
+/// tree path where model.tree_solves()).
 void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
-/// kkt or the augmented Lagrangian on the tree path (defined in core_tree.hpp).
+/// The configured method on the tree path (defined in core_tree.hpp).
 void solve_tree(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
 /// Augmented Lagrangian at the acceleration level (closedchain/dynamics/
@@ -112,6 +112,17 @@ bool solve_al_small(const CoreModel &model, CoreData &data, const RefV &q, doubl
 /// 1 / alpha, so aim at AL_PENALTY_MARGIN AL_PIVOT_MIN, lowering by at most
 /// AL_PENALTY_DROP (lowered_penalty of dynamics/augmented_lagrangian.py).
 double al_lowered_penalty(double alpha, double pivot);
+
+/// The augmented-Lagrangian penalty: alpha0 lowered by al_lowered_penalty while
+/// factor(alpha), which factors the penalized matrix at alpha and returns its smallest
+/// relative pivot (0 when the Cholesky failed), is below AL_PIVOT_MIN, at most
+/// AL_MAX_PENALTY_LOWERINGS times (then penalized_singular). Returns the alpha the last
+/// factor(alpha) accepted; lowerings: how many times it was lowered. The rule of al_factor
+/// (P = M + alpha J^T J, dense or band), solve_al_small and the tree path's tree_penalize
+/// (I / alpha + D).
+template <class Factor>
+double al_choose_penalty(const CoreModel &model, const RefV &q, double t, double alpha0,
+                         Factor &&factor, int &lowerings);
 
 /// P = M + alpha J^T J at the last evaluation, factored (dense SmallLLT of P's lower
 /// triangle, or the band Cholesky) unless the factor of these data.M and data.J is kept
@@ -154,6 +165,10 @@ void kkt_equilibration(const CoreModel &model, CoreData &data);
 /// a = M^-1 (tau - h - J^T lam).
 void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
 
+/// singular() naming J unless cond(J) = s_max / s_min is at most cond_max; s: J's singular
+/// values, descending, shape (nc,) (the null-space method's check, dense and tree path).
+void check_jacobian_rank(const CoreModel &model, const RefV &q, const Vec &s, double t);
+
 /// The null-space method: J = U S V^T; a = a_p + N z with a_p = -V_r S^-1 U^T gamma,
 /// (N^T M N) z = N^T (tau - h - M a_p), lam from the range rows.
 void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
@@ -168,6 +183,10 @@ void accel(const CoreModel &model, CoreData &data, double t, const RefV &q, cons
 /// J_D: the columns dep of data.J into data.JD.
 void gather_JD(const CoreModel &model, CoreData &data, const std::vector<int> &dep);
 
+/// J_D (gather_JD of model.method_dependent) LU-factored into data.lu_jd, singular() where
+/// cond_1(J_D) exceeds cond_max (the reduced method's check, dense and tree path).
+void factor_method_JD(const CoreModel &model, CoreData &data, const RefV &q, double t);
+
 /// Reduced coordinates (dynamics/reduced.py): a = S a_I + c with S = [I; -J_D^-1 J_I],
 /// c = [0; -J_D^-1 gamma]; (S^T M S) a_I = S^T (tau - h - M c); lam = J_D^-T (tau - h - M a)_D.
 void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau, double t);
@@ -177,6 +196,18 @@ void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q, const 
 inline double al_lowered_penalty(double alpha, double pivot) {
   const double f = pivot / (AL_PENALTY_MARGIN * AL_PIVOT_MIN);
   return alpha * (f > AL_PENALTY_DROP ? f : AL_PENALTY_DROP);
+}
+
+template <class Factor>
+inline double al_choose_penalty(const CoreModel &model, const RefV &q, double t, double alpha0,
+                                Factor &&factor, int &lowerings) {
+  double alpha = alpha0;
+  for (lowerings = 0;; ++lowerings) {
+    const double pivot = factor(alpha);
+    if (pivot >= AL_PIVOT_MIN) return alpha;
+    if (lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(model, q, alpha, t);
+    alpha = al_lowered_penalty(alpha, pivot);
+  }
 }
 
 inline void solve(const CoreModel &model, CoreData &data, const RefV &q, const RefV &v,
@@ -282,18 +313,16 @@ inline bool solve_al_small(const CoreModel &model, CoreData &data, const RefV &q
     };
     const Eigen::Map<const MatN> M(data.M.data());
     const Eigen::Map<const MatJ> J(data.J.data());
-    double alpha = model.al_penalty * M.trace() /
-                   std::max(J.squaredNorm(), std::numeric_limits<double>::min());
     const MatN JtJ = J.transpose() * J;
     FixedLDLT<NV> llt;
     int lowerings = 0;
-    for (;; ++lowerings) {  // the penalty P can take (al_factor)
-      const bool ok = llt.compute(M + alpha * JtJ);
-      const double pivot = ok ? llt.min_pivot_ratio() : 0.0;
-      if (pivot >= AL_PIVOT_MIN) break;
-      if (lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(model, q, alpha, t);
-      alpha = al_lowered_penalty(alpha, pivot);
-    }
+    const double jj = std::max(J.squaredNorm(), std::numeric_limits<double>::min());
+    const double alpha = al_choose_penalty(
+        model, q, t, model.al_penalty * M.trace() / jj,
+        [&](double penalty) {
+          return llt.compute(M + penalty * JtJ) ? llt.min_pivot_ratio() : 0.0;
+        },
+        lowerings);
     Ops ops{M, J, llt};
     const VecN rhs = data.rhs_v;
     const VecC g = data.gamma;
@@ -319,22 +348,19 @@ inline bool solve_al_small(const CoreModel &model, CoreData &data, const RefV &q
 inline double al_factor(const CoreModel &model, CoreData &data, const RefV &q, double t) {
   if (data.P_factored) return data.al_alpha;
   const double jj = model.banded_penalized ? j_squared_norm(model, data) : data.J.squaredNorm();
-  double alpha =
-      model.al_penalty * data.M.trace() / std::max(jj, std::numeric_limits<double>::min());
-  for (data.al_lowerings = 0;; ++data.al_lowerings) {
-    double pivot = 0.0;
-    if (model.banded_penalized) {
-      if (factor_penalized_band(model, data, alpha))
-        pivot = data.penalized_band.min_pivot_ratio();
-    } else {
-      data.P.triangularView<Eigen::Lower>() = data.J.transpose().lazyProduct(data.J);
-      data.P.triangularView<Eigen::Lower>() = alpha * data.P + data.M;
-      if (data.llt_p.compute(data.P)) pivot = data.llt_p.min_pivot_ratio(data.P);
-    }
-    if (pivot >= AL_PIVOT_MIN) break;
-    if (data.al_lowerings == AL_MAX_PENALTY_LOWERINGS) penalized_singular(model, q, alpha, t);
-    alpha = al_lowered_penalty(alpha, pivot);
-  }
+  const double alpha = al_choose_penalty(
+      model, q, t,
+      model.al_penalty * data.M.trace() / std::max(jj, std::numeric_limits<double>::min()),
+      [&](double penalty) {
+        if (model.banded_penalized)
+          return factor_penalized_band(model, data, penalty)
+                     ? data.penalized_band.min_pivot_ratio()
+                     : 0.0;
+        data.P.triangularView<Eigen::Lower>() = data.J.transpose().lazyProduct(data.J);
+        data.P.triangularView<Eigen::Lower>() = penalty * data.P + data.M;
+        return data.llt_p.compute(data.P) ? data.llt_p.min_pivot_ratio(data.P) : 0.0;
+      },
+      data.al_lowerings);
   data.P_factored = true;
   data.al_alpha = alpha;
   return alpha;
@@ -483,6 +509,14 @@ inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, c
   data.a.noalias() -= data.schur_solves.leftCols(model.nc) * data.lam;
 }
 
+inline void check_jacobian_rank(const CoreModel &model, const RefV &q, const Vec &s, double t) {
+  const Eigen::Index n = s.size();
+  const double cond = s[n - 1] > 0 ? s[0] / s[n - 1] : std::numeric_limits<double>::infinity();
+  if (!(cond <= model.cond_max))
+    singular(model, q, "the constraint Jacobian J", cond,
+             "it has lost rank: a singular configuration", t);
+}
+
 inline void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                             double t) {
   const int nr = model.nv - model.nc;
@@ -493,11 +527,7 @@ inline void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &
   }
   data.svd.compute(data.J, Eigen::ComputeFullU | Eigen::ComputeFullV);
   const Vec &s = data.svd.singularValues();
-  double cond =
-      s[model.nc - 1] > 0 ? s[0] / s[model.nc - 1] : std::numeric_limits<double>::infinity();
-  if (!(cond <= model.cond_max))
-    singular(model, q, "the constraint Jacobian J", cond,
-             "it has lost rank: a singular configuration", t);
+  check_jacobian_rank(model, q, s, t);
   const Mat &U = data.svd.matrixU();
   const Mat &V = data.svd.matrixV();
   // a_p = -V_r S^-1 U^T gamma
@@ -561,20 +591,24 @@ inline void gather_JD(const CoreModel &model, CoreData &data, const std::vector<
   for (int c = 0; c < model.nc; ++c) data.JD.col(c) = data.J.col(dep[c]);
 }
 
+inline void factor_method_JD(const CoreModel &model, CoreData &data, const RefV &q, double t) {
+  gather_JD(model, data, model.method_dependent);
+  const double rcond = data.lu_jd.factor(data.JD) ? data.lu_jd.rcond() : 0.0;
+  const double cond = rcond > 0.0 ? 1.0 / rcond : std::numeric_limits<double>::infinity();
+  if (!(cond <= model.cond_max))
+    singular(model, q, model.method_jd_label, cond,
+             "this partition cannot describe the motion here (seed Problem 4): "
+             "re-partition with choose_partition(mech, q), or the configuration is a "
+             "singularity of the mechanism",
+             t);
+}
+
 inline void solve_reduced(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                           double t) {
   const int m = model.nv - model.nc;
   data.reduced_force = tau - data.h;
   if (model.nc) {
-    gather_JD(model, data, model.method_dependent);
-    const double rcond = data.lu_jd.factor(data.JD) ? data.lu_jd.rcond() : 0.0;
-    const double cond = rcond > 0.0 ? 1.0 / rcond : std::numeric_limits<double>::infinity();
-    if (!(cond <= model.cond_max))
-      singular(model, q, model.method_jd_label, cond,
-               "this partition cannot describe the motion here (seed Problem 4): "
-               "re-partition with choose_partition(mech, q), or the configuration is a "
-               "singularity of the mechanism",
-               t);
+    factor_method_JD(model, data, q, t);
     for (int k = 0; k < m; ++k) {
       data.tmp_c = data.J.col(model.method_independent[k]);
       data.lu_jd.solve(data.tmp_c);

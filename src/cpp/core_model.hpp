@@ -141,16 +141,14 @@ struct CoreModel {
 
   // -- the tree path (core_tree.hpp) -------------------------------------------------------
 
-  /// kkt and augmented-lagrangian may solve by the articulated-body recursion, M never
+  /// Every method but schur may solve by the articulated-body recursion, M never
   /// formed: chosen at construction for nv > TREE_SOLVE_MIN_NV and nc <= nv /
   /// TREE_SOLVE_NV_PER_ROW (constants.hpp), changed by set_tree_path.
   bool tree_path = false;
 
   /// The configured method's solve takes the tree path: tree_path, a method that has one
-  /// (kkt, augmented-lagrangian) and no band path (set_band).
-  bool tree_solves() const {
-    return tree_path && !banded_penalized && (method == KKT || method == AUGMENTED_LAGRANGIAN);
-  }
+  /// (all but schur) and no band path (set_band).
+  bool tree_solves() const { return tree_path && !banded_penalized && method != SCHUR; }
 
   // -- settings (Core::configure) ----------------------------------------------------------
 

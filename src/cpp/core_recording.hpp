@@ -110,7 +110,7 @@ inline void record(const CoreModel &model, CoreData &data, Samples &out, double 
   double ke, pe;
   const bool tree_ke = model.tree_solves() && !data.M_at_J;
   if (q == data.terms_q && v == data.terms_v &&
-      (!tree_ke || (data.tree_factored && data.J_at_valid && q == data.J_at))) {
+      (!tree_ke || (data.tree_mass_factored && data.J_at_valid && q == data.J_at))) {
     ke = tree_ke ? tree_kinetic_energy(model, data, v) : 0.5 * v.dot(data.M.lazyProduct(v));
     pe = data.potential_energy;
   } else {

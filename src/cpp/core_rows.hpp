@@ -136,7 +136,8 @@ inline void invalidate_kinematics(CoreData &data) {
   data.J_at_valid = false;
   data.M_at_J = false;
   data.P_factored = false;
-  data.tree_factored = data.delassus_factored = data.tree_penalized = false;
+  data.tree_mass_factored = data.tree_factored = data.delassus_factored = false;
+  data.tree_penalized = data.tree_range_factored = false;
 }
 
 inline void eval_phi(const CoreModel &model, CoreData &data, const RefV &q) {

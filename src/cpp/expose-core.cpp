@@ -39,7 +39,7 @@ void expose_core() {
            "Use band Cholesky factorizations: of M + alpha J^T J in the order perm "
            "(banded_p) and of J J^T (banded_n); returns their half bandwidths.")
       .def("tree_solves", &Core::tree_solves, bp::args("self"),
-           "True when kkt and augmented-lagrangian take the tree path (core_tree.hpp).")
+           "True when the configured method takes the tree path (core_tree.hpp).")
       .def("set_tree_path", &Core::set_tree_path, bp::args("self", "on"),
            "Allow the tree path (chosen at construction by size) or not (the dense path).")
       .def("band_info", &Core::band_info, bp::args("self"),

@@ -24,8 +24,7 @@
 // style: the Data holds the kinematics of the configuration (data.oMi and the world
 // joint Jacobian columns data.J, as tree_terms.hpp's passes leave them), TreeFactor the
 // factorization and its scratch, sized once for the model (no allocation per call).
-// Used by the tree path of the kkt and augmented-lagrangian methods (tree_rows.hpp,
-// core_tree.hpp);
+// Used by the tree path of the forward-dynamics methods (tree_rows.hpp, core_tree.hpp);
 // tests/test_tree_solve.py checks it against the dense solves.
 
 #pragma once

@@ -30,18 +30,23 @@ PARALLELOGRAM_OFFSET = 0.05
 AXIAL_INERTIA = 1e-3
 
 
-def chain_urdf(n: int, length: float = 1.0) -> str:
+def chain_urdf(n: int, length: float = 1.0, reach: float = 0.6) -> str:
     """Return the URDF+ text of an n-link planar chain (x-z plane) closed onto the ground.
 
     Each rod is ``length / n`` long with 1 kg, joints about -y; the tip is pinned
-    by a revolute ``<loop>`` to the ground at x = 0.6 ``length`` (mobility n - 2).
+    by a revolute ``<loop>`` to the ground at x = ``reach`` ``length`` (mobility n - 2).
+    As ``reach`` nears 1 the closed chain nears its stretched, singular pose
+    (sigma_min(J) about the square root of 1 - reach).
 
     Args:
         n: number of links (n >= 3).
         length: total length of the chain [m].
+        reach: distance of the ground pin from the base, a fraction of ``length`` in (0, 1].
     """
     if n < 3:
         raise ValueError(f"chain_urdf: n must be >= 3 links (mobility n - 2), got {n}")
+    if not 0.0 < reach <= 1.0:
+        raise ValueError(f"chain_urdf: reach must be in (0, 1] (a fraction of length), got {reach}")
     rod = length / n
     inertia = rod * rod / 12
     out = ['<?xml version="1.0"?>', f'<robot name="chain{n}">', '<link name="ground"/>']
@@ -63,7 +68,7 @@ def chain_urdf(n: int, length: float = 1.0) -> str:
     out.append(
         f'<loop name="tip" type="revolute"><predecessor link="l{n - 1}"/>'
         f'<successor link="ground"/><predecessor_origin xyz="{rod} 0 0"/>'
-        f'<successor_origin xyz="{0.6 * length} 0 0"/><axis xyz="{PLANAR_AXIS}"/></loop>'
+        f'<successor_origin xyz="{reach * length!r} 0 0"/><axis xyz="{PLANAR_AXIS}"/></loop>'
     )
     out.append("</robot>")
     return "\n".join(out)
