@@ -448,6 +448,22 @@ def test_result_has_every_field(mechs, states, backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_repeated_calls_follow_their_arguments(mechs, states, backend):
+    """A call reuses the checks of the last call with the same specs (a controller's loop),
+    never its settings, coordinates or rows: each call answers to its own arguments."""
+    mech = mechs["agile_eye"]
+    q, v, a_P = states["agile_eye"][0]
+    first = inverse_dynamics(mech, q, v, a_P, backend=backend).tau
+    with pytest.raises(cc.SingularConfigurationError, match=r"cond_max 1\.0e\+00"):
+        inverse_dynamics(mech, q, v, a_P, settings=SolverSettings(cond_max=1.01), backend=backend)
+    platform = inverse_dynamics(mech, q, v, a_P, coordinates=list(PLATFORM), backend=backend)
+    assert list(platform.prescribed_idx_v) == list(mech.coordinate_indices(list(PLATFORM)))
+    with pytest.raises(cc.ClosedChainError, match=r"coordinates names 2 coordinates"):
+        inverse_dynamics(mech, q, v, a_P[:2], coordinates=list(PLATFORM[:2]), backend=backend)
+    np.testing.assert_array_equal(inverse_dynamics(mech, q, v, a_P, backend=backend).tau, first)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_wrong_number_of_accelerations(mechs, backend):
     mech = mechs["agile_eye"]
     for a_P in ([0.0, 0.0], [0.0, np.nan, 0.0], [np.inf, 0.0, 0.0]):

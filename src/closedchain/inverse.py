@@ -341,27 +341,22 @@ def inverse_dynamics(
             the motion (J_F singular), J has lost rank, or the actuators cannot
             produce every motion at q (N^T B singular, an actuation singularity).
     """
-    check_settings("settings", settings, SolverSettings)
-    backend = backend_name(backend)
-    mob = mech.mobility
-    if mob == 0:
-        raise ClosedChainError(
-            f"{mech.name}: the mechanism has no degree of freedom (mobility 0): no actuator "
-            "torque moves or holds it, the loops carry every load; valid: mobility >= 1"
-        )
-    idx = _cached_indices(mech, coordinates, actuated)
+    # The keyword specs of the last call (a controller's loop), checked then: reused.
+    specs = (backend, coordinates, actuated)
+    if not (isinstance(coordinates, str) and isinstance(actuated, str)):
+        specs = None
+    last = mech.__dict__.get("_inverse_last")
+    if specs and last and last[0] is mech.constraints and last[1] is settings and last[2] == specs:
+        mob, idx, fd = last[3]
+    else:
+        mob, idx, fd = _prepare(mech, coordinates, actuated, settings, backend)
+        if specs:
+            mech.__dict__["_inverse_last"] = (mech.constraints, settings, specs, (mob, idx, fd))
     P, A = idx.P, idx.A
-    if len(P) != mob:
-        raise ClosedChainError(
-            f"{mech.name}: coordinates names {len(P)} coordinates "
-            f"({', '.join(mech.coordinate_names[i] for i in P)}) but the mobility is {mob}: "
-            f"give the accelerations of exactly {mob} coordinates"
-        )
     a_P = np.asarray(a_independent, dtype=float)
     if a_P.ndim != 1:
         a_P = a_P.reshape(-1)
-    fd = rows_evaluator(mech, backend) if len(A) == mob and len(a_P) == mob else None
-    if fd is not None:
+    if fd is not None and len(a_P) == mob:
         # The core checks q, v and tau_passive, and solves the loop rows (percall.hpp). A
         # non-finite a_independent makes M a + h non-finite: a failure status, checked below.
         status, cond, a, tau, lam, J, gamma, dyn, con = fd.core.inverse_checked(
@@ -372,6 +367,7 @@ def inverse_dynamics(
             raise _failure(status, mech, np.asarray(q, dtype=float), v, a_P, idx, cond, settings)
     else:
         _check_accelerations(a_P, a_independent, mob)
+        backend = backend_name(backend)
         if len(A) < mob:
             raise ClosedChainError(
                 f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
@@ -408,6 +404,31 @@ def _new_result(tau, a, lam, A, P, J, gamma, dyn, con) -> InverseDynamicsResult:
         constraint_residual=con,
     )
     return result
+
+
+def _prepare(mech: Mechanism, coordinates, actuated, settings, backend: str) -> tuple:
+    """What :func:`inverse_dynamics` resolves from its specs: ``(mobility, indices, the
+    compiled evaluator or None)``, after the checks that depend on nothing else.
+
+    Raises:
+        ClosedChainError: mobility 0, or ``coordinates`` names other than mobility many.
+    """
+    check_settings("settings", settings, SolverSettings)
+    backend = backend_name(backend)
+    mob = mech.mobility
+    if mob == 0:
+        raise ClosedChainError(
+            f"{mech.name}: the mechanism has no degree of freedom (mobility 0): no actuator "
+            "torque moves or holds it, the loops carry every load; valid: mobility >= 1"
+        )
+    idx = _cached_indices(mech, coordinates, actuated)
+    if len(idx.P) != mob:
+        raise ClosedChainError(
+            f"{mech.name}: coordinates names {len(idx.P)} coordinates "
+            f"({', '.join(mech.coordinate_names[i] for i in idx.P)}) but the mobility is "
+            f"{mob}: give the accelerations of exactly {mob} coordinates"
+        )
+    return mob, idx, rows_evaluator(mech, backend) if len(idx.A) == mob else None
 
 
 def _check_accelerations(a_P: np.ndarray, a_independent, mob: int) -> None:
