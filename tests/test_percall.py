@@ -3,6 +3,7 @@ reference, the backend argument, and results that do not change with later calls
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -108,6 +109,13 @@ def test_result_keeps_the_rows_of_its_own_state(fourbar):
     cc.forward_dynamics(fourbar, *_state(fourbar, seed=5), method="kkt", backend="compiled")
     assert np.max(np.abs(res.J - ref.J)) <= ROWS_TOL
     assert np.max(np.abs(res.gamma - ref.gamma)) <= ROWS_TOL * (1 + np.max(np.abs(ref.gamma)))
+    # Made without the dataclass __init__ (dynamics.base.new_frozen): every field, frozen,
+    # equal to the numpy result's.
+    fields = {f.name for f in dataclasses.fields(cc.ForwardDynamicsResult)}
+    assert set(vars(res)) == set(vars(ref)) == fields
+    assert res.method == ref.method == "kkt"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.a = None
 
 
 @needs_core

@@ -26,6 +26,7 @@ from .base import (
     ForwardDynamicsResult,
     SolverSettings,
     method_name,
+    new_frozen,
     workspace,
 )
 
@@ -83,7 +84,7 @@ def forward_dynamics(
     if fd is not None:
         # The core checks q, v and tau (the messages below) and the result's finiteness.
         a, lam, J, gamma = fd.core.forward_checked(q, v, tau)
-        return ForwardDynamicsResult(a, lam, method, J, gamma)
+        return new_frozen(ForwardDynamicsResult, a=a, lam=lam, method=method, J=J, gamma=gamma)
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")
     tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
