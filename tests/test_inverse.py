@@ -469,6 +469,11 @@ def test_wrong_number_of_accelerations(mechs, backend):
     for a_P in ([0.0, 0.0], [0.0, np.nan, 0.0], [np.inf, 0.0, 0.0]):
         with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
             inverse_dynamics(mech, mech.q_ref, np.zeros(mech.nv), a_P, backend=backend)
+    # Checked before q (here of a wrong shape), as on numpy.
+    with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 3 finite numbers"):
+        inverse_dynamics(
+            mech, np.zeros(mech.nq + 1), np.zeros(mech.nv), [np.nan] * 3, backend=backend
+        )
     # Checked before the singular J_F that the compiled core meets first.
     with pytest.raises(cc.ClosedChainError, match=r"a_independent must be 1 finite numbers"):
         inverse_dynamics(

@@ -15,7 +15,7 @@ import closedchain as cc
 from closedchain import compiled
 from closedchain.benchmark.families import chain_urdf
 from closedchain.closure import closure_error, max_declared_residual, solve_closure
-from closedchain.dynamics.base import METHOD_CAPABILITIES
+from closedchain.dynamics.base import METHOD_CAPABILITIES, SolverSettings
 from closedchain.exceptions import InvalidArgumentError, UnknownChoiceError
 from closedchain.kinematics import random_consistent_state
 
@@ -24,6 +24,13 @@ needs_core = pytest.mark.skipif(not compiled.available(), reason="compiled core 
 #: Compiled against numpy accelerations and multipliers, relative to 1 + max |a| (or
 #: |lam|): the two factorize the same matrices in other orders (round-off of cond ~ 1e3).
 BACKEND_PARITY_TOL = 1e-10
+#: Crank offset from the 4-bar's change point (180 deg) where J has a weak direction
+#: (sigma_min / sigma_max about 1e-4 < SolverSettings.weak_rcond) [rad].
+WEAK_CRANK_OFFSET = 1e-4
+#: Over-actuated torques, compiled against numpy: |diff| <= REDUNDANT_PARITY_ROUNDOFF eps
+#: cond(J) (1 + max |tau|) (the weak-direction balance divides by J's small singular
+#: values; both backends' SVDs are backward stable).
+REDUNDANT_PARITY_ROUNDOFF = 100.0
 #: phi, J and gamma: the same formulas evaluated in C++ and by numpy (round-off).
 ROWS_TOL = 1e-13
 #: Assembled configurations of the two backends [rad or m]: Gauss-Newton stops at
@@ -185,17 +192,39 @@ def test_inverse_dynamics_compiled_equals_numpy(mechanisms, name):
 
 
 @needs_core
-def test_inverse_dynamics_redundant_actuation_is_numpy(mechanisms):
-    """More actuators than degrees of freedom (minimum-norm torques): numpy's; "compiled"
-    says so."""
-    mech = mechanisms["fourbar"]
+@pytest.mark.parametrize(
+    ("name", "actuated", "weak"),
+    [
+        ("fourbar", ["crank_joint", "rocker_joint"], False),
+        ("fourbar", ["crank_joint", "coupler_joint", "rocker_joint"], False),
+        ("fourbar", ["crank_joint", "rocker_joint"], True),
+        ("fourbar", ["crank_joint", "coupler_joint", "rocker_joint"], True),
+        ("agile_eye", ["actuator_1", "actuator_2", "actuator_3", "distal_joint_1"], False),
+    ],
+)
+def test_inverse_dynamics_redundant_actuation_compiled_equals_numpy(
+    mechanisms, name, actuated, weak
+):
+    """More actuators than degrees of freedom: the minimum-norm torques plus, where J has
+    weak directions (the 4-bar near its change point), the spare torques that balance the
+    load along them; the compiled core's equal numpy's."""
+    mech = mechanisms[name]
     q, v, _ = _state(mech, seed=4)
-    kw = dict(actuated=["crank_joint", "rocker_joint"])
-    with pytest.raises(InvalidArgumentError, match="redundant actuation.*backend='numpy'"):
-        cc.inverse_dynamics(mech, q, v, [1.0], backend="compiled", **kw)
-    auto = cc.inverse_dynamics(mech, q, v, [1.0], **kw)
-    ref = cc.inverse_dynamics(mech, q, v, [1.0], backend="numpy", **kw)
-    assert np.array_equal(auto.tau, ref.tau)
+    if weak:
+        guess = [np.pi - WEAK_CRANK_OFFSET, -np.pi + WEAK_CRANK_OFFSET, np.pi]
+        q, v = cc.assemble(mech, guess, fixed=["crank_joint"]), np.zeros(mech.nv)
+    a_P = np.ones(mech.mobility)
+    ref = cc.inverse_dynamics(mech, q, v, a_P, actuated=actuated, backend="numpy")
+    res = cc.inverse_dynamics(mech, q, v, a_P, actuated=actuated, backend="compiled")
+    s = np.linalg.svd(ref.J, compute_uv=False)
+    assert (s[-1] < SolverSettings().weak_rcond * s[0]) == weak
+    bound = REDUNDANT_PARITY_ROUNDOFF * np.finfo(float).eps * (s[0] / s[-1])
+    scale = 1.0 + np.max(np.abs(ref.tau))
+    assert np.max(np.abs(res.tau - ref.tau)) <= bound * scale
+    assert np.max(np.abs(res.lam - ref.lam)) <= bound * (1.0 + np.max(np.abs(ref.lam)))
+    assert np.max(np.abs(res.a - ref.a)) <= bound * (1.0 + np.max(np.abs(ref.a)))
+    np.testing.assert_array_equal(res.actuated_idx_v, ref.actuated_idx_v)
+    assert res.dynamics_residual <= bound * scale
 
 
 @needs_core

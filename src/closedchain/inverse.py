@@ -82,7 +82,7 @@ from .dynamics.base import (
     singular_error,
     workspace,
 )
-from .exceptions import ClosedChainError, InvalidArgumentError, NonFiniteError, check_settings
+from .exceptions import ClosedChainError, NonFiniteError, check_settings
 from .urdf import COUPLING
 
 if TYPE_CHECKING:
@@ -323,10 +323,10 @@ def inverse_dynamics(
             minimum-norm ones plus the spare torques that balance the load along J's
             near-null directions (``weak_rcond``), so that the multipliers stay of
             the size of the loads.
-        backend: ``"auto"`` (the compiled core when it is built, holds the mechanism's
-            rows and there are as many actuated coordinates as degrees of freedom; else
-            numpy), ``"compiled"`` or ``"numpy"`` (the reference implementation), as
-            :func:`~closedchain.forward_dynamics`. The two agree to round-off.
+        backend: ``"auto"`` (the compiled core when it is built and holds the mechanism's
+            rows; else numpy), ``"compiled"`` or ``"numpy"`` (the reference
+            implementation), as :func:`~closedchain.forward_dynamics`. The two agree to
+            round-off.
 
     Returns:
         The torques (zero off the actuated coordinates), full accelerations,
@@ -336,8 +336,8 @@ def inverse_dynamics(
         ClosedChainError: the mechanism has no degree of freedom (mobility 0),
             wrong number of prescribed coordinates or accelerations, or fewer
             actuators than degrees of freedom (names both).
-        InvalidArgumentError: ``backend="compiled"`` where the core cannot run it
-            (more actuators than degrees of freedom: the minimum-norm torques are numpy's).
+        InvalidArgumentError: ``backend="compiled"`` where the core is not built or
+            cannot hold the mechanism's rows.
         SingularConfigurationError: the prescribed coordinates do not determine
             the motion (J_F singular), J has lost rank, or the actuators cannot
             produce every motion at q (N^T B singular, an actuation singularity).
@@ -361,26 +361,19 @@ def inverse_dynamics(
         # The core checks q, v and tau_passive, and solves the loop rows (percall.hpp). A
         # non-finite a_independent makes M a + h non-finite: a failure status, checked below.
         status, cond, a, tau, lam, J, gamma, dyn, con = fd.core.inverse_checked(
-            q, v, a_P, idx.core, tau_passive, settings.cond_max
+            q, v, a_P, idx.core, len(A), tau_passive, settings.cond_max, settings.weak_rcond
         )
         if status != INVERSE_OK:
             _check_accelerations(a_P, a_independent, mob)
             raise _failure(status, mech, np.asarray(q, dtype=float), v, a_P, idx, cond, settings)
     else:
         _check_accelerations(a_P, a_independent, mob)
-        backend = backend_name(backend)
         if len(A) < mob:
             raise ClosedChainError(
                 f"{mech.name}: under-actuated: {len(A)} actuated coordinates "
                 f"({', '.join(mech.coordinate_names[i] for i in A) or 'none'}) cannot produce "
                 f"the accelerations of {mob} degrees of freedom; actuated must name at least "
                 f"{mob}"
-            )
-        if len(A) > mob and backend == "compiled":
-            raise InvalidArgumentError(
-                f"{mech.name}: backend='compiled': {len(A)} actuated coordinates for {mob} "
-                "degrees of freedom (redundant actuation: the minimum-norm torques); valid: "
-                "backend='numpy' or 'auto'"
             )
         tau, a, lam, J, gamma, dyn, con = _inverse_numpy(
             mech, q, v, a_P, idx, tau_passive, settings
@@ -426,7 +419,7 @@ def _prepare(mech: Mechanism, coordinates, actuated, settings, backend: str) -> 
             f"({', '.join(mech.coordinate_names[i] for i in idx.P)}) but the mobility is "
             f"{mob}: give the accelerations of exactly {mob} coordinates"
         )
-    return mob, idx, rows_evaluator(mech, backend) if len(idx.A) == mob else None
+    return mob, idx, rows_evaluator(mech, backend) if len(idx.A) >= mob else None
 
 
 def _check_accelerations(a_P: np.ndarray, a_independent, mob: int) -> None:

@@ -177,7 +177,6 @@ inline double max_abs_nan(const Vec &x) {
 inline void closure_newton_step(CoreData &data, double rcond) {
   ClosureNewtonData &w = data.closure_newton;
   if (w.step.size() == 0) return;  // nothing free: the line search finds no descent
-  w.svd.compute(w.J_free);
   gauss_newton_svd_step(w.svd, w.phi, rcond, w.step);
 }
 
@@ -217,6 +216,7 @@ inline bool closure_newton(const CoreModel &model, CoreData &data, Vec &q,
       w.J_free.col(static_cast<Eigen::Index>(k)) = data.J.col(w.free[k]);
     // Accept on the sum of squares, the merit function the Gauss-Newton step descends.
     const double sq = w.phi.squaredNorm();
+    if (w.step.size()) w.svd.compute(w.J_free);  // one SVD serves both candidate steps
     TrialBest best;
     for (const double rcond : {rcond_full, settings.fallback_rcond}) {
       closure_newton_step(data, rcond);

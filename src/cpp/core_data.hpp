@@ -34,10 +34,10 @@ struct ClosureNewtonData {
   /// kept exact (pinocchio::integrate with a zero step may renormalize a continuous joint's
   /// (cos, sin)), and their values in the start.
   std::vector<int> held_q;
-  Vec q_held;
-  /// The free columns of J, shape (nc, n_free), and their SVD (thin U and V).
+  Vec q_held;  ///< The values of the held_q entries in the start.
+  /// The free columns of J, shape (nc, n_free).
   Mat J_free;
-  Eigen::JacobiSVD<Mat> svd;
+  Eigen::JacobiSVD<Mat> svd;  ///< The SVD of J_free (thin U and V), once per iteration.
   /// The step of the free coordinates, shape (n_free,); on every coordinate (dv) and times the
   /// line search's alpha (dq), shape (nv,).
   Vec step, dv, dq;

@@ -264,7 +264,7 @@ inline void newton_dependent(const CoreModel &model, CoreData &data, Vec &q, dou
   const double tol = model.dependent_tol;
   eval_phi_J(model, data, q);
   data.phi_n = data.phi;
-  double res = data.phi_n.cwiseAbs().maxCoeff();
+  double res = max_abs_nan(data.phi_n);
   for (int it = 0; it < DEPENDENT_MAX_ITER && !(res <= tol); ++it) {
     eval_phi_J(model, data, q);
     gather_JD(model, data, data.dependent);

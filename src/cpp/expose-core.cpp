@@ -63,9 +63,10 @@ void expose_core() {
            "q closed by Gauss-Newton moving the free velocity indices and aligned, or None "
            "(not converged, or a spurious closure): closedchain.assemble.")
       .def("inverse_checked", &inverse_checked,
-           bp::args("self", "q", "v", "a_P", "indices", "tau_passive", "cond_max"),
+           bp::args("self", "q", "v", "a_P", "indices", "n_A", "tau_passive", "cond_max",
+                    "weak_rcond"),
            "(status, cond, a, tau, lam, J, gamma, dynamics residual, constraint residual): "
-           "closedchain.inverse_dynamics with as many actuators as degrees of freedom.")
+           "closedchain.inverse_dynamics.")
       .def("repeat", &Core::py_repeat, bp::args("self", "q", "v", "tau", "n"),
            "a at (q, v) after n evaluations inside C++ (timing).")
       .def("profile", &Core::py_profile, bp::args("self", "q", "v", "tau", "n"),

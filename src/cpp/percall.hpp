@@ -13,6 +13,8 @@
 #include <cmath>
 #include <limits>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "arg_checks.hpp"
 #include "closure_newton.hpp"
@@ -145,6 +147,70 @@ inline double lu_cond(const Eigen::PartialPivLU<Mat> &lu) {
   return rc > 0.0 ? 1.0 / rc : std::numeric_limits<double>::infinity();
 }
 
+/// The torques of more actuated coordinates A (n_A) than degrees of freedom (mobility =
+/// nv - nc), closedchain/inverse.py's equations: with the full SVD J = U S V^T (cond(J) =
+/// s_0 / s_(nc-1) checked), N = V's last nv - nc columns and G = N^T B (mobility x n_A, the
+/// rows A of N), tau_A is G's minimum-norm solution of G tau_A = N^T b (cond(G) = 1 /
+/// sigma_min(G), the actuators' reach relative to the ideal 1, checked) plus, where J has weak
+/// directions W (right singular vectors with s_i < weak_rcond s_0), the spare torques Z y
+/// (Z: G's null space) with y the minimum-norm least-squares solution of W^T B Z y =
+/// W^T (b - B tau_A), singular values at most weak_rcond dropped (_balance_weak_directions);
+/// lam = U S^-1 V_r^T (tau - b). Fills tau (at A) and lam; returns (status, the failed
+/// matrix's condition number).
+inline std::pair<InverseStatus, double> redundant_torques(
+    const Mat &J, const Vec &b, const Eigen::Ref<const Eigen::VectorXi> &A, double cond_max,
+    double weak_rcond, Vec &tau, Vec &lam) {
+  const Eigen::Index nc = J.rows(), nv = J.cols(), mob = nv - nc, n_A = A.size();
+  const double inf = std::numeric_limits<double>::infinity();
+  Mat N = Mat::Identity(nv, nv);
+  Eigen::JacobiSVD<Mat> svd;
+  if (nc) {
+    svd.compute(J, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    const Vec &s = svd.singularValues();
+    const double cond = s[nc - 1] > 0.0 ? s[0] / s[nc - 1] : inf;
+    if (cond > cond_max) return {INVERSE_J_SINGULAR, cond};
+    N = svd.matrixV().rightCols(mob);
+  }
+  Mat G(mob, n_A);
+  for (Eigen::Index k = 0; k < n_A; ++k) G.col(k) = N.row(A[k]).transpose();
+  const Eigen::JacobiSVD<Mat> svd_g(G, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Vec &sg = svd_g.singularValues();
+  const double cond_g = sg[mob - 1] > 0.0 ? 1.0 / sg[mob - 1] : inf;
+  if (cond_g > cond_max) return {INVERSE_ACTUATION_SINGULAR, cond_g};
+  const Mat &Vg = svd_g.matrixV();
+  Vec tau_A = Vg.leftCols(mob) *
+              ((svd_g.matrixU().transpose() * (N.transpose() * b)).array() / sg.array()).matrix();
+  if (nc) {
+    const Vec &s = svd.singularValues();
+    std::vector<Eigen::Index> weak;
+    for (Eigen::Index i = 0; i < nc; ++i)
+      if (s[i] < weak_rcond * s[0]) weak.push_back(i);
+    if (!weak.empty()) {
+      const auto Z = Vg.rightCols(n_A - mob);
+      Mat W(weak.size(), nv), WA(weak.size(), n_A);
+      for (std::size_t r = 0; r < weak.size(); ++r) W.row(r) = svd.matrixV().col(weak[r]);
+      for (Eigen::Index k = 0; k < n_A; ++k) WA.col(k) = W.col(A[k]);
+      const Eigen::JacobiSVD<Mat> svd_c(WA * Z, Eigen::ComputeThinU | Eigen::ComputeThinV);
+      const Vec &sc = svd_c.singularValues();
+      Eigen::Index k = 0;
+      while (k < sc.size() && sc[k] > weak_rcond) ++k;
+      const Vec r = W * b - WA * tau_A;
+      const Vec y = svd_c.matrixV().leftCols(k) *
+                    ((svd_c.matrixU().leftCols(k).transpose() * r).array() / sc.head(k).array())
+                        .matrix();
+      tau_A += Z * y;
+    }
+  }
+  for (Eigen::Index k = 0; k < n_A; ++k) tau[A[k]] = tau_A[k];
+  if (nc) {
+    const Vec &s = svd.singularValues();
+    const Vec f = tau - b;
+    lam = svd.matrixU() *
+          ((svd.matrixV().leftCols(nc).transpose() * f).array() / s.array()).matrix();
+  }
+  return {INVERSE_OK, 1.0};
+}
+
 /// Closed-chain inverse dynamics (closedchain/inverse.py's equations) with as many
 /// actuated coordinates A as degrees of freedom, on the core's rows:
 ///   J_F a_F = -gamma - J_P a_P,   b = M a + h - tau_passive,
@@ -152,33 +218,36 @@ inline double lu_cond(const Eigen::PartialPivLU<Mat> &lu) {
 /// (the rows of [B -J^T] [tau_A; lam] = b off and on A; Abar, the other coordinates,
 /// has nc entries). The actuation's condition number is that of the numpy path,
 /// 1 / sigma_min(N^T B) = sqrt(1 + ||J_Abar^-1 J_A||_2^2) for an orthonormal null-space
-/// basis N of J. `indices` holds P, F, A and Abar one after the other (sizes mobility, nc,
-/// mobility, nc; mobility = a_P's size). Returns (status, cond, a, tau, lam, J, gamma, max |M a + h + J^T lam -
-/// tau|, max |J a + gamma|); with status != INVERSE_OK, cond is the failed matrix's
-/// condition number and the arrays are not meaningful.
+/// basis N of J. With more actuated coordinates than degrees of freedom the torques are
+/// redundant_torques'. `indices` holds P, F, A and Abar one after the other (sizes mobility,
+/// nc, n_A, nv - n_A; mobility = a_P's size). Returns (status, cond, a, tau, lam, J,
+/// gamma, max |M a + h + J^T lam - tau|, max |J a + gamma|); with status != INVERSE_OK,
+/// cond is the failed matrix's condition number and the arrays are not meaningful.
 inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const Vec &a_P,
-                                 const Eigen::VectorXi &indices, bp::object tau_passive,
-                                 double cond_max) {
+                                 const Eigen::VectorXi &indices, int n_A, bp::object tau_passive,
+                                 double cond_max, double weak_rcond) {
   const CoreModel &model = core.model();
   CoreData &data = core.data();
+  auto fail = [&](InverseStatus status, double cond) {
+    return bp::make_tuple(static_cast<int>(status), cond, bp::object(), bp::object(),
+                          bp::object(), bp::object(), bp::object(), 0.0, 0.0);
+  };
+  // A non-finite a_P is reported first, as on numpy (closedchain.inverse then names it).
+  if (!a_P.allFinite()) return fail(INVERSE_NON_FINITE, 0.0);
   const ConfigurationArg qa(q, model.tree);
   const VectorArg va(v, "v", model.nv);
   const int nv = model.nv;
   const Eigen::Index n_P = a_P.size(), n_F = nv - n_P;
-  if (n_P > nv || indices.size() != 2 * nv)
+  if (n_P > nv || n_A < n_P || n_A > nv || indices.size() != 2 * nv)
     throw BadArgument{"indices: expected P, F, A, Abar (" + std::to_string(2 * nv) +
-                      " entries), got " + std::to_string(indices.size())};
+                      " entries, n_A in [mobility, nv]), got " + std::to_string(indices.size())};
   const auto P = indices.segment(0, n_P), F = indices.segment(n_P, n_F),
-             A = indices.segment(nv, n_P), Abar = indices.segment(nv + n_P, n_F);
+             A = indices.segment(nv, n_A), Abar = indices.segment(nv + n_A, nv - n_A);
   invalidate_kinematics(data);
   eval_terms(model, data, qa.map(), va.map());
   const Mat &M = mass_at_J(model, data), &J = data.J;
   const Vec &h = data.h, &gamma = data.gamma;
   const Eigen::Index nc = J.rows();
-  auto fail = [&](InverseStatus status, double cond) {
-    return bp::make_tuple(static_cast<int>(status), cond, bp::object(), bp::object(),
-                          bp::object(), bp::object(), bp::object(), 0.0, 0.0);
-  };
   Vec a = Vec::Zero(nv);
   for (Eigen::Index i = 0; i < P.size(); ++i) a[P[i]] = a_P[i];
   if (nc) {
@@ -196,7 +265,10 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
   if (!tau_passive.is_none()) b -= VectorArg(tau_passive, "tau_passive", nv).map();
   if (!b.allFinite()) return fail(INVERSE_NON_FINITE, 0.0);
   Vec lam = Vec::Zero(nc), tau = Vec::Zero(nv);
-  if (nc) {
+  if (n_A > n_P) {
+    const auto [status, cond] = redundant_torques(J, b, A, cond_max, weak_rcond, tau, lam);
+    if (status != INVERSE_OK) return fail(status, cond);
+  } else if (nc) {
     const Vec s = Eigen::JacobiSVD<Mat>(J).singularValues();
     const double cond =
         s[nc - 1] > 0.0 ? s[0] / s[nc - 1] : std::numeric_limits<double>::infinity();
@@ -211,11 +283,11 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
       // ||K||_2^2, the largest eigenvalue of the nc x nc K K^T (relatively accurate for
       // the largest singular value, which is all the bound needs).
       const Mat KKt = K * K.transpose();
-      const double k2 =
-          K.size() ? std::max(0.0, Eigen::SelfAdjointEigenSolver<Mat>(KKt, Eigen::EigenvaluesOnly)
-                                       .eigenvalues()
-                                       .maxCoeff())
-                   : 0.0;
+      double k2 = K.size() ? Eigen::SelfAdjointEigenSolver<Mat>(KKt, Eigen::EigenvaluesOnly)
+                                 .eigenvalues()
+                                 .maxCoeff()
+                           : 0.0;
+      if (!(k2 >= 0.0)) k2 = std::numeric_limits<double>::infinity();  // NaN: overflowed
       cond_g = std::sqrt(1.0 + k2);
     }
     if (cond_g > cond_max) return fail(INVERSE_ACTUATION_SINGULAR, cond_g);
@@ -224,7 +296,8 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
     lam = lu.transpose().solve(b_bar);
   }
   const Vec JtLam = J.transpose() * lam;
-  for (Eigen::Index k = 0; k < A.size(); ++k) tau[A[k]] = b[A[k]] + JtLam[A[k]];
+  if (n_A == n_P)
+    for (Eigen::Index k = 0; k < A.size(); ++k) tau[A[k]] = b[A[k]] + JtLam[A[k]];
   const double dyn = max_abs(b + JtLam - tau);
   const double con = max_abs(J * a + gamma);
   return bp::make_tuple(static_cast<int>(INVERSE_OK), 1.0, a, tau, lam, Mat(J), Vec(gamma), dyn,
