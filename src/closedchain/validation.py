@@ -237,7 +237,6 @@ def mass_norm(M: np.ndarray, x: np.ndarray) -> float:
     return math.sqrt(max(float(x @ M @ x), 0.0))
 
 
-@exclusive
 def _validation_states(
     mech: Mechanism, n_samples: int, seed: int, velocity_scale: float, tau_scale: float | None
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -260,6 +259,7 @@ def _validation_states(
         yield q, v, tau
 
 
+@exclusive
 def validate(
     mech: Mechanism,
     *,
