@@ -67,6 +67,8 @@ SHARED_TEXT = (
     ("RANK_LOSS_HINT", "closedchain.dynamics.base", "RANK_LOSS_HINT"),
     ("MASS_HINT", "closedchain.dynamics.base", "MASS_HINT"),
     ("KKT_HINT", "closedchain.dynamics.base", "KKT_HINT"),
+    ("AL_DIVERGED_HINT", "closedchain.dynamics.augmented_lagrangian", "DIVERGED_HINT"),
+    ("NONFINITE_HINT", "closedchain.simulate.problem", "NONFINITE_HINT"),
 )
 
 HEADER = """\

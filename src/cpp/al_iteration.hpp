@@ -49,9 +49,8 @@ inline void check_al_divergence(double last_change, double change, double x_max,
     throw SingularError{
         "the augmented-Lagrangian iteration diverged: its correction grew from " +
             fmt("%.3e", last_change) + " to " + fmt("%.3e", change) + " at iterate " +
-            std::to_string(iterate) + " (alpha = " + fmt("%.3e", alpha) +
-            "); the penalized mass matrix M + alpha J^T J is too ill-conditioned for its "
-            "solve: lower the penalty (SolverSettings.al_penalty) or use method='kkt'",
+            std::to_string(iterate) + " (alpha = " + fmt("%.3e", alpha) + "); " +
+            AL_DIVERGED_HINT,
         std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN(), Vec()};
 }
 

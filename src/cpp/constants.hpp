@@ -170,6 +170,18 @@ static const char *const MASS_HINT =
 static const char *const KKT_HINT =
     "the constraint Jacobian has lost rank (a singular configuration) or the mass matrix is ill-conditioned (a long chain of light links; method='augmented-lagrangian' runs there)";
 
+/// What a diverged iteration's message says of the cause and the remedy (the compiled
+/// core's too).
+/// (closedchain.dynamics.augmented_lagrangian.DIVERGED_HINT)
+static const char *const AL_DIVERGED_HINT =
+    "the penalized mass matrix M + alpha J^T J is too ill-conditioned for its solve: lower the penalty (SolverSettings.al_penalty) or use method='kkt'";
+
+/// What the message of non-finite accelerations says of the cause and the remedy (the
+/// compiled core's too).
+/// (closedchain.simulate.problem.NONFINITE_HINT)
+static const char *const NONFINITE_HINT =
+    "the state diverged or the method failed there; a fixed step beyond the motion's stability limit diverges: use integrator='rk43' or a smaller dt";
+
 /// How to pass singular positions, appended to the partitioning stabilization's
 /// singular errors (closedchain.simulate.problem.passing_hint()).
 static const char *const PASSING_HINT =

@@ -581,9 +581,7 @@ inline void accel(const CoreModel &model, CoreData &data, double t, const RefV &
     throw SimulationFailure{
         model.name + ": non-finite acceleration at t = " + fmt("%.9g", t) + " s (max |q| = " +
             fmt("%.3e", q.size() ? q.cwiseAbs().maxCoeff() : 0.0) + ", max |v| = " +
-            fmt("%.3e", v.size() ? v.cwiseAbs().maxCoeff() : 0.0) +
-            "): the state diverged or the method failed there; a fixed step beyond the "
-            "motion's stability limit diverges: use integrator='rk43' or a smaller dt",
+            fmt("%.3e", v.size() ? v.cwiseAbs().maxCoeff() : 0.0) + "): " + NONFINITE_HINT,
         t};
 }
 

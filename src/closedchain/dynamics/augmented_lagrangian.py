@@ -99,6 +99,12 @@ MAX_PENALTY_LOWERINGS = 8
 DIVERGENCE_GROWTH = 2.0
 #: See :data:`DIVERGENCE_GROWTH` [-].
 DIVERGENCE_RTOL = 1e-6
+#: What a diverged iteration's message says of the cause and the remedy (the compiled
+#: core's too).
+DIVERGED_HINT = (
+    "the penalized mass matrix M + alpha J^T J is too ill-conditioned for its solve: lower "
+    "the penalty (SolverSettings.al_penalty) or use method='kkt'"
+)
 
 _TINY = float(np.finfo(float).tiny)
 
@@ -498,9 +504,8 @@ def diverged_message(last_change: float, change: float, it: int, alpha: float) -
     """
     return (
         f"the augmented-Lagrangian iteration diverged: its correction grew from "
-        f"{last_change:.3e} to {change:.3e} at iterate {it} (alpha = {alpha:.3e}); the "
-        "penalized mass matrix M + alpha J^T J is too ill-conditioned for its solve: lower "
-        "the penalty (SolverSettings.al_penalty) or use method='kkt'"
+        f"{last_change:.3e} to {change:.3e} at iterate {it} (alpha = {alpha:.3e}); "
+        f"{DIVERGED_HINT}"
     )
 
 

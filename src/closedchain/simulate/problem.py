@@ -526,6 +526,14 @@ def _cond(J: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else math.inf
 
 
+#: What the message of non-finite accelerations says of the cause and the remedy (the
+#: compiled core's too).
+NONFINITE_HINT = (
+    "the state diverged or the method failed there; a fixed step beyond the motion's "
+    "stability limit diverges: use integrator='rk43' or a smaller dt"
+)
+
+
 def nonfinite_message(name: str, t: float, q: np.ndarray, v: np.ndarray) -> str:
     """Return the one-line message of non-finite accelerations at (t, q, v) (the compiled
     core's too): the size of the state says whether the integration diverged before.
@@ -541,8 +549,7 @@ def nonfinite_message(name: str, t: float, q: np.ndarray, v: np.ndarray) -> str:
         v_max = float(np.max(np.abs(v), initial=0.0))
     return (
         f"{name}: non-finite acceleration at t = {t:.9g} s (max |q| = {q_max:.3e}, max |v| = "
-        f"{v_max:.3e}): the state diverged or the method failed there; a fixed step beyond "
-        "the motion's stability limit diverges: use integrator='rk43' or a smaller dt"
+        f"{v_max:.3e}): {NONFINITE_HINT}"
     )
 
 
