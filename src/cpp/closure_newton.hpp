@@ -78,9 +78,10 @@ void closure_newton_resize(const CoreModel &model, CoreData &data, const Eigen::
 /// for an empty x.
 double max_abs_nan(const Vec &x);
 
-/// The Gauss-Newton step into data.closure_newton.step, -J_F^+ phi (gauss_newton_svd_step;
-/// J_F's SVD through the QR factor of its longer side, Eigen's JacobiSVD preconditioner: an
-/// nc x nc SVD for nc rows of many columns).
+/// The Gauss-Newton step into data.closure_newton.step, -J_F^+ phi (gauss_newton_svd_step)
+/// from data.closure_newton.svd, J_F's SVD that closure_newton computes once per iteration
+/// for both candidate steps (through the QR factor of its longer side, Eigen's JacobiSVD
+/// preconditioner: an nc x nc SVD for nc rows of many columns).
 void closure_newton_step(CoreData &data, double rcond);
 
 /// The backtracking line search of one candidate step from q, whose residual has sum of

@@ -169,6 +169,10 @@ void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, const Ve
 /// values, descending, shape (nc,) (the null-space method's check, dense and tree path).
 void check_jacobian_rank(const CoreModel &model, const RefV &q, const Vec &s, double t);
 
+/// The 2-norm condition number s_0 / s_(n-1) from singular values s, largest first, shape
+/// (n,), n >= 1 (infinity where the smallest is 0).
+double singular_value_cond(const Vec &s);
+
 /// The null-space method: J = U S V^T; a = a_p + N z with a_p = -V_r S^-1 U^T gamma,
 /// (N^T M N) z = N^T (tau - h - M a_p), lam from the range rows.
 void solve_nullspace(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
@@ -509,9 +513,13 @@ inline void solve_schur(const CoreModel &model, CoreData &data, const RefV &q, c
   data.a.noalias() -= data.schur_solves.leftCols(model.nc) * data.lam;
 }
 
-inline void check_jacobian_rank(const CoreModel &model, const RefV &q, const Vec &s, double t) {
+inline double singular_value_cond(const Vec &s) {
   const Eigen::Index n = s.size();
-  const double cond = s[n - 1] > 0 ? s[0] / s[n - 1] : std::numeric_limits<double>::infinity();
+  return s[n - 1] > 0 ? s[0] / s[n - 1] : std::numeric_limits<double>::infinity();
+}
+
+inline void check_jacobian_rank(const CoreModel &model, const RefV &q, const Vec &s, double t) {
+  const double cond = singular_value_cond(s);
   if (!(cond <= model.cond_max))
     singular(model, q, "the constraint Jacobian J", cond,
              "it has lost rank: a singular configuration", t);

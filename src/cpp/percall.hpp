@@ -166,8 +166,7 @@ inline std::pair<InverseStatus, double> redundant_torques(
   Eigen::JacobiSVD<Mat> svd;
   if (nc) {
     svd.compute(J, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    const Vec &s = svd.singularValues();
-    const double cond = s[nc - 1] > 0.0 ? s[0] / s[nc - 1] : inf;
+    const double cond = singular_value_cond(svd.singularValues());
     if (cond > cond_max) return {INVERSE_J_SINGULAR, cond};
     N = svd.matrixV().rightCols(mob);
   }
@@ -269,9 +268,7 @@ inline bp::tuple inverse_checked(Core &core, bp::object q, bp::object v, const V
     const auto [status, cond] = redundant_torques(J, b, A, cond_max, weak_rcond, tau, lam);
     if (status != INVERSE_OK) return fail(status, cond);
   } else if (nc) {
-    const Vec s = Eigen::JacobiSVD<Mat>(J).singularValues();
-    const double cond =
-        s[nc - 1] > 0.0 ? s[0] / s[nc - 1] : std::numeric_limits<double>::infinity();
+    const double cond = singular_value_cond(Eigen::JacobiSVD<Mat>(J).singularValues());
     if (cond > cond_max) return fail(INVERSE_J_SINGULAR, cond);
     Mat JA(nc, A.size()), JAbar(nc, Abar.size());
     for (Eigen::Index k = 0; k < A.size(); ++k) JA.col(k) = J.col(A[k]);
