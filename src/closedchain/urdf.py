@@ -266,6 +266,42 @@ class JointSpring:
 
 
 @dataclass(frozen=True)
+class JointDamping:
+    """Viscous damping on a joint: generalized force -damping v_j on each of its coordinates.
+
+    Read from URDF ``<dynamics damping>``, SDF ``<dynamics><damping>`` and MJCF joint
+    ``damping``.
+
+    Attributes:
+        joint: the joint's name.
+        damping: [N m s/rad or N s/m], >= 0.
+        line: source line (0: written by a reader without lines).
+    """
+
+    joint: str
+    damping: float
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class JointArmature:
+    """Reflected rotor inertia of a joint, added to the mass matrix diagonal.
+
+    MuJoCo's joint ``armature`` and Pinocchio's ``model.armature`` (one value per
+    coordinate of the joint): M[i, i] += armature for each of the joint's v indices.
+
+    Attributes:
+        joint: the joint's name.
+        armature: [kg m^2 or kg], >= 0.
+        line: source line (0: written by a reader without lines).
+    """
+
+    joint: str
+    armature: float
+    line: int = 0
+
+
+@dataclass(frozen=True)
 class URDFPlus:
     """What a URDF+ file adds to the tree.
 
@@ -289,6 +325,8 @@ class URDFPlus:
             revolute joints through massless links at one point into spherical
             joints (a loops YAML's tree, as the convention's loader does).
         springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
+        dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
+        armatures: the joints' armature (:class:`JointArmature`), in file order.
     """
 
     path: Path
@@ -304,6 +342,8 @@ class URDFPlus:
     unlimited: tuple[str, ...] = ()
     fuse_ball_chains: bool = False
     springs: tuple[JointSpring, ...] = ()
+    dampings: tuple[JointDamping, ...] = ()
+    armatures: tuple[JointArmature, ...] = ()
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
