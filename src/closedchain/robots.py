@@ -93,7 +93,7 @@ ERD_MODELS: dict[str, RobotEntry] = {
     ),
     "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
     # SDF: the achilles and plantar rods close with ball joints, the knee spring with a
-    # revolute one; its gearbox joints (motor rotors) are left out (closedchain.sdf).
+    # revolute one; its gearbox joints tie each motor rotor to its output (closedchain.sdf).
     # The SRDF of cassie_v2 names the same joints with the same signs. The knee springs
     # (knee-shin joints) are held: the file's leaf-spring linkage (knee-spring link on a
     # revolute and a prismatic joint) locks the shin at a toggle (sigma_min(J) 9e-7) that

@@ -1,4 +1,4 @@
-"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
+r"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
 
 An SDF ``<model>`` is a graph of links and joints that may hold cycles; URDF
 holds a tree. :func:`read_sdf` cuts the graph into a spanning tree plus loop
@@ -15,10 +15,14 @@ Frames (SDFormat 1.6, with the 1.7 ``relative_to`` attribute where present):
 - a joint axis ``<xyz>`` is in the joint frame, or in the model frame with
   ``<use_parent_model_frame>1`` (1.6) or ``expressed_in="__model__"`` (1.7).
 
-The URDF frame of each tree link is the frame of its tree joint (as URDF
-wants); inertials, visuals, joint origins and loop origins are re-expressed
-in those frames, so every body sits where the SDF puts it when all joint
-coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
+Every link's URDF frame is its SDF frame, whichever way the tree runs
+through it: inertials, visuals, joint origins and loop origins are expressed
+in it, and where the link's tree joint frame is not the link's frame (a
+joint ``<pose>``, or a reversed joint, whose frame sits on its SDF child),
+the joint moves a massless link ``J::frame`` at the joint frame and a fixed
+joint ``J::pose`` places the link in it (Pinocchio folds both into the
+joint's body). So the frame Pinocchio names after a link sits at the link's
+SDF pose when all joint coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
 Pinocchio's universe or moves with its root joint, is (as in Pinocchio's SDF
 reader) the model's first ``<link>``: its frame is the world frame, its own
 ``<pose>`` (and the model's) only place it. When joints have ``world`` as
@@ -36,7 +40,8 @@ close a cycle; the joints left out are cut and become ``<loop>`` elements.
    closes with 3 rows and a URDF tree cannot hold it), a prismatic joint after
    the revolute ones (Pinocchio has no prismatic constraint to validate
    against), a universal joint never while another joint of its cycle can be
-   (URDF+ has no universal loop);
+   (URDF+ has no universal loop); ``gearbox`` joints are not in the graph
+   (they couple two joints' angles and hold no link);
 3. joints whose child link has one parent joint before joints whose child has
    several (the link keeps its own joint: Pinocchio's SDF rule);
 4. file order.
@@ -47,14 +52,24 @@ so its coordinate keeps the SDF's sign, and its limits are kept).
 
 Joint types: ``revolute`` (URDF ``revolute``; without ``<limit>`` its range
 is :data:`SDF_UNLIMITED`, SDF's own default), ``continuous``, ``prismatic``,
-``fixed``, ``universal`` (in the tree: two revolute joints ``J`` and
-``J::axis2`` through a massless link ``J::cross``; cut: refused), ``ball``
-(cut: a ``spherical`` loop; in the tree: refused). ``gearbox`` joints
-(``q_child = gearbox_ratio * q_parent`` about the ``gearbox_reference_body``)
-couple a motor's rotor to its output: closedchain has no coupling loop yet, so
-they are left out with a logged warning (the rotor link then turns freely on
-its own joint) and listed in :attr:`SDFTree.gearboxes`; a model that needs a
-gearbox to hold a link at all is refused.
+``fixed``, ``universal`` (in the tree: two revolute joints ``J``, about
+``<axis>``, and ``J::axis2``, about ``<axis2>``, through a massless link
+``J::cross``; reversed, ``J::axis2`` comes first and each keeps its axis's
+angle; cut: refused), ``ball`` (cut: a ``spherical`` loop; in the tree:
+refused), ``gearbox``. A gearbox couples a motor's rotor to its output; the
+SDFormat specification (``joint.sdf``) defines it as
+:math:`\theta_2 = -r\,\theta_1` with ``r`` its ``<gearbox_ratio>``,
+:math:`\theta_1` the angle from the ``<gearbox_reference_body>`` to the
+``<parent>`` link about ``<axis>`` and :math:`\theta_2` the angle from it to
+the ``<child>`` link about ``<axis2>`` (Gazebo's ODE gearbox constraint has
+the same sign: child angle + ratio x parent angle = 0). Each angle is read
+as the coordinate of the one revolute tree joint between the reference body
+and that link, whose axis must be the gearbox's (:data:`GEARBOX_AXIS_TOL`),
+signed by the axes' directions and which side is the joint's SDF parent; the
+gearbox becomes the coupling loop (:data:`closedchain.urdf.COUPLING`)
+``q_child_joint = -r s1 s2 q_parent_joint`` of the same name, so the rotor's
+inertia, reflected by 1/r^2, acts on the output. A gearbox whose link has no
+such joint is refused naming it, as is a link held by gearboxes only.
 
 Held joints: ``fixed_joints`` names joints read as ``fixed`` at their zero
 position (the pose the file draws), e.g. a spring joint held stiff, or a joint
@@ -67,7 +82,12 @@ Joint springs: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has
 ``spring_stiffness`` > 0 gets ``<dynamics spring_stiffness spring_reference>`` in the
 URDF+ (:class:`closedchain.urdf.JointSpring`; the generalized force
 :func:`closedchain.spring_torque`); a spring on a cut joint, a gearbox or another
-joint type is left out with a logged warning. Damping and friction are not read.
+joint type is left out with a logged warning. Viscous damping: a tree joint's
+``<axis><dynamics><damping>`` > 0 (``<axis2>``'s for a universal joint's
+``J::axis2``) is written as URDF ``<dynamics damping>`` and listed in
+:attr:`SDFTree.dampings` (:class:`closedchain.urdf.JointDamping`; ``load`` puts
+them in ``URDFPlus.dampings``); on a cut, gearbox or held joint it is left out
+with a logged warning. Friction is not read.
 
 Parsing is as safe as for URDF (:func:`closedchain.urdf.read_xml`: no DTD, no
 network, bounded size). Mesh ``model://name/sub`` URIs become
