@@ -645,22 +645,17 @@ class _Reader:
             robot.insert(0, material)
         dampings: list[JointDamping] = []
         for name in tree.tree_joints:
-            for element in self._tree_joint(joints[name], name in tree.reversed_joints, frames):
-                robot.append(element)
-                damping = element.find("dynamics")
-                if damping is not None and float(damping.get("damping")) > 0.0:
-                    dampings.append(
-                        JointDamping(
-                            element.get("name"), float(damping.get("damping")), joints[name].line
-                        )
-                    )
+            elements, damped = self._tree_joint(joints[name], name in tree.reversed_joints, frames)
+            robot.extend(elements)
+            dampings.extend(damped)
         for name in tree.cut_joints:
             robot.append(self._loop(joints[name], frames))
         for name in tree.gearboxes:
             robot.append(self._gearbox_loop(joints[name], tree))
-        for what, left_out in (
+        for what, verb, left_out in (
             (
                 "springs",
+                "are",
                 [
                     j.name
                     for j in self.joints
@@ -669,7 +664,8 @@ class _Reader:
                 ],
             ),
             (
-                "dampings",
+                "damping",
+                "is",
                 [
                     j.name
                     for j in self.joints
@@ -680,12 +676,13 @@ class _Reader:
         ):
             if left_out:
                 logger.warning(
-                    "%s: the %s of %s are left out: a cut joint (a <loop>), a gearbox or a "
+                    "%s: the %s of %s %s left out: a cut joint (a <loop>), a gearbox or a "
                     "held (fixed_joints) joint has no coordinate of its own%s; valid: tree "
                     "joints (cut_joints chooses which joint of a cycle is cut)",
                     self.path,
                     what,
                     ", ".join(left_out),
+                    verb,
                     ", nor has a continuous or universal joint a spring"
                     if what == "springs"
                     else "",
@@ -830,11 +827,16 @@ class _Reader:
             etree.SubElement(out, "material", name=label)
         return out
 
-    def _tree_joint(self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]):
-        """Return the URDF elements of a tree joint: its ``<joint>`` elements (two for a
-        universal joint, through a massless ``J::cross`` link) and, where its URDF
-        child's SDF frame is not the joint frame, a massless ``J::frame`` link that the
-        joint moves and a fixed ``J::pose`` joint placing the link in it."""
+    def _tree_joint(
+        self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]
+    ) -> tuple[list, list[JointDamping]]:
+        """Return the URDF elements of a tree joint, and the damping of its URDF joints.
+
+        The elements: its ``<joint>`` elements (two for a universal joint, through a
+        massless ``J::cross`` link) and, where its URDF child's SDF frame is not the
+        joint frame, a massless ``J::frame`` link that the joint moves and a fixed
+        ``J::pose`` joint placing the link in it.
+        """
         parent, child = j.parent, j.child
         sign = 1.0
         if reverse:  # the axes negated: each coordinate keeps the SDF's sign
@@ -859,7 +861,7 @@ class _Reader:
             held = f"{j.name}::frame"
             steps[-1] = (*steps[-1][:4], held, *steps[-1][5:])
             steps.append((f"{j.name}::pose", "fixed", j.axis, held, child, offset, j.limits, 0.0))
-        out = []
+        out, damped = [], []
         for name, jtype, axis, p, c, M, limits, damping in steps:
             if c.startswith(f"{j.name}::"):
                 out.append(etree.Element("link", name=c))
@@ -887,8 +889,10 @@ class _Reader:
                 if spring is not None:
                     dynamics.set("spring_stiffness", repr(spring[0]))
                     dynamics.set("spring_reference", repr(spring[1]))
+            if jtype != "fixed" and damping > 0.0:
+                damped.append(JointDamping(name, damping, j.line))
             out.append(joint)
-        return out
+        return out, damped
 
     def _loop(self, j: SDFJoint, frames: dict[str, pin.SE3]):
         """Return the URDF+ ``<loop>`` of a cut joint (its frame seen from both links)."""
