@@ -272,7 +272,7 @@ def walk_consistent_state(
     assembles the result onto phi = 0 and keeps it when it is within the joint
     limits and no nearer a singular J than the start: sigma_min(J) at least
     ``min(min_sigma, sigma_fraction sigma_min(J(q)))`` (a robot standing on
-    welded feet, erd:cassie, has sigma_min 1.8e-5 at its reference). A step that
+    welded feet, erd:cassie, has sigma_min 7.7e-6 at its reference). A step that
     fails is tried again in another direction.
 
     Args:
