@@ -5,8 +5,10 @@ References, none computed by the code under test:
 * frames worked out by hand from the numbers of ``tests/data/fourbar.sdf``
   (its header states the 4-bar's pivots);
 * pinocchio.constraintDynamics on the same tree and loops (``validate`` on the
-  4-bar; on Cassie at states near its reference, with enough proximal
-  iterations for its ill-conditioned knee-spring loops);
+  4-bar without its gearbox); on Cassie, Pinocchio's mass matrix, bias forces and
+  loop constraints with the gearboxes' couplings eliminated by hand;
+* SDFormat's gearbox (theta_child = -gearbox_ratio theta_parent) and a geared
+  pendulum's reduced equation, written by hand;
 * the ``standing`` configuration of example-robot-data's cassie_v2.srdf,
   written for Pinocchio's own SDF reader: our loops close on it before assembly;
 * Cassie's stance linearized by central differences (scripts/cassie_stand.py): a
@@ -27,19 +29,20 @@ import re
 import subprocess
 import sys
 from importlib import metadata
+from types import SimpleNamespace
 
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.linalg
 from conftest import DATA_DIR, MODELS, ROOT
 from lxml import etree
 
 import closedchain as cc
 from closedchain import robots
 from closedchain.cli import main
-from closedchain.dynamics import SolverSettings
+from closedchain.constraints import build_pinocchio_constraints
 from closedchain.sdf import read_sdf
-from closedchain.validation import pinocchio_reference_dynamics
 
 FOURBAR = DATA_DIR / "fourbar.sdf"
 SPRING_LEGS = DATA_DIR / "spring_legs.sdf"
@@ -66,8 +69,7 @@ TOL_FORCE = 1e-8
 #: Size [rad or m] of the random steps along the motion from Cassie's reference.
 STEP = 0.05
 #: Largest |a| [rad/s^2, m/s^2] the holding torque leaves at Cassie's standing reference:
-#: the motor rotors' (inertias of 1e-6 kg m^2 turn a round-off torque of 1e-14 N m
-#: into 1e-8; measured 1.2e-8).
+#: round-off through the rotors' coupling rows (ratios to 0.02; measured 7.4e-10).
 TOL_HOLD = 1e-6
 #: Largest multiplier [N or N m] of Cassie's hold: the spare motor torques balance the
 #: stance's weak direction (sigma_min(J) = 1.8e-5); measured 5.1e3. The minimum-norm
@@ -76,15 +78,16 @@ LAM_HOLD_MAX = 1e4
 #: Largest growth rate [1/s] of Cassie's stance under constant gravity_torque: the
 #: pelvis tipping over its hip-pitch axes, an inverted pendulum (the pelvis alone:
 #: sqrt(m g d / I) = sqrt(10.3 kg 9.81 m/s^2 0.155 m / 0.30 kg m^2) = 7 /s; measured
-#: 10.1 /s with the legs). Not 914 /s: that mode came from the knee-spring toggle and
+#: 9.7 /s with the legs). Not 914 /s: that mode came from the knee-spring toggle and
 #: from holding torques that squeezed the legs with 1e6 N (docs/guide/robots-and-
 #: moving-bases.md).
 STAND_RATE_MAX = 12.0
-#: Round-off seed [m or rad] of Cassie's 2 s stand: the equilibrium holds to
-#: max |a| ~ 1e-8 on the rotors only; the pelvis's own start error is ~1e-15 (measured:
-#: 1.4e-6 rad after 2 s at 10.1 /s, exp(20.2) = 6e8), with 100 x margin for another
-#: CPU's round-off. The bound is STAND_SEED exp(rate t) with the measured rate.
+#: Start error [m or rad] of Cassie's 2 s stand, beside the seed of the hold's
+#: acceleration at rest a0 (the test: a0 / (2 rate^2); measured 5.5e-4 rad after 2 s at
+#: 9.7 /s with a0 = 7.4e-10).
 STAND_SEED = 1e-13
+#: Margin over the growth of the stand's seed (another CPU's round-off of a0).
+STAND_MARGIN = 10.0
 #: How long Cassie stands [s].
 STAND_T = 2.0
 #: Step h [rad] of the central differences of the potential energy over the motor angles.
@@ -98,8 +101,9 @@ TOL_VIRTUAL_WORK = 1e-7
 #: stance has one mode growing as exp(4.3 t) under constant torques (the springs
 #: hold the others), so a round-off of 1e-16 grows to ~1e-12.
 TOL_STAND_DRIFT = 1e-9
-#: Pinocchio's proximal solver needs many iterations where sigma_min(J)^2 << mu (Cassie).
-PIN_SETTINGS = SolverSettings(pinocchio_mu=1e-10, pinocchio_max_iter=2000)
+#: Relative singular-value cut-off of the rows of Cassie's reference with its couplings
+#: eliminated (a revolute loop's 6 point rows have rank 5: one singular value ~1e-16).
+REFERENCE_RCOND = 1e-10
 
 
 def _se3(xyz, rpy) -> pin.SE3:
@@ -108,6 +112,15 @@ def _se3(xyz, rpy) -> pin.SE3:
 
 def _close(A: pin.SE3, B: pin.SE3) -> bool:
     return float(np.max(np.abs(A.homogeneous - B.homogeneous))) < TOL_FRAME
+
+
+def _frame_loops(mech):
+    """The loops of a mechanism that close frames (not the gearboxes' couplings)."""
+    return [lp for lp in mech.urdf.loops if lp.type != "coupling"]
+
+
+#: fourbar.sdf's gearbox joint, which ties its motor rotor to the crank.
+FOURBAR_GEARBOX = re.compile(r'\n\s*<joint name="crank_gear".*?</joint>', re.S)
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +138,7 @@ def test_fourbar_tree_cuts_the_joint_whose_child_has_two_parents():
 
 
 def test_fourbar_loop_frames_equal_the_hand_computed_ones(fourbar):
-    (loop,) = fourbar.urdf.loops
+    (loop,) = _frame_loops(fourbar)
     assert (loop.name, loop.type, loop.predecessor, loop.successor) == (
         "coupler_rocker",
         "revolute",
@@ -159,21 +172,36 @@ def test_fourbar_bodies_sit_where_the_sdf_puts_them(fourbar):
     assert np.max(np.abs(cc.compute_phi(fourbar, fourbar.q_ref))) < TOL_CLOSED
 
 
-def test_fourbar_mobility_counts_the_free_rotor_of_its_gearbox(fourbar, caplog):
-    # The crank's one degree of freedom and the motor rotor the gearbox no longer ties.
-    assert (fourbar.nv, fourbar.nc, fourbar.mobility) == (4, 2, 2)
-    with caplog.at_level(logging.WARNING, logger="closedchain.sdf"):
-        read_sdf(FOURBAR)
-    assert "gearbox joints crank_gear are left out" in caplog.text
+def test_fourbar_gearbox_ties_the_rotor_to_the_crank(fourbar):
+    # The crank's one degree of freedom: the gearbox ties the motor rotor to it, with
+    # SDFormat's theta_child = -gearbox_ratio theta_parent (both joints hang from the
+    # reference body with the gearbox's axis: q_crank = -0.1 q_motor).
+    assert (fourbar.nv, fourbar.nc, fourbar.mobility) == (4, 3, 1)
+    (gear,) = [lp for lp in fourbar.urdf.loops if lp.type == "coupling"]
+    assert (gear.name, gear.joint, gear.mimics, gear.multiplier, gear.offset) == (
+        "crank_gear",
+        "crank_joint",
+        "motor_joint",
+        -0.1,
+        0.0,
+    )
 
 
-def test_fourbar_validates_against_pinocchio(fourbar):
-    report = cc.validate(fourbar, n_samples=20)
+def _fourbar_without_gearbox(tmp_path, text: str | None = None):
+    text = FOURBAR_GEARBOX.sub("", FOURBAR.read_text() if text is None else text)
+    assert "gearbox" not in text.split("-->")[1]
+    return _write(tmp_path, text, "no_gear.sdf")
+
+
+def test_fourbar_validates_against_pinocchio(tmp_path):
+    # Pinocchio has no coupling constraint: the 4-bar without its gearbox.
+    mech = cc.load(_fourbar_without_gearbox(tmp_path))
+    report = cc.validate(mech, n_samples=20)
     assert report.passed, report
 
 
 def test_cut_joints_chooses_the_cut(tmp_path):
-    mech = cc.load(FOURBAR, cut_joints=["rocker_joint"])
+    mech = cc.load(_fourbar_without_gearbox(tmp_path), cut_joints=["rocker_joint"])
     (loop,) = mech.urdf.loops
     assert (loop.name, loop.predecessor, loop.successor) == ("rocker_joint", "ground", "rocker")
     # The rocker pivot D = (0.3, 0, 0) seen from the ground, with the rocker's turn.
@@ -281,7 +309,7 @@ def test_a_ball_joint_is_cut_first_into_a_spherical_loop(tmp_path):
         '<joint name="coupler_joint" type="ball">',
     )
     mech = cc.load(_write(tmp_path, text))
-    (loop,) = mech.urdf.loops
+    (loop,) = _frame_loops(mech)
     assert (loop.name, loop.type, loop.predecessor, loop.successor) == (
         "coupler_joint",
         "spherical",
@@ -298,7 +326,7 @@ def test_a_reversed_joint_keeps_the_sign_of_its_sdf_coordinate(tmp_path):
     text = _edit(
         '<joint name="crank_joint" type="revolute">', '<joint name="crank_joint" type="ball">'
     )
-    path = _write(tmp_path, text)
+    path = _fourbar_without_gearbox(tmp_path, text)  # the gearbox needs crank_joint
     _, tree = read_sdf(path)
     assert tree.cut_joints == ("crank_joint",)
     assert "coupler_joint" in tree.reversed_joints
@@ -314,7 +342,9 @@ def test_a_reversed_joint_keeps_the_sign_of_its_sdf_coordinate(tmp_path):
         return math.atan2(R[1, 0], R[0, 0])
 
     q = pin.neutral(model)
-    at_zero = relative_yaw(q)  # URDF link frames differ from SDF ones by constant turns
+    # The links' frames are their SDF frames: at q = 0, the yaws of the file's poses.
+    at_zero = math.atan2(0.1, 0.3) - math.pi / 2
+    assert abs(math.remainder(relative_yaw(q) - at_zero, 2 * math.pi)) < TOL_FRAME
     q[model.joints[model.getJointId("coupler_joint")].idx_q] = 0.1
     assert abs(math.remainder(relative_yaw(q) - at_zero - 0.1, 2 * math.pi)) < TOL_FRAME
 
@@ -327,7 +357,7 @@ def test_a_universal_joint_is_kept_as_two_revolute_joints(tmp_path):
         "<use_parent_model_frame>1</use_parent_model_frame></axis>",
         "<use_parent_model_frame>1</use_parent_model_frame></axis><axis2><xyz>1 0 0</xyz></axis2>",
     )
-    path = _write(tmp_path, text)
+    path = _fourbar_without_gearbox(tmp_path, text)
     mech = cc.load(path)
     assert {"coupler_joint", "coupler_joint::axis2"} <= set(mech.joint_names)
     assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
@@ -385,10 +415,11 @@ def test_cassie_tree_and_loops():
 
 @needs_erd
 def test_cassie_mobility_and_closure(cassie):
-    # 32 tree joints (the knee-shin joints held); 12 independent rows of 22 (per leg:
-    # achilles 3, plantar 2, knee spring 1: its slider is held); mobility 20: per leg the
-    # 5 motors' outputs and their 5 free rotors.
-    assert (cassie.nv, cassie.declared.nc, cassie.nc, cassie.mobility) == (32, 22, 12, 20)
+    # 32 tree joints (the knee-shin joints held); 22 independent rows of 32 (per leg:
+    # achilles 3, plantar 2, knee spring 1: its slider is held, and 5 gearboxes);
+    # mobility 10: per leg the 5 motors, each rotor tied to its output.
+    assert (cassie.nv, cassie.declared.nc, cassie.nc, cassie.mobility) == (32, 32, 22, 10)
+    assert len(cassie.constraints.couplings) == 10
     assert np.max(np.abs(cc.compute_phi(cassie, cassie.q_ref))) < TOL_CLOSED
     assert cassie.within_limits(cassie.q_ref)
 
@@ -402,24 +433,73 @@ def test_cassie_srdf_standing_closes_our_loops_before_assembly():
     srdf = robots.erd_robots_dir() / "cassie_description/srdf/cassie_v2.srdf"
     pin.loadReferenceConfigurations(probe, str(srdf), False)
     q = np.array(probe.referenceConfigurations["standing"])
+    # The SRDF leaves the motor rotors at 0: turn each by its output's angle / ratio.
+    for gear in raw.urdf.loops:
+        if gear.type == "coupling":
+            out = raw.model.joints[raw.model.getJointId(gear.joint)].idx_q
+            rotor = raw.model.joints[raw.model.getJointId(gear.mimics)].idx_q
+            q[rotor] = (q[out] - gear.offset) / gear.multiplier
     assert np.max(np.abs(cc.compute_phi(raw, q))) < TOL_SRDF_CLOSURE
 
 
+def _coupled_reference(mech, q, v, tau) -> np.ndarray:
+    r"""Accelerations from Pinocchio's terms with the couplings eliminated by hand.
+
+    Each coupling q_j = m q_i + c is linear, so v = G v_r and a = G a_r, with G the
+    identity without column j and with m at (j, i). The frame loops are Pinocchio's
+    rigid constraint models (J_c and its drift b_c from Pinocchio itself); then
+    :math:`J_c G a_r = b_c` and :math:`G^\top M G a_r + G^\top h = G^\top \tau + (J_c G)^\top f`,
+    solved in the null space of J_c G (its redundant rows: a revolute loop is 6 point rows).
+    """
+    model = mech.model
+    couplings = [lp for lp in mech.urdf.loops if lp.type == "coupling"]
+    driven = [model.joints[model.getJointId(lp.joint)].idx_v for lp in couplings]
+    G = np.eye(model.nv)
+    for lp, j in zip(couplings, driven, strict=True):
+        G[j, model.joints[model.getJointId(lp.mimics)].idx_v] = lp.multiplier
+    G = np.delete(G, driven, axis=1)
+    frames = SimpleNamespace(
+        loops=[lp for lp in mech.constraints.loops if lp.type != "coupling"],
+        frame_ids=[
+            ids
+            for lp, ids in zip(mech.constraints.loops, mech.constraints.frame_ids, strict=True)
+            if lp.type != "coupling"
+        ],
+    )
+    cms, _ = build_pinocchio_constraints(model, frames)
+    cds = pin.StdVec_RigidConstraintData()
+    for cm in cms:
+        cds.append(cm.createData())
+    data = model.createData()
+    pin.initConstraintDynamics(model, data, cms, cds)
+    pin.constraintDynamics(model, data, q, v, tau, cms, cds)  # fills J_c and b_c
+    Jc = pin.getConstraintsJacobian(model, data, cms, cds)
+    b = np.array(data.primal_rhs_contact[: Jc.shape[0]])
+    M = pin.crba(model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    h = pin.rnea(model, data, q, v, np.zeros(model.nv))
+    A = Jc @ G
+    a_p = np.linalg.lstsq(A, b, rcond=REFERENCE_RCOND)[0]
+    N = scipy.linalg.null_space(A, rcond=REFERENCE_RCOND)
+    Mr = G.T @ M @ G
+    z = np.linalg.solve(N.T @ Mr @ N, N.T @ (G.T @ (tau - h) - Mr @ a_p))
+    return G @ (a_p + N @ z)
+
+
 @needs_erd
-def test_cassie_validates_against_pinocchio(cassie):
-    # States along the motion from q_ref (its tangent space), assembled.
+def test_cassie_agrees_with_pinocchio_terms_with_its_gearboxes_eliminated(cassie):
+    # States along the motion from q_ref (its tangent space), assembled; the rotors'
+    # reflected inertia (G^T M G) acts on the legs.
     rng = np.random.default_rng(0)
     for _ in range(3):
         dq = cc.project_velocity(cassie, cassie.q_ref, STEP * rng.standard_normal(cassie.nv))
         q = cc.assemble(cassie, pin.integrate(cassie.model, cassie.q_ref, dq))
         v = cc.project_velocity(cassie, q, rng.standard_normal(cassie.nv))
         tau = cassie.gravity_torque_scale() * rng.standard_normal(cassie.nv)
-        a_pin, f_pin = pinocchio_reference_dynamics(cassie, q, v, tau, settings=PIN_SETTINGS)[:2]
+        a_ref = _coupled_reference(cassie, q, v, tau)
         res = cc.forward_dynamics(cassie, q, v, tau, method="kkt")
-        da = np.max(np.abs(res.a - a_pin))
-        assert da < TOL_A_REL * max(1.0, np.max(np.abs(a_pin))), da
-        df = np.max(np.abs(res.generalized_constraint_force() - f_pin))
-        assert df < TOL_FORCE * max(1.0, np.max(np.abs(f_pin))), df
+        da = np.max(np.abs(res.a - a_ref))
+        assert da < TOL_A_REL * max(1.0, np.max(np.abs(a_ref))), da
 
 
 @needs_erd
@@ -450,8 +530,9 @@ def cassie_standing():
 @needs_erd
 def test_cassie_standing_is_held_at_rest_by_the_gravity_torque(cassie_standing):
     mech = cassie_standing
-    # Two welded feet add 12 rows: 38 - 24 = 14 (4 of the pelvis on its legs, 10 rotors).
-    assert (mech.nv, mech.nc, mech.mobility) == (38, 24, 14)
+    # Two welded feet add 12 rows: 38 - 34 = 4 (the pelvis on its legs; the rotors are
+    # tied to their outputs).
+    assert (mech.nv, mech.nc, mech.mobility) == (38, 34, 4)
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
     tau = cc.gravity_torque(mech, mech.q_ref)
     rest = np.zeros(mech.nv)
@@ -477,7 +558,10 @@ def test_cassie_stands_two_seconds_under_the_gravity_torque():
     rate = row["rates"][0]
     assert 0.0 < rate < STAND_RATE_MAX, row["rates"]
     assert row["t_final"] == pytest.approx(STAND_T)
-    bound = STAND_SEED * math.exp(rate * STAND_T)
+    # The hold's acceleration a0 left at rest seeds the fastest mode: x(t) = a0 / rate^2
+    # (cosh(rate t) - 1) <= a0 / (2 rate^2) exp(rate t), with STAND_SEED for the start.
+    seed = STAND_SEED + row["max_abs_a_at_rest"] / (2.0 * rate**2)
+    bound = STAND_MARGIN * seed * math.exp(rate * STAND_T)
     assert max(row["pelvis_m"], row["pelvis_rad"]) < bound, (row, bound)
     assert row["max_constraint_residual"] < TOL_CLOSED
 
@@ -598,3 +682,247 @@ def test_spring_legs_stand_2_s_on_welded_feet_under_gravity_torque(tmp_path, mon
     assert traj.t[-1] == pytest.approx(2.0)
     assert np.max(np.abs(traj.q[:, :3] - mech.q_ref[:3])) < TOL_STAND_DRIFT
     assert traj.info.max_constraint_residual < TOL_STAND_DRIFT
+
+
+# -- gearboxes, link frames, reversed joints, damping ------------------------------------
+
+#: A rotor and a pendulum arm on one axis, joined by a gearbox (SDFormat: theta_child =
+#: -gearbox_ratio theta_parent, both angles from the reference body "ground"). {rotor}
+#: is the rotor's joint: written from ground, or from the rotor (reversed in the tree).
+GEARBOX_SDF = """<?xml version="1.0"?>
+<sdf version="1.6">
+  <model name="geared_arm">
+    <link name="ground"/>
+    <link name="rotor">
+      <inertial><mass>0.1</mass>
+        <inertia><ixx>1e-5</ixx><iyy>1e-5</iyy><izz>{Jr}</izz></inertia></inertial>
+    </link>
+    <link name="arm">
+      <inertial><pose>{l} 0 0 0 0 0</pose><mass>{m}</mass>
+        <inertia><ixx>1e-4</ixx><iyy>1e-3</iyy><izz>{Ic}</izz></inertia></inertial>
+    </link>
+    {rotor}
+    <joint name="arm_joint" type="revolute">
+      <parent>ground</parent><child>arm</child>
+      <axis><xyz>0 0 1</xyz><dynamics><damping>0.25</damping></dynamics></axis>
+    </joint>
+    <joint name="gear" type="gearbox">
+      <parent>rotor</parent><child>arm</child>
+      <gearbox_reference_body>ground</gearbox_reference_body>
+      <gearbox_ratio>{r}</gearbox_ratio>
+      <axis><xyz>0 0 1</xyz></axis>
+      <axis2><xyz>0 0 1</xyz></axis2>
+    </joint>
+  </model>
+</sdf>
+"""
+#: The rotor's joint as the file may write it: (text, rotor angle about +z per unit q).
+ROTOR_JOINTS = {
+    "from_ground": (
+        '<joint name="rotor_joint" type="revolute"><parent>ground</parent>'
+        "<child>rotor</child><axis><xyz>0 0 1</xyz></axis></joint>",
+        1.0,
+    ),
+    "axis_flipped": (
+        '<joint name="rotor_joint" type="revolute"><parent>ground</parent>'
+        "<child>rotor</child><axis><xyz>0 0 -1</xyz></axis></joint>",
+        -1.0,
+    ),
+    "from_rotor": (
+        '<joint name="rotor_joint" type="revolute"><parent>rotor</parent>'
+        "<child>ground</child><axis><xyz>0 0 1</xyz></axis></joint>",
+        -1.0,
+    ),
+}
+#: The geared arm's numbers: rotor inertia [kg m^2], ratio, arm mass [kg], arm centre of
+#: mass [m], arm inertia about its centre [kg m^2].
+GEARED_ARM = {"Jr": 2e-5, "r": 0.05, "m": 0.5, "l": 0.2, "Ic": 3e-3}
+#: Gravity along -y [m/s^2], in the arm's plane.
+GRAVITY_Y = 9.81
+
+
+@pytest.mark.parametrize("rotor", sorted(ROTOR_JOINTS))
+def test_a_gearbox_ties_the_rotor_with_the_sdf_sign_and_reflects_its_inertia(tmp_path, rotor):
+    text, turn = ROTOR_JOINTS[rotor]
+    path = _write(tmp_path, GEARBOX_SDF.format(rotor=text, **GEARED_ARM))
+    mech = cc.load(path, gravity=(0.0, -GRAVITY_Y, 0.0))
+    assert (mech.nv, mech.nc, mech.mobility) == (2, 1, 1)
+    model, data = mech.model, mech.data
+    arm_v = model.joints[model.getJointId("arm_joint")].idx_v
+    # At arm angle theta (rotor on the manifold), the rotor turns about +z at
+    # -theta_dot / r (SDFormat's theta_2 = -r theta_1): its reflected inertia Jr / r^2.
+    theta, theta_dot, tau_arm = 0.4, 0.7, 0.3
+    q = cc.assemble(mech, np.where(np.arange(mech.nq) == arm_v, theta, 0.0), fixed=["arm_joint"])
+    v = cc.project_velocity(
+        mech, q, np.where(np.arange(mech.nv) == arm_v, theta_dot, 0.0), fixed=["arm_joint"]
+    )
+    pin.forwardKinematics(model, data, q, v)
+    pin.updateFramePlacements(model, data)
+    rotor_w = pin.getFrameVelocity(
+        model, data, model.getFrameId("rotor", pin.FrameType.BODY), pin.ReferenceFrame.WORLD
+    ).angular
+    r, Jr, m, l, Ic = (GEARED_ARM[k] for k in ("r", "Jr", "m", "l", "Ic"))
+    assert abs(rotor_w[2] - (-theta_dot / r)) < TOL_FRAME
+    # Reduced model by hand: (Ic + m l^2 + Jr / r^2) theta_ddot = tau - m g l cos(theta).
+    tau = np.zeros(mech.nv)
+    tau[arm_v] = tau_arm
+    expected = (tau_arm - m * GRAVITY_Y * l * math.cos(theta)) / (Ic + m * l**2 + Jr / r**2)
+    a = cc.forward_dynamics(mech, q, v, tau, method="kkt").a
+    assert abs(a[arm_v] - expected) < TOL_FRAME * max(1.0, abs(expected))
+    rotor_v = model.joints[model.getJointId("rotor_joint")].idx_v
+    assert abs(turn * a[rotor_v] - (-expected / r)) < TOL_FRAME * max(1.0, abs(expected) / r)
+    # The arm joint's <dynamics><damping> [N m s/rad].
+    assert [(d.joint, d.damping) for d in mech.urdf.dampings] == [("arm_joint", 0.25)]
+
+
+def test_a_gearbox_without_a_joint_to_its_reference_body_is_refused(tmp_path):
+    text = GEARBOX_SDF.format(rotor=ROTOR_JOINTS["from_ground"][0], **GEARED_ARM).replace(
+        "<gearbox_reference_body>ground</gearbox_reference_body>",
+        "<gearbox_reference_body>arm</gearbox_reference_body>",
+    )
+    with pytest.raises(cc.URDFError, match=r"'gear'>: the gearbox angle of link 'rotor' is "):
+        cc.load(_write(tmp_path, text))
+
+
+#: A chain base - a - b whose joint to 'a' is written from 'a' (reversed in the tree) and
+#: placed off both links; 'b' hangs from 'a' on a joint with a pose. Link poses [m, rad].
+REVERSED_SDF = """<?xml version="1.0"?>
+<sdf version="1.6">
+  <model name="reversed_chain">
+    <link name="base"><pose>0.1 0 0.5 0 0 0.2</pose></link>
+    <link name="a"><pose>0.4 0.1 0.5 0.1 0 0.9</pose></link>
+    <link name="b"><pose>0.7 -0.2 0.4 0 0.3 0</pose></link>
+    <joint name="a_base" type="{type}">
+      <pose>0.05 0.02 0 0 0 0.3</pose>
+      <parent>a</parent><child>base</child>
+      <axis><xyz>1 0 0</xyz></axis>
+      <axis2><xyz>0 1 0</xyz></axis2>
+    </joint>
+    <joint name="a_b" type="revolute">
+      <pose>-0.1 0 0.02 0 0 0.4</pose>
+      <parent>a</parent><child>b</child>
+      <axis><xyz>0 0 1</xyz></axis>
+    </joint>
+  </model>
+</sdf>
+"""
+
+
+def _sdf_link_poses(path) -> dict[str, pin.SE3]:
+    """Each link's <pose> (model frame), read here from the file's plain numbers."""
+    poses = {}
+    for link in etree.parse(str(path)).getroot().iter("link"):
+        x = [float(t) for t in link.findtext("pose").split()]
+        poses[link.get("name")] = _se3(x[:3], x[3:])
+    return poses
+
+
+@pytest.mark.parametrize("jtype", ["revolute", "universal"])
+def test_every_link_frame_sits_at_its_sdf_pose_across_a_reversed_joint(tmp_path, jtype):
+    path = _write(tmp_path, REVERSED_SDF.format(type=jtype))
+    _, tree = read_sdf(path)
+    assert tree.reversed_joints == ("a_base",)
+    mech = cc.load(path)
+    model, data = mech.model, mech.data
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    poses = _sdf_link_poses(path)
+    # The root link 'base' is Pinocchio's origin: compare placements relative to it.
+    base = data.oMf[model.getFrameId("base", pin.FrameType.BODY)]
+    for name, pose in poses.items():
+        placed = base.inverse() * data.oMf[model.getFrameId(name, pin.FrameType.BODY)]
+        assert _close(placed, poses["base"].inverse() * pose), name
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_a_universal_joint_keeps_its_coordinates_in_sdf_axis_order(tmp_path, reverse):
+    # R(parent -> child) = Rot(axis, q_axis) Rot(axis2, q_axis2) in the joint frame (here
+    # the identity at q = 0), whichever link the tree reaches first.
+    text = REVERSED_SDF.format(type="universal")
+    if not reverse:
+        text = text.replace(
+            "<parent>a</parent><child>base</child>", "<parent>base</parent><child>a</child>"
+        )
+        text = text.replace("<pose>0.05 0.02 0 0 0 0.3</pose>\n", "")
+        text = text.replace(
+            '<link name="a"><pose>0.4 0.1 0.5 0.1 0 0.9</pose>',
+            '<link name="a"><pose>0.1 0 0.5 0 0 0.2</pose>',
+        )
+    text = text.replace("<pose>0.05 0.02 0 0 0 0.3</pose>\n", "")
+    text = text.replace(
+        '<link name="base"><pose>0.1 0 0.5 0 0 0.2</pose>',
+        '<link name="base"><pose>0.4 0.1 0.5 0 0 0.2</pose>',
+    )
+    text = text.replace(
+        '<link name="a"><pose>0.4 0.1 0.5 0.1 0 0.9</pose>',
+        '<link name="a"><pose>0.4 0.1 0.5 0 0 0.2</pose>',
+    )
+    path = _write(tmp_path, text)
+    _, tree = read_sdf(path)
+    assert ("a_base" in tree.reversed_joints) == reverse
+    mech = cc.load(path)
+    model, data = mech.model, mech.data
+    q = pin.neutral(model)
+    angles = {"a_base": 0.3, "a_base::axis2": -0.5}
+    for name, angle in angles.items():
+        q[model.joints[model.getJointId(name)].idx_q] = angle
+    pin.framesForwardKinematics(model, data, q)
+    parent, child = ("a", "base") if reverse else ("base", "a")
+    R = (
+        data.oMf[model.getFrameId(parent, pin.FrameType.BODY)].rotation.T
+        @ data.oMf[model.getFrameId(child, pin.FrameType.BODY)].rotation
+    )
+    expected = pin.rpy.rpyToMatrix(0.3, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, -0.5, 0.0)
+    assert np.max(np.abs(R - expected)) < TOL_FRAME
+
+
+@needs_erd
+def test_every_cassie_link_frame_sits_at_its_sdf_pose():
+    """All 35 links, at the SDF's own pose (every coordinate 0), relative to the pelvis."""
+    path, _ = robots.resolve_model("erd:cassie")
+    poses = _sdf_link_poses(path)
+    assert len(poses) == 35
+    mech = cc.load("erd:cassie")
+    model, data = mech.model, mech.data
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    pelvis = data.oMf[model.getFrameId("pelvis", pin.FrameType.BODY)]
+    for name, pose in poses.items():
+        placed = pelvis.inverse() * data.oMf[model.getFrameId(name, pin.FrameType.BODY)]
+        assert _close(placed, poses["pelvis"].inverse() * pose), name
+
+
+@needs_erd
+def test_cassie_reads_the_dampings_of_its_tree_joints(cassie):
+    # <dynamics><damping> of the SDF's joints, read here from the file; the cut ball
+    # joints and the held knee-shin joints have no coordinate of their own.
+    path, entry = robots.resolve_model("erd:cassie")
+    _, tree = read_sdf(path, fixed_joints=entry.fixed_joints)
+    expected = {}
+    for joint in etree.parse(str(path)).getroot().iter("joint"):
+        damping = float(joint.findtext("axis/dynamics/damping", "0"))
+        name = joint.get("name")
+        if damping > 0 and name in tree.tree_joints and name not in tree.held_joints:
+            expected[name] = damping
+    assert {d.joint: d.damping for d in cassie.urdf.dampings} == expected
+    assert len(expected) == 14
+
+
+@needs_erd
+def test_validation_walks_along_the_motion_where_random_starts_fail(cassie_standing, monkeypatch):
+    """Cassie on welded feet rarely closes from a random start: validate's states walk
+    from its closed reference (here at once), closed, consistent and within limits."""
+    from closedchain import validation
+
+    mech = cassie_standing
+    monkeypatch.setattr(validation, "DRAW_ATTEMPTS", 1)
+    states = list(validation._validation_states(mech, 3, 0, 1.0, None))
+    assert len(states) == 3
+    previous = mech.q_ref
+    for q, v, tau in states:
+        assert np.max(np.abs(cc.compute_phi(mech, q))) < TOL_CLOSED
+        assert np.max(np.abs(cc.compute_jacobian(mech, q) @ v)) < TOL_CLOSED * max(
+            1.0, np.max(np.abs(v))
+        )
+        assert mech.within_limits(q)
+        assert np.linalg.norm(pin.difference(mech.model, previous, q)) > validation.WALK_STEP
+        previous = q
+        assert np.all(tau[:6] == 0.0)  # no actuator pushes the free-flyer root

@@ -230,12 +230,16 @@ class Mechanism:
         self.root_joint: str | None = None
         self._pin_constraints: tuple | None = None
         self._workspace = None  # dynamics.base.Workspace, made on first use
+        # A coupling q_j = m q_i + c ties its joints' coordinates, not their angles modulo
+        # a turn: wrap_angles leaves them as they are.
+        coupled = {name for spec in urdf.loops if spec.joint for name in (spec.joint, spec.mimics)}
         self._revolute_idx_q = np.array(
             [
                 model.joints[j].idx_q
                 for j in range(1, model.njoints)
                 if model.joints[j].shortname().startswith("JointModelR")
                 and model.joints[j].nq == model.joints[j].nv == 1
+                and model.names[j] not in coupled
             ],
             dtype=int,
         )
@@ -364,7 +368,11 @@ class Mechanism:
         return v
 
     def wrap_angles(self, q: np.ndarray) -> np.ndarray:
-        """Return q with every revolute angle wrapped into [-pi, pi) (same physical pose)."""
+        """Return q with every revolute angle wrapped into [-pi, pi) (same physical pose).
+
+        The joints a coupling loop ties keep their coordinates (its row holds for
+        them, not for their angles modulo a turn).
+        """
         q = np.array(q, dtype=float)
         idx = self._revolute_idx_q
         q[idx] = (q[idx] + np.pi) % (2.0 * np.pi) - np.pi

@@ -93,7 +93,7 @@ ERD_MODELS: dict[str, RobotEntry] = {
     ),
     "ur5": RobotEntry("ur_description/urdf/ur5_robot.urdf", "ur_description/srdf/ur5.srdf"),
     # SDF: the achilles and plantar rods close with ball joints, the knee spring with a
-    # revolute one; its gearbox joints (motor rotors) are left out (closedchain.sdf).
+    # revolute one; its gearbox joints tie each motor rotor to its output (closedchain.sdf).
     # The SRDF of cassie_v2 names the same joints with the same signs. The knee springs
     # (knee-shin joints) are held: the file's leaf-spring linkage (knee-spring link on a
     # revolute and a prismatic joint) locks the shin at a toggle (sigma_min(J) 9e-7) that
@@ -238,16 +238,19 @@ def merge_overlay(
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
             (lists the valid ones), or a link or joint name the base already uses.
     """
-    if root is None:
+    edits: dict[str, tuple] = {}
+    if root is None and is_sdf(base):
+        root, tree = read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
+        edits["dampings"] = tree.dampings  # with the SDF's lines
+    elif root is None:
         root = read_base(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
     path = base
-    edits: dict[str, tuple[str, ...]] = {}
     if overlay is not None and is_loops_yaml(overlay):
         path = Path(overlay)
         loops = read_loops_yaml(path)
         # Checked first on its own, so that messages about its elements name the URDF.
         parse_urdf(base, element=root, max_nv=max_nv)
-        edits = apply_loops_yaml(root, loops, base=base)
+        edits.update(apply_loops_yaml(root, loops, base=base))
     elif overlay is not None:
         path = Path(overlay)
         extra = read_xml(path, what="overlay file")

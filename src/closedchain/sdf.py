@@ -1,4 +1,4 @@
-"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
+r"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
 
 An SDF ``<model>`` is a graph of links and joints that may hold cycles; URDF
 holds a tree. :func:`read_sdf` cuts the graph into a spanning tree plus loop
@@ -15,10 +15,14 @@ Frames (SDFormat 1.6, with the 1.7 ``relative_to`` attribute where present):
 - a joint axis ``<xyz>`` is in the joint frame, or in the model frame with
   ``<use_parent_model_frame>1`` (1.6) or ``expressed_in="__model__"`` (1.7).
 
-The URDF frame of each tree link is the frame of its tree joint (as URDF
-wants); inertials, visuals, joint origins and loop origins are re-expressed
-in those frames, so every body sits where the SDF puts it when all joint
-coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
+Every link's URDF frame is its SDF frame, whichever way the tree runs
+through it: inertials, visuals, joint origins and loop origins are expressed
+in it, and where the link's tree joint frame is not the link's frame (a
+joint ``<pose>``, or a reversed joint, whose frame sits on its SDF child),
+the joint moves a massless link ``J::frame`` at the joint frame and a fixed
+joint ``J::pose`` places the link in it (Pinocchio folds both into the
+joint's body). So the frame Pinocchio names after a link sits at the link's
+SDF pose when all joint coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
 Pinocchio's universe or moves with its root joint, is (as in Pinocchio's SDF
 reader) the model's first ``<link>``: its frame is the world frame, its own
 ``<pose>`` (and the model's) only place it. When joints have ``world`` as
@@ -36,7 +40,8 @@ close a cycle; the joints left out are cut and become ``<loop>`` elements.
    closes with 3 rows and a URDF tree cannot hold it), a prismatic joint after
    the revolute ones (Pinocchio has no prismatic constraint to validate
    against), a universal joint never while another joint of its cycle can be
-   (URDF+ has no universal loop);
+   (URDF+ has no universal loop); ``gearbox`` joints are not in the graph
+   (they couple two joints' angles and hold no link);
 3. joints whose child link has one parent joint before joints whose child has
    several (the link keeps its own joint: Pinocchio's SDF rule);
 4. file order.
@@ -47,14 +52,24 @@ so its coordinate keeps the SDF's sign, and its limits are kept).
 
 Joint types: ``revolute`` (URDF ``revolute``; without ``<limit>`` its range
 is :data:`SDF_UNLIMITED`, SDF's own default), ``continuous``, ``prismatic``,
-``fixed``, ``universal`` (in the tree: two revolute joints ``J`` and
-``J::axis2`` through a massless link ``J::cross``; cut: refused), ``ball``
-(cut: a ``spherical`` loop; in the tree: refused). ``gearbox`` joints
-(``q_child = gearbox_ratio * q_parent`` about the ``gearbox_reference_body``)
-couple a motor's rotor to its output: closedchain has no coupling loop yet, so
-they are left out with a logged warning (the rotor link then turns freely on
-its own joint) and listed in :attr:`SDFTree.gearboxes`; a model that needs a
-gearbox to hold a link at all is refused.
+``fixed``, ``universal`` (in the tree: two revolute joints ``J``, about
+``<axis>``, and ``J::axis2``, about ``<axis2>``, through a massless link
+``J::cross``; reversed, ``J::axis2`` comes first and each keeps its axis's
+angle; cut: refused), ``ball`` (cut: a ``spherical`` loop; in the tree:
+refused), ``gearbox``. A gearbox couples a motor's rotor to its output; the
+SDFormat specification (``joint.sdf``) defines it as
+:math:`\theta_2 = -r\,\theta_1` with ``r`` its ``<gearbox_ratio>``,
+:math:`\theta_1` the angle from the ``<gearbox_reference_body>`` to the
+``<parent>`` link about ``<axis>`` and :math:`\theta_2` the angle from it to
+the ``<child>`` link about ``<axis2>`` (Gazebo's ODE gearbox constraint has
+the same sign: child angle + ratio x parent angle = 0). Each angle is read
+as the coordinate of the one revolute tree joint between the reference body
+and that link, whose axis must be the gearbox's (:data:`GEARBOX_AXIS_TOL`),
+signed by the axes' directions and which side is the joint's SDF parent; the
+gearbox becomes the coupling loop (:data:`closedchain.urdf.COUPLING`)
+``q_child_joint = -r s1 s2 q_parent_joint`` of the same name, so the rotor's
+inertia, reflected by 1/r^2, acts on the output. A gearbox whose link has no
+such joint is refused naming it, as is a link held by gearboxes only.
 
 Held joints: ``fixed_joints`` names joints read as ``fixed`` at their zero
 position (the pose the file draws), e.g. a spring joint held stiff, or a joint
@@ -67,7 +82,12 @@ Joint springs: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has
 ``spring_stiffness`` > 0 gets ``<dynamics spring_stiffness spring_reference>`` in the
 URDF+ (:class:`closedchain.urdf.JointSpring`; the generalized force
 :func:`closedchain.spring_torque`); a spring on a cut joint, a gearbox or another
-joint type is left out with a logged warning. Damping and friction are not read.
+joint type is left out with a logged warning. Viscous damping: a tree joint's
+``<axis><dynamics><damping>`` > 0 (``<axis2>``'s for a universal joint's
+``J::axis2``) is written as URDF ``<dynamics damping>`` and listed in
+:attr:`SDFTree.dampings` (:class:`closedchain.urdf.JointDamping`; ``load`` puts
+them in ``URDFPlus.dampings``); on a cut, gearbox or held joint it is left out
+with a logged warning. Friction is not read.
 
 Parsing is as safe as for URDF (:func:`closedchain.urdf.read_xml`: no DTD, no
 network, bounded size). Mesh ``model://name/sub`` URIs become
@@ -77,7 +97,8 @@ network, bounded size). Mesh ``model://name/sub`` URIs become
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -86,9 +107,11 @@ from lxml import etree
 
 from .exceptions import URDFError
 from .urdf import (
+    COUPLING,
     ORIGIN_RPY_MAX,
     ORIGIN_XYZ_MAX,
     SPRING_JOINT_TYPES,
+    JointDamping,
     _check_name,
     _unique_names,
     _where,
@@ -111,6 +134,9 @@ SDF_VERSIONS = ("1.5", "1.6", "1.7", "1.8", "1.9", "1.10", "1.11")
 
 #: Joint types read (others, e.g. ``revolute2`` and ``screw``, are refused).
 SDF_JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "universal", "ball", "gearbox")
+
+#: Joint types that need both ``<axis>`` and ``<axis2>``.
+TWO_AXIS_TYPES = ("universal", "gearbox")
 
 #: Joint types in the order they are kept in the spanning tree (see the module doc).
 KEEP_ORDER = ("universal", "fixed", "prismatic", "revolute", "continuous", "ball")
@@ -135,6 +161,10 @@ HOLDABLE_TYPES = ("revolute", "continuous", "prismatic")
 #: Model children that cannot be read (they would change the mechanism if ignored).
 SDF_REFUSED_ELEMENTS = ("model", "include", "frame")
 
+#: Largest 1 - |cos| between a gearbox's axis and the axis of the joint whose
+#: coordinate is its angle: the axes of erd:cassie are written alike, to the digit.
+GEARBOX_AXIS_TOL = 1e-9
+
 #: Default ``<inertial>`` of SDF: mass 1 kg, inertia the identity [kg m^2].
 SDF_DEFAULT_MASS = 1.0
 
@@ -151,12 +181,18 @@ class SDFJoint:
         oMj: joint frame in the world frame, all coordinates zero.
         axis: unit axis in the joint frame, shape (3,) (``<axis>``).
         axis2: unit second axis in the joint frame, shape (3,) (``<axis2>``, universal).
-        limits: ``(lower, upper, effort, velocity)`` (see :data:`SDF_UNLIMITED`).
-        spring: ``(stiffness [N m/rad or N/m], reference [rad or m], damping
-            [N m s/rad or N s/m])`` of ``<axis><dynamics>`` ``spring_stiffness``,
-            ``spring_reference`` and ``damping``, or None (no stiffness, or 0).
+        limits: ``(lower, upper, effort, velocity)`` of ``<axis><limit>`` (see
+            :data:`SDF_UNLIMITED`).
+        limits2: the same of ``<axis2><limit>`` (universal joints).
+        spring: ``(stiffness [N m/rad or N/m], reference [rad or m])`` of
+            ``<axis><dynamics>`` ``spring_stiffness`` and ``spring_reference``, or
+            None (no stiffness, or 0).
+        damping: ``<axis><dynamics><damping>`` [N m s/rad or N s/m] (0: none).
+        damping2: ``<axis2><dynamics><damping>`` (universal joints).
         index: position in the file among the joints.
         line: source line of the ``<joint>``.
+        gearbox_ratio: ``<gearbox_ratio>`` (gearbox joints; else 0).
+        gearbox_reference: ``<gearbox_reference_body>`` (gearbox joints; else "").
     """
 
     name: str
@@ -167,9 +203,19 @@ class SDFJoint:
     axis: np.ndarray
     axis2: np.ndarray
     limits: tuple[float, float, float, float]
-    spring: tuple[float, float, float] | None
+    spring: tuple[float, float] | None
     index: int
     line: int
+    limits2: tuple[float, float, float, float] = (
+        -SDF_UNLIMITED,
+        SDF_UNLIMITED,
+        SDF_UNLIMITED,
+        SDF_UNLIMITED,
+    )
+    damping: float = 0.0
+    damping2: float = 0.0
+    gearbox_ratio: float = 0.0
+    gearbox_reference: str = ""
 
 
 @dataclass(frozen=True)
@@ -183,8 +229,10 @@ class SDFTree:
         tree_joints: joints kept in the spanning tree, in URDF order.
         reversed_joints: tree joints whose SDF child is their URDF parent.
         cut_joints: joints cut, each a ``<loop>`` of the same name.
-        gearboxes: gearbox joints left out (no coupling loop yet).
+        gearboxes: gearbox joints, each a coupling loop of the same name.
         held_joints: joints read as ``fixed`` (``fixed_joints`` of :func:`read_sdf`).
+        dampings: the viscous damping of the tree joints (``<dynamics><damping>`` > 0),
+            in tree order (filled by :meth:`_Reader.robot`).
     """
 
     model_name: str
@@ -194,6 +242,7 @@ class SDFTree:
     cut_joints: tuple[str, ...]
     gearboxes: tuple[str, ...]
     held_joints: tuple[str, ...] = ()
+    dampings: tuple[JointDamping, ...] = ()
 
 
 def read_sdf(
@@ -399,38 +448,34 @@ class _Reader:
                     element,
                     tag,
                     oMj,
-                    required=jtype in ("revolute", "continuous", "prismatic", "universal")
+                    required=jtype in ("revolute", "continuous", "prismatic", *TWO_AXIS_TYPES)
                     and tag == "axis",
                 )
             )
-        if jtype == "universal" and element.find("axis2") is None:
-            raise URDFError(f"{where}: a universal joint needs <axis2>")
-        limit = element.find("axis/limit")
-        limits = (-SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED)
-        if limit is not None:
-            lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
-            upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
-            if lower > upper:
-                raise URDFError(
-                    f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}"
-                )
-            effort = _scalar(self.path, limit, "effort", -1.0)
-            velocity = _scalar(self.path, limit, "velocity", -1.0)
-            limits = (
-                lower,
-                upper,
-                effort if effort >= 0 else SDF_UNLIMITED,
-                velocity if velocity >= 0 else SDF_UNLIMITED,
-            )
+        if jtype in TWO_AXIS_TYPES and element.find("axis2") is None:
+            raise URDFError(f"{where}: a {jtype} joint needs <axis2>")
+        limits = tuple(self._limits(element, tag) for tag in ("axis", "axis2"))
+        dampings = tuple(
+            _scalar(self.path, dynamics, "damping", 0.0, minimum=0.0)
+            if (dynamics := element.find(f"{tag}/dynamics")) is not None
+            else 0.0
+            for tag in ("axis", "axis2")
+        )
         spring = None
         dynamics = element.find("axis/dynamics")
         if dynamics is not None:
             stiffness = _scalar(self.path, dynamics, "spring_stiffness", 0.0, minimum=0.0)
             if stiffness > 0.0:
-                spring = (
-                    stiffness,
-                    _scalar(self.path, dynamics, "spring_reference", 0.0),
-                    _scalar(self.path, dynamics, "damping", 0.0, minimum=0.0),
+                spring = (stiffness, _scalar(self.path, dynamics, "spring_reference", 0.0))
+        ratio, reference = 0.0, ""
+        if jtype == "gearbox":
+            ratio = _scalar(self.path, element, "gearbox_ratio", 1.0)
+            reference = (element.findtext("gearbox_reference_body") or "").strip()
+            valid = (*self.links, SDF_WORLD)
+            if reference not in valid:
+                raise URDFError(
+                    f"{where}: <gearbox_reference_body>{reference}</gearbox_reference_body> "
+                    f"is not a link; valid: {', '.join(valid)}"
                 )
         return SDFJoint(
             name=element.get("name"),
@@ -440,10 +485,33 @@ class _Reader:
             oMj=oMj,
             axis=axes[0],
             axis2=axes[1],
-            limits=limits,
+            limits=limits[0],
+            limits2=limits[1],
             spring=spring,
+            damping=dampings[0],
+            damping2=dampings[1],
             index=index,
             line=element.sourceline or 0,
+            gearbox_ratio=ratio,
+            gearbox_reference=reference,
+        )
+
+    def _limits(self, joint, tag: str) -> tuple[float, float, float, float]:
+        """Return ``(lower, upper, effort, velocity)`` of ``<tag><limit>`` (SDF's defaults)."""
+        limit = joint.find(f"{tag}/limit")
+        if limit is None:
+            return (-SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED)
+        lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
+        upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
+        if lower > upper:
+            raise URDFError(f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}")
+        effort = _scalar(self.path, limit, "effort", -1.0)
+        velocity = _scalar(self.path, limit, "velocity", -1.0)
+        return (
+            lower,
+            upper,
+            effort if effort >= 0 else SDF_UNLIMITED,
+            velocity if velocity >= 0 else SDF_UNLIMITED,
         )
 
     def _axis(self, joint, tag: str, oMj: pin.SE3, *, required: bool) -> np.ndarray:
@@ -523,8 +591,9 @@ class _Reader:
         if missing:
             through = [j.name for j in self.joints if j.type == "gearbox" and j.child in missing]
             hint = (
-                f"; it hangs only on gearbox joints ({', '.join(through)}), which closedchain "
-                "does not support yet"
+                f"; it hangs only on gearbox joints ({', '.join(through)}), which couple two "
+                "joints' angles and hold no link: give it a revolute joint to the "
+                "gearbox_reference_body"
                 if through
                 else "; join it with a <joint> or remove it"
             )
@@ -560,22 +629,11 @@ class _Reader:
     def robot(self, cut_joints: tuple[str, ...]):
         """Return the URDF+ ``<robot>`` element and the :class:`SDFTree`."""
         tree = self.spanning_tree(cut_joints)
-        if tree.gearboxes:
-            logger.warning(
-                "%s: gearbox joints %s are left out (closedchain has no coupling loop yet): "
-                "the links they drive from turn freely on their own joints",
-                self.path,
-                ", ".join(tree.gearboxes),
-            )
         joints = {j.name: j for j in self.joints}
-        # URDF frame of each link: the frame of the joint that holds it in the tree.
-        if tree.root == SDF_WORLD:
-            frames = {SDF_WORLD: pin.SE3.Identity()}
-        else:
-            frames = {tree.root: self.frame(tree.root, where=str(self.path))}
-        for name in tree.tree_joints:
-            j = joints[name]
-            frames[j.parent if name in tree.reversed_joints else j.child] = j.oMj
+        # Every link's URDF frame is its SDF frame (the world frame for the world).
+        frames = {SDF_WORLD: pin.SE3.Identity()}
+        for element in self.link_elements:
+            frames[element.get("name")] = self.frame(element.get("name"), where=str(self.path))
 
         robot = etree.Element("robot", name=self.name)
         if tree.root == SDF_WORLD:
@@ -585,27 +643,108 @@ class _Reader:
             robot.append(self._link(element, frames[element.get("name")], materials))
         for material in materials:
             robot.insert(0, material)
+        dampings: list[JointDamping] = []
         for name in tree.tree_joints:
-            for joint in self._tree_joint(joints[name], name in tree.reversed_joints, frames):
-                robot.append(joint)
+            elements, damped = self._tree_joint(joints[name], name in tree.reversed_joints, frames)
+            robot.extend(elements)
+            dampings.extend(damped)
         for name in tree.cut_joints:
             robot.append(self._loop(joints[name], frames))
-        sprung = [
-            j.name
-            for j in self.joints
-            if j.spring is not None
-            and (j.name not in tree.tree_joints or j.type not in SPRING_JOINT_TYPES)
-        ]
-        if sprung:
-            logger.warning(
-                "%s: the springs of %s are left out: a cut joint (a <loop>), a gearbox, a "
-                "continuous, universal or held (fixed_joints) joint has no spring coordinate; "
-                "valid: revolute or prismatic tree joints (cut_joints chooses which joint of a "
-                "cycle is cut)",
-                self.path,
-                ", ".join(sprung),
-            )
-        return robot, tree
+        for name in tree.gearboxes:
+            robot.append(self._gearbox_loop(joints[name], tree))
+        for what, verb, left_out in (
+            (
+                "springs",
+                "are",
+                [
+                    j.name
+                    for j in self.joints
+                    if j.spring is not None
+                    and (j.name not in tree.tree_joints or j.type not in SPRING_JOINT_TYPES)
+                ],
+            ),
+            (
+                "damping",
+                "is",
+                [
+                    j.name
+                    for j in self.joints
+                    if (j.damping > 0.0 or j.damping2 > 0.0)
+                    and (j.name not in tree.tree_joints or j.type == "fixed")
+                ],
+            ),
+        ):
+            if left_out:
+                logger.warning(
+                    "%s: the %s of %s %s left out: a cut joint (a <loop>), a gearbox or a "
+                    "held (fixed_joints) joint has no coordinate of its own%s; valid: tree "
+                    "joints (cut_joints chooses which joint of a cycle is cut)",
+                    self.path,
+                    what,
+                    ", ".join(left_out),
+                    verb,
+                    ", nor has a continuous or universal joint a spring"
+                    if what == "springs"
+                    else "",
+                )
+        return robot, replace(tree, dampings=tuple(dampings))
+
+    def _gearbox_loop(self, g: SDFJoint, tree: SDFTree):
+        r"""Return the coupling ``<loop>`` of gearbox joint ``g``.
+
+        SDFormat (``joint.sdf``, ``gearbox_ratio`` and ``gearbox_reference_body``):
+        :math:`\theta_2 = -r\,\theta_1`, where :math:`\theta_1` is the angle from the
+        reference body to the ``<parent>`` link about ``<axis>`` and :math:`\theta_2`
+        the angle from the reference body to the ``<child>`` link about ``<axis2>``.
+        Each angle is the coordinate of the joint between the reference body and
+        that link (a revolute tree joint with the gearbox's axis), times
+        :math:`s = \pm 1`: + when the joint's axis points along the gearbox's and
+        its SDF parent is the reference body. So
+        :math:`q_\mathrm{child} = -r\,s_1 s_2\,q_\mathrm{parent}`.
+        """
+        where = _where(self.path, self.joint_elements[g.name])
+        ends = []
+        for tag, link, axis in (("axis", g.parent, g.axis), ("axis2", g.child, g.axis2)):
+            direction = g.oMj.rotation @ axis
+            between = [
+                j
+                for j in self.joints
+                if j.type != "gearbox" and {j.parent, j.child} == {g.gearbox_reference, link}
+            ]
+            if len(between) != 1:
+                raise URDFError(
+                    f"{where}: the gearbox angle of link {link!r} is the coordinate of the joint "
+                    f"between it and the gearbox_reference_body {g.gearbox_reference!r}, and "
+                    f"{len(between)} joints join them; valid: exactly one revolute joint"
+                )
+            j = between[0]
+            if j.type != "revolute" or j.name not in tree.tree_joints:
+                state = "cut (a <loop> has no coordinate)" if j.type != "fixed" else "fixed"
+                raise URDFError(
+                    f"{where}: joint {j.name!r} between {link!r} and the "
+                    f"gearbox_reference_body is "
+                    f"{state if j.type in ('revolute', 'fixed') else j.type}; valid: a revolute "
+                    "tree joint (cut_joints chooses which joint of a cycle is cut; a "
+                    "continuous joint's angle wraps)"
+                )
+            dot = float((j.oMj.rotation @ j.axis) @ direction)
+            if abs(abs(dot) - 1.0) > GEARBOX_AXIS_TOL:
+                raise URDFError(
+                    f"{where}: joint {j.name!r} turns about another axis than the gearbox's "
+                    f"<{tag}> (cosine {dot:.6g}); valid: parallel axes"
+                )
+            ends.append((j.name, math.copysign(1.0, dot) * (1.0 if j.parent != link else -1.0)))
+        (mimics, s1), (driven, s2) = ends
+        loop = etree.Element("loop", name=g.name, type=COUPLING)
+        etree.SubElement(loop, "joint", name=driven)
+        etree.SubElement(
+            loop,
+            "mimics",
+            joint=mimics,
+            multiplier=repr(-g.gearbox_ratio * s1 * s2),
+            offset="0.0",
+        )
+        return loop
 
     def _link(self, element, oMl_urdf: pin.SE3, materials: list):
         """Return the URDF ``<link>`` of an SDF link whose URDF frame is ``oMl_urdf``."""
@@ -688,26 +827,44 @@ class _Reader:
             etree.SubElement(out, "material", name=label)
         return out
 
-    def _tree_joint(self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]):
-        """Return the URDF ``<joint>`` elements of a tree joint (two for a universal one)."""
+    def _tree_joint(
+        self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]
+    ) -> tuple[list, list[JointDamping]]:
+        """Return the URDF elements of a tree joint, and the damping of its URDF joints.
+
+        The elements: its ``<joint>`` elements (two for a universal joint, through a
+        massless ``J::cross`` link) and, where its URDF child's SDF frame is not the
+        joint frame, a massless ``J::frame`` link that the joint moves and a fixed
+        ``J::pose`` joint placing the link in it.
+        """
         parent, child = j.parent, j.child
         sign = 1.0
-        if reverse:
+        if reverse:  # the axes negated: each coordinate keeps the SDF's sign
             parent, child, sign = child, parent, -1.0
         origin = frames[parent].inverse() * j.oMj
-        steps = [(j.name, j.type, j.axis, parent, child, origin)]
+        # (name, type, axis, parent, child, origin, limits, damping)
+        steps = [(j.name, j.type, j.axis, parent, child, origin, j.limits, j.damping)]
         if j.type == "universal":
+            # R = Rot(axis, q1) Rot(axis2, q2) from the SDF parent; from the SDF child,
+            # Rot(-axis2, q2) Rot(-axis, q1): J::axis2 comes first, each keeps its angle.
             cross = f"{j.name}::cross"
-            first, second = (j.axis, j.axis2) if not reverse else (j.axis2, j.axis)
+            first = (j.name, "revolute", j.axis, j.limits, j.damping)
+            second = (f"{j.name}::axis2", "revolute", j.axis2, j.limits2, j.damping2)
+            if reverse:
+                first, second = second, first
             steps = [
-                (j.name, "revolute", first, parent, cross, origin),
-                (f"{j.name}::axis2", "revolute", second, cross, child, pin.SE3.Identity()),
+                (*first[:3], parent, cross, origin, *first[3:]),
+                (*second[:3], cross, child, pin.SE3.Identity(), *second[3:]),
             ]
-        out = []
-        for name, jtype, axis, p, c, M in steps:
-            if c.endswith("::cross"):
-                link = etree.Element("link", name=c)
-                out.append(link)
+        offset = j.oMj.inverse() * frames[child]
+        if not np.array_equal(offset.homogeneous, np.eye(4)):
+            held = f"{j.name}::frame"
+            steps[-1] = (*steps[-1][:4], held, *steps[-1][5:])
+            steps.append((f"{j.name}::pose", "fixed", j.axis, held, child, offset, j.limits, 0.0))
+        out, damped = [], []
+        for name, jtype, axis, p, c, M, limits, damping in steps:
+            if c.startswith(f"{j.name}::"):
+                out.append(etree.Element("link", name=c))
             joint = etree.Element("joint", name=name, type=jtype)
             etree.SubElement(joint, "parent", link=p)
             etree.SubElement(joint, "child", link=c)
@@ -715,7 +872,7 @@ class _Reader:
             if jtype != "fixed":
                 etree.SubElement(joint, "axis", xyz=_vector(sign * axis))
             if jtype in ("revolute", "prismatic"):
-                lower, upper, effort, velocity = j.limits
+                lower, upper, effort, velocity = limits
                 etree.SubElement(
                     joint,
                     "limit",
@@ -724,18 +881,18 @@ class _Reader:
                     effort=repr(effort),
                     velocity=repr(velocity),
                 )
-            if j.spring is not None and jtype in SPRING_JOINT_TYPES:
-                # A reversed joint keeps the SDF's coordinate (its axis is negated).
-                stiffness, reference, damping = j.spring
-                etree.SubElement(
-                    joint,
-                    "dynamics",
-                    damping=repr(damping),  # urdfdom wants damping or friction in <dynamics>
-                    spring_stiffness=repr(stiffness),
-                    spring_reference=repr(reference),
-                )
+            spring = j.spring if j.type in SPRING_JOINT_TYPES else None
+            if jtype != "fixed" and (damping > 0.0 or spring is not None):
+                # urdfdom wants damping or friction in <dynamics>; a reversed joint keeps
+                # the SDF's coordinate (its axis is negated), so its spring too.
+                dynamics = etree.SubElement(joint, "dynamics", damping=repr(damping))
+                if spring is not None:
+                    dynamics.set("spring_stiffness", repr(spring[0]))
+                    dynamics.set("spring_reference", repr(spring[1]))
+            if jtype != "fixed" and damping > 0.0:
+                damped.append(JointDamping(name, damping, j.line))
             out.append(joint)
-        return out
+        return out, damped
 
     def _loop(self, j: SDFJoint, frames: dict[str, pin.SE3]):
         """Return the URDF+ ``<loop>`` of a cut joint (its frame seen from both links)."""

@@ -72,12 +72,13 @@ from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamic
 from .dynamics.base import mass_matrix, method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
 from .exceptions import (
+    AssemblyError,
     InvalidArgumentError,
     SingularConfigurationError,
     UnknownChoiceError,
     check_settings,
 )
-from .kinematics import random_consistent_state
+from .kinematics import assemble, project_velocity, random_consistent_state, singularity_measures
 from .mechanism import Mechanism
 
 #: Default tolerance on the accelerations' deviation in the mass-matrix norm,
@@ -97,6 +98,21 @@ REFERENCE_REFINEMENT_STEPS = 1
 #: planar loop has zero rows), and the round-off in r_c along their near-zero
 #: singular directions (~1e-16 of the largest) is not a correction to apply.
 REFINEMENT_RCOND = 1e-9
+#: Random starts :func:`validate` assembles per state before it walks along the
+#: motion instead (:func:`walk_consistent_state`; the shipped mechanisms and
+#: example-parallel-robots draw each state within a few starts).
+DRAW_ATTEMPTS = 100
+#: Steps along the motion between two states of the walk.
+WALK_STEPS = 3
+#: Standard deviation [rad or m] of one step of the walk (the assembly's Newton
+#: steps converge from there on erd:cassie).
+WALK_STEP = 0.1
+#: Directions tried per step of the walk before it gives up.
+WALK_TRIES = 50
+#: Smallest singular value of J a drawn state keeps (random_consistent_state's default).
+MIN_SIGMA = 1e-3
+#: Fraction of the start's sigma_min(J) a walk keeps when the start is below MIN_SIGMA.
+WALK_SIGMA_FRACTION = 0.1
 #: Largest ``n_samples`` of :func:`validate`: each state is an assembly and two
 #: dynamics solves (about 2 ms on the 4-bar, so 1e5 states take some 4 minutes;
 #: seconds to minutes per state on the largest models).
@@ -237,12 +253,85 @@ def mass_norm(M: np.ndarray, x: np.ndarray) -> float:
     return math.sqrt(max(float(x @ M @ x), 0.0))
 
 
+def walk_consistent_state(
+    mech: Mechanism,
+    q: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    assembly: AssemblySettings,
+    steps: int = WALK_STEPS,
+    step: float = WALK_STEP,
+    tries: int = WALK_TRIES,
+    min_sigma: float = MIN_SIGMA,
+    sigma_fraction: float = WALK_SIGMA_FRACTION,
+) -> np.ndarray:
+    """Walk ``steps`` random steps along the motion from a closed configuration.
+
+    Each step moves q along a random tangent vector (``project_velocity`` of a
+    random v of standard deviation ``step``, so J dq = 0 to first order),
+    assembles the result onto phi = 0 and keeps it when it is within the joint
+    limits and no nearer a singular J than the start: sigma_min(J) at least
+    ``min(min_sigma, sigma_fraction sigma_min(J(q)))`` (a robot standing on
+    welded feet, erd:cassie, has sigma_min 7.7e-6 at its reference). A step that
+    fails is tried again in another direction.
+
+    Args:
+        mech: the mechanism.
+        q: a closed configuration (phi(q) = 0), shape (nq,).
+        rng: random generator.
+        assembly: settings of each step's assembly.
+        steps: steps taken.
+        step: standard deviation of each step's tangent vector [rad or m].
+        tries: directions tried per step before giving up.
+        min_sigma: the smallest singular value of J kept when the start is further
+            from a singular J (``min_sigma`` of :func:`closedchain.random_consistent_state`).
+        sigma_fraction: fraction of the start's sigma_min(J) kept otherwise.
+
+    Returns:
+        The configuration reached, shape (nq,), assembled to ``assembly.tol``.
+
+    Raises:
+        AssemblyError: ``tries`` directions in a row failed to assemble or left
+            the limits or neared a singular J.
+    """
+    floor = (
+        min(min_sigma, sigma_fraction * singularity_measures(mech, q).sigma_min) if mech.nc else 0.0
+    )
+    for _ in range(steps):
+        for _ in range(tries):
+            dq = project_velocity(mech, q, step * rng.standard_normal(mech.nv))
+            try:
+                q_next = mech.wrap_angles(
+                    assemble(mech, pin.integrate(mech.model, q, dq), settings=assembly)
+                )
+            except AssemblyError:
+                continue
+            if mech.within_limits(q_next) and (
+                not mech.nc or singularity_measures(mech, q_next).sigma_min >= floor
+            ):
+                q = q_next
+                break
+        else:
+            raise AssemblyError(
+                f"{mech.name}: the walk along the motion found no consistent state in "
+                f"{tries} directions (steps of {step:g} rad or m)",
+                residual=float("nan"),
+                q=q,
+            )
+    return q
+
+
 def _validation_states(
     mech: Mechanism, n_samples: int, seed: int, velocity_scale: float, tau_scale: float | None
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Yield :func:`validate`'s random states ``(q, v, tau)`` (its arguments' meaning).
 
     Shapes (nq,), (nv,), (nv,); q assembled to VALIDATION_PHI_TOL, v consistent.
+    Each q is drawn by :func:`closedchain.random_consistent_state` (random starts
+    assembled) within :data:`DRAW_ATTEMPTS` starts; once that fails (a robot on
+    welded feet rarely closes from a random start), this and every later q are
+    found by :func:`walk_consistent_state` from the previous state, the first
+    walk starting at the closed ``mech.q_ref``.
     """
     rng = np.random.default_rng(seed)
     # Generalized forces on the coordinates of a root joint added by load().
@@ -251,8 +340,22 @@ def _validation_states(
     if tau_scale is None:
         tau_scale = mech.gravity_torque_scale() or 1.0
     assembly = AssemblySettings(tol=VALIDATION_PHI_TOL)
+    walk_from = None
     for _ in range(n_samples):
-        q, v = random_consistent_state(mech, rng, velocity_scale=velocity_scale, assembly=assembly)
+        if walk_from is None:
+            try:
+                q, v = random_consistent_state(
+                    mech,
+                    rng,
+                    velocity_scale=velocity_scale,
+                    assembly=assembly,
+                    max_attempts=DRAW_ATTEMPTS,
+                )
+            except AssemblyError:
+                walk_from = assemble(mech, mech.q_ref, settings=assembly)
+        if walk_from is not None:
+            q = walk_from = walk_consistent_state(mech, walk_from, rng, assembly=assembly)
+            v = project_velocity(mech, q, velocity_scale * rng.standard_normal(mech.nv))
         tau = tau_scale * rng.standard_normal(mech.nv)
         if unactuated_root:
             tau[:root_nv] = 0.0
