@@ -43,6 +43,12 @@ README_MAX_LINES = 300
 BUILD_TIMEOUT_S = 600
 #: Hosts the site must not load anything from (material's default web fonts).
 WEB_FONT_HOSTS = ("fonts.googleapis.com", "fonts.gstatic.com")
+#: A LaTeX command or bracket left as text: maths that did not become MathML.
+RAW_LATEX = re.compile(r"\\(?:[A-Za-z]{2,}|[\[\](){}])")
+#: Elements whose text may hold LaTeX on purpose (code, and MathML's own copy of its source).
+VERBATIM_ELEMENTS = ("pre", "code", "script", "style", "annotation", "textarea")
+#: A Markdown list written in a docstring or page that rendered as one paragraph.
+COLLAPSED_LIST = re.compile(r"(?:^|\n)[ \t]*(?:[*+-]|\d+\.) \S")
 #: Lab-notebook figures that belong in generated pages or CHANGELOG.md, not in prose.
 NOTEBOOK_PATTERNS = {
     "a commit hash": re.compile(r"\bcommit(?:s)? [0-9a-f]{7,40}\b"),
@@ -137,6 +143,65 @@ def test_every_public_name_has_an_api_entry(site):
     names = inventory_names(site / "objects.inv")
     missing = [n for n in closedchain.__all__ if canonical_path(n) not in names]
     assert not missing, f"closedchain.__all__ names without an API entry: {missing}"
+
+
+def page_text(path: Path) -> str:
+    """Return the text a reader sees on a built page, without code and MathML annotations."""
+    lxml_html = pytest.importorskip("lxml.html")
+    tree = lxml_html.fromstring(path.read_bytes())
+    for element in list(tree.iter(*VERBATIM_ELEMENTS)):
+        if element.getparent() is not None:
+            element.drop_tree()
+    return tree.text_content()
+
+
+@needs_mkdocs
+def test_maths_is_rendered_as_mathml(site):
+    """No page shows LaTeX source; the pages with equations carry MathML (written at build
+    time by docs/_ext/mathml.py, so the site needs no script or network to show them)."""
+    raw = {}
+    for page in sorted(site.rglob("*.html")):
+        found = RAW_LATEX.findall(page_text(page))
+        if found:
+            raw[page.relative_to(site).as_posix()] = sorted(set(found))[:5]
+    assert not raw, f"raw LaTeX on pages: {raw}"
+    for page in ("api/simulate/index.html", "guide/dynamics-methods/index.html"):
+        text = (site / page).read_text()
+        assert "<math" in text, f"{page} shows no maths"
+        assert "arithmatex" not in text, f"{page} holds maths that was not converted"
+
+
+@needs_mkdocs
+def test_returns_sections_are_one_row_per_value(site):
+    """A Returns section is one value described in prose: its wrapped lines stay one row
+    (griffe's ``returns_multiple_items: false`` in mkdocs.yml)."""
+    lxml_html = pytest.importorskip("lxml.html")
+    split = []
+    for page in sorted((site / "api").rglob("*.html")):
+        tree = lxml_html.fromstring(page.read_bytes())
+        for title in tree.xpath('//span[@class="doc-section-title"][starts-with(., "Returns")]'):
+            table = title.getparent().getnext()
+            rows = table.xpath(".//tbody/tr") if table is not None else []
+            if len(rows) != 1:
+                heading = title.xpath("preceding::h2[1] | preceding::h3[1]")
+                split.append((page.parent.name, heading[-1].get("id") if heading else "?", len(rows)))
+    assert not split, f"Returns tables without exactly one row (page, object, rows): {split}"
+
+
+@needs_mkdocs
+def test_lists_render_as_lists(site):
+    """Bullet and definition lists of docstrings and pages stay lists."""
+    lxml_html = pytest.importorskip("lxml.html")
+    collapsed = []
+    for page in sorted(site.rglob("*.html")):
+        tree = lxml_html.fromstring(page.read_bytes())
+        for paragraph in tree.iter("p"):
+            if COLLAPSED_LIST.search(paragraph.text_content()):
+                collapsed.append((page.relative_to(site).as_posix(), paragraph.text_content()[:80]))
+    assert not collapsed, f"lists rendered as paragraphs: {collapsed}"
+    simulate = lxml_html.fromstring((site / "api" / "simulate" / "index.html").read_bytes())
+    terms = [dt.text_content() for dt in simulate.iter("dt")]
+    assert {'"none"', '"baumgarte"', '"projection"', '"partitioning"'} <= set(terms), terms
 
 
 @needs_mkdocs
@@ -237,6 +302,33 @@ def test_sphinx_roles_become_markdown():
     roles = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(roles)
     text = (
-        "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M a`.\n\n.. math::\n\n    x = 1\n"
+        "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M\n a`.\n\n"
+        ".. math::\n\n    x = 1\n\n    y = 2\n\nAfter.\n\n``\"a\"``\n    the first.\n"
     )
-    assert roles.markdown(text) == "Use `load` or `METHODS`, `M a`.\n\n\n\n    x = 1\n"
+    assert roles.markdown(text).split("\n") == [
+        "Use `load` or `METHODS`, $M a$.",
+        "",
+        "",
+        "$$",
+        "x = 1",
+        "$$",
+        "",
+        "$$",
+        "y = 2",
+        "$$",
+        "",
+        "",
+        "After.",
+        "",
+        '``"a"``',
+        ":   the first.",
+        "",
+    ]
+
+
+def test_raw_latex_pattern_catches_what_it_names():
+    assert RAW_LATEX.search(r"\dot q = v, \qquad M a + h + J^\top\lambda")
+    assert RAW_LATEX.search(r"\begin{bmatrix}")
+    assert not RAW_LATEX.search("C:/models and a\\ b plain text, 1\\2")
+    assert COLLAPSED_LIST.search("the list:\n* one\n* two")
+    assert not COLLAPSED_LIST.search("a - b and 3 * 4")

@@ -4,26 +4,35 @@ What users of parallel robots (Gepetto's toolbox-parallel-robots) do with a clos
 model, on closedchain's loops:
 
 * forward kinematics: the configuration with the actuated joints at given motor values
-  and every loop closed (:func:`forward_kinematics`: the assembly holding the actuated
-  coordinates, :func:`closedchain.assemble`);
+    and every loop closed (:func:`forward_kinematics`: the assembly holding the actuated
+    coordinates, :func:`closedchain.assemble`);
+
 * closed-loop inverse kinematics: a configuration with every loop closed and a frame at a
-  target placement (:func:`inverse_kinematics`), a least-squares solve on the stacked
+    target placement, position or orientation (:func:`inverse_kinematics`), a
+    least-squares solve on the stacked
 
-  .. math::
+    .. math::
 
-      r(q) = \begin{bmatrix} e(q) \\ \epsilon(q) \end{bmatrix}, \qquad
-      \epsilon_{6d} = \log_6\bigl(T^{-1}\, {}^oM_f(q)\bigr), \quad
-      \epsilon_{3d} = p_f(q) - p_T,
+        r(q) = \begin{bmatrix} e(q) \\ \epsilon(q) \end{bmatrix}, \qquad
+        \epsilon_{6d} = \log_6\bigl(T^{-1}\, {}^oM_f(q)\bigr), \quad
+        \epsilon_{3d} = p_f(q) - p_T, \quad
+        \epsilon_{rot} = \log_3\bigl(R_T^\top R_f(q)\bigr),
 
-  with e the closure residual of every loop (zero exactly at the closure,
-  :meth:`closedchain.constraints.ConstraintLayer.closure_residuals`) and exact Jacobians
-  (:math:`J_{\log_6}\, J_f^{local}` and the frame's world-aligned linear Jacobian);
-* motor torques: :func:`closedchain.inverse_dynamics` with ``actuated="actuated"``;
-* actuation singularities (seed Problems 1 and 4, :func:`actuation_singularities`): the
-  smallest singular value of :math:`J_D`, the non-actuated columns of J (parallel,
-  type II: the motors no longer determine the motion) and of the output map (serial,
-  type I: the output frame no longer determines the motors),
-  :func:`closedchain.kinematics.actuation_sigma_min`.
+    with e the closure residual of every loop (zero exactly at the closure,
+    :meth:`closedchain.constraints.ConstraintLayer.closure_residuals`) and exact Jacobians
+    (:math:`J_{\log_6}\, J_f^{local}`, the frame's world-aligned linear Jacobian and
+    :math:`J_{\log_3}\, J_f^{\omega, local}`);
+
+* motor torques: :func:`closedchain.inverse_dynamics` with the accelerations prescribed
+    on the actuated coordinates (``coordinates="actuated"``; the torques act on the
+    actuated joints, ``actuated="actuated"``, by default);
+
+* actuation singularities (:func:`actuation_singularities`; the rank of J and the choice
+    of independent coordinates of the 4-bar and the 3-leg wrist in the lesson cited in
+    the references): the smallest singular value of :math:`J_D`, the non-actuated
+    columns of J (parallel, type II: the motors no longer determine the motion) and of
+    the output map (serial, type I: the output frame no longer determines the motors),
+    :func:`closedchain.kinematics.actuation_sigma_min`.
 """
 
 from __future__ import annotations
