@@ -11,6 +11,7 @@ README.md stays a front door, and measurements stay in generated pages.
 from __future__ import annotations
 
 import functools
+import importlib
 import importlib.util
 import inspect
 import os
@@ -211,6 +212,43 @@ def test_the_site_loads_nothing_from_the_web(site):
         text = page.read_text(errors="replace")
         hosts = [h for h in WEB_FONT_HOSTS if h in text]
         assert not hosts, f"{page.relative_to(site)} loads from {hosts}"
+
+
+def page_members(module: str) -> list[str] | None:
+    """The ``members:`` list of docs/api/<module>.md, or None where the page has none."""
+    yaml = pytest.importorskip("yaml")
+    text = (DOCS / "api" / f"{module}.md").read_text()
+    options = yaml.safe_load(text.split("\n", 1)[1]) if "\n" in text.strip() else None
+    return (options or {}).get("options", {}).get("members")
+
+
+def public_modules() -> list[str]:
+    """The public modules of the package (those with an API page)."""
+    return sorted(p.stem for p in (DOCS / "api").glob("*.md") if p.stem != "index")
+
+
+@needs_mkdocs
+def test_api_pages_show_the_public_api_only(site):
+    """Each API page shows what its module exports (its ``__all__``, or the page's own
+    ``members:`` list for a module without one), nothing else: internals are described
+    in the design pages."""
+    raw = (site / "objects.inv").read_bytes()
+    body = zlib.decompress(raw.split(b"\n", 4)[4]).decode()
+    shown: dict[str, set[str]] = {}
+    for line in body.splitlines():
+        name, _, rest = line.partition(" ")
+        uri = rest.split()[2]
+        module = uri.split("/")[1] if uri.startswith("api/") else None
+        prefix = f"closedchain.{module}."
+        if module and name.startswith(prefix) and "." not in name[len(prefix) :]:
+            shown.setdefault(module, set()).add(name[len(prefix) :])
+    for module in public_modules():
+        members = page_members(module)
+        exported = getattr(importlib.import_module(f"closedchain.{module}"), "__all__", None)
+        public = members if members is not None else exported
+        assert public is not None, f"closedchain.{module} has no __all__ and its page no members"
+        extra = shown.get(module, set()) - set(public)
+        assert not extra, f"docs/api/{module}.md shows names its module does not export: {extra}"
 
 
 def test_every_page_is_in_the_nav():

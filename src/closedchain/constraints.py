@@ -71,6 +71,12 @@ import pinocchio as pin
 from .exceptions import ValidationUnavailableError
 from .urdf import COUPLING, LoopSpec
 
+__all__ = [
+    "CLOSURE_SIZES",
+    "ConstraintLayer",
+    "RowInfo",
+]
+
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _LOCAL = pin.ReferenceFrame.LOCAL
 

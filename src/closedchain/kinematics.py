@@ -43,6 +43,18 @@ from .closure import solve_closure as solve_closure  # re-exported
 from .compiled import declared_core, has
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
+__all__ = [
+    "SingularityMeasures",
+    "actuation_sigma_min",
+    "assemble",
+    "compute_gamma",
+    "compute_jacobian",
+    "compute_phi",
+    "project_velocity",
+    "random_consistent_state",
+    "singularity_measures",
+]
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 

@@ -51,6 +51,14 @@ from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
 from .yaml_loops import edit_model
 
+__all__ = [
+    "DEFAULT_GRAVITY",
+    "DEFAULT_LOAD_SETTINGS",
+    "LoadSettings",
+    "Mechanism",
+    "load",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Largest accepted deviation from 1 of the norm of a continuous joint's

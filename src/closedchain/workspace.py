@@ -53,6 +53,15 @@ from .kinematics import actuation_sigma_min, assemble, compute_jacobian
 from .mechanism import COORDINATE_BOUND, Mechanism
 from .pindata import new_data
 
+__all__ = [
+    "FourBarAnalysis",
+    "SingularityMap",
+    "analyze_fourbar",
+    "default_outputs",
+    "plot_workspace",
+    "singularity_map",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Crank angles of the 4-bar sweep.
