@@ -185,7 +185,8 @@ def test_returns_sections_are_one_row_per_value(site):
             rows = table.xpath(".//tbody/tr") if table is not None else []
             if len(rows) != 1:
                 heading = title.xpath("preceding::h2[1] | preceding::h3[1]")
-                split.append((page.parent.name, heading[-1].get("id") if heading else "?", len(rows)))
+                where = heading[-1].get("id") if heading else "?"
+                split.append((page.parent.name, where, len(rows)))
     assert not split, f"Returns tables without exactly one row (page, object, rows): {split}"
 
 
@@ -341,7 +342,7 @@ def test_sphinx_roles_become_markdown():
     spec.loader.exec_module(roles)
     text = (
         "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M\n a`.\n\n"
-        ".. math::\n\n    x = 1\n\n    y = 2\n\nAfter.\n\n``\"a\"``\n    the first.\n"
+        '.. math::\n\n    x = 1\n\n    y = 2\n\nAfter.\n\n``"a"``\n    the first.\n'
     )
     assert roles.markdown(text).split("\n") == [
         "Use `load` or `METHODS`, $M a$.",

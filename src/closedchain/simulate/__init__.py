@@ -63,10 +63,7 @@ from .request import (
     DEFAULT_INTEGRATOR,
     MIN_ATOL,
     MIN_RTOL,
-    check_positive,
     check_request,
-    check_start_velocity,
-    check_t_eval,
     default_integrator,
 )
 from .run import check_energy, run_request

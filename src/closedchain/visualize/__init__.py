@@ -35,35 +35,21 @@ from __future__ import annotations
 
 from .framing import (
     body_placements,
-    check_trajectory,
     frame_camera,
-    resample,
 )
 from .page import (
     scene_html,
-    scene_meta,
     write_html,
 )
 from .scene import (
-    CommandRecorder,
     build_scene,
 )
 from .settings import (
     CHROMIUM_PATH,
-    CLIP_RATIO,
     DEFAULT_FPS,
     DEFAULT_SETTINGS,
-    FRAME_EPS,
-    GRID_CELLS_PER_RADIUS,
-    GRID_CLEARANCE,
     HEADLESS_CHROMIUM_ARGS,
-    MESHCAT_GRID_CELL,
-    MIN_SCENE_RADIUS,
     NATIVE_MESH_FORMATS,
-    SCENE_ROOT,
-    TIME_EPS,
-    TORUS_SEGMENTS,
-    UUID_NAMESPACE,
     VISUAL_KINDS,
     AnimationSettings,
     Body,
@@ -79,7 +65,6 @@ from .shapes import (
     read_mesh,
     read_scene_visuals,
     read_visuals,
-    scene_path,
 )
 
 __all__ = [
