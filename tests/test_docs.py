@@ -146,11 +146,12 @@ def test_every_public_name_has_an_api_entry(site):
     assert not missing, f"closedchain.__all__ names without an API entry: {missing}"
 
 
-def page_text(path: Path) -> str:
-    """Return the text a reader sees on a built page, without code and MathML annotations."""
+def page_text(path: Path, *, verbatim: bool = False) -> str:
+    """Return the text a reader sees on a built page, without code and MathML annotations
+    unless ``verbatim``."""
     lxml_html = pytest.importorskip("lxml.html")
     tree = lxml_html.fromstring(path.read_bytes())
-    for element in list(tree.iter(*VERBATIM_ELEMENTS)):
+    for element in [] if verbatim else list(tree.iter(*VERBATIM_ELEMENTS)):
         if element.getparent() is not None:
             element.drop_tree()
     return tree.text_content()
@@ -250,6 +251,37 @@ def test_api_pages_show_the_public_api_only(site):
         assert public is not None, f"closedchain.{module} has no __all__ and its page no members"
         extra = shown.get(module, set()) - set(public)
         assert not extra, f"docs/api/{module}.md shows names its module does not export: {extra}"
+
+
+def docs_hook(name: str):
+    """A hook module of docs/_ext, imported as mkdocs does."""
+    spec = importlib.util.spec_from_file_location(name, DOCS / "_ext" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_readme_states_the_default_that_runs():
+    """The site states the default from the constants (docs/_ext/defaults.py); the README,
+    which is not built, must say the same."""
+    defaults = docs_hook("defaults")
+    assert defaults.short() in README.read_text(), (
+        f"README.md does not state the default configuration as {defaults.short()!r}"
+    )
+
+
+@needs_mkdocs
+def test_pages_state_the_default_that_runs(site):
+    from closedchain.simulate import DEFAULT_INTEGRATOR, INTEGRATORS
+
+    defaults = docs_hook("defaults")
+    tolerances = INTEGRATORS[DEFAULT_INTEGRATOR].tolerances
+    for page in ("index.html", "guide/simulation/index.html"):
+        text = page_text(site / page, verbatim=True)
+        assert defaults.short() in text, f"{page} does not state the default {defaults.short()!r}"
+        assert "{{" not in text, f"{page} has a placeholder left"
+    guide = page_text(site / "guide" / "simulation" / "index.html")
+    assert f'integrator="{DEFAULT_INTEGRATOR}", rtol={defaults._num(tolerances[0])}' in guide
 
 
 def test_every_page_is_in_the_nav():

@@ -374,7 +374,7 @@ def actuation_sigma_min(
     output_idx_v: np.ndarray | None = None,
     J_output: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    r"""Return the smallest singular values of the two actuation maps (seed Problem 4).
+    r"""Return the smallest singular values of the two actuation maps.
 
     * parallel (type II): :math:`J_D`, the columns of J of the non-actuated
       coordinates; zero where the actuators no longer determine the motion.

@@ -1,4 +1,5 @@
-r"""Workspace and singularity pictures (the seed's Problems 1 and 4), from the model alone.
+r"""Workspace and singularity pictures, from the model alone: where J loses rank, where
+the motors stop determining the motion.
 
 Planar 4-bar (one revolute loop, three revolute joints, two of them on the
 ground): the link lengths are measured on the assembled model (joint origins

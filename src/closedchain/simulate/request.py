@@ -32,7 +32,12 @@ from .registry import (
     get_integrator,
     get_stabilization,
 )
-from .settings import DEFAULT_SIMULATION_SETTINGS, SimulationSettings, TorqueInput
+from .settings import (
+    ADAPTIVE_TOLERANCES,
+    DEFAULT_SIMULATION_SETTINGS,
+    SimulationSettings,
+    TorqueInput,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -236,9 +241,9 @@ def _check_step_control(
     if fixed:
         dt = settings.dt if dt is None else dt
         return StepControl(dt=_check_dt(dt, t_final, t_eval, settings))
-    default_rtol, default_atol = spec.tolerances or (settings.rtol, settings.atol)
-    rtol = default_rtol if rtol is None else rtol
-    atol = default_atol if atol is None else atol
+    own_rtol, own_atol = spec.tolerances or ADAPTIVE_TOLERANCES
+    rtol = rtol if rtol is not None else settings.rtol if settings.rtol is not None else own_rtol
+    atol = atol if atol is not None else settings.atol if settings.atol is not None else own_atol
     check_positive("rtol", rtol, "the relative tolerance")
     check_positive("atol", atol, "the absolute tolerance")
     rtol, atol = float(rtol), float(atol)
