@@ -284,6 +284,30 @@ def test_pages_state_the_default_that_runs(site):
     assert f'integrator="{DEFAULT_INTEGRATOR}", rtol={defaults._num(tolerances[0])}' in guide
 
 
+#: Pages whose code blocks run, in order, in an empty directory (``title="file"`` blocks of
+#: another language are written there first): they teach by running code.
+EXECUTED_PAGES = (DOCS / "guide" / "tutorial.md",)
+#: A fenced block: language, info string, body.
+FENCE = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```", re.S | re.M)
+
+
+@pytest.mark.parametrize("page", EXECUTED_PAGES, ids=lambda p: p.stem)
+def test_tutorial_code_runs(page, tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "tutorial"}
+    blocks = FENCE.findall(page.read_text())
+    assert sum(lang == "python" for lang, _, _ in blocks) >= 5, f"{page.name}: too few blocks"
+    for lang, info, body in blocks:
+        title = re.search(r'title="([^"]+)"', info)
+        if lang != "python" and title:
+            (tmp_path / title[1]).write_text(body)
+        elif lang == "python":
+            exec(compile(body, str(page), "exec"), namespace)  # noqa: S102 (our own page)
+    for name in ("slider_crank.html", "slider_crank.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
 def test_every_page_is_in_the_nav():
     config = mkdocs_config()
     nav = nav_pages(config["nav"])
