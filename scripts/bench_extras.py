@@ -323,13 +323,15 @@ def write_report(
     machine = [ln for ln in _read(out / "machine.txt").splitlines() if ln.strip()]
     code = [ln.removeprefix("commit ") for ln in machine if ln.startswith("commit ")]
     dates = [ln.removeprefix("date ") for ln in machine if ln.startswith("date ")]
-    machine = [ln for ln in machine if not ln.startswith(("commit ", "date "))]
+    versions = [ln.removeprefix("version ") for ln in machine if ln.startswith("version ")]
+    machine = [ln for ln in machine if not ln.startswith(("commit ", "date ", "version "))]
     lines = bench_page.header(
         "Benchmark results",
         command=command,
         date=date or (dates[0] if dates else ""),
         machine="; ".join(machine),
         code=code[0] if code else "",
+        version=versions[0] if versions else "",
         extra={
             "load average (1, 5, 15 min) before / after": load or "",
             "wall time": f"{wall / 60:.1f} min" if wall else "",

@@ -20,6 +20,8 @@ from closedchain.simulate import (
     DEFAULT_SIMULATION_SETTINGS,
     INTEGRATORS,
 )
+from closedchain.simulate.request import describe_default
+from closedchain.simulate.request import short_number as _num
 
 #: Placeholders and the functions that fill them.
 PLACEHOLDERS = ("{{ default_configuration }}", "{{ default_configuration_short }}")
@@ -27,27 +29,15 @@ PLACEHOLDERS = ("{{ default_configuration }}", "{{ default_configuration_short }
 _MS_PER_S = 1e3
 
 
-def _num(x: float) -> str:
-    """``1e-9`` rather than Python's ``1e-09``."""
-    mantissa, _, exponent = f"{x:.0e}".partition("e")
-    return f"{mantissa}e{int(exponent)}"
-
-
-def _spec():
-    return INTEGRATORS[DEFAULT_INTEGRATOR]
-
-
 def short() -> str:
     """The default configuration in a few words: method, integrator at its tolerances,
     stabilization."""
-    spec = _spec()
-    rtol = f" at rtol {_num(spec.tolerances[0])}" if spec.tolerances else ""
-    return f"{DEFAULT_METHOD}, {spec.name}{rtol}, {spec.default_stabilization}"
+    return describe_default()
 
 
 def sentence() -> str:
     """The default configuration as the call that runs it, with what each part means."""
-    spec = _spec()
+    spec = INTEGRATORS[DEFAULT_INTEGRATOR]
     tolerances = ""
     if spec.tolerances:
         rtol, atol = spec.tolerances
