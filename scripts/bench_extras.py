@@ -363,11 +363,13 @@ def write_report(
         "",
         _read(wp / "ratios.md"),
         "",
-        "The seed peer is the seed's scheme (explicit Euler step, two Newton projections, "
-        "no velocity projection: `closedchain.seed_settings()` with kkt, semi-implicit, "
-        f"projection) run by closedchain.simulate on the {', '.join(seed_backends) or '-'} "
-        "backend, the core closedchain's own configurations use: not the seed's Python "
-        "program. Errors are taken on a 0.01 s grid, on the N-four-bar on a 0.05 s grid, "
+        "The peer named seed is the scheme of the lesson the project grew from "
+        "([References](../references.md#lesson)): explicit Euler step, two Newton "
+        "projections, no velocity projection (`closedchain.seed_settings()` with kkt, "
+        f"semi-implicit, projection), run by closedchain.simulate on the "
+        f"{', '.join(seed_backends) or '-'} backend, the core closedchain's own "
+        "configurations use: not the lesson's Python program. Errors are taken on a 0.01 s "
+        "grid, on the N-four-bar on a 0.05 s grid, "
         "so that fixed steps up to 0.05 s run there (a step runs where it divides the "
         "grid's spacing).",
         "",
