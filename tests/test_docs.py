@@ -366,6 +366,25 @@ def test_generated_pages_name_their_run(page):
         assert row[1].strip() not in ("", "not recorded"), f"{name}: {field} not recorded"
 
 
+#: Generated pages measured since their header states the version and the default
+#: configuration (scripts/bench_page.py); the others are listed here when regenerated.
+STAMPED_PAGES = (DOCS / "bench" / "nfourbar.md",)
+
+
+@pytest.mark.parametrize("page", STAMPED_PAGES, ids=lambda p: p.name)
+def test_generated_pages_state_the_version_and_default_they_measured(page):
+    """A page measured under another default than the one that runs must be regenerated
+    (``bash scripts/make_bench_figures.sh``): its version row names the default."""
+    from closedchain.simulate.request import describe_default
+
+    row = re.search(r"^\| version \| (.+) \|$", page.read_text(), re.M)
+    assert row, f"{page.name}: no version row in its header"
+    assert row[1].startswith(closedchain.__version__), row[1]
+    assert describe_default() in row[1], (
+        f"{page.name} measured {row[1]!r}; the default is now {describe_default()!r}: regenerate it"
+    )
+
+
 def test_changelog_has_the_package_version():
     text = CHANGELOG.read_text()
     assert re.search(rf"^## \[{re.escape(closedchain.__version__)}\]", text, re.M), (

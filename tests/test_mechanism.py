@@ -626,3 +626,14 @@ def test_q_from_refuses_what_is_not_a_rotation(value, match):
     mech = cc.load(DATA / "yaml_offset_rod.urdf", loops=DATA / "yaml_offset_rod_ball.yaml")
     with pytest.raises(cc.InvalidArgumentError, match=match):
         mech.q_from({"spherical_rod": value})
+
+
+def test_q_from_places_a_planar_root_at_x_y_angle():
+    mech = cc.load(MODELS / "fourbar.urdf", root_joint="planar")
+    x, y, angle = 0.3, -0.2, 2.0
+    q = mech.q_from({"root_joint": (x, y, angle)})
+    data = mech.model.createData()
+    pin.forwardKinematics(mech.model, data, q)
+    expected = pin.SE3(pin.exp3(np.array([0.0, 0.0, angle])), np.array([x, y, 0.0]))
+    placement = data.oMi[mech.model.getJointId("root_joint")]
+    assert np.linalg.norm(pin.log6(placement.inverse() * expected).vector) < Q_FROM_TOL
