@@ -58,8 +58,12 @@ NOTEBOOK_PATTERNS = {
 }
 
 needs_mkdocs = pytest.mark.skipif(
-    any(importlib.util.find_spec(m) is None for m in ("mkdocs", "material", "mkdocstrings")),
-    reason="mkdocs, mkdocs-material or mkdocstrings is not installed (pip install '.[test]')",
+    any(
+        importlib.util.find_spec(m) is None
+        for m in ("mkdocs", "material", "mkdocstrings", "latex2mathml")
+    ),
+    reason="mkdocs, mkdocs-material, mkdocstrings or latex2mathml is not installed "
+    "(pip install '.[test]')",
 )
 
 
@@ -280,7 +284,7 @@ def test_pages_state_the_default_that_runs(site):
         text = page_text(site / page, verbatim=True)
         assert defaults.short() in text, f"{page} does not state the default {defaults.short()!r}"
         assert "{{" not in text, f"{page} has a placeholder left"
-    guide = page_text(site / "guide" / "simulation" / "index.html")
+    guide = page_text(site / "guide" / "simulation" / "index.html", verbatim=True)
     assert f'integrator="{DEFAULT_INTEGRATOR}", rtol={defaults._num(tolerances[0])}' in guide
 
 
