@@ -323,13 +323,15 @@ def write_report(
     machine = [ln for ln in _read(out / "machine.txt").splitlines() if ln.strip()]
     code = [ln.removeprefix("commit ") for ln in machine if ln.startswith("commit ")]
     dates = [ln.removeprefix("date ") for ln in machine if ln.startswith("date ")]
-    machine = [ln for ln in machine if not ln.startswith(("commit ", "date "))]
+    versions = [ln.removeprefix("version ") for ln in machine if ln.startswith("version ")]
+    machine = [ln for ln in machine if not ln.startswith(("commit ", "date ", "version "))]
     lines = bench_page.header(
         "Benchmark results",
         command=command,
         date=date or (dates[0] if dates else ""),
         machine="; ".join(machine),
         code=code[0] if code else "",
+        version=versions[0] if versions else "",
         extra={
             "load average (1, 5, 15 min) before / after": load or "",
             "wall time": f"{wall / 60:.1f} min" if wall else "",
@@ -361,11 +363,13 @@ def write_report(
         "",
         _read(wp / "ratios.md"),
         "",
-        "The seed peer is the seed's scheme (explicit Euler step, two Newton projections, "
-        "no velocity projection: `closedchain.seed_settings()` with kkt, semi-implicit, "
-        f"projection) run by closedchain.simulate on the {', '.join(seed_backends) or '-'} "
-        "backend, the core closedchain's own configurations use: not the seed's Python "
-        "program. Errors are taken on a 0.01 s grid, on the N-four-bar on a 0.05 s grid, "
+        "The peer named seed is the scheme of the lesson the project grew from "
+        "([References](../references.md#lesson)): explicit Euler step, two Newton "
+        "projections, no velocity projection (`closedchain.seed_settings()` with kkt, "
+        f"semi-implicit, projection), run by closedchain.simulate on the "
+        f"{', '.join(seed_backends) or '-'} backend, the core closedchain's own "
+        "configurations use: not the lesson's Python program. Errors are taken on a 0.01 s "
+        "grid, on the N-four-bar on a 0.05 s grid, "
         "so that fixed steps up to 0.05 s run there (a step runs where it divides the "
         "grid's spacing).",
         "",

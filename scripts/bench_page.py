@@ -68,6 +68,15 @@ def code_version() -> str:
     return (head + (" +changes" if dirty else "")) if head else "not recorded"
 
 
+def package_version() -> str:
+    """closedchain's version and the default configuration of ``simulate`` it measured,
+    both from the package (``closedchain.__version__``, its constants)."""
+    import closedchain
+    from closedchain.simulate.request import describe_default
+
+    return f"{closedchain.__version__}; default configuration: {describe_default()}"
+
+
 def load_average() -> str:
     """The 1, 5 and 15 min load averages (CPU times move with them on a shared machine)."""
     try:
@@ -88,11 +97,19 @@ def header(
     date: str,
     machine: str,
     code: str,
+    version: str = "",
     extra: dict[str, str] | None = None,
     about: str = "",
 ) -> list[str]:
-    """The first lines of a generated page: title, provenance note and the run's table."""
-    rows = {"command": f"`{command}`", "date": date, "machine": machine, "code": code}
+    """The first lines of a generated page: title, provenance note and the run's table
+    (``version``: :func:`package_version` of the measured code)."""
+    rows = {
+        "command": f"`{command}`",
+        "date": date,
+        "machine": machine,
+        "code": code,
+        "version": version,
+    }
     rows.update(extra or {})
     lines = [
         f"# {title}",
@@ -115,6 +132,7 @@ def run_header(title: str, *, command: str, date: str, load_before: str, about: 
         date=date,
         machine=machine_description(),
         code=code_version(),
+        version=package_version(),
         extra={"load average (1, 5, 15 min) before / after": f"{load_before} / {load_average()}"},
         about=about,
     )
@@ -125,4 +143,5 @@ if __name__ == "__main__":
         sys.exit("usage: python scripts/bench_page.py machine")
     print(machine_description())
     print(f"commit {code_version()}")
+    print(f"version {package_version()}")
     print(f"date {today()}")

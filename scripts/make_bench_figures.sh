@@ -5,8 +5,11 @@
 #   bash scripts/make_bench_figures.sh [WORKERS]
 # Steps: one `closedchain bench` run over all work-precision scenarios (references from
 # the on-disk cache when the code that computes them is unchanged), then the
-# per-evaluation table, the stability map and the N-four-bar scaling
-# (scripts/bench_extras.py), then the report. The command, the machine, the date, the
+# per-evaluation table, the stability map, the scaling and per-call pages
+# (scripts/bench_extras.py), the N-four-bar page (scripts/nfourbar_cost.py), then the
+# report. Every page's header carries the version and the default configuration it
+# measured (scripts/bench_page.py). The corpus page needs a checkout of
+# example-parallel-robots: scripts/check_corpus.py says how. The command, the machine, the date, the
 # load average before and after, and the wall time go into the header of results.md.
 set -euo pipefail
 WORKERS=${1:-2}
@@ -19,6 +22,7 @@ LOAD_BEFORE=$(cut -d' ' -f1-3 /proc/loadavg)
 $PY scripts/bench_page.py machine > "$OUT/machine.txt"  # CPU, versions, commit, date
 $PY -m closedchain.cli bench --out "$OUT/wp" --workers "$WORKERS"
 $PY scripts/bench_extras.py --out "$OUT" --workers "$WORKERS"
+$PY scripts/nfourbar_cost.py --n 1 2 5 10 20 40 --t 0.01 --page "$OUT/nfourbar.md"
 $PY -m closedchain.cli workspace models/fourbar.urdf -o "$OUT/workspace_fourbar.png"
 $PY -m closedchain.cli workspace models/agile_eye.urdf -o "$OUT/workspace_agile_eye.png"
 LOAD_AFTER=$(cut -d' ' -f1-3 /proc/loadavg)

@@ -47,12 +47,13 @@ import nfourbar_reference as ref  # noqa: E402
 import closedchain as cc  # noqa: E402
 from closedchain._io import atomic_write  # noqa: E402
 from closedchain.benchmark.families import nfourbar_urdf  # noqa: E402
+from closedchain.simulate.request import describe_default  # noqa: E402
 
 logger = logging.getLogger("nfourbar_cost")
 
 #: The configurations of the generated page (``--page``): label -> options of this script.
 PAGE_CONFIGS = {
-    "default: augmented-lagrangian, rk43 rtol 1e-9, stage-projection (compiled)": {},
+    f"default: {describe_default()} (compiled)": {},
     "rk4 1 ms (compiled)": {"dt": 1e-3},
     "rk4 5 ms (compiled)": {"dt": 5e-3},
     "rk4 5 ms (numpy)": {"dt": 5e-3, "backend": "numpy"},

@@ -11,6 +11,7 @@ README.md stays a front door, and measurements stay in generated pages.
 from __future__ import annotations
 
 import functools
+import importlib
 import importlib.util
 import inspect
 import os
@@ -43,6 +44,12 @@ README_MAX_LINES = 300
 BUILD_TIMEOUT_S = 600
 #: Hosts the site must not load anything from (material's default web fonts).
 WEB_FONT_HOSTS = ("fonts.googleapis.com", "fonts.gstatic.com")
+#: A LaTeX command or bracket left as text: maths that did not become MathML.
+RAW_LATEX = re.compile(r"\\(?:[A-Za-z]{2,}|[\[\](){}])")
+#: Elements whose text may hold LaTeX on purpose (code, and MathML's own copy of its source).
+VERBATIM_ELEMENTS = ("pre", "code", "script", "style", "annotation", "textarea")
+#: A Markdown list written in a docstring or page that rendered as one paragraph.
+COLLAPSED_LIST = re.compile(r"(?:^|\n)[ \t]*(?:[*+-]|\d+\.) \S")
 #: Lab-notebook figures that belong in generated pages or CHANGELOG.md, not in prose.
 NOTEBOOK_PATTERNS = {
     "a commit hash": re.compile(r"\bcommit(?:s)? [0-9a-f]{7,40}\b"),
@@ -51,8 +58,12 @@ NOTEBOOK_PATTERNS = {
 }
 
 needs_mkdocs = pytest.mark.skipif(
-    any(importlib.util.find_spec(m) is None for m in ("mkdocs", "material", "mkdocstrings")),
-    reason="mkdocs, mkdocs-material or mkdocstrings is not installed (pip install '.[test]')",
+    any(
+        importlib.util.find_spec(m) is None
+        for m in ("mkdocs", "material", "mkdocstrings", "latex2mathml")
+    ),
+    reason="mkdocs, mkdocs-material, mkdocstrings or latex2mathml is not installed "
+    "(pip install '.[test]')",
 )
 
 
@@ -139,6 +150,67 @@ def test_every_public_name_has_an_api_entry(site):
     assert not missing, f"closedchain.__all__ names without an API entry: {missing}"
 
 
+def page_text(path: Path, *, verbatim: bool = False) -> str:
+    """Return the text a reader sees on a built page, without code and MathML annotations
+    unless ``verbatim``."""
+    lxml_html = pytest.importorskip("lxml.html")
+    tree = lxml_html.fromstring(path.read_bytes())
+    for element in [] if verbatim else list(tree.iter(*VERBATIM_ELEMENTS)):
+        if element.getparent() is not None:
+            element.drop_tree()
+    return tree.text_content()
+
+
+@needs_mkdocs
+def test_maths_is_rendered_as_mathml(site):
+    """No page shows LaTeX source; the pages with equations carry MathML (written at build
+    time by docs/_ext/mathml.py, so the site needs no script or network to show them)."""
+    raw = {}
+    for page in sorted(site.rglob("*.html")):
+        found = RAW_LATEX.findall(page_text(page))
+        if found:
+            raw[page.relative_to(site).as_posix()] = sorted(set(found))[:5]
+    assert not raw, f"raw LaTeX on pages: {raw}"
+    for page in ("api/simulate/index.html", "guide/dynamics-methods/index.html"):
+        text = (site / page).read_text()
+        assert "<math" in text, f"{page} shows no maths"
+        assert "arithmatex" not in text, f"{page} holds maths that was not converted"
+
+
+@needs_mkdocs
+def test_returns_sections_are_one_row_per_value(site):
+    """A Returns section is one value described in prose: its wrapped lines stay one row
+    (griffe's ``returns_multiple_items: false`` in mkdocs.yml)."""
+    lxml_html = pytest.importorskip("lxml.html")
+    split = []
+    for page in sorted((site / "api").rglob("*.html")):
+        tree = lxml_html.fromstring(page.read_bytes())
+        for title in tree.xpath('//span[@class="doc-section-title"][starts-with(., "Returns")]'):
+            table = title.getparent().getnext()
+            rows = table.xpath(".//tbody/tr") if table is not None else []
+            if len(rows) != 1:
+                heading = title.xpath("preceding::h2[1] | preceding::h3[1]")
+                where = heading[-1].get("id") if heading else "?"
+                split.append((page.parent.name, where, len(rows)))
+    assert not split, f"Returns tables without exactly one row (page, object, rows): {split}"
+
+
+@needs_mkdocs
+def test_lists_render_as_lists(site):
+    """Bullet and definition lists of docstrings and pages stay lists."""
+    lxml_html = pytest.importorskip("lxml.html")
+    collapsed = []
+    for page in sorted(site.rglob("*.html")):
+        tree = lxml_html.fromstring(page.read_bytes())
+        for paragraph in tree.iter("p"):
+            if COLLAPSED_LIST.search(paragraph.text_content()):
+                collapsed.append((page.relative_to(site).as_posix(), paragraph.text_content()[:80]))
+    assert not collapsed, f"lists rendered as paragraphs: {collapsed}"
+    simulate = lxml_html.fromstring((site / "api" / "simulate" / "index.html").read_bytes())
+    terms = [dt.text_content() for dt in simulate.iter("dt")]
+    assert {'"none"', '"baumgarte"', '"projection"', '"partitioning"'} <= set(terms), terms
+
+
 @needs_mkdocs
 def test_the_site_loads_nothing_from_the_web(site):
     assert mkdocs_config()["theme"].get("font") is False, "mkdocs.yml: set theme.font: false"
@@ -146,6 +218,98 @@ def test_the_site_loads_nothing_from_the_web(site):
         text = page.read_text(errors="replace")
         hosts = [h for h in WEB_FONT_HOSTS if h in text]
         assert not hosts, f"{page.relative_to(site)} loads from {hosts}"
+
+
+def page_members(module: str) -> list[str] | None:
+    """The ``members:`` list of docs/api/<module>.md, or None where the page has none."""
+    yaml = pytest.importorskip("yaml")
+    text = (DOCS / "api" / f"{module}.md").read_text()
+    options = yaml.safe_load(text.split("\n", 1)[1]) if "\n" in text.strip() else None
+    return (options or {}).get("options", {}).get("members")
+
+
+def public_modules() -> list[str]:
+    """The public modules of the package (those with an API page)."""
+    return sorted(p.stem for p in (DOCS / "api").glob("*.md") if p.stem != "index")
+
+
+@needs_mkdocs
+def test_api_pages_show_the_public_api_only(site):
+    """Each API page shows what its module exports (its ``__all__``, or the page's own
+    ``members:`` list for a module without one), nothing else: internals are described
+    in the design pages."""
+    raw = (site / "objects.inv").read_bytes()
+    body = zlib.decompress(raw.split(b"\n", 4)[4]).decode()
+    shown: dict[str, set[str]] = {}
+    for line in body.splitlines():
+        name, _, rest = line.partition(" ")
+        uri = rest.split()[2]
+        module = uri.split("/")[1] if uri.startswith("api/") else None
+        prefix = f"closedchain.{module}."
+        if module and name.startswith(prefix) and "." not in name[len(prefix) :]:
+            shown.setdefault(module, set()).add(name[len(prefix) :])
+    for module in public_modules():
+        members = page_members(module)
+        exported = getattr(importlib.import_module(f"closedchain.{module}"), "__all__", None)
+        public = members if members is not None else exported
+        assert public is not None, f"closedchain.{module} has no __all__ and its page no members"
+        extra = shown.get(module, set()) - set(public)
+        assert not extra, f"docs/api/{module}.md shows names its module does not export: {extra}"
+
+
+def docs_hook(name: str):
+    """A hook module of docs/_ext, imported as mkdocs does."""
+    spec = importlib.util.spec_from_file_location(name, DOCS / "_ext" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_readme_states_the_default_that_runs():
+    """The site states the default from the constants (docs/_ext/defaults.py); the README,
+    which is not built, must say the same."""
+    defaults = docs_hook("defaults")
+    assert defaults.short() in README.read_text(), (
+        f"README.md does not state the default configuration as {defaults.short()!r}"
+    )
+
+
+@needs_mkdocs
+def test_pages_state_the_default_that_runs(site):
+    from closedchain.simulate import DEFAULT_INTEGRATOR, INTEGRATORS
+
+    defaults = docs_hook("defaults")
+    tolerances = INTEGRATORS[DEFAULT_INTEGRATOR].tolerances
+    for page in ("index.html", "guide/simulation/index.html"):
+        text = page_text(site / page, verbatim=True)
+        assert defaults.short() in text, f"{page} does not state the default {defaults.short()!r}"
+        assert "{{" not in text, f"{page} has a placeholder left"
+    guide = page_text(site / "guide" / "simulation" / "index.html", verbatim=True)
+    assert f'integrator="{DEFAULT_INTEGRATOR}", rtol={defaults._num(tolerances[0])}' in guide
+
+
+#: Pages whose code blocks run, in order, in an empty directory (``title="file"`` blocks of
+#: another language are written there first): they teach by running code.
+EXECUTED_PAGES = (DOCS / "guide" / "tutorial.md",)
+#: A fenced block: language, info string, body.
+FENCE = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```", re.S | re.M)
+
+
+@pytest.mark.parametrize("page", EXECUTED_PAGES, ids=lambda p: p.stem)
+def test_tutorial_code_runs(page, tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "tutorial"}
+    blocks = FENCE.findall(page.read_text())
+    assert sum(lang == "python" for lang, _, _ in blocks) >= 5, f"{page.name}: too few blocks"
+    for lang, info, body in blocks:
+        title = re.search(r'title="([^"]+)"', info)
+        if lang != "python" and title:
+            (tmp_path / title[1]).write_text(body)
+        elif lang == "python":
+            exec(compile(body, str(page), "exec"), namespace)  # noqa: S102 (our own page)
+    for name in ("slider_crank.html", "slider_crank.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
 
 
 def test_every_page_is_in_the_nav():
@@ -206,6 +370,25 @@ def test_generated_pages_name_their_run(page):
         assert row[1].strip() not in ("", "not recorded"), f"{name}: {field} not recorded"
 
 
+#: Generated pages measured since their header states the version and the default
+#: configuration (scripts/bench_page.py); the others are listed here when regenerated.
+STAMPED_PAGES = (DOCS / "bench" / "nfourbar.md",)
+
+
+@pytest.mark.parametrize("page", STAMPED_PAGES, ids=lambda p: p.name)
+def test_generated_pages_state_the_version_and_default_they_measured(page):
+    """A page measured under another default than the one that runs must be regenerated
+    (``bash scripts/make_bench_figures.sh``): its version row names the default."""
+    from closedchain.simulate.request import describe_default
+
+    row = re.search(r"^\| version \| (.+) \|$", page.read_text(), re.M)
+    assert row, f"{page.name}: no version row in its header"
+    assert row[1].startswith(closedchain.__version__), row[1]
+    assert describe_default() in row[1], (
+        f"{page.name} measured {row[1]!r}; the default is now {describe_default()!r}: regenerate it"
+    )
+
+
 def test_changelog_has_the_package_version():
     text = CHANGELOG.read_text()
     assert re.search(rf"^## \[{re.escape(closedchain.__version__)}\]", text, re.M), (
@@ -237,6 +420,33 @@ def test_sphinx_roles_become_markdown():
     roles = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(roles)
     text = (
-        "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M a`.\n\n.. math::\n\n    x = 1\n"
+        "Use :func:`~closedchain.load` or :data:`METHODS`, :math:`M\n a`.\n\n"
+        '.. math::\n\n    x = 1\n\n    y = 2\n\nAfter.\n\n``"a"``\n    the first.\n'
     )
-    assert roles.markdown(text) == "Use `load` or `METHODS`, `M a`.\n\n\n\n    x = 1\n"
+    assert roles.markdown(text).split("\n") == [
+        "Use `load` or `METHODS`, $M a$.",
+        "",
+        "",
+        "$$",
+        "x = 1",
+        "$$",
+        "",
+        "$$",
+        "y = 2",
+        "$$",
+        "",
+        "",
+        "After.",
+        "",
+        '``"a"``',
+        ":   the first.",
+        "",
+    ]
+
+
+def test_raw_latex_pattern_catches_what_it_names():
+    assert RAW_LATEX.search(r"\dot q = v, \qquad M a + h + J^\top\lambda")
+    assert RAW_LATEX.search(r"\begin{bmatrix}")
+    assert not RAW_LATEX.search("C:/models and a\\ b plain text, 1\\2")
+    assert COLLAPSED_LIST.search("the list:\n* one\n* two")
+    assert not COLLAPSED_LIST.search("a - b and 3 * 4")

@@ -16,7 +16,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yourdfpy
-from conftest import SHIPPED_MECHANISMS
+from conftest import DATA_DIR as DATA
+from conftest import MODELS, SHIPPED_MECHANISMS
 
 import closedchain as cc
 
@@ -545,3 +546,94 @@ def test_long_chain_simulates_under_the_default_method(penalty_chain, n, backend
     assert traj.info.method == "augmented-lagrangian"
     assert np.max(np.abs(traj.q - ref.q)) <= TOL_CHAIN_Q
     assert traj.max_constraint_residual <= 1e-9
+
+
+# -- Mechanism.q_from: named joint values to q ---------------------------------------------
+
+#: Round-off bound of a configuration built two ways (cos/sin, quaternions) [-].
+Q_FROM_TOL = 1e-12
+#: Closure residual an assembled slider-crank reaches [m or rad].
+Q_FROM_CLOSURE_TOL = 1e-9
+
+
+def test_q_from_writes_a_continuous_joint_as_pinocchio_integrates_it():
+    mech = cc.load(DATA / "slider_crank.urdf")
+    angle = 2.5  # rad, past pi / 2 so that cos < 0
+    zero = mech.q_from({"crank_joint": 0.0})
+    dv = np.zeros(mech.nv)
+    dv[mech.joint_indices_v("crank_joint")] = angle
+    expected = pin.integrate(mech.model, zero, dv)
+    assert np.linalg.norm(mech.q_from({"crank_joint": angle}) - expected) < Q_FROM_TOL
+
+
+def test_q_from_then_assemble_holds_the_crank_and_closes_the_loop():
+    mech = cc.load(DATA / "slider_crank.urdf")
+    angle = 2.0
+    q = cc.assemble(mech, mech.q_from({"crank_joint": angle}), fixed=["crank_joint"])
+    jm = mech.model.joints[mech.model.getJointId("crank_joint")]
+    cos, sin = q[jm.idx_q : jm.idx_q + 2]
+    assert abs(math.atan2(sin, cos) - angle) < Q_FROM_TOL
+    assert np.max(np.abs(cc.compute_phi(mech, q))) < Q_FROM_CLOSURE_TOL
+
+
+def test_q_from_takes_a_rotation_or_a_quaternion_for_a_spherical_joint():
+    mech = cc.load(DATA / "yaml_offset_rod.urdf", loops=DATA / "yaml_offset_rod_ball.yaml")
+    rotvec = np.array([0.3, -0.2, 0.5])
+    rotation = pin.exp3(rotvec)
+    identity = mech.q_from({"spherical_rod": np.eye(3)})
+    dv = np.zeros(mech.nv)
+    dv[mech.joint_indices_v("spherical_rod")] = rotvec
+    expected = pin.integrate(mech.model, identity, dv)
+    for value in (rotation, pin.Quaternion(rotation), pin.Quaternion(rotation).coeffs()):
+        q = mech.q_from({"spherical_rod": value})
+        assert np.linalg.norm(q - expected) < Q_FROM_TOL, type(value)
+
+
+def test_q_from_places_a_free_flyer_at_an_se3():
+    mech = cc.load(MODELS / "fourbar.urdf", root_joint="free")
+    placement = pin.SE3(pin.exp3(np.array([0.1, 0.2, -0.3])), np.array([1.0, -2.0, 0.5]))
+    q = mech.q_from({"root_joint": placement})
+    data = mech.model.createData()
+    pin.forwardKinematics(mech.model, data, q)
+    root = mech.model.getJointId("root_joint")
+    assert np.linalg.norm(pin.log6(data.oMi[root].inverse() * placement).vector) < Q_FROM_TOL
+
+
+@pytest.mark.parametrize(
+    ("values", "match"),
+    [
+        ({"crank": 0.1}, r"unknown joint 'crank'; joints: crank_joint, s1"),
+        ({"crank_joint": [0.1, 0.2]}, r"joint 'crank_joint' takes an angle \[rad\]"),
+        ({"crank_joint": math.nan}, r"joint 'crank_joint': nan is not finite"),
+        ({"s1": "a"}, r"joint 's1' takes an angle \[rad\] or a displacement \[m\]"),
+    ],
+)
+def test_q_from_names_the_bad_joint(values, match):
+    mech = cc.load(DATA / "slider_crank.urdf")
+    with pytest.raises(cc.InvalidArgumentError, match=match):
+        mech.q_from(values)
+
+
+@pytest.mark.parametrize(
+    ("value", "match"),
+    [
+        (2.0 * np.eye(3), "not a rotation"),
+        (np.array([0.0, 0.0, 0.0, 2.0]), "has norm 2, expected 1"),
+        (np.zeros(2), "spherical: give a rotation matrix"),
+    ],
+)
+def test_q_from_refuses_what_is_not_a_rotation(value, match):
+    mech = cc.load(DATA / "yaml_offset_rod.urdf", loops=DATA / "yaml_offset_rod_ball.yaml")
+    with pytest.raises(cc.InvalidArgumentError, match=match):
+        mech.q_from({"spherical_rod": value})
+
+
+def test_q_from_places_a_planar_root_at_x_y_angle():
+    mech = cc.load(MODELS / "fourbar.urdf", root_joint="planar")
+    x, y, angle = 0.3, -0.2, 2.0
+    q = mech.q_from({"root_joint": (x, y, angle)})
+    data = mech.model.createData()
+    pin.forwardKinematics(mech.model, data, q)
+    expected = pin.SE3(pin.exp3(np.array([0.0, 0.0, angle])), np.array([x, y, 0.0]))
+    placement = data.oMi[mech.model.getJointId("root_joint")]
+    assert np.linalg.norm(pin.log6(placement.inverse() * expected).vector) < Q_FROM_TOL

@@ -523,3 +523,51 @@ def test_leg_actuation_singularities(leg):
     assert sigma[0] <= SINGULAR_TOL
     ratios = np.array(sigma[1:]) / np.array([1e-3, 5e-4, 2.5e-4])
     assert np.ptp(ratios) <= LINEAR_RTOL * ratios.mean()
+
+
+# -- orientation targets and the limits that stop a solve -----------------------------
+
+
+def test_inverse_kinematics_orients_the_agile_eye_platform(agile_eye, rng):
+    """An orientation target (rotation matrix or SE3, the position free) reached by
+    forward kinematics' poses: Pinocchio's own frame placement at the solution has the
+    target rotation, and the motors are those forward kinematics started from."""
+    fid = agile_eye.model.getFrameId("platform")
+    data = agile_eye.model.createData()
+    for _ in range(3):
+        motors = rng.uniform(-0.4, 0.4, len(agile_eye.actuated_joints))
+        fk = cc.forward_kinematics(agile_eye, motors)
+        pin.framesForwardKinematics(agile_eye.model, data, fk.q)
+        rotation = data.oMf[fid].rotation.copy()
+        for target in (rotation, pin.SE3(rotation, np.array([5.0, 5.0, 5.0]))):
+            ik = cc.inverse_kinematics(agile_eye, "platform", target, mode="orientation")
+            pin.framesForwardKinematics(agile_eye.model, data, ik.q)
+            assert np.linalg.norm(pin.log3(rotation.T @ data.oMf[fid].rotation)) <= ROUND_TRIP_TOL
+            assert np.linalg.norm(wrap(ik.motors - motors)) <= ROUND_TRIP_TOL
+            assert ik.mode == "orientation"
+
+
+def test_inverse_kinematics_refuses_a_matrix_that_is_not_a_rotation(agile_eye):
+    with pytest.raises(InvalidArgumentError, match=r"mode 'orientation' must be .* rotation"):
+        cc.inverse_kinematics(agile_eye, "platform", 2.0 * np.eye(3), mode="orientation")
+
+
+#: Slider-crank of tests/data/slider_crank_driven.urdf (r = 0.1, L = 0.35 m: the slider
+#: reaches 0.25 to 0.45 m) with the slider's lower limit raised to this [m].
+SLIDER_LOWER = 0.3
+
+
+def test_an_unreachable_target_names_the_limit_that_stops_it(tmp_path):
+    """0.27 m is within the linkage's reach (0.25 m) but below the slider's lower limit:
+    the message names that limit; 0.47 m is beyond the reach (0.45 m), no limit binds."""
+    text = (DATA_DIR / "slider_crank_driven.urdf").read_text()
+    text = text.replace('lower="0.2"', f'lower="{SLIDER_LOWER}"')
+    path = tmp_path / "slider_crank_limited.urdf"
+    path.write_text(text)
+    mech = cc.load(path)
+    with pytest.raises(
+        cc.AssemblyError, match=r"stopped by the joint limits: slider_joint at its lower limit 0\.3"
+    ):
+        cc.inverse_kinematics(mech, "slider", [0.27, 0.0, 0.0], mode="3d")
+    with pytest.raises(cc.AssemblyError, match=r"no joint at a limit: beyond the linkage's reach"):
+        cc.inverse_kinematics(mech, "slider", [0.47, 0.0, 0.0], mode="3d")

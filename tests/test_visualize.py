@@ -396,13 +396,13 @@ def test_urdf_names_cannot_inject_markup(fourbar, tmp_path):
     data = json.loads(scripts_of(text)[0][1])
     assert data["meta"]["name"] == EVIL_ROBOT
     path = data["meta"]["bodies"][EVIL_LINK]
-    assert path == vz.scene_path(EVIL_ROBOT, EVIL_LINK)
+    assert path == shapes.scene_path(EVIL_ROBOT, EVIL_LINK)
     assert len(path.split("/")) == 4  # "", meshcat, robot, link: the "/" in names is encoded
 
 
 def test_scene_path_escapes_names():
-    assert vz.scene_path("fourbar", "crank") == "/meshcat/fourbar/crank"
-    assert vz.scene_path("a/b", "<c>") == "/meshcat/a%2Fb/%3Cc%3E"
+    assert shapes.scene_path("fourbar", "crank") == "/meshcat/fourbar/crank"
+    assert shapes.scene_path("a/b", "<c>") == "/meshcat/a%2Fb/%3Cc%3E"
 
 
 # -- meshes --------------------------------------------------------------------------
@@ -485,7 +485,7 @@ def test_mesh_visuals_are_embedded_or_skipped(tmp_path, caplog):
         if c["type"] == "set_object" and c["object"]["geometries"][0]["type"] == "_meshfile"
     ]
     assert len(meshes) == 1 and meshes[0][1]["format"] == "stl"
-    assert meshes[0][0].startswith(vz.scene_path("fourbar", "coupler") + "/")
+    assert meshes[0][0].startswith(shapes.scene_path("fourbar", "coupler") + "/")
     assert bytes(meshes[0][1]["data"].data) == (mesh_dir / "tetra.stl").read_bytes()
     # The scale is in the visual's node transform.
     transforms = {c["path"]: c["matrix"] for c in decode(scene) if c["type"] == "set_transform"}
@@ -652,10 +652,16 @@ def test_meshes_within_the_budget_are_embedded_the_others_drawn_as_sticks(two_me
         "drawn as primitives: coupler (0.000284 MB)" in caplog.text
     )
     assert [v.link for v in visuals if v.kind == "mesh"] == ["crank"]
-    # The coupler's stick figure: a ball at its origin (it has no child joint in the tree);
-    # its pin cylinder stays.
+    # The coupler's stick figure: a ball at its origin and a stick to its loop frame (it
+    # has no child joint in the tree); its pin cylinder stays.
+    (loop,) = [lp for lp in mech.urdf.loops if "coupler" in (lp.predecessor, lp.successor)]
+    side = loop.predecessor_origin if loop.predecessor == "coupler" else loop.successor_origin
     coupler = [(v.kind, v.dims) for v in visuals if v.link == "coupler"]
-    assert coupler == [("sphere", (0.03,)), ("cylinder", (0.012, 0.05))]
+    assert coupler == [
+        ("sphere", (0.03,)),
+        ("cylinder", (0.02, pytest.approx(np.linalg.norm(side.translation), abs=EXACT_TOL))),
+        ("cylinder", (0.012, 0.05)),
+    ]
 
     # A budget of 0: the crank is a stick from its origin to the coupler joint.
     visuals, meshes = vz.read_scene_visuals(
@@ -815,3 +821,24 @@ def test_cli_states_the_meshes_and_takes_a_budget(two_meshes, tmp_path, capsys):
             "1 link drawn as primitives)"
         )
     )
+
+
+def test_links_without_visuals_are_drawn_as_sticks_sized_from_the_model():
+    """tests/data/slider_crank_driven.urdf has inertials only: the crank is a stick from
+    its pivot to the rod joint (0.1 m), the rod one to its loop frame on the slider side
+    (0.35 m), the slider a ball (it carries nothing); the radius is STICK_RADIUS_RATIO
+    times the median of those lengths."""
+    mech = cc.load(Path(__file__).parent / "data" / "slider_crank_driven.urdf")
+    visuals = vz.read_visuals(mech)
+    radius = vz.settings.STICK_RADIUS_RATIO * np.median([0.1, 0.35])
+    by_link = {link: [v for v in visuals if v.link == link] for link in ("crank", "rod", "slider")}
+    for link, length in (("crank", 0.1), ("rod", 0.35)):
+        ball, stick = by_link[link]
+        assert ball.kind == "sphere" and stick.kind == "cylinder"
+        assert stick.dims == pytest.approx((radius, length), abs=EXACT_TOL)
+        # Along the link's x axis, centred halfway (a URDF cylinder runs along its z).
+        assert np.linalg.norm(stick.origin[:3, 2] - [1.0, 0.0, 0.0]) <= EXACT_TOL
+        assert np.linalg.norm(stick.origin[:3, 3] - [length / 2, 0.0, 0.0]) <= EXACT_TOL
+    (slider,) = by_link["slider"]
+    assert slider.kind == "sphere"
+    assert not [v for v in visuals if v.link == "ground"]  # no mass, nothing to join

@@ -11,10 +11,9 @@ close kinematic loops and ``<transmission>`` elements for actuators::
     report = cc.validate(mech, n_samples=100)
 
 Docstrings cite their sources by author and year; the documentation's References
-page lists them. "The seed" (the seed text, with its Section and Problem numbers) is
-the course text the project grew from: *Chapter 15: Constrained and Closed-Chain
-Dynamics. Lesson 3: Closed-Chain Examples (4-bar, parallel wrists)*, cited there and
-not distributed with closedchain.
+page lists them. "The lesson" (with its Section and Problem numbers) is the course
+text the project grew from: "Closed-Chain Examples (4-bar, parallel wrists)", Chapter 15,
+Lesson 3, cited there and not distributed with closedchain.
 """
 
 from __future__ import annotations

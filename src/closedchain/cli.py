@@ -30,6 +30,7 @@ from .exceptions import (
     format_upper_bound,
     resolve_choice,
 )
+from .simulate.settings import DEFAULT_ENERGY_TOL
 from .visualize.settings import DEFAULT_SETTINGS as DEFAULT_ANIMATION
 from .visualize.settings import MEGABYTE
 
@@ -75,10 +76,6 @@ SCHEDULER_ADDRESS = re.compile(
     r"(?:[a-z][a-z0-9+.-]*://)?(?:\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+):\d{1,5}"
 )
 
-#: Default of ``--energy-tol``: a run whose energy balance (the drift without tau, E - E0
-#: - the work of tau with it) exceeds 1 % is not reported as a success (the 4-bar's default
-#: run drifts by 2e-9; explicit Euler at 1 ms by 0.23).
-DEFAULT_ENERGY_TOL = 1e-2
 #: Default of ``--closure-tol`` [m or rad]: SimulationSettings.drift_limit on the command line.
 DEFAULT_CLOSURE_TOL = 1e-6
 

@@ -28,6 +28,15 @@ from .exceptions import ClosedChainError, InvalidArgumentError
 # Declared in closedchain.exceptions; importable from here as before.
 from .exceptions import RowCheckRequired as RowCheckRequired
 
+__all__ = [
+    "CompiledDynamics",
+    "available",
+    "compiled_dynamics",
+    "has",
+    "supports_method",
+    "unsupported_rows",
+]
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 

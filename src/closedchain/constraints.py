@@ -57,7 +57,7 @@ constant (+1 at j, -m at i) and its gamma is zero.
 
 So J is exactly the derivative of phi along ``pin.integrate`` and
 gamma = Jdot v exactly: finite differences check both (tests/test_constraints.py).
-For the planar 4-bar the two kept rows are the seed's closure
+For the planar 4-bar the two kept rows are the lesson's closure
 ``p_C(coupler) - p_C(rocker)`` (Section 2) expressed in the coupler's cut frame.
 """
 
@@ -70,6 +70,12 @@ import pinocchio as pin
 
 from .exceptions import ValidationUnavailableError
 from .urdf import COUPLING, LoopSpec
+
+__all__ = [
+    "CLOSURE_SIZES",
+    "ConstraintLayer",
+    "RowInfo",
+]
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _LOCAL = pin.ReferenceFrame.LOCAL

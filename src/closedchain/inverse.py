@@ -1,6 +1,6 @@
 r"""Closed-chain inverse dynamics and the reaction wrenches of the loop joints.
 
-Inverse dynamics (seed text, Sections 3 and 6): given the state ``(q, v)`` and
+Inverse dynamics (the lesson, Sections 3 and 6): given the state ``(q, v)`` and
 the accelerations of ``mobility`` prescribed coordinates P (by default the
 independent ones), the other accelerations follow from the acceleration
 constraint, and the actuator torques and multipliers from the equations of
@@ -28,7 +28,7 @@ freedom, away from actuation singularities) gives the unique torques; with
 more actuators than degrees of freedom (redundant actuation) the
 minimum-norm torques are returned.
 
-Reactions (seed Problem 3): the multipliers of a loop's rows are the
+Reactions (the lesson's Problem 3): the multipliers of a loop's rows are the
 components of the wrench its cut joint transmits. With the row formulas of
 :mod:`closedchain.constraints` the virtual work :math:`-\lambda^\top \delta\phi`
 of the constraint forces gives, on the successor link, the force (applied at

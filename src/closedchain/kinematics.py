@@ -43,6 +43,18 @@ from .closure import solve_closure as solve_closure  # re-exported
 from .compiled import declared_core, has
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
+__all__ = [
+    "SingularityMeasures",
+    "actuation_sigma_min",
+    "assemble",
+    "compute_gamma",
+    "compute_jacobian",
+    "compute_phi",
+    "project_velocity",
+    "random_consistent_state",
+    "singularity_measures",
+]
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 
@@ -362,7 +374,7 @@ def actuation_sigma_min(
     output_idx_v: np.ndarray | None = None,
     J_output: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    r"""Return the smallest singular values of the two actuation maps (seed Problem 4).
+    r"""Return the smallest singular values of the two actuation maps.
 
     * parallel (type II): :math:`J_D`, the columns of J of the non-actuated
       coordinates; zero where the actuators no longer determine the motion.

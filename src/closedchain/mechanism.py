@@ -14,7 +14,7 @@ import json
 import logging
 import math
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -51,11 +51,22 @@ from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
 from .yaml_loops import edit_model
 
+__all__ = [
+    "DEFAULT_GRAVITY",
+    "DEFAULT_LOAD_SETTINGS",
+    "LoadSettings",
+    "Mechanism",
+    "load",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Largest accepted deviation from 1 of the norm of a continuous joint's
 #: (cos, sin) or a quaternion in a configuration passed to closedchain.
 NORMALIZATION_TOL = 1e-9
+#: Largest deviation of R^T R from the identity accepted for a rotation matrix given to
+#: ``Mechanism.q_from`` (entries; a matrix rounded to 9 digits passes).
+ROTATION_TOL = 1e-8
 
 #: Largest |q| [rad or m] of a 1-dof coordinate a configuration may hold: beyond it a
 #: double resolves the coordinate more coarsely than 1e-10 (its ulp), so an integrator's
@@ -334,6 +345,47 @@ class Mechanism:
                     raise ClosedChainError(f"velocity index {i} out of range 0..{self.nv - 1}")
                 out.append(i)
         return np.unique(np.array(out, dtype=int))
+
+    def q_from(self, values: Mapping[str, object], *, q_start=None) -> np.ndarray:
+        """Return a configuration with the named joints at the given values.
+
+        The other joints keep ``q_start``'s values (default :attr:`q_ref`). The result is
+        not closed: hand it to :func:`~closedchain.assemble` with ``fixed=`` the joints
+        to hold, e.g. ``assemble(mech, mech.q_from({"crank": 0.3}), fixed=["crank"])``.
+
+        Args:
+            values: joint name -> value, by joint kind:
+
+                - revolute, prismatic (one entry of q): the angle [rad] or the
+                  displacement [m];
+                - continuous (q is (cos, sin)): the angle [rad];
+                - spherical (q is a unit quaternion x, y, z, w): a rotation matrix,
+                  shape (3, 3), a ``pinocchio.Quaternion``, or a quaternion
+                  (x, y, z, w), shape (4,), of norm 1;
+                - free flyer (q is x, y, z and a quaternion): a ``pinocchio.SE3``
+                  or the 7 entries;
+                - planar (q is x, y, cos, sin): x [m], y [m], angle [rad];
+                - any other kind: its entries of q as they are.
+            q_start: configuration the unnamed joints are taken from, shape (nq,).
+
+        Returns:
+            The configuration, shape (nq,).
+
+        Raises:
+            InvalidArgumentError: an unknown joint (the message lists the joints), or
+                a value of the wrong shape, not finite, or not a rotation (naming the
+                joint and what it takes).
+        """
+        q = self.check_q(self.q_ref if q_start is None else q_start, "q_start").copy()
+        for name, value in values.items():
+            if not isinstance(name, str) or not self.model.existJointName(name):
+                raise InvalidArgumentError(
+                    f"{self.path}: q_from: unknown joint {name!r}; joints: "
+                    f"{', '.join(self.joint_names)}"
+                )
+            jm = self.model.joints[self.model.getJointId(name)]
+            q[jm.idx_q : jm.idx_q + jm.nq] = _joint_configuration(name, jm, value)
+        return q
 
     def check_q(self, q, name: str = "q") -> np.ndarray:
         """Return q as a float array of shape (nq,), or raise naming the argument."""
@@ -624,6 +676,73 @@ class Mechanism:
         )
 
 
+def _quaternion(name: str, value) -> np.ndarray:
+    """A unit quaternion (x, y, z, w) from a rotation matrix, a pinocchio.Quaternion or
+    four numbers of norm 1 (``Mechanism.q_from``)."""
+    if isinstance(value, pin.Quaternion):
+        value = value.coeffs()
+    arr = np.asarray(value, dtype=float)
+    if arr.shape == (3, 3) and np.isfinite(arr).all():
+        if not (np.allclose(arr.T @ arr, np.eye(3), atol=ROTATION_TOL) and np.linalg.det(arr) > 0):
+            raise InvalidArgumentError(
+                f"q_from: joint {name!r}: the 3x3 matrix is not a rotation (R^T R != I or "
+                "det R < 0)"
+            )
+        return pin.Quaternion(arr).normalized().coeffs()
+    if arr.shape == (4,) and np.isfinite(arr).all():
+        norm = float(np.linalg.norm(arr))
+        if abs(norm - 1.0) > NORMALIZATION_TOL:
+            raise InvalidArgumentError(
+                f"q_from: joint {name!r}: the quaternion (x, y, z, w) = {arr} has norm "
+                f"{norm:.12g}, expected 1"
+            )
+        return arr
+    raise InvalidArgumentError(
+        f"q_from: joint {name!r} is spherical: give a rotation matrix (3, 3), a "
+        f"pinocchio.Quaternion or a unit quaternion (x, y, z, w), not {value!r}"
+    )
+
+
+def _joint_configuration(name: str, jm, value) -> np.ndarray:
+    """The q entries of joint model ``jm`` for a user's value (``Mechanism.q_from``)."""
+    kind = jm.shortname()
+    if kind == "JointModelSpherical":
+        return _quaternion(name, value)
+    if kind == "JointModelFreeFlyer" and isinstance(value, pin.SE3):
+        return pin.SE3ToXYZQUAT(value)
+    if kind == "JointModelFreeFlyer":
+        arr = np.asarray(value, dtype=float)
+        if arr.shape != (7,):
+            raise InvalidArgumentError(
+                f"q_from: joint {name!r} is a free flyer: give a pinocchio.SE3 or x, y, z "
+                f"and a unit quaternion (x, y, z, w), shape (7,), not shape {arr.shape}"
+            )
+        return np.concatenate([_finite(name, arr[:3], "x, y, z"), _quaternion(name, arr[3:])])
+    if kind == "JointModelPlanar":
+        x, y, angle = _finite(name, value, "x [m], y [m], angle [rad]", shape=(3,))
+        return np.array([x, y, math.cos(angle), math.sin(angle)])
+    if jm.nq == 2 and jm.nv == 1:  # continuous: (cos, sin) of the angle
+        (angle,) = _finite(name, value, "an angle [rad]", shape=(1,))
+        return np.array([math.cos(angle), math.sin(angle)])
+    what = "an angle [rad] or a displacement [m]" if jm.nq == 1 else f"its {jm.nq} entries of q"
+    return _finite(name, value, what, shape=(jm.nq,))
+
+
+def _finite(name: str, value, what: str, *, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """``value`` as a finite float array (of ``shape``), or InvalidArgumentError."""
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InvalidArgumentError(f"q_from: joint {name!r} takes {what}, not {value!r}") from None
+    if shape is not None and arr.shape != shape:
+        raise InvalidArgumentError(
+            f"q_from: joint {name!r} takes {what} ({shape[0]} number(s)), not {value!r}"
+        )
+    if not np.isfinite(arr).all():
+        raise InvalidArgumentError(f"q_from: joint {name!r}: {value!r} is not finite")
+    return arr
+
+
 def _urdfdom_errors(text: str) -> list[str]:
     """Return the reasons of urdfdom's ``Error:`` lines in ``text``, the root cause first."""
     lines = (line.strip() for line in text.splitlines())
@@ -639,7 +758,8 @@ def load(
     settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
     cut_joints: Sequence[str] = (),
 ) -> Mechanism:
-    """Load a URDF+ or MJCF mechanism.
+    """Load a mechanism from a URDF+, SDF or MJCF file (with an optional URDF+ or YAML loops
+    overlay), or from example-robot-data.
 
     Args:
         path: URDF file with optional ``<loop>`` / ``<transmission>`` elements,

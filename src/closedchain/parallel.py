@@ -4,26 +4,35 @@ What users of parallel robots (Gepetto's toolbox-parallel-robots) do with a clos
 model, on closedchain's loops:
 
 * forward kinematics: the configuration with the actuated joints at given motor values
-  and every loop closed (:func:`forward_kinematics`: the assembly holding the actuated
-  coordinates, :func:`closedchain.assemble`);
+    and every loop closed (:func:`forward_kinematics`: the assembly holding the actuated
+    coordinates, :func:`closedchain.assemble`);
+
 * closed-loop inverse kinematics: a configuration with every loop closed and a frame at a
-  target placement (:func:`inverse_kinematics`), a least-squares solve on the stacked
+    target placement, position or orientation (:func:`inverse_kinematics`), a
+    least-squares solve on the stacked
 
-  .. math::
+    .. math::
 
-      r(q) = \begin{bmatrix} e(q) \\ \epsilon(q) \end{bmatrix}, \qquad
-      \epsilon_{6d} = \log_6\bigl(T^{-1}\, {}^oM_f(q)\bigr), \quad
-      \epsilon_{3d} = p_f(q) - p_T,
+        r(q) = \begin{bmatrix} e(q) \\ \epsilon(q) \end{bmatrix}, \qquad
+        \epsilon_{6d} = \log_6\bigl(T^{-1}\, {}^oM_f(q)\bigr), \quad
+        \epsilon_{3d} = p_f(q) - p_T, \quad
+        \epsilon_{rot} = \log_3\bigl(R_T^\top R_f(q)\bigr),
 
-  with e the closure residual of every loop (zero exactly at the closure,
-  :meth:`closedchain.constraints.ConstraintLayer.closure_residuals`) and exact Jacobians
-  (:math:`J_{\log_6}\, J_f^{local}` and the frame's world-aligned linear Jacobian);
-* motor torques: :func:`closedchain.inverse_dynamics` with ``actuated="actuated"``;
-* actuation singularities (seed Problems 1 and 4, :func:`actuation_singularities`): the
-  smallest singular value of :math:`J_D`, the non-actuated columns of J (parallel,
-  type II: the motors no longer determine the motion) and of the output map (serial,
-  type I: the output frame no longer determines the motors),
-  :func:`closedchain.kinematics.actuation_sigma_min`.
+    with e the closure residual of every loop (zero exactly at the closure,
+    :meth:`closedchain.constraints.ConstraintLayer.closure_residuals`) and exact Jacobians
+    (:math:`J_{\log_6}\, J_f^{local}`, the frame's world-aligned linear Jacobian and
+    :math:`J_{\log_3}\, J_f^{\omega, local}`);
+
+* motor torques: :func:`closedchain.inverse_dynamics` with the accelerations prescribed
+    on the actuated coordinates (``coordinates="actuated"``; the torques act on the
+    actuated joints, ``actuated="actuated"``, by default);
+
+* actuation singularities (:func:`actuation_singularities`; the rank of J and the choice
+    of independent coordinates of the 4-bar and the 3-leg wrist in the lesson cited in
+    the references): the smallest singular value of :math:`J_D`, the non-actuated
+    columns of J (parallel, type II: the motors no longer determine the motion) and of
+    the output map (serial, type I: the output frame no longer determines the motors),
+    :func:`closedchain.kinematics.actuation_sigma_min`.
 """
 
 from __future__ import annotations
@@ -63,12 +72,18 @@ __all__ = [
     "inverse_kinematics",
 ]
 
-#: Task-error modes of :func:`inverse_kinematics`: the full placement or the position.
-IK_MODES = ("6d", "3d")
+#: Task-error modes of :func:`inverse_kinematics`: the full placement, the position, or
+#: the orientation.
+IK_MODES = ("6d", "3d", "orientation")
+#: A coordinate within this of a joint limit [rad or m] counts as stopped by it when
+#: :func:`inverse_kinematics` misses its target (the message names the limit).
+IK_LIMIT_TOL = 1e-6
 #: Largest frame error [m or rad] (max |epsilon|) an inverse-kinematics solution may keep.
 IK_TOL = 1e-10
 #: Residual evaluations of the inverse-kinematics least-squares solve.
 IK_MAX_NFEV = 200
+#: Largest deviation of R^T R from the identity of a rotation-matrix target [-].
+IK_ROTATION_TOL = 1e-8
 #: Forward kinematics refuses a configuration where sigma_min(J_D) <= this times
 #: ||J||_2 [-]: the motors' error is amplified 1 / TYPE_II_RTOL times in the passive joints.
 TYPE_II_RTOL = 1e-8
@@ -118,9 +133,10 @@ class InverseKinematicsResult(_ClosedConfiguration):
             ``mech.actuated_joints``.
         closure_residual: max |e| of every loop's closure residual at q [m or rad].
         frame: the frame placed.
-        mode: ``"6d"`` (placement) or ``"3d"`` (position).
+        mode: ``"6d"`` (placement), ``"3d"`` (position) or ``"orientation"``.
         frame_error: max |epsilon| of the frame's error (6 entries of log6 in 6d,
-            the position's 3 in 3d) [m or rad].
+            the position's 3 in 3d, log3 of the rotation error's 3 in orientation)
+            [m or rad].
     """
 
     frame: str
@@ -205,9 +221,12 @@ def _frame_id(mech: Mechanism, frame: str) -> int:
 
 def _output_jacobian(mech: Mechanism, fid: int, mode: str) -> np.ndarray:
     """The frame's Jacobian, shape (6 or 3, nv): LOCAL in 6d, the world-aligned linear
-    rows in 3d (``data`` holds the joint Jacobians at q)."""
+    rows in 3d, the LOCAL angular rows in orientation (``data`` holds the joint
+    Jacobians at q)."""
     if mode == "6d":
         return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)
+    if mode == "orientation":
+        return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)[3:]
     return pin.getFrameJacobian(mech.model, mech.data, fid, _LWA)[:3]
 
 
@@ -222,7 +241,8 @@ def actuation_singularities(
         q: configuration, shape (nq,), on the constraint manifold.
         frame: the output frame (the platform, the end effector), or None (no serial
             measure).
-        mode: ``"6d"``: the frame's placement is the output; ``"3d"``: its position.
+        mode: ``"6d"``: the frame's placement is the output; ``"3d"``: its position;
+            ``"orientation"``: its orientation.
 
     Returns:
         The two measures (:func:`closedchain.kinematics.actuation_sigma_min`).
@@ -311,6 +331,10 @@ def _task(mech: Mechanism, fid: int, target: pin.SE3, mode: str) -> Callable:
             err = target.actInv(oMf)
             eps = pin.log6(err).vector
             E = pin.Jlog6(err) @ _output_jacobian(mech, fid, mode) if jacobian else None
+        elif mode == "orientation":
+            err = target.rotation.T @ oMf.rotation
+            eps = pin.log3(err)
+            E = pin.Jlog3(err) @ _output_jacobian(mech, fid, mode) if jacobian else None
         else:
             eps = oMf.translation - target.translation
             E = _output_jacobian(mech, fid, mode) if jacobian else None
@@ -322,11 +346,44 @@ def _task(mech: Mechanism, fid: int, target: pin.SE3, mode: str) -> Callable:
 def _check_target(target, mode: str) -> pin.SE3:
     if isinstance(target, pin.SE3):
         return target
+    if mode == "orientation":
+        return pin.SE3(_rotation_target(target), np.zeros(3))
     p = np.asarray(target, dtype=float) if mode == "3d" else None
     if p is None or p.shape != (3,) or not np.all(np.isfinite(p)):
         valid = "a pinocchio.SE3" + (" or a position, shape (3,) [m]" if mode == "3d" else "")
         raise InvalidArgumentError(f"target of mode {mode!r} must be {valid}, got {target!r}")
     return pin.SE3(np.eye(3), p)
+
+
+def _rotation_target(target) -> np.ndarray:
+    """A target of mode ``"orientation"``: a rotation matrix, shape (3, 3)."""
+    R = np.asarray(target, dtype=float) if not isinstance(target, str) else None
+    if (
+        R is None
+        or R.shape != (3, 3)
+        or not np.all(np.isfinite(R))
+        or not np.allclose(R.T @ R, np.eye(3), atol=IK_ROTATION_TOL)
+        or np.linalg.det(R) <= 0
+    ):
+        raise InvalidArgumentError(
+            "target of mode 'orientation' must be a pinocchio.SE3 (its rotation counts) or "
+            f"a rotation matrix, shape (3, 3), got {target!r}"
+        )
+    return R
+
+
+def _limits_reached(mech: Mechanism, q: np.ndarray, lower, upper) -> list[str]:
+    """The coordinates at a limit at q (within IK_LIMIT_TOL), as ``"name at its lower
+    limit 0.2"``; ``lower``, ``upper``: the limits per velocity coordinate (``_free_bounds``
+    of every coordinate)."""
+    model = mech.model
+    idx_q = np.asarray(model.idx_qs)[np.repeat(np.arange(model.njoints), np.asarray(model.nvs))]
+    out = []
+    for i, name in enumerate(mech.coordinate_names):
+        for side, bound in (("lower", lower[i]), ("upper", upper[i])):
+            if np.isfinite(bound) and abs(q[idx_q[i]] - bound) <= IK_LIMIT_TOL:
+                out.append(f"{name} at its {side} limit {bound:g}")
+    return out
 
 
 @exclusive
@@ -351,10 +408,12 @@ def inverse_kinematics(
         mech: the mechanism.
         frame: name of the frame to place (a link, a loop side ``"P::predecessor"``).
         target: its placement in the world (``pin.SE3``); in 3d its position, shape (3,)
-            [m], or an SE3 whose translation counts.
+            [m], or an SE3 whose translation counts; in orientation its rotation
+            matrix, shape (3, 3), or an SE3 whose rotation counts.
         q_guess: start, shape (nq,) (default ``mech.q_ref``): the working mode reached
             is the one nearest to it.
-        mode: ``"6d"`` (placement) or ``"3d"`` (position).
+        mode: ``"6d"`` (placement), ``"3d"`` (position) or ``"orientation"``
+            (rotation only, the position free).
         tol: largest frame error accepted, max |epsilon| [m or rad].
         max_nfev: residual evaluations of the solve.
         settings: ``closure_tol`` (largest closure residual accepted [m or rad]) and
@@ -367,7 +426,9 @@ def inverse_kinematics(
         UnknownChoiceError: unknown frame or mode (lists the valid ones).
         InvalidArgumentError: a target of the wrong kind.
         AssemblyError: the target is out of reach from ``q_guess``: the message gives
-            the frame, the residuals reached and ``exc.q`` their configuration.
+            the frame, the residuals reached, the joint limits that stop the solve
+            (the joints at a limit at the end; none: the linkage's own reach or another
+            working mode), and ``exc.q`` their configuration.
     """
     check_settings("settings", settings, AssemblySettings)
     mode = resolve_choice("inverse-kinematics mode", mode, IK_MODES)
@@ -385,10 +446,16 @@ def inverse_kinematics(
     res = closure_error(model, mech.data, mech.declared, q)
     err = float(np.max(np.abs(task(model, mech.data, False)[0])))
     if res > settings.closure_tol or err > tol:
+        limits = _limits_reached(mech, q, lower, upper)
+        stop = (
+            "stopped by the joint limits: " + ", ".join(limits)
+            if limits
+            else "no joint at a limit: beyond the linkage's reach from q_guess"
+        )
         raise AssemblyError(
             f"{mech.name}: frame {frame!r} cannot reach the target ({mode}) from q_guess: "
             f"frame error {err:.3e} (tol {tol:.1e}), closure residual {res:.3e} "
-            f"(closure_tol {settings.closure_tol:.1e})",
+            f"(closure_tol {settings.closure_tol:.1e}); {stop}",
             residual=max(res, err),
             q=q,
         )

@@ -18,6 +18,12 @@ import math
 
 import pinocchio as pin
 
+__all__ = [
+    "data_bytes",
+    "max_nv_for",
+    "new_data",
+]
+
 try:
     from . import _core
 except ImportError:  # pragma: no cover - a build without the compiled core

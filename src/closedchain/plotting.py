@@ -20,6 +20,12 @@ import numpy as np
 from .exceptions import ClosedChainError
 from .trajectory import Trajectory
 
+__all__ = [
+    "coordinate_series",
+    "image_formats",
+    "plot_trajectory",
+]
+
 if TYPE_CHECKING:
     import pinocchio as pin
     from matplotlib.figure import Figure

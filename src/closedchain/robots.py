@@ -42,6 +42,13 @@ from .sdf import is_sdf, read_sdf
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
 from .yaml_loops import apply_loops_yaml, is_loops_yaml, read_loops_yaml
 
+__all__ = [
+    "ERD_MODELS",
+    "INSTALL_HINT",
+    "RobotEntry",
+    "resolve_model",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Prefix of a model name looked up in example-robot-data.

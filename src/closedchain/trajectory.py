@@ -16,6 +16,12 @@ import numpy as np
 from ._io import atomic_write, check_npz
 from .exceptions import ClosedChainError
 
+__all__ = [
+    "SimulationInfo",
+    "StopInfo",
+    "Trajectory",
+]
+
 if TYPE_CHECKING:
     from .mechanism import Mechanism
 

@@ -57,6 +57,20 @@ from lxml import etree
 from ._io import MAX_XML_BYTES, read_input_bytes
 from .exceptions import ModelTooLargeError, URDFError
 
+__all__ = [
+    "COUPLING",
+    "LOOP_TYPES",
+    "JointArmature",
+    "JointDamping",
+    "JointSpring",
+    "LoopSpec",
+    "SceneSpec",
+    "SinusoidSpec",
+    "URDFPlus",
+    "parse_urdf",
+    "read_xml",
+]
+
 logger = logging.getLogger(__name__)
 
 #: Loop-joint types and the relative motion each allows.

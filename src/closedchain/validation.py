@@ -81,6 +81,13 @@ from .exceptions import (
 from .kinematics import assemble, project_velocity, random_consistent_state, singularity_measures
 from .mechanism import Mechanism
 
+__all__ = [
+    "TOL_ACCELERATION",
+    "TOL_FORCE",
+    "ValidationReport",
+    "validate",
+]
+
 #: Default tolerance on the accelerations' deviation in the mass-matrix norm,
 #: ||a_ours - a_pin||_M, absolute below 1 and relative to ||a_pin||_M above
 #: (module docstring).

@@ -1,4 +1,5 @@
-r"""Workspace and singularity pictures (the seed's Problems 1 and 4), from the model alone.
+r"""Workspace and singularity pictures, from the model alone: where J loses rank, where
+the motors stop determining the motion.
 
 Planar 4-bar (one revolute loop, three revolute joints, two of them on the
 ground): the link lengths are measured on the assembled model (joint origins
@@ -52,6 +53,15 @@ from .exceptions import AssemblyError, ClosedChainError, InvalidArgumentError
 from .kinematics import actuation_sigma_min, assemble, compute_jacobian
 from .mechanism import COORDINATE_BOUND, Mechanism
 from .pindata import new_data
+
+__all__ = [
+    "FourBarAnalysis",
+    "SingularityMap",
+    "analyze_fourbar",
+    "default_outputs",
+    "plot_workspace",
+    "singularity_map",
+]
 
 logger = logging.getLogger(__name__)
 

@@ -66,6 +66,14 @@ from lxml import etree
 from .exceptions import URDFError
 from .urdf import NEAR_MISS_CUTOFF, URDFPlus, name_list
 
+__all__ = [
+    "LoopsYAML",
+    "YAML_SUFFIXES",
+    "apply_loops_yaml",
+    "is_loops_yaml",
+    "read_loops_yaml",
+]
+
 if TYPE_CHECKING:
     import pinocchio as pin
 

@@ -62,7 +62,7 @@ def forward_dynamics(
         tau: generalized forces, shape (nv,) [N m or N]; zeros when None.
         method: a name in :data:`METHODS` (any case); default :data:`DEFAULT_METHOD`
             (``"augmented-lagrangian"``, as :func:`~closedchain.simulate`: well posed
-            where J loses rank; ``"kkt"`` is the seed's block system).
+            where J loses rank; ``"kkt"`` is the lesson's block system).
         settings: numerical settings.
         backend: ``"auto"`` (the compiled core when it is built, holds the mechanism's
             rows and has the method; else numpy), ``"compiled"`` or ``"numpy"`` (the

@@ -1,7 +1,7 @@
 """Shared pieces of the forward-dynamics methods: settings, result, registry, terms.
 
-Every method solves the constrained equations of motion of the seed text
-(Section 3),
+Every method solves the constrained equations of motion of the lesson
+(Section 3; see the references),
 
 .. math::
 
@@ -132,7 +132,7 @@ class ForwardDynamicsResult:
         return float(np.max(np.abs(self.J @ self.a + self.gamma)))
 
     def generalized_constraint_force(self) -> np.ndarray:
-        """Return J^T lam, shape (nv,): the generalized force the loops exert (seed Problem 3)."""
+        """Return J^T lam, shape (nv,): the generalized force the loops exert."""
         return self.J.T @ self.lam
 
 

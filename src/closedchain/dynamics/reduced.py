@@ -214,7 +214,7 @@ def reduced_dynamics(
                 part.what,
                 cond,
                 bound,
-                "this partition cannot describe the motion here (seed Problem 4): "
+                "this partition cannot describe the motion here (its block J_D is singular): "
                 "re-partition with choose_partition(mech, q), or the configuration is a "
                 "singularity of the mechanism",
                 bound_name="cond_max" if cond_JD_max is None else "cond_JD_max",

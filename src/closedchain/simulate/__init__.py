@@ -1,6 +1,6 @@
 r"""Time integration of closed-chain dynamics with drift control.
 
-The index-1 DAE of the seed text (Problem 5),
+The index-1 DAE of the lesson (Problem 5; see the references),
 
 .. math::
 
@@ -17,16 +17,16 @@ is integrated as an ODE in (q, v) by one of :data:`INTEGRATORS`, with one of
     damped, not removed.
 ``"projection"``
     after each step, q is brought back onto phi = 0 by Gauss-Newton
-    (minimum-norm, as in the seed's Python program) and v onto J v = 0.
+    (minimum-norm, as in the lesson's Python program) and v onto J v = 0.
 ``"partitioning"``
-    coordinate partitioning (Wehage & Haug 1982, seed Sections 4 and 6): only
+    coordinate partitioning (Wehage & Haug 1982; the lesson's Sections 4 and 6): only
     the independent coordinates (q_I, v_I) are integrated; the dependent ones
     are solved exactly from phi(q) = 0 and J v = 0 at every evaluation, so there
     is no drift by construction. When J_D becomes ill-conditioned the
     partition is changed (re-partitioning) and integration restarts from the
     current state.
 
-The seed's own algorithm is ``integrator="semi-implicit", stabilization=
+The lesson's own algorithm is ``integrator="semi-implicit", stabilization=
 "projection"`` with ``SimulationSettings(projection_iters=2,
 project_velocities=False)`` (see :func:`seed_settings`).
 """
@@ -63,14 +63,13 @@ from .request import (
     DEFAULT_INTEGRATOR,
     MIN_ATOL,
     MIN_RTOL,
-    check_positive,
     check_request,
-    check_start_velocity,
-    check_t_eval,
     default_integrator,
 )
 from .run import check_energy, run_request
 from .settings import (
+    ADAPTIVE_TOLERANCES,
+    DEFAULT_ENERGY_TOL,
     DEFAULT_SIMULATION_SETTINGS,
     SimulationError,
     SimulationSettings,
@@ -82,9 +81,11 @@ if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
 __all__ = [
+    "ADAPTIVE_TOLERANCES",
     "BACKENDS",
     "COMPILED_INTEGRATORS",
     "DEFAULT_ADAPTIVE_INTEGRATOR",
+    "DEFAULT_ENERGY_TOL",
     "DEFAULT_FIXED_INTEGRATOR",
     "DEFAULT_INTEGRATOR",
     "INTEGRATORS",
@@ -98,9 +99,6 @@ __all__ = [
     "StepControl",
     "TorqueInput",
     "check_energy",
-    "check_positive",
-    "check_start_velocity",
-    "check_t_eval",
     "default_integrator",
     "get_integrator",
     "get_stabilization",
@@ -149,10 +147,10 @@ def simulate(
             support, ``"rk4"`` (``"DOP853"`` when ``rtol`` or ``atol`` is given):
             :func:`default_integrator`.
         dt: fixed step [s] (fixed-step integrators; default ``settings.dt``).
-        rtol: relative tolerance (adaptive integrators; default: the integrator's
-            ``IntegratorSpec.tolerances``, 1e-9 for rk43, else ``settings.rtol``).
-        atol: absolute tolerance (adaptive integrators; default: the integrator's
-            ``IntegratorSpec.tolerances``, 1e-10 for rk43, else ``settings.atol``).
+        rtol: relative tolerance (adaptive integrators; default ``settings.rtol``, whose
+            default None means the integrator's own: 1e-9 for rk43, else 1e-8).
+        atol: absolute tolerance (adaptive integrators; default ``settings.atol``, whose
+            default None means the integrator's own: 1e-10).
         stabilization: a name in :data:`STABILIZATIONS`; default: the
             integrator's ``default_stabilization`` (``"stage-projection"`` for
             the explicit fixed-step integrators, ``"mass-orthogonal"`` for
@@ -183,8 +181,10 @@ def simulate(
         SingularConfigurationError: the method met a singular configuration
             (message and attributes give the time and condition number;
             ``exc.trajectory`` holds the motion up to the stop).
-        SimulationError: non-finite state, integrator failure, or drift
-            beyond ``settings.drift_limit`` (``exc.trajectory`` as above).
+        SimulationError: non-finite state, integrator failure, drift beyond
+            ``settings.drift_limit`` (``exc.trajectory`` as above), or a relative energy
+            balance beyond ``settings.energy_tol`` (1e-2 by default; ``exc.trajectory``
+            the whole run): an inaccurate run is not returned as a success.
     """
     request = check_request(
         mech,

@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import compiled
 from ..dynamics import SolverSettings
-from ..dynamics.base import METHOD_CAPABILITIES, METHODS, method_name
+from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, check_settings, resolve_choice
 from ..kinematics import compute_jacobian
 from .registry import (
@@ -32,7 +32,12 @@ from .registry import (
     get_integrator,
     get_stabilization,
 )
-from .settings import DEFAULT_SIMULATION_SETTINGS, SimulationSettings, TorqueInput
+from .settings import (
+    ADAPTIVE_TOLERANCES,
+    DEFAULT_SIMULATION_SETTINGS,
+    SimulationSettings,
+    TorqueInput,
+)
 
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
@@ -236,9 +241,9 @@ def _check_step_control(
     if fixed:
         dt = settings.dt if dt is None else dt
         return StepControl(dt=_check_dt(dt, t_final, t_eval, settings))
-    default_rtol, default_atol = spec.tolerances or (settings.rtol, settings.atol)
-    rtol = default_rtol if rtol is None else rtol
-    atol = default_atol if atol is None else atol
+    own_rtol, own_atol = spec.tolerances or ADAPTIVE_TOLERANCES
+    rtol = rtol if rtol is not None else settings.rtol if settings.rtol is not None else own_rtol
+    atol = atol if atol is not None else settings.atol if settings.atol is not None else own_atol
     check_positive("rtol", rtol, "the relative tolerance")
     check_positive("atol", atol, "the absolute tolerance")
     rtol, atol = float(rtol), float(atol)
@@ -394,6 +399,22 @@ def check_t_eval(
             f"t_eval spans [{t_eval[0]:g}, {t_eval[-1]:g}] s, outside [0, t_final]; {valid}"
         )
     return t_eval
+
+
+def describe_default() -> str:
+    """The default configuration of :func:`~closedchain.simulate` in a few words, from the
+    constants that make it (``"augmented-lagrangian, rk43 at rtol 1e-9,
+    stage-projection"``): the documentation and the generated benchmark pages state it
+    with this, so they cannot name another default than the one that runs."""
+    spec = get_integrator(DEFAULT_INTEGRATOR)
+    rtol = f" at rtol {short_number(spec.tolerances[0])}" if spec.tolerances else ""
+    return f"{DEFAULT_METHOD}, {spec.name}{rtol}, {spec.default_stabilization}"
+
+
+def short_number(x: float) -> str:
+    """``1e-9`` rather than Python's ``1e-09`` (one significant digit)."""
+    mantissa, _, exponent = f"{x:.0e}".partition("e")
+    return f"{mantissa}e{int(exponent)}"
 
 
 def default_integrator(

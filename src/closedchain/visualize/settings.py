@@ -42,6 +42,11 @@ STICK_BALL_RATIO = 1.5
 #: Stick segments shorter than this [m] get no cylinder.
 STICK_MIN_LENGTH = 1e-3
 
+#: Radius of the sticks of a link without any visual (a URDF with inertials only), as a
+#: fraction of the model's typical link length (the median length of its sticks) [-]:
+#: the figure is sized from the model, a 10 cm linkage as a 2 m robot.
+STICK_RADIUS_RATIO = 0.04
+
 #: A trajectory time step below this [s] counts as a repeated sample.
 TIME_EPS = 1e-12
 

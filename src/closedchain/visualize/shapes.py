@@ -27,6 +27,7 @@ from .settings import (
     STICK_BALL_RATIO,
     STICK_MIN_LENGTH,
     STICK_RADIUS,
+    STICK_RADIUS_RATIO,
     AnimationSettings,
     Body,
     JointMarker,
@@ -175,6 +176,8 @@ def stick_figure(
     link: str,
     child_origins: list[np.ndarray],
     rgba: tuple[float, float, float, float],
+    *,
+    radius: float = STICK_RADIUS,
 ) -> list[VisualShape]:
     """Return the primitives that stand for a link whose meshes are not drawn.
 
@@ -183,10 +186,12 @@ def stick_figure(
 
     Args:
         link: the link's name.
-        child_origins: origins of its child joints in the link frame, shape (3,) each [m].
+        child_origins: origins of its child joints (and loop frames) in the link
+            frame, shape (3,) each [m].
         rgba: colour, (r, g, b, a) in [0, 1] (the colour of its first mesh).
+        radius: the cylinders' radius [m] (the ball's is ``STICK_BALL_RATIO`` times it).
     """
-    ball = (STICK_BALL_RATIO * STICK_RADIUS,)
+    ball = (STICK_BALL_RATIO * radius,)
     out = [VisualShape(link, "sphere", ball, np.eye(4), rgba)]
     for xyz in child_origins:
         length = float(np.linalg.norm(xyz))
@@ -194,8 +199,16 @@ def stick_figure(
             continue
         # A URDF cylinder runs along its z axis, centred on its origin.
         origin = _frame_with_z(xyz / length, xyz / 2.0)
-        out.append(VisualShape(link, "cylinder", (STICK_RADIUS, length), origin, rgba))
+        out.append(VisualShape(link, "cylinder", (radius, length), origin, rgba))
     return out
+
+
+def model_stick_radius(children: dict[str, list[np.ndarray]]) -> float:
+    """Return the stick radius [m] of links without visuals: ``STICK_RADIUS_RATIO`` times
+    the median length of the model's sticks (``STICK_RADIUS`` for a model without any)."""
+    lengths = [float(np.linalg.norm(xyz)) for origins in children.values() for xyz in origins]
+    lengths = [x for x in lengths if x >= STICK_MIN_LENGTH]
+    return STICK_RADIUS_RATIO * float(np.median(lengths)) if lengths else STICK_RADIUS
 
 
 def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS):
@@ -213,6 +226,11 @@ def read_scene_visuals(
     mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS
 ) -> tuple[tuple[VisualShape, ...], MeshSummary]:
     """Read the ``<visual>`` elements of the mechanism's URDF, with meshes within the budget.
+
+    A link without any ``<visual>`` (a URDF with inertials only, common for generated
+    and YAML-convention models) is drawn as a :func:`stick_figure` in
+    ``settings.default_rgba``: a ball at its origin and a stick to each child joint and
+    loop frame on it, of radius :func:`model_stick_radius` (sized from the model).
 
     Materials are resolved by name against the robot's top-level
     ``<material>`` elements. Mesh files are looked up relative to the URDF
@@ -261,6 +279,10 @@ def read_scene_visuals(
     for joint in robot.joints:
         xyz = np.zeros(3) if joint.origin is None else np.asarray(joint.origin, float)[:3, 3]
         children.setdefault(joint.parent, []).append(xyz)
+    for loop in mech.urdf.loops:  # the cut joints' frames: where the loops close
+        children.setdefault(loop.predecessor, []).append(loop.predecessor_origin.translation)
+        children.setdefault(loop.successor, []).append(loop.successor_origin.translation)
+    bare_radius = model_stick_radius(children)
     out: list[VisualShape] = []
     left, n_embedded = budget, 0
     primitive_links: list[str] = []
@@ -302,6 +324,16 @@ def read_scene_visuals(
                 drawn = stick_figure(link.name, children.get(link.name, []), meshes[0][3])
         for v in shapes:
             out.extend(drawn if v is None else [v])
+        sticks = [x for x in children.get(link.name, []) if np.linalg.norm(x) >= STICK_MIN_LENGTH]
+        if not link.visuals and (sticks or _has_mass(link)):
+            out.extend(
+                stick_figure(
+                    link.name,
+                    sticks,
+                    settings.default_rgba,
+                    radius=bare_radius,
+                )
+            )
     if over_budget:
         logger.warning(
             "%s: meshes over what is left of the budget of %.3g MB "
@@ -312,6 +344,12 @@ def read_scene_visuals(
         )
     summary = MeshSummary(n_embedded, budget - left, budget, tuple(primitive_links))
     return tuple(out), summary
+
+
+def _has_mass(link) -> bool:
+    """Whether a yourdfpy link has an inertial with a positive mass."""
+    inertial = link.inertial
+    return inertial is not None and inertial.mass is not None and float(inertial.mass) > 0
 
 
 def _link_meshes(where, link, meshes, urdf_dir, trusted, left):
