@@ -8,8 +8,8 @@ OP_FRAME. A body whose joints sit at anchor p with reference q0 gets
 
 .. math::
 
-    {}^{parent}M_{joint} = X \\, T(p) \\, S(q_0)^{-1}, \\qquad
-    {}^{joint}M_{body} = S(q_0) \\, T(-p),
+    {}^{parent}M_{joint} = X \\, T(p), \\qquad
+    {}^{joint}M_{body} = S(q_0)^{-1} \\, T(-p),
 
 so that at q = q0 it sits at its placement X and turns about its anchor
 (MuJoCo's rule for several joints in one body: each joint moves the frame the
@@ -48,10 +48,15 @@ def joint_model(joint: JointDescription):
     return pin.JointModelRevoluteUnaligned(axis) if revolute else pin.JointModelPrismaticUnaligned(axis)
 
 
-def _motion(jmodel, q: np.ndarray) -> pin.SE3:
-    jdata = jmodel.createData()
-    jmodel.calc(jdata, np.asarray(q, dtype=float))
-    return pin.SE3(jdata.M)
+def _motion(joint: JointDescription) -> pin.SE3:
+    """Return the joint's motion S(q0) (a revolute, prismatic or spherical joint)."""
+    axis = np.asarray(joint.axis, dtype=float)
+    if joint.kind == "revolute":
+        return pin.SE3(pin.exp3(axis * joint.q0[0]), np.zeros(3))
+    if joint.kind == "prismatic":
+        return pin.SE3(np.eye(3), axis * joint.q0[0])
+    x, y, z, w = joint.q0
+    return pin.SE3(pin.Quaternion(w, x, y, z).normalized().matrix(), np.zeros(3))
 
 
 def _shift(p) -> pin.SE3:
@@ -113,9 +118,8 @@ def build_model(description: MechanismDescription, root_joint=None) -> pin.Model
                     )
                 placement, X = pin.SE3.Identity(), pin.SE3.Identity()
             else:
-                C = _motion(jmodel, joint.q0).inverse()
-                placement = X * _shift(joint.position) * C
-                X = C.inverse() * _shift(-np.asarray(joint.position, dtype=float))
+                placement = X * _shift(joint.position)
+                X = _motion(joint).inverse() * _shift(-np.asarray(joint.position, dtype=float))
             if joint.kind in ("revolute", "prismatic"):
                 parent = model.addJoint(
                     parent,

@@ -207,7 +207,8 @@ def _drop_missing_meshes(path: Path, spec) -> None:
     missing = {m.name: m.file for m in spec.meshes if m.file and not _mesh_path(path, spec, m).is_file()}
     if not missing:
         return
-    from_geoms = str(spec.compiler.inertiafromgeom) not in ("mjINERTIAFROMGEOM_AUTO", "0", "2")
+    mujoco = _mujoco()
+    from_geoms = spec.compiler.inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
     dropped = []
     for geom in list(spec.geoms):
         if geom.meshname not in missing:
@@ -522,6 +523,13 @@ class _Reader:
                 armatures.append(JointArmature(name, float(m.dof_armature[dof])))
             if m.dof_frictionloss[dof] > 0.0:
                 friction.append(name)
+        gravcomp = [self.body_names[b] for b in np.flatnonzero(m.body_gravcomp)]
+        if gravcomp:
+            logger.info(
+                "%s: gravity compensation (gravcomp) is not modelled: %s",
+                self.path,
+                ", ".join(gravcomp),
+            )
         if friction:
             logger.info(
                 "%s: joint friction loss (frictionloss) is not modelled: %s",
