@@ -61,7 +61,8 @@ Refused with a message naming the element: tendon and flex equalities, a
 ``joint`` equality without ``joint2`` or with a nonzero c2..c4, an
 ``<include>`` outside the model's folder. A mesh file that is missing is left
 out with a warning when its body's inertia does not come from it (an
-``<inertial>``), else refused (MuJoCo would infer the inertia from it).
+``<inertial>``, or a body fixed to the world), else refused (MuJoCo would
+infer the inertia from it).
 Ignored: ``solref``/``solimp`` (closedchain's constraints are rigid),
 contacts, tendons, sensors, cameras, lights. XML is read as safely as the
 URDF reader's (no DTD, size-bounded: :func:`closedchain.urdf.read_xml`)
@@ -157,10 +158,11 @@ def _se3(pos, wxyz) -> pin.SE3:
 def _pin_values(kind: str, qpos) -> tuple[float, ...]:
     """Return a joint's MuJoCo qpos entries in Pinocchio's convention (quaternion x, y, z, w)."""
     qpos = [float(x) for x in qpos]
-    if kind == "spherical":
-        return (*qpos[1:4], qpos[0])
-    if kind == "free":
-        return (*qpos[:3], *qpos[4:7], qpos[3])
+    if kind in ("spherical", "free"):
+        # MuJoCo normalizes a quaternion of qpos before use (a keyframe's may not be unit).
+        k = 0 if kind == "spherical" else 3
+        w, x, y, z = np.array(qpos[k : k + 4]) / np.linalg.norm(qpos[k : k + 4])
+        return (*qpos[:k], float(x), float(y), float(z), float(w))
     return tuple(qpos)
 
 
@@ -214,7 +216,7 @@ def _drop_missing_meshes(path: Path, spec) -> None:
         if geom.meshname not in missing:
             continue
         body = geom.parent
-        if from_geoms or not body.explicitinertial:
+        if _moves(spec, body) and (from_geoms or not body.explicitinertial):
             raise URDFError(
                 f"{path}: mesh file {missing[geom.meshname]!r} is missing, and MuJoCo infers body "
                 f"{body.name!r}'s inertia from it; valid: the file present, or an <inertial>"
@@ -229,6 +231,15 @@ def _drop_missing_meshes(path: Path, spec) -> None:
         path,
         ", ".join(sorted(set(missing.values()))),
     )
+
+
+def _moves(spec, body) -> bool:
+    """Return whether a spec body moves (it or an ancestor has a joint)."""
+    while body is not None and body.name != spec.worldbody.name:
+        if len(body.joints):
+            return True
+        body = body.parent
+    return False
 
 
 class _Reader:
