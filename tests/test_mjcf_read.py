@@ -500,3 +500,54 @@ def test_overlays_are_refused_on_mjcf(tmp_path):
     overlay.write_text('<robot name="x"/>')
     with pytest.raises(URDFError, match=r"an MJCF model takes its loops from its <equality>"):
         cc.load(FOURBAR_MJCF, loops=overlay)
+
+
+#: Tolerance [m] of mesh vertices against MuJoCo's compiled ones (stored in float32).
+MESH_VERTEX_TOL = 1e-6
+
+
+def test_mesh_visuals_sit_where_mujoco_puts_them(tmp_path):
+    """A mesh geom (scaled, posed; MuJoCo recentres the mesh and moves the geom) is drawn
+    from its file: the file's vertices, scaled and placed, are MuJoCo's compiled ones."""
+    import mujoco
+    import trimesh
+
+    from closedchain.visualize.shapes import read_visuals
+
+    box = trimesh.creation.box(extents=[0.1, 0.2, 0.3])
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.3, [1, 1, 0]))
+    box.apply_translation([0.1, 0.2, 0.3])
+    (tmp_path / "assets").mkdir()
+    box.export(tmp_path / "assets" / "part.obj")
+    path = tmp_path / "mesh.xml"
+    path.write_text(
+        '<mujoco><compiler meshdir="assets"/><asset><mesh name="part" file="part.obj" '
+        'scale="2 1 0.5"/></asset><worldbody><body name="b" pos="0 0 1"><joint name="j"/>'
+        '<geom type="mesh" mesh="part" pos="0.1 0 0" euler="10 20 30"/>'
+        '<geom type="capsule" size="0.02 0.1"/></body></worldbody></mujoco>'
+    )
+    mech = cc.load(path)
+    (shape,) = [v for v in read_visuals(mech) if v.kind == "mesh"]
+    assert shape.link == "b" and shape.mesh == (tmp_path / "assets" / "part.obj").resolve()
+    drawn = (shape.origin[:3, :3] @ (np.asarray(shape.dims) * box.vertices).T).T
+    drawn += shape.origin[:3, 3]
+    m = mujoco.MjModel.from_xml_path(str(path))
+    g = int(np.flatnonzero(m.geom_type == mujoco.mjtGeom.mjGEOM_MESH)[0])
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, m.geom_quat[g])
+    compiled = m.mesh_vert[m.mesh_vertadr[0] : m.mesh_vertadr[0] + m.mesh_vertnum[0]]
+    expected = compiled @ R.reshape(3, 3).T + m.geom_pos[g]
+    assert np.linalg.norm(np.sort(drawn, axis=0) - np.sort(expected, axis=0)) <= MESH_VERTEX_TOL
+    # The capsule: its cylinder and two end spheres.
+    assert sorted(v.kind for v in read_visuals(mech) if v.kind != "mesh") == [
+        "cylinder", "sphere", "sphere"
+    ]  # fmt: skip
+
+
+def test_linkage_simulates_and_animates(tmp_path):
+    mech = cc.load(LINKAGE)
+    traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.2)
+    assert traj.info.max_constraint_residual <= 1e-9
+    page = cc.write_html(mech, traj, tmp_path / "linkage.html")
+    assert (tmp_path / "linkage.html").stat().st_size > 0
+    assert page.meshes.n_embedded == 0
