@@ -22,7 +22,7 @@ Two accelerations of MuJoCo at a closed state (q, v) with joint forces tau:
   loss and actuation disabled: MuJoCo's own answer, within its softness.
 - ``rigid``: the KKT system built from MuJoCo's own M (``mj_fullM``), bias
   forces ``qfrc_bias`` and equality rows of ``efc_J``, with
-  :math:`\dot J v` by central differences of ``efc_J`` along v
+  :math:`\dot J v` by fourth-order central differences of ``efc_J`` along v
   (step :data:`JDOT_STEP`):
 
   .. math::
@@ -53,8 +53,8 @@ STIFF_SOLREF = (2e-4, 1.0)
 #: MuJoCo ``solimp`` (dmin, dmax, width [m], midpoint, power) of a stiff equality.
 STIFF_SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 
-#: Step [s] of the central differences of MuJoCo's efc_J along v.
-JDOT_STEP = 1e-6
+#: Step [s] of the fourth-order central differences of MuJoCo's efc_J along v.
+JDOT_STEP = 1e-4
 
 
 def rigid_spec(spec) -> None:
@@ -174,13 +174,15 @@ def mujoco_accelerations(ref: MujocoModel, q, v, tau) -> tuple[np.ndarray, np.nd
     mujoco = _mujoco()
     mj, d = ref.mj, ref.data
     qpos, qvel, _, qfrc = to_mujoco(ref, q, v, tau=tau)
-    # J-dot v: central differences of the equality rows along the motion.
-    shifted = []
-    for sign in (1.0, -1.0):
+    # J-dot v: fourth-order central differences of the equality rows along the motion
+    # (rows scaled by a small torquescale keep the round-off of their unscaled size).
+    shifted = {}
+    for k in (2, 1, -1, -2):
         qs = qpos.copy()
-        mujoco.mj_integratePos(mj, qs, qvel, sign * JDOT_STEP)
-        shifted.append(_equality_jacobian(ref, qs, qvel))
-    Jdot_v = (shifted[0] - shifted[1]) @ qvel / (2.0 * JDOT_STEP)
+        mujoco.mj_integratePos(mj, qs, qvel, k * JDOT_STEP)
+        shifted[k] = _equality_jacobian(ref, qs, qvel)
+    dJ = (-shifted[2] + 8.0 * shifted[1] - 8.0 * shifted[-1] + shifted[-2]) / (12.0 * JDOT_STEP)
+    Jdot_v = dJ @ qvel
     J = _equality_jacobian(ref, qpos, qvel)
     d.qfrc_applied[:] = qfrc
     mujoco.mj_forward(mj, d)
@@ -189,8 +191,11 @@ def mujoco_accelerations(ref: MujocoModel, q, v, tau) -> tuple[np.ndarray, np.nd
     mujoco.mj_fullM(mj, d, M)
     bias = np.array(d.qfrc_bias)
     d.qfrc_applied[:] = 0.0
-    keep = np.linalg.norm(J, axis=1) > 0.0  # torquescale 0: zero rotation rows
-    J, Jdot_v = J[keep], Jdot_v[keep]
+    norms = np.linalg.norm(J, axis=1)
+    keep = norms > 0.0  # torquescale 0: zero rotation rows
+    # Unit rows: the same constraint, a KKT matrix as well conditioned as the tree's M
+    # (a torquescale of 0.002 scales rotation rows by it).
+    J, Jdot_v = J[keep] / norms[keep, None], Jdot_v[keep] / norms[keep]
     nc = J.shape[0]
     K = np.block([[M, J.T], [J, np.zeros((nc, nc))]])
     rhs = np.concatenate([qfrc + np.array(d.qfrc_passive) - bias, -Jdot_v])
