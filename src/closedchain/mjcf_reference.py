@@ -31,7 +31,8 @@ Two accelerations of MuJoCo at a closed state (q, v) with joint forces tau:
       \begin{bmatrix} a \\ -\lambda \end{bmatrix} =
       \begin{bmatrix} \tau - b \\ -\dot J v \end{bmatrix}
 
-  solved by least squares (redundant rows allowed).
+  solved through its Schur complement, the Delassus matrix by least squares
+  (redundant rows allowed).
 
 Passive terms (armature, damping, stiffness, gravity compensation) are zeroed
 in the spec by :func:`rigid_spec` where a comparison wants the rigid tree only.
@@ -52,6 +53,9 @@ STIFF_SOLREF = (2e-4, 1.0)
 
 #: MuJoCo ``solimp`` (dmin, dmax, width [m], midpoint, power) of a stiff equality.
 STIFF_SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
+
+#: Equality rows of MuJoCo's efc_J shorter than this times the longest are zero rows.
+ZERO_ROW_RTOL = 1e-9
 
 #: Step [s] of the fourth-order central differences of MuJoCo's efc_J along v.
 JDOT_STEP = 1e-4
@@ -192,12 +196,17 @@ def mujoco_accelerations(ref: MujocoModel, q, v, tau) -> tuple[np.ndarray, np.nd
     bias = np.array(d.qfrc_bias)
     d.qfrc_applied[:] = 0.0
     norms = np.linalg.norm(J, axis=1)
-    keep = norms > 0.0  # torquescale 0: zero rotation rows
+    # Rows that vanish (torquescale 0; the out-of-plane row of a planar loop, zero up to
+    # round-off) constrain nothing.
+    keep = norms > ZERO_ROW_RTOL * np.max(norms, initial=0.0)
     # Unit rows: the same constraint, a KKT matrix as well conditioned as the tree's M
     # (a torquescale of 0.002 scales rotation rows by it).
     J, Jdot_v = J[keep] / norms[keep, None], Jdot_v[keep] / norms[keep]
-    nc = J.shape[0]
-    K = np.block([[M, J.T], [J, np.zeros((nc, nc))]])
-    rhs = np.concatenate([qfrc + np.array(d.qfrc_passive) - bias, -Jdot_v])
-    rigid = np.linalg.lstsq(K, rhs, rcond=None)[0][: mj.nv]
+    # The KKT system by its Schur complement: M is positive definite, the Delassus matrix
+    # J M^-1 J^T singular where rows are redundant (least squares keeps the consistent ones),
+    # and both stay well scaled whatever the bodies' masses (grippers: 1e-6 kg m^2).
+    f = qfrc + np.array(d.qfrc_passive) - bias
+    Minv_f, Minv_JT = np.linalg.solve(M, f), np.linalg.solve(M, J.T)
+    lam = np.linalg.lstsq(J @ Minv_JT, J @ Minv_f + Jdot_v, rcond=None)[0]
+    rigid = Minv_f - Minv_JT @ lam
     return soft, rigid, qvel
