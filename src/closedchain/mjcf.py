@@ -62,7 +62,7 @@ Refused with a message naming the element: tendon and flex equalities, a
 ``<include>`` outside the model's folder. A mesh file that is missing is left
 out with a warning when its body's inertia does not come from it (an
 ``<inertial>``, or a body fixed to the world), else refused (MuJoCo would
-infer the inertia from it).
+infer the inertia from it); a missing texture file is left out with a warning.
 Ignored: ``solref``/``solimp`` (closedchain's constraints are rigid),
 contacts, tendons, sensors, cameras, lights. XML is read as safely as the
 URDF reader's (no DTD, size-bounded: :func:`closedchain.urdf.read_xml`)
@@ -167,9 +167,10 @@ def _pin_values(kind: str, qpos) -> tuple[float, ...]:
 
 
 def compile_mjcf(path: Path, *, spec_edit=None):
-    """Compile an MJCF file with MuJoCo; return ``(spec, model)``.
+    """Compile an MJCF file with MuJoCo; return ``(spec, model, missing)``.
 
-    Missing mesh files are handled as the module docstring says.
+    Missing mesh files are handled as the module docstring says; ``missing`` maps a
+    body's name to placeholders of its drawn mesh geoms whose files are missing.
 
     Args:
         path: the MJCF file.
@@ -188,14 +189,15 @@ def compile_mjcf(path: Path, *, spec_edit=None):
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as exc:  # MuJoCo's parser: ValueError and its own errors
         raise URDFError(f"{path}: MuJoCo cannot read it: {' '.join(str(exc).split())}") from None
-    _drop_missing_meshes(path, spec)
+    _drop_missing_textures(path, spec)
+    missing = _drop_missing_meshes(path, spec)
     if spec_edit is not None:
         spec_edit(spec)
     try:
         model = spec.compile()
     except Exception as exc:
         raise URDFError(f"{path}: MuJoCo cannot compile it: {' '.join(str(exc).split())}") from None
-    return spec, model
+    return spec, model, missing
 
 
 def _mesh_path(path: Path, spec, mesh) -> Path:
@@ -204,24 +206,34 @@ def _mesh_path(path: Path, spec, mesh) -> Path:
     return (base / meshdir / mesh.file).resolve()
 
 
-def _drop_missing_meshes(path: Path, spec) -> None:
-    """Delete mesh geoms whose files are missing where the body's inertia is explicit."""
-    missing = {m.name: m.file for m in spec.meshes if m.file and not _mesh_path(path, spec, m).is_file()}
-    if not missing:
-        return
+def _drop_missing_meshes(path: Path, spec) -> dict[str, list[Visual]]:
+    """Delete mesh geoms whose files are missing where the body's inertia does not need them.
+
+    Returns:
+        body name -> placeholders of its drawn geoms left out (mesh visuals naming the
+        missing file: the drawing stands a stick figure in for them and says why).
+    """
     mujoco = _mujoco()
+    files = {m.name: _mesh_path(path, spec, m) for m in spec.meshes if m.file}
+    missing = {name: file for name, file in files.items() if not file.is_file()}
+    if not missing:
+        return {}
     from_geoms = spec.compiler.inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
-    dropped = []
+    placeholders: dict[str, list[Visual]] = {}
     for geom in list(spec.geoms):
         if geom.meshname not in missing:
             continue
         body = geom.parent
         if _moves(spec, body) and (from_geoms or not body.explicitinertial):
             raise URDFError(
-                f"{path}: mesh file {missing[geom.meshname]!r} is missing, and MuJoCo infers body "
-                f"{body.name!r}'s inertia from it; valid: the file present, or an <inertial>"
+                f"{path}: mesh file {missing[geom.meshname].name!r} is missing, and MuJoCo "
+                f"infers body {body.name!r}'s inertia from it; valid: the file present, or an "
+                "<inertial>"
             )
-        dropped.append(geom.meshname)
+        if geom.group < DRAWN_GEOM_GROUPS:
+            rgba = tuple(float(x) for x in geom.rgba)
+            placeholder = Visual("mesh", (1.0, 1.0, 1.0), pin.SE3.Identity(), rgba, missing[geom.meshname])
+            placeholders.setdefault(body.name or WORLD_LINK, []).append(placeholder)
         spec.delete(geom)
     for mesh in list(spec.meshes):
         if mesh.name in missing:
@@ -229,8 +241,28 @@ def _drop_missing_meshes(path: Path, spec) -> None:
     logger.warning(
         "%s: mesh files missing (their geoms are not drawn; inertias are the <inertial>s): %s",
         path,
-        ", ".join(sorted(set(missing.values()))),
+        ", ".join(sorted({f.name for f in missing.values()})),
     )
+    return placeholders
+
+
+def _drop_missing_textures(path: Path, spec) -> None:
+    """Delete textures whose files are missing (they only colour the drawing)."""
+    texdir = Path(spec.texturedir or "")
+    base = path.parent if not texdir.is_absolute() else Path()
+    missing = [t for t in spec.textures if t.file and not (base / texdir / t.file).is_file()]
+    if not missing:
+        return
+    names = {t.name for t in missing}
+    for material in spec.materials:
+        material.textures = ["" if name in names else name for name in material.textures]
+    logger.warning(
+        "%s: texture files missing (not drawn): %s",
+        path,
+        ", ".join(sorted(t.file for t in missing)),
+    )
+    for texture in missing:
+        spec.delete(texture)
 
 
 def _moves(spec, body) -> bool:
@@ -245,9 +277,10 @@ def _moves(spec, body) -> bool:
 class _Reader:
     """One compiled model read into a description, loops and passive terms."""
 
-    def __init__(self, path: Path, spec, model) -> None:
+    def __init__(self, path: Path, spec, model, missing: dict[str, list[Visual]]) -> None:
         self.mujoco = _mujoco()
         self.path, self.spec, self.m = path, spec, model
+        self.missing = missing
         m = model
         self.body_names = [self.name(self.mujoco.mjtObj.mjOBJ_BODY, b, "body") for b in range(m.nbody)]
         self.body_names[0] = WORLD_LINK
@@ -305,7 +338,7 @@ class _Reader:
 
     def visuals(self, b: int) -> tuple[Visual, ...]:
         m = self.m
-        out: list[Visual] = []
+        out: list[Visual] = list(self.missing.get(self.body_names[b], ()))
         skipped = []
         for g in np.flatnonzero(m.geom_bodyid == b):
             if m.geom_group[g] >= DRAWN_GEOM_GROUPS:
@@ -574,8 +607,8 @@ def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray
         URDFError: see :func:`compile_mjcf`, and the refusals of the module docstring.
     """
     path = Path(path)
-    spec, model = compile_mjcf(path, spec_edit=spec_edit)
-    reader = _Reader(path, spec, model)
+    spec, model, missing = compile_mjcf(path, spec_edit=spec_edit)
+    reader = _Reader(path, spec, model, missing)
     description = reader.description()
     springs, dampings, armatures = reader.passive()
     joints = {

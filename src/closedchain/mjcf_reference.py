@@ -98,7 +98,7 @@ def mujoco_model(path: str | Path, model: pin.Model, *, rigid: bool = True) -> M
         rigid: zero the passive terms (:func:`rigid_spec`).
     """
     mujoco = _mujoco()
-    _, mj = compile_mjcf(Path(path), spec_edit=rigid_spec if rigid else None)
+    _, mj, _ = compile_mjcf(Path(path), spec_edit=rigid_spec if rigid else None)
     mj.eq_solref[:] = STIFF_SOLREF
     mj.eq_solimp[:] = STIFF_SOLIMP
     D = mujoco.mjtDisableBit
