@@ -67,6 +67,7 @@ COLUMNS = (
     "M vs MuJoCo (rel.)",
     "a vs stiff MuJoCo (rel.)",
     "a vs rigid KKT from MuJoCo (rel.)",
+    "stiff MuJoCo vs its rigid KKT (rel.)",
 )
 
 
@@ -90,8 +91,10 @@ def _stubbed_copy(path: Path, folder: Path) -> Path:
     return copy
 
 
-def _compare(mech, path: Path, rng) -> tuple[float, float, float]:
-    """Return the largest relative differences (M, stiff MuJoCo a, rigid KKT a)."""
+def _compare(mech, path: Path, rng) -> tuple[float, float, float, float]:
+    """Return the largest relative differences: M, a against MuJoCo's stiff solution and
+    against the rigid KKT solve from MuJoCo's arrays, and MuJoCo's stiff solution against
+    that rigid solve (MuJoCo's own softness, at the same states)."""
     import mujoco
     import pinocchio as pin
 
@@ -99,7 +102,7 @@ def _compare(mech, path: Path, rng) -> tuple[float, float, float]:
     from closedchain.mjcf_reference import mujoco_accelerations, mujoco_model, to_mujoco
 
     ref = mujoco_model(path, mech.model)
-    dM = soft = rigid = 0.0
+    dM = soft = rigid = softness = 0.0
     for _ in range(N_STATES):
         q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
         T = np.column_stack([to_mujoco(ref, q, e)[1] for e in np.eye(mech.nv)])
@@ -114,14 +117,17 @@ def _compare(mech, path: Path, rng) -> tuple[float, float, float]:
         tau = rng.standard_normal(mech.nv)
         for speed, which in ((SOFT_SPEED, 0), (1.0, 1)):
             a = cc.forward_dynamics(mech, q, speed * v, tau, method="kkt").a
-            expected = mujoco_accelerations(ref, q, speed * v, tau)[which]
+            accelerations = mujoco_accelerations(ref, q, speed * v, tau)
+            expected = accelerations[which]
             err = np.linalg.norm(to_mujoco(ref, q, speed * v, a)[2] - expected)
             err /= np.linalg.norm(expected)
             if which == 0:
                 soft = max(soft, err)
+                own = np.linalg.norm(accelerations[0] - accelerations[1])
+                softness = max(softness, own / np.linalg.norm(accelerations[1]))
             else:
                 rigid = max(rigid, err)
-    return dM, soft, rigid
+    return dM, soft, rigid, softness
 
 
 def _note(exc: Exception) -> str:
@@ -143,7 +149,8 @@ def check(path: Path) -> dict[str, str]:
             if "is missing, and MuJoCo infers" not in str(exc):
                 row["start"] = f"refused: {_note(exc)}"
                 return row
-            row["meshes"] = f"stubbed (as shipped: refused: {_note(exc)})"
+            body = str(exc).split("infers body ", 1)[1].split("'s inertia", 1)[0]
+            row["meshes"] = f"stubbed (absent: refused, {body}'s inertia from its mesh)"
             path = _stubbed_copy(path, tmp)
             mech = cc.load(path)
         desc = mech.urdf.description
@@ -168,10 +175,11 @@ def check(path: Path) -> dict[str, str]:
             row["animation [MB]"] = f"{page.stat().st_size / MEGABYTE:.2f}"
         except cc.ClosedChainError as exc:
             row["simulate 1 s: CPU [s], max abs phi"] = f"stopped: {_note(exc)}"
-        dM, soft, rigid = _compare(mech, path, np.random.default_rng(SEED))
+        dM, soft, rigid, softness = _compare(mech, path, np.random.default_rng(SEED))
         row["M vs MuJoCo (rel.)"] = f"{dM:.1e}"
         row["a vs stiff MuJoCo (rel.)"] = f"{soft:.1e}"
         row["a vs rigid KKT from MuJoCo (rel.)"] = f"{rigid:.1e}"
+        row["stiff MuJoCo vs its rigid KKT (rel.)"] = f"{softness:.1e}"
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return row

@@ -416,7 +416,9 @@ def test_assembly_starts_from_a_keyframe(tmp_path):
     for keyframe, q_key in ((None, mirrored), ("elbow_down", mirrored), ("elbow_up", drawn)):
         mech = cc.load(path, keyframe=keyframe)
         assert np.linalg.norm(mech.q_ref - q_key) <= KEYFRAME_TOL, keyframe
-    with pytest.raises(URDFError, match=r"unknown keyframe 'side'; keyframes: elbow_down, elbow_up"):
+    with pytest.raises(
+        URDFError, match=r"unknown keyframe 'side'; keyframes: elbow_down, elbow_up"
+    ):
         cc.load(path, keyframe="side")
     with pytest.raises(URDFError, match=r"keyframe='up' is for MJCF models"):
         cc.load(MODELS / "fourbar.urdf", keyframe="up")

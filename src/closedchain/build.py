@@ -45,7 +45,11 @@ def joint_model(joint: JointDescription):
     ):
         if np.linalg.norm(axis - np.eye(3)[k]) <= ALIGNED_TOL:
             return aligned()
-    return pin.JointModelRevoluteUnaligned(axis) if revolute else pin.JointModelPrismaticUnaligned(axis)
+    return (
+        pin.JointModelRevoluteUnaligned(axis)
+        if revolute
+        else pin.JointModelPrismaticUnaligned(axis)
+    )
 
 
 def _motion(joint: JointDescription) -> pin.SE3:

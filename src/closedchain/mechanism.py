@@ -25,6 +25,7 @@ from threadpoolctl import threadpool_limits
 from ._invariants import prove_unclosable
 from ._io import captured_stderr
 from ._locking import exclusive
+from .build import build_model, configuration
 from .closure import (
     AssemblySettings,
     LoopClosure,
@@ -46,7 +47,6 @@ from .exceptions import (
     ValidationUnavailableError,
     check_settings,
 )
-from .build import build_model, configuration
 from .mjcf import MJCF_ROOT, read_mjcf
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf, read_xml
@@ -710,7 +710,7 @@ def load(
     cut = tuple(cut_joints) or (entry.cut_joints if entry is not None else ())
     # URDF and MJCF are read here once (MJCF through MuJoCo, with its gravity); SDF and
     # cuts by merge_overlay's read_base.
-    robot = None if cut or is_sdf(base) else read_xml(base, what="model file")
+    robot = None if cut or is_sdf(base) else read_xml(base)
     mjcf, file_gravity = None, None
     if robot is not None and robot.tag == MJCF_ROOT:
         mjcf, file_gravity = read_mjcf(base)
@@ -726,9 +726,7 @@ def load(
     try:
         if mjcf is not None:
             urdf = mjcf
-            nv = sum(
-                {"spherical": 3, "free": 6}.get(j.kind, 1) for j in mjcf.description.joints()
-            )
+            nv = sum({"spherical": 3, "free": 6}.get(j.kind, 1) for j in mjcf.description.joints())
             if nv > max_nv(settings):
                 raise ModelTooLargeError(
                     f"{base}: {len(mjcf.description.joints())} joints with nv = {nv} degrees "

@@ -232,7 +232,9 @@ def _drop_missing_meshes(path: Path, spec) -> dict[str, list[Visual]]:
             )
         if geom.group < DRAWN_GEOM_GROUPS:
             rgba = tuple(float(x) for x in geom.rgba)
-            placeholder = Visual("mesh", (1.0, 1.0, 1.0), pin.SE3.Identity(), rgba, missing[geom.meshname])
+            placeholder = Visual(
+                "mesh", (1.0, 1.0, 1.0), pin.SE3.Identity(), rgba, missing[geom.meshname]
+            )
             placeholders.setdefault(body.name or WORLD_LINK, []).append(placeholder)
         spec.delete(geom)
     for mesh in list(spec.meshes):
@@ -282,7 +284,9 @@ class _Reader:
         self.path, self.spec, self.m = path, spec, model
         self.missing = missing
         m = model
-        self.body_names = [self.name(self.mujoco.mjtObj.mjOBJ_BODY, b, "body") for b in range(m.nbody)]
+        self.body_names = [
+            self.name(self.mujoco.mjtObj.mjOBJ_BODY, b, "body") for b in range(m.nbody)
+        ]
         self.body_names[0] = WORLD_LINK
         self.kinds = [JOINT_KINDS[int(t)] for t in m.jnt_type]
         taken = {self.name(self.mujoco.mjtObj.mjOBJ_JOINT, j, "") for j in range(m.njnt)}
@@ -295,7 +299,9 @@ class _Reader:
                 while name in taken:
                     name += "_"
             self.joint_names.append(name)
-        self.site_names = [self.name(self.mujoco.mjtObj.mjOBJ_SITE, s, "site") for s in range(m.nsite)]
+        self.site_names = [
+            self.name(self.mujoco.mjtObj.mjOBJ_SITE, s, "site") for s in range(m.nsite)
+        ]
 
     def name(self, objtype, i: int, prefix: str) -> str:
         name = self.mujoco.mj_id2name(self.m, objtype, i)
@@ -512,9 +518,8 @@ class _Reader:
             )
         for j in (j1, j2):
             if self.kinds[j] not in ("revolute", "prismatic"):
-                raise URDFError(
-                    f"{where}: joint {self.joint_names[j]!r} is {self.kinds[j]}; valid: hinge, slide"
-                )
+                name, kind = self.joint_names[j], self.kinds[j]
+                raise URDFError(f"{where}: joint {name!r} is {kind}; valid: hinge, slide")
         r1, r2 = float(m.qpos0[m.jnt_qposadr[j1]]), float(m.qpos0[m.jnt_qposadr[j2]])
         c0, c1 = float(data[0]), float(data[1])
         return LoopSpec(
@@ -560,7 +565,9 @@ class _Reader:
                     ref = float(m.qpos_spring[m.jnt_qposadr[j]])
                     springs.append(JointSpring(name, float(m.jnt_stiffness[j]), ref))
                 else:
-                    logger.info("%s: %s joint %r: its stiffness is not modelled", self.path, kind, name)
+                    logger.info(
+                        "%s: %s joint %r: its stiffness is not modelled", self.path, kind, name
+                    )
             if m.dof_damping[dof] > 0.0:
                 dampings.append(JointDamping(name, float(m.dof_damping[dof])))
             if m.dof_armature[dof] > 0.0:

@@ -18,8 +18,10 @@ in MuJoCo and in the body frame in Pinocchio: with R the body's rotation,
 Two accelerations of MuJoCo at a closed state (q, v) with joint forces tau:
 
 - ``soft``: ``mj_forward`` with every active equality made stiff
-  (:data:`STIFF_SOLREF`, :data:`STIFF_SOLIMP`), contacts, limits, friction
-  loss and actuation disabled: MuJoCo's own answer, within its softness.
+  (:data:`STIFF_SOLREF`, :data:`STIFF_SOLIMP`; ``refsafe`` off so that the
+  time constant is not raised to twice the model's time step), contacts,
+  limits, friction loss and actuation disabled: MuJoCo's own answer, within
+  its softness (``solimp`` cannot exceed 0.9999).
 - ``rigid``: the KKT system built from MuJoCo's own M (``mj_fullM``), bias
   forces ``qfrc_bias`` and equality rows of ``efc_J``, with
   :math:`\dot J v` by fourth-order central differences of ``efc_J`` along v
@@ -102,7 +104,9 @@ def mujoco_model(path: str | Path, model: pin.Model, *, rigid: bool = True) -> M
     mj.eq_solref[:] = STIFF_SOLREF
     mj.eq_solimp[:] = STIFF_SOLIMP
     D = mujoco.mjtDisableBit
-    for flag in (D.mjDSBL_CONTACT, D.mjDSBL_LIMIT, D.mjDSBL_FRICTIONLOSS, D.mjDSBL_ACTUATION):
+    # REFSAFE would raise solref[0] to twice the model's time step (4e-3 s for 2e-3 s).
+    off = (D.mjDSBL_CONTACT, D.mjDSBL_LIMIT, D.mjDSBL_FRICTIONLOSS, D.mjDSBL_ACTUATION)
+    for flag in (*off, D.mjDSBL_REFSAFE):
         mj.opt.disableflags |= int(flag)
     kinds = {0: "free", 1: "spherical", 2: "prismatic", 3: "revolute"}
     joints = []
@@ -112,7 +116,9 @@ def mujoco_model(path: str | Path, model: pin.Model, *, rigid: bool = True) -> M
             body = mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_BODY, mj.jnt_bodyid[j])
             name = f"{body or f'body{mj.jnt_bodyid[j]}'}_joint{j}"
         pj = model.joints[model.getJointId(name)]
-        joints.append((kinds[int(mj.jnt_type[j])], pj.idx_q, pj.idx_v, mj.jnt_qposadr[j], mj.jnt_dofadr[j]))
+        joints.append(
+            (kinds[int(mj.jnt_type[j])], pj.idx_q, pj.idx_v, mj.jnt_qposadr[j], mj.jnt_dofadr[j])
+        )
     return MujocoModel(mj, mujoco.MjData(mj), joints)
 
 

@@ -350,7 +350,9 @@ def _description_links(description: MechanismDescription):
         anchor = body.joints[0].position if body.joints else np.zeros(3)
         origin = body.placement.act(np.asarray(anchor, dtype=float))
         children.setdefault(body.parent, []).append(origin)
-    links = [(WORLD_LINK, description.world_visuals)] + [(b.name, b.visuals) for b in description.bodies]
+    links = [(WORLD_LINK, description.world_visuals)] + [
+        (b.name, b.visuals) for b in description.bodies
+    ]
     out = []
     for name, visuals in links:
         items = []
