@@ -10,7 +10,8 @@ stiff equalities, contacts, limits, friction loss and actuation off (the
 velocities scaled by :data:`SOFT_SPEED`; what remains is MuJoCo's softness)
 and the rigid KKT solve built from MuJoCo's own M, bias forces and equality
 Jacobian. Passive terms (armature, damping, springs) are zeroed in MuJoCo's
-copy: the comparison is of the rigid mechanism.
+copy (the comparison of the rigid mechanism), unless ``--passive`` is given
+(for closedchain's dynamics that apply them).
 
 When a model's mesh files are absent and MuJoCo would infer a moving body's
 inertia from one of them, the reader refuses it (the table says so); the
@@ -91,7 +92,7 @@ def _stubbed_copy(path: Path, folder: Path) -> Path:
     return copy
 
 
-def _compare(mech, path: Path, rng) -> tuple[float, float, float, float]:
+def _compare(mech, path: Path, rng, *, passive: bool) -> tuple[float, float, float, float]:
     """Return the largest relative differences: M, a against MuJoCo's stiff solution and
     against the rigid KKT solve from MuJoCo's arrays, and MuJoCo's stiff solution against
     that rigid solve (MuJoCo's own softness, at the same states)."""
@@ -101,7 +102,7 @@ def _compare(mech, path: Path, rng) -> tuple[float, float, float, float]:
     import closedchain as cc
     from closedchain.mjcf_reference import mujoco_accelerations, mujoco_model, to_mujoco
 
-    ref = mujoco_model(path, mech.model)
+    ref = mujoco_model(path, mech.model, rigid=not passive)
     dM = soft = rigid = softness = 0.0
     for _ in range(N_STATES):
         q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
@@ -135,7 +136,7 @@ def _note(exc: Exception) -> str:
     return text if len(text) <= MAX_NOTE else text[: MAX_NOTE - 3] + "..."
 
 
-def check(path: Path) -> dict[str, str]:
+def check(path: Path, *, passive: bool = False) -> dict[str, str]:
     """Return one row of the table for one model file."""
     import closedchain as cc
     from closedchain.exceptions import URDFError
@@ -149,7 +150,7 @@ def check(path: Path) -> dict[str, str]:
             if "is missing, and MuJoCo infers" not in str(exc):
                 row["start"] = f"refused: {_note(exc)}"
                 return row
-            body = str(exc).split("infers body ", 1)[1].split("'s inertia", 1)[0]
+            body = str(exc).split("infers body ", 1)[1].split("'s inertia", 1)[0].strip("'")
             row["meshes"] = f"stubbed (absent: refused, {body}'s inertia from its mesh)"
             path = _stubbed_copy(path, tmp)
             mech = cc.load(path)
@@ -175,7 +176,9 @@ def check(path: Path) -> dict[str, str]:
             row["animation [MB]"] = f"{page.stat().st_size / MEGABYTE:.2f}"
         except cc.ClosedChainError as exc:
             row["simulate 1 s: CPU [s], max abs phi"] = f"stopped: {_note(exc)}"
-        dM, soft, rigid, softness = _compare(mech, path, np.random.default_rng(SEED))
+        dM, soft, rigid, softness = _compare(
+            mech, path, np.random.default_rng(SEED), passive=passive
+        )
         row["M vs MuJoCo (rel.)"] = f"{dM:.1e}"
         row["a vs stiff MuJoCo (rel.)"] = f"{soft:.1e}"
         row["a vs rigid KKT from MuJoCo (rel.)"] = f"{rigid:.1e}"
@@ -194,14 +197,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", nargs="+", type=Path, help="MJCF files")
     parser.add_argument("--out", type=Path, help="also write the table as a generated page")
+    parser.add_argument(
+        "--passive",
+        action="store_true",
+        help="compare with MuJoCo's armature, damping and springs (default: zeroed)",
+    )
     args = parser.parse_args(argv)
     date, load = bench_page.today(), bench_page.load_average()
-    rows = [check(path) for path in args.models]
+    rows = [check(path, passive=args.passive) for path in args.models]
     lines = table(rows)
     print("\n".join(lines))
     if args.out is not None:
         names = " ".join(shlex.quote(f"MODELS/{p.parent.name}/{p.name}") for p in args.models)
-        command = f"python scripts/check_mjcf_models.py {names} --out {args.out}"
+        passive = " --passive" if args.passive else ""
+        command = f"python scripts/check_mjcf_models.py {names}{passive} --out {args.out}"
         head = bench_page.run_header(
             "MJCF models as shipped",
             command=command,

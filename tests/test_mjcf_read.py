@@ -10,7 +10,10 @@ own MJCF reader (``buildModelAndConstraintsFromMJCF``) for trees, and
 The models of tests/data/mjcf carry the features of the public models
 (defaults and classes through an include, childclass, frame, inertia from
 geoms, sites placed by classes and fromto, ball and free joints, joint ref,
-polycoef "0 3", torquescale 0, armature, an inactive equality, keyframes).
+polycoef "0 3", torquescale 0, an inactive equality, keyframes; passive.xml:
+armature, damping and springs through classes). The models compared with
+MuJoCo's dynamics have no passive terms, so that the comparisons hold whether
+closedchain's dynamics apply them or not.
 """
 
 from __future__ import annotations
@@ -222,6 +225,7 @@ MJCF_DIR = DATA_DIR / "mjcf"
 LINKAGE = MJCF_DIR / "linkage.xml"
 FLOATING = MJCF_DIR / "floating.xml"
 TREE = MJCF_DIR / "tree.xml"
+PASSIVE = MJCF_DIR / "passive.xml"
 COMPARED = [LINKAGE, FLOATING, FOURBAR_MJCF, TREE]
 
 #: Tolerance [SI] of M, body and site poses between closedchain's model and MuJoCo's
@@ -346,7 +350,6 @@ def test_equalities_become_loops_by_mujocos_rules(caplog):
     assert "inactive equalities (eq_active0 = 0), kept out of the loops: connect spare" in (
         caplog.text
     )
-    assert "friction loss (frictionloss) is not modelled: wheel_joint" in caplog.text
     assert mech.actuated_joints == ("crank_joint", "wheel_joint", "gear1_joint")
 
 
@@ -363,18 +366,32 @@ def test_other_torquescale_is_a_rigid_weld_with_a_note(tmp_path, caplog):
     assert "torquescale=0.5 weights MuJoCo's soft rotation rows" in caplog.text
 
 
-def test_passive_terms_are_read():
-    urdf = cc.load(LINKAGE).urdf
-    linked = [
-        "crank_joint", "coupler_joint", "rocker_joint", "wheel_joint", "rod_ball",
-        "gear1_joint", "gear2_joint", "arm1_joint", "arm2_joint", "arm3_joint",
-    ]  # fmt: skip
-    # The class "link" of the included defaults: armature 0.01, damping 0.1.
-    assert [(a.joint, a.armature) for a in urdf.armatures] == [(j, 0.01) for j in linked]
-    assert [(d.joint, d.damping) for d in urdf.dampings] == [(j, 0.1) for j in linked]
-    assert [(s.joint, s.stiffness, s.reference) for s in urdf.springs] == [
-        ("slider_joint", 50.0, 0.02)
-    ]
+def test_passive_terms_are_read(caplog):
+    """Armature, damping and springs given through classes; MuJoCo's M with its armature
+    equals Pinocchio's with model.armature set from what was read."""
+    import mujoco
+
+    from closedchain.mjcf_reference import mujoco_model, to_mujoco
+
+    with caplog.at_level("INFO", logger="closedchain.mjcf"):
+        mech = cc.load(PASSIVE)
+    urdf = mech.urdf
+    motors = ["a_joint", "b_ball", "c_slide"]  # class "motor" and its child "spring"
+    assert [(a.joint, a.armature) for a in urdf.armatures] == [(j, 0.01) for j in motors]
+    assert [(d.joint, d.damping) for d in urdf.dampings] == [(j, 0.1) for j in motors]
+    assert [(s.joint, s.stiffness, s.reference) for s in urdf.springs] == [("c_slide", 50.0, 0.02)]
+    assert "friction loss (frictionloss) is not modelled: b_ball" in caplog.text
+    model = pin.Model(mech.model)
+    for a in urdf.armatures:
+        model.armature[mech.joint_indices_v(a.joint)] = a.armature
+    ref = mujoco_model(PASSIVE, mech.model, rigid=False)
+    q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+    ref.data.qpos[:] = to_mujoco(ref, q)[0]
+    mujoco.mj_forward(ref.mj, ref.data)
+    M_mj = np.zeros((mech.nv, mech.nv))
+    mujoco.mj_fullM(ref.mj, ref.data, M_mj)
+    M = pin.crba(model, model.createData(), q)
+    assert np.linalg.norm(np.triu(M) - np.triu(M_mj)) <= MUJOCO_TREE_TOL
 
 
 def _mirrored_fourbar() -> np.ndarray:
