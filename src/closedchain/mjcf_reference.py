@@ -161,6 +161,22 @@ def pin_configuration(ref: MujocoModel, model: pin.Model, qpos) -> np.ndarray:
     return q
 
 
+def mujoco_mass_matrix(ref: MujocoModel, q) -> np.ndarray:
+    """Return MuJoCo's mass matrix at Pinocchio's q in Pinocchio's velocity coordinates.
+
+    With v_MuJoCo = T v (a free joint's linear velocity is in the world frame in
+    MuJoCo), the kinetic energy gives :math:`M = T^T M_{MuJoCo} T`, shape (nv, nv).
+    """
+    mujoco = _mujoco()
+    nv = ref.mj.nv
+    T = np.column_stack([to_mujoco(ref, q, e)[1] for e in np.eye(nv)])
+    ref.data.qpos[:] = to_mujoco(ref, q)[0]
+    mujoco.mj_forward(ref.mj, ref.data)
+    M = np.zeros((nv, nv))
+    mujoco.mj_fullM(ref.mj, ref.data, M)
+    return T.T @ M @ T
+
+
 def _equality_jacobian(ref: MujocoModel, qpos, qvel) -> np.ndarray:
     mujoco = _mujoco()
     d = ref.data
