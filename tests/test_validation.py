@@ -50,11 +50,14 @@ PIN_MAX_ITER = 100
 #: Distance [m] between the two contact points standing for a revolute loop.
 REVOLUTE_POINT_OFFSET = 0.05
 N_INDEPENDENT_STATES = 30
-#: Their tolerance on |a - a_pin| / max(1, |a_pin|): with tau ~ N(0, 1) N m the
-#: light Agile Eye accelerates at ~1e3 rad/s^2, where the proximal solver's
-#: absolute error reaches a few 1e-9 (the KKT solve agrees with the 40-digit
-#: solve to ~1e-12 there).
-TOL_ACCELERATION_RELATIVE = 1e-11
+#: Their tolerance on |a - a_pin| / max(1, |a_pin|): the reference's own accuracy.
+#: With tau ~ N(0, 1) N m the light Agile Eye accelerates at ~2e3 rad/s^2, where the
+#: proximal solver (mu = PIN_MU, redundant point-contact rows) stops short of the exact
+#: solution: at one state of this seed it is 3.6e-11 relative from a 40-digit KKT solve
+#: whatever its iteration limit (100 to 1000) while closedchain's KKT solve is 1.2e-14
+#: from it (measured on an AMD EPYC, OpenBLAS Haswell kernel). closedchain's own accuracy
+#: is held to TOL_HIGH_PRECISION by test_kkt_agrees_with_a_40_digit_solve.
+TOL_ACCELERATION_RELATIVE = 1e-10
 
 
 # -- closedchain.validate -------------------------------------------------------------------
