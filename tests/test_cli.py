@@ -897,3 +897,11 @@ def test_a_full_disk_names_the_file_and_keeps_the_previous_one(tmp_path, mechani
     assert proc.stderr == f"closedchain: error: {target}: File too large\n"
     assert target.read_bytes() == b"previous"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.csv"]
+
+
+def test_keyframe_option_chooses_the_mjcf_start(capsys):
+    floating = DATA_DIR / "mjcf" / "floating.xml"
+    status, out, _ = run(capsys, "info", floating, "--keyframe", "crouch")
+    assert status == 0 and "q_ref" in out
+    err = one_line_error(*run(capsys, "info", floating, "--keyframe", "stand")[::2])
+    assert "unknown keyframe 'stand'; keyframes: crouch" in err

@@ -1,9 +1,19 @@
-"""Reading MuJoCo MJCF (closedchain.mjcf): tree, inertias, equalities as loops.
+"""Reading MuJoCo MJCF (closedchain.mjcf) through MuJoCo's compiler.
 
-References: models/fourbar.urdf (the same 4-bar, its dynamics checked elsewhere
-against the seed's closed forms), Pinocchio's own MJCF reader
-(``buildModelAndConstraintsFromMJCF``) for the tree, and
+References: MuJoCo's own compiled arrays and dynamics of the same files
+(M from ``mj_fullM``, body and site poses at qpos0, ``qacc`` with stiff
+equalities, and a rigid KKT solve from MuJoCo's M, bias forces and equality
+Jacobian: closedchain.mjcf_reference), models/fourbar.urdf (the same 4-bar,
+its dynamics checked elsewhere against the lesson's closed forms), Pinocchio's
+own MJCF reader (``buildModelAndConstraintsFromMJCF``) for trees, and
 ``pin.constraintDynamics`` through ``closedchain.validate`` for the loop.
+The models of tests/data/mjcf carry the features of the public models
+(defaults and classes through an include, childclass, frame, inertia from
+geoms, sites placed by classes and fromto, ball and free joints, joint ref,
+polycoef "0 3", torquescale 0, an inactive equality, keyframes; passive.xml:
+armature, damping and springs through classes). The models compared with
+MuJoCo's dynamics have no passive terms, so that the comparisons hold whether
+closedchain's dynamics apply them or not.
 """
 
 from __future__ import annotations
@@ -149,76 +159,6 @@ def test_weld_becomes_a_fixed_loop_closed_at_qpos0(tmp_path):
     assert np.linalg.norm(cc.compute_phi(mech, np.zeros(3))) <= 1e-12
 
 
-#: A body's mass and inertia, for the bodies of the refused inputs below.
-INERTIAL = '<inertial mass="1" diaginertia="1 1 1"/>'
-
-
-@pytest.mark.parametrize(
-    ("xml", "match"),
-    [
-        (
-            f'<body name="b"><joint type="ball"/>{INERTIAL}</body>',
-            r"<joint>: ball joints are not supported .*valid: hinge, slide, free",
-        ),
-        (
-            f'<body name="b"><body name="c"><freejoint/>{INERTIAL}</body></body>',
-            r"<freejoint>: a free joint must be the only joint of a top-level body",
-        ),
-        (
-            f'<body name="b"><joint name="j" ref="0.3"/>{INERTIAL}</body>',
-            r"<joint name='j'>: ref= other than 0 is not supported",
-        ),
-        (
-            '<body name="b"><joint name="j"/><geom size="0.1"/></body>',
-            r"<body name='b'>: has joints and geoms but no <inertial>",
-        ),
-        (f'<body name="b" quat="0 0 0 0"><joint name="j"/>{INERTIAL}</body>', r"quat is zero"),
-        ('<body name="b"><geom size="big"/></body>', r"<geom>: size='big' must be 1 to 3"),
-    ],
-)
-def test_bad_bodies_are_refused(tmp_path, xml, match):
-    path = tmp_path / "bad.xml"
-    path.write_text(f"<mujoco><worldbody>{xml}</worldbody></mujoco>")
-    with pytest.raises(URDFError, match=match):
-        cc.load(path)
-
-
-@pytest.mark.parametrize(
-    ("equality", "match"),
-    [
-        (
-            '<joint joint1="coupler_joint" joint2="crank_joint" polycoef="0 1 0.5 0 0"/>',
-            r"only a linear coupling q1 = c0 \+ c1 q2 is supported; valid: c2 = c3 = c4 = 0",
-        ),
-        (
-            '<joint joint1="coupler_joint"/>',
-            r"a joint equality without joint2 \(a locked joint\) is not supported",
-        ),
-        (
-            '<connect body1="coupler" body2="wheel" anchor="0 0 0"/>',
-            r"body2='wheel' names no body; bodies: coupler, crank, ground, rocker, world",
-        ),
-        ('<tendon tendon1="t"/>', r"equality type <tendon> is not supported; valid: connect"),
-    ],
-)
-def test_bad_equalities_are_refused(tmp_path, equality, match):
-    def replace(root):
-        eq = root.find("equality")
-        eq.remove(eq.find("connect"))
-        eq.append(etree.fromstring(equality))
-
-    with pytest.raises(URDFError, match=match):
-        cc.load(_edit(tmp_path, replace))
-
-
-def test_defaults_that_change_the_mechanism_are_refused(tmp_path):
-    def default(root):
-        root.insert(0, etree.fromstring('<default><joint damping="1"/></default>'))
-
-    with pytest.raises(URDFError, match=r"a <default> <joint> would change the mechanism"):
-        cc.load(_edit(tmp_path, default))
-
-
 def test_doctype_is_refused(tmp_path):
     path = tmp_path / "dtd.xml"
     path.write_text('<!DOCTYPE m [<!ENTITY e "x">]><mujoco><worldbody/></mujoco>')
@@ -239,7 +179,9 @@ def test_free_joint_is_the_free_flyer_root(tmp_path, rng):
 
     def ground_mass(root):
         ground = root.find("worldbody/body")
-        ground.insert(0, etree.fromstring('<inertial mass="2" diaginertia="0.1 0.2 0.3"/>'))
+        ground.insert(
+            0, etree.fromstring('<inertial pos="0 0 0" mass="2" diaginertia="0.1 0.2 0.3"/>')
+        )
 
     fixed = cc.load(_edit(tmp_path, ground_mass), root_joint="free")
 
@@ -251,15 +193,6 @@ def test_free_joint_is_the_free_flyer_root(tmp_path, rng):
     assert floating.model.joints[1].shortname() == "JointModelFreeFlyer"
     assert (floating.nq, floating.nv) == (fixed.nq, fixed.nv) == (10, 9)
     _same_dynamics(fixed, floating, rng)
-
-
-def test_passive_joint_terms_are_logged_as_ignored(tmp_path, caplog):
-    def damped(root):
-        root.find(".//joint[@name='crank_joint']").set("damping", "0.5")
-
-    with caplog.at_level("WARNING", logger="closedchain.mjcf"):
-        cc.load(_edit(tmp_path, damped))
-    assert "damping=0.5 ignored" in caplog.text
 
 
 def test_several_joints_in_one_body_match_pinocchio_composite_joint(tmp_path, rng):
@@ -284,3 +217,343 @@ def test_several_joints_in_one_body_match_pinocchio_composite_joint(tmp_path, rn
         assert np.linalg.norm(np.triu(M1) - np.triu(M2)) <= TREE_TOL
         h1 = pin.nonLinearEffects(model, data, q, v)
         assert np.linalg.norm(h1 - pin.nonLinearEffects(mech.model, ours, q, v)) <= TREE_TOL
+
+
+# -- against MuJoCo's own compiled model ------------------------------------------------
+
+MJCF_DIR = DATA_DIR / "mjcf"
+LINKAGE = MJCF_DIR / "linkage.xml"
+FLOATING = MJCF_DIR / "floating.xml"
+TREE = MJCF_DIR / "tree.xml"
+PASSIVE = MJCF_DIR / "passive.xml"
+COMPARED = [LINKAGE, FLOATING, FOURBAR_MJCF, TREE]
+
+#: Tolerance [SI] of M, body and site poses between closedchain's model and MuJoCo's
+#: (both compiled from one file; MuJoCo stores inertias in double).
+MUJOCO_TREE_TOL = 1e-12
+
+#: Relative tolerance of accelerations against MuJoCo with stiff equalities (what remains
+#: is MuJoCo's softness: solref 2e-4, solimp 0.9999).
+SOFT_RTOL = 1e-3
+
+#: Relative tolerance against the rigid KKT solve built from MuJoCo's M, bias and
+#: equality rows (its J-dot v by central differences: mjcf_reference.JDOT_STEP).
+RIGID_RTOL = 1e-9
+
+#: Scale of the random consistent velocities compared with MuJoCo's soft solution (its
+#: softness grows with the constraint forces the velocities need).
+SOFT_SPEED = 0.3
+
+#: Distance [rad] of q_ref from a key that closes the loop exactly (the assembly's tolerance
+#: and the file's 17 digits).
+KEYFRAME_TOL = 1e-8
+
+
+@pytest.fixture(scope="module", params=COMPARED, ids=lambda p: p.stem)
+def compared(request):
+    from closedchain.mjcf_reference import mujoco_model
+
+    mech = cc.load(request.param)
+    return mech, mujoco_model(request.param, mech.model)
+
+
+def test_mass_matrix_matches_mujoco(compared, rng):
+    """M at random configurations (armature zeroed in MuJoCo's spec: the tree alone)."""
+    from closedchain.mjcf_reference import mujoco_mass_matrix
+
+    mech, ref = compared
+    for _ in range(N_STATES):
+        q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+        M = pin.crba(mech.model, mech.data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        tol = MUJOCO_TREE_TOL * max(1.0, np.linalg.norm(M))
+        assert np.linalg.norm(mujoco_mass_matrix(ref, q) - M) <= tol
+
+
+def test_bodies_and_sites_at_qpos0_match_mujoco(compared):
+    import mujoco
+
+    from closedchain.build import configuration
+
+    mech, ref = compared
+    m, d = ref.mj, ref.data
+    d.qpos[:] = m.qpos0
+    mujoco.mj_forward(m, d)
+    q0 = configuration(mech.model, mech.urdf.description.reference_values())
+    pin.framesForwardKinematics(mech.model, mech.data, q0)
+    for b in range(1, m.nbody):
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b)
+        oMb = mech.data.oMf[mech.model.getFrameId(name, pin.FrameType.BODY)]
+        assert np.linalg.norm(oMb.translation - d.xpos[b]) <= MUJOCO_TREE_TOL, name
+        assert np.linalg.norm(oMb.rotation - d.xmat[b].reshape(3, 3)) <= MUJOCO_TREE_TOL, name
+    for s in range(m.nsite):
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, s)
+        oMs = mech.data.oMf[mech.model.getFrameId(name, pin.FrameType.OP_FRAME)]
+        assert np.linalg.norm(oMs.translation - d.site_xpos[s]) <= MUJOCO_TREE_TOL, name
+        assert np.linalg.norm(oMs.rotation - d.site_xmat[s].reshape(3, 3)) <= MUJOCO_TREE_TOL
+
+
+def test_accelerations_match_mujoco(compared, rng):
+    """Closed random states: MuJoCo's qacc with stiff equalities (contacts and limits off)
+    to SOFT_RTOL, and the rigid KKT solve from MuJoCo's own arrays to RIGID_RTOL."""
+    from closedchain.mjcf_reference import mujoco_accelerations, to_mujoco
+
+    mech, ref = compared
+    for _ in range(N_STATES):
+        q, v = cc.random_consistent_state(mech, rng)
+        tau = rng.standard_normal(mech.nv)
+        for speed, rtol, which in ((1.0, RIGID_RTOL, 1), (SOFT_SPEED, SOFT_RTOL, 0)):
+            a = cc.forward_dynamics(mech, q, speed * v, tau, method="kkt").a
+            expected = mujoco_accelerations(ref, q, speed * v, tau)[which]
+            a_mj = to_mujoco(ref, q, speed * v, a)[2]
+            assert np.linalg.norm(a_mj - expected) <= rtol * np.linalg.norm(expected)
+
+
+def test_tree_matches_pinocchio_mjcf_reader(rng):
+    """The builder against Pinocchio's own MJCF reader on a tree in one root body."""
+    mech = cc.load(TREE)
+    model, *_ = pin.buildModelAndConstraintsFromMJCF(str(TREE))
+    model.gravity.linear = mech.gravity
+    assert (model.nq, model.nv) == (mech.nq, mech.nv)
+    data = model.createData()
+    for _ in range(N_STATES):
+        q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+        v = rng.standard_normal(mech.nv)
+        M1, M2 = pin.crba(model, data, q), pin.crba(mech.model, mech.data, q)
+        assert np.linalg.norm(np.triu(M1) - np.triu(M2)) <= TREE_TOL
+        h1 = pin.nonLinearEffects(model, data, q, v)
+        assert np.linalg.norm(h1 - pin.nonLinearEffects(mech.model, mech.data, q, v)) <= TREE_TOL
+
+
+def test_equalities_become_loops_by_mujocos_rules(caplog):
+    with caplog.at_level("INFO", logger="closedchain.mjcf"):
+        mech = cc.load(LINKAGE)
+    loops = {s.name: s for s in mech.urdf.loops}
+    assert {n: s.type for n, s in loops.items()} == {
+        "fourbar_loop": "spherical",  # connect of two sites
+        "rod_end": "spherical",
+        "gears": "coupling",
+        "tip_pin": "spherical",  # weld with torquescale 0: a point constraint
+    }
+    gears = loops["gears"]
+    # polycoef "0 3" padded with zeros; MuJoCo's polynomial is in q - ref (gear2: 10 deg).
+    assert (gears.joint, gears.mimics, gears.multiplier) == ("gear1_joint", "gear2_joint", 3.0)
+    assert gears.offset == pytest.approx(-3.0 * math.radians(10.0), abs=1e-15)
+    assert mech.summary()["inactive_equalities"] == ["connect spare"]
+    assert "inactive equalities (eq_active0 = 0), kept out of the loops: connect spare" in (
+        caplog.text
+    )
+    assert mech.actuated_joints == ("crank_joint", "wheel_joint", "gear1_joint")
+
+
+def test_other_torquescale_is_a_rigid_weld_with_a_note(tmp_path, caplog):
+    text = LINKAGE.read_text().replace('torquescale="0"', 'torquescale="0.5"')
+    path = MJCF_DIR / "_torquescale.xml"  # beside its include
+    path.write_text(text)
+    try:
+        with caplog.at_level("INFO", logger="closedchain.mjcf"):
+            mech = cc.load(path)
+    finally:
+        path.unlink()
+    assert next(s for s in mech.urdf.loops if s.name == "tip_pin").type == "fixed"
+    assert "torquescale=0.5 weights MuJoCo's soft rotation rows" in caplog.text
+
+
+def test_passive_terms_are_read(caplog):
+    """Armature, damping and springs given through classes; MuJoCo's M with its armature
+    equals Pinocchio's with model.armature set from what was read."""
+    from closedchain.mjcf_reference import mujoco_mass_matrix, mujoco_model
+
+    with caplog.at_level("INFO", logger="closedchain.mjcf"):
+        mech = cc.load(PASSIVE)
+    urdf = mech.urdf
+    motors = ["a_joint", "b_ball", "c_slide"]  # class "motor" and its child "spring"
+    assert [(a.joint, a.armature) for a in urdf.armatures] == [(j, 0.01) for j in motors]
+    assert [(d.joint, d.damping) for d in urdf.dampings] == [(j, 0.1) for j in motors]
+    assert [(s.joint, s.stiffness, s.reference) for s in urdf.springs] == [("c_slide", 50.0, 0.02)]
+    assert "friction loss (frictionloss) is not modelled: b_ball" in caplog.text
+    model = pin.Model(mech.model)
+    for a in urdf.armatures:
+        model.armature[mech.joint_indices_v(a.joint)] = a.armature
+    ref = mujoco_model(PASSIVE, mech.model, rigid=False)
+    q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
+    M = pin.crba(model, model.createData(), q)
+    assert np.linalg.norm(np.triu(M) - np.triu(mujoco_mass_matrix(ref, q))) <= MUJOCO_TREE_TOL
+
+
+def _mirrored_fourbar() -> np.ndarray:
+    """The hand-written 4-bar's other assembly at the same crank angle [rad].
+
+    The coupler and rocker mirrored across the line from the crank's tip C to the rocker's
+    pivot R (from MuJoCo's poses at qpos0): each turns by twice the angle between that
+    line and its own direction (angles about -y, the joints' axis, are atan2(z, x)).
+    """
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_path(str(FOURBAR_MJCF))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    coupler = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "coupler")
+    C = d.xpos[coupler]
+    D = C + 0.4 * d.xmat[coupler].reshape(3, 3)[:, 0]  # the connect's anchor
+    R = d.xanchor[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "rocker_joint")]
+
+    def angle(u):
+        return math.atan2(u[2], u[0])
+
+    phi = angle(R - C)
+    turn = [2.0 * (phi - angle(D - C)), 2.0 * (phi - angle(D - R))]
+    return np.array([0.0, *(math.remainder(t, 2.0 * math.pi) for t in turn)])
+
+
+def test_assembly_starts_from_a_keyframe(tmp_path):
+    """Keys on the 4-bar's two assemblies: the first key, else the named one, is closed."""
+    mirrored, drawn = _mirrored_fourbar(), np.zeros(3)
+
+    def keys(root):
+        frames = etree.SubElement(root, "keyframe")
+        for name, q in (("elbow_down", mirrored), ("elbow_up", drawn)):
+            etree.SubElement(frames, "key", name=name, qpos=" ".join(repr(float(x)) for x in q))
+
+    path = _edit(tmp_path, keys)
+    assert np.linalg.norm(mirrored - drawn) > 1.0  # two distinct assemblies
+    for keyframe, q_key in ((None, mirrored), ("elbow_down", mirrored), ("elbow_up", drawn)):
+        mech = cc.load(path, keyframe=keyframe)
+        assert np.linalg.norm(mech.q_ref - q_key) <= KEYFRAME_TOL, keyframe
+    with pytest.raises(
+        URDFError, match=r"unknown keyframe 'side'; keyframes: elbow_down, elbow_up"
+    ):
+        cc.load(path, keyframe="side")
+    with pytest.raises(URDFError, match=r"keyframe='up' is for MJCF models"):
+        cc.load(MODELS / "fourbar.urdf", keyframe="up")
+
+
+def test_floating_model_starts_from_its_keyframe():
+    """Its key "crouch" closes the loop (see the file): q_ref is that key, not qpos0."""
+    import mujoco
+
+    from closedchain.mjcf_reference import mujoco_model, pin_configuration
+
+    mech = cc.load(FLOATING)
+    ref = mujoco_model(FLOATING, mech.model)
+    key = pin_configuration(ref, mech.model, ref.mj.key_qpos[0])
+    assert mujoco.mj_id2name(ref.mj, mujoco.mjtObj.mjOBJ_KEY, 0) == "crouch"
+    assert np.linalg.norm(mech.q_ref - key) <= KEYFRAME_TOL
+
+
+def test_missing_meshes(tmp_path, caplog):
+    """A missing mesh is left out where the body's inertia is explicit, else refused."""
+    body = (
+        '<mujoco><asset><mesh name="m" file="gone.stl"/></asset><worldbody>'
+        '<body name="b"><joint name="j"/>{}<geom type="mesh" mesh="m"/>'
+        '<geom type="sphere" size="0.1" pos="0 0 -0.3"/></body></worldbody></mujoco>'
+    )
+    path = tmp_path / "meshes.xml"
+    path.write_text(body.format('<inertial pos="0 0 -0.3" mass="1" diaginertia="1 1 1"/>'))
+    with caplog.at_level("WARNING", logger="closedchain.mjcf"):
+        mech = cc.load(path)
+    assert "mesh files missing" in caplog.text and "gone.stl" in caplog.text
+    assert mech.model.inertias[1].mass == 1.0
+    path.write_text(body.format(""))
+    with pytest.raises(URDFError, match=r"mesh file 'gone.stl' is missing, and MuJoCo infers"):
+        cc.load(path)
+
+
+@pytest.mark.parametrize(
+    ("equality", "match"),
+    [
+        (
+            '<joint joint1="coupler_joint" joint2="crank_joint" polycoef="0 1 0.5"/>',
+            r"polycoef 0 1 0.5 0 0: only a linear coupling q1 = c0 \+ c1 q2 is read; "
+            r"valid: c2 = c3 = c4 = 0",
+        ),
+        ('<joint joint1="coupler_joint"/>', r"a joint equality without joint2 locks joint"),
+        (
+            '<connect body1="coupler" body2="wheel" anchor="0 0 0"/>',
+            r"MuJoCo cannot compile it: .*unknown element 'wheel'",
+        ),
+    ],
+)
+def test_bad_equalities_are_refused(tmp_path, equality, match):
+    def replace(root):
+        eq = root.find("equality")
+        eq.remove(eq.find("connect"))
+        eq.append(etree.fromstring(equality))
+
+    with pytest.raises(URDFError, match=match):
+        cc.load(_edit(tmp_path, replace))
+
+
+def test_include_outside_the_models_folder_is_refused(tmp_path):
+    (tmp_path / "model").mkdir()
+    (tmp_path / "outside.xml").write_text("<mujoco/>")
+    path = tmp_path / "model" / "m.xml"
+    path.write_text('<mujoco><include file="../outside.xml"/><worldbody/></mujoco>')
+    with pytest.raises(URDFError, match=r"<include file='../outside.xml'> is outside the model"):
+        cc.load(path)
+
+
+def test_without_mujoco_one_line_names_what_to_install(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)
+    with pytest.raises(URDFError, match=r"needs MuJoCo's compiler: pip install mujoco"):
+        cc.load(FOURBAR_MJCF)
+
+
+def test_overlays_are_refused_on_mjcf(tmp_path):
+    overlay = tmp_path / "loops.urdf"
+    overlay.write_text('<robot name="x"/>')
+    with pytest.raises(URDFError, match=r"an MJCF model takes its loops from its <equality>"):
+        cc.load(FOURBAR_MJCF, loops=overlay)
+
+
+#: Tolerance [m] of mesh vertices against MuJoCo's compiled ones (stored in float32).
+MESH_VERTEX_TOL = 1e-6
+
+
+def test_mesh_visuals_sit_where_mujoco_puts_them(tmp_path):
+    """A mesh geom (scaled, posed; MuJoCo recentres the mesh and moves the geom) is drawn
+    from its file: the file's vertices, scaled and placed, are MuJoCo's compiled ones."""
+    import mujoco
+    import trimesh
+
+    from closedchain.visualize.shapes import read_visuals
+
+    box = trimesh.creation.box(extents=[0.1, 0.2, 0.3])
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.3, [1, 1, 0]))
+    box.apply_translation([0.1, 0.2, 0.3])
+    (tmp_path / "assets").mkdir()
+    box.export(tmp_path / "assets" / "part.obj")
+    path = tmp_path / "mesh.xml"
+    path.write_text(
+        '<mujoco><compiler meshdir="assets"/><asset><mesh name="part" file="part.obj" '
+        'scale="2 1 0.5"/></asset><worldbody><body name="b" pos="0 0 1"><joint name="j"/>'
+        '<geom type="mesh" mesh="part" pos="0.1 0 0" euler="10 20 30"/>'
+        '<geom type="capsule" size="0.02 0.1"/></body></worldbody></mujoco>'
+    )
+    mech = cc.load(path)
+    (shape,) = [v for v in read_visuals(mech) if v.kind == "mesh"]
+    assert shape.link == "b" and shape.mesh == (tmp_path / "assets" / "part.obj").resolve()
+    drawn = (shape.origin[:3, :3] @ (np.asarray(shape.dims) * box.vertices).T).T
+    drawn += shape.origin[:3, 3]
+    m = mujoco.MjModel.from_xml_path(str(path))
+    g = int(np.flatnonzero(m.geom_type == mujoco.mjtGeom.mjGEOM_MESH)[0])
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, m.geom_quat[g])
+    compiled = m.mesh_vert[m.mesh_vertadr[0] : m.mesh_vertadr[0] + m.mesh_vertnum[0]]
+    expected = compiled @ R.reshape(3, 3).T + m.geom_pos[g]
+    assert np.linalg.norm(np.sort(drawn, axis=0) - np.sort(expected, axis=0)) <= MESH_VERTEX_TOL
+    # The capsule: its cylinder and two end spheres.
+    assert sorted(v.kind for v in read_visuals(mech) if v.kind != "mesh") == [
+        "cylinder", "sphere", "sphere"
+    ]  # fmt: skip
+
+
+def test_linkage_simulates_and_animates(tmp_path):
+    mech = cc.load(LINKAGE)
+    traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), 0.2)
+    assert traj.info.max_constraint_residual <= 1e-9
+    page = cc.write_html(mech, traj, tmp_path / "linkage.html")
+    assert (tmp_path / "linkage.html").stat().st_size > 0
+    assert page.meshes.n_embedded == 0

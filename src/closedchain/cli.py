@@ -123,11 +123,15 @@ def _load(args, path=None):
     gravity = getattr(args, "gravity", None)
     if gravity is not None:
         options["gravity"] = gravity
+    keyframe = getattr(args, "keyframe", None)
+    if keyframe is not None:
+        options["keyframe"] = keyframe
     return load(path, **options)
 
 
 def add_model_arguments(p: argparse.ArgumentParser, gravity_note: str = "") -> None:
-    """Add ``--root``, ``--loops`` and ``--gravity``, the options of :func:`closedchain.load`."""
+    """Add ``--root``, ``--loops``, ``--gravity`` and ``--keyframe``, options of
+    :func:`closedchain.load`."""
     p.add_argument(
         "--root",
         choices=("free", "planar"),
@@ -146,6 +150,11 @@ def add_model_arguments(p: argparse.ArgumentParser, gravity_note: str = "") -> N
         nargs=3,
         metavar=("GX", "GY", "GZ"),
         help=f"gravity in the world frame [m/s^2] ({gravity_note}default 0 0 -9.81)",
+    )
+    p.add_argument(
+        "--keyframe",
+        metavar="NAME",
+        help="MJCF models: the <key> the assembly starts from (default: the first keyframe)",
     )
 
 

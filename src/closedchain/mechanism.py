@@ -25,6 +25,7 @@ from threadpoolctl import threadpool_limits
 from ._invariants import prove_unclosable
 from ._io import captured_stderr
 from ._locking import exclusive
+from .build import build_model, configuration
 from .closure import (
     AssemblySettings,
     LoopClosure,
@@ -46,9 +47,9 @@ from .exceptions import (
     ValidationUnavailableError,
     check_settings,
 )
-from .mjcf import read_model
+from .mjcf import MJCF_ROOT, read_mjcf
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
-from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
+from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf, read_xml
 from .yaml_loops import edit_model
 
 __all__ = [
@@ -667,6 +668,9 @@ class Mechanism:
             "dependent": [self.coordinate_names[i] for i in self.dependent_idx_v],
             "q_ref": self.q_ref.tolist(),
             "pinocchio_reference": pin_ok,
+            "inactive_equalities": list(
+                () if self.urdf.description is None else self.urdf.description.inactive
+            ),
         }
 
     def __repr__(self) -> str:
@@ -749,6 +753,26 @@ def _urdfdom_errors(text: str) -> list[str]:
     return [line.removeprefix("Error:").strip() for line in lines if line.startswith("Error:")]
 
 
+def _build_from_xml(urdf: URDFPlus, root) -> pin.Model:
+    """Build the tree of a URDF+ text with Pinocchio's URDF reader (urdfdom)."""
+    try:
+        # urdfdom prints its reasons on fd 2: fold them into the one-line message.
+        with captured_stderr() as urdfdom:
+            model = (
+                pin.buildModelFromXML(urdf.xml)
+                if root is None
+                else pin.buildModelFromXML(urdf.xml, root())
+            )
+    except (RuntimeError, ValueError) as exc:
+        errors = _urdfdom_errors(urdfdom.text)
+        reason = f"urdfdom: {errors[0]}" if errors else str(exc)
+        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {reason}") from exc
+    if urdfdom.text.strip():
+        reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
+        logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
+    return model
+
+
 def load(
     path: str | Path,
     *,
@@ -757,6 +781,7 @@ def load(
     gravity: Sequence[float] | None = None,
     settings: LoadSettings = DEFAULT_LOAD_SETTINGS,
     cut_joints: Sequence[str] = (),
+    keyframe: str | None = None,
 ) -> Mechanism:
     """Load a mechanism from a URDF+, SDF or MJCF file (with an optional URDF+ or YAML loops
     overlay), or from example-robot-data.
@@ -765,8 +790,8 @@ def load(
         path: URDF file with optional ``<loop>`` / ``<transmission>`` elements,
             an SDF file (``.sdf``, cut into a tree and loops by
             :mod:`closedchain.sdf`), a MuJoCo MJCF file (root ``<mujoco>``, read by
-            :mod:`closedchain.mjcf`: ``<equality>`` connect, weld and joint
-            constraints become loops), or ``erd:<name>``, a model of the
+            :mod:`closedchain.mjcf` through MuJoCo's compiler: ``<equality>``
+            connect, weld and joint constraints become loops), or ``erd:<name>``, a model of the
             installed example-robot-data (:data:`closedchain.robots.ERD_MODELS`;
             animations embed its meshes within a budget:
             :attr:`closedchain.visualize.AnimationSettings.mesh_budget_bytes`).
@@ -785,6 +810,8 @@ def load(
         settings: row-selection settings (defaults: :class:`LoadSettings`).
         cut_joints: SDF only: joints to cut into loops in preference to the
             rule of :mod:`closedchain.sdf` (default: the registry entry's).
+        keyframe: MJCF only: the ``<key>`` the assembly starts from (None: the
+            first keyframe, else the model's pose at ``qpos0``).
 
     Returns:
         The mechanism, with independent rows selected and a closed ``q_ref``, within
@@ -809,13 +836,33 @@ def load(
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
     cut = tuple(cut_joints) or (entry.cut_joints if entry is not None else ())
-    # URDF and MJCF are read here once (MJCF carries its gravity); SDF and cuts by
-    # merge_overlay's read_base.
-    robot, file_gravity = (None, None) if cut or is_sdf(base) else read_model(base)
+    # URDF and MJCF are read here once (MJCF through MuJoCo, with its gravity); SDF and
+    # cuts by merge_overlay's read_base.
+    robot = None if cut or is_sdf(base) else read_xml(base)
+    mjcf, file_gravity = None, None
+    if robot is not None and robot.tag == MJCF_ROOT:
+        mjcf, file_gravity = read_mjcf(base)
+        if loops is not None:
+            raise URDFError(
+                f"{base}: an MJCF model takes its loops from its <equality> elements; "
+                "overlays (loops=, --loops) apply to URDF and SDF models"
+            )
+    elif keyframe is not None:
+        raise URDFError(f"{base}: keyframe={keyframe!r} is for MJCF models (their <key>s)")
     if gravity is None:
         gravity = DEFAULT_GRAVITY if file_gravity is None else file_gravity
     try:
-        if loops is None and entry is None and robot is not None:
+        if mjcf is not None:
+            urdf = mjcf
+            nv = sum({"spherical": 3, "free": 6}.get(j.kind, 1) for j in mjcf.description.joints())
+            if nv > max_nv(settings):
+                raise ModelTooLargeError(
+                    f"{base}: {len(mjcf.description.joints())} joints with nv = {nv} degrees "
+                    f"of freedom are beyond the supported size; valid: nv <= {max_nv(settings)}",
+                    nv=nv,
+                    max_nv=max_nv(settings),
+                )
+        elif loops is None and entry is None and robot is not None:
             urdf = parse_urdf(base, element=robot, max_nv=max_nv(settings))
         else:
             urdf = merge_overlay(
@@ -850,22 +897,11 @@ def load(
             f"gravity {gravity} m/s^2 is beyond the limit; valid: a norm of at most "
             f"{MAX_GRAVITY_NORM:g} m/s^2 (MAX_GRAVITY_NORM)"
         )
-    try:
-        root = ROOT_JOINTS[root_joint]
-        # urdfdom prints its reasons on fd 2: fold them into the one-line message.
-        with captured_stderr() as urdfdom:
-            model = (
-                pin.buildModelFromXML(urdf.xml)
-                if root is None
-                else pin.buildModelFromXML(urdf.xml, root())
-            )
-    except (RuntimeError, ValueError) as exc:
-        errors = _urdfdom_errors(urdfdom.text)
-        reason = f"urdfdom: {errors[0]}" if errors else str(exc)
-        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {reason}") from exc
-    if urdfdom.text.strip():
-        reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
-        logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
+    root = ROOT_JOINTS[root_joint]
+    if urdf.description is not None:
+        model = build_model(urdf.description, None if root is None else root())
+    else:
+        model = _build_from_xml(urdf, root)
     if urdf.spherical or urdf.unlimited or urdf.fuse_ball_chains:
         model = edit_model(model, urdf)
     if model.nv == 0:
@@ -926,11 +962,27 @@ def load(
         for name, value in urdf.scene.initial.items():
             scene_q[model.joints[model.getJointId(name)].idx_q] = value
         starts.append(scene_q)
-    _select_rows_and_coordinates(
-        mech, settings, q_guess=reference_configuration(model, entry), extra_starts=starts
-    )
+    q_guess = reference_configuration(model, entry)
+    if urdf.description is not None:
+        q_guess = configuration(model, _start_values(urdf, keyframe))
+    _select_rows_and_coordinates(mech, settings, q_guess=q_guess, extra_starts=starts)
     logger.info("loaded %r", mech)
     return mech
+
+
+def _start_values(urdf: URDFPlus, keyframe: str | None) -> dict[str, tuple[float, ...]]:
+    """Return the joint values an MJCF model's assembly starts from: the named keyframe,
+    else the first, else the model's pose at qpos0."""
+    keyframes = urdf.description.keyframes
+    if keyframe is not None and keyframe not in keyframes:
+        known = ", ".join(keyframes) if keyframes else "none (the model has no <key>)"
+        raise URDFError(f"{urdf.path}: unknown keyframe {keyframe!r}; keyframes: {known}")
+    if keyframe is None:
+        keyframe = next(iter(keyframes), None)
+    if keyframe is None:
+        return urdf.description.reference_values()
+    logger.info("%s: the assembly starts from keyframe %r", urdf.path, keyframe)
+    return keyframes[keyframe]
 
 
 def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:

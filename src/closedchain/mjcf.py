@@ -1,570 +1,637 @@
-r"""Read MuJoCo MJCF models: the body tree and ``<equality>`` constraints as URDF+.
+r"""Read MuJoCo MJCF models through MuJoCo's own compiler.
 
-An MJCF file (root ``<mujoco>``) is translated into a URDF+ ``<robot>``
-element, which then goes through the same reader, checks and loop layer as a
-URDF (:func:`closedchain.urdf.parse_urdf`), so every command works on it.
-The rule:
+An MJCF file (root ``<mujoco>``) is compiled by MuJoCo (``mujoco.MjSpec``,
+the ``mujoco`` package: ``pip install mujoco`` or closedchain's ``mjcf``
+extra), and the tree, loops and passive terms are read from the compiled
+``MjModel``. Everything MuJoCo resolves is then MuJoCo's: ``<default>``
+classes and ``childclass``, ``<include>`` (confined to the model's folder),
+``<frame>``, ``<replicate>``, euler sequences and angle units, inertias
+inferred from geoms and meshes, ``autolimits``, joint ``ref``. The result is a
+:class:`closedchain.description.MechanismDescription` (built into the
+Pinocchio model by :func:`closedchain.build.build_model`) inside a
+:class:`closedchain.urdf.URDFPlus` carrying the loops, actuated joints and
+passive terms.
 
 =================================  =============================================
-MJCF                               URDF+
+compiled MjModel                   closedchain
 =================================  =============================================
-``<worldbody>``                    link ``world`` (every top-level body hangs
-                                   from it: sibling root bodies are kept)
-``<body>``                         link of the body's name, its ``<inertial>``
-                                   (``diaginertia`` + ``quat`` or
-                                   ``fullinertia``) as a URDF inertia
-body without joint                 ``fixed`` joint
-``hinge`` / ``slide``              ``revolute`` / ``prismatic`` (``range`` as
-                                   limits; unlimited: +-:data:`UNLIMITED_RANGE`)
-``free`` / ``<freejoint>``         ``floating`` (top-level bodies only)
-several joints in one body         a chain through massless links
-                                   ``body__joint``, each joint at its ``pos``
-``connect`` (bodies or sites)      ``spherical`` loop at the anchor
-``weld`` (bodies or sites)         ``fixed`` loop (``relpose``, else the pose
-                                   at qpos0)
-``joint`` (``polycoef`` c0 c1)     ``coupling`` loop q1 = c1 q2 + c0
-actuator with ``joint=``           ``<transmission>`` (the joint is actuated)
-``<option gravity>``               the mechanism's gravity
-geoms sphere, box, cylinder,       visuals (a capsule is drawn as a cylinder);
-capsule                            mesh, plane, ellipsoid, hfield geoms are
-                                   left out
+bodies (``body_parentid``,         bodies with their placement at ``qpos0``,
+``body_pos``/``body_quat``,        mass, centre of mass and inertia; a BODY
+``body_mass``, ``body_ipos``,      frame named after each (the world body:
+``body_inertia``/``body_iquat``)   :data:`closedchain.urdf.WORLD_LINK`)
+``hinge`` / ``slide``              revolute / prismatic joint about
+                                   ``jnt_axis`` at ``jnt_pos``; its q is
+                                   MuJoCo's qpos (the body sits at its
+                                   placement at q = ``ref``); ``jnt_range``
+                                   as limits when ``jnt_limited``, else
+                                   +-:data:`UNLIMITED_RANGE`
+``ball``                           spherical joint (q: quaternion x, y, z, w;
+                                   its cone limit is not modelled: logged)
+``free``                           free flyer (top-level bodies; q: position,
+                                   quaternion x, y, z, w; v in the body frame)
+sites                              OP_FRAMEs named after them
+``connect`` (bodies or sites)      spherical loop at the anchors of ``eq_data``
+``weld`` (bodies or sites)         fixed loop (the compiled ``relpose``: the
+                                   pose at qpos0 unless given)
+``weld`` ``torquescale="0"``       spherical loop (MuJoCo's rotation rows are
+                                   then zero: a point constraint)
+``weld``, other ``torquescale``    fixed loop: it only weights MuJoCo's soft
+                                   rotation rows, a rigid weld is the same
+                                   constraint (logged)
+``joint`` (``polycoef``, padded    coupling loop q1 = c1 q2 + c0 + r1 - c1 r2
+with zeros by MuJoCo)              (r: the joints' ``ref``, MuJoCo's
+                                   polynomial is in q - ref); nonzero c2..c4
+                                   or no ``joint2`` refused
+inactive equalities                kept out of the loops, listed in the
+(``eq_active0`` = 0)               mechanism's summary and a log line
+actuators on joints                actuated joints
+``jnt_stiffness``/``qpos_spring``  :class:`~closedchain.urdf.JointSpring`
+``dof_damping``                    :class:`~closedchain.urdf.JointDamping`
+``dof_armature``                   :class:`~closedchain.urdf.JointArmature`
+``dof_frictionloss``               not modelled (logged)
+``opt.gravity``                    the mechanism's gravity
+keyframes                          named starts (the first: the assembly's)
+geoms of groups 0 to 2             visuals (what MuJoCo's viewer shows by
+                                   default): spheres, boxes, cylinders,
+                                   capsules (a cylinder and two spheres),
+                                   meshes from their files; others logged
 =================================  =============================================
 
-Orientations: ``quat``, ``axisangle``, ``euler`` (``<compiler eulerseq>``),
-``xyaxes``, ``zaxis``; angles in ``<compiler angle>`` units (MuJoCo's default,
-degrees, included). A body with joints and no ``<inertial>`` is refused when
-it has geoms (MuJoCo would infer its inertia from them; closedchain does not),
-and so is ``<compiler inertiafromgeom="true">``.
-
-Refused with a message naming the element: ``ball`` joints, a free joint
-below the top level, joint ``ref`` other than 0, ``<include>``, ``<frame>``,
-``<default>`` classes that set joint, inertial or equality attributes,
-equality types other than connect, weld and joint, a ``joint`` equality
-without ``joint2`` or with nonzero ``polycoef`` beyond c1. Ignored:
-``solref``/``solimp`` (closedchain's constraints are exact), joint
-``damping``, ``stiffness``, ``armature`` and ``frictionloss`` (logged), contacts,
-tendons, sensors, cameras, lights, and inactive (``active="false"``)
-equalities (logged).
-
-Parsing is as safe as the URDF reader's (no DTD, no network, size-bounded):
-:func:`closedchain.urdf.read_xml`.
+Refused with a message naming the element: tendon and flex equalities, a
+``joint`` equality without ``joint2`` or with a nonzero c2..c4, an
+``<include>`` outside the model's folder. A mesh file that is missing is left
+out with a warning when its body's inertia does not come from it (an
+``<inertial>``, or a body fixed to the world), else refused (MuJoCo would
+infer the inertia from it); a missing texture file is left out with a warning.
+Ignored: ``solref``/``solimp`` (closedchain's constraints are rigid),
+contacts, tendons, sensors, cameras, lights. XML is read as safely as the
+URDF reader's (no DTD, size-bounded: :func:`closedchain.urdf.read_xml`)
+before MuJoCo sees it.
 """
 
 from __future__ import annotations
 
 import logging
-import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-from lxml import etree
 
+from .description import (
+    BodyDescription,
+    JointDescription,
+    MechanismDescription,
+    SiteDescription,
+    Visual,
+)
 from .exceptions import URDFError
-from .urdf import WORLD_LINK, read_xml
+from .urdf import WORLD_LINK, JointArmature, JointDamping, JointSpring, LoopSpec, URDFPlus, read_xml
 
 logger = logging.getLogger(__name__)
 
 #: Root element of an MJCF file.
 MJCF_ROOT = "mujoco"
 
-#: Limits [rad or m] written for an unlimited hinge or slide (URDF's revolute and
-#: prismatic joints need limits): beyond any motion, within closedchain's bound on
-#: coordinates (``closedchain.mechanism.COORDINATE_BOUND``).
+#: Limits [rad or m] given to an unlimited hinge or slide: beyond any motion,
+#: within closedchain's bound on coordinates
+#: (``closedchain.mechanism.COORDINATE_BOUND``).
 UNLIMITED_RANGE = 1e4
 
-#: MuJoCo's default gravity [m/s^2].
-MJCF_GRAVITY = (0.0, 0.0, -9.81)
+#: Geom groups drawn (MuJoCo's viewer shows groups 0, 1 and 2 by default).
+DRAWN_GEOM_GROUPS = 3
 
-#: Joint types of MJCF and their URDF counterparts.
-JOINT_TYPES = {"hinge": "revolute", "slide": "prismatic", "free": "floating"}
+#: What to install when ``mujoco`` is missing.
+INSTALL_HINT = "pip install mujoco (or pip install 'closedchain[mjcf]')"
 
-#: Equality types read (the others are refused).
-EQUALITY_TYPES = ("connect", "weld", "joint")
+#: MuJoCo's equality types read (by ``mjtEq`` value).
+EQUALITY_KINDS = {0: "connect", 1: "weld", 2: "joint"}
 
-#: Elements refused anywhere in the file (their content would change the model).
-REFUSED_ELEMENTS = ("include", "frame", "composite", "flexcomp", "replicate", "attach")
+#: MuJoCo's joint types (``mjtJoint`` values) and closedchain's kinds.
+JOINT_KINDS = {0: "free", 1: "spherical", 2: "prismatic", 3: "revolute"}
 
-#: Children of ``<default>`` that would change the mechanism (closedchain applies no defaults).
-REFUSED_DEFAULTS = ("joint", "inertial", "equality", "connect", "weld")
+#: Joint types of loops and couplings as written in :attr:`URDFPlus.joints`.
+URDF_JOINT_TYPES = {"free": "floating", "spherical": "spherical"}
 
-#: Number of polynomial coefficients of a ``joint`` equality (c0..c4).
-POLYCOEF_SIZE = 5
-
-#: Joint attributes of passive forces and rotor inertia that closedchain does not model:
-#: nonzero values are logged as ignored (the dynamics differ from MuJoCo's by them).
-IGNORED_JOINT_ATTRIBUTES = ("damping", "stiffness", "armature", "frictionloss")
-
-#: Geom types drawn as visuals.
-VISUAL_GEOMS = ("sphere", "box", "cylinder", "capsule")
+_OBJ_SITE = 6
+_TRN_JOINTS = (0, 1)  # mjTRN_JOINT, mjTRN_JOINTINPARENT
+_GEOM_SPHERE, _GEOM_CAPSULE, _GEOM_CYLINDER, _GEOM_BOX, _GEOM_MESH = 2, 3, 5, 6, 7
 
 
-@dataclass(frozen=True)
-class MjcfModel:
-    """An MJCF file translated to URDF+.
-
-    Attributes:
-        robot: the ``<robot>`` element (for :func:`closedchain.urdf.parse_urdf`).
-        gravity: ``<option gravity>`` [m/s^2], shape (3,).
-    """
-
-    robot: etree._Element
-    gravity: np.ndarray
+def _mujoco():
+    try:
+        import mujoco
+    except ImportError:
+        raise URDFError(f"reading MJCF needs MuJoCo's compiler: {INSTALL_HINT}") from None
+    return mujoco
 
 
-def read_model(path: Path) -> tuple[etree._Element, np.ndarray | None]:
-    """Read a URDF or MJCF file safely; return its ``<robot>`` element and the file's gravity.
+def is_mjcf(path: Path) -> bool:
+    """Return whether a file is MJCF (its root element is ``<mujoco>``), reading it safely."""
+    return read_xml(path, what="model file").tag == MJCF_ROOT
+
+
+def _check_includes(path: Path, folder: Path, seen: set[Path]) -> None:
+    """Check an MJCF file and its ``<include>`` files: safe XML, inside ``folder``."""
+    root = read_xml(path, what="MJCF file")
+    for include in root.iter("include"):
+        name = include.get("file")
+        target = (path.parent / (name or "")).resolve()
+        if not name or not target.is_relative_to(folder):
+            raise URDFError(
+                f"{path}: line {include.sourceline}: <include file={name!r}> is outside the "
+                f"model's folder {folder}; valid: a file under it"
+            )
+        if target not in seen:
+            seen.add(target)
+            _check_includes(target, folder, seen)
+
+
+def _quat(wxyz) -> np.ndarray:
+    w, x, y, z = (float(c) for c in wxyz)
+    return pin.Quaternion(w, x, y, z).normalized().matrix()
+
+
+def _se3(pos, wxyz) -> pin.SE3:
+    return pin.SE3(_quat(wxyz), np.array(pos, dtype=float))
+
+
+def _pin_values(kind: str, qpos) -> tuple[float, ...]:
+    """Return a joint's MuJoCo qpos entries in Pinocchio's convention (quaternion x, y, z, w)."""
+    qpos = [float(x) for x in qpos]
+    if kind in ("spherical", "free"):
+        # MuJoCo normalizes a quaternion of qpos before use (a keyframe's may not be unit).
+        k = 0 if kind == "spherical" else 3
+        w, x, y, z = np.array(qpos[k : k + 4]) / np.linalg.norm(qpos[k : k + 4])
+        return (*qpos[:k], float(x), float(y), float(z), float(w))
+    return tuple(qpos)
+
+
+def compile_mjcf(path: Path, *, spec_edit=None):
+    """Compile an MJCF file with MuJoCo; return ``(spec, model, missing)``.
+
+    Missing mesh files are handled as the module docstring says; ``missing`` maps a
+    body's name to placeholders of its drawn mesh geoms whose files are missing.
 
     Args:
-        path: a URDF file (root ``<robot>``) or an MJCF file (root ``<mujoco>``).
-
-    Returns:
-        The URDF+ root element (MJCF translated by :func:`mjcf_to_urdf`) and the
-        gravity the file sets [m/s^2], shape (3,), or None (URDF sets none).
+        path: the MJCF file.
+        spec_edit: a function called with the ``MjSpec`` before compiling (tests
+            and the acceptance script zero passive terms this way), or None.
 
     Raises:
-        URDFError: unsafe or malformed XML, or an MJCF element closedchain cannot read.
+        URDFError: MuJoCo is missing (names what to install), unsafe XML, an
+            include outside the folder, or MuJoCo's compiler refuses the model.
     """
-    root = read_xml(path)
-    if root.tag != MJCF_ROOT:
-        return root, None
-    model = mjcf_to_urdf(path, root)
-    return model.robot, model.gravity
+    mujoco = _mujoco()
+    path = Path(path)
+    folder = path.resolve().parent
+    _check_includes(path.resolve(), folder, {path.resolve()})
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+    except Exception as exc:  # MuJoCo's parser: ValueError and its own errors
+        raise URDFError(f"{path}: MuJoCo cannot read it: {' '.join(str(exc).split())}") from None
+    _drop_missing_textures(path, spec)
+    missing = _drop_missing_meshes(path, spec)
+    if spec_edit is not None:
+        spec_edit(spec)
+    try:
+        model = spec.compile()
+    except Exception as exc:
+        raise URDFError(f"{path}: MuJoCo cannot compile it: {' '.join(str(exc).split())}") from None
+    return spec, model, missing
+
+
+def _mesh_path(path: Path, spec, mesh) -> Path:
+    meshdir = Path(spec.meshdir or "")
+    base = path.parent if not meshdir.is_absolute() else Path()
+    return (base / meshdir / mesh.file).resolve()
+
+
+def _drop_missing_meshes(path: Path, spec) -> dict[str, list[Visual]]:
+    """Delete mesh geoms whose files are missing where the body's inertia does not need them.
+
+    Returns:
+        body name -> placeholders of its drawn geoms left out (mesh visuals naming the
+        missing file: the drawing stands a stick figure in for them and says why).
+    """
+    mujoco = _mujoco()
+    files = {m.name: _mesh_path(path, spec, m) for m in spec.meshes if m.file}
+    missing = {name: file for name, file in files.items() if not file.is_file()}
+    if not missing:
+        return {}
+    from_geoms = spec.compiler.inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
+    placeholders: dict[str, list[Visual]] = {}
+    for geom in list(spec.geoms):
+        if geom.meshname not in missing:
+            continue
+        body = geom.parent
+        if _moves(spec, body) and (from_geoms or not body.explicitinertial):
+            raise URDFError(
+                f"{path}: mesh file {missing[geom.meshname].name!r} is missing, and MuJoCo "
+                f"infers body {body.name!r}'s inertia from it; valid: the file present, or an "
+                "<inertial>"
+            )
+        if geom.group < DRAWN_GEOM_GROUPS:
+            rgba = tuple(float(x) for x in geom.rgba)
+            placeholder = Visual(
+                "mesh", (1.0, 1.0, 1.0), pin.SE3.Identity(), rgba, missing[geom.meshname]
+            )
+            placeholders.setdefault(body.name or WORLD_LINK, []).append(placeholder)
+        spec.delete(geom)
+    for mesh in list(spec.meshes):
+        if mesh.name in missing:
+            spec.delete(mesh)
+    logger.warning(
+        "%s: mesh files missing (their geoms are not drawn; inertias are the <inertial>s): %s",
+        path,
+        ", ".join(sorted({f.name for f in missing.values()})),
+    )
+    return placeholders
+
+
+def _drop_missing_textures(path: Path, spec) -> None:
+    """Delete textures whose files are missing (they only colour the drawing)."""
+    texdir = Path(spec.texturedir or "")
+    base = path.parent if not texdir.is_absolute() else Path()
+    missing = [t for t in spec.textures if t.file and not (base / texdir / t.file).is_file()]
+    if not missing:
+        return
+    names = {t.name for t in missing}
+    for material in spec.materials:
+        material.textures = ["" if name in names else name for name in material.textures]
+    logger.warning(
+        "%s: texture files missing (not drawn): %s",
+        path,
+        ", ".join(sorted(t.file for t in missing)),
+    )
+    for texture in missing:
+        spec.delete(texture)
+
+
+def _moves(spec, body) -> bool:
+    """Return whether a spec body moves (it or an ancestor has a joint)."""
+    while body is not None and body.name != spec.worldbody.name:
+        if len(body.joints):
+            return True
+        body = body.parent
+    return False
 
 
 class _Reader:
-    """The state of one translation: compiler settings, bodies, sites, joints."""
+    """One compiled model read into a description, loops and passive terms."""
 
-    def __init__(self, path: Path, root) -> None:
-        self.path = path
-        self.root = root
-        compiler = root.find("compiler")
-        get = (lambda k, d: compiler.get(k, d)) if compiler is not None else (lambda k, d: d)
-        angle = get("angle", "degree")
-        if angle not in ("degree", "radian"):
-            self.fail(compiler, f"angle={angle!r}; valid: degree, radian")
-        self.angle_scale = math.pi / 180.0 if angle == "degree" else 1.0
-        self.eulerseq = get("eulerseq", "xyz")
-        if len(self.eulerseq) != 3 or any(c not in "xyzXYZ" for c in self.eulerseq):
-            self.fail(compiler, f"eulerseq={self.eulerseq!r}; valid: three of x, y, z, X, Y, Z")
-        if get("coordinate", "local") != "local":
-            self.fail(compiler, 'coordinate="global" is not supported; valid: local')
-        self.inertia_from_geom = get("inertiafromgeom", "auto")
-        if self.inertia_from_geom == "true":
-            self.fail(
-                compiler,
-                'inertiafromgeom="true" replaces the <inertial> elements by geom inertias, '
-                'which closedchain does not compute; valid: "auto" or "false"',
-            )
-        self.robot = etree.Element("robot", name=root.get("model", path.stem))
-        #: body name -> (link name, link_from_body SE3, oMb at qpos0 SE3).
-        self.bodies: dict[str, tuple[str, pin.SE3, pin.SE3]] = {}
-        #: site name -> (link name, placement in the link frame).
-        self.sites: dict[str, tuple[str, pin.SE3]] = {}
-        self.count = 0
+    def __init__(self, path: Path, spec, model, missing: dict[str, list[Visual]]) -> None:
+        self.mujoco = _mujoco()
+        self.path, self.spec, self.m = path, spec, model
+        self.missing = missing
+        m = model
+        self.body_names = [
+            self.name(self.mujoco.mjtObj.mjOBJ_BODY, b, "body") for b in range(m.nbody)
+        ]
+        self.body_names[0] = WORLD_LINK
+        self.kinds = [JOINT_KINDS[int(t)] for t in m.jnt_type]
+        taken = {self.name(self.mujoco.mjtObj.mjOBJ_JOINT, j, "") for j in range(m.njnt)}
+        self.joint_names = []
+        for j in range(m.njnt):
+            name = self.name(self.mujoco.mjtObj.mjOBJ_JOINT, j, "")
+            if not name:
+                body = self.body_names[m.jnt_bodyid[j]]
+                name = f"{body}_joint{j}"
+                while name in taken:
+                    name += "_"
+            self.joint_names.append(name)
+        self.site_names = [
+            self.name(self.mujoco.mjtObj.mjOBJ_SITE, s, "site") for s in range(m.nsite)
+        ]
 
-    # -- messages ------------------------------------------------------------
-    def where(self, element) -> str:
-        name = element.get("name") if element is not None else None
-        tag = (
-            "<?>"
-            if element is None
-            else f"<{element.tag}" + (f" name={name!r}>" if name is not None else ">")
-        )
-        line = element.sourceline if element is not None else "?"
-        return f"{self.path}: line {line}: {tag}"
-
-    def fail(self, element, message: str):
-        raise URDFError(f"{self.where(element)}: {message}")
-
-    # -- numbers -------------------------------------------------------------
-    def numbers(self, element, attribute: str, n: int, default: str | None = None):
-        text = element.get(attribute, default)
-        if text is None:
-            return None
-        try:
-            values = np.array([float(x) for x in text.split()])
-        except ValueError:
-            values = np.array([])
-        if values.shape != (n,) or not np.all(np.isfinite(values)):
-            self.fail(element, f"{attribute}={text!r} must be {n} finite numbers")
-        return values
-
-    def rotation(self, element) -> np.ndarray:
-        """Return the rotation of a body, geom, site or inertial (MJCF's orientation rules)."""
-        given = [a for a in ("quat", "axisangle", "euler", "xyaxes", "zaxis") if element.get(a)]
-        if len(given) > 1:
-            self.fail(element, f"more than one orientation ({', '.join(given)}); give one")
-        if not given:
-            return np.eye(3)
-        kind = given[0]
-        if kind == "quat":
-            w, x, y, z = self.numbers(element, "quat", 4)
-            q = pin.Quaternion(w, x, y, z)
-            if q.norm() == 0.0:
-                self.fail(element, "quat is zero; valid: a non-zero quaternion w x y z")
-            q.normalize()
-            return q.toRotationMatrix()
-        if kind == "axisangle":
-            values = self.numbers(element, "axisangle", 4)
-            return pin.exp3(self.unit(element, values[:3]) * values[3] * self.angle_scale)
-        if kind == "euler":
-            angles = self.numbers(element, "euler", 3) * self.angle_scale
-            R = np.eye(3)
-            for axis, a in zip(self.eulerseq, angles, strict=True):
-                Ri = pin.exp3(np.eye(3)["xyz".index(axis.lower())] * a)
-                R = R @ Ri if axis.islower() else Ri @ R
-            return R
-        if kind == "xyaxes":
-            values = self.numbers(element, "xyaxes", 6)
-            x = self.unit(element, values[:3])
-            y = values[3:] - x * float(x @ values[3:])
-            y = self.unit(element, y)
-            return np.column_stack([x, y, np.cross(x, y)])
-        z = self.unit(element, self.numbers(element, "zaxis", 3))
-        return pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), z).toRotationMatrix()
-
-    def unit(self, element, v: np.ndarray) -> np.ndarray:
-        norm = float(np.linalg.norm(v))
-        if norm == 0.0 or not math.isfinite(norm):
-            self.fail(element, "a direction is zero; valid: a non-zero vector")
-        return v / norm
-
-    def pose(self, element) -> pin.SE3:
-        """Return the ``pos`` + orientation of an element as an SE3 (in its parent's frame)."""
-        return pin.SE3(self.rotation(element), self.numbers(element, "pos", 3, "0 0 0"))
-
-    # -- URDF output ---------------------------------------------------------
-    def add(self, parent, tag: str, source=None, **attributes):
-        e = etree.SubElement(parent, tag, {k: str(v) for k, v in attributes.items()})
-        if source is not None:
-            e.sourceline = source.sourceline
-        return e
-
-    def origin(self, parent, M: pin.SE3, tag: str = "origin") -> None:
-        """Add ``<tag xyz=... rpy=...>`` (a URDF origin) placing M under ``parent``."""
-        rpy = pin.rpy.matrixToRpy(M.rotation)
-        self.add(parent, tag, xyz=_fmt(M.translation), rpy=_fmt(rpy))
-
-    def name(self, element, prefix: str) -> str:
-        name = element.get("name")
-        if name:
-            return name
-        self.count += 1
-        return f"{prefix}{self.count}"
+    def name(self, objtype, i: int, prefix: str) -> str:
+        name = self.mujoco.mj_id2name(self.m, objtype, i)
+        return name if name else (f"{prefix}{i}" if prefix else "")
 
     # -- the tree ------------------------------------------------------------
-    def link(self, name: str, source, L: pin.SE3 | None, body) -> None:
-        """Add a link; with ``body``, its inertial and visuals (``L``: link_from_body)."""
-        link = self.add(self.robot, "link", source, name=name)
-        if body is None:
-            return
-        inertial = body.find("inertial")
-        if inertial is not None:
-            self.inertial(link, inertial, L)
-        elif (
-            body.tag == "body"
-            and body.findall("geom")
-            and self.inertia_from_geom != "false"
-            and (body.findall("joint") or body.findall("freejoint"))
-        ):
-            self.fail(
-                body,
-                "has joints and geoms but no <inertial>: MuJoCo infers its inertia "
-                "from the geoms, which closedchain does not; valid: give an <inertial>",
+    def joint(self, j: int) -> JointDescription:
+        m, kind = self.m, self.kinds[j]
+        adr = m.jnt_qposadr[j]
+        nq = {"free": 7, "spherical": 4}.get(kind, 1)
+        q0 = _pin_values(kind, m.qpos0[adr : adr + nq])
+        lower, upper = -UNLIMITED_RANGE, UNLIMITED_RANGE
+        if kind in ("revolute", "prismatic") and m.jnt_limited[j]:
+            lower, upper = (float(x) for x in m.jnt_range[j])
+        elif kind == "spherical" and m.jnt_limited[j]:
+            logger.info(
+                "%s: ball joint %r: its cone limit (range %g rad) is not modelled",
+                self.path,
+                self.joint_names[j],
+                float(np.max(m.jnt_range[j])),
             )
-        for geom in body.findall("geom"):
-            self.visual(link, geom, L)
-
-    def inertial(self, link, inertial, L: pin.SE3) -> None:
-        mass = self.numbers(inertial, "mass", 1)
-        if mass is None:
-            self.fail(inertial, "missing mass=")
-        R = self.rotation(inertial)
-        diag = self.numbers(inertial, "diaginertia", 3)
-        full = self.numbers(inertial, "fullinertia", 6)
-        if (diag is None) == (full is None):
-            self.fail(inertial, "give one of diaginertia= and fullinertia=")
-        if diag is not None:
-            I_body = R @ np.diag(diag) @ R.T
-        else:
-            ixx, iyy, izz, ixy, ixz, iyz = full
-            I_body = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-        # Inertia about the centre of mass in link-aligned axes (L only translates).
-        com = L.act(self.numbers(inertial, "pos", 3, "0 0 0"))
-        I_link = L.rotation @ I_body @ L.rotation.T
-        e = self.add(link, "inertial", inertial)
-        self.origin(e, pin.SE3(np.eye(3), com))
-        self.add(e, "mass", inertial, value=repr(float(mass[0])))
-        keys = {"ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2)}
-        keys["izz"] = (2, 2)
-        self.add(e, "inertia", inertial, **{k: repr(float(I_link[ij])) for k, ij in keys.items()})
-
-    def visual(self, link, geom, L: pin.SE3) -> None:
-        kind = geom.get("type", "sphere")
-        if kind not in VISUAL_GEOMS:
-            logger.info("%s: geom type %r is not drawn", self.where(geom), kind)
-            return
-        text = geom.get("size", "0")
-        try:
-            size = [float(x) for x in text.split()]
-        except ValueError:
-            size = []
-        if not 1 <= len(size) <= 3 or not all(map(math.isfinite, size)):
-            self.fail(geom, f"size={text!r} must be 1 to 3 finite numbers")
-        fromto = self.numbers(geom, "fromto", 6)
-        if fromto is not None and kind in ("cylinder", "capsule", "box"):
-            a, b = fromto[:3], fromto[3:]
-            length = float(np.linalg.norm(b - a))
-            if length == 0.0:
-                return
-            R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), (b - a) / length)
-            M = pin.SE3(R.toRotationMatrix(), (a + b) / 2.0)
-            half = length / 2.0
-        else:
-            M = self.pose(geom)
-            half = size[1] if len(size) > 1 else 0.0
-        visual = self.add(link, "visual", geom)
-        self.origin(visual, L * M)
-        shape = self.add(visual, "geometry", geom)
-        if kind == "sphere":
-            self.add(shape, "sphere", geom, radius=repr(float(size[0])))
-        elif kind == "box":
-            sizes = (size * 3)[:3] if len(size) < 3 else size[:3]
-            if fromto is not None:
-                sizes = [size[0], size[-1] if len(size) > 1 else size[0], half]
-            self.add(shape, "box", geom, size=_fmt(2.0 * np.array(sizes)))
-        else:  # cylinder, capsule (drawn as its cylinder)
-            self.add(
-                shape, "cylinder", geom, radius=repr(float(size[0])), length=repr(float(2.0 * half))
-            )
-
-    def body(self, body, parent_link: str, parent_L: pin.SE3, oMparent: pin.SE3, top: bool) -> None:
-        """Translate one ``<body>`` and its subtree (see the module docstring)."""
-        name = self.name(body, "body")
-        X = self.pose(body)  # body frame in the parent body frame
-        oMb = oMparent * X
-        joints = [j for j in body if isinstance(j.tag, str) and j.tag in ("joint", "freejoint")]
-        specs = []
-        for j in joints:
-            kind = "free" if j.tag == "freejoint" else j.get("type", "hinge")
-            if kind == "ball":
-                self.fail(
-                    j,
-                    "ball joints are not supported (URDF has no spherical joint); valid: "
-                    "hinge, slide, free (write a ball as three hinges)",
-                )
-            if kind not in JOINT_TYPES:
-                self.fail(j, f"unknown joint type {kind!r}; valid: {', '.join(JOINT_TYPES)}")
-            if kind == "free" and not (top and len(joints) == 1):
-                self.fail(j, "a free joint must be the only joint of a top-level body")
-            ref = self.numbers(j, "ref", 1, "0")
-            if ref[0] != 0.0:
-                self.fail(j, "ref= other than 0 is not supported (qpos0 is the zero of q)")
-            specs.append((j, kind, self.numbers(j, "pos", 3, "0 0 0")))
-        shift = np.zeros(3)
-        link = parent_link
-        origin = parent_L * X
-        for k, (j, kind, pos) in enumerate(specs):
-            jname = self.name(j, f"{name}_joint")
-            child = name if k == len(specs) - 1 else f"{name}__{jname}"
-            self.add_joint(j, jname, JOINT_TYPES[kind], link, child, origin * _shift(pos - shift))
-            if child != name:
-                self.link(child, j, None, None)
-            link, origin, shift = child, pin.SE3.Identity(), pos
-        L = _shift(-shift)  # link frame from body frame
-        if not specs:
-            fixed = self.add(self.robot, "joint", body, name=f"{name}_fixed", type="fixed")
-            self.origin(fixed, origin)
-            self.add(fixed, "parent", body, link=parent_link)
-            self.add(fixed, "child", body, link=name)
-        self.link(name, body, L, body)
-        self.bodies[name] = (name, L, oMb)
-        self.collect_sites(body, name, L)
-        for child in body.findall("body"):
-            self.body(child, name, L, oMb, top=False)
-
-    def add_joint(self, j, name: str, kind: str, parent: str, child: str, M: pin.SE3) -> None:
-        joint = self.add(self.robot, "joint", j, name=name, type=kind)
-        self.origin(joint, M)
-        self.add(joint, "parent", j, link=parent)
-        self.add(joint, "child", j, link=child)
-        ignored = [a for a in IGNORED_JOINT_ATTRIBUTES if self.numbers(j, a, 1, "0")[0] != 0.0]
-        if ignored:
-            logger.warning(
-                "%s: %s ignored (closedchain models no joint damping, stiffness, friction "
-                "or armature)",
-                self.where(j),
-                ", ".join(f"{a}={j.get(a)}" for a in ignored),
-            )
-        if kind == "floating":
-            return
-        self.add(joint, "axis", j, xyz=_fmt(self.numbers(j, "axis", 3, "0 0 1")))
-        rng = self.numbers(j, "range", 2, "0 0")
-        limited = j.get("limited", "auto")
-        if limited not in ("auto", "true", "false"):
-            self.fail(j, f"limited={limited!r}; valid: auto, true, false")
-        if limited == "true" or (limited == "auto" and j.get("range") is not None):
-            if kind == "revolute":
-                rng = rng * self.angle_scale
-            if rng[0] >= rng[1]:
-                self.fail(j, f"range={j.get('range')!r} is empty; valid: lower < upper")
-        else:
-            rng = np.array([-UNLIMITED_RANGE, UNLIMITED_RANGE])
-        self.add(
-            joint,
-            "limit",
-            j,
-            lower=repr(float(rng[0])),
-            upper=repr(float(rng[1])),
-            effort="0",
-            velocity="0",
+        return JointDescription(
+            name=self.joint_names[j],
+            kind=kind,
+            axis=np.array(m.jnt_axis[j], dtype=float),
+            position=np.array(m.jnt_pos[j], dtype=float),
+            q0=q0,
+            lower=lower,
+            upper=upper,
         )
 
-    def collect_sites(self, body, link: str, L: pin.SE3) -> None:
-        for site in body.findall("site"):
-            name = site.get("name")
-            if name:
-                self.sites[name] = (link, L * self.pose(site))
+    def inertia(self, b: int) -> pin.Inertia:
+        m = self.m
+        R = _quat(m.body_iquat[b])
+        return pin.Inertia(
+            float(m.body_mass[b]),
+            np.array(m.body_ipos[b], dtype=float),
+            R @ np.diag(m.body_inertia[b]) @ R.T,
+        )
+
+    def visuals(self, b: int) -> tuple[Visual, ...]:
+        m = self.m
+        out: list[Visual] = list(self.missing.get(self.body_names[b], ()))
+        skipped = []
+        for g in np.flatnonzero(m.geom_bodyid == b):
+            if m.geom_group[g] >= DRAWN_GEOM_GROUPS:
+                continue
+            kind, size = int(m.geom_type[g]), m.geom_size[g]
+            M = _se3(m.geom_pos[g], m.geom_quat[g])
+            mat = m.geom_matid[g]
+            rgba = tuple(float(x) for x in (m.mat_rgba[mat] if mat >= 0 else m.geom_rgba[g]))
+            if kind == _GEOM_SPHERE:
+                out.append(Visual("sphere", (float(size[0]),), M, rgba))
+            elif kind == _GEOM_BOX:
+                out.append(Visual("box", tuple(2.0 * float(x) for x in size), M, rgba))
+            elif kind in (_GEOM_CYLINDER, _GEOM_CAPSULE):
+                r, half = float(size[0]), float(size[1])
+                out.append(Visual("cylinder", (r, 2.0 * half), M, rgba))
+                if kind == _GEOM_CAPSULE:
+                    for end in (-half, half):
+                        cap = M * pin.SE3(np.eye(3), np.array([0.0, 0.0, end]))
+                        out.append(Visual("sphere", (r,), cap, rgba))
+            elif kind == _GEOM_MESH:
+                mesh = m.geom_dataid[g]
+                rel = m.paths[m.mesh_pathadr[mesh] :].split(b"\0", 1)[0].decode()
+                file = (self.path.parent / rel).resolve()
+                # MuJoCo moved the mesh to its inertial frame and the geom by as much:
+                # the file's vertices are drawn in the geom frame times that move's inverse.
+                offset = _se3(m.mesh_pos[mesh], m.mesh_quat[mesh])
+                scale = tuple(float(x) for x in m.mesh_scale[mesh])
+                out.append(Visual("mesh", scale, M * offset.inverse(), rgba, file))
+            else:
+                skipped.append(str(self.mujoco.mjtGeom(kind).name).removeprefix("mjGEOM_").lower())
+        if skipped:
+            logger.info(
+                "%s: body %r: geoms of type %s are not drawn",
+                self.path,
+                self.body_names[b],
+                ", ".join(sorted(set(skipped))),
+            )
+        return tuple(out)
+
+    def description(self) -> MechanismDescription:
+        m = self.m
+        bodies = []
+        for b in range(1, m.nbody):
+            if m.body_mocapid[b] >= 0:
+                logger.info("%s: mocap body %r is read as fixed", self.path, self.body_names[b])
+            joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
+            bodies.append(
+                BodyDescription(
+                    name=self.body_names[b],
+                    parent=self.body_names[m.body_parentid[b]],
+                    placement=_se3(m.body_pos[b], m.body_quat[b]),
+                    joints=tuple(self.joint(j) for j in joints),
+                    inertia=self.inertia(b),
+                    visuals=self.visuals(b),
+                )
+            )
+        sites = tuple(
+            SiteDescription(
+                self.site_names[s],
+                self.body_names[m.site_bodyid[s]],
+                _se3(m.site_pos[s], m.site_quat[s]),
+            )
+            for s in range(m.nsite)
+        )
+        keyframes = {}
+        for k in range(m.nkey):
+            name = self.name(self.mujoco.mjtObj.mjOBJ_KEY, k, "key")
+            keyframes[name] = {
+                self.joint_names[j]: _pin_values(
+                    self.kinds[j],
+                    m.key_qpos[k][m.jnt_qposadr[j] : m.jnt_qposadr[j] + _nq(self.kinds[j])],
+                )
+                for j in range(m.njnt)
+            }
+        loops, inactive = self.equalities()
+        self.loops = loops
+        return MechanismDescription(
+            name=self.spec.modelname or self.path.stem,
+            path=self.path,
+            bodies=tuple(bodies),
+            world_visuals=self.visuals(0),
+            sites=sites,
+            keyframes=keyframes,
+            inactive=inactive,
+        )
 
     # -- equalities ----------------------------------------------------------
-    def frame_of(self, eq, side: str) -> tuple[str, pin.SE3, pin.SE3]:
-        """Return (link, link_from_body, oMb) of ``body1``/``body2`` (body2 defaults to world)."""
-        default = WORLD_LINK if side == "body2" else None
-        body = eq.get(side, default)
-        if body not in self.bodies:
-            self.fail(
-                eq, f"{side}={body!r} names no body; bodies: {', '.join(sorted(self.bodies))}"
-            )
-        return self.bodies[body]
+    def end(self, e: int, side: int, local: pin.SE3) -> tuple[str, pin.SE3]:
+        """Return (body, frame in the body) of one side of a body or site equality."""
+        m = self.m
+        obj = (m.eq_obj1id, m.eq_obj2id)[side][e]
+        if m.eq_objtype[e] == _OBJ_SITE:
+            return self.body_names[m.site_bodyid[obj]], _se3(m.site_pos[obj], m.site_quat[obj])
+        return self.body_names[obj], local
 
-    def site(self, eq, side: str) -> tuple[str, pin.SE3]:
-        name = eq.get(side)
-        if name not in self.sites:
-            self.fail(eq, f"{side}={name!r} names no site; sites: {', '.join(sorted(self.sites))}")
-        return self.sites[name]
-
-    def loop(self, eq, kind: str, ends) -> None:
-        loop = self.add(self.robot, "loop", eq, name=self.name(eq, f"{eq.tag}"), type=kind)
-        for (link, M), side in zip(ends, ("predecessor", "successor"), strict=True):
-            self.add(loop, side, eq, link=link)
-            self.origin(loop, M, f"{side}_origin")
-
-    def equality(self, eq) -> None:
-        if eq.get("active", "true") == "false":
-            logger.warning('%s: inactive (active="false"): left out', self.where(eq))
-            return
-        if eq.tag not in EQUALITY_TYPES:
-            self.fail(
-                eq, f"equality type <{eq.tag}> is not supported; valid: {', '.join(EQUALITY_TYPES)}"
-            )
-        if eq.tag == "joint":
-            self.coupling(eq)
-            return
-        if eq.get("site1") is not None or eq.get("site2") is not None:
-            ends = [self.site(eq, "site1"), self.site(eq, "site2")]
-        else:
-            (l1, L1, o1), (l2, L2, o2) = self.frame_of(eq, "body1"), self.frame_of(eq, "body2")
-            if eq.tag == "connect":
-                anchor = pin.SE3(np.eye(3), self.numbers(eq, "anchor", 3, "0 0 0"))
-                # body2's point is where the anchor is at qpos0 (MuJoCo's rule).
-                ends = [(l1, L1 * anchor), (l2, L2 * o2.inverse() * o1 * anchor)]
+    def equalities(self) -> tuple[tuple[LoopSpec, ...], tuple[str, ...]]:
+        m = self.m
+        loops, inactive = [], []
+        names = [self.name(self.mujoco.mjtObj.mjOBJ_EQUALITY, e, "") for e in range(m.neq)]
+        for e in range(m.neq):
+            kind = EQUALITY_KINDS.get(int(m.eq_type[e]))
+            label = str(self.mujoco.mjtEq(int(m.eq_type[e])).name).removeprefix("mjEQ_").lower()
+            name = names[e] or f"{label}{e}"
+            while not names[e] and name in names:
+                name += "_"
+            where = f"{self.path}: <equality> <{label} name={name!r}>"
+            if kind is None:
+                raise URDFError(
+                    f"{where}: {label} equalities are not read; valid: "
+                    f"{', '.join(EQUALITY_KINDS.values())}"
+                )
+            if not m.eq_active0[e]:
+                inactive.append(f"{label} {name}")
+                continue
+            data = np.array(m.eq_data[e], dtype=float)
+            if kind == "joint":
+                loops.append(self.coupling(e, name, where, data))
+                continue
+            if kind == "connect":
+                ends = [
+                    self.end(e, 0, pin.SE3(np.eye(3), data[0:3])),
+                    self.end(e, 1, pin.SE3(np.eye(3), data[3:6])),
+                ]
+                loop_type = "spherical"
             else:
-                relpose = self.numbers(eq, "relpose", 7, "0 1 0 0 0 0 0")
-                if np.any(relpose[3:] != 0.0):  # body2's pose in body1
-                    b1Mb2 = pin.SE3(pin.Quaternion(*relpose[3:]).normalized().matrix(), relpose[:3])
-                else:  # the pose at qpos0
-                    b1Mb2 = o1.inverse() * o2
-                ends = [(l1, L1 * b1Mb2), (l2, L2)]
-        self.loop(eq, "spherical" if eq.tag == "connect" else "fixed", ends)
-
-    def coupling(self, eq) -> None:
-        j1, j2 = eq.get("joint1"), eq.get("joint2")
-        if j2 is None:
-            self.fail(eq, "a joint equality without joint2 (a locked joint) is not supported")
-        coef = self.numbers(eq, "polycoef", POLYCOEF_SIZE, "0 1 0 0 0")
-        if np.any(coef[2:] != 0.0):
-            self.fail(
-                eq,
-                f"polycoef={eq.get('polycoef')!r}: only a linear coupling q1 = c0 + c1 q2 is "
-                "supported; valid: c2 = c3 = c4 = 0",
+                ends = [
+                    self.end(e, 0, _se3(data[3:6], data[6:10])),
+                    self.end(e, 1, pin.SE3(np.eye(3), data[0:3])),
+                ]
+                torquescale = float(data[10])
+                loop_type = "spherical" if torquescale == 0.0 else "fixed"
+                if torquescale not in (0.0, 1.0):
+                    logger.info(
+                        "%s: torquescale=%g weights MuJoCo's soft rotation rows; a rigid weld "
+                        "holds the same constraint",
+                        where,
+                        torquescale,
+                    )
+            loops.append(
+                LoopSpec(
+                    name=name,
+                    type=loop_type,
+                    predecessor=ends[0][0],
+                    successor=ends[1][0],
+                    predecessor_origin=ends[0][1],
+                    successor_origin=ends[1][1],
+                    axis=np.array([0.0, 0.0, 1.0]),
+                )
             )
-        loop = self.add(self.robot, "loop", eq, name=self.name(eq, "joint"), type="coupling")
-        self.add(loop, "joint", eq, name=j1)
-        self.add(
-            loop,
-            "mimics",
-            eq,
-            joint=j2,
-            multiplier=repr(float(coef[1])),
-            offset=repr(float(coef[0])),
+        if inactive:
+            logger.info(
+                "%s: inactive equalities (eq_active0 = 0), kept out of the loops: %s",
+                self.path,
+                ", ".join(inactive),
+            )
+        return tuple(loops), tuple(inactive)
+
+    def coupling(self, e: int, name: str, where: str, data: np.ndarray) -> LoopSpec:
+        m = self.m
+        j1, j2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
+        if j2 < 0:
+            raise URDFError(
+                f"{where}: a joint equality without joint2 locks joint "
+                f"{self.joint_names[j1]!r} at a value, which closedchain does not read; "
+                "valid: joint1 and joint2"
+            )
+        if np.any(data[2:5] != 0.0):
+            raise URDFError(
+                f"{where}: polycoef {' '.join(f'{c:g}' for c in data[:5])}: only a linear "
+                "coupling q1 = c0 + c1 q2 is read; valid: c2 = c3 = c4 = 0"
+            )
+        for j in (j1, j2):
+            if self.kinds[j] not in ("revolute", "prismatic"):
+                name, kind = self.joint_names[j], self.kinds[j]
+                raise URDFError(f"{where}: joint {name!r} is {kind}; valid: hinge, slide")
+        r1, r2 = float(m.qpos0[m.jnt_qposadr[j1]]), float(m.qpos0[m.jnt_qposadr[j2]])
+        c0, c1 = float(data[0]), float(data[1])
+        return LoopSpec(
+            name=name,
+            type="coupling",
+            predecessor=self.body_names[m.jnt_bodyid[j2]],
+            successor=self.body_names[m.jnt_bodyid[j1]],
+            predecessor_origin=pin.SE3.Identity(),
+            successor_origin=pin.SE3.Identity(),
+            axis=np.array([0.0, 0.0, 1.0]),
+            joint=self.joint_names[j1],
+            mimics=self.joint_names[j2],
+            multiplier=c1,
+            # MuJoCo's polynomial is in q - ref: q1 - r1 = c0 + c1 (q2 - r2).
+            offset=c0 + r1 - c1 * r2,
         )
 
-    # -- the whole file ------------------------------------------------------
-    def translate(self) -> MjcfModel:
-        root = self.root
-        for tag in REFUSED_ELEMENTS:
-            for e in root.iter(tag):
-                self.fail(e, f"<{tag}> is not supported by closedchain's MJCF reader")
-        for default in root.iter("default"):
-            for e in default:
-                if isinstance(e.tag, str) and e.tag in REFUSED_DEFAULTS:
-                    self.fail(
-                        e,
-                        f"a <default> <{e.tag}> would change the mechanism and closedchain "
-                        f"applies no defaults; valid defaults: those of {', '.join(VISUAL_GEOMS)} "
-                        "geoms, sites and visuals (write the attributes on the elements)",
+    # -- the rest ------------------------------------------------------------
+    def actuated(self) -> tuple[str, ...]:
+        m, out, other = self.m, [], []
+        for a in range(m.nu):
+            if int(m.actuator_trntype[a]) in _TRN_JOINTS:
+                joint = self.joint_names[m.actuator_trnid[a][0]]
+                if joint not in out:
+                    out.append(joint)
+            else:
+                other.append(self.name(self.mujoco.mjtObj.mjOBJ_ACTUATOR, a, "actuator"))
+        if other:
+            logger.info(
+                "%s: actuators on tendons or sites are not read as actuated joints: %s",
+                self.path,
+                ", ".join(other),
+            )
+        return tuple(out)
+
+    def passive(self):
+        m = self.m
+        springs, dampings, armatures, friction = [], [], [], []
+        for j in range(m.njnt):
+            name, kind, dof = self.joint_names[j], self.kinds[j], m.jnt_dofadr[j]
+            if m.jnt_stiffness[j] > 0.0:
+                if kind in ("revolute", "prismatic"):
+                    ref = float(m.qpos_spring[m.jnt_qposadr[j]])
+                    springs.append(JointSpring(name, float(m.jnt_stiffness[j]), ref))
+                else:
+                    logger.info(
+                        "%s: %s joint %r: its stiffness is not modelled", self.path, kind, name
                     )
-        worldbodies = root.findall("worldbody")
-        if len(worldbodies) != 1:
-            self.fail(root, f"needs exactly one <worldbody>, found {len(worldbodies)}")
-        world = worldbodies[0]
-        self.link(WORLD_LINK, world, pin.SE3.Identity(), world)
-        self.bodies[WORLD_LINK] = (WORLD_LINK, pin.SE3.Identity(), pin.SE3.Identity())
-        self.collect_sites(world, WORLD_LINK, pin.SE3.Identity())
-        for body in world.findall("body"):
-            self.body(body, WORLD_LINK, pin.SE3.Identity(), pin.SE3.Identity(), top=True)
-        for equality in root.findall("equality"):
-            for eq in equality:
-                if isinstance(eq.tag, str):
-                    self.equality(eq)
-        self.transmissions()
-        gravity = np.array(MJCF_GRAVITY)
-        for option in root.findall("option"):
-            gravity = self.numbers(option, "gravity", 3, _fmt(gravity))
-        return MjcfModel(robot=self.robot, gravity=gravity)
+            if m.dof_damping[dof] > 0.0:
+                dampings.append(JointDamping(name, float(m.dof_damping[dof])))
+            if m.dof_armature[dof] > 0.0:
+                armatures.append(JointArmature(name, float(m.dof_armature[dof])))
+            if m.dof_frictionloss[dof] > 0.0:
+                friction.append(name)
+        gravcomp = [self.body_names[b] for b in np.flatnonzero(m.body_gravcomp)]
+        if gravcomp:
+            logger.info(
+                "%s: gravity compensation (gravcomp) is not modelled: %s",
+                self.path,
+                ", ".join(gravcomp),
+            )
+        if friction:
+            logger.info(
+                "%s: joint friction loss (frictionloss) is not modelled: %s",
+                self.path,
+                ", ".join(friction),
+            )
+        return tuple(springs), tuple(dampings), tuple(armatures)
 
-    def transmissions(self) -> None:
-        seen = []
-        for actuator in self.root.findall("actuator"):
-            for act in actuator:
-                joint = act.get("joint") if isinstance(act.tag, str) else None
-                if joint is None or joint in seen:
-                    continue
-                seen.append(joint)
-                t = self.add(self.robot, "transmission", act, name=self.name(act, "actuator"))
-                self.add(t, "type", act).text = "transmission_interface/SimpleTransmission"
-                self.add(t, "joint", act, name=joint)
+    def gravity(self) -> np.ndarray:
+        m = self.m
+        if m.opt.disableflags & int(self.mujoco.mjtDisableBit.mjDSBL_GRAVITY):
+            return np.zeros(3)
+        return np.array(m.opt.gravity, dtype=float)
 
 
-def mjcf_to_urdf(path: Path, root) -> MjcfModel:
-    """Translate a parsed MJCF ``<mujoco>`` element to URDF+ (rule: module docstring).
+def _nq(kind: str) -> int:
+    return {"free": 7, "spherical": 4}.get(kind, 1)
+
+
+def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray]:
+    """Read an MJCF file through MuJoCo's compiler (rule: the module docstring).
 
     Args:
-        path: the file, for messages.
-        root: its ``<mujoco>`` element.
+        path: the MJCF file.
+        spec_edit: see :func:`compile_mjcf`.
+
+    Returns:
+        The model (its ``description`` set, ``xml`` None) and its gravity [m/s^2], shape (3,).
 
     Raises:
-        URDFError: an element closedchain cannot read (the message names file, line,
-            element and the valid choices).
+        URDFError: see :func:`compile_mjcf`, and the refusals of the module docstring.
     """
-    return _Reader(path, root).translate()
-
-
-def _shift(p: np.ndarray) -> pin.SE3:
-    return pin.SE3(np.eye(3), np.asarray(p, dtype=float))
-
-
-def _fmt(x) -> str:
-    return " ".join(repr(float(v)) for v in np.ravel(x))
+    path = Path(path)
+    spec, model, missing = compile_mjcf(path, spec_edit=spec_edit)
+    reader = _Reader(path, spec, model, missing)
+    description = reader.description()
+    springs, dampings, armatures = reader.passive()
+    joints = {
+        j.name: URDF_JOINT_TYPES.get(j.kind, j.kind) for b in description.bodies for j in b.joints
+    }
+    urdf = URDFPlus(
+        path=path,
+        xml=None,
+        robot_name=description.name,
+        links=(WORLD_LINK, *(b.name for b in description.bodies)),
+        joints=joints,
+        loops=reader.loops,
+        actuated=reader.actuated(),
+        springs=springs,
+        dampings=dampings,
+        armatures=armatures,
+        description=description,
+    )
+    return urdf, reader.gravity()

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
-from .mjcf import read_model
+from .mjcf import MJCF_ROOT
 from .sdf import is_sdf, read_sdf
 from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
 from .yaml_loops import apply_loops_yaml, is_loops_yaml, read_loops_yaml
@@ -190,11 +190,12 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
 
 
 def read_base(base: Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tuple[str, ...] = ()):
-    """Return the ``<robot>`` element of a base model: a URDF, or an SDF or MJCF read as URDF+.
+    """Return the ``<robot>`` element of a base model: a URDF, or an SDF read as URDF+.
 
     Args:
-        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`; root
-            ``<mujoco>``: :func:`closedchain.mjcf.read_model`).
+        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`; an MJCF
+            file, root ``<mujoco>``, is refused: it is read whole by
+            :func:`closedchain.mjcf.read_mjcf`).
         cut_joints: SDF only: joints to cut in preference.
         fixed_joints: SDF only (a registry entry's): joints read as ``fixed``
             (:func:`closedchain.sdf.read_sdf`).
@@ -210,7 +211,13 @@ def read_base(base: Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tup
             f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
             "loops with <loop> elements"
         )
-    return read_model(base)[0]
+    root = read_xml(base)
+    if root.tag == MJCF_ROOT:
+        raise URDFError(
+            f"{base}: an MJCF model takes its loops from its <equality> elements; overlays "
+            "(loops=, --loops) apply to URDF and SDF models"
+        )
+    return root
 
 
 def merge_overlay(
@@ -233,8 +240,8 @@ def merge_overlay(
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
         cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
         fixed_joints: SDF base only: joints read as ``fixed`` (see :mod:`closedchain.sdf`).
-        root: the base's ``<robot>`` element, already read (an MJCF base translated by
-            :func:`closedchain.mjcf.read_model`); None: :func:`read_base` reads it.
+        root: the base's ``<robot>`` element, already read; None: :func:`read_base`
+            reads it.
 
     Returns:
         The parsed, merged model. Its ``path`` is the overlay (messages about

@@ -49,6 +49,7 @@ import re
 import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
@@ -70,6 +71,8 @@ __all__ = [
     "parse_urdf",
     "read_xml",
 ]
+if TYPE_CHECKING:
+    from .description import MechanismDescription
 
 logger = logging.getLogger(__name__)
 
@@ -321,7 +324,8 @@ class URDFPlus:
 
     Attributes:
         path: the file read.
-        xml: the file's text, checked safe, to hand to Pinocchio's reader.
+        xml: the file's text, checked safe, to hand to Pinocchio's reader (None
+            when ``description`` stands in for it).
         robot_name: the ``<robot name>``.
         links: names of all ``<link>`` elements.
         joints: joint name -> joint type for all ``<joint>`` elements.
@@ -341,10 +345,14 @@ class URDFPlus:
         springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
         dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
         armatures: the joints' armature (:class:`JointArmature`), in file order.
+        description: the tree as a :class:`closedchain.description.MechanismDescription`
+            (an MJCF model, read through MuJoCo's compiler), built by
+            :func:`closedchain.build.build_model` instead of Pinocchio's URDF reader;
+            None: ``xml`` is the tree.
     """
 
     path: Path
-    xml: str
+    xml: str | None
     robot_name: str
     links: tuple[str, ...]
     joints: dict[str, str] = field(default_factory=dict)
@@ -358,6 +366,7 @@ class URDFPlus:
     springs: tuple[JointSpring, ...] = ()
     dampings: tuple[JointDamping, ...] = ()
     armatures: tuple[JointArmature, ...] = ()
+    description: MechanismDescription | None = None
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a

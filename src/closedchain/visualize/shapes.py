@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import logging
 import urllib.parse
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -14,9 +15,10 @@ import pinocchio as pin
 from .._io import MAX_MESH_BYTES, check_input_file, read_input_bytes
 from ..constraints import axis_basis
 from ..exceptions import ClosedChainError
-from ..urdf import COUPLING, _declares_doctype
+from ..urdf import COUPLING, WORLD_LINK, _declares_doctype
 
 if TYPE_CHECKING:
+    from ..description import MechanismDescription
     from ..mechanism import Mechanism
 
 from .settings import (
@@ -233,7 +235,9 @@ def read_scene_visuals(
     loop frame on it, of radius :func:`model_stick_radius` (sized from the model).
 
     Materials are resolved by name against the robot's top-level
-    ``<material>`` elements. Mesh files are looked up relative to the URDF
+    ``<material>`` elements. A model read into a description (MJCF) gives its
+    bodies' visuals instead (:class:`closedchain.description.Visual`: mesh files
+    as MuJoCo found them, in the geom's frame). Mesh files are looked up relative to the URDF
     (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub`` in the URDF's
     directory and its parents, and in the share directory of the packages of
     :data:`TRUSTED_PACKAGES`, i.e. example-robot-data's meshes for ``erd:``
@@ -258,27 +262,17 @@ def read_scene_visuals(
     Raises:
         ClosedChainError: ``settings.mesh_budget_bytes`` is negative.
     """
-    import yourdfpy
-
     budget = settings.mesh_budget_bytes
     if not budget >= 0:
         raise ClosedChainError(
             f"AnimationSettings.mesh_budget_bytes = {budget!r}; valid: a number of bytes >= 0"
         )
-    robot = yourdfpy.URDF.load(
-        io.BytesIO(mech.urdf.xml.encode("utf-8")),
-        build_scene_graph=False,
-        load_meshes=False,
-        build_collision_scene_graph=False,
-        load_collision_meshes=False,
-    ).robot
-    named = {m.name: m for m in robot.materials if m.name}
+    if mech.urdf.description is not None:
+        links, children = _description_links(mech.urdf.description)
+    else:
+        links, children = _urdf_links(mech, settings)
     urdf_dir = Path(mech.path).resolve().parent
     trusted = _trusted_roots()
-    children: dict[str, list[np.ndarray]] = {}
-    for joint in robot.joints:
-        xyz = np.zeros(3) if joint.origin is None else np.asarray(joint.origin, float)[:3, 3]
-        children.setdefault(joint.parent, []).append(xyz)
     for loop in mech.urdf.loops:  # the cut joints' frames: where the loops close
         children.setdefault(loop.predecessor, []).append(loop.predecessor_origin.translation)
         children.setdefault(loop.successor, []).append(loop.successor_origin.translation)
@@ -287,48 +281,36 @@ def read_scene_visuals(
     left, n_embedded = budget, 0
     primitive_links: list[str] = []
     over_budget: list[str] = []
-    for link in robot.links:
+    for link_name, items, massive in links:
         shapes: list[VisualShape | None] = []  # None: where the link's meshes are drawn
         meshes: list[tuple[int, object, np.ndarray, tuple]] = []
-        for i, vis in enumerate(link.visuals):
-            origin = np.eye(4) if vis.origin is None else np.array(vis.origin, dtype=float)
-            rgba = _rgba(vis.material, named, settings.default_rgba)
-            g = vis.geometry
-            if g is None:
+        for i, (kind, dims, origin, rgba) in enumerate(items):
+            if kind != "mesh":
+                shapes.append(VisualShape(link_name, kind, dims, origin, rgba))
                 continue
-            if g.box is not None:
-                shapes.append(VisualShape(link.name, "box", _floats(g.box.size), origin, rgba))
-            elif g.cylinder is not None:
-                dims = (float(g.cylinder.radius), float(g.cylinder.length))
-                shapes.append(VisualShape(link.name, "cylinder", dims, origin, rgba))
-            elif g.sphere is not None:
-                shapes.append(
-                    VisualShape(link.name, "sphere", (float(g.sphere.radius),), origin, rgba)
-                )
-            elif g.mesh is not None:
-                if not meshes:
-                    shapes.append(None)
-                meshes.append((i, g.mesh, origin, rgba))
+            if not meshes:
+                shapes.append(None)
+            meshes.append((i, dims, origin, rgba))
         drawn: list[VisualShape] = []
         if meshes:
-            where = f"{mech.path}: link {link.name!r}"
-            fit = _link_meshes(where, link.name, meshes, urdf_dir, trusted, left)
+            where = f"{mech.path}: link {link_name!r}"
+            fit = _link_meshes(where, link_name, meshes, urdf_dir, trusted, left)
             if isinstance(fit, list):
                 drawn = fit
                 left -= sum(len(v.mesh_data.data) for v in fit)
                 n_embedded += len(fit)
             else:
                 if fit is not None:  # the bytes its meshes need
-                    over_budget.append(f"{link.name} ({fit / MEGABYTE:.3g} MB)")
-                primitive_links.append(link.name)
-                drawn = stick_figure(link.name, children.get(link.name, []), meshes[0][3])
+                    over_budget.append(f"{link_name} ({fit / MEGABYTE:.3g} MB)")
+                primitive_links.append(link_name)
+                drawn = stick_figure(link_name, children.get(link_name, []), meshes[0][3])
         for v in shapes:
             out.extend(drawn if v is None else [v])
-        sticks = [x for x in children.get(link.name, []) if np.linalg.norm(x) >= STICK_MIN_LENGTH]
-        if not link.visuals and (sticks or _has_mass(link)):
+        sticks = [x for x in children.get(link_name, []) if np.linalg.norm(x) >= STICK_MIN_LENGTH]
+        if not items and (sticks or massive):
             out.extend(
                 stick_figure(
-                    link.name,
+                    link_name,
                     sticks,
                     settings.default_rgba,
                     radius=bare_radius,
@@ -352,13 +334,84 @@ def _has_mass(link) -> bool:
     return inertial is not None and inertial.mass is not None and float(inertial.mass) > 0
 
 
+@dataclass(frozen=True)
+class _MeshFile:
+    """A mesh visual's file and scale (what :func:`_link_meshes` reads of a yourdfpy Mesh)."""
+
+    filename: str
+    scale: tuple[float, ...] | None
+
+
+def _urdf_links(mech: Mechanism, settings: AnimationSettings):
+    """Return the URDF's links as (name, [(kind, dims or mesh, origin (4, 4), rgba)],
+    has mass) and link name -> origins of its child joints [m] (yourdfpy reads the text)."""
+    import yourdfpy
+
+    robot = yourdfpy.URDF.load(
+        io.BytesIO(mech.urdf.xml.encode("utf-8")),
+        build_scene_graph=False,
+        load_meshes=False,
+        build_collision_scene_graph=False,
+        load_collision_meshes=False,
+    ).robot
+    named = {m.name: m for m in robot.materials if m.name}
+    children: dict[str, list[np.ndarray]] = {}
+    for joint in robot.joints:
+        xyz = np.zeros(3) if joint.origin is None else np.asarray(joint.origin, float)[:3, 3]
+        children.setdefault(joint.parent, []).append(xyz)
+    links = []
+    for link in robot.links:
+        items = []
+        for vis in link.visuals:
+            origin = np.eye(4) if vis.origin is None else np.array(vis.origin, dtype=float)
+            rgba = _rgba(vis.material, named, settings.default_rgba)
+            g = vis.geometry
+            if g is None:
+                continue
+            if g.box is not None:
+                items.append(("box", _floats(g.box.size), origin, rgba))
+            elif g.cylinder is not None:
+                dims = (float(g.cylinder.radius), float(g.cylinder.length))
+                items.append(("cylinder", dims, origin, rgba))
+            elif g.sphere is not None:
+                items.append(("sphere", (float(g.sphere.radius),), origin, rgba))
+            elif g.mesh is not None:
+                items.append(("mesh", _MeshFile(g.mesh.filename, g.mesh.scale), origin, rgba))
+        links.append((link.name, items, _has_mass(link)))
+    return links, children
+
+
+def _description_links(description: MechanismDescription):
+    """Return a description's bodies as :func:`_urdf_links` does (its visuals, no text)."""
+    children: dict[str, list[np.ndarray]] = {}
+    for body in description.bodies:
+        anchor = body.joints[0].position if body.joints else np.zeros(3)
+        origin = body.placement.act(np.asarray(anchor, dtype=float))
+        children.setdefault(body.parent, []).append(origin)
+    links = [(WORLD_LINK, description.world_visuals, False)] + [
+        (b.name, b.visuals, b.inertia.mass > 0) for b in description.bodies
+    ]
+    out = []
+    for name, visuals, massive in links:
+        items = []
+        for vis in visuals:
+            origin = vis.placement.homogeneous
+            if vis.kind == "mesh":
+                items.append(("mesh", _MeshFile(str(vis.mesh_file), vis.dims), origin, vis.rgba))
+            else:
+                items.append((vis.kind, tuple(vis.dims), origin, vis.rgba))
+        out.append((name, items, massive))
+    return out, children
+
+
 def _link_meshes(where, link, meshes, urdf_dir, trusted, left):
     """Return a link's mesh visuals to embed, or why it is drawn as a stick figure.
 
     Args:
         where: ``file: link 'name'``, for messages.
         link: the link's name.
-        meshes: (visual index, yourdfpy Mesh, origin (4, 4), rgba) of its mesh visuals.
+        meshes: (visual index, mesh file (``filename``, ``scale``), origin (4, 4), rgba) of
+            its mesh visuals.
         urdf_dir: the URDF's directory, resolved.
         trusted: trusted package share directories (see :func:`_trusted_roots`).
         left: what is left of the budget [bytes].
