@@ -545,7 +545,7 @@ def test_mesh_visuals_sit_where_mujoco_puts_them(tmp_path):
     expected = compiled @ R.reshape(3, 3).T + m.geom_pos[g]
     assert np.linalg.norm(np.sort(drawn, axis=0) - np.sort(expected, axis=0)) <= MESH_VERTEX_TOL
     # The capsule: its cylinder and two end spheres.
-    assert sorted(v.kind for v in read_visuals(mech) if v.kind != "mesh") == [
+    assert sorted(v.kind for v in read_visuals(mech) if v.kind != "mesh" and v.link == "b") == [
         "cylinder", "sphere", "sphere"
     ]  # fmt: skip
 
