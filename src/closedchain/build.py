@@ -26,6 +26,12 @@ from .description import JOINT_KINDS, JointDescription, MechanismDescription
 from .exceptions import URDFError
 from .urdf import WORLD_LINK
 
+__all__ = [
+    "build_model",
+    "configuration",
+    "joint_model",
+]
+
 #: Tolerance on an axis' components to use Pinocchio's axis-aligned joints [-].
 ALIGNED_TOL = 1e-15
 

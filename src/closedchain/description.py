@@ -19,6 +19,16 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+__all__ = [
+    "BodyDescription",
+    "JOINT_KINDS",
+    "JointDescription",
+    "MechanismDescription",
+    "SiteDescription",
+    "VISUAL_KINDS",
+    "Visual",
+]
+
 #: Joint kinds and their number of configuration entries.
 JOINT_KINDS = {"revolute": 1, "prismatic": 1, "spherical": 4, "free": 7}
 

@@ -25,16 +25,14 @@ Two accelerations of MuJoCo at a closed state (q, v) with joint forces tau:
 - ``rigid``: the KKT system built from MuJoCo's own M (``mj_fullM``), bias
   forces ``qfrc_bias`` and equality rows of ``efc_J``, with
   :math:`\dot J v` by fourth-order central differences of ``efc_J`` along v
-  (step :data:`JDOT_STEP`):
+  (step :data:`JDOT_STEP`), solved through its Schur complement, the Delassus
+  matrix by least squares (redundant rows allowed):
 
-  .. math::
+.. math::
 
-      \begin{bmatrix} M & J^T \\ J & 0 \end{bmatrix}
-      \begin{bmatrix} a \\ -\lambda \end{bmatrix} =
-      \begin{bmatrix} \tau - b \\ -\dot J v \end{bmatrix}
-
-  solved through its Schur complement, the Delassus matrix by least squares
-  (redundant rows allowed).
+    \begin{bmatrix} M & J^T \\ J & 0 \end{bmatrix}
+    \begin{bmatrix} a \\ -\lambda \end{bmatrix} =
+    \begin{bmatrix} \tau - b \\ -\dot J v \end{bmatrix}
 
 Passive terms (armature, damping, stiffness, gravity compensation) are zeroed
 in the spec by :func:`rigid_spec` where a comparison wants the rigid tree only.
@@ -49,6 +47,19 @@ import numpy as np
 import pinocchio as pin
 
 from .mjcf import _mujoco, _pin_values, compile_mjcf
+
+__all__ = [
+    "JDOT_STEP",
+    "STIFF_SOLIMP",
+    "STIFF_SOLREF",
+    "MujocoModel",
+    "mujoco_accelerations",
+    "mujoco_mass_matrix",
+    "mujoco_model",
+    "pin_configuration",
+    "rigid_spec",
+    "to_mujoco",
+]
 
 #: MuJoCo ``solref`` (time constant [s], damping ratio) that makes an equality stiff.
 STIFF_SOLREF = (2e-4, 1.0)
