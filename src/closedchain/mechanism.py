@@ -47,6 +47,7 @@ from .exceptions import (
     check_settings,
 )
 from .mjcf import read_model
+from .passive import PassiveTerms, passive_terms
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf
 from .yaml_loops import edit_model
@@ -163,6 +164,9 @@ class Mechanism:
             mechanism: one Mechanism may be shared between threads, whose calls
             on it then take turns (:mod:`closedchain._locking`).
         urdf: the parsed URDF+ extensions.
+        passive: the joint springs, damping and armature, terms of the dynamics
+            (:class:`~closedchain.passive.PassiveTerms`; the armature is also the
+            model's ``armature``).
         closure: the loop rows, their independent subset and the coordinate
             partition (:class:`~closedchain.closure.LoopClosure`).
         constraints: the independent rows, the ones every method uses.
@@ -195,8 +199,10 @@ class Mechanism:
         model: pin.Model,
         closure: LoopClosure,
         gravity: np.ndarray,
+        passive: PassiveTerms,
     ) -> None:
         self.urdf = urdf
+        self.passive = passive
         self.name = urdf.robot_name
         self.path = urdf.path
         self.model = model
@@ -494,8 +500,9 @@ class Mechanism:
 
         It covers, per joint in tree order: name, type, parent, placement in the
         parent joint's frame, motion subspace S at the neutral configuration
-        (the axis), and the inertia of its body (mass, centre of mass,
-        rotational inertia: fixed links folded in); per loop: name, type,
+        (the axis), the inertia of its body (mass, centre of mass,
+        rotational inertia: fixed links folded in) and, where it has any, its
+        spring, damping and armature; per loop: name, type,
         links, both origins and axis. Numbers enter rounded to
         :data:`DIGEST_DIGITS` significant digits (below :data:`DIGEST_ZERO`:
         0), so the digest is the same in every process and on every machine
@@ -511,11 +518,20 @@ class Mechanism:
             ]
 
         model, q0 = self.model, pin.neutral(self.model)
+        passive = self.passive
         joints = []
         for j in range(1, model.njoints):
             jm, body = model.joints[j], model.inertias[j]
             jdata = jm.createData()
             jm.calc(jdata, q0)
+            cols = slice(jm.idx_v, jm.idx_v + jm.nv)
+            spring = np.flatnonzero(passive.spring_idx_v == jm.idx_v) if jm.nv == 1 else []
+            terms = [
+                *passive.stiffness[spring],
+                *passive.reference[spring],
+                *passive.damping[cols],
+                *passive.armature[cols],
+            ]
             joints.append(
                 [
                     model.names[j],
@@ -525,6 +541,9 @@ class Mechanism:
                     numbers(jdata.S),
                     numbers([body.mass, *body.lever, *body.inertia.ravel()]),
                 ]
+                # Springs, damping, armature: only where a joint has one (the other
+                # joints' entries stay as they were).
+                + ([numbers(terms)] if any(terms) else [])
             )
         loops = [
             [
@@ -747,6 +766,7 @@ def load(
             "planar or floating <joint>, or root_joint 'free' / 'planar' (--root)"
         )
     model.gravity.linear = gravity
+    passive = passive_terms(model, urdf)  # sets model.armature
 
     urdf = _resolve_frame_sides(model, urdf)
     frame_ids = []
@@ -786,7 +806,7 @@ def load(
 
     declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
     closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
-    mech = Mechanism(urdf, model, closure, gravity)
+    mech = Mechanism(urdf, model, closure, gravity, passive)
     mech.root_joint = root_joint
     starts = []
     if urdf.scene is not None and urdf.scene.initial:

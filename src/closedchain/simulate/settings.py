@@ -71,7 +71,7 @@ class SimulationSettings:
             for every 1-dof coordinate); False turns the first check off.
         energy_tol: raise SimulationError (with the whole trajectory) at the end
             of a run whose relative energy balance (``Trajectory.energy_balance``:
-            the energy drift without tau, E - E0 - the work of tau with it) exceeds
+            the energy drift without tau, E - E0 - the work of tau and damping) exceeds
             this: the integration was not accurate, whatever the closure says. None
             (the default of the library; the command line sets ``--energy-tol``):
             no check.
