@@ -56,6 +56,7 @@ class PassiveTerms:
         damping: D per velocity coordinate, shape (nv,) [N m s/rad or N s/m].
         armature: r per velocity coordinate, shape (nv,) [kg m^2 or kg] (the
             model's ``armature``, set by :func:`passive_terms`).
+        armature_joints: ``(joint index, velocity slice)`` of the joints with armature.
     """
 
     spring_idx_q: np.ndarray
@@ -64,6 +65,7 @@ class PassiveTerms:
     reference: np.ndarray
     damping: np.ndarray
     armature: np.ndarray
+    armature_joints: tuple[tuple[int, slice], ...] = ()
 
     @property
     def has_springs(self) -> bool:
@@ -101,6 +103,20 @@ class PassiveTerms:
         if self.acts:
             h[self.spring_idx_v] += self.stiffness * (q[self.spring_idx_q] - self.reference)
             h += self.damping * v
+
+    def kinetic_energy(self, model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray):
+        r"""Return the kinetic energy :math:`\tfrac12 v^\top (M + \operatorname{diag}(r))
+        v` [J] at (q, v) (shapes (nq,), (nv,)).
+
+        Pinocchio 4.1's ``computeKineticEnergy`` adds :math:`\tfrac12 r_j \dot q_j^2`
+        with the joint data's velocity, which a revolute joint about an unaligned axis
+        leaves at 0: its armature's part is taken from v here.
+        """
+        T = pin.computeKineticEnergy(model, data, q, v)
+        for j, cols in self.armature_joints:
+            vj, counted = v[cols], np.asarray(data.joints[j].joint_v)
+            T += 0.5 * float(self.armature[cols] @ (vj * vj - counted * counted))
+        return T
 
     def spring_energy(self, q: np.ndarray) -> float:
         r"""Return the springs' potential :math:`\tfrac12 \sum_j k_j (q_j - q_{0,j})^2` [J]."""
@@ -181,6 +197,11 @@ def passive_terms(model: pin.Model, urdf: URDFPlus) -> PassiveTerms:
         ref.append(s.reference)
     damping = _per_coordinate(model, urdf, urdf.dampings, "damping")
     armature = _per_coordinate(model, urdf, urdf.armatures, "armature")
+    armature_joints = tuple(
+        (j, slice(jm.idx_v, jm.idx_v + jm.nv))
+        for j, jm in enumerate(model.joints)
+        if j > 0 and np.any(armature[jm.idx_v : jm.idx_v + jm.nv])
+    )
     model.armature = armature.copy()
     model.damping = damping.copy()
     return PassiveTerms(
@@ -190,4 +211,5 @@ def passive_terms(model: pin.Model, urdf: URDFPlus) -> PassiveTerms:
         reference=np.array(ref, dtype=float),
         damping=damping,
         armature=armature,
+        armature_joints=armature_joints,
     )

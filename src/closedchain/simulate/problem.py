@@ -719,7 +719,7 @@ class Recorder:
         res = self.declared_residual(t, q)
         J = self.jacobian(q)
         vres = float(np.max(np.abs(J @ v), initial=0.0))
-        kinetic = pin.computeKineticEnergy(model, data, q, v)
+        kinetic = mech.passive.kinetic_energy(model, data, q, v)  # armature included
         energy = kinetic + pin.computePotentialEnergy(model, data, q)
         energy += mech.passive.spring_energy(q)  # the joint springs' potential
         r = self.rows
