@@ -47,6 +47,9 @@ from closedchain.sdf import read_sdf
 FOURBAR = DATA_DIR / "fourbar.sdf"
 SPRING_LEGS = DATA_DIR / "spring_legs.sdf"
 
+#: forward_dynamics with the springs against a KKT solve of Pinocchio's terms, relative
+#: to max |a| (round-off of two dense solves).
+TOL_SPRING_ACCEL = 1e-9
 #: The heel springs of spring_legs.sdf as its <dynamics> write them: joint ->
 #: (spring_stiffness [N m/rad], spring_reference [rad]).
 SPRING_LEGS_SPRINGS = {
@@ -587,18 +590,24 @@ def test_sdf_springs_become_joint_springs():
     np.testing.assert_array_equal(cc.spring_torque(mech, q), expected)
 
 
-def test_with_spring_torque_adds_the_springs_to_any_tau(rng):
-    mech = cc.load(SPRING_LEGS)
-    q = pin.randomConfiguration(mech.model, -np.ones(mech.nq), np.ones(mech.nq))
-    v, tau = rng.standard_normal(mech.nv), rng.standard_normal(mech.nv)
-    springs = cc.spring_torque(mech, q)
-    assert np.max(np.abs(springs)) > 0.0
-    np.testing.assert_array_equal(cc.with_spring_torque(mech)(0.0, q, v), springs)
-    np.testing.assert_array_equal(cc.with_spring_torque(mech, tau)(0.0, q, v), tau + springs)
-    law = cc.with_spring_torque(mech, lambda t, q, v: t * v)
-    np.testing.assert_array_equal(law(2.0, q, v), 2.0 * v + springs)
-    fourbar = cc.load(FOURBAR)  # no spring: tau comes back as it was
-    assert cc.with_spring_torque(fourbar, tau) is tau
+def test_the_springs_act_in_forward_dynamics_without_tau(spring_legs_pinned, rng):
+    """forward_dynamics with tau = 0 against a KKT solve from Pinocchio's crba and rnea
+    with the springs of this file's numbers as a generalized force."""
+    mech = spring_legs_pinned
+    q, v = cc.random_consistent_state(mech, rng)
+    springs = np.zeros(mech.nv)
+    for name, (k, q0) in SPRING_LEGS_SPRINGS.items():
+        joint = mech.model.joints[mech.model.getJointId(name)]
+        springs[joint.idx_v] = -k * (q[joint.idx_q] - q0)
+    assert np.max(np.abs(springs)) > 1.0
+    data = mech.model.createData()
+    M = pin.crba(mech.model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    rhs = springs - pin.rnea(mech.model, data, q, v, np.zeros(mech.nv))
+    res = cc.forward_dynamics(mech, q, v, method="kkt", backend="numpy")
+    K = np.block([[M, res.J.T], [res.J, np.zeros((mech.nc, mech.nc))]])
+    a_ref = np.linalg.lstsq(K, np.concatenate([rhs, -res.gamma]), rcond=None)[0][: mech.nv]
+    assert np.max(np.abs(res.a - a_ref)) <= TOL_SPRING_ACCEL * max(1.0, np.max(np.abs(a_ref)))
 
 
 def test_a_spring_on_a_cut_joint_is_left_out_with_a_warning(tmp_path, caplog):

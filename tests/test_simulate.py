@@ -1225,7 +1225,7 @@ def test_energy_tol_checks_the_energy_balance_of_a_driven_run(fourbar):
     tau = BALANCE_TORQUES["constant"]
     accurate = cc.simulate(fourbar, q0, np.zeros(3), 1.0, tau=tau, settings=settings)
     assert accurate.energy_drift > DRIVEN_DRIFT_MIN > settings.energy_tol
-    match = r"relative energy balance of this driven run \(E - E0 - the work of tau\) is"
+    match = r"relative energy balance of this run \(E - E0 - the work of tau and damping\) is"
     with pytest.raises(cc.SimulationError, match=match) as exc:
         cc.simulate(
             fourbar, q0, np.zeros(3), 1.0, tau=tau, integrator="euler", dt=1e-2, settings=settings

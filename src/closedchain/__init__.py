@@ -22,7 +22,6 @@ from .control import (
     computed_torque_controller,
     gravity_torque,
     spring_torque,
-    with_spring_torque,
 )
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
@@ -131,6 +130,5 @@ __all__ = [
     "singularity_measures",
     "spring_torque",
     "validate",
-    "with_spring_torque",
     "write_html",
 ]

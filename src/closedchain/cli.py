@@ -617,7 +617,7 @@ def actuator_torque(mech, values: np.ndarray) -> np.ndarray:
 
 def simulate_from_args(args, mech):
     """Run the simulation the shared options describe; return the Trajectory."""
-    from .control import default_scene, with_spring_torque
+    from .control import default_scene
     from .kinematics import assemble
     from .simulate import SimulationSettings, simulate
 
@@ -643,7 +643,6 @@ def simulate_from_args(args, mech):
         tau = gravity_torque(mech, q0)
     elif constant is not None:
         tau = constant
-    tau = with_spring_torque(mech, tau)  # the file's joint springs act in every scene
     t_eval = output_times(args.t_final, args.fps)
     bar = None
     if not getattr(args, "json", False) and sys.stderr.isatty():

@@ -153,7 +153,7 @@ def _core_of_rows(mech: Mechanism, layer) -> _core.Core:
     """A new core on ``mech``'s model whose rows are those of the constraint ``layer``."""
     _check_rows(mech)
     tab = layer.row_table()
-    return _core.Core(
+    core = _core.Core(
         mech.model,
         mech.name,
         _CORE_KIND[tab.function].astype(np.int32),
@@ -162,6 +162,17 @@ def _core_of_rows(mech: Mechanism, layer) -> _core.Core:
         tab.u,
         tab.w,
     )
+    # The joint springs and damping, a term of h as in the numpy methods (the armature is
+    # the model's own, on M's diagonal in both).
+    p = mech.passive
+    core.set_passive(
+        p.spring_idx_q.astype(np.int32),
+        p.spring_idx_v.astype(np.int32),
+        p.stiffness,
+        p.reference,
+        p.damping if p.has_damping else np.zeros(0),
+    )
+    return core
 
 
 def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

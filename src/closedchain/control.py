@@ -28,7 +28,6 @@ from ._locking import exclusive
 from .dynamics.base import DEFAULT_SETTINGS, SolverSettings
 from .exceptions import ClosedChainError, check_settings
 from .inverse import _resolve_ordered, inverse_dynamics
-from .simulate.settings import TorqueInput
 
 if TYPE_CHECKING:
     from .mechanism import Mechanism
@@ -41,7 +40,6 @@ __all__ = [
     "gravity_torque",
     "sinusoid_reference",
     "spring_torque",
-    "with_spring_torque",
 ]
 
 #: A reference: t [s] -> (q_P, v_P, a_P), each of shape (mobility,) [rad, rad/s, rad/s^2].
@@ -112,18 +110,6 @@ def computed_torque_controller(
     return tau
 
 
-def _spring_indices(mech: Mechanism) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Return (idx_q, idx_v, stiffness, reference) of the mechanism's joint springs."""
-    springs = mech.urdf.springs
-    joints = [mech.model.joints[mech.model.getJointId(s.joint)] for s in springs]
-    return (
-        np.array([j.idx_q for j in joints], dtype=int),
-        np.array([j.idx_v for j in joints], dtype=int),
-        np.array([s.stiffness for s in springs], dtype=float),
-        np.array([s.reference for s in springs], dtype=float),
-    )
-
-
 def spring_torque(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     r"""Return the generalized forces of the mechanism's joint springs at q.
 
@@ -131,10 +117,11 @@ def spring_torque(mech: Mechanism, q: np.ndarray) -> np.ndarray:
 
         \tau_{s,j} = -k_j\, (q_j - q_{0,j})
 
-    on each joint j with a spring (``<dynamics spring_stiffness spring_reference>``,
-    :class:`closedchain.urdf.JointSpring`; the SDF reader fills them), zero elsewhere.
-    :func:`simulate` applies the ``tau`` it is given and nothing else: pass
-    :func:`with_spring_torque` to have the springs act.
+    on each joint j with a spring (:class:`closedchain.urdf.JointSpring`: URDF
+    ``<dynamics spring_stiffness spring_reference>``, SDF and MJCF springs), zero
+    elsewhere. The springs are a term of the dynamics (:mod:`closedchain.passive`):
+    :func:`forward_dynamics`, :func:`simulate` and :func:`inverse_dynamics` apply them
+    without being given this force; it is here to be read.
 
     Args:
         mech: the mechanism.
@@ -143,37 +130,7 @@ def spring_torque(mech: Mechanism, q: np.ndarray) -> np.ndarray:
     Returns:
         tau_s, shape (nv,) [N m or N].
     """
-    q = mech.check_q(q, "q")
-    idx_q, idx_v, k, q_rest = _spring_indices(mech)
-    tau = np.zeros(mech.nv)
-    tau[idx_v] = -k * (q[idx_q] - q_rest)
-    return tau
-
-
-def with_spring_torque(mech: Mechanism, tau: TorqueInput = None) -> TorqueInput:
-    """Return ``tau`` plus the joint springs' :func:`spring_torque`, as :func:`simulate` takes it.
-
-    Args:
-        mech: the mechanism.
-        tau: None (zero), a constant array, shape (nv,) [N m or N], or a callable
-            ``tau(t, q, v) -> (nv,)``.
-
-    Returns:
-        ``tau`` itself when the mechanism has no spring, else the callable
-        ``tau(t, q, v) + spring_torque(mech, q)``.
-    """
-    if not mech.urdf.springs:
-        return tau
-    idx_q, idx_v, k, q_rest = _spring_indices(mech)
-    base = tau if callable(tau) else None
-    constant = np.zeros(mech.nv) if tau is None or base else mech.check_v(tau, "tau").copy()
-
-    def sprung(t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        out = base(t, q, v).copy() if base else constant.copy()
-        out[idx_v] -= k * (q[idx_q] - q_rest)
-        return out
-
-    return sprung
+    return mech.passive.spring_force(mech.check_q(q, "q"))
 
 
 @exclusive
@@ -184,9 +141,9 @@ def gravity_torque(
 
     Closed-chain inverse dynamics (:func:`closedchain.inverse_dynamics`) with
     v = 0 and zero accelerations, the joint springs' forces
-    (:func:`spring_torque`) acting besides the actuators: a constant ``tau``
-    under which q is an equilibrium (not necessarily a stable one) of
-    :func:`simulate` given ``with_spring_torque(mech, tau)``.
+    (:func:`spring_torque`, a term of the dynamics) acting besides the actuators: a
+    constant ``tau`` under which q is an equilibrium (not necessarily a stable one)
+    of :func:`simulate`.
 
     Args:
         mech: the mechanism (its actuators must control every degree of freedom).
@@ -198,10 +155,7 @@ def gravity_torque(
     """
     check_settings("settings", settings, SolverSettings)
     zero_v = np.zeros(mech.nv)
-    passive = spring_torque(mech, q) if mech.urdf.springs else None
-    return inverse_dynamics(
-        mech, q, zero_v, np.zeros(mech.mobility), tau_passive=passive, settings=settings
-    ).tau
+    return inverse_dynamics(mech, q, zero_v, np.zeros(mech.mobility), settings=settings).tau
 
 
 def sinusoid_reference(specs: Sequence[SinusoidSpec]) -> Reference:

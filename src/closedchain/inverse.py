@@ -12,9 +12,10 @@ motion:
     \begin{bmatrix} B & -J^\top \end{bmatrix}
     \begin{bmatrix} \tau_A \\ \lambda \end{bmatrix} = M a + h,
 
-where B (nv x na) selects the actuated coordinates (with passive generalized forces
-``tau_passive``, such as joint springs, the right-hand side is
-:math:`M a + h - \tau_{passive}`). Projected onto an
+where B (nv x na) selects the actuated coordinates, M includes the joints' armature
+and h the joint springs' and dampers' forces (:mod:`closedchain.passive`: h - tau_p);
+with other passive generalized forces ``tau_passive`` the right-hand side is
+:math:`M a + h - \tau_{passive}`. Projected onto an
 orthonormal basis N of the null space of J (:math:`N^\top J^\top = 0`) the
 second system splits into
 
@@ -165,7 +166,9 @@ class JointReaction:
         frame: name of the model frame the components are given in: the joint frame
             (at the joint's origin, moving with the child).
         tau: the components along the joint's motion subspace, S^T f, shape (nv_j,)
-            [N m or N]: the joint's generalized force (actuator torque, 0 if passive).
+            [N m or N]: the joint's generalized force, the actuator's torque plus the
+            joint's spring and damper forces, less armature times a (the part of the
+            motor's torque that turns its rotor); 0 for a joint without any.
         force: force on the child, applied at the joint's origin, shape (3,) [N], in
             the joint frame.
         torque: couple on the child about the joint's origin, shape (3,) [N m], in the
@@ -315,9 +318,10 @@ def inverse_dynamics(
         coordinates: the prescribed coordinates: ``"independent"``
             (``mech.independent_idx_v``) or ``mobility`` joint names / velocity
             indices, e.g. a platform's orientation joints.
-        tau_passive: generalized forces that act besides the actuators (the
-            joint springs' :func:`closedchain.spring_torque`), shape (nv,) [N m or
-            N], or None: the torques returned produce the motion with them.
+        tau_passive: generalized forces that act besides the actuators and the
+            model's own joint springs and damping (those are terms of the dynamics,
+            :mod:`closedchain.passive`), shape (nv,) [N m or N], or None: the torques
+            returned produce the motion with them.
         settings: ``cond_max`` bounds cond(J_F) (the other coordinates' block
             of J), cond(J) and cond(N^T B); over-actuated, the torques are the
             minimum-norm ones plus the spare torques that balance the load along J's
@@ -634,7 +638,9 @@ def joint_reactions(
                 torque=f.angular.copy(),
                 force_world=R @ f.linear,
                 torque_world=R @ f.angular,
-                tau=data.tau[jm.idx_v : jm.idx_v + jm.nv].copy(),
+                # rnea's tau is S^T f + armature a (Pinocchio adds the rotor's inertia).
+                tau=data.tau[jm.idx_v : jm.idx_v + jm.nv]
+                - model.armature[jm.idx_v : jm.idx_v + jm.nv] * a[jm.idx_v : jm.idx_v + jm.nv],
             )
         )
     return out

@@ -48,6 +48,7 @@ from .exceptions import (
     check_settings,
 )
 from .mjcf import MJCF_ROOT, read_mjcf
+from .passive import PassiveTerms, passive_terms
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf, read_xml
 from .yaml_loops import edit_model
@@ -175,6 +176,9 @@ class Mechanism:
             mechanism: one Mechanism may be shared between threads, whose calls
             on it then take turns (:mod:`closedchain._locking`).
         urdf: the parsed URDF+ extensions.
+        passive: the joint springs, damping and armature, terms of the dynamics
+            (:class:`~closedchain.passive.PassiveTerms`; the armature is also the
+            model's ``armature``).
         closure: the loop rows, their independent subset and the coordinate
             partition (:class:`~closedchain.closure.LoopClosure`).
         constraints: the independent rows, the ones every method uses.
@@ -207,8 +211,10 @@ class Mechanism:
         model: pin.Model,
         closure: LoopClosure,
         gravity: np.ndarray,
+        passive: PassiveTerms,
     ) -> None:
         self.urdf = urdf
+        self.passive = passive
         self.name = urdf.robot_name
         self.path = urdf.path
         self.model = model
@@ -555,8 +561,9 @@ class Mechanism:
 
         It covers, per joint in tree order: name, type, parent, placement in the
         parent joint's frame, motion subspace S at the neutral configuration
-        (the axis), and the inertia of its body (mass, centre of mass,
-        rotational inertia: fixed links folded in); per loop: name, type,
+        (the axis), the inertia of its body (mass, centre of mass,
+        rotational inertia: fixed links folded in) and, where it has any, its
+        spring, damping and armature; per loop: name, type,
         links, both origins and axis. Numbers enter rounded to
         :data:`DIGEST_DIGITS` significant digits (below :data:`DIGEST_ZERO`:
         0), so the digest is the same in every process and on every machine
@@ -572,11 +579,20 @@ class Mechanism:
             ]
 
         model, q0 = self.model, pin.neutral(self.model)
+        passive = self.passive
         joints = []
         for j in range(1, model.njoints):
             jm, body = model.joints[j], model.inertias[j]
             jdata = jm.createData()
             jm.calc(jdata, q0)
+            cols = slice(jm.idx_v, jm.idx_v + jm.nv)
+            spring = np.flatnonzero(passive.spring_idx_v == jm.idx_v) if jm.nv == 1 else []
+            terms = [
+                *passive.stiffness[spring],
+                *passive.reference[spring],
+                *passive.damping[cols],
+                *passive.armature[cols],
+            ]
             joints.append(
                 [
                     model.names[j],
@@ -586,6 +602,9 @@ class Mechanism:
                     numbers(jdata.S),
                     numbers([body.mass, *body.lever, *body.inertia.ravel()]),
                 ]
+                # Springs, damping, armature: only where a joint has one (the other
+                # joints' entries stay as they were).
+                + ([numbers(terms)] if any(terms) else [])
             )
         loops = [
             [
@@ -911,6 +930,7 @@ def load(
             "planar or floating <joint>, or root_joint 'free' / 'planar' (--root)"
         )
     model.gravity.linear = gravity
+    passive = passive_terms(model, urdf)  # sets model.armature
 
     urdf = _resolve_frame_sides(model, urdf)
     frame_ids = []
@@ -950,7 +970,7 @@ def load(
 
     declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
     closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
-    mech = Mechanism(urdf, model, closure, gravity)
+    mech = Mechanism(urdf, model, closure, gravity, passive)
     mech.root_joint = root_joint
     starts = []
     if urdf.scene is not None and urdf.scene.initial:

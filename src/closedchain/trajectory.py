@@ -252,7 +252,8 @@ class Trajectory:
         lam: multipliers of the independent rows, shape (N, nc).
         constraint_residual: max |phi(q)| at each time, shape (N,).
         velocity_residual: max |J(q) v| at each time, shape (N,).
-        energy: total mechanical energy (kinetic + potential) [J], shape (N,).
+        energy: total mechanical energy (kinetic, armature included, + potential of
+            gravity and of the joint springs) [J], shape (N,).
         kinetic_energy: kinetic energy [J], shape (N,), or None when not recorded;
             it sets the scale of :attr:`energy_drift`.
         branch: assembly-branch indicator, shape (N,): the sign (+1, -1; 0 when
@@ -262,9 +263,10 @@ class Trajectory:
             on (the 4-bar: open +1 / crossed -1 assembly); ``info.branch_changes``
             lists the changes as [t_before, t_after, from, to]. None when not
             recorded (no loops).
-        work: the work of the generalized forces tau since t = 0, W(t) =
-            integral of tau . v dt [J], shape (N,), or None when the run had no tau
-            (or was saved before it was recorded). Accumulated along the integration
+        work: the work of the non-conservative generalized forces since t = 0, the
+            actuators' tau and the joint damping D: W(t) = integral of (tau - D v) . v
+            dt [J], shape (N,), or None when the run had neither (or was saved before
+            it was recorded). Accumulated along the integration
             by a fourth-order rule (``closedchain.simulate.problem.WorkMeter``, which
             states its accuracy).
         info: what the run was and what it cost (:class:`SimulationInfo`); a
@@ -307,7 +309,8 @@ class Trajectory:
         r"""Relative energy balance :math:`\max_t |E(t) - E(0) - W(t)| / E_s`, W = :attr:`work`.
 
         Zero for an exact solution whatever drives it: the mechanical energy changes by
-        the work of tau alone (the ideal loop joints do none). Equal to
+        the work of tau and of the joint damping alone (the ideal loop joints do none;
+        the springs' potential is part of E). Equal to
         :attr:`energy_drift` when :attr:`work` is None (W = 0: no tau).
         """
         return energy_balance(self.energy, self.kinetic_energy, self.work)

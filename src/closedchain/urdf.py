@@ -29,7 +29,12 @@ and a standard URDF ``<mimic joint="i" multiplier="m" offset="c"/>`` inside
 
 A joint spring (:class:`JointSpring`, generalized force -k (q - q0)) is written in
 the joint's ``<dynamics>``, with the names of SDF's elements:
-``<dynamics damping="0" spring_stiffness="1500" spring_reference="0"/>``.
+``<dynamics damping="0" spring_stiffness="1500" spring_reference="0"/>``; its standard
+``damping`` is the joint's viscous damping (:class:`JointDamping`, generalized force
+-d v), and closedchain's ``armature`` its rotor inertia (:class:`JointArmature`, added
+to the mass matrix's diagonal, as MuJoCo's joint ``armature``):
+``<dynamics damping="0.5" armature="0.01"/>``. All act in the dynamics
+(:mod:`closedchain.passive`).
 
 A side may name any frame of the tree instead of a link, ``<predecessor
 frame="closedloop1_A"/>`` (a link, or a joint's frame); the origin is then in
@@ -306,6 +311,7 @@ class JointArmature:
 
     MuJoCo's joint ``armature`` and Pinocchio's ``model.armature`` (one value per
     coordinate of the joint): M[i, i] += armature for each of the joint's v indices.
+    Read from MJCF joint ``armature`` and closedchain's URDF ``<dynamics armature>``.
 
     Attributes:
         joint: the joint's name.
@@ -829,6 +835,12 @@ def parse_urdf(
       ``<joint>`` is the same loop (URDF's defaults: multiplier 1, offset 0),
       named after the joint with :data:`MIMIC_SUFFIX`; the ``<mimic>`` of a
       fixed joint couples nothing and is left out (logged).
+    - ``<dynamics damping armature>`` of a movable joint: a :class:`JointDamping`
+      (viscous damping on each of its coordinates) and a :class:`JointArmature`
+      (closedchain's extension, as MuJoCo's joint ``armature``), each finite and >= 0,
+      as ``friction``, which is not modelled (a log line names it); on a fixed joint
+      they are logged and left out; an ``armature`` without ``damping`` or ``friction``
+      beside it (urdfdom refuses that) is refused.
     - ``<dynamics spring_stiffness spring_reference>`` of a revolute or prismatic
       joint (:data:`SPRING_JOINT_TYPES`): a :class:`JointSpring`; a stiffness that is
       negative or not finite, a reference without a stiffness, another joint type, or
@@ -934,6 +946,9 @@ def parse_urdf(
     springs = tuple(
         spring for je in joint_elements if (spring := _parse_spring(path, je, joints)) is not None
     )
+    dynamics = [_parse_dynamics(path, je, joints) for je in joint_elements]
+    dampings = tuple(d for d, _ in dynamics if d is not None)
+    armatures = tuple(r for _, r in dynamics if r is not None)
 
     xml = etree.tostring(root, encoding="unicode")
     return URDFPlus(
@@ -947,6 +962,41 @@ def parse_urdf(
         independent=tuple(independent),
         scene=scene,
         springs=springs,
+        dampings=dampings,
+        armatures=armatures,
+    )
+
+
+def _parse_dynamics(
+    path: Path, joint, joints: dict[str, str]
+) -> tuple[JointDamping | None, JointArmature | None]:
+    """Read a ``<joint>``'s ``<dynamics damping armature>`` (viscous damping [N m s/rad or
+    N s/m], rotor inertia [kg m^2 or kg]); log a ``friction`` (Coulomb friction, not
+    modelled), and a damping or armature on a fixed joint (no coordinate: left out)."""
+    dynamics = joint.find("dynamics")
+    if dynamics is None:
+        return None, None
+    where = _where(path, joint)
+    name = joint.get("name")
+    damping = _number(where, dynamics, "damping", minimum=0.0)
+    armature = _number(where, dynamics, "armature", minimum=0.0)
+    friction = _number(where, dynamics, "friction", minimum=0.0)
+    if armature is not None and damping is None and friction is None:
+        raise URDFError(
+            f"{where} <dynamics>: URDF readers (urdfdom) refuse a <dynamics> without damping "
+            'or friction; add damping="0"'
+        )
+    if friction:
+        logger.info(
+            "%s <dynamics friction=%g>: friction loss is not modelled (left out)", where, friction
+        )
+    if (damping or armature) and joints[name] == "fixed":
+        logger.info("%s <dynamics>: a fixed joint has no coordinate: left out", where)
+        return None, None
+    line = dynamics.sourceline or 0
+    return (
+        JointDamping(name, damping, line) if damping else None,
+        JointArmature(name, armature, line) if armature else None,
     )
 
 

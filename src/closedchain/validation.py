@@ -220,6 +220,7 @@ def pinocchio_reference_dynamics(
     cms, cds, _, data = mech.pinocchio_constraints()
     model = mech.model
     prox = settings.pinocchio_proximal()
+    tau = mech.passive.added_to(tau, q, v)  # Pinocchio has no joint springs or damping
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
     a_raw = a.copy()
     lam = data.lambda_c.copy()

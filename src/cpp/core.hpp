@@ -61,6 +61,13 @@ class Core {
   /// tau: None, a constant (nv,) array or a callable tau(t, q, v) (set_tau).
   void set_tau(bp::object tau) { closedchain::set_tau(model_, tau); }
 
+  /// The joint springs (indices into q and v, stiffness, reference) and the damping per
+  /// velocity coordinate (shape (nv,) or (0,)): tau_passive = -K (q - q_ref) - D v.
+  void set_passive(const Eigen::VectorXi &idx_q, const Eigen::VectorXi &idx_v, const Vec &k,
+                   const Vec &ref, const Vec &damping) {
+    model_.passive.set(model_.nq, model_.nv, idx_q, idx_v, k, ref, damping);
+  }
+
   /// Every declared row, kept[i] = 1 for the rows the methods use (set_declared).
   void set_declared(const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
                     const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2,

@@ -4,7 +4,7 @@
 //
 // Pinocchio's pattern: the functions of every concept header take (const CoreModel &, CoreData
 // &); only the set-up functions (the constructor, set_band, set_declared, set_partition,
-// set_alignment, set_branch_columns, set_tau and Core::configure) change a CoreModel.
+// set_alignment, set_branch_columns, set_tau, set_passive and Core::configure) change a CoreModel.
 //
 // Every constraint row is one of three smooth scalar functions of the cut frames c1
 // (predecessor, R_p, p_p) and c2 (successor, R_s, p_s):
@@ -29,6 +29,7 @@
 #include "common.hpp"
 #include "constants.hpp"
 #include "errors.hpp"
+#include "passive.hpp"
 #include "tree_terms.hpp"
 
 namespace closedchain {
@@ -186,6 +187,9 @@ struct CoreModel {
   Vec tau_constant;
   /// The callable tau(t, q, v) and numpy.asarray.
   bp::object tau_function, np_asarray;
+
+  /// Joint springs and damping, a term of h (set_passive; passive.hpp).
+  PassiveForces passive;
 
   // -- the reduced method and coordinate partitioning --------------------------------------
 

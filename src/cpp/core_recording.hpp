@@ -4,6 +4,7 @@
 #pragma once
 
 #include <pinocchio/algorithm/energy.hpp>
+#include <pinocchio/algorithm/kinematics.hpp>
 
 #include <cmath>
 #include <vector>
@@ -114,7 +115,13 @@ inline void record(const CoreModel &model, CoreData &data, Samples &out, double 
     ke = tree_ke ? tree_kinetic_energy(model, data, v) : 0.5 * v.dot(data.M.lazyProduct(v));
     pe = data.potential_energy;
   } else {
-    ke = pinocchio::computeKineticEnergy(model.tree, data.tree, q, v);
+    // 1/2 sum v_i . I_i v_i + 1/2 v^T diag(armature) v: Pinocchio 4.1's
+    // computeKineticEnergy leaves out the armature of revolute joints about unaligned axes.
+    pinocchio::forwardKinematics(model.tree, data.tree, q, v);
+    ke = model.tree.armature.dot(v.cwiseAbs2());
+    for (pinocchio::JointIndex i = 1; i < (pinocchio::JointIndex)model.tree.njoints; ++i)
+      ke += model.tree.inertias[i].vtiv(data.tree.v[i]);
+    ke *= 0.5;
     pe = pinocchio::computePotentialEnergy(model.tree, data.tree, q);
     invalidate_kinematics(data);  // Pinocchio's passes moved data.tree's placements to q
   }

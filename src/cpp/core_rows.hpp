@@ -212,6 +212,7 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
     mark(1);
     fill_rows(model, data, true, true, true);
   }
+  model.passive.subtract_from_bias(q, v, data.h);  // h - tau_passive: springs and damping
   if (model.baumgarte && model.nc) {
     data.tmp_c.noalias() = data.J * v;
     data.gamma += (2.0 * model.baumgarte_alpha) * data.tmp_c +

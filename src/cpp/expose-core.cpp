@@ -32,6 +32,9 @@ void expose_core() {
       .def("configure", &Core::configure, bp::args("self", "run", "solver", "simulation"),
            "Set the method and options (RunOptions), SolverSettings and SimulationSettings.")
       .def("set_tau", &Core::set_tau, bp::args("self", "tau"))
+      .def("set_passive", &Core::set_passive,
+           bp::args("self", "idx_q", "idx_v", "stiffness", "reference", "damping"),
+           "Joint springs and damping: h - tau_passive, tau_passive = -K (q - q_ref) - D v.")
       .def("set_declared", &Core::set_declared,
            bp::args("self", "kinds", "fid_p", "fid_s", "vec1", "vec2", "kept", "labels"),
            "Every declared row (kept[i] = 1 for the rows the methods use), checked each step.")

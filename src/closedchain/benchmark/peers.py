@@ -122,6 +122,7 @@ def run_scipy(
     )
     nv = mech.nv
     zero = np.zeros(nv)
+    passive = mech.passive
 
     # With continuous joints (cos, sin) the script integrates x = q (-) q0 in the tangent
     # space at q0: for 1-dof joints (R and SO(2) are abelian) dx/dt = v exactly.
@@ -129,6 +130,7 @@ def run_scipy(
         q = pin.integrate(model, q0, x[:nv]) if chart else x[:nv]
         v = x[nv:]
         tau = zero if tau_fn is None else tau_fn(t, q, v)
+        tau = passive.added_to(tau, q, v)  # Pinocchio has no joint springs or damping
         a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox)
         return np.concatenate([v, a])
 
@@ -159,11 +161,13 @@ def run_pinocchio_euler(
     qs, vs = [q0.copy()], [v0.copy()]
     q, v = q0.copy(), v0.copy()
     zero = np.zeros(mech.nv)
+    passive = mech.passive
     status, message = "ok", ""
     cpu0 = time.process_time()
     for k in range(1, n + 1):
         t = (k - 1) * dt
         tau = zero if tau_fn is None else tau_fn(t, q, v)
+        tau = passive.added_to(tau, q, v)  # Pinocchio has no joint springs or damping
         a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox)
         v = v + dt * a
         q = pin.integrate(model, q, v * dt)

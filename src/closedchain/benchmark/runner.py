@@ -431,8 +431,9 @@ def _energy(mech, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     model, data = mech.model, mech.model.createData()
     return np.array(
         [
-            pin.computeKineticEnergy(model, data, qk, vk)
+            mech.passive.kinetic_energy(model, data, qk, vk)  # armature included
             + pin.computePotentialEnergy(model, data, qk)
+            + mech.passive.spring_energy(qk)
             for qk, vk in zip(q, v, strict=True)
         ]
     )

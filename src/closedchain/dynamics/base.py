@@ -7,9 +7,10 @@ Every method solves the constrained equations of motion of the lesson
 
     M(q)\\,a + h(q, v) + J(q)^\\top \\lambda = \\tau, \\qquad J(q)\\,a + \\gamma(q, v) = 0,
 
-with ``M`` from CRBA, ``h`` from the nonlinear effects (Coriolis, centrifugal,
-gravity), ``J`` and ``gamma = Jdot v`` from the constraint layer's
-independent rows.
+with ``M`` from CRBA (the joints' armature on its diagonal), ``h`` from the
+nonlinear effects (Coriolis, centrifugal, gravity) minus the joint springs' and
+dampers' forces (:mod:`closedchain.passive`), ``J`` and ``gamma = Jdot v`` from
+the constraint layer's independent rows.
 """
 
 from __future__ import annotations
@@ -346,6 +347,9 @@ def compute_terms(
 ) -> Workspace:
     """Fill M, h, J and gamma at (q, v) (one ``computeAllTerms`` call).
 
+    ``h`` is the bias forces minus the passive joint forces,
+    :math:`h(q, v) - \tau_p(q, v)` (:class:`~closedchain.passive.PassiveTerms`).
+
     Args:
         mech: the mechanism.
         q: configuration, shape (nq,).
@@ -363,6 +367,7 @@ def compute_terms(
     pin.computeAllTerms(model, data, q, v)
     _symmetric_mass(ws, data.M)
     ws.h[:] = data.nle
+    mech.passive.subtract_from_bias(q, v, ws.h)  # h - tau_p: joint springs and damping
     if mech.nc:
         if baumgarte is None:
             mech.constraints.evaluate(model, data, J=ws.J, gamma=ws.gamma)

@@ -114,6 +114,7 @@ def pinocchio_constrained_dynamics(
     buf = method_buffers(ws, _NAME, _PinocchioBuffers)
     prox = buf.proximal(settings)
     model = mech.model
+    tau = mech.passive.added_to(tau, q, v)  # Pinocchio has no joint springs or damping
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
     Jc = pin.getConstraintsJacobian(model, data, cms, cds)
     # Pinocchio: M a + h = tau + J_c^T lambda_c  ->  ours: J^T lam = -J_c^T lambda_c.

@@ -4,7 +4,8 @@ The tree is written from the Pinocchio model (so the MJCF holds exactly what
 closedchain simulates): one ``<body>`` per joint, placed by
 ``model.jointPlacements``, with the joint (revolute -> ``hinge``, continuous ->
 ``hinge`` without range, prismatic -> ``slide``, spherical -> ``ball``, free
-flyer -> ``free``), its ``<inertial>`` (mass, centre of mass, principal
+flyer -> ``free``, with the joint's ``armature``, ``damping``, ``stiffness`` and
+``springref``: :mod:`closedchain.passive`), its ``<inertial>`` (mass, centre of mass, principal
 moments ``diaginertia`` and the principal axes as ``quat``, from
 ``model.inertias``: links attached by fixed joints are already merged there)
 and capsules along the link (from the joint origin to each child joint and
@@ -120,7 +121,23 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
     return np.array([q.w, q.x, q.y, q.z])
 
 
-def _joint_xml(model: pin.Model, j: int) -> str:
+def _passive_xml(mech: Mechanism, j: int) -> str:
+    """The attributes of joint j's passive terms: ``armature``, ``damping``,
+    ``stiffness`` and ``springref`` (MuJoCo's names and conventions), where nonzero."""
+    p, jm = mech.passive, mech.model.joints[j]
+    k = jm.idx_v
+    out = ""
+    if p.armature[k]:
+        out += f' armature="{_fmt(p.armature[k])}"'
+    if p.damping[k]:
+        out += f' damping="{_fmt(p.damping[k])}"'
+    for s in np.flatnonzero(p.spring_idx_v == k) if jm.nv == 1 else ():
+        out += f' stiffness="{_fmt(p.stiffness[s])}" springref="{_fmt(p.reference[s])}"'
+    return out
+
+
+def _joint_xml(mech: Mechanism, j: int) -> str:
+    model = mech.model
     jm = model.joints[j]
     short = jm.shortname()
     name = quoteattr(model.names[j])
@@ -135,11 +152,14 @@ def _joint_xml(model: pin.Model, j: int) -> str:
             f"joint {model.names[j]!r} of type {short} has no MJCF export; valid joint types: "
             f"{_VALID_JOINTS}"
         )
+    passive = _passive_xml(mech, j)
     if kind == "free":
-        return f"<freejoint name={name}/>"
+        return (
+            f'<joint name={name} type="free"{passive}/>' if passive else f"<freejoint name={name}/>"
+        )
     if kind == "ball":
-        return f'<joint name={name} type="ball" limited="false"/>'
-    return f'<joint name={name} type="{kind}" axis="{_fmt(axis)}" limited="false"/>'
+        return f'<joint name={name} type="ball" limited="false"{passive}/>'
+    return f'<joint name={name} type="{kind}" axis="{_fmt(axis)}" limited="false"{passive}/>'
 
 
 def _inertial_xml(model: pin.Model, j: int, min_mass: float) -> str:
@@ -317,7 +337,7 @@ def _document(
             f'quat="{_fmt(_quat_wxyz(M.rotation))}">'
         )
         inner = indent + "  "
-        lines.append(inner + _joint_xml(model, j))
+        lines.append(inner + _joint_xml(mech, j))
         lines.append(inner + _inertial_xml(model, j, settings.min_mass))
         for c in children[j]:
             lines.append(inner + _capsule_xml(model.jointPlacements[c].translation, CAPSULE_RADIUS))

@@ -157,7 +157,8 @@ def simulate(
             ``"ali3p"``, ``"none"`` for adaptive ones).
         tau: generalized forces [N m or N]: None (zero), a constant array of
             shape (nv,), or a callable ``tau(t, q, v) -> (nv,)`` (actuators,
-            springs, dampers, a controller).
+            external springs or dampers, a controller); the model's own joint
+            springs, damping and armature act without it (:mod:`closedchain.passive`).
         t_eval: output times [s], increasing, within [0, t_final]; default:
             every step (fixed-step) or every accepted step (adaptive). Adaptive
             integrators use dense output; fixed-step outputs fall on the step

@@ -108,7 +108,7 @@ def run_adaptive(
             if problem.meter is not None:  # before the dense outputs within the step
                 dense = solver.dense_output()
                 state = lambda s, d=dense: unpack(d(s), s)  # noqa: E731
-                work = gauss_work(problem.torque, state, solver.t_old)
+                work = gauss_work(problem.meter.force, state, solver.t_old)
                 problem.step_end(t_new, *unpack(solver.y, t_new), None, work)
             if pending is not None:
                 if pending and pending[0] <= t_new:

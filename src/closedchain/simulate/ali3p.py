@@ -113,11 +113,12 @@ def run_ali3p(
     lower = np.tril_indices(nv, -1)
 
     def evaluate(qk: np.ndarray, vk: np.ndarray) -> None:
-        """M, h at (qk, vk); phi, J at qk (one computeAllTerms)."""
+        """M, h - tau_p at (qk, vk); phi, J at qk (one computeAllTerms)."""
         pin.computeAllTerms(model, data, qk, vk)
         M[:] = data.M
         M[lower] = M.T[lower]
         h_vec[:] = data.nle
+        mech.passive.subtract_from_bias(qk, vk, h_vec)  # h - tau_p (springs, damping)
         if nc:
             layer.evaluate(model, data, phi=phi, J=J)
 

@@ -226,8 +226,13 @@ def run_rk43_compiled(
     if t_eval is None:
         return _finish(problem, core, recorder, out, info)
     steps = _finish(problem, core, recorder, out, info, keep=False)
-    t, q, v, a = (np.asarray(out[k], dtype=float) for k in ("t", "q", "v", "a"))
-    t = t.ravel()
+    t = np.asarray(out["t"], dtype=float).ravel()
+    # One row per step end (a mechanism with nq = 1 or nv = 1 gets rows of one entry).
+    mech = problem.mech
+    q, v, a = (
+        np.asarray(out[k], dtype=float).reshape(len(t), n)
+        for k, n in (("q", mech.nq), ("v", mech.nv), ("a", mech.nv))
+    )
     pending = [float(s) for s in t_eval]
     if pending[0] <= 0.0:
         recorder.add(0.0, q[0], v[0], a[0], np.asarray(out["lam"], dtype=float)[0])

@@ -45,18 +45,21 @@ logger = logging.getLogger(__name__)
 
 
 class WorkMeter:
-    r"""The work of the generalized forces, :math:`W(t) = \int_0^t \tau \cdot v\, dt`,
-    accumulated over the points (step ends or samples) it is fed, in time order.
+    r"""The work of the non-conservative generalized forces, :math:`W(t) = \int_0^t
+    (\tau - D v) \cdot v\, dt`: the actuators' tau and the joint damping D
+    (:class:`~closedchain.passive.PassiveTerms`; the springs are conservative, their
+    potential is part of the recorded energy), accumulated over the points (step ends or
+    samples) it is fed, in time order.
 
     Between two points (t0, tau0, v0, a0) and (t1, tau1, v1, a1) the power
-    :math:`P = \tau \cdot v` is integrated by the cubic Hermite rule (the corrected
-    trapezoid),
+    :math:`P = \tau \cdot v - v^\top D v` is integrated by the cubic Hermite rule (the
+    corrected trapezoid),
 
     .. math::
 
         \int_{t_0}^{t_1} P\, dt \approx \frac{h}{2} (P_0 + P_1)
         + \frac{h^2}{12} (\dot P_0 - \dot P_1), \qquad
-        \dot P = \tau \cdot a + \dot\tau \cdot v,
+        \dot P = \tau \cdot a + \dot\tau \cdot v - 2\, v^\top D a,
 
     exact for a cubic P: its error is h^5 / 720 max |d^4 P / dt^4| per interval, fourth
     order in the spacing of the points, as rk4. :math:`\dot\tau` is 0 for a constant
@@ -88,11 +91,13 @@ class WorkMeter:
     Args:
         torque: ``tau(t, q, v)``, shape (nv,) [N m or N] (e.g. :meth:`Problem.torque`).
         constant: tau does not change (then :math:`\dot\tau = 0` exactly).
+        damping: D per velocity coordinate, shape (nv,) [N m s/rad or N s/m].
     """
 
-    def __init__(self, torque: Callable, constant: bool) -> None:
+    def __init__(self, torque: Callable, constant: bool, damping: np.ndarray) -> None:
         self.torque = torque
         self.constant = constant
+        self.damping = damping
         #: W [J] at the last point fed.
         self.W = 0.0
         self._point: tuple | None = None  # (t, tau, v, a, P) of the last point
@@ -121,7 +126,7 @@ class WorkMeter:
                 rule from the two points.
         """
         tau = np.asarray(self.torque(t, q, v), dtype=float)
-        p = float(tau @ v)
+        p = float(tau @ v) - float(v @ (self.damping * v))
         if self._point is not None:
             t0 = self._point[0]
             if t <= t0:
@@ -138,7 +143,9 @@ class WorkMeter:
         """The Hermite rule's integral from the last point, as a function of its end."""
         t0, tau0, v0, a0, p0 = self._point
         h = t1 - t0
-        dp0, dp1 = float(tau0 @ a0), float(tau1 @ a1)
+        d = self.damping
+        dp0 = float(tau0 @ a0) - 2.0 * float(v0 @ (d * a0))
+        dp1 = float(tau1 @ a1) - 2.0 * float(v1 @ (d * a1))
         if not self.constant:
             rate0 = rate1 = (tau1 - tau0) / h  # the secant: first interval
             if self._before is not None:
@@ -162,6 +169,10 @@ class WorkMeter:
             return h * (i00 * p0 + i10 * h * dp0 + i01 * p1 + i11 * h * dp1)
 
         return integral
+
+    def force(self, t: float, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return the non-conservative force tau(t, q, v) - D v, shape (nv,) [N m or N]."""
+        return np.asarray(self.torque(t, q, v), dtype=float) - self.damping * v
 
     def at(self, t: float) -> float:
         """Return W(t) [J] for t in the last interval fed (its integral up to t: outputs
@@ -214,8 +225,14 @@ class Problem:
         self.n_evals = 0
         self.lam = np.zeros(mech.nc)
         self.tau_input = tau  # as given: None, constant or callable (compiled loops)
-        #: W(t) of tau (None when tau is None: no work); fed by :meth:`step_end`.
-        self.meter = None if tau is None else WorkMeter(self.torque, not callable(tau))
+        #: W(t) of tau and the joint damping (None when neither acts: no work); fed by
+        #: :meth:`step_end`.
+        damping = mech.passive.damping
+        self.meter = (
+            None
+            if tau is None and not mech.passive.has_damping
+            else WorkMeter(self.torque, not callable(tau), damping)
+        )
         if tau is None:
             zero = np.zeros(mech.nv)
             self.tau = lambda t, q, v: zero
@@ -702,8 +719,9 @@ class Recorder:
         res = self.declared_residual(t, q)
         J = self.jacobian(q)
         vres = float(np.max(np.abs(J @ v), initial=0.0))
-        kinetic = pin.computeKineticEnergy(model, data, q, v)
+        kinetic = mech.passive.kinetic_energy(model, data, q, v)  # armature included
         energy = kinetic + pin.computePotentialEnergy(model, data, q)
+        energy += mech.passive.spring_energy(q)  # the joint springs' potential
         r = self.rows
         r["t"].append(t)
         r["q"].append(np.array(q))
@@ -785,6 +803,8 @@ class Recorder:
             a = np.ascontiguousarray(samples[key], dtype=float)
             # len(times) rows, not -1: a mechanism without loops has lam of width 0.
             block[key] = a.reshape(len(times), widths[key]) if key in widths else a.ravel()
+        if self.mech.passive.has_springs:  # the core's e is T + gravity's potential
+            block["e"] = block["e"] + self.mech.passive.spring_energies(block["q"])
         if "w" in samples:  # computed on more samples than kept (compiled_loops)
             block["w"] = np.asarray(samples["w"], dtype=float).ravel()
         else:
@@ -822,8 +842,9 @@ class Recorder:
             return np.array([meter.feed(*x) for x in zip(t, q, v, a, strict=True)])
         w0 = meter.feed(t[0], q[0], v[0], a[0])
         tau = np.array([meter.torque(*x) for x in zip(t, q, v, strict=True)])
-        power = np.einsum("ij,ij->i", tau, v)
-        rate = np.einsum("ij,ij->i", tau, a)
+        dv = meter.damping * v
+        power = np.einsum("ij,ij->i", tau, v) - np.einsum("ij,ij->i", dv, v)
+        rate = np.einsum("ij,ij->i", tau, a) - 2.0 * np.einsum("ij,ij->i", dv, a)
         if not meter.constant:  # d tau / dt from the samples
             rate += np.einsum("ij,ij->i", sample_rate(t, tau), v)
         w = w0 + np.concatenate([[0.0], np.cumsum(sample_work_increments(t, power, rate))])

@@ -176,9 +176,10 @@ def _finish(
 def check_energy(traj: Trajectory, energy_tol: float) -> None:
     """Raise SimulationError when the run's relative energy balance exceeds ``energy_tol``.
 
-    ``Trajectory.energy_balance``: the energy drift E - E0 of an unforced run, and
-    E - E0 - W of a run driven by tau (W its work), which is zero for an exact solution
-    whatever drives it.
+    ``Trajectory.energy_balance``: the energy drift E - E0 of an unforced, undamped run,
+    and E - E0 - W of a run driven by tau or damped (W the work of tau and of the joint
+    damping), which is zero for an exact solution whatever drives it. E holds the joint
+    springs' potential.
 
     Raises:
         SimulationError: with ``trajectory`` the whole run.
@@ -188,7 +189,7 @@ def check_energy(traj: Trajectory, energy_tol: float) -> None:
         what = (
             "energy drift of this unforced run"
             if traj.work is None
-            else "energy balance of this driven run (E - E0 - the work of tau)"
+            else "energy balance of this run (E - E0 - the work of tau and damping)"
         )
         exc = SimulationError(
             f"{traj.info.mechanism}: the relative {what} is {balance:.3g} > energy_tol "

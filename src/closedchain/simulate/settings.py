@@ -84,10 +84,10 @@ class SimulationSettings:
         energy_tol: raise SimulationError (with the whole trajectory in
             ``exc.trajectory``) at the end of a run whose relative energy balance
             (``Trajectory.energy_balance``: the energy drift without tau, E - E0 - the
-            work of tau with it) exceeds this: the integration was not accurate,
-            whatever the closure says. Default :data:`DEFAULT_ENERGY_TOL` (1e-2, as the
-            command line's ``--energy-tol``); None: no check (a run meant to be
-            inaccurate, such as a work-precision sweep).
+            work of tau and damping with them) exceeds this: the integration was not
+            accurate, whatever the closure says. Default :data:`DEFAULT_ENERGY_TOL`
+            (1e-2, as the command line's ``--energy-tol``); None: no check (a run
+            meant to be inaccurate, such as a work-precision sweep).
         drift_limit: raise SimulationError when max |phi| over every declared
             row exceeds this [m or -]: a trajectory never leaves the manifold
             unreported.
