@@ -340,7 +340,7 @@ def _cmd_info(args) -> int:
         + np.array2string(np.array(s["q_ref"]), precision=6, max_line_width=100)
     )
     if not s["pinocchio_reference"]:
-        print("note: no Pinocchio reference for this mechanism's loop types (prismatic, coupling)")
+        print("note: no Pinocchio reference for this mechanism's loop types (prismatic)")
     return 0
 
 
@@ -352,10 +352,14 @@ def _cmd_validate(args) -> int:
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))
     else:
+        how = (
+            "Pinocchio's answer refined by one step of iterative refinement of its own system"
+            if rep.reference == "pinocchio.constraintDynamics"
+            else "the couplings as Pinocchio mimic joints, compared on the primary joints"
+        )
         print(
-            f"{mech.name}: method {rep.method!r} vs pinocchio.constraintDynamics at "
-            f"{rep.n_samples} random consistent states (seed {rep.seed}); Pinocchio's "
-            "answer refined by one step of iterative refinement of its own system"
+            f"{mech.name}: method {rep.method!r} vs {rep.reference} at "
+            f"{rep.n_samples} random consistent states (seed {rep.seed}); {how}"
         )
         _print_table(
             [

@@ -230,12 +230,16 @@ class Mechanism:
         self.root_joint: str | None = None
         self._pin_constraints: tuple | None = None
         self._workspace = None  # dynamics.base.Workspace, made on first use
+        # A coupling q_j = m q_i + c ties coordinates, not poses: wrapping one of its
+        # joints by a turn would open it (unless m = 1), so its joints are never wrapped.
+        coupled = {name for spec in urdf.loops if spec.joint for name in (spec.joint, spec.mimics)}
         self._revolute_idx_q = np.array(
             [
                 model.joints[j].idx_q
                 for j in range(1, model.njoints)
                 if model.joints[j].shortname().startswith("JointModelR")
                 and model.joints[j].nq == model.joints[j].nv == 1
+                and model.names[j] not in coupled
             ],
             dtype=int,
         )
@@ -364,7 +368,8 @@ class Mechanism:
         return v
 
     def wrap_angles(self, q: np.ndarray) -> np.ndarray:
-        """Return q with every revolute angle wrapped into [-pi, pi) (same physical pose)."""
+        """Return q with every revolute angle wrapped into [-pi, pi) (same physical pose),
+        but those of coupled joints (a coupling ties their coordinates)."""
         q = np.array(q, dtype=float)
         idx = self._revolute_idx_q
         q[idx] = (q[idx] + np.pi) % (2.0 * np.pi) - np.pi
@@ -584,7 +589,12 @@ class Mechanism:
                 }
             )
         try:
-            self.pinocchio_constraints()
+            if self.declared.couplings:  # validate's reference: Pinocchio's mimic joints
+                from .validation import mimic_reference
+
+                mimic_reference(self)
+            else:
+                self.pinocchio_constraints()
             pin_ok = True
         except ValidationUnavailableError:
             pin_ok = False
