@@ -383,7 +383,9 @@ def write_couplings_page(out: Path, extra: list[Path]) -> None:
             f"CPU seconds of `closedchain.simulate(mech, mech.q_ref, 0, {COUPLED_T_FINAL:g})` "
             "under the default settings (one run each, this process, BLAS on one thread), "
             "on the compiled core and on the numpy reference, with the largest |phi| over "
-            "every declared row (the couplings q_j - m q_i - c included) at the samples.",
+            "every declared row (the couplings q_j - m q_i - c included) at the samples. "
+            "The first two models are tests/data's; the others are local copies named "
+            "by --coupled (shipped models, not in the repository).",
             "",
             *lines,
             "",

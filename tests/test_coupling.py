@@ -20,6 +20,20 @@ import pinocchio as pin
 import pytest
 from conftest import DATA_DIR
 from lxml import etree
+from test_compiled import (
+    ADAPTIVE_TOL,
+    ATOL,
+    FIXED_STEP_TOL,
+    ROUNDOFF_FACTOR,
+    RTOL,
+    STEP_COUNT_SLACK,
+)
+from test_percall import (
+    ASSEMBLY_PARITY_TOL,
+    BACKEND_PARITY_TOL,
+    assert_rows_compiled_equal_numpy,
+)
+from test_percall import ROWS_TOL as ROWS_PARITY_TOL
 
 import closedchain as cc
 from closedchain import compiled, validation
@@ -246,28 +260,12 @@ TREE_CHAIN_COUPLING = (
     '<loop name="gear" type="coupling"><joint name="j20"/>'
     '<mimics joint="j5" multiplier="0.5" offset="0.01"/></loop>'
 )
-#: Compiled against numpy: phi, J, gamma (the same formulas, round-off) and ...
-ROWS_PARITY_TOL = 1e-13
-#: ... accelerations, multipliers and projected velocities relative to 1 + max |x|
-#: (the two backends factor the same matrices in other orders; test_percall.py's bound),
-#: or, for the solution of an ill-conditioned system, ROUNDOFF_FACTOR eps kappa, kappa the
-#: larger condition number of the KKT matrix and of the Delassus matrix J M^-1 J^T
-#: (test_compiled.py's and test_tree_solve.py's bound: the 30-link chain's accelerations
-#: reach 1e4 rad/s^2 under unit torques).
-BACKEND_PARITY_TOL = 1e-10
-ROUNDOFF_FACTOR = 10.0
-#: Assembled configurations of the two backends [rad or m] (test_percall.py's bound:
-#: Gauss-Newton stops at max |phi| <= 1e-12 from iterates that differ by round-off).
-ASSEMBLY_PARITY_TOL = 1e-9
-#: Whole runs, compiled against numpy: the same steps (fixed-step) or the same error
-#: control (adaptive), max |q - q_numpy| [rad] and max |v - v_numpy| relative to
-#: 1 + max |v| (test_compiled.py's bounds; the chain's v reaches 23 rad/s, and its
-#: augmented-Lagrangian run differs by 1.1e-10 of that after 100 steps).
-FIXED_STEP_TOL = 1e-9
-ADAPTIVE_TOL = 1e-7
-RTOL, ATOL = 1e-9, 1e-11
-#: The compiled DOP853 and RK45 may take this many steps more or fewer than numpy's.
-STEP_COUNT_SLACK = 3
+# Compiled against numpy, the bounds of tests/test_percall.py (rows: the same formulas;
+# accelerations, multipliers and velocities relative to 1 + max |x|; assembled
+# configurations) and tests/test_compiled.py (runs: the same steps or the same error
+# control; ill-conditioned solves: ROUNDOFF_FACTOR eps kappa, kappa the larger condition
+# number of the KKT matrix and of J M^-1 J^T: the 30-link chain's accelerations reach 1e4
+# rad/s^2 under unit torques, its v 23 rad/s, compared relative to 1 + max |v|).
 #: ALI3-P's relative penalty on the 30-link chain (test_tree_solve.py's: the default, 1e11,
 #: is more than its P = M + alpha J^T J takes).
 CHAIN_ALI3P_PENALTY = 1e6
@@ -323,14 +321,7 @@ def test_compiled_rows_equal_numpy(coupled, name, rng):
         q, v = cc.random_consistent_state(mech, rng)
         q = pin.integrate(mech.model, q, 1e-2 * rng.standard_normal(mech.nv))  # phi != 0
         v = v + 0.1 * rng.standard_normal(mech.nv)
-        for fn, args in (
-            (cc.compute_phi, (q,)),
-            (cc.compute_jacobian, (q,)),
-            (cc.compute_gamma, (q, v)),
-        ):
-            c = fn(mech, *args, backend="compiled")
-            n = fn(mech, *args, backend="numpy")
-            assert _scaled(c, n, ROWS_PARITY_TOL)
+        assert_rows_compiled_equal_numpy(mech, q, v)
         phi_d, J_d = compiled.declared_rows(mech, q)
         phi_ref = np.zeros(mech.declared.nc)
         J_ref = np.zeros((mech.declared.nc, mech.nv))
