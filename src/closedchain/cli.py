@@ -879,7 +879,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("info", "show the tree, loops, constraint rows, mobility and coordinates", _cmd_info)
     p.add_argument("--json", action="store_true", help="print JSON")
 
-    p = add("validate", "compare forward dynamics with pinocchio.constraintDynamics", _cmd_validate)
+    p = add("validate", "compare forward dynamics with Pinocchio's", _cmd_validate)
     p.add_argument("--samples", type=int, default=100, help="random consistent states")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     # "pinocchio" is the reference itself: comparing it with itself checks nothing.

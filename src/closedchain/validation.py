@@ -524,7 +524,8 @@ def validate(
     velocity_scale: float = 1.0,
     tau_scale: float | None = None,
 ) -> ValidationReport:
-    """Compare a method with ``pinocchio.constraintDynamics`` at random consistent states.
+    """Compare a method with ``pinocchio.constraintDynamics`` at random consistent states
+    (on a mechanism with couplings: with Pinocchio's mimic joints, :class:`MimicReference`).
 
     Args:
         mech: the mechanism (no prismatic loops: Pinocchio has no reference for them).
@@ -553,6 +554,8 @@ def validate(
         InvalidArgumentError: ``n_samples`` is not an integer in [1,
             :data:`MAX_VALIDATION_SAMPLES`], or ``seed`` not an integer >= 0.
         UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
+        ValidationUnavailableError: a prismatic loop, or couplings that Pinocchio's mimic
+            joints cannot express (:func:`mimic_reference`).
     """
     check_settings("settings", settings, SolverSettings)
     if (
