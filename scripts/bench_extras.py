@@ -11,6 +11,11 @@ Companion of ``closedchain bench`` (run by scripts/make_bench_figures.sh):
 * ``percall.csv`` / ``percall.md``: microseconds per call of the public per-call functions
   (compiled core and numpy reference) on the chain family, beside the tuned
   pinocchio.constraintDynamics call and pinocchio.rnea: a generated page of its own;
+* ``couplings.csv`` / ``couplings.md``: CPU seconds of 1 s of ``simulate`` under the
+  default settings on mechanisms with couplings (URDF ``<mimic>``, coupling loops, MJCF
+  joint equalities), compiled core and numpy reference, and the largest |phi| of every
+  declared row along the run: a generated page of its own (local copies of shipped
+  models, such as MuJoCo Menagerie's Robotiq 2F-85, through ``--coupled``);
 * ``results.md`` (part ``report``): the documentation site's generated results page
   (docs/bench/results.md): every table above, the work-precision run's ratio table,
   reference agreements and charts, under a header with the command, machine, date, load
@@ -60,7 +65,7 @@ from closedchain.benchmark.stability import (
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
-PARTS = ("evaluation", "stability", "scaling", "percall")
+PARTS = ("evaluation", "stability", "scaling", "percall", "couplings")
 #: Chain sizes of the per-call page.
 PERCALL_SIZES = (10, 30, 100, 300)
 #: Pinocchio's proximal settings of the per-call page's reference call (absolute and
@@ -70,6 +75,20 @@ PERCALL_PROXIMAL = (0.0, 0.0, 1e-8, 3)
 #: Size of the random move of the assembly's start off the closed configuration [rad].
 PERCALL_ASSEMBLY_OFFSET = 1e-3
 PERCALL_COLUMNS = ("n", "nv", "nc", "call", "backend", "us", "reference", "ratio")
+#: Mechanisms with couplings of the couplings page (more through --coupled).
+COUPLED_MODELS = (ROOT / "tests/data/mimic_gripper.urdf", ROOT / "tests/data/mimic_fourbar.urdf")
+#: Simulated time of the couplings page [s].
+COUPLED_T_FINAL = 1.0
+COUPLED_COLUMNS = (
+    "model",
+    "nv",
+    "nc",
+    "couplings",
+    "backend",
+    "cpu_s",
+    "steps",
+    "max_phi",
+)
 
 
 def write_scaling_page(out: Path, quiet: bool = False) -> None:
@@ -293,6 +312,89 @@ def write_percall_page(out: Path) -> None:
         f.write(text)
 
 
+def run_couplings(paths: list[Path]) -> list[dict]:
+    """Simulate every mechanism of ``paths`` for :data:`COUPLED_T_FINAL` from its
+    ``q_ref`` at rest under the default settings (``closedchain simulate``'s), on the
+    compiled core and on the numpy reference: CPU time of this process (BLAS on one
+    thread), steps, and the largest |phi| over every declared row at the samples."""
+    import time
+
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    import closedchain as cc
+    from closedchain.closure import max_declared_residual
+
+    rows = []
+    for path in paths:
+        mech = cc.load(path)
+        v0 = np.zeros(mech.nv)
+        for backend in ("compiled", "numpy"):
+            with threadpool_limits(limits=1, user_api="blas"):
+                cpu = time.process_time()
+                traj = cc.simulate(mech, mech.q_ref, v0, COUPLED_T_FINAL, backend=backend)
+                cpu = time.process_time() - cpu
+            max_phi = max_declared_residual(mech, traj.q)
+            rows.append(
+                dict(
+                    model=path.name,
+                    nv=mech.nv,
+                    nc=mech.nc,
+                    couplings=len(mech.declared.couplings),
+                    backend=traj.info.backend,
+                    cpu_s=cpu,
+                    steps=traj.info.steps,
+                    max_phi=max_phi,
+                )
+            )
+    return rows
+
+
+def write_couplings_page(out: Path, extra: list[Path]) -> None:
+    """Run :func:`run_couplings` on :data:`COUPLED_MODELS` and ``extra`` and write
+    ``couplings.csv`` and the generated page ``couplings.md`` into ``out``."""
+    command = "python scripts/bench_extras.py --parts couplings" + "".join(
+        f" --coupled {p}" for p in extra
+    )
+    date = bench_page.today()
+    load_before = bench_page.load_average()
+    rows = run_couplings([*COUPLED_MODELS, *extra])
+    write_rows(rows, out / "couplings.csv", COUPLED_COLUMNS)
+    head = bench_page.run_header(
+        "Mechanisms with couplings: 1 s of simulate",
+        command=command,
+        date=date,
+        load_before=load_before,
+        about="Coupling rows: [Coupling loops and mimic joints]"
+        "(../guide/mechanisms-and-loops.md#coupling-loops-and-mimic-joints).",
+    )
+    lines = [
+        "| model | nv | rows (couplings) | backend | CPU [s] | steps | max abs phi |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['model']} | {r['nv']} | {r['nc']} ({r['couplings']}) | {r['backend']} | "
+            f"{r['cpu_s']:.3f} | {r['steps']} | {r['max_phi']:.1e} |"
+        )
+    text = "\n".join(
+        [
+            *head,
+            f"CPU seconds of `closedchain.simulate(mech, mech.q_ref, 0, {COUPLED_T_FINAL:g})` "
+            "under the default settings (one run each, this process, BLAS on one thread), "
+            "on the compiled core and on the numpy reference, with the largest |phi| over "
+            "every declared row (the couplings q_j - m q_i - c included) at the samples. "
+            "The first two models are tests/data's; the others are local copies named "
+            "by --coupled (shipped models, not in the repository).",
+            "",
+            *lines,
+            "",
+        ]
+    )
+    with atomic_write(out / "couplings.md", "w") as f:
+        f.write(text)
+
+
 def _read(path: Path) -> str:
     return path.read_text().strip() if path.exists() else f"({path.name} missing: part not run)"
 
@@ -428,6 +530,13 @@ def main() -> None:
         help="the command that made the run, for the page header (report)",
     )
     parser.add_argument("--date", help="date of the run, for the page header (report)")
+    parser.add_argument(
+        "--coupled",
+        nargs="+",
+        type=Path,
+        default=[],
+        help="more mechanisms with couplings for the couplings page (local copies)",
+    )
     args = parser.parse_args()
     if args.workers < 1:
         parser.error(f"--workers must be at least 1, got {args.workers}")
@@ -461,6 +570,8 @@ def main() -> None:
         write_scaling_page(out, args.no_progress)
     if "percall" in args.parts:
         write_percall_page(out)
+    if "couplings" in args.parts:
+        write_couplings_page(out, args.coupled)
 
 
 if __name__ == "__main__":

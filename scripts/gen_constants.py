@@ -60,6 +60,9 @@ SHARED = (
     ("TREE_SOLVE_MIN_NV", "int", "closedchain.compiled", "TREE_SOLVE_MIN_NV"),
     ("TREE_SOLVE_NV_PER_ROW", "int", "closedchain.compiled", "TREE_SOLVE_NV_PER_ROW"),
     ("NORMALIZATION_TOL", "double", "closedchain.mechanism", "NORMALIZATION_TOL"),
+    ("ROW_TRANSLATION", "int", "closedchain.constraints", "ROW_TRANSLATION"),
+    ("ROW_ROTATION", "int", "closedchain.constraints", "ROW_ROTATION"),
+    ("ROW_COUPLING", "int", "closedchain.constraints", "ROW_COUPLING"),
 )
 
 #: Messages shared the same way: (C++ name, module, Python name).

@@ -37,6 +37,7 @@ GENERATED_PAGES = (
     DOCS / "bench" / "nfourbar.md",
     DOCS / "bench" / "corpus.md",  # scripts/check_corpus.py --out
     DOCS / "bench" / "percall.md",  # scripts/bench_extras.py --parts percall
+    DOCS / "bench" / "couplings.md",  # scripts/bench_extras.py --parts couplings
 )
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300

@@ -90,19 +90,24 @@ def test_forward_dynamics_compiled_equals_numpy(mechanisms, name, method):
     assert np.array_equal(a.a, c.a)
 
 
+def assert_rows_compiled_equal_numpy(mech, q, v):
+    """phi, J and gamma of the public row functions at (q, v): compiled equals numpy."""
+    for fn, args in (
+        (cc.compute_phi, (q,)),
+        (cc.compute_jacobian, (q,)),
+        (cc.compute_gamma, (q, v)),
+    ):
+        c = fn(mech, *args, backend="compiled")
+        n = fn(mech, *args, backend="numpy")
+        assert c.shape == n.shape
+        assert np.max(np.abs(c - n), initial=0.0) <= ROWS_TOL * (1 + np.max(np.abs(n)))
+
+
 @needs_core
 def test_rows_compiled_equal_numpy(mechanisms):
     for mech in mechanisms.values():
         q, v, _ = _state(mech, seed=1)
-        for fn, args in (
-            (cc.compute_phi, (q,)),
-            (cc.compute_jacobian, (q,)),
-            (cc.compute_gamma, (q, v)),
-        ):
-            c = fn(mech, *args, backend="compiled")
-            n = fn(mech, *args, backend="numpy")
-            assert c.shape == n.shape
-            assert np.max(np.abs(c - n), initial=0.0) <= ROWS_TOL * (1 + np.max(np.abs(n)))
+        assert_rows_compiled_equal_numpy(mech, q, v)
 
 
 @needs_core

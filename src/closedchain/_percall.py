@@ -2,10 +2,10 @@
 
 The public functions (:func:`~closedchain.forward_dynamics`, the rows of
 :mod:`closedchain.kinematics`) take ``backend="auto" | "compiled" | "numpy"``. With
-``"auto"`` they run on the compiled core when it is built, holds the mechanism's rows
-and has the method, else on the numpy reference; ``"compiled"`` raises where it
-cannot. The compiled evaluators are made once per mechanism, constraint layer,
-method and settings, and kept on the mechanism.
+``"auto"`` they run on the compiled core when it is built and has the method, else
+on the numpy reference; ``"compiled"`` raises where it cannot. The compiled evaluators
+are made once per mechanism, constraint layer, method and settings, and kept on the
+mechanism.
 """
 
 from __future__ import annotations
@@ -32,8 +32,9 @@ def backend_name(backend: str) -> str:
     return backend if backend in BACKENDS else resolve_choice("backend", backend, BACKENDS)
 
 
-def why_not_compiled(mech: Mechanism, method: str) -> str | None:
-    """Why ``method`` on ``mech`` cannot run on the compiled core, or None if it can."""
+def why_not_compiled(method: str) -> str | None:
+    """Why ``method`` cannot run on the compiled core, or None if it can (the core holds
+    every row kind, couplings included)."""
     from . import compiled
     from .dynamics.base import METHOD_CAPABILITIES
 
@@ -45,7 +46,7 @@ def why_not_compiled(mech: Mechanism, method: str) -> str | None:
     if capabilities is None or not capabilities.compiled:
         valid = sorted(m for m, c in METHOD_CAPABILITIES.items() if c.compiled)
         return f"method {method!r} has no compiled version; compiled methods: {', '.join(valid)}"
-    return compiled.unsupported_rows(mech)
+    return None
 
 
 def evaluator(
@@ -82,7 +83,7 @@ def evaluator(
 
 def _make(mech: Mechanism, method: str, settings: SolverSettings):
     """``(evaluator, None)``, or ``(None, why not)`` where the core cannot run it."""
-    reason = why_not_compiled(mech, method)
+    reason = why_not_compiled(method)
     if reason is not None:
         return None, reason
     from .compiled import CompiledDynamics

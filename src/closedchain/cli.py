@@ -346,7 +346,7 @@ def _cmd_info(args) -> int:
         + np.array2string(np.array(s["q_ref"]), precision=6, max_line_width=100)
     )
     if not s["pinocchio_reference"]:
-        print("note: no Pinocchio reference for this mechanism's loop types (prismatic, coupling)")
+        print("note: no Pinocchio reference for this mechanism's loop types (prismatic)")
     return 0
 
 
@@ -358,10 +358,14 @@ def _cmd_validate(args) -> int:
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))
     else:
+        how = (
+            "Pinocchio's answer refined by one step of iterative refinement of its own system"
+            if rep.reference == "pinocchio.constraintDynamics"
+            else "the couplings as Pinocchio mimic joints, compared on the primary joints"
+        )
         print(
-            f"{mech.name}: method {rep.method!r} vs pinocchio.constraintDynamics at "
-            f"{rep.n_samples} random consistent states (seed {rep.seed}); Pinocchio's "
-            "answer refined by one step of iterative refinement of its own system"
+            f"{mech.name}: method {rep.method!r} vs {rep.reference} at "
+            f"{rep.n_samples} random consistent states (seed {rep.seed}); {how}"
         )
         _print_table(
             [
@@ -880,7 +884,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("info", "show the tree, loops, constraint rows, mobility and coordinates", _cmd_info)
     p.add_argument("--json", action="store_true", help="print JSON")
 
-    p = add("validate", "compare forward dynamics with pinocchio.constraintDynamics", _cmd_validate)
+    p = add("validate", "compare forward dynamics with Pinocchio's", _cmd_validate)
     p.add_argument("--samples", type=int, default=100, help="random consistent states")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     # "pinocchio" is the reference itself: comparing it with itself checks nothing.

@@ -21,9 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .constraints import ROW_ROTATION, ROW_TRANSLATION
 from .dynamics.base import METHOD_CAPABILITIES, SolverSettings, get_method
-from .exceptions import ClosedChainError, InvalidArgumentError
+from .exceptions import ClosedChainError
 
 # Declared in closedchain.exceptions; importable from here as before.
 from .exceptions import RowCheckRequired as RowCheckRequired
@@ -50,12 +49,6 @@ except ImportError as exc:  # pragma: no cover - a broken installation
     IMPORT_ERROR: str | None = str(exc)
 else:
     IMPORT_ERROR = None
-
-#: The core's row kinds by the layer's row function code: 1 is translation along
-#: n fixed in c1, 2 rotation (R_p u).(R_s w) (0, a world axis, is no longer emitted).
-_CORE_KIND = np.zeros(max(ROW_TRANSLATION, ROW_ROTATION) + 1, dtype=np.int32)
-_CORE_KIND[ROW_TRANSLATION] = 1
-_CORE_KIND[ROW_ROTATION] = 2
 
 #: The compiled core's tree path (src/cpp/core_tree.hpp: M^-1 x by the articulated-body
 #: recursion in O(nv), M never formed, a dense solve of the loop rows only) serves every
@@ -96,28 +89,6 @@ def supports_method(method: str) -> bool:
     return available() and METHOD_CAPABILITIES[method].compiled
 
 
-def unsupported_rows(mech: Mechanism) -> str | None:
-    """Return why the compiled core cannot evaluate ``mech``'s rows, or None when it can.
-
-    The core evaluates frame rows only: a joint coupling (``q_j = m q_i + c``,
-    :data:`closedchain.constraints.ROW_COUPLING`) runs on the numpy backend.
-    """
-    names = [spec.name for spec in mech.declared.couplings]
-    if not names:
-        return None
-    return (
-        f"{mech.name}: the compiled core has no joint-coupling rows (loops "
-        f"{', '.join(map(repr, names))}); valid: backend='numpy' (or 'auto')"
-    )
-
-
-def _check_rows(mech: Mechanism) -> None:
-    """Raise InvalidArgumentError when the core cannot hold ``mech``'s rows."""
-    reason = unsupported_rows(mech)
-    if reason is not None:
-        raise InvalidArgumentError(reason)
-
-
 def make_core(mech: Mechanism, *, shared: bool = True):
     """Return a compiled core of the mechanism (its own Pinocchio Data and buffers).
 
@@ -151,12 +122,11 @@ def make_core(mech: Mechanism, *, shared: bool = True):
 
 def _core_of_rows(mech: Mechanism, layer) -> _core.Core:
     """A new core on ``mech``'s model whose rows are those of the constraint ``layer``."""
-    _check_rows(mech)
     tab = layer.row_table()
     core = _core.Core(
         mech.model,
         mech.name,
-        _CORE_KIND[tab.function].astype(np.int32),
+        tab.function.astype(np.int32),
         tab.frame_p.astype(np.int32),
         tab.frame_s.astype(np.int32),
         tab.u,
@@ -251,7 +221,7 @@ def set_declared_rows(core, mech: Mechanism, kept: np.ndarray) -> None:
     rows its methods use (the others are checked as dropped rows)."""
     dtab = mech.declared.row_table()
     core.set_declared(
-        _CORE_KIND[dtab.function].astype(np.int32),
+        dtab.function.astype(np.int32),
         dtab.frame_p.astype(np.int32),
         dtab.frame_s.astype(np.int32),
         dtab.u,

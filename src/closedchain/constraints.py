@@ -89,7 +89,7 @@ PIN_REVOLUTE_POINT_OFFSET = 0.1
 ROW_TRANSLATION = 0
 #: Rotation (R_p u).(R_s w).
 ROW_ROTATION = 1
-#: Joint coupling q_j - m q_i - c (no frames; not in the compiled core).
+#: Joint coupling q_j - m q_i - c of the parent joints i of c1 and j of c2 (1-dof joints).
 ROW_COUPLING = 2
 #: Kind of a coupling row in :class:`RowInfo`.
 COUPLING_KIND = "q"
@@ -233,14 +233,14 @@ class RowInfo:
 def declared_row_vectors(spec: LoopSpec) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
     """Return the declared rows of a loop, in order: (kind, function, u or n in c1, w in c2).
 
-    Translation and coupling rows carry w = 0 (a coupling row also u = 0). See the
-    module docstring for the table.
+    Translation and coupling rows carry w = 0; a coupling row carries
+    u = (m, c, 0), its multiplier and offset. See the module docstring for the table.
     """
     a = np.asarray(spec.axis, dtype=float)
     n1, n2 = axis_basis(a)
     zero = np.zeros(3)
     if spec.type == COUPLING:
-        return [(COUPLING_KIND, ROW_COUPLING, zero, zero)]
+        return [(COUPLING_KIND, ROW_COUPLING, np.array([spec.multiplier, spec.offset, 0.0]), zero)]
     rows: list[tuple[str, int, np.ndarray, np.ndarray]] = []
     if spec.type in ("revolute", "spherical", "fixed"):
         rows += [("t1", ROW_TRANSLATION, n1, zero), ("t2", ROW_TRANSLATION, n2, zero)]
@@ -298,12 +298,14 @@ class RowTable:
     Row i is ``(R_p u_i).(p_p - p_s)`` when ``function[i] == ROW_TRANSLATION``
     and ``(R_p u_i).(R_s w_i)`` when ``function[i] == ROW_ROTATION``, with
     ``(R_p, p_p)`` the world placement of model frame ``frame_p[i]`` and
-    ``(R_s, p_s)`` that of ``frame_s[i]``.
+    ``(R_s, p_s)`` that of ``frame_s[i]``; ``q_j - m q_i - c`` with ``u_i = (m, c, 0)``
+    when ``function[i] == ROW_COUPLING``, i and j the parent joints of the two frames.
+    The codes are the compiled core's (src/cpp/constants.hpp, generated).
 
     Attributes:
         function: row function code, shape (nc,), int.
         frame_p, frame_s: model frame ids of c1 and c2, shape (nc,), int.
-        u: n or u in c1, shape (nc, 3), unit vectors.
+        u: n or u in c1, shape (nc, 3), unit vectors; (m, c, 0) of a coupling row.
         w: w in c2, shape (nc, 3) (zeros for translation rows).
         loop: index of the row's loop in the URDF order, shape (nc,), int.
         labels: ``loop.kind`` of every row.
@@ -620,9 +622,10 @@ def build_pinocchio_constraints(
         j2, M2 = frame_s.parentJoint, frame_s.placement
         if spec.type == COUPLING:
             raise ValidationUnavailableError(
-                f"loop {spec.name!r} is a joint coupling: Pinocchio has no coupling "
-                "constraint model, so there is no Pinocchio reference for coupling rows; "
-                "valid loop types for validation: revolute, spherical, fixed"
+                f"loop {spec.name!r} is a joint coupling: Pinocchio's constrained dynamics "
+                "has no coupling constraint model (closedchain.validate checks couplings on "
+                "Pinocchio's mimic joints instead); valid loop types for "
+                "pinocchio.constraintDynamics: revolute, spherical, fixed"
             )
         if spec.type == "prismatic":
             raise ValidationUnavailableError(

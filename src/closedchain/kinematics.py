@@ -290,8 +290,8 @@ def _assemble_compiled(
     # the twist r3 = n1.R n2; with n1.R n1, n2.R n2 > 0 too, R is within O(tol) of I and
     # |log3(R)| = |(r1, r2, r3)| (1 + O(tol)) <= sqrt(3) tol (1 + O(tol)), and log6's
     # translation is p to 1 + O(tol). So max |e| <= sqrt(3) tol (1 + O(tol)) for every
-    # frame loop type (coupling rows never reach the compiled core); tests/test_percall.py
-    # checks it on each loop type.
+    # frame loop type, and a coupling's e is its row itself (|e| <= tol);
+    # tests/test_percall.py checks it on each frame loop type.
     if q is None or (
         settings.closure_tol < CLOSURE_PER_PHI * settings.tol
         and closure_error(mech.model, mech.data, mech.declared, q) > settings.closure_tol

@@ -664,7 +664,12 @@ class Mechanism:
                 }
             )
         try:
-            self.pinocchio_constraints()
+            if self.declared.couplings:  # validate's reference: Pinocchio's mimic joints
+                from .validation import mimic_reference
+
+                mimic_reference(self)
+            else:
+                self.pinocchio_constraints()
             pin_ok = True
         except ValidationUnavailableError:
             pin_ok = False

@@ -55,10 +55,28 @@ and keeps max |a - a_pin| as information (``max_da``). On robot_delta the
 closedchain KKT solution agrees with the 40-digit solve to 7e-8 rad/s^2 at
 |a| = 6e7, Pinocchio's refined one to 6e-4; in the mass-matrix norm the two
 differ by 2e-11 of :math:`\|a\|_M` (docs/guide/validation.md).
+
+**Couplings** (``q_j = m q_i + c``: URDF ``<mimic>``, coupling loops, MJCF joint
+equalities, SDF gearboxes) have no Pinocchio constraint model, and
+``constraintDynamics`` refuses Pinocchio's mimic joints. Their reference is the same
+tree with every coupled joint turned into a Pinocchio mimic joint
+(``pinocchio.transformJointIntoMimic``; the multipliers and offsets of URDF
+``<mimic>`` elements as Pinocchio's own reader reads them,
+``buildModelFromXML(..., mimic=True)``): its coordinates are those of the primary
+joints, v = G v_r, and its ``crba`` and ``nonLinearEffects`` are the reduced M_r and
+h_r (:class:`MimicReference`; Pinocchio 4.1's ``aba`` and ``constraintDynamics``
+refuse mimic joints). Without frame loops a_r = M_r^-1 (G^T tau - h_r); with them,
+the loops' points (as for ``constraintDynamics``: two on a revolute axis, one for a
+spherical joint, three for a weld) give rows J_r a_r + gamma_r = 0 from Pinocchio's
+frame Jacobians and classical accelerations on the mimic model, solved in the null
+space of J_r. closedchain's accelerations are compared on the primary
+coordinates, its generalized constraint force as G^T J^T lam (the couplings' own
+forces drop out: J_coupling G = 0), in the mimic model's mass-matrix norm.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
@@ -68,6 +86,7 @@ import pinocchio as pin
 
 from ._locking import exclusive
 from .closure import AssemblySettings
+from .constraints import PIN_REVOLUTE_POINT_OFFSET, axis_basis
 from .dynamics import DEFAULT_SETTINGS, METHODS, SolverSettings, forward_dynamics
 from .dynamics.base import mass_matrix, method_name
 from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
@@ -76,10 +95,14 @@ from .exceptions import (
     InvalidArgumentError,
     SingularConfigurationError,
     UnknownChoiceError,
+    ValidationUnavailableError,
     check_settings,
 )
 from .kinematics import assemble, project_velocity, random_consistent_state, singularity_measures
 from .mechanism import Mechanism
+from .urdf import COUPLING
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "TOL_ACCELERATION",
@@ -124,6 +147,9 @@ WALK_SIGMA_FRACTION = 0.1
 #: dynamics solves (about 2 ms on the 4-bar, so 1e5 states take some 4 minutes;
 #: seconds to minutes per state on the largest models).
 MAX_VALIDATION_SAMPLES = 100_000
+#: Relative singular-value cut-off of the mimic reference's loop rows J_r (redundant
+#: point rows: a revolute loop's 6 rows have rank 5, a planar loop's rank 2 or 3).
+MIMIC_RANK_RCOND = 1e-9
 
 
 @dataclass(frozen=True)
@@ -152,6 +178,9 @@ class ValidationReport:
             (information only: not judged).
         tol_a: tolerance on ``max_da_mass_norm``.
         tol_force: tolerance on ``max_dforce``.
+        reference: ``"pinocchio.constraintDynamics"``, or ``"pinocchio mimic joints"``
+            for a mechanism with couplings (:class:`MimicReference`: accelerations and
+            forces compared on the primary joints' coordinates).
     """
 
     mechanism: str
@@ -167,6 +196,7 @@ class ValidationReport:
     tol_force: float
     max_da_unrefined: float = float("nan")
     max_da_mass_norm: float = float("nan")
+    reference: str = "pinocchio.constraintDynamics"
 
     @property
     def passed(self) -> bool:
@@ -246,6 +276,228 @@ def pinocchio_reference_dynamics(
             lam += data.lambda_c
     force = -(lam @ Jc)
     return a, force, a_raw
+
+
+@dataclass(frozen=True)
+class MimicReference:
+    """The mechanism's tree with its couplings as Pinocchio mimic joints (module docstring).
+
+    Attributes:
+        model: the mimic model (a copy of the mechanism's tree; every coupled joint but
+            one per group of coupled joints is a mimic joint), with a frame at every loop
+            point; nq_r, nv_r: its configuration and velocity sizes.
+        data: its data.
+        q_index: the full configuration's entries of the mimic model's q, shape (nq_r,).
+        v_index: the full velocity's entries of the mimic model's v, shape (nv_r,).
+        G: v = G v_r, shape (nv, nv_r).
+        points: frame ids (predecessor, successor) of every loop point, whose world
+            positions coincide when the loop is closed.
+    """
+
+    model: pin.Model
+    data: pin.Data
+    q_index: np.ndarray
+    v_index: np.ndarray
+    G: np.ndarray
+    points: tuple[tuple[int, int], ...]
+
+    def dynamics(
+        self, q: np.ndarray, v: np.ndarray, tau: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the reduced ``(a_r, f_r, M_r)`` at the full state (q, v) under ``tau``.
+
+        Args:
+            q: full configuration, shape (nq,), on the couplings.
+            v: full velocity, shape (nv,).
+            tau: full generalized force, shape (nv,) [N m or N].
+
+        Returns:
+            Accelerations of the primary coordinates, shape (nv_r,); the loops'
+            generalized constraint force on them, G^T J^T lam = G^T tau - h_r - M_r a_r,
+            shape (nv_r,); the mimic model's mass matrix, shape (nv_r, nv_r).
+        """
+        model, data = self.model, self.data
+        q_r, v_r, tau_r = q[self.q_index], v[self.v_index], self.G.T @ tau
+        M = pin.crba(model, data, q_r)
+        M = np.triu(M) + np.triu(M, 1).T
+        h = pin.nonLinearEffects(model, data, q_r, v_r).copy()
+        if not self.points:
+            return np.linalg.solve(M, tau_r - h), np.zeros(model.nv), M
+        pin.computeJointJacobians(model, data, q_r)
+        pin.forwardKinematics(model, data, q_r, v_r, np.zeros(model.nv))
+        J = np.vstack(
+            [
+                pin.getFrameJacobian(model, data, fp, _LWA)[:3]
+                - pin.getFrameJacobian(model, data, fs, _LWA)[:3]
+                for fp, fs in self.points
+            ]
+        )
+        gamma = np.concatenate(
+            [
+                pin.getFrameClassicalAcceleration(model, data, fp, _LWA).linear
+                - pin.getFrameClassicalAcceleration(model, data, fs, _LWA).linear
+                for fp, fs in self.points
+            ]
+        )
+        # J a = -gamma: a = a_p + N z with a_p the minimum-norm solution and N a basis of
+        # null(J); N^T (M a + h - tau) = 0 fixes z.
+        U, sigma, Vt = np.linalg.svd(J)
+        rank = int(np.sum(sigma > MIMIC_RANK_RCOND * sigma[0])) if sigma.size else 0
+        a_p = -Vt[:rank].T @ ((U[:, :rank].T @ gamma) / sigma[:rank])
+        N = Vt[rank:].T
+        z = np.linalg.solve(N.T @ M @ N, N.T @ (tau_r - h - M @ a_p))
+        a = a_p + N @ z
+        return a, tau_r - h - M @ a, M
+
+
+#: Reference frame of the mimic reference's point rows.
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+
+def mimic_reference(mech: Mechanism) -> MimicReference:
+    """Return the mechanism's :class:`MimicReference` (built once per mechanism).
+
+    Raises:
+        ValidationUnavailableError: a prismatic loop; couplings that fix a joint
+            (multiplier 0 from a joint before it in the tree) or close a cycle.
+    """
+    ref = mech.__dict__.get("_mimic_reference")
+    if ref is None or ref[0] is not mech.declared:
+        ref = (mech.declared, _build_mimic_reference(mech))
+        mech.__dict__["_mimic_reference"] = ref
+    return ref[1]
+
+
+def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
+    """Return joint j -> (i, m, c) of every coupling q_j = m q_i + c of ``mech``.
+
+    The couplings read from URDF ``<mimic>`` elements take Pinocchio's reading of the
+    mechanism's XML (``buildModelFromXML(..., mimic=True)``); the others, and every
+    coupling when Pinocchio cannot read the XML with mimic joints, closedchain's.
+    """
+    model = mech.model
+    relations = {
+        model.getJointId(spec.joint): (model.getJointId(spec.mimics), spec.multiplier, spec.offset)
+        for spec in mech.declared.loops
+        if spec.type == COUPLING
+    }
+    try:
+        pinocchio_mimic = pin.buildModelFromXML(mech.urdf.xml, mimic=True)
+    except (RuntimeError, ValueError) as exc:
+        logger.info("%s: Pinocchio reads no mimic joints from the model (%s)", mech.name, exc)
+        return relations
+    for j, i in zip(pinocchio_mimic.mimicking_joints, pinocchio_mimic.mimicked_joints, strict=True):
+        joint = pinocchio_mimic.joints[j].extract()
+        name, leader = pinocchio_mimic.names[j], pinocchio_mimic.names[i]
+        if model.existJointName(name) and model.existJointName(leader):
+            relations[model.getJointId(name)] = (
+                model.getJointId(leader),
+                float(joint.scaling),
+                float(joint.offset),
+            )
+    return relations
+
+
+def _primaries(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
+    """Return every coupled joint k -> (p, s, o) with q_k = s q_p + o and p the first
+    joint of its group of coupled joints in the tree (Pinocchio's mimic joints follow the
+    joint they mimic)."""
+    relations = _coupling_relations(mech)
+    root: dict[int, tuple[int, float, float]] = {}
+
+    def resolve(j: int, seen: tuple[int, ...]) -> tuple[int, float, float]:
+        if j not in relations:
+            return j, 1.0, 0.0
+        if j in seen:
+            raise ValidationUnavailableError(
+                f"{mech.name}: the couplings of joint {mech.model.names[j]!r} close a cycle: "
+                "Pinocchio's mimic joints cannot express them"
+            )
+        i, m, c = relations[j]
+        p, s, o = resolve(i, (*seen, j))
+        return p, m * s, m * o + c
+
+    for j in relations:
+        root[j] = resolve(j, ())
+    groups: dict[int, list[int]] = {}
+    for k, (p, _, _) in root.items():
+        groups.setdefault(p, [p]).append(k)
+    out: dict[int, tuple[int, float, float]] = {}
+    for p, members in groups.items():
+        first = min(members)  # q_p = (q_first - o_f) / s_f
+        _, s_f, o_f = root.get(first, (p, 1.0, 0.0))
+        if s_f == 0.0:
+            raise ValidationUnavailableError(
+                f"{mech.name}: a coupling with multiplier 0 fixes joint "
+                f"{mech.model.names[first]!r}: Pinocchio's mimic joints cannot express it"
+            )
+        for k in members:
+            if k == first:
+                continue
+            _, s_k, o_k = root.get(k, (p, 1.0, 0.0))
+            out[k] = (first, s_k / s_f, o_k - s_k * o_f / s_f)
+    return out
+
+
+def _build_mimic_reference(mech: Mechanism) -> MimicReference:
+    model = mech.model
+    mimics = _primaries(mech)
+    ref = model
+    for k in sorted(mimics):
+        p, s, o = mimics[k]
+        ref = pin.transformJointIntoMimic(ref, p, k, s, o)
+    ref.gravity = model.gravity
+    q_index, v_index = [], []
+    G = np.zeros((mech.nv, ref.nv))
+    for j in range(1, model.njoints):
+        jm = model.joints[j]
+        if j in mimics:
+            continue
+        q_index += range(jm.idx_q, jm.idx_q + jm.nq)
+        r = ref.joints[j].idx_v
+        G[jm.idx_v : jm.idx_v + jm.nv, r : r + jm.nv] = np.eye(jm.nv)
+        v_index += range(jm.idx_v, jm.idx_v + jm.nv)
+    for k, (p, s, _) in mimics.items():
+        G[model.joints[k].idx_v] = s * G[model.joints[p].idx_v]
+    points = []
+    for spec, (fp, fs) in zip(mech.declared.loops, mech.declared.frame_ids, strict=True):
+        if spec.type == COUPLING:
+            continue
+        if spec.type == "prismatic":
+            raise ValidationUnavailableError(
+                f"loop {spec.name!r} is prismatic: Pinocchio has no prismatic rigid "
+                "constraint model, so it cannot serve as the reference; valid loop types "
+                "for validation: revolute, spherical, fixed"
+            )
+        offsets = [np.zeros(3)]
+        if spec.type == "revolute":
+            offsets.append(PIN_REVOLUTE_POINT_OFFSET * np.asarray(spec.axis))
+        if spec.type == "fixed":
+            offsets += [PIN_REVOLUTE_POINT_OFFSET * n for n in axis_basis(np.asarray(spec.axis))]
+        for k, offset in enumerate(offsets):
+            shift = pin.SE3(np.eye(3), offset)
+            ids = []
+            for fid, side in ((fp, "p"), (fs, "s")):
+                frame = model.frames[fid]
+                ids.append(
+                    ref.addFrame(
+                        pin.Frame(
+                            f"{spec.name}.{side}{k}",
+                            frame.parentJoint,
+                            frame.placement * shift,
+                            pin.FrameType.OP_FRAME,
+                        )
+                    )
+                )
+            points.append((ids[0], ids[1]))
+    return MimicReference(
+        model=ref,
+        data=ref.createData(),
+        q_index=np.array(q_index, dtype=int),
+        v_index=np.array(v_index, dtype=int),
+        G=G,
+        points=tuple(points),
+    )
 
 
 def mass_norm(M: np.ndarray, x: np.ndarray) -> float:
@@ -383,7 +635,8 @@ def validate(
     velocity_scale: float = 1.0,
     tau_scale: float | None = None,
 ) -> ValidationReport:
-    """Compare a method with ``pinocchio.constraintDynamics`` at random consistent states.
+    """Compare a method with ``pinocchio.constraintDynamics`` at random consistent states
+    (on a mechanism with couplings: with Pinocchio's mimic joints, :class:`MimicReference`).
 
     Args:
         mech: the mechanism (no prismatic loops: Pinocchio has no reference for them).
@@ -412,6 +665,8 @@ def validate(
         InvalidArgumentError: ``n_samples`` is not an integer in [1,
             :data:`MAX_VALIDATION_SAMPLES`], or ``seed`` not an integer >= 0.
         UnknownChoiceError: ``method`` is "pinocchio" (the reference itself).
+        ValidationUnavailableError: a prismatic loop, or couplings that Pinocchio's mimic
+            joints cannot express (:func:`mimic_reference`).
     """
     check_settings("settings", settings, SolverSettings)
     if (
@@ -434,7 +689,10 @@ def validate(
             method,
             [m for m in METHODS if m != "pinocchio"],
         )
-    mech.pinocchio_constraints()  # raise early for prismatic loops
+    # raise early for prismatic loops
+    mimic = mimic_reference(mech) if mech.declared.couplings else None
+    if mimic is None:
+        mech.pinocchio_constraints()
     max_da = max_da_m = max_df = max_res = max_pres = max_da_raw = 0.0
     singular = 0
     for q, v, tau in _validation_states(mech, n_samples, seed, velocity_scale, tau_scale):
@@ -443,21 +701,29 @@ def validate(
         except SingularConfigurationError:
             singular += 1
             continue
-        a_pin, f_pin, a_raw = pinocchio_reference_dynamics(mech, q, v, tau, settings)
+        f_ours = ours.generalized_constraint_force()
+        if mimic is None:
+            a_pin, f_pin, a_raw = pinocchio_reference_dynamics(mech, q, v, tau, settings)
+            a_ours, a_pin_full = ours.a, a_pin
+            M = mass_matrix(mech, q).M
+        else:  # on the primary coordinates (module docstring)
+            a_pin, f_pin, M = mimic.dynamics(q, v, tau)
+            a_raw, a_ours, a_pin_full = a_pin, ours.a[mimic.v_index], mimic.G @ a_pin
+            f_ours = mimic.G.T @ f_ours
         if not (np.all(np.isfinite(a_pin)) and np.all(np.isfinite(f_pin))):
             # A failed reference is a failed comparison, never a skipped one
             # (max() would silently drop a NaN).
             max_da = max_da_m = max_df = max_da_raw = float("inf")
             continue
-        f_ours = ours.generalized_constraint_force()
-        max_da = max(max_da, float(np.max(np.abs(ours.a - a_pin))))
-        M = mass_matrix(mech, q).M
-        max_da_m = max(max_da_m, mass_norm(M, ours.a - a_pin) / max(1.0, mass_norm(M, a_pin)))
-        max_da_raw = max(max_da_raw, float(np.max(np.abs(ours.a - a_raw))))
+        max_da = max(max_da, float(np.max(np.abs(a_ours - a_pin))))
+        max_da_m = max(max_da_m, mass_norm(M, a_ours - a_pin) / max(1.0, mass_norm(M, a_pin)))
+        max_da_raw = max(max_da_raw, float(np.max(np.abs(a_ours - a_raw))))
         scale = max(1.0, float(np.max(np.abs(f_pin))))
         max_df = max(max_df, float(np.max(np.abs(f_ours - f_pin))) / scale)
         max_res = max(max_res, ours.constraint_residual())
-        max_pres = max(max_pres, float(np.max(np.abs(ours.J @ a_pin + ours.gamma), initial=0.0)))
+        max_pres = max(
+            max_pres, float(np.max(np.abs(ours.J @ a_pin_full + ours.gamma), initial=0.0))
+        )
     return ValidationReport(
         mechanism=mech.name,
         method=method,
@@ -472,4 +738,5 @@ def validate(
         tol_force=tol_force,
         max_da_unrefined=max_da_raw,
         max_da_mass_norm=max_da_m,
+        reference="pinocchio mimic joints" if mimic is not None else ValidationReport.reference,
     )

@@ -155,6 +155,18 @@ constexpr int TREE_SOLVE_NV_PER_ROW = 4;
 /// (closedchain.mechanism.NORMALIZATION_TOL)
 constexpr double NORMALIZATION_TOL = 1e-09;
 
+/// Row function codes of :class:`RowTable`: translation (R_p n).(p_p - p_s).
+/// (closedchain.constraints.ROW_TRANSLATION)
+constexpr int ROW_TRANSLATION = 0;
+
+/// Rotation (R_p u).(R_s w).
+/// (closedchain.constraints.ROW_ROTATION)
+constexpr int ROW_ROTATION = 1;
+
+/// Joint coupling q_j - m q_i - c of the parent joints i of c1 and j of c2 (1-dof joints).
+/// (closedchain.constraints.ROW_COUPLING)
+constexpr int ROW_COUPLING = 2;
+
 /// Why a matrix made of J (J, J_D, the Delassus matrix) is singular: the hint of its error.
 /// (closedchain.dynamics.base.RANK_LOSS_HINT)
 static const char *const RANK_LOSS_HINT =

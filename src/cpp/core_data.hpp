@@ -67,6 +67,8 @@ struct CoreData {
   /// World placement (rotation, origin [m]) of every cut frame at the last kinematics pass.
   std::vector<Eigen::Matrix3d> frame_R;
   std::vector<Vector3d> frame_p;
+  /// The configuration of the last kinematics pass: the coupling rows' coordinates.
+  Vec rows_q;
   /// Velocity (linear, angular) and classical acceleration at a = 0 of every cut frame's
   /// origin, world axes [m/s, rad/s; m/s^2, rad/s^2].
   std::vector<Eigen::Matrix<double, 6, 1>> frame_v, frame_a;
@@ -244,7 +246,7 @@ inline CoreData::CoreData(const CoreModel &model)
   for (Vec *x : {&phi, &gamma, &lam, &tmp_c, &zero_c, &al_wc, &vel_c, &phi_n, &phi_best,
                  &step_c, &qD0, &start_dependent_v, &qD_end, &qD_new, &vD_last, &guess_qD})
     *x = Vec::Zero(nc);
-  for (Vec *x : {&J_at, &q_prev, &q_try, &q_best, &warm_q, &fun_q, &unpack_q, &unpack_warm})
+  for (Vec *x : {&rows_q, &J_at, &q_prev, &q_try, &q_best, &warm_q, &fun_q, &unpack_q, &unpack_warm})
     *x = Vec::Zero(nq);
   for (Vec *x : {&nullspace_a, &independent_a, &independent_dq}) *x = Vec::Zero(m);
   terms_q = Vec::Constant(nq, std::numeric_limits<double>::quiet_NaN());

@@ -6,13 +6,15 @@
 // &); only the set-up functions (the constructor, set_band, set_declared, set_partition,
 // set_alignment, set_branch_columns, set_tau, set_passive and Core::configure) change a CoreModel.
 //
-// Every constraint row is one of three smooth scalar functions of the cut frames c1
-// (predecessor, R_p, p_p) and c2 (successor, R_s, p_s):
-//   kind 0  translation along a world axis n:   phi = n . (p_p - p_s)
-//   kind 1  translation along n fixed in c1:    phi = (R_p n) . (p_p - p_s)
-//   kind 2  rotation, u in c1 and w in c2:      phi = (R_p u) . (R_s w)
-// with exact J (derivative along pinocchio::integrate) and gamma = Jdot v, the formulas of
-// closedchain/constraints.py (core_rows.hpp).
+// Every constraint row is one of three smooth scalar functions, with the row codes of
+// closedchain/constraints.py (generated into constants.hpp): of the cut frames c1
+// (predecessor, R_p, p_p) and c2 (successor, R_s, p_s),
+//   ROW_TRANSLATION  translation along n fixed in c1:  phi = (R_p n) . (p_p - p_s)
+//   ROW_ROTATION     rotation, u in c1 and w in c2:    phi = (R_p u) . (R_s w)
+// or of the coordinates of the parent joints i of c1 and j of c2 (1-dof, nq = nv = 1),
+//   ROW_COUPLING     a joint coupling:                 phi = q_j - m q_i - c
+// with exact J (derivative along pinocchio::integrate) and gamma = Jdot v (0 for a
+// coupling), the formulas of closedchain/constraints.py (core_rows.hpp).
 
 #pragma once
 
@@ -36,14 +38,16 @@ namespace closedchain {
 
 /// One constraint row on two cut frames (see the header comment for its three kinds).
 struct Row {
-  /// 0 world translation, 1 translation along n in c1, 2 rotation.
+  /// ROW_TRANSLATION, ROW_ROTATION or ROW_COUPLING.
   int kind;
   /// The predecessor and successor frames: indices into CoreModel::frame_ids.
   int p, s;
-  /// n (kinds 0, 1) or u (kind 2).
+  /// n (translation), u (rotation), or (m, c, 0) of a coupling (the layer's RowTable).
   Vector3d n;
-  /// w (kind 2).
+  /// w (rotation).
   Vector3d w;
+  /// A coupling: the q and v indices of joint i (c1's parent joint) and j (c2's).
+  int qi = 0, vi = 0, qj = 0, vj = 0;
 };
 
 /// One alignment check of a loop (ConstraintLayer.alignment_vectors): phi = 0 is a spurious
@@ -263,7 +267,8 @@ inline int CoreModel::frame_index(int fid) {
 
 inline Row CoreModel::make_row(int r, const Eigen::VectorXi &kinds, const Eigen::VectorXi &fid_p,
                                const Eigen::VectorXi &fid_s, const Mat &vec1, const Mat &vec2) {
-  if (kinds[r] < 0 || kinds[r] > 2) throw BadArgument{"Core: row kind must be 0, 1 or 2"};
+  if (kinds[r] != ROW_TRANSLATION && kinds[r] != ROW_ROTATION && kinds[r] != ROW_COUPLING)
+    throw BadArgument{"Core: row kind must be ROW_TRANSLATION, ROW_ROTATION or ROW_COUPLING"};
   for (int f : {fid_p[r], fid_s[r]})
     if (f < 0 || f >= static_cast<int>(tree.nframes))
       throw BadArgument{"Core: frame id out of range"};
@@ -273,6 +278,17 @@ inline Row CoreModel::make_row(int r, const Eigen::VectorXi &kinds, const Eigen:
   row.s = frame_index(fid_s[r]);
   row.n = vec1.row(r).transpose();
   row.w = vec2.row(r).transpose();
+  if (row.kind == ROW_COUPLING) {
+    const pinocchio::JointIndex ji = tree.frames[fid_p[r]].parentJoint,
+                                jj = tree.frames[fid_s[r]].parentJoint;
+    for (pinocchio::JointIndex j : {ji, jj})
+      if (j == 0 || tree.nqs[j] != 1 || tree.nvs[j] != 1)
+        throw BadArgument{"Core: a coupling row ties two joints with one coordinate each"};
+    row.qi = tree.idx_qs[ji];
+    row.vi = tree.idx_vs[ji];
+    row.qj = tree.idx_qs[jj];
+    row.vj = tree.idx_vs[jj];
+  }
   return row;
 }
 

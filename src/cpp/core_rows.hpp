@@ -81,8 +81,12 @@ void declared_phi(const CoreModel &model, CoreData &data);
 /// BadArgument unless q has shape (nq,) and v shape (nv,).
 void check_sizes(const CoreModel &model, const Vec &q, const Vec &v);
 
-/// World placement (data.frame_R, data.frame_p) of every cut frame from data.tree.oMi.
-void placements(const CoreModel &model, CoreData &data);
+/// World placement (data.frame_R, data.frame_p) of every cut frame from data.tree.oMi, and q
+/// (data.rows_q: the coupling rows' coordinates) of that kinematics pass.
+void placements(const CoreModel &model, CoreData &data, const RefV &q);
+
+/// phi of `row` from the placements and coordinates of the last kinematics pass.
+double row_phi(const CoreData &data, const Row &row);
 
 /// Velocity data.frame_v and classical acceleration data.frame_a (at a = 0) of every cut frame's
 /// origin p, world axes (LOCAL_WORLD_ALIGNED), from its joint's world spatial
@@ -96,8 +100,9 @@ void frame_motion(const CoreModel &model, CoreData &data);
 /// columns J_ang, so a row c . (linear) + e . (angular) of it is the 6-vector
 /// (c, p x c + e) applied to the world columns: the row is that of the
 /// predecessor frame minus that of the successor.
-///   kinds 0, 1: U^T (Jlin_p - Jlin_s) + [kind 1] (U x d)^T Jang_p,
-///   kind 2:     (W x U)^T (Jang_s - Jang_p).
+///   ROW_TRANSLATION: U^T (Jlin_p - Jlin_s) + (U x d)^T Jang_p,
+///   ROW_ROTATION:    (W x U)^T (Jang_s - Jang_p),
+///   ROW_COUPLING:    e_j^T - m e_i^T (constant).
 template <typename RowXpr>
 void row_jacobian(const CoreModel &model, CoreData &data, const Row &row, RowXpr &&out);
 
@@ -143,7 +148,7 @@ inline void invalidate_kinematics(CoreData &data) {
 inline void eval_phi(const CoreModel &model, CoreData &data, const RefV &q) {
   invalidate_kinematics(data);
   joint_kinematics(model.tree_plan, model.tree, data.tree, q);
-  placements(model, data);
+  placements(model, data, q);
   fill_rows(model, data, true, false, false);
 }
 
@@ -151,7 +156,7 @@ inline void eval_phi_J(const CoreModel &model, CoreData &data, const RefV &q) {
   if (data.J_at_valid && q == data.J_at) return;
   invalidate_kinematics(data);
   joint_kinematics(model.tree_plan, model.tree, data.tree, q);
-  placements(model, data);
+  placements(model, data, q);
   fill_rows(model, data, true, true, false);
   data.J_at = q;
   data.J_at_valid = true;
@@ -176,7 +181,7 @@ inline void eval_phi_J_trial(const CoreModel &model, CoreData &data, const Vec &
   }
   invalidate_kinematics(data);
   joint_kinematics(model.tree_plan, model.tree, data.tree, q, &data.moved);
-  placements(model, data);
+  placements(model, data, q);
   fill_rows(model, data, true, true, false);
   data.J_at = q;
   data.J_at_valid = true;
@@ -207,7 +212,7 @@ inline void eval_terms(const CoreModel &model, CoreData &data, const RefV &q, co
       tree_terms(model.tree_plan, model.tree, data.tree, q, v, data.M, data.h);
     }
     mark(0);
-    placements(model, data);
+    placements(model, data, q);
     frame_motion(model, data);
     mark(1);
     fill_rows(model, data, true, true, true);
@@ -245,15 +250,18 @@ inline const Mat &mass_at_J(const CoreModel &model, CoreData &data) {
 }
 
 inline void declared_phi(const CoreModel &model, CoreData &data) {
-  for (std::size_t r = 0; r < model.declared_rows.size(); ++r) {
-    const Row &row = model.declared_rows[r];
-    if (row.kind != 2) {
-      const Vector3d d = data.frame_p[row.p] - data.frame_p[row.s];
-      data.declared_residuals[r] =
-          row.kind == 0 ? row.n.dot(d) : (data.frame_R[row.p] * row.n).dot(d);
-    } else {
-      data.declared_residuals[r] = (data.frame_R[row.p] * row.n).dot(data.frame_R[row.s] * row.w);
-    }
+  for (std::size_t r = 0; r < model.declared_rows.size(); ++r)
+    data.declared_residuals[r] = row_phi(data, model.declared_rows[r]);
+}
+
+inline double row_phi(const CoreData &data, const Row &row) {
+  switch (row.kind) {
+    case ROW_TRANSLATION:
+      return (data.frame_R[row.p] * row.n).dot(data.frame_p[row.p] - data.frame_p[row.s]);
+    case ROW_ROTATION:
+      return (data.frame_R[row.p] * row.n).dot(data.frame_R[row.s] * row.w);
+    default:  // ROW_COUPLING: q_j - m q_i - c
+      return data.rows_q[row.qj] - row.n[0] * data.rows_q[row.qi] - row.n[1];
   }
 }
 
@@ -263,7 +271,8 @@ inline void check_sizes(const CoreModel &model, const Vec &q, const Vec &v) {
                       std::to_string(model.nv) + ",)"};
 }
 
-inline void placements(const CoreModel &model, CoreData &data) {
+inline void placements(const CoreModel &model, CoreData &data, const RefV &q) {
+  data.rows_q = q;
   for (std::size_t k = 0; k < model.frame_ids.size(); ++k) {
     const pinocchio::SE3 oMf =
         data.tree.oMi[model.frame_joint[k]] * model.tree.frames[model.frame_ids[k]].placement;
@@ -287,14 +296,20 @@ inline void frame_motion(const CoreModel &model, CoreData &data) {
 
 template <typename RowXpr>
 inline void row_jacobian(const CoreModel &model, CoreData &data, const Row &row, RowXpr &&out) {
+  out.setZero();
+  if (row.kind == ROW_COUPLING) {
+    out(row.vj) += 1.0;
+    out(row.vi) -= row.n[0];
+    return;
+  }
   Eigen::Matrix<double, 6, 1> wp, ws;
   const int P = row.p, S = row.s;
-  if (row.kind != 2) {
-    const Vector3d U = row.kind == 0 ? row.n : Vector3d(data.frame_R[P] * row.n);
+  if (row.kind == ROW_TRANSLATION) {
+    const Vector3d U = data.frame_R[P] * row.n;
     wp.head<3>() = U;
     ws.head<3>() = U;
     wp.tail<3>() = data.frame_p[P].cross(U);
-    if (row.kind == 1) wp.tail<3>() += U.cross(data.frame_p[P] - data.frame_p[S]);
+    wp.tail<3>() += U.cross(data.frame_p[P] - data.frame_p[S]);
     ws.tail<3>() = data.frame_p[S].cross(U);
   } else {
     const Vector3d WxU = (data.frame_R[S] * row.w).cross(data.frame_R[P] * row.n);
@@ -303,7 +318,6 @@ inline void row_jacobian(const CoreModel &model, CoreData &data, const Row &row,
     wp.tail<3>() = -WxU;
     ws.tail<3>() = -WxU;
   }
-  out.setZero();
   const Data::Matrix6x &Jw = data.tree.J;
   for (Eigen::Index c : model.frame_columns[P]) out(c) += wp.dot(Jw.col(c));
   for (Eigen::Index c : model.frame_columns[S]) out(c) -= ws.dot(Jw.col(c));
@@ -315,20 +329,21 @@ inline void fill_rows(const CoreModel &model, CoreData &data, bool want_phi, boo
     const Row &row = model.rows[r];
     const int P = row.p, S = row.s;
     if (want_J) row_jacobian(model, data, row, data.J.row(r));
-    if (row.kind != 2) {
+    if (row.kind == ROW_COUPLING) {  // linear in q: gamma = 0
+      if (want_phi) data.phi[r] = row_phi(data, row);
+      if (want_gamma) data.gamma[r] = 0.0;
+    } else if (row.kind == ROW_TRANSLATION) {
       const Vector3d d = data.frame_p[P] - data.frame_p[S];
-      const Vector3d U = row.kind == 0 ? row.n : Vector3d(data.frame_R[P] * row.n);
+      const Vector3d U = data.frame_R[P] * row.n;
       if (want_phi) data.phi[r] = U.dot(d);
       if (want_gamma) {
         const Vector3d dd = data.frame_a[P].head<3>() - data.frame_a[S].head<3>();
         double g = U.dot(dd);
-        if (row.kind == 1) {
-          const Vector3d wp = data.frame_v[P].tail<3>(), alp = data.frame_a[P].tail<3>();
-          const Vector3d Ud = wp.cross(U);
-          const Vector3d Udd = alp.cross(U) + wp.cross(Ud);
-          const Vector3d ddot = data.frame_v[P].head<3>() - data.frame_v[S].head<3>();
-          g += Udd.dot(d) + 2.0 * Ud.dot(ddot);
-        }
+        const Vector3d wp = data.frame_v[P].tail<3>(), alp = data.frame_a[P].tail<3>();
+        const Vector3d Ud = wp.cross(U);
+        const Vector3d Udd = alp.cross(U) + wp.cross(Ud);
+        const Vector3d ddot = data.frame_v[P].head<3>() - data.frame_v[S].head<3>();
+        g += Udd.dot(d) + 2.0 * Ud.dot(ddot);
         data.gamma[r] = g;
       }
     } else {

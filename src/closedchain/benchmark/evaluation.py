@@ -71,15 +71,11 @@ def cheapest_exact_settings(mech: Mechanism, q, v, tau, a_ref, cms, cds, data):
 
 def compiled_methods(mech: Mechanism) -> list[tuple[str, object]]:
     """(name, :class:`closedchain.compiled.CompiledDynamics`) of every compiled method
-    (empty when the compiled core is not built or cannot hold the mechanism's rows)."""
+    (empty when the compiled core is not built)."""
     from .. import compiled
 
     if not compiled.available():
         logger.warning("the compiled core is not built: compiled methods left out")
-        return []
-    reason = compiled.unsupported_rows(mech)
-    if reason is not None:
-        logger.warning("%s: compiled methods left out", reason)
         return []
     return [
         (name, compiled.compiled_dynamics(mech, name))

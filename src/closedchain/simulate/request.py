@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import compiled
 from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
 from ..exceptions import InvalidArgumentError, check_settings, resolve_choice
@@ -83,7 +82,6 @@ class Request:
         settings: simulation settings.
         solver_settings: the method's settings as given.
         progress: called with the current time [s] after each step, or None.
-        fallback: why ``backend="auto"`` runs numpy because of the rows, or None.
     """
 
     mech: Mechanism
@@ -99,11 +97,10 @@ class Request:
     settings: SimulationSettings
     solver_settings: SolverSettings
     progress: Callable[[float], None] | None = None
-    fallback: str | None = None
 
     def on_numpy(self) -> Request:
         """Return the same request on the numpy integrator of the same name."""
-        return replace(self, spec=INTEGRATORS[self.spec.name], fallback=None)
+        return replace(self, spec=INTEGRATORS[self.spec.name])
 
 
 def check_request(
@@ -140,7 +137,7 @@ def check_request(
     spec = get_integrator(integrator)
     if stabilization is None:
         stabilization = spec.default_stabilization
-    spec, fallback = select_backend(spec, backend, stabilization, method, mech)
+    spec = select_backend(spec, backend, stabilization, method)
     stab = get_stabilization(stabilization)
     method = method_name(method)
     _check_pairing(spec, stab, method)
@@ -173,7 +170,6 @@ def check_request(
         settings=settings,
         solver_settings=solver_settings,
         progress=progress,
-        fallback=fallback,
     )
 
 
@@ -284,18 +280,14 @@ def _check_dt(
 
 
 def select_backend(
-    spec: IntegratorSpec, backend: str, stabilization: str, method: str, mech: Mechanism
-) -> tuple[IntegratorSpec, str | None]:
-    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``)
-    and, when ``"auto"`` falls back to numpy because of the mechanism's rows, why."""
+    spec: IntegratorSpec, backend: str, stabilization: str, method: str
+) -> IntegratorSpec:
+    """Return the integrator entry that runs the request (see ``simulate``'s ``backend``):
+    the compiled core holds every row kind, so only the integrator, stabilization and
+    method decide."""
     backend = resolve_choice("backend", backend, BACKENDS)
     if backend == "numpy":
-        return spec, None
-    rows = compiled.unsupported_rows(mech)
-    if rows is not None:
-        if backend == "compiled":
-            raise InvalidArgumentError("backend='compiled' cannot run this request: " + rows)
-        return spec, rows
+        return spec
     method = method_name(method)
     cspec = COMPILED_INTEGRATORS.get(spec.name)
     reasons = []
@@ -309,12 +301,12 @@ def select_backend(
     if not METHOD_CAPABILITIES[method].compiled:
         reasons.append(f"method {method!r} has no compiled implementation")
     if not reasons:
-        return cspec, None
+        return cspec
     if backend == "compiled":
         raise InvalidArgumentError(
             "backend='compiled' cannot run this request: " + "; ".join(reasons)
         )
-    return spec, None
+    return spec
 
 
 def check_start_velocity(

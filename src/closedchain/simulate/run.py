@@ -116,8 +116,6 @@ def _run_info(request: Request, problem: Problem) -> dict:
     }
     if request.stab.accel_terms:
         info["baumgarte"] = list(problem.solver_settings.baumgarte)
-    if request.fallback is not None:
-        info["backend_fallback"] = request.fallback
     return info
 
 
