@@ -53,6 +53,7 @@ from .exceptions import (
 )
 from .kinematics import actuation_sigma_min, assemble, compute_jacobian
 from .mechanism import Mechanism
+from .pindata import frame_jacobian
 
 __all__ = [
     "ActuationSingularities",
@@ -207,8 +208,8 @@ def _output_jacobian(mech: Mechanism, fid: int, mode: str) -> np.ndarray:
     """The frame's Jacobian, shape (6 or 3, nv): LOCAL in 6d, the world-aligned linear
     rows in 3d (``data`` holds the joint Jacobians at q)."""
     if mode == "6d":
-        return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)
-    return pin.getFrameJacobian(mech.model, mech.data, fid, _LWA)[:3]
+        return frame_jacobian(mech.model, mech.data, fid, _LOCAL)
+    return frame_jacobian(mech.model, mech.data, fid, _LWA)[:3]
 
 
 @exclusive

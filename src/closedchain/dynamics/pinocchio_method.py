@@ -115,7 +115,8 @@ def pinocchio_constrained_dynamics(
     prox = buf.proximal(settings)
     model = mech.model
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
-    Jc = pin.getConstraintsJacobian(model, data, cms, cds)
+    # (nc, nv) also for nv = 1, which Pinocchio returns as a vector.
+    Jc = np.reshape(pin.getConstraintsJacobian(model, data, cms, cds), (-1, model.nv))
     # Pinocchio: M a + h = tau + J_c^T lambda_c  ->  ours: J^T lam = -J_c^T lambda_c.
     force = data.lambda_c @ Jc
     np.negative(force, out=force)
