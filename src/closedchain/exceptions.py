@@ -11,6 +11,7 @@ errors into them); :mod:`closedchain.simulate.settings` and
 from __future__ import annotations
 
 import math
+import reprlib
 from collections.abc import Iterable
 
 
@@ -230,6 +231,35 @@ def format_upper_bound(x: float, digits: int = 6) -> str:
         if not (math.isfinite(x) and float(text) > x):
             return text
     return repr(x)
+
+
+#: Longest name or value [characters] quoted in a message; longer ones are cut in the
+#: middle with "..." (a 60 MB frame name must not make a 60 MB message).
+MESSAGE_NAME_MAX = 80
+#: Longest message [characters] the command line prints (cut in the middle likewise).
+MESSAGE_MAX = 2000
+
+
+_BOUNDED_REPR = reprlib.Repr()  # Python 3.11: no keyword arguments
+_BOUNDED_REPR.maxlevel = 3
+_BOUNDED_REPR.maxstring = _BOUNDED_REPR.maxother = MESSAGE_NAME_MAX
+
+
+def shorten(text: object, limit: int = MESSAGE_NAME_MAX) -> str:
+    """Return ``text`` on one line, cut in the middle with ``"..."`` beyond ``limit``.
+
+    Args:
+        text: a name or message; anything else is shown by a bounded ``repr``.
+        limit: the longest result [characters], at least 5.
+    """
+    if isinstance(text, str):
+        s = text
+    else:  # reprlib visits a bounded part of a nested value (YAML aliases share parts)
+        s = _BOUNDED_REPR.repr(text)
+    if len(s) > limit:
+        head = (limit - 3 + 1) // 2
+        s = s[:head] + "..." + s[len(s) - (limit - 3 - head) :]
+    return " ".join(s.split()) if ("\n" in s or "\r" in s) else s
 
 
 def _one_line(x) -> str:

@@ -32,6 +32,7 @@ from .closure import (
     SelectionSettings,
     assemble_closure,
     sample_configurations,
+    layer_jacobian,
     solve_closure,
 )
 from .constraints import ConstraintLayer, RowInfo
@@ -45,6 +46,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
     check_settings,
+    shorten,
 )
 from .mjcf import read_model
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
@@ -801,8 +803,49 @@ def load(
     _select_rows_and_coordinates(
         mech, settings, q_guess=reference_configuration(model, entry), extra_starts=starts
     )
+    _refuse_massless_subtrees(mech)
     logger.info("loaded %r", mech)
     return mech
+
+
+def _refuse_massless_subtrees(mech: Mechanism) -> None:
+    """Refuse a moving subtree that has no mass, no inertia and no loop holding it.
+
+    Its coordinates have no kinetic energy and no constraint: the mass matrix is
+    singular in them whatever the method (a loop or coupling that reaches the subtree
+    makes its J columns non-zero, and M + alpha J^T J regular, as for a massless link
+    of a loop). Only the outermost such subtree is named.
+
+    Raises:
+        URDFError: names the subtree's first joint and its links.
+    """
+    model = mech.model
+    J = layer_jacobian(model, mech.data, mech.declared, mech.q_ref)
+    for j in range(1, model.njoints):  # parents first: the outermost subtree is found
+        if model.joints[j].nv == 0:
+            continue
+        subtree = list(model.subtrees[j])
+        if any(
+            model.inertias[k].mass != 0.0 or np.any(model.inertias[k].inertia != 0.0)
+            for k in subtree
+        ):
+            continue
+        cols = [
+            model.joints[k].idx_v + i for k in subtree for i in range(model.joints[k].nv)
+        ]
+        if np.any(J[:, cols] != 0.0):
+            continue  # a loop or coupling holds it
+        links = [
+            f.name
+            for f in model.frames
+            if f.type == pin.FrameType.BODY and f.parentJoint in subtree
+        ]
+        raise URDFError(
+            f"{mech.path}: the subtree of joint {shorten(model.names[j])!r} "
+            f"(links {shorten(', '.join(links))}) has no mass and no inertia and no loop "
+            "holds it: its motion has no dynamics (the mass matrix is singular); give one "
+            "of its links an <inertial> with a positive mass, or make its joint fixed"
+        )
 
 
 def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
