@@ -1461,7 +1461,9 @@ def test_callable_tau_under_every_integrator_stabilization_and_backend(
         t_eval=DRIVEN_T_EVAL,
     )  # fmt: skip
     spec = INTEGRATORS[integrator]
-    kind = "high" if spec.kind == "adaptive" or spec.order > 2 else ("first", "second")[spec.order - 1]
+    kind = (
+        "high" if spec.kind == "adaptive" or spec.order > 2 else ("first", "second")[spec.order - 1]
+    )
     err = np.linalg.norm(traj.q - driven_fourbar_reference, np.inf)
     assert err < DRIVEN_TOL[kind]
     assert traj.info.backend == backend

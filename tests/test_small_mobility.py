@@ -19,17 +19,19 @@ import closedchain as cc
 from closedchain import cli
 from closedchain.simulate import COMPILED_INTEGRATORS, INTEGRATORS
 
+#: The rod's box.
+VISUAL = '<visual><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.01 0.02"/></geometry></visual>'
 #: Rod of the pendulums: 1 kg, 0.3 m, along its link's x axis, turning about -y.
 ROD = """
   <link name="{name}">
     <inertial><origin xyz="0.15 0 0"/><mass value="1"/>
       <inertia ixx="0" ixy="0" ixz="0" iyy="0.0075" iyz="0" izz="0.0075"/></inertial>
-    <visual><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.01 0.02"/></geometry></visual>
+    {visual}
   </link>
   <joint name="{joint}" type="revolute">
     <parent link="{parent}"/><child link="{name}"/><origin xyz="{x} 0 0"/><axis xyz="0 -1 0"/>
     <limit lower="-3" upper="3" effort="10" velocity="10"/>
-  </joint>"""
+  </joint>""".replace("{visual}", VISUAL)
 MOTOR = """
   <transmission name="t_{joint}"><type>transmission_interface/SimpleTransmission</type>
     <joint name="{joint}"><hardwareInterface>EffortJointInterface</hardwareInterface></joint>
@@ -51,15 +53,19 @@ LOCK = """
 
 
 def _robot(*parts: str) -> str:
-    return '<?xml version="1.0"?>\n<robot name="small">\n  <link name="base"/>' + "".join(
-        parts
-    ) + "\n</robot>\n"
+    return (
+        '<?xml version="1.0"?>\n<robot name="small">\n  <link name="base"/>'
+        + "".join(parts)
+        + "\n</robot>\n"
+    )
 
 
 #: name -> (URDF text, mobility).
 MODELS = {
     "pendulum": (
-        _robot(ROD.format(name="rod1", joint="j1", parent="base", x=0), TIP, MOTOR.format(joint="j1")),
+        _robot(
+            ROD.format(name="rod1", joint="j1", parent="base", x=0), TIP, MOTOR.format(joint="j1")
+        ),
         1,
     ),
     "locked_pendulum": (_robot(ROD.format(name="rod1", joint="j1", parent="base", x=0), LOCK), 0),
@@ -191,9 +197,7 @@ def test_every_method_and_row_function_on_small_mechanisms(small, name, backend,
 
 #: Largest |a - a_ref| [rad/s^2] of forward dynamics against pin.aba (measured 1e-14).
 ACCEL_TOL = 1e-10
-COMPILED_METHODS = tuple(
-    m for m, c in cc.dynamics.base.METHOD_CAPABILITIES.items() if c.compiled
-)
+COMPILED_METHODS = tuple(m for m, c in cc.dynamics.base.METHOD_CAPABILITIES.items() if c.compiled)
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
@@ -258,10 +262,13 @@ def test_small_mechanisms_on_the_command_line(small, name, tmp_path, capsys):
 
 def test_a_model_with_nothing_to_draw_is_refused(tmp_path, capsys):
     text = MODELS["pendulum"][0]
-    bare = text.replace(
-        '<visual><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.01 0.02"/></geometry></visual>',
-        "",
-    ).split("<transmission")[0] + "</robot>\n"
+    bare = (
+        text.replace(
+            VISUAL,
+            "",
+        ).split("<transmission")[0]
+        + "</robot>\n"
+    )
     path = tmp_path / "bare.urdf"
     path.write_text(bare)
     status = cli.main(["animate", str(path), "--t-final", "0.1", "-o", str(tmp_path / "a.html")])
@@ -285,7 +292,9 @@ def test_a_massless_moving_leaf_is_refused_at_load_by_name(tmp_path, capsys):
   </joint>"""
     path = tmp_path / "leaf.urdf"
     path.write_text(_robot(ROD.format(name="rod1", joint="j1", parent="base", x=0), leaf))
-    with pytest.raises(cc.URDFError, match=r"subtree of joint 'leaf_joint' \(links leaf, leaf_tip\) has no mass"):
+    with pytest.raises(
+        cc.URDFError, match=r"subtree of joint 'leaf_joint' \(links leaf, leaf_tip\) has no mass"
+    ):
         cc.load(path)
     assert cli.main(["simulate", str(path), "--t-final", "0.1"]) == 2
     err = capsys.readouterr().err

@@ -23,12 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from .exceptions import (
+    MESSAGE_MAX,
     ClosedChainError,
     NonFiniteError,
     SingularConfigurationError,
     UnknownChoiceError,
     format_upper_bound,
     resolve_choice,
+    shorten,
 )
 from .visualize.settings import DEFAULT_SETTINGS as DEFAULT_ANIMATION
 from .visualize.settings import MEGABYTE
@@ -560,7 +562,7 @@ def _check_sample_count(t_final: float, fps: float, limit: int, what: str, setti
     n = math.ceil(frames - 1e-9) + 1 if math.isfinite(frames) else math.inf
     if n > limit:
         raise ClosedChainError(
-            f"--fps {fps:g} over --t-final {t_final:g} s is {n} {what}, more than the limit "
+            f"--fps {fps:g} over --t-final {t_final:g} s is {n:.4g} {what}, more than the limit "
             f"{limit} ({setting}); valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
         )
     return n
@@ -843,12 +845,19 @@ def _cmd_workspace(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, its error messages (which quote the bad value) bounded."""
+
+    def error(self, message: str):
+        super().error(shorten(message, MESSAGE_MAX))
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .benchmark.families import FAMILIES
     from .dynamics import METHODS
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="closedchain",
         description="Dynamics of closed-chain mechanisms (URDF + <loop>) on top of Pinocchio.",
         epilog=EXIT_STATUS_HELP,
@@ -1039,7 +1048,8 @@ def error_message(exc: BaseException, args: argparse.Namespace | None = None) ->
         )
     else:
         message = str(exc)
-    return " ".join(line.strip() for line in message.splitlines() if line.strip())
+    message = " ".join(line.strip() for line in message.splitlines() if line.strip())
+    return shorten(message, MESSAGE_MAX)
 
 
 class _Terminated(BaseException):

@@ -262,6 +262,11 @@ def shorten(text: object, limit: int = MESSAGE_NAME_MAX) -> str:
     return " ".join(s.split()) if ("\n" in s or "\r" in s) else s
 
 
+def quoted(name: str, limit: int = MESSAGE_NAME_MAX) -> str:
+    """Return ``repr(name)`` (quotes, escapes: one line) cut as :func:`shorten` does."""
+    return shorten(repr(name), limit)
+
+
 def _one_line(x) -> str:
     """Return the array ``x`` as numpy prints it (6 digits), on one line however long."""
     import sys

@@ -318,7 +318,9 @@ def _declared_rows(mech: Mechanism, backend: str) -> RowFunctions | None:
     if rows_evaluator(mech, backend_name(backend)) is None:
         return None
     core = declared_core(mech)
-    return RowFunctions(core.phi_checked, lambda q: jacobian_rows(core.jacobian_checked(q), mech.nv))
+    return RowFunctions(
+        core.phi_checked, lambda q: jacobian_rows(core.jacobian_checked(q), mech.nv)
+    )
 
 
 @dataclass(frozen=True)

@@ -31,8 +31,8 @@ from .closure import (
     RowSelection,
     SelectionSettings,
     assemble_closure,
-    sample_configurations,
     layer_jacobian,
+    sample_configurations,
     solve_closure,
 )
 from .constraints import ConstraintLayer, RowInfo
@@ -46,6 +46,7 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
     check_settings,
+    quoted,
     shorten,
 )
 from .mjcf import read_model
@@ -297,7 +298,8 @@ class Mechanism:
         """
         if not self.model.existJointName(joint):
             raise ClosedChainError(
-                f"{self.path}: unknown joint {joint!r}; joints: {', '.join(self.model.names[1:])}"
+                f"{self.path}: unknown joint {quoted(joint)}; "
+                f"joints: {name_list(self.model.names[1:])}"
             )
         j = self.model.joints[self.model.getJointId(joint)]
         return np.arange(j.idx_v, j.idx_v + j.nv)
@@ -762,7 +764,8 @@ def load(
                 parent = 0  # Pinocchio's universe frame: fixed whatever the root joint
             elif not model.existFrame(link, pin.FrameType.BODY):
                 raise URDFError(
-                    f"{spec.where(urdf.path)}: link {link!r} is not part of the kinematic tree"
+                    f"{spec.where(urdf.path)}: link {quoted(link)} is not part of the "
+                    "kinematic tree"
                 )
             else:
                 parent = model.getFrameId(link, pin.FrameType.BODY)
@@ -781,8 +784,8 @@ def load(
                 spec.successor_frame or spec.successor,
             )
             raise URDFError(
-                f"{spec.where(urdf.path)}: predecessor {ends[0]!r} and successor {ends[1]!r} "
-                "move with the same joint, so the loop closes nothing"
+                f"{spec.where(urdf.path)}: predecessor {quoted(ends[0])} and successor "
+                f"{quoted(ends[1])} move with the same joint, so the loop closes nothing"
             )
         frame_ids.append(tuple(pair))
 
@@ -830,9 +833,7 @@ def _refuse_massless_subtrees(mech: Mechanism) -> None:
             for k in subtree
         ):
             continue
-        cols = [
-            model.joints[k].idx_v + i for k in subtree for i in range(model.joints[k].nv)
-        ]
+        cols = [model.joints[k].idx_v + i for k in subtree for i in range(model.joints[k].nv)]
         if np.any(J[:, cols] != 0.0):
             continue  # a loop or coupling holds it
         links = [
@@ -841,7 +842,7 @@ def _refuse_massless_subtrees(mech: Mechanism) -> None:
             if f.type == pin.FrameType.BODY and f.parentJoint in subtree
         ]
         raise URDFError(
-            f"{mech.path}: the subtree of joint {shorten(model.names[j])!r} "
+            f"{mech.path}: the subtree of joint {quoted(model.names[j])} "
             f"(links {shorten(', '.join(links))}) has no mass and no inertia and no loop "
             "holds it: its motion has no dynamics (the mass matrix is singular); give one "
             "of its links an <inertial> with a positive mass, or make its joint fixed"
@@ -872,7 +873,7 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
             name = getattr(spec, f"{side}_frame")
             if name is None:
                 continue
-            where = f"{spec.where(urdf.path)}: <{side} frame={name!r}>"
+            where = f"{spec.where(urdf.path)}: <{side} frame={quoted(name)}>"
             if not model.existFrame(name):
                 raise URDFError(
                     f"{where} names no frame of the tree; frames: {name_list(tree_frames)}"

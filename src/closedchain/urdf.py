@@ -55,7 +55,7 @@ import pinocchio as pin
 from lxml import etree
 
 from ._io import MAX_XML_BYTES, read_input_bytes
-from .exceptions import ModelTooLargeError, URDFError
+from .exceptions import ModelTooLargeError, URDFError, quoted, shorten
 
 logger = logging.getLogger(__name__)
 
@@ -187,7 +187,7 @@ class LoopSpec:
     def where(self, path: Path | str) -> str:
         """Return ``"{path}: line {n}: <loop name='...'>"`` (without the line when unknown)."""
         line = f" line {self.line}:" if self.line else ""
-        return f"{path}:{line} <loop name={self.name!r}>"
+        return f"{path}:{line} <loop name={quoted(self.name)}>"
 
 
 @dataclass(frozen=True)
@@ -378,12 +378,18 @@ def _safe_parser() -> etree.XMLParser:
 def _tag(element) -> str:
     """Return ``<tag name='...'>`` (the name with ``repr``: one line), or ``<tag>``."""
     name = element.get("name")
-    return f"<{element.tag} name={name!r}>" if name is not None else f"<{element.tag}>"
+    return f"<{element.tag} name={quoted(name)}>" if name is not None else f"<{element.tag}>"
+
+
+def _line(element) -> str:
+    """Return ``" line {n}:"`` of an element read from a file, or "" (one written by a
+    conversion, such as a loops YAML file's)."""
+    return f" line {element.sourceline}:" if element.sourceline else ""
 
 
 def _where(path: Path, element) -> str:
     """Return ``"{path}: line {n}: <tag name='...'>"``: where a message is about (one line)."""
-    return f"{path}: line {element.sourceline}: {_tag(element)}"
+    return f"{path}:{_line(element)} {_tag(element)}"
 
 
 def _three(text: str) -> np.ndarray | None:
@@ -480,7 +486,7 @@ def name_list(names, *, limit: int = MAX_LISTED_NAMES) -> str:
         limit: names listed at most.
     """
     unique = sorted(set(names))
-    shown = ", ".join(unique[:limit])
+    shown = ", ".join(shorten(name) for name in unique[:limit])
     return shown if len(unique) <= limit else f"{shown}, ... and {len(unique) - limit} more"
 
 
@@ -515,8 +521,9 @@ def _unique_names(path: Path, elements, kind: str) -> tuple[str, ...]:
         name = _check_name(path, e, kind)
         if name in first:
             raise URDFError(
-                f"{_where(path, e)}: duplicate {kind} name, first used at line {first[name]}; "
-                f"every {kind} needs its own name"
+                f"{_where(path, e)}: duplicate {kind} name"
+                + (f", first used at line {first[name]}" if first[name] else "")
+                + f"; every {kind} needs its own name"
             )
         first[name] = e.sourceline or 0
     return tuple(first)
@@ -613,7 +620,7 @@ def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
     inertial = link.find("inertial")
     if inertial is None:
         return
-    where = f"{path}: line {inertial.sourceline}: <link name={link.get('name')!r}> <inertial>"
+    where = f"{path}:{_line(inertial)} {_tag(link)} <inertial>"
     origin = inertial.find("origin")
     if origin is not None:
         _origin_values(path, origin, where)
