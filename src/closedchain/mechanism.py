@@ -299,7 +299,7 @@ class Mechanism:
         if not self.model.existJointName(joint):
             raise ClosedChainError(
                 f"{self.path}: unknown joint {quoted(joint)}; "
-                f"joints: {name_list(self.model.names[1:])}"
+                f"joints: {name_list(self.model.names[1:], keep_order=True)}"
             )
         j = self.model.joints[self.model.getJointId(joint)]
         return np.arange(j.idx_v, j.idx_v + j.nv)

@@ -478,14 +478,15 @@ def unit_vector(text: str, what: str) -> np.ndarray:
 MAX_LISTED_NAMES = 30
 
 
-def name_list(names, *, limit: int = MAX_LISTED_NAMES) -> str:
+def name_list(names, *, limit: int = MAX_LISTED_NAMES, keep_order: bool = False) -> str:
     """Return the sorted names, comma separated, the ones past ``limit`` counted, not listed.
 
     Args:
         names: the valid names (any iterable of str; duplicates are listed once).
         limit: names listed at most.
+        keep_order: list them in the order given (first occurrences), not sorted.
     """
-    unique = sorted(set(names))
+    unique = list(dict.fromkeys(names)) if keep_order else sorted(set(names))
     shown = ", ".join(shorten(name) for name in unique[:limit])
     return shown if len(unique) <= limit else f"{shown}, ... and {len(unique) - limit} more"
 
