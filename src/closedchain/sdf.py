@@ -380,7 +380,8 @@ class _Reader:
             else:
                 valid = [SDF_MODEL_FRAME, *self.links, *self.joint_elements]
                 raise URDFError(
-                    f"{where}: unknown frame {quoted(current)}; valid: {name_list(valid, keep_order=True)}"
+                    f"{where}: unknown frame {quoted(current)}; "
+                    f"valid: {name_list(valid, keep_order=True)}"
                 )
             on_chain.add(current)
             chain.append((current, element))
