@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import STDERR_LOCK
 from .exceptions import (
     MESSAGE_MAX,
     ClosedChainError,
@@ -419,7 +420,7 @@ def report_stop(stopped, traj, what: str) -> int:
     if stopped is None:
         return EXIT_OK
     message = str(stopped).replace("\n", " ")
-    print(f"closedchain: error: {message} ({what} up to t = {traj.t[-1]:.6g} s)", file=sys.stderr)
+    print_error(f"closedchain: error: {message} ({what} up to t = {traj.t[-1]:.6g} s)")
     return EXIT_STOPPED
 
 
@@ -827,7 +828,7 @@ def _bench_scaling(args) -> int:
 
     def progress(name: str) -> None:
         if not args.no_progress:
-            print(f"scaling: timing the {name} family", file=sys.stderr, flush=True)
+            print_error(f"scaling: timing the {name} family")
 
     rows = run_scaling(args.out_dir, families, repeats=args.repeats or 3, progress=progress)
     print((Path(args.out_dir) / "scaling.md").read_text())
@@ -1008,6 +1009,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def print_error(text: str) -> None:
+    """Print one line to standard error, holding :data:`closedchain._io.STDERR_LOCK` (a
+    thread capturing fd 2 meanwhile would swallow it)."""
+    with STDERR_LOCK:
+        print(text, file=sys.stderr, flush=True)
+
+
 def exit_status(exc: BaseException) -> int:
     """Return the exit status for an exception that ended a command.
 
@@ -1080,23 +1088,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_args(args)
         return int(args.handler(args))
     except KeyboardInterrupt:
-        print("closedchain: interrupted", file=sys.stderr)
+        print_error("closedchain: interrupted")
         return EXIT_INTERRUPTED
     except _Terminated:
-        print("closedchain: terminated", file=sys.stderr)
+        print_error("closedchain: terminated")
         return EXIT_TERMINATED
     except Exception as exc:  # MemoryError included: exit_status makes it bad input
         status = exit_status(exc)
         if status == EXIT_INTERNAL:
             if args.debug:
                 traceback.print_exc()
-            print(
+            print_error(
                 f"closedchain: internal error: {type(exc).__name__}: {error_message(exc)}"
-                + ("" if args.debug else " (run with --debug for the traceback)"),
-                file=sys.stderr,
+                + ("" if args.debug else " (run with --debug for the traceback)")
             )
         else:
-            print(f"closedchain: error: {error_message(exc, args)}", file=sys.stderr)
+            print_error(f"closedchain: error: {error_message(exc, args)}")
         return status
     finally:
         if previous is not None:

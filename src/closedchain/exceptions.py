@@ -317,8 +317,7 @@ def check_count(name: str, value, what: str) -> int:
     """
     if not (isinstance(value, numbers.Integral) and _is_number(value) and value >= 1):
         raise InvalidArgumentError(
-            f"{name} ({what}) must be an integer >= 1, got {shorten(value)}; "
-            "valid: 1, 2, 3, ..."
+            f"{name} ({what}) must be an integer >= 1, got {shorten(value)}; valid: 1, 2, 3, ..."
         )
     return int(value)
 
