@@ -327,6 +327,9 @@ class URDFPlus:
         springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
         dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
         armatures: the joints' armature (:class:`JointArmature`), in file order.
+        link_files: link name -> the file whose ``<link>`` element it is, for the
+            links of another file than ``path`` (a base URDF under an overlay or a
+            loops YAML file): their meshes are looked up beside that file.
     """
 
     path: Path
@@ -344,6 +347,7 @@ class URDFPlus:
     springs: tuple[JointSpring, ...] = ()
     dampings: tuple[JointDamping, ...] = ()
     armatures: tuple[JointArmature, ...] = ()
+    link_files: dict[str, Path] = field(default_factory=dict)
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a

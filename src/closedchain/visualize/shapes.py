@@ -13,7 +13,7 @@ import pinocchio as pin
 
 from .._io import MAX_MESH_BYTES, check_input_file, read_input_bytes
 from ..constraints import axis_basis
-from ..exceptions import ClosedChainError
+from ..exceptions import ClosedChainError, quoted
 from ..urdf import COUPLING, _declares_doctype
 
 if TYPE_CHECKING:
@@ -255,7 +255,8 @@ def read_scene_visuals(
         load_collision_meshes=False,
     ).robot
     named = {m.name: m for m in robot.materials if m.name}
-    urdf_dir = Path(mech.path).resolve().parent
+    # Each link's meshes beside the file that names it (a base URDF under an overlay).
+    link_files = mech.urdf.link_files
     trusted = _trusted_roots()
     children: dict[str, list[np.ndarray]] = {}
     for joint in robot.joints:
@@ -289,7 +290,9 @@ def read_scene_visuals(
                 meshes.append((i, g.mesh, origin, rgba))
         drawn: list[VisualShape] = []
         if meshes:
-            where = f"{mech.path}: link {link.name!r}"
+            source = Path(link_files.get(link.name, mech.path))
+            where = f"{source}: link {quoted(link.name)}"
+            urdf_dir = source.resolve().parent
             fit = _link_meshes(where, link.name, meshes, urdf_dir, trusted, left)
             if isinstance(fit, list):
                 drawn = fit
