@@ -563,8 +563,9 @@ def _check_sample_count(t_final: float, fps: float, limit: int, what: str, setti
     n = math.ceil(frames - 1e-9) + 1 if math.isfinite(frames) else math.inf
     if n > limit:
         raise ClosedChainError(
-            f"--fps {fps:g} over --t-final {t_final:g} s is {n:.4g} {what}, more than the limit "
-            f"{limit} ({setting}); valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
+            f"--fps {fps:g} over --t-final {t_final:g} s is {shorten(n, 20)} {what}, more than "
+            f"the limit {limit} ({setting}); "
+            f"valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
         )
     return n
 
@@ -846,11 +847,15 @@ def _cmd_workspace(args) -> int:
     return 0
 
 
+#: Longest argparse error message [characters] (it quotes the value it could not read).
+ARGPARSE_MESSAGE_MAX = 500
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse's parser, its error messages (which quote the bad value) bounded."""
 
     def error(self, message: str):
-        super().error(shorten(message, MESSAGE_MAX))
+        super().error(shorten(message, ARGPARSE_MESSAGE_MAX))
 
 
 def build_parser() -> argparse.ArgumentParser:

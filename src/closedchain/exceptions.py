@@ -276,6 +276,12 @@ def quoted(name: str, limit: int = MESSAGE_NAME_MAX) -> str:
     return shorten(repr(name), limit)
 
 
+def shown(value: object) -> str:
+    """Return a value for a message: a string quoted (:func:`quoted`), anything else by a
+    bounded ``repr`` (:func:`shorten`)."""
+    return quoted(value) if isinstance(value, str) else shorten(value)
+
+
 def _one_line(x) -> str:
     """Return the array ``x`` as numpy prints it (6 digits), on one line however long
     (a matrix's rows one after the other)."""
@@ -301,7 +307,7 @@ def check_positive(name: str, value, what: str) -> float:
     x = float(value) if _is_number(value) else math.nan
     if not (math.isfinite(x) and x > 0):
         raise InvalidArgumentError(
-            f"{name} ({what}) must be a finite number > 0, got {shorten(value)}; "
+            f"{name} ({what}) must be a finite number > 0, got {shown(value)}; "
             "valid range: (0, inf)"
         )
     return x

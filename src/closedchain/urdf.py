@@ -83,6 +83,16 @@ MIMIC_SUFFIX = "_mimic"
 #: planar root the URDF's root link moves, and this is what stays put.
 WORLD_LINK = "world"
 
+#: Largest |multiplier| of a coupling ``q_j = m q_i + c`` (a URDF ``<mimic>``, an MJCF
+#: ``polycoef``): a gear ratio of a million. Beyond it the coupling row dwarfs the others
+#: in J and M + alpha J^T J overflows (1e150: divisions by zero in the step, 1e300:
+#: overflow in the assembly).
+COUPLING_MULTIPLIER_MAX = 1e6
+
+#: Largest |offset| c of a coupling [rad or m]: the largest coordinate a configuration
+#: may hold (``closedchain.mechanism.COORDINATE_BOUND``).
+COUPLING_OFFSET_MAX = 1e6
+
 #: Largest |component| [m] of an ``xyz`` origin: far beyond any mechanism, far
 #: below where the squares of lengths overflow (1e154 m).
 ORIGIN_XYZ_MAX = 1e6
@@ -411,7 +421,9 @@ def _floats(path: Path, element, attribute: str, default: str, where: str = "") 
     values = _three(text)
     if values is None or not np.all(np.isfinite(values)):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
-        raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
+        raise URDFError(
+            f"{prefix}: attribute {attribute}={quoted(text)} must be three finite numbers"
+        )
     return values
 
 
@@ -451,7 +463,7 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
         URDFError: the attribute is not three numbers, is not finite or is zero.
     """
     text = axis.get("xyz", "1 0 0")
-    return unit_vector(text, f"{where}: <axis xyz={text!r}>")
+    return unit_vector(text, f"{where}: <axis xyz={quoted(text)}>")
 
 
 def unit_vector(text: str, what: str) -> np.ndarray:
@@ -610,9 +622,11 @@ def _number(
         value = math.nan
     if not math.isfinite(value) or (minimum is not None and value < minimum):
         valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
-        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be {valid}")
+        raise URDFError(f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {valid}")
     if bound is not None and abs(value) > bound:
-        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be within +-{bound:g}")
+        raise URDFError(
+            f"{where} <{element.tag} {attribute}={quoted(text)}>: must be within +-{bound:g}"
+        )
     return value
 
 
@@ -881,7 +895,7 @@ def parse_urdf(
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:
-            raise URDFError(f"{path}: loop name {name!r} is used more than once")
+            raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
 
     actuated: list[str] = []
     for trans in root.findall("transmission"):
@@ -894,12 +908,12 @@ def parse_urdf(
             jname = je.get("name")
             if jname not in joints:
                 raise URDFError(
-                    f"{_where(path, trans)}: names joint {jname!r}, which is not a <joint> "
+                    f"{_where(path, trans)}: names joint {quoted(jname)}, which is not a <joint> "
                     f"of this file; joints: {', '.join(sorted(joints))}"
                 )
             if joints[jname] == "fixed":
                 raise URDFError(
-                    f"{_where(path, trans)}: joint {jname!r} is fixed and cannot be actuated"
+                    f"{_where(path, trans)}: joint {quoted(jname)} is fixed and cannot be actuated"
                 )
             if jname not in actuated:
                 actuated.append(jname)
@@ -910,7 +924,9 @@ def parse_urdf(
         if flag is None:
             continue
         if flag not in ("true", "false"):
-            raise URDFError(f'{_where(path, je)}: independent={flag!r} must be "true" or "false"')
+            raise URDFError(
+                f'{_where(path, je)}: independent={quoted(flag)} must be "true" or "false"'
+            )
         if flag == "true":
             if je.get("type") == "fixed":
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
@@ -974,7 +990,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
     ltype = element.get("type")
     if ltype not in LOOP_TYPES:
         raise URDFError(
-            f"{where}: unknown loop type {ltype!r}; valid choices: {', '.join(LOOP_TYPES)}"
+            f"{where}: unknown loop type {quoted(ltype)}; valid choices: {', '.join(LOOP_TYPES)}"
         )
 
     def child(tag: str, required: bool = True):
@@ -999,7 +1015,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
             continue
         if link not in links:
             raise URDFError(
-                f"{where}: <{tag} link={link!r}> names an unknown link; links: "
+                f"{where}: <{tag} link={quoted(link)}> names an unknown link; links: "
                 f"{name_list(links)} (or frame= for a joint's frame)"
             )
         ends[tag] = link
@@ -1040,14 +1056,14 @@ def _coupling_spec(
             valid = sorted(j for j, t in joints.items() if t in COUPLING_JOINT_TYPES)
             found = "no joint of this file" if jname not in joints else f"a {joints[jname]} joint"
             raise URDFError(
-                f"{where}: a coupling ties 1-dof joints without wrap-around, and {jname!r} is "
-                f"{found}; valid: revolute or prismatic joints ({', '.join(valid)})"
+                f"{where}: a coupling ties 1-dof joints without wrap-around, and "
+                f"{quoted(jname)} is {found}; valid: revolute or prismatic joints "
+                f"({name_list(valid)})"
             )
     if joint == mimics:
-        raise URDFError(f"{where}: joint {joint!r} cannot mimic itself")
-    w = f"{where} <{element.tag}>"
-    multiplier = _number(w, element, "multiplier")
-    offset = _number(w, element, "offset")
+        raise URDFError(f"{where}: joint {quoted(joint)} cannot mimic itself")
+    multiplier = _number(where, element, "multiplier", bound=COUPLING_MULTIPLIER_MAX)
+    offset = _number(where, element, "offset", bound=COUPLING_OFFSET_MAX)
     return LoopSpec(
         name=name,
         type=COUPLING,
@@ -1114,7 +1130,7 @@ def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
     if joints.get(name) not in SCENE_JOINT_TYPES:
         valid = sorted(j for j, t in joints.items() if t in SCENE_JOINT_TYPES)
         raise URDFError(
-            f"{_where(path, element)}: joint={name!r} is not a revolute or prismatic joint "
+            f"{_where(path, element)}: joint={quoted(name)} is not a revolute or prismatic joint "
             f"of this file; valid: {', '.join(valid)}"
         )
     return name
