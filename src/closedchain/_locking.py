@@ -30,7 +30,7 @@ F = TypeVar("F", bound=Callable)
 #: numpy's error state inside every public function: an overflow, a division by zero or
 #: an invalid operation raises FloatingPointError, which :func:`exclusive` reports as
 #: NonFiniteError, instead of a RuntimeWarning on stderr and a NaN carried on. Code that
-#: expects such values (an infinite condition number) says so with its own errstate.
+#: expects such values (an infinite condition number) must say so with its own errstate.
 FLOATING_POINT_ERRORS = {"over": "raise", "divide": "raise", "invalid": "raise"}
 
 
