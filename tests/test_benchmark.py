@@ -592,3 +592,47 @@ def test_bench_extras_rejects_bad_arguments(tmp_path):
         )
         assert res.returncode == 2
         assert message in res.stderr
+
+
+def test_the_whole_bench_runs_in_quick_mode(tmp_path, capsys):
+    """Every scenario under the quick settings (issue 32: the driven scenarios lost their
+    confirmed reference, and their charts raised): exit 0, every reference confirmed,
+    every chart written."""
+    out = tmp_path / "bench"
+    args = ["bench", "--quick", "--scenarios", *SCENARIOS, "--out", str(out)]
+    args += ["--models", str(MODELS), "--no-progress", "--no-cache"]
+    assert cli.main(args) == 0, capsys.readouterr().err
+    ref = {r["scenario"]: r for r in csv.DictReader(open(out / "reference.csv", newline=""))}
+    assert set(ref) == set(SCENARIOS)
+    for sc, r in ref.items():
+        assert float(r["agreement"]) <= REFERENCE_AGREEMENT_TOL, sc
+        assert (out / f"wp_{sc}.png").stat().st_size > 0
+    rows = read_rows(out / "work_precision.csv")
+    assert {r["scenario"] for r in rows} == set(SCENARIOS)
+    assert all(math.isfinite(r["error"]) for r in rows if r["status"] == "ok")
+
+
+def test_a_scenario_without_a_confirmed_reference_is_reported(tmp_path, monkeypatch):
+    """A failed confirmation leaves the scenario's rows without an error, says so in the
+    CSVs and on the chart, and the rest of the run completes."""
+    from closedchain.benchmark import runner
+
+    configurations = runner.reference_configurations
+
+    def failing(settings, scenario=None, **kw):
+        out = configurations(settings, scenario, **kw)
+        out[1] = dict(out[1], kwargs=dict(out[1]["kwargs"], tol=-1.0))  # refused: exit 2
+        return out
+
+    monkeypatch.setattr(runner, "reference_configurations", failing)
+    rows, checks = run_work_precision(
+        tmp_path, settings=QUICK, scenarios=["pendulum3-passive"], models_dir=MODELS
+    )
+    (check,) = checks
+    assert check.agreement == math.inf and "FAILED" in check.reference
+    ours = [r for r in rows if r["family"] == "closedchain"]
+    assert ours and all(r["status"] == "ok" for r in ours)
+    assert all(r["message"] == "no confirmed reference: error not measured" for r in rows)
+    assert all(math.isnan(r["error"]) for r in rows)
+    assert (tmp_path / "wp_pendulum3-passive.png").stat().st_size > 0
+    assert "FAILED" in (tmp_path / "reference.csv").read_text()

@@ -11,7 +11,7 @@ import signal
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR, SHIPPED_MECHANISMS, fourbar_with_crank_limits
+from conftest import DATA_DIR, MODELS, SHIPPED_MECHANISMS, fourbar_with_crank_limits
 
 from closedchain import cli
 from closedchain.dynamics import base as dynamics_base
@@ -905,3 +905,44 @@ def test_keyframe_option_chooses_the_mjcf_start(capsys):
     assert status == 0 and "q_ref" in out
     err = one_line_error(*run(capsys, "info", floating, "--keyframe", "stand")[::2])
     assert "unknown keyframe 'stand'; keyframes: crouch" in err
+
+
+# -- message bounds (issue 32) ------------------------------------------------------------------
+
+#: Longest stderr of a refused input [bytes]: argparse's usage lines and one message line
+#: (closedchain.exceptions.MESSAGE_MAX = 2000 characters).
+STDERR_BOUND = 4_000
+#: Characters of the huge frame name (a 60 MB one gave 125 MB of stderr; lxml refuses an
+#: attribute beyond 10 MB).
+HUGE_NAME = 5_000_000
+
+
+def test_a_huge_frame_name_gives_one_bounded_line(tmp_path, capsys):
+    text = (MODELS / "fourbar.urdf").read_text()
+    old = '<successor link="rocker"/>'
+    assert text.count(old) == 1
+    path = tmp_path / "huge_name.urdf"
+    path.write_text(text.replace(old, f'<successor link="{"r" * HUGE_NAME}"/>'))
+    status, _, err = run(capsys, "info", path)
+    assert status == 2
+    assert err.count("\n") == 1 and len(err) < STDERR_BOUND
+    assert "rrr...rrr" in err and "names an unknown link" in err
+
+
+@pytest.mark.parametrize("fps", ["9" * 300, "x" + "9" * 300_000])
+def test_a_huge_fps_is_refused_without_echoing_it(tmp_path, capsys, fps):
+    """A 300-digit --fps was echoed as a 300-digit sample count; a value argparse cannot
+    read is quoted by argparse, cut to the message bound."""
+    argv = ["animate", str(MODELS / "fourbar.urdf"), "--fps", fps, "-o", str(tmp_path / "a.html")]
+    try:
+        status = cli.main(argv)
+    except SystemExit as exc:  # argparse's own refusal
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2
+    assert len(err) < STDERR_BOUND and "9" * 300 not in err
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .startswith(("closedchain: error: --fps", "closedchain animate: error: argument --fps"))
+    )

@@ -234,6 +234,59 @@ def test_bad_couplings_are_refused(tmp_path, old, new, match):
         cc.load(_variant(tmp_path, old, new))
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        (
+            'multiplier="0.02" offset="0.01"',
+            'multiplier="1e300" offset="0.01"',
+            r"<mimic multiplier='1e300'>: must be within \+-1e\+06$",
+        ),
+        (
+            'multiplier="-1"/>',
+            'multiplier="-1.5e6"/>',
+            r"<mimic multiplier='-1.5e6'>: must be within \+-1e\+06$",
+        ),
+        (
+            'multiplier="0.5" offset="-0.1"/>',
+            'multiplier="0.5" offset="-1e200"/>',
+            r"<mimics offset='-1e200'>: must be within \+-1e\+06$",
+        ),
+    ],
+)
+def test_huge_coupling_numbers_are_refused_at_load(tmp_path, capsys, old, new, match):
+    """A multiplier of 1e300 printed numpy's overflow warnings (then stopped); 1e150 its
+    division warnings before a result. They are refused at load, in one line."""
+    from closedchain import cli
+
+    path = _variant(tmp_path, old, new)
+    with pytest.raises(URDFError, match=match):
+        cc.load(path)
+    assert cli.main(["simulate", str(path), "--t-final", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Warning" not in err
+
+
+def test_the_largest_coupling_multiplier_simulates_without_warnings(tmp_path, recwarn):
+    """A gear of 1e6 (the bound): the run completes and the coupling holds, with no
+    RuntimeWarning (numpy's error state inside every public function raises instead)."""
+    import warnings
+
+    path = _variant(tmp_path, 'multiplier="0.02" offset="0.01"', 'multiplier="1e6" offset="0"')
+    mech = cc.load(path)
+    warnings.simplefilter("error", RuntimeWarning)
+    q0 = cc.assemble(mech, mech.q_ref)
+    traj = cc.simulate(mech, q0, np.zeros(mech.nv), 0.01)
+    slide, left = _index(mech, "slide_joint"), _index(mech, "left_joint")
+    assert np.max(np.abs(traj.q[:, slide] - 1e6 * traj.q[:, left])) <= COUPLING_TOL * 1e6
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+#: |q_slide - m q_left| of a run, relative to m [m/rad]: the assembly's tolerance (1e-10)
+#: times the gear (measured 0 at rest).
+COUPLING_TOL = 1e-9
+
+
 def test_joint_reactions_leave_couplings_out(gripper, rng):
     """A coupling transmits no wrench between two links: its generalized force acts on
     the coupled joints as a motor's would, so each tree joint transmits

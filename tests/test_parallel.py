@@ -571,3 +571,54 @@ def test_an_unreachable_target_names_the_limit_that_stops_it(tmp_path):
         cc.inverse_kinematics(mech, "slider", [0.27, 0.0, 0.0], mode="3d")
     with pytest.raises(cc.AssemblyError, match=r"no joint at a limit: beyond the linkage's reach"):
         cc.inverse_kinematics(mech, "slider", [0.47, 0.0, 0.0], mode="3d")
+
+
+# -- argument validation (issue 32) ----------------------------------------------------------
+
+
+def _se3(R=None, p=(0.1, 0.0, 0.3)) -> pin.SE3:
+    return pin.SE3(np.eye(3) if R is None else np.array(R, dtype=float), np.array(p, dtype=float))
+
+
+@pytest.mark.parametrize(
+    ("target", "kwargs", "message"),
+    [
+        (_se3(p=(math.nan, 0, 0)), {}, r"target must be a finite pinocchio.SE3"),
+        (_se3(p=(math.inf, 0, 0)), {}, r"target must be a finite pinocchio.SE3"),
+        (_se3(R=np.diag([1.0, 1.0, 1.01])), {}, r"target's rotation must be a rotation matrix"),
+        (_se3(R=np.diag([1.0, 1.0, -1.0])), {}, r"target's rotation must be a rotation matrix"),
+        ("tip", {}, r"target of mode '6d' must be a pinocchio.SE3"),
+        ({"x": 1}, {"mode": "3d"}, r"target of mode '3d' must be a pinocchio.SE3 or a position"),
+        (["a", "b", "c"], {"mode": "3d"}, r"target of mode '3d' must be"),
+        (_se3(), {"tol": math.nan}, r"tol \(the largest frame error \[m or rad\]\) must be a"),
+        (_se3(), {"tol": -1e-3}, r"tol .* must be a finite number > 0, got -0.001"),
+        (_se3(), {"tol": "1e-3"}, r"tol .* must be a finite number > 0"),
+        (_se3(), {"max_nfev": 2.5}, r"max_nfev .* must be an integer >= 1, got 2.5"),
+        (_se3(), {"max_nfev": 0}, r"max_nfev .* must be an integer >= 1, got 0"),
+        (_se3(), {"max_nfev": True}, r"max_nfev .* must be an integer >= 1, got True"),
+    ],
+)
+def test_inverse_kinematics_refuses_bad_arguments_by_name(five_bar, target, kwargs, message):
+    """Each was a hang (max_nfev=2.5), a wrong success (tol=nan: a 10 m frame error), an
+    accepted non-rotation, or scipy's ValueError or TypeError; now one line each."""
+    with pytest.raises(InvalidArgumentError, match=message) as info:
+        cc.inverse_kinematics(five_bar, END_POINT, target, **kwargs)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("motors", "kwargs", "message"),
+    [
+        (["1", "2"], {}, r"motors must be 2 finite numbers"),
+        ("12", {}, r"motors must be 2 finite numbers"),
+        ({"a": 1}, {}, r"motors must be 2 finite numbers"),
+        ([[0.1, 0.2]], {}, r"motors must be 2 finite numbers"),
+        (np.zeros((40, 40)), {}, r"motors must be 2 finite numbers"),
+        ([True, False], {}, r"motors must be 2 finite numbers"),
+        ([0.1, 0.2], {"type_ii_rtol": math.nan}, r"type_ii_rtol .* must be a finite number > 0"),
+    ],
+)
+def test_forward_kinematics_refuses_bad_arguments_by_name(five_bar, motors, kwargs, message):
+    with pytest.raises(InvalidArgumentError, match=message) as info:
+        cc.forward_kinematics(five_bar, motors, **kwargs)
+    assert "\n" not in str(info.value) and len(str(info.value)) < 500

@@ -935,3 +935,58 @@ def test_validation_walks_along_the_motion_where_random_starts_fail(cassie_stand
         assert np.linalg.norm(pin.difference(mech.model, previous, q)) > validation.WALK_STEP
         previous = q
         assert np.all(tau[:6] == 0.0)  # no actuator pushes the free-flyer root
+
+
+# -- a long relative_to chain (issue 32) ------------------------------------------------------
+
+#: Links in the relative_to chain (RecursionError at this length before).
+CHAIN_LINKS = 3_000
+#: Each link's pose along x relative to the previous one [m].
+CHAIN_STEP = 1e-3
+#: Round-off of CHAIN_LINKS placements composed [m] (measured 4e-13).
+CHAIN_TOL = 1e-9
+INERTIAL = (
+    "<inertial><mass>1</mass><inertia><ixx>1</ixx><iyy>1</iyy><izz>1</izz></inertia></inertial>"
+)
+
+
+def _chain_sdf(n: int, *, cycle: bool = False) -> str:
+    """A base, n massless links fixed to it each posed relative to the previous one, and an
+    arm on a revolute joint posed relative to the last (``cycle``: the first link's pose
+    is relative to the last)."""
+    links = [f'<link name="base">{INERTIAL}</link>']
+    for i in range(n):
+        rel = (f"l{n - 1}" if cycle else "base") if i == 0 else f"l{i - 1}"
+        links.append(
+            f'<link name="l{i}"><pose relative_to="{rel}">{CHAIN_STEP} 0 0 0 0 0</pose></link>'
+        )
+    links.append(
+        f'<link name="arm"><pose relative_to="l{n - 1}">0 0 0 0 0 0</pose>{INERTIAL}</link>'
+    )
+    joints = ['<joint name="j" type="revolute"><parent>base</parent><child>arm</child>'
+              "<axis><xyz>0 0 1</xyz></axis></joint>"]  # fmt: skip
+    joints += [
+        f'<joint name="fx{i}" type="fixed"><parent>base</parent><child>l{i}</child></joint>'
+        for i in range(n)
+    ]
+    body = "".join(links + joints)
+    return f'<?xml version="1.0"?><sdf version="1.7"><model name="m">{body}</model></sdf>'
+
+
+def test_a_relative_to_chain_of_thousands_of_frames_is_walked(tmp_path):
+    path = tmp_path / "chain.sdf"
+    path.write_text(_chain_sdf(CHAIN_LINKS))
+    mech = cc.load(path)
+    data = mech.model.createData()
+    pin.framesForwardKinematics(mech.model, data, pin.neutral(mech.model))
+    arm = data.oMf[mech.model.getFrameId("arm")].translation
+    assert np.linalg.norm(arm - [CHAIN_LINKS * CHAIN_STEP, 0, 0]) < CHAIN_TOL
+
+
+def test_a_relative_to_cycle_of_thousands_of_frames_is_one_bounded_line(tmp_path):
+    path = tmp_path / "cycle.sdf"
+    path.write_text(_chain_sdf(CHAIN_LINKS, cycle=True))
+    with pytest.raises(cc.URDFError, match="poses are relative to each other in a cycle") as info:
+        cc.load(path)
+    message = str(info.value)
+    assert "\n" not in message and len(message) < 3_000

@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import umsgpack
-from conftest import MODELS, fourbar_sweep, kinematic_trajectory
+from conftest import DATA_DIR, MODELS, fourbar_sweep, kinematic_trajectory
 
 import closedchain as cc
 from closedchain import visualize as vz
@@ -842,3 +842,54 @@ def test_links_without_visuals_are_drawn_as_sticks_sized_from_the_model():
     (slider,) = by_link["slider"]
     assert slider.kind == "sphere"
     assert not [v for v in visuals if v.link == "ground"]  # no mass, nothing to join
+
+
+def test_meshes_resolve_against_the_file_that_names_them(tmp_path, caplog):
+    """Under --loops (an overlay or a loops YAML file elsewhere) the base's meshes were
+    looked up beside the overlay: reported missing, or a file of the same name there
+    embedded instead. Each link's meshes are now looked up beside its own file."""
+    base_dir, other_dir = tmp_path / "base", tmp_path / "overlay"
+    for d in (base_dir / "meshes", other_dir / "meshes"):
+        d.mkdir(parents=True)
+    write_binary_stl(base_dir / "meshes" / "tetra.stl", TETRA, TETRA_FACES)
+    write_binary_stl(other_dir / "meshes" / "tetra.stl", *tetrahedra(2, 0.2))  # a decoy
+    write_binary_stl(other_dir / "meshes" / "own.stl", *tetrahedra(3, 0.3))
+    urdf = (
+        (MODELS / "fourbar.urdf")
+        .read_text()
+        .replace(
+            '<geometry><box size="0.4 0.012 0.02"/></geometry>',
+            '<geometry><mesh filename="meshes/tetra.stl"/></geometry>',
+        )
+    )
+    (base_dir / "mesh.urdf").write_text(urdf)
+    overlay = other_dir / "overlay.urdf"
+    overlay.write_text(
+        '<robot name="with_marker"><link name="marker"><visual><geometry>'
+        '<mesh filename="meshes/own.stl"/></geometry></visual></link>'
+        '<joint name="marker_joint" type="fixed"><parent link="crank"/><child link="marker"/>'
+        "</joint></robot>"
+    )
+    mech = cc.load(base_dir / "mesh.urdf", loops=overlay)
+    with caplog.at_level(logging.WARNING, logger="closedchain.visualize"):
+        meshes = {v.link: v.mesh for v in vz.read_visuals(mech) if v.kind == "mesh"}
+    assert "not found" not in caplog.text
+    assert meshes == {
+        "coupler": (base_dir / "meshes" / "tetra.stl").resolve(),
+        "marker": (other_dir / "meshes" / "own.stl").resolve(),
+    }
+    # A loops YAML file beside a decoy: the base's meshes still come from the base.
+    yaml_urdf = (DATA_DIR / "yaml_fivebar.urdf").read_text()
+    first_link = yaml_urdf.index(">", yaml_urdf.index('<link name="prox1"')) + 1
+    yaml_urdf = (
+        yaml_urdf[:first_link]
+        + '<visual><geometry><mesh filename="meshes/tetra.stl"/></geometry></visual>'
+        + yaml_urdf[first_link:]
+    )
+    (base_dir / "fivebar.urdf").write_text(yaml_urdf)
+    loops = other_dir / "fivebar.yaml"
+    loops.write_text((DATA_DIR / "yaml_fivebar_6d.yaml").read_text())
+    mech = cc.load(base_dir / "fivebar.urdf", loops=loops)
+    (visual,) = [v for v in vz.read_visuals(mech) if v.kind == "mesh"]
+    assert visual.link == "prox1"
+    assert visual.mesh == (base_dir / "meshes" / "tetra.stl").resolve()

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import shutil
 import subprocess
@@ -376,7 +377,10 @@ name_mot: [mot1, mot2]
         ),
         ("- 1\n- 2\n", "expected a mapping of keys closed_loop, "),
         ("closed_loop: [[tip1, tip2]\n", "not a YAML file: "),
-        ("closed_loop: !!python/object:os.system {}\n", "not a YAML file: could not determine"),
+        (
+            "closed_loop: !!python/object:os.system {}\n",
+            "not a YAML file: line 1: could not determine",
+        ),
     ],
 )
 def test_yaml_errors_name_the_file_and_the_key(tmp_path, text, message):
@@ -650,3 +654,115 @@ def test_an_axis_the_weld_tilts_is_refused_with_the_angles(tmp_path):
 
 #: Turn [rad] of the rocker tip frame in test_an_axis_the_weld_tilts_is_refused_with_the_angles.
 TILT = 0.1
+
+
+# -- hostile YAML files (issue 32): bounded time, memory and messages -----------------------
+
+
+def alias_bomb(levels: int) -> str:
+    """Nested aliases: each level names the previous one 9 times (9^levels strings if
+    expanded; 9 levels x 9 aliases)."""
+    names = [f"n{i}" for i in range(levels + 1)]
+    return (
+        f"closed_loop: [&{names[0]} [tip1, tip2], "
+        + ", ".join(
+            f"&{c} [" + ", ".join([f"*{p}"] * 9) + "]"
+            for p, c in zip(names, names[1:], strict=False)
+        )
+        + "]\ntype: [6d]\n"
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (alias_bomb(12), r"line 1: more than 100 aliases; valid: a loops file$"),
+        # 99 aliases pass the bound: the message shows a bounded part of the value.
+        (alias_bomb(11), r"closed_loop must be a list of pairs of frame names, got \[\['tip1'"),
+        ("closed_loop: " + "[" * 20 + "]" * 20 + "\n", r"line 1: lists or mappings nested deeper"),
+        ("closed_loop: " + "[" * 20_000 + "]" * 20_000 + "\n", r"not a YAML file: line 1: "),
+        (
+            "closed_loop: " + "9" * 4_400 + "\n",
+            r"not a YAML file: Exceeds the limit \(4300 digits\)",
+        ),
+        (FIVEBAR_YAML.replace("tip1", '"tip1\\0"'), r"closed_loop\[0\]\[0\] = 'tip1\\x00' holds"),
+        (FIVEBAR_YAML.replace("tip1", '"tip1\\x07"'), r"closed_loop\[0\]\[0\] = 'tip1\\x07' holds"),
+        (FIVEBAR_YAML.replace("mot2", '"mot2\\x85"'), r"name_mot\[1\] = 'mot2\\x85' holds"),
+        (FIVEBAR_YAML.replace("tip1", '"tip1\\ud800"'), r"not a YAML file: line 1: found invalid"),
+        (FIVEBAR_YAML.replace("mot2", "mot1"), r"name_mot\[1\] repeats name_mot\[0\] \('mot1'\)"),
+    ],
+)
+def test_hostile_yaml_is_refused_in_one_line(tmp_path, text, message):
+    loops = tmp_path / "robot.yaml"
+    loops.write_text(text)
+    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: ") + message) as info:
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+    assert "\n" not in str(info.value) and len(str(info.value)) < MESSAGE_BOUND
+
+
+#: A message's length bound [characters] (names cut at 80, the path and the text around).
+MESSAGE_BOUND = 600
+
+
+def test_a_lone_surrogate_from_the_pure_python_reader_is_refused(tmp_path, monkeypatch):
+    """libyaml refuses the escape; PyYAML's Python reader builds the string, which lxml
+    cannot write (UnicodeEncodeError before)."""
+    from closedchain import yaml_loops
+
+    monkeypatch.setattr(yaml_loops, "_SAFE_LOADER", yaml_loops.yaml.SafeLoader)
+    loops = tmp_path / "robot.yaml"
+    loops.write_text(FIVEBAR_YAML.replace("tip1", '"tip1\\ud800"'))
+    with pytest.raises(cc.URDFError, match=r"closed_loop\[0\]\[0\] = 'tip1\\ud800' holds"):
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+
+
+@pytest.mark.parametrize("kind", ("fifo", "device", "large"))
+def test_a_yaml_file_goes_through_the_input_file_checks(tmp_path, kind):
+    """A FIFO blocked, /dev/zero filled the memory, a large file took minutes to parse."""
+    from closedchain.yaml_loops import MAX_YAML_BYTES
+
+    loops = tmp_path / "robot.yaml"
+    if kind == "fifo":
+        os.mkfifo(loops)
+        message = "loops file is a named pipe (FIFO); valid: a regular file"
+    elif kind == "device":
+        loops.symlink_to("/dev/zero")
+        message = "loops file is a character device; valid: a regular file"
+    else:
+        loops.write_text(FIVEBAR_YAML + "#" + "x" * MAX_YAML_BYTES + "\n")
+        message = "loops file of 1.049e+06 bytes is larger than the limit of 1.049e+06 bytes"
+    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: {message}")):
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+
+
+#: Names in the long lists below (the quadratic checks took 41 s at this size).
+LONG_LIST = 60_000
+
+
+def test_long_name_lists_are_checked_in_linear_time_with_one_warning(tmp_path, caplog):
+    """No timing: the checks are linear (a quadratic one is minutes at this size, which
+    the suite's time would show) and the missing joints make one warning line."""
+    loops = tmp_path / "robot.yaml"
+    names = ", ".join(f"j{i}" for i in range(LONG_LIST))
+    fixed = ", ".join(["FIXED"] * LONG_LIST)
+    loops.write_text(FIVEBAR_YAML + f"joint_name: [{names}]\njoint_type: [{fixed}]\n")
+    with caplog.at_level(logging.WARNING, logger="closedchain.yaml_loops"):
+        mech = cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+    (record,) = caplog.records
+    assert record.getMessage().endswith(f"; so are {LONG_LIST - 1} more joint_name entries")
+    assert mech.nv == 5
+    motors = ", ".join(f"m{i}" for i in range(LONG_LIST))
+    loops.write_text(FIVEBAR_YAML.replace("[mot1, mot2]", f"[mot1, mot2, {motors}, m0]"))
+    with pytest.raises(cc.URDFError, match=rf"name_mot\[{LONG_LIST + 2}\] repeats name_mot\[2\]"):
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+
+
+def test_yaml_messages_have_a_real_line_number_or_none(tmp_path):
+    """Elements written from a YAML file have no source line: "line None" before."""
+    loops = tmp_path / "robot.yaml"
+    loops.write_text(FIVEBAR_YAML.replace("tip2", "x" * 5000))
+    with pytest.raises(cc.URDFError) as info:
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+    message = str(info.value)
+    assert "line None" not in message and "xxx...xxx" in message
+    assert len(message) < MESSAGE_BOUND * 2

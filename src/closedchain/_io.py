@@ -16,6 +16,7 @@ import secrets
 import stat
 import sys
 import tempfile
+import threading
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -311,6 +312,13 @@ class CapturedText:
     text: str = ""
 
 
+#: Held by whatever in closedchain points file descriptor 2 elsewhere or writes to it
+#: (:func:`captured_stderr`, the command line's messages): two threads that swapped fd 2
+#: at once could each restore the other's temporary file, leaving the process's standard
+#: error on a deleted file. Re-entrant: a capture may nest in the same thread.
+STDERR_LOCK = threading.RLock()
+
+
 @contextmanager
 def captured_stderr() -> Iterator[CapturedText]:
     """Catch what C or C++ code writes to file descriptor 2 during the block.
@@ -318,22 +326,24 @@ def captured_stderr() -> Iterator[CapturedText]:
     urdfdom (inside Pinocchio's URDF reader) prints its ``Error:`` lines
     straight to fd 2, where Python's ``sys.stderr`` cannot catch them; the
     caller folds them into its own one-line message instead. The descriptor is
-    restored however the block ends; at most
-    :data:`MAX_CAPTURED_STDERR_BYTES` are kept. Anything another thread writes
-    to fd 2 meanwhile is caught too.
+    restored however the block ends, under :data:`STDERR_LOCK` (so concurrent
+    captures take turns); at most :data:`MAX_CAPTURED_STDERR_BYTES` are kept.
+    What another thread writes to fd 2 without the lock meanwhile is caught too
+    (Pinocchio's reader holds the GIL, so only Python code between the swaps can).
 
     Yields:
         A :class:`CapturedText` whose ``text`` holds the output after the block.
     """
     captured = CapturedText()
-    sys.stderr.flush()
-    with tempfile.TemporaryFile() as sink:
-        saved = os.dup(2)
-        try:
-            os.dup2(sink.fileno(), 2)
-            yield captured
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            captured.text = sink.read(MAX_CAPTURED_STDERR_BYTES).decode("utf-8", "replace")
+    with STDERR_LOCK:
+        sys.stderr.flush()
+        with tempfile.TemporaryFile() as sink:
+            saved = os.dup(2)
+            try:
+                os.dup2(sink.fileno(), 2)
+                yield captured
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                sink.seek(0)
+                captured.text = sink.read(MAX_CAPTURED_STDERR_BYTES).decode("utf-8", "replace")

@@ -21,7 +21,17 @@ import functools
 from collections.abc import Callable
 from typing import TypeVar
 
+import numpy as np
+
+from .exceptions import NonFiniteError
+
 F = TypeVar("F", bound=Callable)
+
+#: numpy's error state inside every public function: an overflow, a division by zero or
+#: an invalid operation raises FloatingPointError, which :func:`exclusive` reports as
+#: NonFiniteError, instead of a RuntimeWarning on stderr and a NaN carried on. Code that
+#: expects such values (an infinite condition number) must say so with its own errstate.
+FLOATING_POINT_ERRORS = {"over": "raise", "divide": "raise", "invalid": "raise"}
 
 
 def exclusive(func: F) -> F:
@@ -34,7 +44,14 @@ def exclusive(func: F) -> F:
 
     @functools.wraps(func)
     def locked(mech, *args, **kwargs):
-        with mech.lock:
-            return func(mech, *args, **kwargs)
+        with mech.lock, np.errstate(**FLOATING_POINT_ERRORS):
+            try:
+                return func(mech, *args, **kwargs)
+            except FloatingPointError as exc:
+                raise NonFiniteError(
+                    f"{mech.name}: {func.__name__}: floating-point {exc} (a value too large "
+                    "or too small for double precision: check the model's numbers and the "
+                    "arguments' magnitudes)"
+                ) from None
 
     return locked  # type: ignore[return-value]

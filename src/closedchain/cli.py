@@ -22,13 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import STDERR_LOCK
 from .exceptions import (
+    MESSAGE_MAX,
     ClosedChainError,
     NonFiniteError,
     SingularConfigurationError,
     UnknownChoiceError,
     format_upper_bound,
     resolve_choice,
+    shorten,
 )
 from .simulate.settings import DEFAULT_ENERGY_TOL
 from .visualize.settings import DEFAULT_SETTINGS as DEFAULT_ANIMATION
@@ -427,7 +430,7 @@ def report_stop(stopped, traj, what: str) -> int:
     if stopped is None:
         return EXIT_OK
     message = str(stopped).replace("\n", " ")
-    print(f"closedchain: error: {message} ({what} up to t = {traj.t[-1]:.6g} s)", file=sys.stderr)
+    print_error(f"closedchain: error: {message} ({what} up to t = {traj.t[-1]:.6g} s)")
     return EXIT_STOPPED
 
 
@@ -570,8 +573,9 @@ def _check_sample_count(t_final: float, fps: float, limit: int, what: str, setti
     n = math.ceil(frames - 1e-9) + 1 if math.isfinite(frames) else math.inf
     if n > limit:
         raise ClosedChainError(
-            f"--fps {fps:g} over --t-final {t_final:g} s is {n} {what}, more than the limit "
-            f"{limit} ({setting}); valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
+            f"--fps {fps:g} over --t-final {t_final:g} s is {shorten(n, 20)} {what}, more than "
+            f"the limit {limit} ({setting}); "
+            f"valid --fps: (0, {format_upper_bound((limit - 1) / t_final)}]"
         )
     return n
 
@@ -834,7 +838,7 @@ def _bench_scaling(args) -> int:
 
     def progress(name: str) -> None:
         if not args.no_progress:
-            print(f"scaling: timing the {name} family", file=sys.stderr, flush=True)
+            print_error(f"scaling: timing the {name} family")
 
     rows = run_scaling(args.out_dir, families, repeats=args.repeats or 3, progress=progress)
     print((Path(args.out_dir) / "scaling.md").read_text())
@@ -852,12 +856,23 @@ def _cmd_workspace(args) -> int:
     return 0
 
 
+#: Longest argparse error message [characters] (it quotes the value it could not read).
+ARGPARSE_MESSAGE_MAX = 500
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, its error messages (which quote the bad value) bounded."""
+
+    def error(self, message: str):
+        super().error(shorten(message, ARGPARSE_MESSAGE_MAX))
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser with every subcommand."""
     from .benchmark.families import FAMILIES
     from .dynamics import METHODS
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="closedchain",
         description="Dynamics of closed-chain mechanisms (URDF + <loop>) on top of Pinocchio.",
         epilog=EXIT_STATUS_HELP,
@@ -1008,6 +1023,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def print_error(text: str) -> None:
+    """Print one line to standard error, holding :data:`closedchain._io.STDERR_LOCK` (a
+    thread capturing fd 2 meanwhile would swallow it)."""
+    with STDERR_LOCK:
+        print(text, file=sys.stderr, flush=True)
+
+
 def exit_status(exc: BaseException) -> int:
     """Return the exit status for an exception that ended a command.
 
@@ -1048,7 +1070,8 @@ def error_message(exc: BaseException, args: argparse.Namespace | None = None) ->
         )
     else:
         message = str(exc)
-    return " ".join(line.strip() for line in message.splitlines() if line.strip())
+    message = " ".join(line.strip() for line in message.splitlines() if line.strip())
+    return shorten(message, MESSAGE_MAX)
 
 
 class _Terminated(BaseException):
@@ -1079,23 +1102,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_args(args)
         return int(args.handler(args))
     except KeyboardInterrupt:
-        print("closedchain: interrupted", file=sys.stderr)
+        print_error("closedchain: interrupted")
         return EXIT_INTERRUPTED
     except _Terminated:
-        print("closedchain: terminated", file=sys.stderr)
+        print_error("closedchain: terminated")
         return EXIT_TERMINATED
     except Exception as exc:  # MemoryError included: exit_status makes it bad input
         status = exit_status(exc)
         if status == EXIT_INTERNAL:
             if args.debug:
                 traceback.print_exc()
-            print(
+            print_error(
                 f"closedchain: internal error: {type(exc).__name__}: {error_message(exc)}"
-                + ("" if args.debug else " (run with --debug for the traceback)"),
-                file=sys.stderr,
+                + ("" if args.debug else " (run with --debug for the traceback)")
             )
         else:
-            print(f"closedchain: error: {error_message(exc, args)}", file=sys.stderr)
+            print_error(f"closedchain: error: {error_message(exc, args)}")
         return status
     finally:
         if previous is not None:

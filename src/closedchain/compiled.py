@@ -33,7 +33,6 @@ __all__ = [
     "compiled_dynamics",
     "has",
     "supports_method",
-    "unsupported_rows",
 ]
 
 if TYPE_CHECKING:
@@ -154,7 +153,15 @@ def declared_rows(mech: Mechanism, q: np.ndarray) -> tuple[np.ndarray, np.ndarra
     ``simulate``'s start checks on the compiled backend.
     """
     phi, J, _ = declared_core(mech).rows(np.asarray(q, dtype=float), np.zeros(mech.nv))
-    return phi, J
+    return phi, jacobian_rows(J, mech.nv)
+
+
+def jacobian_rows(J: np.ndarray, nv: int) -> np.ndarray:
+    """Return a Jacobian of the core as a matrix, shape (rows, nv).
+
+    The core returns a matrix of one column (a mechanism with nv = 1) as a vector.
+    """
+    return np.reshape(J, (-1, nv))
 
 
 def declared_core(mech: Mechanism):

@@ -69,6 +69,7 @@ import numpy as np
 import pinocchio as pin
 
 from .exceptions import ValidationUnavailableError
+from .pindata import frame_jacobian
 from .urdf import COUPLING, LoopSpec
 
 __all__ = [
@@ -153,8 +154,8 @@ def _loop_rows(model, data, blk: LoopRows, phi, J, gamma) -> None:
         phi[t] = Ut @ d
         phi[r] = np.sum(Ur * Wr, axis=1)
     if J is not None:
-        Jp = pin.getFrameJacobian(model, data, blk.fid_p, _LWA)
-        Js = pin.getFrameJacobian(model, data, blk.fid_s, _LWA)
+        Jp = frame_jacobian(model, data, blk.fid_p, _LWA)
+        Js = frame_jacobian(model, data, blk.fid_s, _LWA)
         # (U x d).omega_p = U.(d x omega_p) = U^T [d]x omega_p
         J[t] = Ut @ (Jp[:3] - Js[:3] + pin.skew(d) @ Jp[3:])
         W_x_U = np.array([pin.skew(w) @ u for u, w in zip(Ur, Wr, strict=True)]).reshape(-1, 3)
@@ -530,8 +531,8 @@ class ConstraintLayer:
             e, D = closure_residual(blk.spec, c1Mc2)
             es.append(e)
             if jacobian:
-                J1 = pin.getFrameJacobian(model, data, blk.fid_p, _LOCAL)
-                J2 = pin.getFrameJacobian(model, data, blk.fid_s, _LOCAL)
+                J1 = frame_jacobian(model, data, blk.fid_p, _LOCAL)
+                J2 = frame_jacobian(model, data, blk.fid_s, _LOCAL)
                 Es.append(D @ (J2 - c1Mc2.inverse().action @ J1))
         e = np.concatenate(es) if es else np.zeros(0)
         if not jacobian:

@@ -11,7 +11,11 @@ errors into them); :mod:`closedchain.simulate.settings` and
 from __future__ import annotations
 
 import math
+import numbers
+import reprlib
 from collections.abc import Iterable
+
+import numpy as np
 
 
 class ClosedChainError(Exception):
@@ -100,8 +104,6 @@ class SingularConfigurationError(ClosedChainError):
             hint: what to do, or what it means.
             t: simulation time [s], or None.
         """
-        import numpy as np
-
         q = np.array(q, dtype=float)
         when = "" if t is None else f"at t = {t:.9g} s "
         if bound is None:
@@ -182,12 +184,20 @@ class NonFiniteError(ClosedChainError, ValueError):
     """A computation overflowed to inf or NaN (inputs too large for double precision)."""
 
 
+#: Choices an UnknownChoiceError lists at most (the others are counted).
+MAX_LISTED_CHOICES = 200
+
+
 class UnknownChoiceError(ClosedChainError, ValueError):
     """An argument is not one of a fixed set of valid choices."""
 
     def __init__(self, what: str, value: object, choices: Iterable[str]) -> None:
         choices = sorted(choices)
-        super().__init__(f"unknown {what} {value!r}; valid choices: {', '.join(choices)}")
+        shown = ", ".join(shorten(c) for c in choices[:MAX_LISTED_CHOICES])
+        if len(choices) > MAX_LISTED_CHOICES:
+            shown += f", ... and {len(choices) - MAX_LISTED_CHOICES} more"
+        name = quoted(value) if isinstance(value, str) else shorten(value)
+        super().__init__(f"unknown {what} {name}; valid choices: {shown}")
         self.value = value
         self.choices = choices
 
@@ -232,13 +242,90 @@ def format_upper_bound(x: float, digits: int = 6) -> str:
     return repr(x)
 
 
+#: Longest name or value [characters] quoted in a message; longer ones are cut in the
+#: middle with "..." (a 60 MB frame name must not make a 60 MB message).
+MESSAGE_NAME_MAX = 80
+#: Longest message [characters] the command line prints (cut in the middle likewise).
+MESSAGE_MAX = 2000
+
+
+_BOUNDED_REPR = reprlib.Repr()  # Python 3.11: no keyword arguments
+_BOUNDED_REPR.maxlevel = 3
+_BOUNDED_REPR.maxstring = _BOUNDED_REPR.maxother = MESSAGE_NAME_MAX
+
+
+def shorten(text: object, limit: int = MESSAGE_NAME_MAX) -> str:
+    """Return ``text`` on one line, cut in the middle with ``"..."`` beyond ``limit``.
+
+    Args:
+        text: a name or message; anything else is shown by a bounded ``repr``.
+        limit: the longest result [characters], at least 5.
+    """
+    if isinstance(text, str):
+        s = text
+    else:  # reprlib visits a bounded part of a nested value (YAML aliases share parts)
+        s = _BOUNDED_REPR.repr(text)
+    if len(s) > limit:
+        head = (limit - 3 + 1) // 2
+        s = s[:head] + "..." + s[len(s) - (limit - 3 - head) :]
+    return " ".join(s.split()) if ("\n" in s or "\r" in s) else s
+
+
+def quoted(name: str, limit: int = MESSAGE_NAME_MAX) -> str:
+    """Return ``repr(name)`` (quotes, escapes: one line) cut as :func:`shorten` does."""
+    return shorten(repr(name), limit)
+
+
+def shown(value: object) -> str:
+    """Return a value for a message: a string quoted (:func:`quoted`), anything else by a
+    bounded ``repr`` (:func:`shorten`)."""
+    return quoted(value) if isinstance(value, str) else shorten(value)
+
+
 def _one_line(x) -> str:
-    """Return the array ``x`` as numpy prints it (6 digits), on one line however long."""
+    """Return the array ``x`` as numpy prints it (6 digits), on one line however long
+    (a matrix's rows one after the other)."""
     import sys
 
-    import numpy as np
+    text = np.array2string(np.asarray(x, dtype=float), precision=6, max_line_width=sys.maxsize)
+    return text.replace("\n", "")  # the rows of a matrix
 
-    return np.array2string(np.asarray(x, dtype=float), precision=6, max_line_width=sys.maxsize)
+
+def _is_number(value: object) -> bool:
+    """Whether ``value`` is a real number (numpy's included), not a bool or a string."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+
+
+def check_positive(name: str, value, what: str) -> float:
+    """Return ``value`` as a float; raise InvalidArgumentError unless it is a finite number > 0.
+
+    Args:
+        name: argument name, for the message.
+        value: the value given (a string, a bool or an array is refused).
+        what: what the argument is, for the message.
+    """
+    x = float(value) if _is_number(value) else math.nan
+    if not (math.isfinite(x) and x > 0):
+        raise InvalidArgumentError(
+            f"{name} ({what}) must be a finite number > 0, got {shown(value)}; "
+            "valid range: (0, inf)"
+        )
+    return x
+
+
+def check_count(name: str, value, what: str) -> int:
+    """Return ``value`` as an int; raise InvalidArgumentError unless it is an integer >= 1.
+
+    Args:
+        name: argument name, for the message.
+        value: the value given (2.5, True or "3" is refused).
+        what: what the argument is, for the message.
+    """
+    if not (isinstance(value, numbers.Integral) and _is_number(value) and value >= 1):
+        raise InvalidArgumentError(
+            f"{name} ({what}) must be an integer >= 1, got {shorten(value)}; valid: 1, 2, 3, ..."
+        )
+    return int(value)
 
 
 def check_settings(name: str, value: object, cls: type) -> None:

@@ -40,7 +40,7 @@ from .closure import (
 from .closure import AssemblySettings as AssemblySettings  # re-exported
 from .closure import partition_coordinates as partition_coordinates  # re-exported
 from .closure import solve_closure as solve_closure  # re-exported
-from .compiled import declared_core, has
+from .compiled import declared_core, has, jacobian_rows
 from .exceptions import AssemblyError, ClosedChainError, check_settings
 
 __all__ = [
@@ -168,7 +168,7 @@ def compute_jacobian(mech: Mechanism, q: np.ndarray, *, backend: str = "auto") -
     """
     rows = rows_evaluator(mech, backend_name(backend))
     if rows is not None:
-        return rows.core.jacobian_checked(q)
+        return jacobian_rows(rows.core.jacobian_checked(q), mech.nv)
     q = mech.check_q(q, "q")
     return layer_jacobian(mech.model, mech.data, mech.constraints, q)
 
@@ -330,7 +330,9 @@ def _declared_rows(mech: Mechanism, backend: str) -> RowFunctions | None:
     if rows_evaluator(mech, backend_name(backend)) is None:
         return None
     core = declared_core(mech)
-    return RowFunctions(core.phi_checked, core.jacobian_checked)
+    return RowFunctions(
+        core.phi_checked, lambda q: jacobian_rows(core.jacobian_checked(q), mech.nv)
+    )
 
 
 @dataclass(frozen=True)

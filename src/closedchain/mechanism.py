@@ -32,6 +32,7 @@ from .closure import (
     RowSelection,
     SelectionSettings,
     assemble_closure,
+    layer_jacobian,
     sample_configurations,
     solve_closure,
 )
@@ -46,6 +47,8 @@ from .exceptions import (
     URDFError,
     ValidationUnavailableError,
     check_settings,
+    quoted,
+    shorten,
 )
 from .mjcf import MJCF_ROOT, read_mjcf
 from .passive import PassiveTerms, passive_terms
@@ -317,7 +320,8 @@ class Mechanism:
         """
         if not self.model.existJointName(joint):
             raise ClosedChainError(
-                f"{self.path}: unknown joint {joint!r}; joints: {', '.join(self.model.names[1:])}"
+                f"{self.path}: unknown joint {quoted(joint)}; "
+                f"joints: {name_list(self.model.names[1:], keep_order=True)}"
             )
         j = self.model.joints[self.model.getJointId(joint)]
         return np.arange(j.idx_v, j.idx_v + j.nv)
@@ -949,7 +953,8 @@ def load(
                 parent = 0  # Pinocchio's universe frame: fixed whatever the root joint
             elif not model.existFrame(link, pin.FrameType.BODY):
                 raise URDFError(
-                    f"{spec.where(urdf.path)}: link {link!r} is not part of the kinematic tree"
+                    f"{spec.where(urdf.path)}: link {quoted(link)} is not part of the "
+                    "kinematic tree"
                 )
             else:
                 parent = model.getFrameId(link, pin.FrameType.BODY)
@@ -968,8 +973,8 @@ def load(
                 spec.successor_frame or spec.successor,
             )
             raise URDFError(
-                f"{spec.where(urdf.path)}: predecessor {ends[0]!r} and successor {ends[1]!r} "
-                "move with the same joint, so the loop closes nothing"
+                f"{spec.where(urdf.path)}: predecessor {quoted(ends[0])} and successor "
+                f"{quoted(ends[1])} move with the same joint, so the loop closes nothing"
             )
         frame_ids.append(tuple(pair))
 
@@ -991,6 +996,7 @@ def load(
     if urdf.description is not None:
         q_guess = configuration(model, _start_values(urdf, keyframe))
     _select_rows_and_coordinates(mech, settings, q_guess=q_guess, extra_starts=starts)
+    _refuse_massless_subtrees(mech)
     logger.info("loaded %r", mech)
     return mech
 
@@ -1008,6 +1014,44 @@ def _start_values(urdf: URDFPlus, keyframe: str | None) -> dict[str, tuple[float
         return urdf.description.reference_values()
     logger.info("%s: the assembly starts from keyframe %r", urdf.path, keyframe)
     return keyframes[keyframe]
+
+
+def _refuse_massless_subtrees(mech: Mechanism) -> None:
+    """Refuse a moving subtree that has no mass, no inertia and no loop holding it.
+
+    Its coordinates have no kinetic energy and no constraint: the mass matrix is
+    singular in them whatever the method (a loop or coupling that reaches the subtree
+    makes its J columns non-zero, and M + alpha J^T J regular, as for a massless link
+    of a loop). Only the outermost such subtree is named.
+
+    Raises:
+        URDFError: names the subtree's first joint and its links.
+    """
+    model = mech.model
+    J = layer_jacobian(model, mech.data, mech.declared, mech.q_ref)
+    for j in range(1, model.njoints):  # parents first: the outermost subtree is found
+        if model.joints[j].nv == 0:
+            continue
+        subtree = list(model.subtrees[j])
+        if any(
+            model.inertias[k].mass != 0.0 or np.any(model.inertias[k].inertia != 0.0)
+            for k in subtree
+        ):
+            continue
+        cols = [model.joints[k].idx_v + i for k in subtree for i in range(model.joints[k].nv)]
+        if np.any(J[:, cols] != 0.0):
+            continue  # a loop or coupling holds it
+        links = [
+            f.name
+            for f in model.frames
+            if f.type == pin.FrameType.BODY and f.parentJoint in subtree
+        ]
+        raise URDFError(
+            f"{mech.path}: the subtree of joint {quoted(model.names[j])} "
+            f"(links {shorten(', '.join(links))}) has no mass and no inertia and no loop "
+            "holds it: its motion has no dynamics (the mass matrix is singular); give one "
+            "of its links an <inertial> with a positive mass, or make its joint fixed"
+        )
 
 
 def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
@@ -1034,7 +1078,7 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
             name = getattr(spec, f"{side}_frame")
             if name is None:
                 continue
-            where = f"{spec.where(urdf.path)}: <{side} frame={name!r}>"
+            where = f"{spec.where(urdf.path)}: <{side} frame={quoted(name)}>"
             if not model.existFrame(name):
                 raise URDFError(
                     f"{where} names no frame of the tree; frames: {name_list(tree_frames)}"

@@ -57,11 +57,17 @@ from .exceptions import (
     InvalidArgumentError,
     SingularConfigurationError,
     UnknownChoiceError,
+    _one_line,
+    check_count,
+    check_positive,
     check_settings,
     resolve_choice,
+    shorten,
 )
 from .kinematics import actuation_sigma_min, assemble, compute_jacobian
 from .mechanism import Mechanism
+from .pindata import frame_jacobian
+from .urdf import name_list
 
 __all__ = [
     "ActuationSingularities",
@@ -87,6 +93,9 @@ IK_ROTATION_TOL = 1e-8
 #: Forward kinematics refuses a configuration where sigma_min(J_D) <= this times
 #: ||J||_2 [-]: the motors' error is amplified 1 / TYPE_II_RTOL times in the passive joints.
 TYPE_II_RTOL = 1e-8
+#: A target's rotation R is a rotation matrix when max |R^T R - I| is at most this [-]
+#: (a rotation written with 9 printed digits is within 1e-8).
+ROTATION_TOL = 1e-6
 
 _LOCAL = pin.ReferenceFrame.LOCAL
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
@@ -201,15 +210,27 @@ def _with_motors(mech: Mechanism, q: np.ndarray, motors: np.ndarray) -> np.ndarr
     return q
 
 
+def _numbers(value) -> np.ndarray | None:
+    """Return ``value`` as a float array, or None unless it holds numbers only (strings,
+    dicts, bools and objects are refused, not converted)."""
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError):  # ragged
+        return None
+    if array.dtype.kind not in "iuf":
+        return None
+    return array.astype(float)
+
+
 def _check_motors(mech: Mechanism, motors) -> np.ndarray:
     na = len(_motor_joints(mech))
-    m = np.asarray(motors, dtype=float).reshape(-1) if np.ndim(motors) <= 1 else None
-    if m is None or m.shape != (na,) or not np.all(np.isfinite(m)):
+    m = _numbers(motors)
+    if m is None or m.ndim > 1 or m.size != na or not np.all(np.isfinite(m)):
         raise InvalidArgumentError(
             f"motors must be {na} finite numbers [rad or m], one per actuated joint "
-            f"({', '.join(mech.actuated_joints)}), got {np.asarray(motors)}"
+            f"({name_list(mech.actuated_joints, keep_order=True)}), got {shorten(motors)}"
         )
-    return m
+    return m.reshape(na)
 
 
 def _frame_id(mech: Mechanism, frame: str) -> int:
@@ -224,10 +245,10 @@ def _output_jacobian(mech: Mechanism, fid: int, mode: str) -> np.ndarray:
     rows in 3d, the LOCAL angular rows in orientation (``data`` holds the joint
     Jacobians at q)."""
     if mode == "6d":
-        return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)
+        return frame_jacobian(mech.model, mech.data, fid, _LOCAL)
     if mode == "orientation":
-        return pin.getFrameJacobian(mech.model, mech.data, fid, _LOCAL)[3:]
-    return pin.getFrameJacobian(mech.model, mech.data, fid, _LWA)[:3]
+        return frame_jacobian(mech.model, mech.data, fid, _LOCAL)[3:]
+    return frame_jacobian(mech.model, mech.data, fid, _LWA)[:3]
 
 
 @exclusive
@@ -291,6 +312,7 @@ def forward_kinematics(
         SingularConfigurationError: the result is at a type II (parallel) singularity.
     """
     check_settings("settings", settings, AssemblySettings)
+    type_ii_rtol = check_positive("type_ii_rtol", type_ii_rtol, "the type II threshold [-]")
     m = _check_motors(mech, motors)
     q0 = mech.q_ref if q_guess is None else mech.check_q(q_guess, "q_guess")
     try:
@@ -343,21 +365,46 @@ def _task(mech: Mechanism, fid: int, target: pin.SE3, mode: str) -> Callable:
     return task
 
 
+def _check_se3(name: str, M: pin.SE3) -> pin.SE3:
+    """Return ``M``; raise InvalidArgumentError unless it is finite with a rotation matrix
+    (orthonormal to :data:`ROTATION_TOL`, determinant +1)."""
+    R, p = M.rotation, M.translation
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+        raise InvalidArgumentError(
+            f"{name} must be a finite pinocchio.SE3, got rotation {_one_line(R)} and "
+            f"translation {_one_line(p)}"
+        )
+    error = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if error > ROTATION_TOL or np.linalg.det(R) < 0:
+        raise InvalidArgumentError(
+            f"{name}'s rotation must be a rotation matrix (R^T R = I to {ROTATION_TOL:g}, "
+            f"det R = +1), got max |R^T R - I| = {error:.3g}, det R = {np.linalg.det(R):.6g}; "
+            "pinocchio.SE3(R, p) with R from pinocchio.rpy.rpyToMatrix or "
+            "pinocchio.Quaternion(...).matrix()"
+        )
+    return M
+
+
 def _check_target(target, mode: str) -> pin.SE3:
     if isinstance(target, pin.SE3):
-        return target
+        return _check_se3("target", target)
     if mode == "orientation":
         return pin.SE3(_rotation_target(target), np.zeros(3))
-    p = np.asarray(target, dtype=float) if mode == "3d" else None
+    p = _numbers(target) if mode == "3d" else None
     if p is None or p.shape != (3,) or not np.all(np.isfinite(p)):
         valid = "a pinocchio.SE3" + (" or a position, shape (3,) [m]" if mode == "3d" else "")
-        raise InvalidArgumentError(f"target of mode {mode!r} must be {valid}, got {target!r}")
+        raise InvalidArgumentError(
+            f"target of mode {mode!r} must be {valid}, got {shorten(target)}"
+        )
     return pin.SE3(np.eye(3), p)
 
 
 def _rotation_target(target) -> np.ndarray:
     """A target of mode ``"orientation"``: a rotation matrix, shape (3, 3)."""
-    R = np.asarray(target, dtype=float) if not isinstance(target, str) else None
+    try:
+        R = None if isinstance(target, (str, dict)) else np.asarray(target, dtype=float)
+    except (TypeError, ValueError):
+        R = None
     if (
         R is None
         or R.shape != (3, 3)
@@ -367,7 +414,7 @@ def _rotation_target(target) -> np.ndarray:
     ):
         raise InvalidArgumentError(
             "target of mode 'orientation' must be a pinocchio.SE3 (its rotation counts) or "
-            f"a rotation matrix, shape (3, 3), got {target!r}"
+            f"a rotation matrix, shape (3, 3), got {shorten(target)}"
         )
     return R
 
@@ -431,6 +478,8 @@ def inverse_kinematics(
             working mode), and ``exc.q`` their configuration.
     """
     check_settings("settings", settings, AssemblySettings)
+    tol = check_positive("tol", tol, "the largest frame error [m or rad]")
+    max_nfev = check_count("max_nfev", max_nfev, "residual evaluations of the solve")
     mode = resolve_choice("inverse-kinematics mode", mode, IK_MODES)
     fid = _frame_id(mech, frame)
     target = _check_target(target, mode)

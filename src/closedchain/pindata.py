@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pinocchio as pin
 
 __all__ = [
@@ -91,3 +92,20 @@ def max_nv_for(budget: float) -> int:
     while n > 0 and data_bytes(n) > budget:
         n -= 1
     return n
+
+
+def frame_jacobian(
+    model: pin.Model, data: pin.Data, frame_id: int, reference: pin.ReferenceFrame
+) -> np.ndarray:
+    """Return ``pin.getFrameJacobian`` as a matrix, shape (6, nv), for every nv.
+
+    Pinocchio's Python layer returns a 6 x 1 Jacobian (a mechanism with one degree
+    of freedom) as a vector of shape (6,); the rows are the same.
+
+    Args:
+        model: the Pinocchio model.
+        data: its Data, with the joint Jacobians computed at q.
+        frame_id: the frame's index in ``model.frames``.
+        reference: the frame the Jacobian is expressed in (``pin.LOCAL``, ...).
+    """
+    return np.reshape(pin.getFrameJacobian(model, data, frame_id, reference), (6, model.nv))

@@ -259,6 +259,8 @@ def merge_overlay(
     elif root is None:
         root = read_base(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
     path = base
+    # The base's links keep their meshes beside the base, whatever file is merged in.
+    base_links = {e.get("name"): Path(base) for e in root.findall("link")}
     if overlay is not None and is_loops_yaml(overlay):
         path = Path(overlay)
         loops = read_loops_yaml(path)
@@ -292,7 +294,9 @@ def merge_overlay(
         _check_world_joints(path, root)
     # The SDF reader has warned about SDF inertias that violate the triangle inequality.
     triangle = "pass" if is_sdf(base) else "refuse"
-    return replace(parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle), **edits)
+    link_files = base_links if path != base else {}
+    merged = parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle)
+    return replace(merged, **edits, link_files=link_files)
 
 
 def _check_world_joints(path: Path, root) -> None:

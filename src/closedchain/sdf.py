@@ -105,7 +105,7 @@ import numpy as np
 import pinocchio as pin
 from lxml import etree
 
-from .exceptions import URDFError
+from .exceptions import MESSAGE_MAX, URDFError, quoted, shorten
 from .urdf import (
     COUPLING,
     ORIGIN_RPY_MAX,
@@ -116,6 +116,7 @@ from .urdf import (
     _unique_names,
     _where,
     check_inertia,
+    name_list,
     read_xml,
     unit_vector,
 )
@@ -350,7 +351,6 @@ class _Reader:
                 )
         self.fixed_joints = fixed_joints
         self._poses: dict[str, pin.SE3] = {}
-        self._resolving: list[str] = []
         self.joints = [self._joint(i, e) for i, e in enumerate(joint_elements)]
 
     # -- frames ----------------------------------------------------------------
@@ -375,12 +375,17 @@ class _Reader:
                 )
         return pin.SE3(pin.rpy.rpyToMatrix(values[3:]), values[:3])
 
+    @staticmethod
+    def _reference(element, default: str) -> str:
+        """Return the name of the frame an element's ``<pose>`` is relative to."""
+        pose = element.find("pose")
+        if pose is None:
+            return default
+        return pose.get("relative_to") or pose.get("frame") or default
+
     def _relative(self, element, default: str) -> pin.SE3:
         """Return the world placement of the frame a ``<pose>`` is relative to."""
-        pose = element.find("pose")
-        name = default
-        if pose is not None:
-            name = pose.get("relative_to") or pose.get("frame") or default
+        name = self._reference(element, default)
         if name in ("", SDF_MODEL_FRAME):
             return pin.SE3.Identity()
         return self.frame(name, where=_where(self.path, element))
@@ -399,26 +404,44 @@ class _Reader:
     def frame(self, name: str, *, where: str) -> pin.SE3:
         """Return the world placement of a link or joint frame, all coordinates zero.
 
+        The chain of ``relative_to`` frames is walked in a loop, not by recursion:
+        a chain of thousands of frames is as good as a short one.
+
         Raises:
             URDFError: unknown frame name (lists the valid ones), or poses
                 relative to each other in a cycle.
         """
-        if name in self._poses:
-            return self._poses[name]
-        if name in self._resolving:
-            cycle = " -> ".join([*self._resolving, name])
-            raise URDFError(f"{where}: poses are relative to each other in a cycle: {cycle}")
-        self._resolving.append(name)
-        if name in self.links:
-            M = self.placed(self.links[name], SDF_MODEL_FRAME)
-        elif name in self.joint_elements:
-            joint = self.joint_elements[name]
-            M = self.placed(joint, joint.findtext("child", "").strip())
-        else:
-            valid = [SDF_MODEL_FRAME, *self.links, *self.joint_elements]
-            raise URDFError(f"{where}: unknown frame {name!r}; valid: {', '.join(valid)}")
-        self._resolving.pop()
-        self._poses[name] = M
+        chain: list[tuple[str, object]] = []  # (frame, its element), from ``name`` down
+        on_chain: set[str] = set()
+        current = name
+        while current not in self._poses and current not in ("", SDF_MODEL_FRAME):
+            if current in on_chain:
+                cycle = " -> ".join([*(n for n, _ in chain), current])
+                raise URDFError(
+                    f"{where}: poses are relative to each other in a cycle: "
+                    f"{shorten(cycle, MESSAGE_MAX)}"
+                )
+            if current in self.links:
+                element, default = self.links[current], SDF_MODEL_FRAME
+            elif current in self.joint_elements:
+                element = self.joint_elements[current]
+                default = element.findtext("child", "").strip()
+            else:
+                valid = [SDF_MODEL_FRAME, *self.links, *self.joint_elements]
+                raise URDFError(
+                    f"{where}: unknown frame {quoted(current)}; "
+                    f"valid: {name_list(valid, keep_order=True)}"
+                )
+            on_chain.add(current)
+            chain.append((current, element))
+            where = _where(self.path, element)
+            current = self._reference(element, default)
+        M = self._poses.get(current, pin.SE3.Identity())
+        for frame_name, element in reversed(chain):
+            pose = element.find("pose")
+            if pose is not None:
+                M = M * self._pose_value(pose)
+            self._poses[frame_name] = M
         return M
 
     # -- joints ------------------------------------------------------------------

@@ -61,7 +61,7 @@ import pinocchio as pin
 from lxml import etree
 
 from ._io import MAX_XML_BYTES, read_input_bytes
-from .exceptions import ModelTooLargeError, URDFError
+from .exceptions import ModelTooLargeError, URDFError, quoted, shorten
 
 __all__ = [
     "COUPLING",
@@ -104,6 +104,16 @@ MIMIC_SUFFIX = "_mimic"
 #: universe) when the tree has no link of that name: with a free-flyer or
 #: planar root the URDF's root link moves, and this is what stays put.
 WORLD_LINK = "world"
+
+#: Largest |multiplier| of a coupling ``q_j = m q_i + c`` (a URDF ``<mimic>``, an MJCF
+#: ``polycoef``): a gear ratio of a million. Beyond it the coupling row dwarfs the others
+#: in J and M + alpha J^T J overflows (1e150: divisions by zero in the step, 1e300:
+#: overflow in the assembly).
+COUPLING_MULTIPLIER_MAX = 1e6
+
+#: Largest |offset| c of a coupling [rad or m]: the largest coordinate a configuration
+#: may hold (``closedchain.mechanism.COORDINATE_BOUND``).
+COUPLING_OFFSET_MAX = 1e6
 
 #: Largest |component| [m] of an ``xyz`` origin: far beyond any mechanism, far
 #: below where the squares of lengths overflow (1e154 m).
@@ -209,7 +219,7 @@ class LoopSpec:
     def where(self, path: Path | str) -> str:
         """Return ``"{path}: line {n}: <loop name='...'>"`` (without the line when unknown)."""
         line = f" line {self.line}:" if self.line else ""
-        return f"{path}:{line} <loop name={self.name!r}>"
+        return f"{path}:{line} <loop name={quoted(self.name)}>"
 
 
 @dataclass(frozen=True)
@@ -355,6 +365,9 @@ class URDFPlus:
             (an MJCF model, read through MuJoCo's compiler), built by
             :func:`closedchain.build.build_model` instead of Pinocchio's URDF reader;
             None: ``xml`` is the tree.
+        link_files: link name -> the file whose ``<link>`` element it is, for the
+            links of another file than ``path`` (a base URDF under an overlay or a
+            loops YAML file): their meshes are looked up beside that file.
     """
 
     path: Path
@@ -373,6 +386,7 @@ class URDFPlus:
     dampings: tuple[JointDamping, ...] = ()
     armatures: tuple[JointArmature, ...] = ()
     description: MechanismDescription | None = None
+    link_files: dict[str, Path] = field(default_factory=dict)
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -407,12 +421,18 @@ def _safe_parser() -> etree.XMLParser:
 def _tag(element) -> str:
     """Return ``<tag name='...'>`` (the name with ``repr``: one line), or ``<tag>``."""
     name = element.get("name")
-    return f"<{element.tag} name={name!r}>" if name is not None else f"<{element.tag}>"
+    return f"<{element.tag} name={quoted(name)}>" if name is not None else f"<{element.tag}>"
+
+
+def _line(element) -> str:
+    """Return ``" line {n}:"`` of an element read from a file, or "" (one written by a
+    conversion, such as a loops YAML file's)."""
+    return f" line {element.sourceline}:" if element.sourceline else ""
 
 
 def _where(path: Path, element) -> str:
     """Return ``"{path}: line {n}: <tag name='...'>"``: where a message is about (one line)."""
-    return f"{path}: line {element.sourceline}: {_tag(element)}"
+    return f"{path}:{_line(element)} {_tag(element)}"
 
 
 def _three(text: str) -> np.ndarray | None:
@@ -430,7 +450,9 @@ def _floats(path: Path, element, attribute: str, default: str, where: str = "") 
     values = _three(text)
     if values is None or not np.all(np.isfinite(values)):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
-        raise URDFError(f"{prefix}: attribute {attribute}={text!r} must be three finite numbers")
+        raise URDFError(
+            f"{prefix}: attribute {attribute}={quoted(text)} must be three finite numbers"
+        )
     return values
 
 
@@ -470,7 +492,7 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
         URDFError: the attribute is not three numbers, is not finite or is zero.
     """
     text = axis.get("xyz", "1 0 0")
-    return unit_vector(text, f"{where}: <axis xyz={text!r}>")
+    return unit_vector(text, f"{where}: <axis xyz={quoted(text)}>")
 
 
 def unit_vector(text: str, what: str) -> np.ndarray:
@@ -501,15 +523,16 @@ def unit_vector(text: str, what: str) -> np.ndarray:
 MAX_LISTED_NAMES = 30
 
 
-def name_list(names, *, limit: int = MAX_LISTED_NAMES) -> str:
+def name_list(names, *, limit: int = MAX_LISTED_NAMES, keep_order: bool = False) -> str:
     """Return the sorted names, comma separated, the ones past ``limit`` counted, not listed.
 
     Args:
         names: the valid names (any iterable of str; duplicates are listed once).
         limit: names listed at most.
+        keep_order: list them in the order given (first occurrences), not sorted.
     """
-    unique = sorted(set(names))
-    shown = ", ".join(unique[:limit])
+    unique = list(dict.fromkeys(names)) if keep_order else sorted(set(names))
+    shown = ", ".join(shorten(name) for name in unique[:limit])
     return shown if len(unique) <= limit else f"{shown}, ... and {len(unique) - limit} more"
 
 
@@ -544,8 +567,9 @@ def _unique_names(path: Path, elements, kind: str) -> tuple[str, ...]:
         name = _check_name(path, e, kind)
         if name in first:
             raise URDFError(
-                f"{_where(path, e)}: duplicate {kind} name, first used at line {first[name]}; "
-                f"every {kind} needs its own name"
+                f"{_where(path, e)}: duplicate {kind} name"
+                + (f", first used at line {first[name]}" if first[name] else "")
+                + f"; every {kind} needs its own name"
             )
         first[name] = e.sourceline or 0
     return tuple(first)
@@ -627,9 +651,11 @@ def _number(
         value = math.nan
     if not math.isfinite(value) or (minimum is not None and value < minimum):
         valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
-        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be {valid}")
+        raise URDFError(f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {valid}")
     if bound is not None and abs(value) > bound:
-        raise URDFError(f"{where} <{element.tag} {attribute}={text!r}>: must be within +-{bound:g}")
+        raise URDFError(
+            f"{where} <{element.tag} {attribute}={quoted(text)}>: must be within +-{bound:g}"
+        )
     return value
 
 
@@ -642,7 +668,7 @@ def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
     inertial = link.find("inertial")
     if inertial is None:
         return
-    where = f"{path}: line {inertial.sourceline}: <link name={link.get('name')!r}> <inertial>"
+    where = f"{path}:{_line(inertial)} {_tag(link)} <inertial>"
     origin = inertial.find("origin")
     if origin is not None:
         _origin_values(path, origin, where)
@@ -904,7 +930,7 @@ def parse_urdf(
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:
-            raise URDFError(f"{path}: loop name {name!r} is used more than once")
+            raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
 
     actuated: list[str] = []
     for trans in root.findall("transmission"):
@@ -917,12 +943,12 @@ def parse_urdf(
             jname = je.get("name")
             if jname not in joints:
                 raise URDFError(
-                    f"{_where(path, trans)}: names joint {jname!r}, which is not a <joint> "
+                    f"{_where(path, trans)}: names joint {quoted(jname)}, which is not a <joint> "
                     f"of this file; joints: {', '.join(sorted(joints))}"
                 )
             if joints[jname] == "fixed":
                 raise URDFError(
-                    f"{_where(path, trans)}: joint {jname!r} is fixed and cannot be actuated"
+                    f"{_where(path, trans)}: joint {quoted(jname)} is fixed and cannot be actuated"
                 )
             if jname not in actuated:
                 actuated.append(jname)
@@ -933,7 +959,9 @@ def parse_urdf(
         if flag is None:
             continue
         if flag not in ("true", "false"):
-            raise URDFError(f'{_where(path, je)}: independent={flag!r} must be "true" or "false"')
+            raise URDFError(
+                f'{_where(path, je)}: independent={quoted(flag)} must be "true" or "false"'
+            )
         if flag == "true":
             if je.get("type") == "fixed":
                 raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
@@ -1035,7 +1063,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
     ltype = element.get("type")
     if ltype not in LOOP_TYPES:
         raise URDFError(
-            f"{where}: unknown loop type {ltype!r}; valid choices: {', '.join(LOOP_TYPES)}"
+            f"{where}: unknown loop type {quoted(ltype)}; valid choices: {', '.join(LOOP_TYPES)}"
         )
 
     def child(tag: str, required: bool = True):
@@ -1060,7 +1088,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
             continue
         if link not in links:
             raise URDFError(
-                f"{where}: <{tag} link={link!r}> names an unknown link; links: "
+                f"{where}: <{tag} link={quoted(link)}> names an unknown link; links: "
                 f"{name_list(links)} (or frame= for a joint's frame)"
             )
         ends[tag] = link
@@ -1101,14 +1129,14 @@ def _coupling_spec(
             valid = sorted(j for j, t in joints.items() if t in COUPLING_JOINT_TYPES)
             found = "no joint of this file" if jname not in joints else f"a {joints[jname]} joint"
             raise URDFError(
-                f"{where}: a coupling ties 1-dof joints without wrap-around, and {jname!r} is "
-                f"{found}; valid: revolute or prismatic joints ({', '.join(valid)})"
+                f"{where}: a coupling ties 1-dof joints without wrap-around, and "
+                f"{quoted(jname)} is {found}; valid: revolute or prismatic joints "
+                f"({name_list(valid)})"
             )
     if joint == mimics:
-        raise URDFError(f"{where}: joint {joint!r} cannot mimic itself")
-    w = f"{where} <{element.tag}>"
-    multiplier = _number(w, element, "multiplier")
-    offset = _number(w, element, "offset")
+        raise URDFError(f"{where}: joint {quoted(joint)} cannot mimic itself")
+    multiplier = _number(where, element, "multiplier", bound=COUPLING_MULTIPLIER_MAX)
+    offset = _number(where, element, "offset", bound=COUPLING_OFFSET_MAX)
     return LoopSpec(
         name=name,
         type=COUPLING,
@@ -1175,7 +1203,7 @@ def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
     if joints.get(name) not in SCENE_JOINT_TYPES:
         valid = sorted(j for j, t in joints.items() if t in SCENE_JOINT_TYPES)
         raise URDFError(
-            f"{_where(path, element)}: joint={name!r} is not a revolute or prismatic joint "
+            f"{_where(path, element)}: joint={quoted(name)} is not a revolute or prismatic joint "
             f"of this file; valid: {', '.join(valid)}"
         )
     return name

@@ -254,7 +254,8 @@ def pinocchio_reference_dynamics(
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
     a_raw = a.copy()
     lam = data.lambda_c.copy()
-    Jc = pin.getConstraintsJacobian(model, data, cms, cds).copy()
+    # (nc, nv) also for nv = 1, which Pinocchio returns as a vector.
+    Jc = np.reshape(pin.getConstraintsJacobian(model, data, cms, cds), (-1, model.nv))
     # Right-hand side of Pinocchio's acceleration rows: J_c a = b_c at its solution.
     b = np.array(data.primal_rhs_contact[: lam.size])
     if refinement_steps and lam.size and np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):

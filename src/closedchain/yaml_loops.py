@@ -63,7 +63,8 @@ import numpy as np
 import yaml
 from lxml import etree
 
-from .exceptions import URDFError
+from ._io import read_input_bytes
+from .exceptions import URDFError, quoted, shorten
 from .urdf import NEAR_MISS_CUTOFF, URDFPlus, name_list
 
 __all__ = [
@@ -140,20 +141,114 @@ def is_loops_yaml(path: str | Path) -> bool:
     return Path(path).suffix.lower() in YAML_SUFFIXES
 
 
+#: Largest loops YAML file read [bytes]. The files of example-parallel-robots are below
+#: 1 kB; PyYAML's reader parses about 1 MB/s, so a read stays within a second or two
+#: (the XML files' cap, :data:`closedchain._io.MAX_XML_BYTES`, would take a minute).
+MAX_YAML_BYTES = 2**20
+
+#: Most aliases (``*name``) a loops YAML file may use: each is a reference to a node
+#: already read, and nested ones multiply what a reader that expands them (a message,
+#: a copy) would visit.
+MAX_YAML_ALIASES = 100
+
+#: Deepest nesting of lists and mappings in a loops YAML file (the convention uses 3:
+#: the mapping, ``closed_loop``'s list, its pairs); deeper is refused before the
+#: reader's recursion could exhaust Python's stack.
+MAX_YAML_DEPTH = 16
+
+#: Longest YAML reader's problem statement quoted in a message [characters].
+YAML_PROBLEM_MAX = 200
+
+#: Characters a name may not hold: C0 and C1 control characters (NUL included), lone
+#: surrogates and the two non-characters XML refuses.
+_BAD_NAME_CHARACTER = re.compile("[\x00-\x1f\x7f-\x9f\ud800-\udfff\ufffe\uffff]")
+
+
+class _LimitError(Exception):
+    """A bound of :func:`_check_events` exceeded, at ``line`` (1-based) of the file."""
+
+    def __init__(self, message: str, line: int) -> None:
+        super().__init__(message)
+        self.line = line
+
+
+#: PyYAML's safe loader, its libyaml build when there is one (ten times faster).
+_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def _check_events(text: str) -> None:
+    """Refuse more than :data:`MAX_YAML_ALIASES` aliases or nesting deeper than
+    :data:`MAX_YAML_DEPTH`, from the parser's events, before anything is built."""
+    aliases = depth = 0
+    for event in yaml.parse(text, Loader=_SAFE_LOADER):
+        if isinstance(event, yaml.AliasEvent):
+            aliases += 1
+            if aliases > MAX_YAML_ALIASES:
+                raise _LimitError(
+                    f"more than {MAX_YAML_ALIASES} aliases", event.start_mark.line + 1
+                )
+        elif isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise _LimitError(
+                    f"lists or mappings nested deeper than {MAX_YAML_DEPTH}",
+                    event.start_mark.line + 1,
+                )
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
+
+
+def _check_name(path: Path, where: str, name: str) -> None:
+    """Refuse a name with a control character or a lone surrogate (no XML can hold it)."""
+    bad = _BAD_NAME_CHARACTER.search(name)
+    if bad is not None:
+        raise URDFError(
+            f"{path}: {where} = {quoted(name)} holds the character {bad[0]!r}; valid: names "
+            "without control characters or lone surrogates"
+        )
+
+
 def _names(path: Path, data: dict, key: str) -> list[str]:
     """Return ``data[key]`` (default empty) as a list of strings, or raise naming the key."""
     value = data.get(key)
     if value is None:
         return []
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
-        raise URDFError(f"{path}: {key} must be a list of names, got {_brief(value)}")
+        raise URDFError(f"{path}: {key} must be a list of names, got {shorten(value)}")
+    for i, name in enumerate(value):
+        _check_name(path, f"{key}[{i}]", name)
     return value
 
 
-def _brief(value: object, limit: int = 60) -> str:
-    """Return ``repr(value)`` cut to ``limit`` characters (one line)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+def _first_repeat(names: list) -> tuple[int, int] | None:
+    """Return (first index, repeating index) of the first name given twice, or None."""
+    first: dict = {}
+    for i, name in enumerate(names):
+        j = first.setdefault(name, i)
+        if j != i:
+            return j, i
+    return None
+
+
+def _load_yaml(path: Path):
+    """Return the YAML content of a loops file, read within the bounds of this module."""
+    raw = read_input_bytes(path, limit=MAX_YAML_BYTES, what="loops file", error=URDFError)
+    try:
+        text = raw.decode("utf-8")
+        _check_events(text)
+        return yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader)
+    except _LimitError as exc:
+        raise URDFError(f"{path}: line {exc.line}: {exc}; valid: a loops file") from None
+    except UnicodeDecodeError as exc:
+        raise URDFError(f"{path}: not a YAML file: not UTF-8 at byte {exc.start}") from None
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = f"line {mark.line + 1}: " if mark is not None else ""
+        raise URDFError(
+            f"{path}: not a YAML file: {line}{shorten(str(exc.problem), YAML_PROBLEM_MAX)}"
+        ) from None
+    except (yaml.YAMLError, ValueError) as exc:  # ValueError: an int beyond 4300 digits
+        raise URDFError(f"{path}: not a YAML file: {shorten(str(exc), YAML_PROBLEM_MAX)}") from None
 
 
 def read_loops_yaml(path: str | Path) -> LoopsYAML:
@@ -166,32 +261,36 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
         Its loops, motors and joint conversions.
 
     Raises:
-        URDFError: the file cannot be read or is not YAML; an unknown key
-            (lists the valid ones); a value of the wrong shape; ``closed_loop``
+        URDFError: the file cannot be read, is not a regular file, is larger than
+            :data:`MAX_YAML_BYTES`, is not UTF-8 YAML, uses more than
+            :data:`MAX_YAML_ALIASES` aliases or nests deeper than
+            :data:`MAX_YAML_DEPTH`; an unknown key (lists the valid ones); a value
+            of the wrong shape; a name with a control character; ``closed_loop``
             and ``type`` (or ``joint_name`` and ``joint_type``) of different
             lengths; an unknown constraint type or conversion (lists the valid
             ones); a name given twice.
     """
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise URDFError(f"{path}: cannot read loops file: {exc.strerror}") from exc
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise URDFError(f"{path}: not a YAML file: {' '.join(str(exc).split())}") from exc
+    data = _load_yaml(path)
     if not isinstance(data, dict):
         raise URDFError(f"{path}: expected a mapping of keys {', '.join(YAML_KEYS)}")
     for key in data:
         if key not in YAML_KEYS:
-            raise URDFError(f"{path}: unknown key {key!r}; valid keys: {', '.join(YAML_KEYS)}")
+            raise URDFError(
+                f"{path}: unknown key {quoted(key) if isinstance(key, str) else shorten(key)}; "
+                f"valid keys: {', '.join(YAML_KEYS)}"
+            )
 
     pairs = data.get("closed_loop") or []
     if not isinstance(pairs, list) or not all(
         isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p) for p in pairs
     ):
         raise URDFError(
-            f"{path}: closed_loop must be a list of pairs of frame names, got {_brief(pairs)}"
+            f"{path}: closed_loop must be a list of pairs of frame names, got {shorten(pairs)}"
         )
+    for i, pair in enumerate(pairs):
+        for k, name in enumerate(pair):
+            _check_name(path, f"closed_loop[{i}][{k}]", name)
     types = _names(path, data, "type")
     if len(types) != len(pairs):
         raise URDFError(
@@ -201,15 +300,19 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     loops = []
     for i, ((a, b), kind) in enumerate(zip(pairs, types, strict=True)):
         if kind.casefold() not in LOOP_TYPE_OF:
-            raise URDFError(f"{path}: type[{i}] = {kind!r} is not a constraint type; valid: 6d, 3d")
+            raise URDFError(
+                f"{path}: type[{i}] = {quoted(kind)} is not a constraint type; valid: 6d, 3d"
+            )
         if a == b:
-            raise URDFError(f"{path}: closed_loop[{i}] pairs frame {a!r} with itself")
+            raise URDFError(f"{path}: closed_loop[{i}] pairs frame {quoted(a)} with itself")
         loops.append((a, b, LOOP_TYPE_OF[kind.casefold()]))
     seen: dict[tuple[str, str], int] = {}
     for i, (a, b, _) in enumerate(loops):
         if (a, b) in seen or (b, a) in seen:
             j = seen.get((a, b), seen.get((b, a)))
-            raise URDFError(f"{path}: closed_loop[{i}] repeats closed_loop[{j}] ({a!r}, {b!r})")
+            raise URDFError(
+                f"{path}: closed_loop[{i}] repeats closed_loop[{j}] ({quoted(a)}, {quoted(b)})"
+            )
         seen[a, b] = i
 
     motors = _names(path, data, "name_mot")
@@ -221,17 +324,18 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
             "valid: one type per joint"
         )
     for key, names in (("name_mot", motors), ("joint_name", joints)):
-        for i, name in enumerate(names):
-            if name in names[:i]:
-                raise URDFError(f"{path}: {key} lists {name!r} twice")
+        repeat = _first_repeat(names)
+        if repeat is not None:
+            j, i = repeat
+            raise URDFError(f"{path}: {key}[{i}] repeats {key}[{j}] ({quoted(names[i])})")
     conversions = []
     for i, (joint, kind) in enumerate(zip(joints, kinds, strict=True)):
         upper = kind.upper()
         m = _UJOINT.fullmatch(upper)
         if upper not in ("SPHERICAL", "FIXED") and (m is None or m[1] == m[2]):
             raise URDFError(
-                f"{path}: joint_type[{i}] = {kind!r} (joint {joint!r}) is not a conversion; "
-                f"valid: {', '.join(JOINT_CONVERSIONS)}"
+                f"{path}: joint_type[{i}] = {quoted(kind)} (joint {quoted(joint)}) is not a "
+                f"conversion; valid: {', '.join(JOINT_CONVERSIONS)}"
             )
         conversions.append((joint, upper))
     return LoopsYAML(
@@ -269,20 +373,12 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
     joints = {e.get("name"): e for e in root.findall("joint")}
     taken = set(joints) | {e.get("name") for e in root.findall("link")}
     converted = {}
+    missing = []
     for i, (name, kind) in enumerate(loops.conversions):
-        where = f"{path}: joint_name[{i}] = {name!r}"
+        where = f"{path}: joint_name[{i}] = {quoted(name)}"
         joint = joints.get(name)
         if joint is None:
-            # The authors' loader converts the joints it finds by name and passes over
-            # the others: so does this one, saying so.
-            logger.warning(
-                "%s is not a <joint> of %s%s: ignored (%s not applied), as the authors' "
-                "loader does",
-                where,
-                base,
-                _did_you_mean(name, joints),
-                kind,
-            )
+            missing.append(i)
             continue
         if kind == "FIXED":
             _make_fixed(joint)
@@ -297,16 +393,34 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
             _replace_by_revolute_chain(root, joint, axes, taken, where)
         converted[name] = kind
 
+    if missing:
+        # The authors' loader converts the joints it finds by name and passes over the
+        # others: so does this one, saying so once.
+        i = missing[0]
+        name, kind = loops.conversions[i]
+        logger.warning(
+            "%s: joint_name[%d] = %s is not a <joint> of %s%s: ignored (%s not applied), as "
+            "the authors' loader does%s",
+            path,
+            i,
+            quoted(name),
+            base,
+            _did_you_mean(name, joints),
+            kind,
+            f"; so are {len(missing) - 1} more joint_name entries" if len(missing) > 1 else "",
+        )
+
     movable = [e.get("name") for e in root.findall("joint") if e.get("type") != "fixed"]
+    movable_set = set(movable)
     for i, name in enumerate(loops.motors):
         if name in converted:
             raise URDFError(
-                f"{path}: name_mot[{i}] = {name!r} is converted to {converted[name]} by "
+                f"{path}: name_mot[{i}] = {quoted(name)} is converted to {converted[name]} by "
                 "joint_type, so it cannot be a motor"
             )
-        if name not in movable:
+        if name not in movable_set:
             raise URDFError(
-                f"{path}: name_mot[{i}] = {name!r} is not a movable <joint> of {base}"
+                f"{path}: name_mot[{i}] = {quoted(name)} is not a movable <joint> of {base}"
                 f"{_did_you_mean(name, movable)}; movable joints: {name_list(movable)}"
             )
         transmission = etree.SubElement(root, "transmission", name=f"{name}_transmission")
@@ -450,7 +564,7 @@ def find_ball_chains(
 def _did_you_mean(name: str, names) -> str:
     """Return ``" (did you mean 'x'?)"`` for the closest of ``names`` (NEAR_MISS_CUTOFF), or ""."""
     close = difflib.get_close_matches(name, list(names), n=1, cutoff=NEAR_MISS_CUTOFF)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+    return f" (did you mean {quoted(close[0])}?)" if close else ""
 
 
 def _make_fixed(joint) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 
 from .._locking import exclusive
 from .._percall import backend_name, evaluator
+from ..compiled import jacobian_rows
 from ..exceptions import NonFiniteError, check_settings
 from . import augmented_lagrangian as _augmented_lagrangian  # noqa: F401  (registers it)
 from . import kkt as _kkt  # noqa: F401  (registers "kkt")
@@ -84,6 +85,7 @@ def forward_dynamics(
     if fd is not None:
         # The core checks q, v and tau (the messages below) and the result's finiteness.
         a, lam, J, gamma = fd.core.forward_checked(q, v, tau)
+        J = jacobian_rows(J, mech.nv)
         return new_frozen(ForwardDynamicsResult, a=a, lam=lam, method=method, J=J, gamma=gamma)
     q = mech.check_q(q, "q")
     v = mech.check_v(v, "v")

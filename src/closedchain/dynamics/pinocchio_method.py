@@ -116,7 +116,8 @@ def pinocchio_constrained_dynamics(
     model = mech.model
     tau = mech.passive.added_to(tau, q, v)  # Pinocchio has no joint springs or damping
     a = pin.constraintDynamics(model, data, q, v, tau, cms, cds, prox).copy()
-    Jc = pin.getConstraintsJacobian(model, data, cms, cds)
+    # (nc, nv) also for nv = 1, which Pinocchio returns as a vector.
+    Jc = np.reshape(pin.getConstraintsJacobian(model, data, cms, cds), (-1, model.nv))
     # Pinocchio: M a + h = tau + J_c^T lambda_c  ->  ours: J^T lam = -J_c^T lambda_c.
     force = data.lambda_c @ Jc
     np.negative(force, out=force)

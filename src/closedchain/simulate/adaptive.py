@@ -107,8 +107,9 @@ def run_adaptive(
             t_new = solver.t
             if problem.meter is not None:  # before the dense outputs within the step
                 dense = solver.dense_output()
-                state = lambda s, d=dense: unpack(d(s), s)  # noqa: E731
-                work = gauss_work(problem.meter.force, state, solver.t_old)
+                # Not named `state`: that is the dict of the dependent solve's warm start.
+                step_state = lambda s, d=dense: unpack(d(s), s)  # noqa: E731
+                work = gauss_work(problem.meter.force, step_state, solver.t_old)
                 problem.step_end(t_new, *unpack(solver.y, t_new), None, work)
             if pending is not None:
                 if pending and pending[0] <= t_new:

@@ -90,7 +90,8 @@ def _finish(problem: Problem, core, recorder, out: dict, info: dict, keep: bool 
 
 
 def _numpy_fallback(exc, problem, recorder, args, spec, info) -> int:
-    """Run the request with the numpy loop of the same name (it re-selects the rows)."""
+    """Run the request with the numpy loop of the same name (it re-selects the rows);
+    ``exc``: the reason, an exception or a sentence."""
     logger.info("%s: %s; the numpy backend re-selects the rows", problem.mech.name, exc)
     info["backend"] = "numpy"
     info["backend_fallback"] = str(exc)
@@ -164,6 +165,12 @@ def run_adaptive_compiled(
     them and at ``t_eval`` (dense output: the same steps), W is computed on all of them
     and the outputs kept (:func:`_keep`); twice the cost of the integration.
     """
+    if stab.partitions and not len(problem.ind):
+        # Mobility 0: no independent coordinate to integrate; the core's step control
+        # needs a state (scipy's takes an empty one: the dependent solve does the rest).
+        args = (q0, v0, t_final, control, stab, t_eval, progress)
+        reason = "coordinate partitioning with no independent coordinate (mobility 0)"
+        return _numpy_fallback(reason, problem, recorder, args, spec, info)
     _start_work(problem, q0, v0)
 
     def run(times, report):
@@ -227,15 +234,10 @@ def run_rk43_compiled(
         return _finish(problem, core, recorder, out, info)
     steps = _finish(problem, core, recorder, out, info, keep=False)
     t = np.asarray(out["t"], dtype=float).ravel()
-    # One row per step end (a mechanism with nq = 1 or nv = 1 gets rows of one entry).
-    mech = problem.mech
-    q, v, a = (
-        np.asarray(out[k], dtype=float).reshape(len(t), n)
-        for k, n in (("q", mech.nq), ("v", mech.nv), ("a", mech.nv))
-    )
+    q, v, a, lam = (recorder.sample_rows(out, k) for k in ("q", "v", "a", "lam"))
     pending = [float(s) for s in t_eval]
     if pending[0] <= 0.0:
-        recorder.add(0.0, q[0], v[0], a[0], np.asarray(out["lam"], dtype=float)[0])
+        recorder.add(0.0, q[0], v[0], a[0], lam[0])
         pending.pop(0)
     for k in range(1, len(t)):
         problem.step_end(t[k], q[k], v[k], a[k])

@@ -744,6 +744,17 @@ class Recorder:
         m = self.mech
         return {"q": m.nq, "v": m.nv, "a": m.nv, "lam": m.nc}
 
+    def sample_rows(self, samples: dict, key: str) -> np.ndarray:
+        """Return the series ``key`` of compiled-loop ``samples`` in rows, shape (n, k).
+
+        The core returns a series of width 1 (a mechanism with nv = 1) as a 1-D
+        array, and one of width 0 (no loops) without its columns.
+        """
+        times = np.asarray(samples["t"], dtype=float).ravel()
+        return np.ascontiguousarray(samples[key], dtype=float).reshape(
+            len(times), self._widths()[key]
+        )
+
     def _flush(self) -> None:
         """Move the pending rows of :meth:`add` into one block (in recording order)."""
         r = self.rows
@@ -800,9 +811,12 @@ class Recorder:
         for key in self.SERIES:  # C order, as the rows of add (the core's are column-major)
             if key == "w":
                 continue
-            a = np.ascontiguousarray(samples[key], dtype=float)
             # len(times) rows, not -1: a mechanism without loops has lam of width 0.
-            block[key] = a.reshape(len(times), widths[key]) if key in widths else a.ravel()
+            block[key] = (
+                self.sample_rows(samples, key)
+                if key in widths
+                else np.asarray(samples[key], dtype=float).ravel()
+            )
         if self.mech.passive.has_springs:  # the core's e is T + gravity's potential
             block["e"] = block["e"] + self.mech.passive.spring_energies(block["q"])
         if "w" in samples:  # computed on more samples than kept (compiled_loops)

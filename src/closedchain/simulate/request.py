@@ -19,7 +19,7 @@ import numpy as np
 
 from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD, METHOD_CAPABILITIES, METHODS, method_name
-from ..exceptions import InvalidArgumentError, check_settings, resolve_choice
+from ..exceptions import InvalidArgumentError, check_positive, check_settings, resolve_choice
 from ..kinematics import compute_jacobian
 from .registry import (
     COMPILED_INTEGRATORS,
@@ -336,24 +336,6 @@ def check_start_velocity(
             f"{mech.name}: v0 violates the loops' velocity constraint J(q0) v0 = 0: max |J v0| "
             f"= {residual:.3g} > {bound:.3g} (SimulationSettings.start_velocity_tol x "
             "max(1, max |v0|)); project it first: v0 = closedchain.project_velocity(mech, q0, v0)"
-        )
-
-
-def check_positive(name: str, value, what: str) -> None:
-    """Raise ClosedChainError (a ValueError) unless ``value`` is a finite number > 0.
-
-    Args:
-        name: argument name, for the message.
-        value: the value given.
-        what: what the argument is, for the message.
-    """
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        x = math.nan
-    if not (math.isfinite(x) and x > 0):
-        raise InvalidArgumentError(
-            f"{name} ({what}) must be a finite number > 0, got {value!r}; valid range: (0, inf)"
         )
 
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from ..exceptions import ClosedChainError
 from ..trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -159,6 +160,11 @@ def build_scene(
     times, qs = resample(mech, trajectory, fps, max_keyframes=settings.max_keyframes)
     visuals, meshes = read_scene_visuals(mech, settings=settings)
     markers = joint_markers(mech, visuals, settings=settings)
+    if not visuals and not markers:
+        raise ClosedChainError(
+            f"{mech.path}: nothing to draw: the model has no drawable <visual>, no actuated "
+            "joint (<transmission>) and no loop joint to mark; add a <visual> to a link"
+        )
     if not visuals:
         logger.warning(
             "%s: the URDF has no drawable <visual>: only joint markers are drawn", mech.path

@@ -14,7 +14,7 @@ import pinocchio as pin
 
 from .._io import MAX_MESH_BYTES, check_input_file, read_input_bytes
 from ..constraints import axis_basis
-from ..exceptions import ClosedChainError
+from ..exceptions import ClosedChainError, quoted
 from ..urdf import COUPLING, WORLD_LINK, _declares_doctype
 
 if TYPE_CHECKING:
@@ -271,7 +271,8 @@ def read_scene_visuals(
         links, children = _description_links(mech.urdf.description)
     else:
         links, children = _urdf_links(mech, settings)
-    urdf_dir = Path(mech.path).resolve().parent
+    # Each link's meshes beside the file that names it (a base URDF under an overlay).
+    link_files = mech.urdf.link_files
     trusted = _trusted_roots()
     for loop in mech.urdf.loops:  # the cut joints' frames: where the loops close
         children.setdefault(loop.predecessor, []).append(loop.predecessor_origin.translation)
@@ -293,7 +294,9 @@ def read_scene_visuals(
             meshes.append((i, dims, origin, rgba))
         drawn: list[VisualShape] = []
         if meshes:
-            where = f"{mech.path}: link {link_name!r}"
+            source = Path(link_files.get(link_name, mech.path))
+            where = f"{source}: link {quoted(link_name)}"
+            urdf_dir = source.resolve().parent
             fit = _link_meshes(where, link_name, meshes, urdf_dir, trusted, left)
             if isinstance(fit, list):
                 drawn = fit
