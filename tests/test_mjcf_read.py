@@ -469,6 +469,10 @@ def test_missing_meshes(tmp_path, caplog):
         ),
         ('<joint joint1="coupler_joint"/>', r"a joint equality without joint2 locks joint"),
         (
+            '<joint joint1="coupler_joint" joint2="crank_joint" polycoef="0 1e300"/>',
+            r"polycoef c1 = 1e\+300, .* beyond the bounds; valid: \|c1\| <= 1e\+06",
+        ),
+        (
             '<connect body1="coupler" body2="wheel" anchor="0 0 0"/>',
             r"MuJoCo cannot compile it: .*unknown element 'wheel'",
         ),

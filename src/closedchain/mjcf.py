@@ -85,7 +85,17 @@ from .description import (
     Visual,
 )
 from .exceptions import URDFError
-from .urdf import WORLD_LINK, JointArmature, JointDamping, JointSpring, LoopSpec, URDFPlus, read_xml
+from .urdf import (
+    COUPLING_MULTIPLIER_MAX,
+    COUPLING_OFFSET_MAX,
+    WORLD_LINK,
+    JointArmature,
+    JointDamping,
+    JointSpring,
+    LoopSpec,
+    URDFPlus,
+    read_xml,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -522,6 +532,13 @@ class _Reader:
                 raise URDFError(f"{where}: joint {name!r} is {kind}; valid: hinge, slide")
         r1, r2 = float(m.qpos0[m.jnt_qposadr[j1]]), float(m.qpos0[m.jnt_qposadr[j2]])
         c0, c1 = float(data[0]), float(data[1])
+        offset = c0 + r1 - c1 * r2
+        if not abs(c1) <= COUPLING_MULTIPLIER_MAX or not abs(offset) <= COUPLING_OFFSET_MAX:
+            raise URDFError(
+                f"{where}: polycoef c1 = {c1:.6g}, offset {offset:.6g}: beyond the bounds; "
+                f"valid: |c1| <= {COUPLING_MULTIPLIER_MAX:g} (COUPLING_MULTIPLIER_MAX) and "
+                f"|c0 + ref1 - c1 ref2| <= {COUPLING_OFFSET_MAX:g} (COUPLING_OFFSET_MAX)"
+            )
         return LoopSpec(
             name=name,
             type="coupling",
@@ -534,7 +551,7 @@ class _Reader:
             mimics=self.joint_names[j2],
             multiplier=c1,
             # MuJoCo's polynomial is in q - ref: q1 - r1 = c0 + c1 (q2 - r2).
-            offset=c0 + r1 - c1 * r2,
+            offset=offset,
         )
 
     # -- the rest ------------------------------------------------------------
