@@ -260,21 +260,23 @@ def test_small_mechanisms_on_the_command_line(small, name, tmp_path, capsys):
     assert cli.main(["validate", str(path), "--samples", "3"]) == 0
 
 
-def test_a_model_with_nothing_to_draw_is_refused(tmp_path, capsys):
+def test_a_model_without_visuals_animates_as_stick_figures(tmp_path, capsys):
+    """A one-link pendulum with inertials only (it crashed animate before; its links are
+    now drawn as stick figures): the page is written and holds the stick figure of the
+    moving link."""
+    from closedchain.visualize.shapes import read_visuals
+
     text = MODELS["pendulum"][0]
-    bare = (
-        text.replace(
-            VISUAL,
-            "",
-        ).split("<transmission")[0]
-        + "</robot>\n"
-    )
+    bare = text.replace(VISUAL, "").split("<transmission")[0] + "</robot>\n"
     path = tmp_path / "bare.urdf"
     path.write_text(bare)
-    status = cli.main(["animate", str(path), "--t-final", "0.1", "-o", str(tmp_path / "a.html")])
-    err = capsys.readouterr().err
-    assert status == 2
-    assert err.count("\n") == 1 and "nothing to draw" in err
+    out = tmp_path / "a.html"
+    status = cli.main(["animate", str(path), "--t-final", "0.1", "-o", str(out)])
+    capsys.readouterr()
+    assert status == 0 and out.stat().st_size > 0
+    mech = cc.load(path)
+    moving = {mech.model.frames[f].name for f in range(mech.model.nframes)} - {"world"}
+    assert {v.link for v in read_visuals(mech)} & moving
 
 
 def test_a_massless_moving_leaf_is_refused_at_load_by_name(tmp_path, capsys):
