@@ -499,7 +499,9 @@ def test_cassie_agrees_with_pinocchio_terms_with_its_gearboxes_eliminated(cassie
         q = cc.assemble(cassie, pin.integrate(cassie.model, cassie.q_ref, dq))
         v = cc.project_velocity(cassie, q, rng.standard_normal(cassie.nv))
         tau = cassie.gravity_torque_scale() * rng.standard_normal(cassie.nv)
-        a_ref = _coupled_reference(cassie, q, v, tau)
+        # Pinocchio has no joint damping or springs: their force (checked against
+        # MuJoCo's qfrc_passive in test_passive.py) goes into its tau.
+        a_ref = _coupled_reference(cassie, q, v, cassie.passive.added_to(tau, q, v))
         res = cc.forward_dynamics(cassie, q, v, tau, method="kkt")
         da = np.max(np.abs(res.a - a_ref))
         assert da < TOL_A_REL * max(1.0, np.max(np.abs(a_ref))), da
@@ -772,16 +774,20 @@ def test_a_gearbox_ties_the_rotor_with_the_sdf_sign_and_reflects_its_inertia(tmp
     ).angular
     r, Jr, m, l, Ic = (GEARED_ARM[k] for k in ("r", "Jr", "m", "l", "Ic"))
     assert abs(rotor_w[2] - (-theta_dot / r)) < TOL_FRAME
-    # Reduced model by hand: (Ic + m l^2 + Jr / r^2) theta_ddot = tau - m g l cos(theta).
+    # Reduced model by hand, with the arm joint's <dynamics><damping> D = 0.25 N m s/rad:
+    # (Ic + m l^2 + Jr / r^2) theta_ddot = tau - m g l cos(theta) - D theta_dot.
     tau = np.zeros(mech.nv)
     tau[arm_v] = tau_arm
-    expected = (tau_arm - m * GRAVITY_Y * l * math.cos(theta)) / (Ic + m * l**2 + Jr / r**2)
+    damping = 0.25
+    expected = (tau_arm - m * GRAVITY_Y * l * math.cos(theta) - damping * theta_dot) / (
+        Ic + m * l**2 + Jr / r**2
+    )
     a = cc.forward_dynamics(mech, q, v, tau, method="kkt").a
     assert abs(a[arm_v] - expected) < TOL_FRAME * max(1.0, abs(expected))
     rotor_v = model.joints[model.getJointId("rotor_joint")].idx_v
     assert abs(turn * a[rotor_v] - (-expected / r)) < TOL_FRAME * max(1.0, abs(expected) / r)
     # The arm joint's <dynamics><damping> [N m s/rad].
-    assert [(d.joint, d.damping) for d in mech.urdf.dampings] == [("arm_joint", 0.25)]
+    assert [(d.joint, d.damping) for d in mech.urdf.dampings] == [("arm_joint", damping)]
 
 
 def test_a_gearbox_without_a_joint_to_its_reference_body_is_refused(tmp_path):

@@ -1461,11 +1461,13 @@ def test_callable_tau_under_every_integrator_stabilization_and_backend(
     fourbar, driven_fourbar_reference, backend, integrator, stabilization
 ):
     """The bench's confirmation run (DOP853, partitioning, numpy) with a callable tau
-    raised TypeError; every combination now follows Pinocchio's dynamics."""
+    raised TypeError; every combination now follows Pinocchio's dynamics. Each run is
+    judged by its distance to the reference (DRIVEN_TOL per order), not by the default
+    energy check, which the first-order steps exceed here (1.0 to 1.5 %)."""
     traj = simulate(
         fourbar, fourbar.q_ref, np.zeros(fourbar.nv), DRIVEN_T_FINAL, integrator=integrator,
         stabilization=stabilization, backend=backend, tau=_driven_tau(fourbar),
-        t_eval=DRIVEN_T_EVAL,
+        t_eval=DRIVEN_T_EVAL, settings=SimulationSettings(energy_tol=None),
     )  # fmt: skip
     spec = INTEGRATORS[integrator]
     kind = (
