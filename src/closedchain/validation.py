@@ -374,7 +374,8 @@ def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
 
     The couplings read from URDF ``<mimic>`` elements take Pinocchio's reading of the
     mechanism's XML (``buildModelFromXML(..., mimic=True)``); the others, and every
-    coupling when Pinocchio cannot read the XML with mimic joints, closedchain's.
+    coupling when there is no URDF text (an MJCF model) or Pinocchio cannot read it with
+    mimic joints, closedchain's.
     """
     model = mech.model
     relations = {
@@ -382,6 +383,8 @@ def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
         for spec in mech.declared.loops
         if spec.type == COUPLING
     }
+    if mech.urdf.xml is None:  # a model read into a description (MJCF): no URDF text
+        return relations
     try:
         pinocchio_mimic = pin.buildModelFromXML(mech.urdf.xml, mimic=True)
     except (RuntimeError, ValueError) as exc:
