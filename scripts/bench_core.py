@@ -29,7 +29,7 @@
 4. The benchmark's N-four-bar scenario (nfourbar2-singular, N = 2 through its
    flat positions, 4 s, 0.05 s grid): closedchain's augmented Lagrangian with
    stage projection (rk4 at 5e-2 to 1e-2 s, semi-implicit at 1e-2 s; whole
-   simulate calls) against the seed's scheme (compiled, 1e-2 and 5e-3 s) and
+   simulate calls) against the lesson's scheme (compiled, 1e-2 and 5e-3 s) and
    Pinocchio's own loop (constraintDynamics + semi-implicit Euler, 5e-4 and
    2e-4 s), all through the benchmark's runners; error against the scenario's
    exact reference; ratios at 1e-3 (seed) and 1e-6 (Pinocchio's loop).
@@ -281,7 +281,7 @@ def partitioning_cost(name, problem, repeat, tol=1e-9):
 
 def nfourbar_against_euler(repeat: int) -> None:
     """CPU of the nfourbar2-singular scenario: closedchain's configurations of its front at
-    1e-3 and 1e-6 against the seed's scheme and Pinocchio's Euler loop at the steps around
+    1e-3 and 1e-6 against the lesson's scheme and Pinocchio's Euler loop at the steps around
     those errors (the benchmark's runners and grid, interleaved); the ratios from the cheapest
     run reaching each error and at exactly it (log-log on each front, as ``ratios.md``)."""
     from closedchain.benchmark.analysis import cheapest_at, cpu_at
@@ -315,7 +315,7 @@ def nfourbar_against_euler(repeat: int) -> None:
         "semi-implicit", 1e-2
     )
     for dt in (1e-2, 5e-3):
-        runs[("seed", f"euler/2 newton (compiled) dt={dt:g}")] = lambda dt=dt: RUNNERS["seed"](
+        runs[("lesson", f"euler/2 newton (compiled) dt={dt:g}")] = lambda dt=dt: RUNNERS["lesson"](
             mech, q0, v0, grid, tau, dt=dt, backend="compiled"
         )
     for dt in (5e-4, 2e-4):
@@ -344,7 +344,7 @@ def nfourbar_against_euler(repeat: int) -> None:
         )
         print(f"  {family:16s} {label:52s} {rows[-1]['cpu_s']:9.5f}  error {rows[-1]['error']:.2e}")
     mine = [r for r in rows if r["family"] == "closedchain"]
-    for peer, target in (("seed", 1e-3), ("pinocchio-euler", 1e-6)):
+    for peer, target in (("lesson", 1e-3), ("pinocchio-euler", 1e-6)):
         theirs = [r for r in rows if r["family"] == peer]
         a, b = cheapest_at(mine, target), cheapest_at(theirs, target)
         print(

@@ -453,7 +453,7 @@ def write_report(
     ]
     lines += [f"| {r['scenario']} | {r['reference']} | {float(r['agreement']):.1e} |" for r in refs]
     rows = list(csv.DictReader(open(wp / "work_precision.csv"))) if refs else []
-    seed_backends = sorted({r["backend"] for r in rows if r["family"] == "seed"})
+    lesson_backends = sorted({r["backend"] for r in rows if r["family"] == "lesson"})
     lines += [
         "",
         "## CPU at equal error",
@@ -465,11 +465,11 @@ def write_report(
         "",
         _read(wp / "ratios.md"),
         "",
-        "The peer named seed is the scheme of the lesson the project grew from "
+        "The peer named lesson is the scheme of the lesson the project grew from "
         "([References](../references.md#lesson)): explicit Euler step, two Newton "
-        "projections, no velocity projection (`closedchain.seed_settings()` with kkt, "
+        "projections, no velocity projection (`closedchain.lesson_settings()` with kkt, "
         f"semi-implicit, projection), run by closedchain.simulate on the "
-        f"{', '.join(seed_backends) or '-'} backend, the core closedchain's own "
+        f"{', '.join(lesson_backends) or '-'} backend, the core closedchain's own "
         "configurations use: not the lesson's Python program. Errors are taken on a 0.01 s "
         "grid, on the N-four-bar on a 0.05 s grid, "
         "so that fixed steps up to 0.05 s run there (a step runs where it divides the "

@@ -6,7 +6,7 @@ every link arc is 90 degrees; at the home configuration (all q = 0) the
 intermediate axes are w_i = u_{i+1} and the platform axes v_i = u_{i+2}, so the
 platform axes are mutually orthogonal and the wrist is isotropic.
 
-Tree (the seed's parameterization, Section 5): the platform orientation is
+Tree (the lesson's parameterization, Section 5): the platform orientation is
 R = Rz(yaw) Ry(pitch) Rx(roll) (Z-Y-X Euler angles) through two massless
 links; the pitch is limited to +-1.2 rad, a workspace that keeps 21 degrees
 away from the gimbal lock of this parameterization (pitch = +-90 deg, where

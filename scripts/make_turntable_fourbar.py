@@ -1,4 +1,4 @@
-"""Write models/turntable_fourbar.urdf: the seed's 4-bar on a turntable (a moving base).
+"""Write models/turntable_fourbar.urdf: the lesson's 4-bar on a turntable (a moving base).
 
 The smallest moving-base example of issue 8: ``models/fourbar.urdf`` unchanged
 (links, joints, loop C, crank transmission), its ground link mounted on a
@@ -28,7 +28,7 @@ DISK_MASS, DISK_RADIUS, DISK_THICKNESS = 2.0, 0.3, 0.02  # [kg], [m], [m]
 DISK_DROP = 0.05  # [m] from the ground line down to the disk's top face
 
 HEADER = f"""
-  The seed's planar 4-bar (models/fourbar.urdf, unchanged) on a turntable.
+  The lesson's planar 4-bar (models/fourbar.urdf, unchanged) on a turntable.
 
   The 4-bar's ground link is mounted on a turntable that turns about the world
   vertical z through the middle of its ground line AD (x = {AXIS_X} m, y = 0):

@@ -9,7 +9,7 @@ stage projection):
 
 * fixed cost per call [us]: a one-step run of the 4-bar (crossed branch, at rest)
   minus the same step run by the compiled core alone (``Core.run_fixed``);
-* cost per output sample [us]: a 1 s run of the 4-bar at 1 ms (the seed's scheme, the
+* cost per output sample [us]: a 1 s run of the 4-bar at 1 ms (the lesson's scheme, the
   cheapest compiled step) with every step an output (1001 samples) minus the same run
   with 2 outputs, per extra sample; the core's own share (the same difference of
   ``Core.run_fixed`` calls) alongside;
@@ -51,18 +51,18 @@ from closedchain.simulate import compiled_loops
 from closedchain.simulate.fixed import output_grid
 from closedchain.simulate.problem import Problem
 from closedchain.simulate.registry import get_stabilization
-from closedchain.simulate.settings import DEFAULT_SIMULATION_SETTINGS, seed_settings
+from closedchain.simulate.settings import DEFAULT_SIMULATION_SETTINGS, lesson_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
-#: The per-sample rows run the seed's scheme (kkt, semi-implicit Euler, projection at
+#: The per-sample rows run the lesson's scheme (kkt, semi-implicit Euler, projection at
 #: 1 ms): the cheapest compiled step, so that the samples' cost stands out of the noise.
-SEED = {
+LESSON = {
     "method": "kkt",
     "integrator": "semi-implicit",
     "stabilization": "projection",
     "dt": 1e-3,
-    "settings": seed_settings(),
+    "settings": lesson_settings(),
 }
 
 
@@ -115,8 +115,8 @@ class Case:
         two = np.array([0.0, 1.0])
         out = {
             "4-bar, 1 step": lambda: sim(fb, q0, v0, 1e-3, dt=1e-3),
-            "4-bar 1 s, 1001 samples": lambda: sim(fb, q0, v0, 1.0, t_eval=every, **SEED),
-            "4-bar 1 s, 2 samples": lambda: sim(fb, q0, v0, 1.0, t_eval=two, **SEED),
+            "4-bar 1 s, 1001 samples": lambda: sim(fb, q0, v0, 1.0, t_eval=every, **LESSON),
+            "4-bar 1 s, 2 samples": lambda: sim(fb, q0, v0, 1.0, t_eval=two, **LESSON),
             "4-bar 10 s, default": lambda: sim(fb, q0, v0, 10.0),
         }
         for dt in (0.05, 0.01):
@@ -135,15 +135,15 @@ class Case:
 def core_calls(case: Case) -> dict:
     """name -> the compiled core's run of the same request (this tree's setup)."""
 
-    def run(mech, q0, v0, t_final, dt, t_eval, method="augmented-lagrangian", seed=False):
-        stab = get_stabilization("projection" if seed else "stage-projection")
-        settings = seed_settings() if seed else DEFAULT_SIMULATION_SETTINGS
+    def run(mech, q0, v0, t_final, dt, t_eval, method="augmented-lagrangian", lesson=False):
+        stab = get_stabilization("projection" if lesson else "stage-projection")
+        settings = lesson_settings() if lesson else DEFAULT_SIMULATION_SETTINGS
         problem = Problem(mech, method, None, DEFAULT_SETTINGS, settings)
-        problem.singular_robust = not seed
+        problem.singular_robust = not lesson
         core = compiled_loops._prepare(problem, {"method": method}, stab)
         # A core of its own (simulate reconfigures the mechanism's shared one every call).
         mech.__dict__.pop("_compiled_cores", None)
-        code = compiled.INTEGRATOR_CODES["semi-implicit" if seed else "rk4"]
+        code = compiled.INTEGRATOR_CODES["semi-implicit" if lesson else "rk4"]
         dt, n, steps = output_grid(t_final, dt, t_eval)
         steps = np.arange(n + 1) if steps is None else steps
         steps = np.asarray(steps, dtype=np.int32)

@@ -2,7 +2,7 @@
 closed forms, and kinematic trajectories (no simulator needed).
 
 The 4-bar closed forms are the *independent* reference of the constraint
-layer: they are written from the seed text (the course text the project grew from,
+layer: they are written from the lesson (the course text the project grew from,
 Chapter 15, Lesson 3, cited in docs/references.md; here its Section 2 and Problem 2)
 and Freudenstein's equation, with the link lengths stated in
 the header of ``models/fourbar.urdf``, and share no code with ``closedchain``.
@@ -142,17 +142,17 @@ def artifacts_dir() -> Path:
     return ARTIFACTS
 
 
-# -- the seed's planar 4-bar in closed form ---------------------------------------------
+# -- the lesson's planar 4-bar in closed form ---------------------------------------------
 
 
 @dataclass(frozen=True)
 class FourBarClosedForms:
-    r"""The seed's planar 4-bar (Section 2, Problem 2) and Freudenstein's equation.
+    r"""The lesson's planar 4-bar (Section 2, Problem 2) and Freudenstein's equation.
 
     Absolute angles ``theta = [theta2, theta3, theta4]`` [rad] are measured from
     the ground line AD; ``models/fourbar.urdf`` maps them to its joint
     coordinates by ``theta = T q`` (its header): q = [theta2, theta3 - theta2,
-    theta4]. The seed's planar (x, y) are world (x, z).
+    theta4]. The lesson's planar (x, y) are world (x, z).
 
     Attributes:
         a, b, c, d: crank, coupler, rocker and ground lengths [m] (the URDF header).
@@ -176,7 +176,7 @@ class FourBarClosedForms:
         return np.array([th2, th3 - th2, th4])
 
     def phi(self, theta: np.ndarray) -> np.ndarray:
-        """Seed Section 2: phi = p_C(coupler) - p_C(rocker), shape (2,) [m]."""
+        """Lesson Section 2: phi = p_C(coupler) - p_C(rocker), shape (2,) [m]."""
         a, b, c, d = self.a, self.b, self.c, self.d
         th2, th3, th4 = theta
         return np.array(
@@ -187,7 +187,7 @@ class FourBarClosedForms:
         )
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
-        """Seed Section 2: J_c = d phi / d theta, shape (2, 3) [m]."""
+        """Lesson Section 2: J_c = d phi / d theta, shape (2, 3) [m]."""
         a, b, c = self.a, self.b, self.c
         th2, th3, th4 = theta
         return np.array(
@@ -198,15 +198,15 @@ class FourBarClosedForms:
         )
 
     def det_dependent(self, theta: np.ndarray) -> float:
-        """Seed Section 2: det of J_c's coupler and rocker columns, b c sin(theta3 - theta4)
+        """Lesson Section 2: det of J_c's coupler and rocker columns, b c sin(theta3 - theta4)
         [m^2]. Its sign names the assembly branch (open or crossed); it changes only where
         coupler and rocker align (for this linkage: at its change point, theta2 = 180 deg)."""
         return self.b * self.c * math.sin(theta[1] - theta[2])
 
     def jacobian_dot(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
-        """Seed Problem 2: dJ_c/dt, shape (2, 3) [m/s], with the seed's sign error corrected.
+        """Lesson Problem 2: dJ_c/dt, shape (2, 3) [m/s], with the lesson's sign error corrected.
 
-        The seed prints entry (2, 3) as ``-c sin(theta4) theta4_dot`` (and so
+        The lesson prints entry (2, 3) as ``-c sin(theta4) theta4_dot`` (and so
         the term ``-c sin(theta4) theta4_dot^2`` of its second acceleration
         equation, and ``Jcdot(2,3)`` of its MATLAB function in Section 10); the
         time derivative of J_c(2, 3) = -c cos(theta4) is ``+c sin(theta4)
@@ -224,7 +224,7 @@ class FourBarClosedForms:
         )
 
     def jacobian_dot_as_printed(self, theta: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
-        """Seed Problem 2 exactly as printed (entry (2, 3) with the wrong sign)."""
+        """Lesson Problem 2 exactly as printed (entry (2, 3) with the wrong sign)."""
         Jd = self.jacobian_dot(theta, theta_dot)
         Jd[1, 2] = -Jd[1, 2]
         return Jd
@@ -238,14 +238,14 @@ class FourBarClosedForms:
     @staticmethod
     def cut_basis(theta3: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return Q, dQ/dtheta3, d2Q/dtheta3^2, shapes (2, 2): columns R_p n1, R_p n2 in the
-        seed's planar axes (world x, z); the coupler is turned by theta3 about (0, -1, 0)."""
+        the lesson's planar axes (world x, z); the coupler is turned by theta3 about (0, -1, 0)."""
         c, s = math.cos(theta3), math.sin(theta3)
         Q = np.array([[-s, -c], [c, -s]])
         dQ = np.array([[-c, s], [-s, -c]])
         return Q, dQ, -Q
 
     def phi_cut(self, theta: np.ndarray) -> np.ndarray:
-        """The seed's closure in the coupler's cut frame, Q(theta3)^T phi, shape (2,) [m]."""
+        """The lesson's closure in the coupler's cut frame, Q(theta3)^T phi, shape (2,) [m]."""
         Q, _, _ = self.cut_basis(theta[1])
         return Q.T @ self.phi(theta)
 

@@ -55,7 +55,7 @@ def test_quick_csv_schema(quick_run):
         assert tuple(reader.fieldnames) == COLUMNS
         rows = list(reader)
     families = {r["family"] for r in rows}
-    assert {"closedchain", "scipy", "pinocchio-euler", "mujoco", "seed"} <= families
+    assert {"closedchain", "scipy", "pinocchio-euler", "mujoco", "lesson"} <= families
     assert {r["status"] for r in rows} <= {"ok", "drift", "diverged", "raised"}
     for r in read_rows(quick_run / "work_precision.csv"):
         if r["status"] == "ok":
@@ -168,9 +168,9 @@ def test_steps_run_only_where_they_divide_the_output_spacing():
 
     rk4 = "augmented-lagrangian/rk4/stage-projection"
     assert max(steps("nfourbar2-singular", "closedchain", rk4)) == 5e-2
-    assert {5e-2, 2.5e-2, 1.25e-2} <= steps("nfourbar2-singular", "seed")
+    assert {5e-2, 2.5e-2, 1.25e-2} <= steps("nfourbar2-singular", "lesson")
     assert max(steps("fourbar-passive", "closedchain", "kkt/rk4/stage-projection")) == 1e-2
-    assert max(steps("fourbar-passive", "seed")) == 1e-2
+    assert max(steps("fourbar-passive", "lesson")) == 1e-2
     # The settings label is part of a row's key: 1.25e-2 and 1e-2 must not share one.
     keys = [(j["scenario"], j["family"], j["solver"], j["backend"], j["settings"]) for j in jobs]
     assert len(keys) == len(set(keys))
@@ -202,6 +202,35 @@ def test_dask_local_cluster_runs_jobs(tmp_path):
     local = execute(jobs)
     assert [r["status"] for r in remote] == ["ok"] * len(jobs)
     for a, b in zip(remote, local, strict=True):
+        assert abs(a["q"] - b["q"]).max() == 0.0  # same deterministic computation
+
+
+def test_dask_threaded_workers_run_one_batch_of_jobs_each():
+    """On an in-process cluster of 2 threads: 2 tasks (one batch of jobs per thread), the
+    scenario's model loaded once, the results those of the local run."""
+    distributed = pytest.importorskip("distributed")
+    from closedchain.benchmark import scenarios
+    from closedchain.benchmark.runner import execute, make_jobs, worker_chunks
+
+    jobs = make_jobs(QUICK, ["fourbar-passive"], str(MODELS), mujoco_available=False)
+    jobs = [j for j in jobs if j["family"] in ("closedchain", "scipy")][:5]
+    assert worker_chunks(list(range(5)), 2) == [[0, 2, 4], [1, 3]]
+    assert worker_chunks(list(range(1)), 4) == [[0]]
+    scenarios._load.cache_clear()
+    ticks = []
+    with (
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = execute(jobs, scheduler=client, progress=ticks.append)
+    assert sorted(ticks) == [2, 3]  # one report per task, its share of the jobs
+    assert scenarios._load.cache_info().misses == 1
+    local = execute(jobs)
+    assert [r["status"] for r in remote] == ["ok"] * len(jobs)
+    for a, b in zip(remote, local, strict=True):
+        assert (a["solver"], a["settings"]) == (b["solver"], b["settings"])
         assert abs(a["q"] - b["q"]).max() == 0.0  # same deterministic computation
 
 

@@ -912,7 +912,7 @@ def test_partitioning_singular_error(fourbar, fourbar_closed_forms, integrator):
     # by 5%), and OpenBLAS's kernel (chosen by the CPU) moves the numpy side's stop
     # between 0.3900 and 0.4113 s. So the assertion is the physics, not a step end: a stop
     # within one step of the change point on either side, at a configuration on the other
-    # branch (the seed's closed-form det(J_D) has changed sign).
+    # branch (the lesson's closed-form det(J_D) has changed sign).
     cf = fourbar_closed_forms
     start_branch = np.sign(cf.det_dependent(cf.theta(q0)))
     for err in (exc.value, ref.value):

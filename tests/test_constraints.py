@@ -2,7 +2,7 @@
 
 References, none of them computed by closedchain:
 
-* the seed's 4-bar closed forms (Section 2 phi and J_c, Problem 2 Jdot_c) and
+* the lesson's 4-bar closed forms (Section 2 phi and J_c, Problem 2 Jdot_c) and
   Freudenstein's equation (tests/conftest.py);
 * central finite differences through ``pin.integrate`` for every loop type
   (revolute: 4-bar, Agile Eye; spherical, prismatic, fixed: tests/data/);
@@ -24,7 +24,7 @@ import closedchain as cc
 from closedchain.constraints import axis_basis
 from closedchain.kinematics import AssemblySettings
 
-#: Agreement of the layer with the seed's closed forms [m, m/s^2] (round-off only).
+#: Agreement of the layer with the lesson's closed forms [m, m/s^2] (round-off only).
 TOL_CLOSED_FORM = 1e-12
 #: Assembled 4-bar angles against Freudenstein's solution [rad].
 TOL_FREUDENSTEIN = 1e-10
@@ -145,10 +145,10 @@ def layers(mech):
     return {"independent": mech.constraints, "declared": mech.declared}
 
 
-# -- the seed's 4-bar closed forms -------------------------------------------------------
+# -- the lesson's 4-bar closed forms -------------------------------------------------------
 
 
-def test_fourbar_rows_are_the_seed_planar_rows_in_the_cut_frame(fourbar, fourbar_closed_forms):
+def test_fourbar_rows_are_the_lesson_planar_rows_in_the_cut_frame(fourbar, fourbar_closed_forms):
     assert [(r.loop, r.kind, r.unit) for r in fourbar.rows] == [("C", "t1", "m"), ("C", "t2", "m")]
     # The reference's basis is the layer's: n1, n2 across the loop axis, right-handed.
     cf = fourbar_closed_forms
@@ -157,20 +157,20 @@ def test_fourbar_rows_are_the_seed_planar_rows_in_the_cut_frame(fourbar, fourbar
     assert np.linalg.norm(np.cross(cf.N1, cf.N2) - np.array([0.0, -1.0, 0.0])) <= 1e-15
 
 
-def test_fourbar_phi_matches_seed_section2(fourbar, fourbar_closed_forms, rng):
+def test_fourbar_phi_matches_lesson_section2(fourbar, fourbar_closed_forms, rng):
     cf = fourbar_closed_forms
     for _ in range(200):
         q = rng.uniform(-np.pi, np.pi, 3)  # off the manifold: phi is defined everywhere
         err = np.linalg.norm(cc.compute_phi(fourbar, q) - cf.phi_cut(cf.theta(q)))
         assert err <= TOL_CLOSED_FORM, (q, err)
-        # Same length as the seed's world closure: a rotation of it.
+        # Same length as the lesson's world closure: a rotation of it.
         assert (
             abs(np.linalg.norm(cc.compute_phi(fourbar, q)) - np.linalg.norm(cf.phi(cf.theta(q))))
             <= TOL_CLOSED_FORM
         )
 
 
-def test_fourbar_jacobian_matches_seed_section2(fourbar, fourbar_closed_forms, rng):
+def test_fourbar_jacobian_matches_lesson_section2(fourbar, fourbar_closed_forms, rng):
     cf = fourbar_closed_forms
     for _ in range(200):
         q = rng.uniform(-np.pi, np.pi, 3)
@@ -179,7 +179,7 @@ def test_fourbar_jacobian_matches_seed_section2(fourbar, fourbar_closed_forms, r
         assert err <= TOL_CLOSED_FORM, (q, err)
 
 
-def test_fourbar_gamma_matches_seed_problem2(fourbar, fourbar_closed_forms, rng):
+def test_fourbar_gamma_matches_lesson_problem2(fourbar, fourbar_closed_forms, rng):
     cf = fourbar_closed_forms
     for _ in range(200):
         q = rng.uniform(-np.pi, np.pi, 3)
@@ -190,8 +190,8 @@ def test_fourbar_gamma_matches_seed_problem2(fourbar, fourbar_closed_forms, rng)
         assert err <= TOL_CLOSED_FORM * max(1.0, np.linalg.norm(expected)), (q, v, err)
 
 
-def test_seed_problem2_reference_is_the_derivative_of_the_seed_jacobian(fourbar_closed_forms, rng):
-    """The Jdot reference used above is d/dt J_c; the seed's printed entry (2, 3) is not."""
+def test_lesson_problem2_reference_is_the_derivative_of_the_jacobian(fourbar_closed_forms, rng):
+    """The Jdot reference used above is d/dt J_c; the lesson's printed entry (2, 3) is not."""
     cf = fourbar_closed_forms
     h = FD_STEP
     for _ in range(20):
@@ -199,7 +199,7 @@ def test_seed_problem2_reference_is_the_derivative_of_the_seed_jacobian(fourbar_
         theta_dot = rng.normal(size=3)
         fd = (cf.jacobian(theta + h * theta_dot) - cf.jacobian(theta - h * theta_dot)) / (2 * h)
         assert np.linalg.norm(cf.jacobian_dot(theta, theta_dot) - fd) <= TOL_FD
-        # Seed erratum: as printed, entry (2, 3) is the negative of the derivative;
+        # Lesson erratum: as printed, entry (2, 3) is the negative of the derivative;
         # every other printed entry is right.
         printed = cf.jacobian_dot_as_printed(theta, theta_dot)
         assert abs(printed[1, 2] + fd[1, 2]) <= TOL_FD

@@ -12,7 +12,7 @@ from closedchain.control import computed_torque_controller, default_scene, sinus
 from closedchain.simulate import simulate
 from closedchain.urdf import SinusoidSpec
 
-#: The seed's crank angle [rad].
+#: The lesson's crank angle [rad].
 THETA2_START = math.radians(10.0)
 #: Max |phi| of accurate runs (DOP853 at 1e-10).
 RESIDUAL_TOL = 1e-10

@@ -555,15 +555,16 @@ def test_mimic_reference_is_pinocchios_own_urdf_mimic_model(coupled, rng):
         )
 
 
-def test_validate_fails_on_a_wrong_multiplier():
-    """closedchain's rows with multiplier 0.5 where the file, as Pinocchio reads it, says
-    0.6: the reference follows the file, and validation fails."""
+def test_validate_fails_on_a_wrong_multiplier(tmp_path):
+    """closedchain's rows with multiplier 0.5 where the file, read again by the
+    validation, says 0.6: the reference follows the file, and validation fails."""
     mech = cc.load(MIMIC_FOURBAR)
     good = 'multiplier="0.5" offset="-0.1"'
-    assert good in mech.urdf.xml
-    mech.urdf = dataclasses.replace(
-        mech.urdf, xml=mech.urdf.xml.replace(good, 'multiplier="0.6" offset="-0.1"')
-    )
+    text = MIMIC_FOURBAR.read_text()
+    assert good in text
+    changed = tmp_path / MIMIC_FOURBAR.name
+    changed.write_text(text.replace(good, 'multiplier="0.6" offset="-0.1"'))
+    mech.urdf = dataclasses.replace(mech.urdf, path=changed)
     rep = cc.validate(mech, n_samples=N_VALIDATION)
     assert not rep.passed
     assert rep.max_da_mass_norm > rep.tol_a

@@ -37,7 +37,9 @@ GENERATED_PAGES = (
     DOCS / "bench" / "nfourbar.md",
     DOCS / "bench" / "corpus.md",  # scripts/check_corpus.py --out
     DOCS / "bench" / "percall.md",  # scripts/bench_extras.py --parts percall
+    DOCS / "bench" / "scaling.md",  # scripts/bench_extras.py --parts scaling
     DOCS / "bench" / "couplings.md",  # scripts/bench_extras.py --parts couplings
+    DOCS / "bench" / "batch.md",  # scripts/bench_batch.py --page
 )
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300
@@ -57,6 +59,9 @@ NOTEBOOK_PATTERNS = {
     "a load average": re.compile(r"\bload(?: average)? (?:of |about |~)?\d"),
     "an issue number": re.compile(r"\bissue #?\d+", re.I),
 }
+#: The in-house name of the lesson the project grew from (cited as "the lesson" in
+#: references.md) and of its settings; "the seed of the sampling" (a random seed) is fine.
+IN_HOUSE_NAMES = re.compile(r"\bseed(?:'s|_settings)\b|\bthe seed\b(?! of\b)", re.I)
 
 needs_mkdocs = pytest.mark.skipif(
     any(
@@ -360,6 +365,17 @@ def test_prose_carries_no_lab_notebook():
             assert not found, f"{doc.relative_to(ROOT)} carries {what}: {found[0]!r}"
 
 
+def test_pages_use_no_in_house_names():
+    """README.md and every page say "the lesson", not "the seed" (generated pages once they
+    are measured under the current names: STAMPED_PAGES)."""
+    stale = set(GENERATED_PAGES) - set(STAMPED_PAGES)
+    for doc in [README, *sorted(DOCS.rglob("*.md"))]:
+        if doc in stale:
+            continue
+        found = IN_HOUSE_NAMES.search(doc.read_text())
+        assert not found, f"{doc.relative_to(ROOT)} uses an in-house name: {found[0]!r}"
+
+
 @pytest.mark.parametrize("page", GENERATED_PAGES, ids=lambda p: p.name)
 def test_generated_pages_name_their_run(page):
     text = page.read_text()
@@ -372,8 +388,15 @@ def test_generated_pages_name_their_run(page):
 
 
 #: Generated pages measured since their header states the version and the default
-#: configuration (scripts/bench_page.py); the others are listed here when regenerated.
-STAMPED_PAGES = (DOCS / "bench" / "nfourbar.md",)
+#: configuration (scripts/bench_page.py); results.md and couplings.md join them when
+#: ``bash scripts/make_bench_figures.sh`` next runs in full.
+STAMPED_PAGES = (
+    DOCS / "bench" / "nfourbar.md",
+    DOCS / "bench" / "percall.md",
+    DOCS / "bench" / "scaling.md",
+    DOCS / "bench" / "corpus.md",
+    DOCS / "bench" / "batch.md",
+)
 
 
 @pytest.mark.parametrize("page", STAMPED_PAGES, ids=lambda p: p.name)
@@ -412,6 +435,13 @@ def test_notebook_patterns_catch_what_they_name():
     assert not any(
         p.search("the load-time row sampling, 2 issues") for p in NOTEBOOK_PATTERNS.values()
     )
+
+
+def test_in_house_names_pattern_catches_what_it_names():
+    for text in ("the seed's scheme", "seed_settings()", "as the seed does"):
+        assert IN_HOUSE_NAMES.search(text), text
+    for text in ("--seed 0", "seed=0", "the seed of the sampling", "seeds the row sampling"):
+        assert not IN_HOUSE_NAMES.search(text), text
 
 
 def test_sphinx_roles_become_markdown():

@@ -397,8 +397,8 @@ def test_pinocchio_never_returns_nan(mechs):
         forward_dynamics(mech, mech.q_ref, np.zeros(3), method="pinocchio", settings=settings)
 
 
-def test_solve_kkt_reproduces_the_seed_cpp_example():
-    """The seed's C++ main (Section 8): M = I, J = [[1,0,0],[0,1,1]], tau - h = [1,0,0],
+def test_solve_kkt_reproduces_the_lesson_cpp_example():
+    """The lesson's C++ main (Section 8): M = I, J = [[1,0,0],[0,1,1]], tau - h = [1,0,0],
     gamma = 0. By hand: J a = 0 gives a1 = 0 and a2 = -a3; M a + J^T lam = tau - h gives
     a = [1 - lam1, -lam2, -lam2], so lam1 = 1, lam2 = 0 and a = 0."""
     from closedchain.dynamics.kkt import solve_kkt

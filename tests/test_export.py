@@ -9,6 +9,7 @@ accelerations match only to the accuracy its solref/solimp allow.
 from __future__ import annotations
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 import closedchain as cc
@@ -158,3 +159,42 @@ def test_load_mujoco_in_pieces_is_the_model_of_the_whole_text(tmp_path, monkeypa
         mujoco.mj_forward(m, d)
         qacc.append(d.qacc.copy())
     np.testing.assert_array_equal(qacc[0], qacc[1])
+
+
+#: MuJoCo's mass matrix of an exported universal joint agrees with Pinocchio's to this,
+#: relative to its largest entry (round-off of two implementations).
+UNIVERSAL_M_RTOL = 1e-12
+
+
+def test_a_universal_joint_exports_as_two_hinges_with_pinocchios_mass_matrix(tmp_path, rng):
+    """An SDF universal joint (Pinocchio's JointModelUniversal) becomes two hinges in one
+    body: MuJoCo's own mass matrix (mj_fullM) and kinematics agree with Pinocchio's."""
+    sdf = tmp_path / "u.sdf"
+    sdf.write_text(
+        '<?xml version="1.0"?><sdf version="1.6"><model name="u">'
+        '<link name="base"/><link name="arm"><pose>0.1 0.2 0.3 0.2 0 0.4</pose>'
+        "<inertial><pose>0.1 0.05 -0.2 0 0.3 0</pose><mass>1.3</mass><inertia><ixx>0.02</ixx>"
+        "<iyy>0.03</iyy><izz>0.01</izz></inertia></inertial></link>"
+        '<link name="tip"><pose>0.3 0.1 0.0 0 0 0</pose><inertial><mass>0.4</mass><inertia>'
+        "<ixx>0.001</ixx><iyy>0.002</iyy><izz>0.003</izz></inertia></inertial></link>"
+        '<joint name="u" type="universal"><parent>base</parent><child>arm</child>'
+        "<axis><xyz>1 0 0</xyz></axis><axis2><xyz>0 0.6 0.8</xyz></axis2></joint>"
+        '<joint name="t" type="revolute"><parent>arm</parent><child>tip</child>'
+        "<axis><xyz>0 0 1</xyz></axis></joint></model></sdf>"
+    )
+    mech = cc.load(sdf)
+    assert mech.model.joints[mech.model.getJointId("u")].shortname() == "JointModelUniversal"
+    m, d = load_mujoco(mech)
+    q = rng.uniform(-1.0, 1.0, mech.nq)
+    d.qpos[:], d.qvel[:] = mujoco_state(mech, q, np.zeros(mech.nv))
+    mujoco.mj_forward(m, d)
+    M_mj = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M_mj)
+    model, data = mech.model, mech.model.createData()
+    M = pin.crba(model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    assert np.max(np.abs(M_mj - M)) < UNIVERSAL_M_RTOL * np.max(np.abs(M))
+    # The tip's joint frame (a body of its own in the export) sits where Pinocchio puts it.
+    tip = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "t")
+    pin.forwardKinematics(model, data, q)
+    assert np.linalg.norm(d.xpos[tip] - data.oMi[model.getJointId("t")].translation) < MASS_TOL

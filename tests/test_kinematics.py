@@ -1,6 +1,6 @@
 """Tests of closedchain.kinematics: assembly, velocity projection, singularity measures.
 
-References: the seed's 4-bar closed forms and Freudenstein's equation
+References: the lesson's 4-bar closed forms and Freudenstein's equation
 (tests/conftest.py), geometry (which rocker angles the 4-bar can reach), and
 linear algebra done here with numpy (projectors, row spaces).
 """
@@ -18,7 +18,7 @@ import closedchain as cc
 TOL_ASSEMBLY = cc.AssemblySettings().tol
 #: Projection identities (J P v = 0, P P v = P v, ...) relative to |v|.
 TOL_PROJECTION = 1e-12
-#: Singular values of J against the seed's closed-form J (round-off) [m].
+#: Singular values of J against the lesson's closed-form J (round-off) [m].
 TOL_SIGMA = 1e-12
 #: Random guesses are q_ref displaced by up to this [rad or m] per coordinate.
 GUESS_SPREAD = 0.3
@@ -159,7 +159,7 @@ def _fourbar_at(fourbar, cf, theta2, branch=0):
     return q, theta
 
 
-def test_singularity_measures_match_the_seed_jacobian(fourbar, fourbar_closed_forms):
+def test_singularity_measures_match_the_lesson_jacobian(fourbar, fourbar_closed_forms):
     cf = fourbar_closed_forms
     for theta2 in np.deg2rad([-120, -30, 0, 45, 100, 160]):
         for branch in (0, 1):

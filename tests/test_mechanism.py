@@ -171,7 +171,7 @@ def fourbar_generalized_gravity(cf, q, g):
     """Closed-form generalized gravity g(q) = -sum_i m_i (d p_i / d q)^T g [N m].
 
     Centres of mass of the unit-mass rods (models/fourbar.urdf header) in the
-    seed's plane (x, y) = world (x, z): crank a/2 e(th2), coupler a e(th2) +
+    the lesson's plane (x, y) = world (x, z): crank a/2 e(th2), coupler a e(th2) +
     b/2 e(th3), rocker D + c/2 e(th4).
     """
     th2, th3, th4 = cf.theta(q)

@@ -1,8 +1,8 @@
-"""Loops on a moving base: the seed's 4-bar on a turntable (models/turntable_fourbar.urdf).
+"""Loops on a moving base: the lesson's 4-bar on a turntable (models/turntable_fourbar.urdf).
 
 References, none computed by closedchain's turntable model:
 
-* the 4-bar alone (models/fourbar.urdf, itself checked against the seed's closed
+* the 4-bar alone (models/fourbar.urdf, itself checked against the lesson's closed
   forms in tests/test_constraints.py): rows written in frames that move with the
   loop do not depend on the turntable angle, so phi, J and gamma of the turntable
   model are those of the 4-bar, with a zero turntable column;

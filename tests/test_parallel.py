@@ -1,6 +1,6 @@
 """Tests of closedchain.parallel, the parallel-robot workflow, against closed forms.
 
-* the seed's 4-bar: forward kinematics from the crank = Freudenstein's equation (conftest);
+* the lesson's 4-bar: forward kinematics from the crank = Freudenstein's equation (conftest);
 * the planar five-bar of tests/data/five_bar.urdf: forward kinematics = the intersection of
   the distal links' circles, inverse kinematics of the end point = the intersection of each
   leg's crank and distal circles (both working modes), motor torques at rest = the
@@ -154,7 +154,7 @@ def test_fourbar_forward_kinematics_is_freudenstein(fourbar, fourbar_closed_form
         assert np.linalg.norm(wrap(r.q - q_exact)) <= ANGLE_TOL
         assert r.motors[0] == theta2
         assert r.closure_residual <= ANGLE_TOL
-        # sigma_min of J_D: the seed's J_c (Section 2) in joint coordinates, columns of
+        # sigma_min of J_D: the lesson's J_c (Section 2) in joint coordinates, columns of
         # the coupler and rocker (the rows' rotation into the cut frame keeps it).
         Jc = cf.jacobian(theta) @ cf.T
         sd = np.linalg.svd(Jc[:, 1:], compute_uv=False)[-1]

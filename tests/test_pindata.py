@@ -19,6 +19,7 @@ from conftest import ALL_MECHANISMS, VALIDATABLE_MECHANISMS
 
 import closedchain as cc
 from closedchain import pindata
+from closedchain.build import build_model
 
 pytestmark = pytest.mark.skipif(
     not pindata.lean_available(), reason="the compiled core (lean Data) is not built"
@@ -39,7 +40,7 @@ def test_lean_data_equals_pinocchio_data_apart_from_the_tensors(
 ):
     model = load_mechanism(name).model
     if root == "free":
-        model = pin.buildModelFromXML(load_mechanism(name).urdf.xml, pin.JointModelFreeFlyer())
+        model = build_model(load_mechanism(name).urdf.description, pin.JointModelFreeFlyer())
     if not _pinocchio_equality_is_reflexive(model):
         pytest.skip("pinocchio.Data == is not reflexive for this model's joints")
     assert core_testing._lean_data_matches_full(model)

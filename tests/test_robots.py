@@ -24,7 +24,6 @@ import pytest
 from conftest import MODELS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from lxml import etree
 
 import closedchain as cc
 from closedchain import robots
@@ -299,7 +298,7 @@ def test_robot_loads_with_every_row_independent(robot, key):
     assert mech.mobility == nv - rows
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= TOL_PHI
     # The package's mesh visuals are kept, and all of them fit the default page budget.
-    meshes = etree.fromstring(mech.urdf.xml.encode()).findall("link/visual/geometry/mesh")
+    meshes = [v for b in mech.urdf.description.bodies for v in b.visuals if v.kind == "mesh"]
     summary = read_scene_visuals(mech)[1]
     assert (summary.n_embedded, summary.primitive_links) == (len(meshes), ())
 
@@ -442,3 +441,76 @@ def test_cli_info_and_animate_a_robot(tmp_path, capsys):
     )
     assert 0 < out.stat().st_size <= MAX_HTML_BYTES
     assert b"package://" not in out.read_bytes()
+
+
+# -- overlays merged as descriptions ------------------------------------------------------
+
+#: An overlay hanging a tagged weight on the crank (a fixed joint) and a slider on the
+#: rocker, with a loop from the slider to the world and a transmission on the slider.
+DESCRIPTION_OVERLAY = """<robot name="{name}">
+  <link name="weight"><inertial><origin xyz="0 0 0.01"/><mass value="0.3"/>
+    <inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/></inertial></link>
+  <joint name="weight_joint" type="fixed"><parent link="crank"/><child link="weight"/>
+    <origin xyz="0.1 0 0" rpy="0.1 0.2 0.3"/></joint>
+  <link name="slider"><inertial><mass value="0.2"/>
+    <inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/></inertial></link>
+  <joint name="slide" type="prismatic"><parent link="rocker"/><child link="slider"/>
+    <origin xyz="0.05 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="-0.1" upper="0.1" effort="10" velocity="1"/></joint>
+  <transmission name="slide_t"><type>SimpleTransmission</type><joint name="slide"/>
+  </transmission>
+</robot>
+"""
+
+
+def test_an_overlay_merges_into_any_description(tmp_path):
+    """The same overlay merged into the 4-bar read as URDF and as MJCF (a description
+    with a world frame): the added bodies hang where the overlay puts them on the
+    base's bodies, in both, and the base keeps its own bodies and loops."""
+    from closedchain.build import build_model
+    from closedchain.mjcf import read_mjcf
+    from closedchain.urdf import parse_urdf, read_overlay, read_xml
+
+    path = tmp_path / "overlay.urdf"
+    path.write_text(DESCRIPTION_OVERLAY.format(name="weighted"))
+    data_dir = MODELS.parent / "tests" / "data"
+    bases = {
+        "urdf": parse_urdf(MODELS / "fourbar.urdf"),
+        "mjcf": read_mjcf(data_dir / "fourbar_mjcf.xml")[0],
+    }
+    for kind, base in bases.items():
+        merged = read_overlay(base, path, read_xml(path))
+        assert merged.robot_name == "weighted" and merged.path == path
+        assert merged.actuated == (*base.actuated, "slide")
+        assert merged.loops == base.loops
+        names = [b.name for b in merged.description.bodies]
+        if base.description.world_frame:  # another reader's order is kept, the overlay's after
+            assert names == [b.name for b in base.description.bodies] + ["weight", "slider"]
+        model = build_model(merged.description)
+        reference = build_model(base.description)
+        data, ref_data = model.createData(), reference.createData()
+        pin.framesForwardKinematics(model, data, pin.neutral(model))
+        pin.framesForwardKinematics(reference, ref_data, pin.neutral(reference))
+        for added, on, origin in (
+            ("weight", "crank", pin.SE3(pin.rpy.rpyToMatrix(0.1, 0.2, 0.3), np.array([0.1, 0, 0]))),
+            ("slider", "rocker", pin.SE3(np.eye(3), np.array([0.05, 0, 0]))),
+        ):
+            expected = ref_data.oMf[reference.getFrameId(on)] * origin
+            assert data.oMf[model.getFrameId(added)].isApprox(expected, 1e-14), (kind, added)
+        assert model.nv == reference.nv + 1
+        total = sum(i.mass for i in model.inertias) - sum(i.mass for i in reference.inertias)
+        assert total == pytest.approx(0.5, rel=1e-15)
+
+
+def test_an_overlay_joint_may_not_take_a_held_link(tmp_path):
+    path = tmp_path / "overlay.urdf"
+    path.write_text(
+        '<robot name="o"><link name="extra"/><joint name="grab" type="fixed">'
+        '<parent link="extra"/><child link="rocker"/></joint></robot>'
+    )
+    with pytest.raises(
+        cc.URDFError,
+        match=f"{path}: line 1: <joint name='grab'>: link 'rocker' is already the child of "
+        "joint 'rocker_joint'",
+    ):
+        cc.load(MODELS / "fourbar.urdf", loops=path)

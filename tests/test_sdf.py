@@ -67,6 +67,9 @@ TOL_SRDF_CLOSURE = 1e-7
 #: Accelerations agree with pinocchio.constraintDynamics to this, relative to max |a|
 #: (Cassie's J has condition ~1e6 at its reference: absolute round-off is ~1e-9 there).
 TOL_A_REL = 1e-9
+#: The mimic reference's reduced mass matrix agrees with G^T M G to this, relative to its
+#: largest entry (round-off of two products).
+TOL_REDUCED_M = 1e-12
 #: Generalized constraint forces agree to this (absolute below 1, relative above).
 TOL_FORCE = 1e-8
 #: Size [rad or m] of the random steps along the motion from Cassie's reference.
@@ -220,20 +223,35 @@ def test_cut_joints_is_refused_for_a_urdf():
         cc.load(MODELS / "fourbar.urdf", cut_joints=["crank_joint"])
 
 
-def test_visuals_keep_their_geometry_colour_and_mesh_uri(fourbar, tmp_path):
-    robot = etree.fromstring(fourbar.urdf.xml.encode())
-    (visual,) = robot.findall("link[@name='crank']/visual")
-    assert visual.find("geometry/cylinder").attrib == {"radius": "0.01", "length": "0.1"}
-    name = visual.find("material").get("name")
-    assert robot.find(f"material[@name='{name}']/color").get("rgba") == "0.8 0.2 0.2 1.0"
-    # model://name/sub is looked up as a URDF's package://name/sub.
+def _body(mech, name: str):
+    """The body named ``name`` of a mechanism read into a description."""
+    (body,) = [b for b in mech.urdf.description.bodies if b.name == name]
+    return body
+
+
+def test_visuals_keep_their_geometry_colour_pose_and_mesh_file(fourbar, tmp_path):
+    # The crank's <visual>: a cylinder 0.05 m along its x, turned pi/2 about y (its
+    # <pose>, in the link frame), coloured by <diffuse>.
+    (visual,) = _body(fourbar, "crank").visuals
+    assert (visual.kind, visual.dims, visual.rgba) == ("cylinder", (0.01, 0.1), (0.8, 0.2, 0.2, 1))
+    assert _close(visual.placement, _se3([0.05, 0, 0], [0, math.pi / 2, 0]))
+    # model://name/sub is sub, looked up beside the SDF and in its parent directories.
     text = _edit(
         "<cylinder><radius>0.01</radius><length>0.1</length></cylinder>",
-        "<mesh><uri>model://fourbar/meshes/crank.stl</uri></mesh>",
+        "<mesh><uri>model://fourbar/meshes/crank.stl</uri><scale>2 2 2</scale></mesh>",
     )
-    robot, _ = read_sdf(_write(tmp_path, text))
-    mesh = robot.find("link[@name='crank']/visual/geometry/mesh")
-    assert mesh.get("filename") == "package://fourbar/meshes/crank.stl"
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "crank.stl").write_text("solid crank\nendsolid crank\n")
+    folder = tmp_path / "fourbar" / "robots"
+    folder.mkdir(parents=True)
+    urdf, _ = read_sdf(_write(folder, text))
+    (body,) = [b for b in urdf.description.bodies if b.name == "crank"]
+    (mesh,) = body.visuals
+    assert (mesh.kind, mesh.dims, mesh.mesh_file) == (
+        "mesh",
+        (2.0, 2.0, 2.0),
+        tmp_path / "meshes" / "crank.stl",
+    )
 
 
 def _write(tmp_path, text: str, name: str = "m.sdf"):
@@ -291,7 +309,16 @@ def test_unsafe_sdf_is_refused(tmp_path, prolog, match):
         (
             '<joint name="motor_joint" type="revolute">',
             '<joint name="motor_joint" type="ball">',
-            r"'motor_joint'>: the spanning tree needs this ball joint",
+            r"'crank_gear'>: joint 'motor_joint' between 'motor' and the "
+            r"gearbox_reference_body is ball; valid: a revolute tree joint",
+        ),
+        (
+            '<joint name="crank_joint" type="revolute">\n      <parent>ground</parent>'
+            "<child>crank</child>\n      <axis><xyz>0 0 1</xyz></axis>",
+            '<joint name="crank_joint" type="universal">\n      <parent>ground</parent>'
+            "<child>crank</child>\n      <axis><xyz>0 0 1</xyz></axis>"
+            "<axis2><xyz>0 0 -1</xyz></axis2>",
+            r"'crank_joint'>: <axis> and <axis2> are parallel",
         ),
         (
             '<xyz>0 0 1</xyz></axis>\n    </joint>\n    <joint name="coupler_joint"',
@@ -352,7 +379,7 @@ def test_a_reversed_joint_keeps_the_sign_of_its_sdf_coordinate(tmp_path):
     assert abs(math.remainder(relative_yaw(q) - at_zero - 0.1, 2 * math.pi)) < TOL_FRAME
 
 
-def test_a_universal_joint_is_kept_as_two_revolute_joints(tmp_path):
+def test_a_universal_joint_is_one_pinocchio_universal_joint(tmp_path):
     text = _edit(
         '<joint name="coupler_joint" type="revolute">',
         '<joint name="coupler_joint" type="universal">',
@@ -362,19 +389,79 @@ def test_a_universal_joint_is_kept_as_two_revolute_joints(tmp_path):
     )
     path = _fourbar_without_gearbox(tmp_path, text)
     mech = cc.load(path)
-    assert {"coupler_joint", "coupler_joint::axis2"} <= set(mech.joint_names)
-    assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
-    # The second axis is the coupler's x at the reference: B -> C.
     model, data = mech.model, mech.data
+    joint = model.joints[model.getJointId("coupler_joint")]
+    assert (joint.shortname(), joint.nq, joint.nv) == ("JointModelUniversal", 2, 2)
+    assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
+    # At the reference both angles are 0 (the file's pose closes the loop): the first axis
+    # is the model's z (use_parent_model_frame), the second the coupler's x: B -> C.
+    assert np.max(np.abs(mech.q_ref[joint.idx_q : joint.idx_q + 2])) < TOL_CLOSED
     pin.computeJointJacobians(model, data, mech.q_ref)
-    joint = model.getJointId("coupler_joint::axis2")
-    J = pin.getJointJacobian(model, data, joint, pin.ReferenceFrame.WORLD)
-    axis = J[3:, model.joints[joint].idx_v]
-    assert np.linalg.norm(axis - np.array([3.0, 1.0, 0.0]) / math.sqrt(10.0)) < TOL_FRAME
+    frame = pin.LOCAL_WORLD_ALIGNED
+    J = pin.getJointJacobian(model, data, model.getJointId("coupler_joint"), frame)
+    axes = J[3:, joint.idx_v : joint.idx_v + 2].T
+    assert np.linalg.norm(axes[0] - [0.0, 0.0, 1.0]) < TOL_FRAME
+    assert np.linalg.norm(axes[1] - np.array([3.0, 1.0, 0.0]) / math.sqrt(10.0)) < TOL_FRAME
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
     assert cc.validate(mech, n_samples=10).passed
     with pytest.raises(cc.URDFError, match=r"'coupler_joint'>: a universal joint cannot be cut"):
         cc.load(path, cut_joints=["coupler_joint"])
+
+
+#: A bob on a ball joint whose frame sits off the bob's (a <pose>). Link poses [m, rad].
+BALL_SDF = """<?xml version="1.0"?>
+<sdf version="1.6">
+  <model name="ball_pendulum">
+    <link name="ground"/>
+    <link name="bob"><pose>0.2 0.1 -0.5 0.3 0 0.1</pose>
+      <inertial><pose>0 0 -0.1 0 0 0</pose><mass>2</mass>
+        <inertia><ixx>0.01</ixx><iyy>0.02</iyy><izz>0.03</izz></inertia></inertial>
+    </link>
+    <joint name="{name}" type="ball">
+      <pose>0.05 0 0.4 0 0.2 0</pose>
+      <parent>{parent}</parent><child>{child}</child>
+    </joint>
+  </model>
+</sdf>
+"""
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_a_ball_joint_in_the_tree_turns_its_body_about_its_anchor(tmp_path, reverse):
+    # Written from the bob, the tree reaches it from 'ground' through the joint reversed.
+    parent, child = ("bob", "ground") if reverse else ("ground", "bob")
+    text = BALL_SDF.format(name="socket", parent=parent, child=child)
+    if reverse:  # the joint's pose is in its child's frame: the same point, from 'ground'
+        text = text.replace("<pose>0.05 0 0.4 0 0.2 0</pose>", "<pose>0.25 0.1 -0.1 0 0 0</pose>")
+    path = _write(tmp_path, text)
+    _, tree = read_sdf(path)
+    assert tree.reversed_joints == (("socket",) if reverse else ())
+    mech = cc.load(path)
+    model, data = mech.model, mech.data
+    joint = model.joints[model.getJointId("socket")]
+    assert (joint.shortname(), mech.nv) == ("JointModelSpherical", 3)
+    # By hand: the anchor A in the world, from the file's numbers (the joint's <pose> is
+    # in its SDF child's frame: the bob's, or reversed the ground's, the world).
+    bob0 = _se3([0.2, 0.1, -0.5], [0.3, 0, 0.1])
+    if reverse:
+        anchor = np.array([0.25, 0.1, -0.1])
+    else:
+        anchor = (bob0 * _se3([0.05, 0, 0.4], [0, 0.2, 0])).translation
+    # The quaternion turns the bob by R about A, R in the bob's axes: the bob's frame is
+    # bob0 T(p) R T(-p), p = A in the bob's frame; A stays where it is.
+    R = pin.rpy.rpyToMatrix(0.4, -0.3, 0.7)
+    quat = pin.Quaternion(R)
+    q = pin.neutral(model)
+    q[joint.idx_q : joint.idx_q + 4] = [quat.x, quat.y, quat.z, quat.w]
+    pin.framesForwardKinematics(model, data, q)
+    bob = data.oMf[model.getFrameId("bob", pin.FrameType.BODY)]
+    p_bob = bob0.inverse().act(anchor)
+    expected = bob0 * _se3(p_bob, [0, 0, 0]) * pin.SE3(R, np.zeros(3)) * _se3(-p_bob, [0, 0, 0])
+    assert _close(bob, expected)
+    assert np.linalg.norm(bob.act(p_bob) - anchor) < TOL_FRAME
+    # At the neutral quaternion the bob sits at its SDF pose.
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    assert _close(data.oMf[model.getFrameId("bob", pin.FrameType.BODY)], bob0)
 
 
 # -- Cassie -----------------------------------------------------------------------
@@ -508,6 +595,33 @@ def test_cassie_agrees_with_pinocchio_terms_with_its_gearboxes_eliminated(cassie
 
 
 @needs_erd
+def test_cassie_validates_against_pinocchio_mimic_joints(cassie):
+    """Its gearbox outputs are mimic joints below other mimic joints (each output carries
+    the next stage's rotor and output): the reference's reduced mass matrix is G^T M G,
+    M from Pinocchio's crba on the whole tree (its crba on the mimic model is 3 % off)."""
+    from closedchain.validation import mimic_reference
+
+    reference = mimic_reference(cassie)
+    rng = np.random.default_rng(1)
+    q = cc.assemble(
+        cassie,
+        pin.integrate(
+            cassie.model,
+            cassie.q_ref,
+            cc.project_velocity(cassie, cassie.q_ref, STEP * rng.standard_normal(cassie.nv)),
+        ),
+    )
+    M = pin.crba(cassie.model, cassie.model.createData(), q)
+    M = np.triu(M) + np.triu(M, 1).T
+    _, _, M_r = reference.dynamics(q, np.zeros(cassie.nv), np.zeros(cassie.nv))
+    G = reference.G
+    assert np.max(np.abs(M_r - G.T @ M @ G)) < TOL_REDUCED_M * np.max(np.abs(M_r))
+    report = cc.validate(cassie, n_samples=10)
+    assert report.reference == "pinocchio mimic joints"
+    assert report.passed, report
+
+
+@needs_erd
 def test_cassie_simulates_from_rest(cassie):
     traj = cc.simulate(cassie, cassie.q_ref, np.zeros(cassie.nv), 0.2)
     assert traj.t[-1] == pytest.approx(0.2)
@@ -517,14 +631,14 @@ def test_cassie_simulates_from_rest(cassie):
 @needs_erd
 def test_cassie_animates_with_its_meshes(cassie, tmp_path, capsys):
     """The SDF's model:// meshes are example-robot-data's, embedded within the budget."""
-    meshes = etree.fromstring(cassie.urdf.xml.encode()).findall("link/visual/geometry/mesh")
-    uris = [m.get("filename") for m in meshes]
-    prefix = "package://example-robot-data/robots/cassie_description/meshes/"
-    assert uris and all(u.startswith(prefix) for u in uris)
+    bodies = cassie.urdf.description.bodies
+    meshes = [v.mesh_file for b in bodies for v in b.visuals if v.kind == "mesh"]
+    folder = robots.erd_robots_dir() / "cassie_description" / "meshes"
+    assert meshes and all(m.is_file() and m.parent == folder for m in meshes)
     out = tmp_path / "cassie.html"
     assert main(["animate", "erd:cassie", "--t-final", "0.1", "-o", str(out)]) == 0
-    assert f"meshes: {len(uris)} embedded (" in capsys.readouterr().out
-    assert b"package://" not in out.read_bytes()
+    assert f"meshes: {len(meshes)} embedded (" in capsys.readouterr().out
+    assert b"model://" not in out.read_bytes()
 
 
 @pytest.fixture(scope="module")
@@ -790,6 +904,17 @@ def test_a_gearbox_ties_the_rotor_with_the_sdf_sign_and_reflects_its_inertia(tmp
     assert [(d.joint, d.damping) for d in mech.urdf.dampings] == [("arm_joint", damping)]
 
 
+def test_a_damped_geared_arm_validates_against_pinocchio_mimic_joints(tmp_path):
+    """The arm joint's damping is a force Pinocchio does not model: validate gives it to
+    the mimic reference as it gives it to pinocchio.constraintDynamics."""
+    text = GEARBOX_SDF.format(rotor=ROTOR_JOINTS["from_ground"][0], **GEARED_ARM)
+    mech = cc.load(_write(tmp_path, text), gravity=(0.0, -GRAVITY_Y, 0.0))
+    assert mech.urdf.dampings
+    report = cc.validate(mech, n_samples=10)
+    assert report.reference == "pinocchio mimic joints"
+    assert report.passed, report
+
+
 def test_a_gearbox_without_a_joint_to_its_reference_body_is_refused(tmp_path):
     text = GEARBOX_SDF.format(rotor=ROTOR_JOINTS["from_ground"][0], **GEARED_ARM).replace(
         "<gearbox_reference_body>ground</gearbox_reference_body>",
@@ -849,9 +974,11 @@ def test_every_link_frame_sits_at_its_sdf_pose_across_a_reversed_joint(tmp_path,
 
 
 @pytest.mark.parametrize("reverse", [False, True])
-def test_a_universal_joint_keeps_its_coordinates_in_sdf_axis_order(tmp_path, reverse):
-    # R(parent -> child) = Rot(axis, q_axis) Rot(axis2, q_axis2) in the joint frame (here
-    # the identity at q = 0), whichever link the tree reaches first.
+def test_a_universal_joint_has_its_coordinates_in_sdf_axis_order(tmp_path, reverse):
+    # SDFormat: R(parent -> child) = Rot(axis, q_axis) Rot(axis2, q_axis2) in the joint
+    # frame (here every link's and the joint's axes are alike at q = 0). Reversed in the
+    # tree, the body turns about <axis2> (fixed in its tree parent, the SDF child) first:
+    # two revolute joints, a_base::axis2 then a_base, each holding its own axis' angle.
     text = REVERSED_SDF.format(type="universal")
     if not reverse:
         text = text.replace(
@@ -876,18 +1003,53 @@ def test_a_universal_joint_keeps_its_coordinates_in_sdf_axis_order(tmp_path, rev
     assert ("a_base" in tree.reversed_joints) == reverse
     mech = cc.load(path)
     model, data = mech.model, mech.data
+    q_axis, q_axis2 = 0.3, -0.5
     q = pin.neutral(model)
-    angles = {"a_base": 0.3, "a_base::axis2": -0.5}
-    for name, angle in angles.items():
-        q[model.joints[model.getJointId(name)].idx_q] = angle
+    joint = model.joints[model.getJointId("a_base")]
+    if reverse:
+        second = model.joints[model.getJointId("a_base::axis2")]
+        assert (second.nq, joint.nq) == (1, 1)
+        assert second.idx_q < joint.idx_q
+        q[joint.idx_q], q[second.idx_q] = q_axis, q_axis2
+    else:
+        assert joint.shortname() == "JointModelUniversal"
+        q[joint.idx_q : joint.idx_q + 2] = (q_axis, q_axis2)
     pin.framesForwardKinematics(model, data, q)
     parent, child = ("a", "base") if reverse else ("base", "a")
     R = (
         data.oMf[model.getFrameId(parent, pin.FrameType.BODY)].rotation.T
         @ data.oMf[model.getFrameId(child, pin.FrameType.BODY)].rotation
     )
-    expected = pin.rpy.rpyToMatrix(0.3, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, -0.5, 0.0)
+    expected = pin.rpy.rpyToMatrix(q_axis, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, q_axis2, 0.0)
     assert np.max(np.abs(R - expected)) < TOL_FRAME
+    # The joint's anchor, the SDF child's origin (the joint has no <pose>), stays where the
+    # file's poses put it in the SDF parent's frame.
+    poses = _sdf_link_poses(path)
+    oMp, oMc = (data.oMf[model.getFrameId(n, pin.FrameType.BODY)] for n in (parent, child))
+    anchor = (poses[parent].inverse() * poses[child]).translation
+    assert np.linalg.norm((oMp.inverse() * oMc).translation - anchor) < TOL_FRAME
+
+
+def test_a_reversed_universal_joint_keeps_each_axis_limits_and_damping(tmp_path):
+    text = REVERSED_SDF.format(type="universal").replace(
+        "<axis><xyz>1 0 0</xyz></axis>\n      <axis2><xyz>0 1 0</xyz></axis2>",
+        "<axis><xyz>1 0 0</xyz><limit><lower>-0.4</lower><upper>0.7</upper></limit>"
+        "<dynamics><damping>0.3</damping></dynamics></axis>\n"
+        "      <axis2><xyz>0 1 0</xyz><limit><lower>-1.1</lower><upper>0.2</upper></limit>"
+        "<dynamics><damping>0.05</damping></dynamics></axis2>",
+    )
+    assert "<damping>0.05</damping>" in text
+    mech = cc.load(_write(tmp_path, text))
+    model = mech.model
+    # Values from the file above: <axis> -0.4..0.7, damping 0.3; <axis2> -1.1..0.2, 0.05.
+    for name, (lower, upper, damping) in {
+        "a_base": (-0.4, 0.7, 0.3),
+        "a_base::axis2": (-1.1, 0.2, 0.05),
+    }.items():
+        jm = model.joints[model.getJointId(name)]
+        assert model.lowerPositionLimit[jm.idx_q] == pytest.approx(lower, abs=1e-15)
+        assert model.upperPositionLimit[jm.idx_q] == pytest.approx(upper, abs=1e-15)
+        assert mech.passive.damping[jm.idx_v] == pytest.approx(damping, abs=1e-15)
 
 
 @needs_erd
@@ -996,3 +1158,209 @@ def test_a_relative_to_cycle_of_thousands_of_frames_is_one_bounded_line(tmp_path
         cc.load(path)
     message = str(info.value)
     assert "\n" not in message and len(message) < 3_000
+
+
+# -- the mass matrix of an SDF tree against Pinocchio's URDF reader -------------------------
+
+#: An SDF tree written from these numbers: link -> (pose [m, rad], inertial pose in the
+#: link frame, mass [kg], ixx, ixy, ixz, iyy, iyz, izz [kg m^2]).
+TREE_LINKS = {
+    "base": ((0.1, -0.2, 0.3, 0.2, -0.1, 0.4), (0.01, 0.02, 0.03, 0, 0, 0), 3.0,
+             (0.05, 0, 0, 0.06, 0, 0.07)),
+    "a": ((0.4, 0.1, 0.5, 0.1, 0.2, 0.9), (0.1, 0, 0.05, 0.3, 0, 0.2), 1.5,
+          (0.02, 0.001, 0, 0.03, 0, 0.04)),
+    "b": ((0.7, -0.2, 0.4, 0, 0.3, 0), (0, 0.04, 0, 0, 0.1, 0), 0.8,
+          (0.004, 0, 0.0005, 0.005, 0, 0.006)),
+    "c": ((0.9, 0.1, 0.2, 0.2, 0, -0.3), (0.02, 0, -0.03, 0, 0, 0.5), 0.6,
+          (0.003, 0, 0, 0.002, 0.0002, 0.0025)),
+    "d": ((1.0, 0.2, 0.1, 0, 0, 0.1), (0, 0, 0.02, 0, 0, 0), 0.3,
+          (0.001, 0, 0, 0.001, 0, 0.001)),
+}  # fmt: skip
+#: Joints: name -> (type, parent, child, pose in the child's frame, axis, axis2). a_base
+#: is written from 'a', so the tree (rooted at 'base', the first link) reverses it.
+TREE_JOINTS = {
+    "a_base": ("revolute", "a", "base", (0.05, 0.02, 0, 0, 0, 0.3), (1, 0, 0), None),
+    "a_b": ("prismatic", "a", "b", (-0.1, 0, 0.02, 0, 0, 0.4), (0, 0.6, 0.8), None),
+    "b_c": ("universal", "b", "c", (0, 0.05, 0, 0.1, 0, 0), (1, 0, 0), (0, 0, 1)),
+    "c_d": ("fixed", "c", "d", (0, 0, 0, 0, 0, 0), None, None),
+}
+#: Mass matrices and bias forces agree to this [kg m^2, N m] (round-off of two builds).
+TOL_TREE_M = 1e-12
+#: Joint limits of the hand-written URDF [rad or m] (beyond the states drawn).
+URDF_LIMIT = 10.0
+
+
+def _tree_sdf() -> str:
+    def numbers(x) -> str:
+        return " ".join(repr(float(v)) for v in x)
+
+    out = ['<?xml version="1.0"?>\n<sdf version="1.6"><model name="tree">']
+    for name, (pose, ipose, mass, inertia) in TREE_LINKS.items():
+        names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+        tags = "".join(f"<{t}>{v!r}</{t}>" for t, v in zip(names, inertia, strict=True))
+        out.append(
+            f'<link name="{name}"><pose>{numbers(pose)}</pose><inertial><pose>{numbers(ipose)}'
+            f"</pose><mass>{mass!r}</mass><inertia>{tags}</inertia></inertial></link>"
+        )
+    for name, (jtype, parent, child, pose, axis, axis2) in TREE_JOINTS.items():
+        axes = "" if axis is None else f"<axis><xyz>{numbers(axis)}</xyz></axis>"
+        axes += "" if axis2 is None else f"<axis2><xyz>{numbers(axis2)}</xyz></axis2>"
+        out.append(
+            f'<joint name="{name}" type="{jtype}"><pose>{numbers(pose)}</pose>'
+            f"<parent>{parent}</parent><child>{child}</child>{axes}</joint>"
+        )
+    return "".join(out) + "</model></sdf>\n"
+
+
+def _tree_urdf() -> str:
+    """The same tree as plain URDF, written here: each URDF link's frame is its joint's
+    SDF frame (the root's: its SDF pose), inertials re-expressed in it; the reversed
+    joint's axis negated; the universal joint two revolutes through a massless link."""
+
+    def origin(M: pin.SE3) -> str:
+        xyz = " ".join(repr(float(v)) for v in M.translation)
+        rpy = " ".join(repr(float(v)) for v in pin.rpy.matrixToRpy(M.rotation))
+        return f'<origin xyz="{xyz}" rpy="{rpy}"/>'
+
+    def inertial(name: str, frame: pin.SE3) -> str:
+        pose, ipose, mass, (ixx, ixy, ixz, iyy, iyz, izz) = TREE_LINKS[name]
+        M = frame.inverse() * _se3(pose[:3], pose[3:]) * _se3(ipose[:3], ipose[3:])
+        return (
+            f"<inertial>{origin(M)}<mass value='{mass!r}'/><inertia ixx='{ixx!r}' "
+            f"ixy='{ixy!r}' ixz='{ixz!r}' iyy='{iyy!r}' iyz='{iyz!r}' izz='{izz!r}'/></inertial>"
+        )
+
+    def world(name: str) -> pin.SE3:
+        return _se3(TREE_LINKS[name][0][:3], TREE_LINKS[name][0][3:])
+
+    def joint_frame(name: str) -> pin.SE3:
+        _, _, child, pose, _, _ = TREE_JOINTS[name]
+        return world(child) * _se3(pose[:3], pose[3:])
+
+    def joint(name, jtype, parent, child, M, axis=None) -> str:
+        xyz = "" if axis is None else " ".join(repr(float(v)) for v in axis)
+        axis_text = "" if axis is None else f"<axis xyz='{xyz}'/>"
+        limit = (
+            ""
+            if jtype == "fixed"
+            else (f"<limit lower='{-URDF_LIMIT}' upper='{URDF_LIMIT}' effort='1' velocity='1'/>")
+        )
+        return (
+            f"<joint name='{name}' type='{jtype}'><parent link='{parent}'/><child link='{child}'/>"
+            f"{origin(M)}{axis_text}{limit}</joint>"
+        )
+
+    frames = {
+        "base": world("base"),
+        "a": joint_frame("a_base"),
+        "b": joint_frame("a_b"),
+        "c": joint_frame("b_c"),
+        "d": joint_frame("c_d"),
+    }
+    links = [f"<link name='{n}'>{inertial(n, frames[n])}</link>" for n in TREE_LINKS]
+    links.append("<link name='b_c_cross'/>")
+    joints = [
+        joint("a_base", "revolute", "base", "a", frames["base"].inverse() * frames["a"],
+              -np.array(TREE_JOINTS["a_base"][4])),
+        joint("a_b", "prismatic", "a", "b", frames["a"].inverse() * frames["b"],
+              TREE_JOINTS["a_b"][4]),
+        joint("b_c", "revolute", "b", "b_c_cross", frames["b"].inverse() * frames["c"],
+              TREE_JOINTS["b_c"][4]),
+        joint("b_c_2", "revolute", "b_c_cross", "c", pin.SE3.Identity(), TREE_JOINTS["b_c"][5]),
+        joint("c_d", "fixed", "c", "d", frames["c"].inverse() * frames["d"]),
+    ]  # fmt: skip
+    return "<robot name='tree'>" + "".join(links + joints) + "</robot>"
+
+
+def test_an_sdf_tree_has_the_mass_matrix_of_the_same_tree_read_by_pinocchio(tmp_path, rng):
+    mech = cc.load(_write(tmp_path, _tree_sdf()))
+    _, tree = read_sdf(tmp_path / "m.sdf")
+    assert tree.reversed_joints == ("a_base",)
+    ref = pin.buildModelFromXML(_tree_urdf())
+    assert (mech.nv, ref.nv) == (4, 4)
+    model = mech.model
+    # Each coordinate of ours -> the reference's: the universal joint's two in SDF order.
+    ours = [model.joints[model.getJointId(n)].idx_v for n in ("a_base", "a_b", "b_c")]
+    order = [ours[0], ours[1], ours[2], ours[2] + 1]
+    theirs = [ref.joints[ref.getJointId(n)].idx_v for n in ("a_base", "a_b", "b_c", "b_c_2")]
+    model.gravity.linear = ref.gravity.linear = np.array([0.3, -1.2, -9.81])
+    data, ref_data = model.createData(), ref.createData()
+    for _ in range(5):
+        q, v, a = rng.uniform(-1.0, 1.0, (3, 4))
+        q_ref, v_ref, a_ref = np.zeros((3, 4))
+        q_ref[theirs], v_ref[theirs], a_ref[theirs] = q, v, a
+        q_ours, v_ours, a_ours = np.zeros((3, 4))
+        q_ours[order], v_ours[order], a_ours[order] = q, v, a
+        M = pin.crba(model, data, q_ours)[np.ix_(order, order)]
+        M_ref = pin.crba(ref, ref_data, q_ref)[np.ix_(theirs, theirs)]
+        assert np.max(np.abs(np.triu(M) - np.triu(M_ref))) < TOL_TREE_M
+        tau = pin.rnea(model, data, q_ours, v_ours, a_ours)[order]
+        tau_ref = pin.rnea(ref, ref_data, q_ref, v_ref, a_ref)[theirs]
+        assert np.max(np.abs(tau - tau_ref)) < TOL_TREE_M
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "match"),
+    [
+        ("loops.yaml", "loops: []\n", r"loops.yaml: a loops YAML file converts a URDF's joints"),
+        (
+            "motor.urdf",
+            '<robot name="x"><transmission name="t"><joint name="nope"/></transmission></robot>',
+            r"motor.urdf: line 1: <transmission name='t'>: names joint 'nope', which is not a",
+        ),
+    ],
+)
+def test_an_overlay_an_sdf_model_cannot_take_is_refused_naming_it(tmp_path, name, text, match):
+    overlay = tmp_path / name
+    overlay.write_text(text)
+    with pytest.raises(cc.URDFError, match=match):
+        cc.load(FOURBAR, loops=overlay)
+
+
+def test_an_overlay_adds_a_link_to_an_sdf_model_where_it_says(tmp_path):
+    # A 1 kg point mass fixed 0.2 m along the crank's x: its world position at q_ref is the
+    # crank frame's (the SDF pose, checked elsewhere) moved by 0.2 m along its x axis.
+    overlay = tmp_path / "tip.urdf"
+    overlay.write_text(
+        '<robot name="tip"><link name="tip"><inertial><mass value="1"/>'
+        '<inertia ixx="0" iyy="0" izz="0" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+        '<joint name="tip_joint" type="fixed"><parent link="crank"/><child link="tip"/>'
+        '<origin xyz="0.2 0 0"/></joint></robot>'
+    )
+    plain, mech = cc.load(FOURBAR), cc.load(FOURBAR, loops=overlay)
+    placed = []
+    for m, frame in ((plain, "crank"), (mech, "tip")):
+        data = m.model.createData()
+        pin.framesForwardKinematics(m.model, data, plain.q_ref)
+        placed.append(data.oMf[m.model.getFrameId(frame, pin.FrameType.BODY)])
+    crank, tip = placed
+    assert np.max(np.abs(tip.translation - crank.act(np.array([0.2, 0.0, 0.0])))) < TOL_FRAME
+    assert mech.nv == plain.nv
+
+
+def test_an_overlay_adds_loops_and_motors_to_an_sdf_model(tmp_path):
+    # Pin the 4-bar's coupler to the world where it is drawn (its frame's origin B), and
+    # drive the motor: the overlay's loop closes at the reference, the motor is actuated.
+    overlay = tmp_path / "pinned.urdf"
+    overlay.write_text(
+        '<robot name="pinned"><loop name="pin_b" type="spherical"><predecessor link="world"/>'
+        '<successor link="coupler"/><predecessor_origin xyz="0 0.1 0"/></loop>'
+        '<transmission name="t"><joint name="motor_joint"/></transmission></robot>'
+    )
+    mech = cc.load(FOURBAR, loops=overlay)
+    assert (mech.name, mech.actuated_joints) == ("pinned", ("motor_joint",))
+    assert [lp.name for lp in mech.urdf.loops][-1] == "pin_b"
+    assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
+
+
+def test_an_sdf_tree_beyond_the_size_limit_is_refused_before_it_is_described(tmp_path):
+    # The 4-bar's tree: four revolute joints (nv 4), one beyond a limit of 3; the chain of
+    # 3000 fixed links above counts no degree of freedom.
+    from closedchain.pindata import data_bytes
+
+    budget = (data_bytes(3) + data_bytes(4)) / 2
+    with pytest.raises(cc.ModelTooLargeError, match=r"fourbar.sdf: 4 joints with nv = 4 .*nv <= 3"):
+        cc.load(FOURBAR, settings=cc.LoadSettings(max_data_bytes=budget))
+    path = tmp_path / "chain.sdf"
+    path.write_text(_chain_sdf(CHAIN_LINKS))
+    assert cc.load(path, settings=cc.LoadSettings(max_data_bytes=budget)).nv == 1

@@ -1,7 +1,7 @@
-"""Tests of closedchain.simulate: accuracy, singular motion, the seed's program, torques,
+"""Tests of closedchain.simulate: accuracy, singular motion, the lesson's program, torques,
 computed-torque tracking, trajectories on disk, error paths and the CLI.
 
-Mechanisms (from ``tests/conftest.py``): the seed's planar 4-bar (``models/fourbar.urdf``)
+Mechanisms (from ``tests/conftest.py``): the lesson's planar 4-bar (``models/fourbar.urdf``)
 and the Agile Eye spherical wrist (``models/agile_eye.urdf``). The 4-bar starts from rest
 at theta2 = 10 deg on one of its two assembly branches:
 
@@ -31,7 +31,7 @@ from closedchain.simulate import (
     STABILIZATIONS,
     SimulationError,
     SimulationSettings,
-    seed_settings,
+    lesson_settings,
     simulate,
 )
 
@@ -56,25 +56,25 @@ RESIDUAL_TOL = 1e-10
 AGREEMENT_TOL = 1e-8
 #: Requirement 2: a near-singular run that passes must keep its energy to this.
 SINGULAR_PASS_DRIFT_TOL = 1e-6
-#: Seed port vs closedchain, same arithmetic in another order [rad, rad/s, N].
-SEED_Q_TOL = 1e-12
-SEED_V_TOL = 1e-10
-SEED_LAM_TOL = 1e-9
+#: Lesson port vs closedchain, same arithmetic in another order [rad, rad/s, N].
+LESSON_Q_TOL = 1e-12
+LESSON_V_TOL = 1e-10
+LESSON_LAM_TOL = 1e-9
 #: Across the change point closedchain may differ from the port by as much as the
 #: port differs from itself when one coordinate of its start moves by at most what the
-#: two agree to before it (SEED_Q_TOL): the envelope over the 2 x 3 such starts, each
-#: moved by one ulp and by each of SEED_START_OFFSETS. The algorithm's own round-off
+#: two agree to before it (LESSON_Q_TOL): the envelope over the 2 x 3 such starts, each
+#: moved by one ulp and by each of LESSON_START_OFFSETS. The algorithm's own round-off
 #: amplification (~1e11) makes the one-ulp envelope alone a matter of the CPU: the
 #: numpy path was 0.55 of it on one machine and 4.0 of it on an AMD EPYC (OpenBLAS
 #: Haswell kernel), where the full envelope holds it to 0.59.
-SEED_ULP_ENVELOPE_FACTOR = 1.0
-#: Start offsets [rad] of the envelope's port runs, up to SEED_Q_TOL.
-SEED_START_OFFSETS = (1e-13, SEED_Q_TOL)
-#: The seed's step against an accurate solution before the change point: time [s],
+LESSON_ULP_ENVELOPE_FACTOR = 1.0
+#: Start offsets [rad] of the envelope's port runs, up to LESSON_Q_TOL.
+LESSON_START_OFFSETS = (1e-13, LESSON_Q_TOL)
+#: The lesson's step against an accurate solution before the change point: time [s],
 #: the two step sizes [s] and the bound on |observed order - 1| (measured 0.0005).
-SEED_ACCURACY_T = 0.5
-SEED_ACCURACY_DTS = (1e-3, 5e-4)
-SEED_ORDER_TOL = 0.05
+LESSON_ACCURACY_T = 0.5
+LESSON_ACCURACY_DTS = (1e-3, 5e-4)
+LESSON_ORDER_TOL = 0.05
 #: Tracking error of the computed-torque examples [rad].
 TRACKING_TOL = 1e-6
 #: Energy may rise under a pure damper by no more than integration error [J].
@@ -379,23 +379,23 @@ def test_baumgarte_refused_by_pinocchio_method(fourbar, q_crossed):
         )
 
 
-# -- 3. the seed's program --------------------------------------------------------------
+# -- 3. the lesson's program --------------------------------------------------------------
 
-#: The seed's run (Section 7): dt [s], steps, crank torque [N m].
-SEED_DT = 1e-3
-SEED_STEPS = 1000
-SEED_TAU = np.array([1.0, 0.0, 0.0])
-#: The seed's initial guess [deg] (not on phi = 0: closed holding theta2 = 10 deg).
-SEED_GUESS_DEG = (10.0, 60.0, 30.0)
+#: The lesson's run (Section 7): dt [s], steps, crank torque [N m].
+LESSON_DT = 1e-3
+LESSON_STEPS = 1000
+LESSON_TAU = np.array([1.0, 0.0, 0.0])
+#: The lesson's initial guess [deg] (not on phi = 0: closed holding theta2 = 10 deg).
+LESSON_GUESS_DEG = (10.0, 60.0, 30.0)
 
 
-def _seed_port(mech, closed_forms, q0: np.ndarray) -> dict[str, np.ndarray]:
-    """The seed's Section 7 loop, line by line, with Pinocchio's M, h and the seed's closure.
+def _lesson_port(mech, closed_forms, q0: np.ndarray) -> dict[str, np.ndarray]:
+    """The lesson's Section 7 loop, line by line, with Pinocchio's M, h and the lesson's closure.
 
-    The closure is the seed's phi, J_c, Jdot_c (Section 2, Problem 2) turned into the
+    The closure is the lesson's phi, J_c, Jdot_c (Section 2, Problem 2) turned into the
     coupler's cut frame, as closedchain declares its rows (conftest's ``phi_cut``,
     ``jacobian_cut``, ``gamma_cut``): on the manifold that only rotates the rows and the
-    multipliers, but the seed never projects velocities, and off J v = 0 the
+    multipliers, but the lesson never projects velocities, and off J v = 0 the
     acceleration equations of world-axis and cut-frame rows differ by terms in J v.
     Joint coordinates q (``theta = T q``), so J_q = J_theta T.
     """
@@ -433,109 +433,109 @@ def _seed_port(mech, closed_forms, q0: np.ndarray) -> dict[str, np.ndarray]:
 
     q, qdot = q0.copy(), np.zeros(3)
     qs, vs, lams = [q], [qdot], []
-    for _ in range(SEED_STEPS):
-        q, qdot, _, lam = constrained_dynamics_step(q, qdot, SEED_TAU, SEED_DT)
+    for _ in range(LESSON_STEPS):
+        q, qdot, _, lam = constrained_dynamics_step(q, qdot, LESSON_TAU, LESSON_DT)
         qs.append(q)
         vs.append(qdot)
         lams.append(lam)
     return {"q": np.array(qs), "v": np.array(vs), "lam": np.array(lams)}
 
 
-def _seed_run(mech, q0, backend="auto"):
+def _lesson_run(mech, q0, backend="auto"):
     return simulate(
         mech,
         q0,
         np.zeros(3),
-        SEED_STEPS * SEED_DT,
-        method="kkt",  # the seed's KKT solve (the default before issue 11)
+        LESSON_STEPS * LESSON_DT,
+        method="kkt",  # the lesson's KKT solve (the default before issue 11)
         integrator="semi-implicit",
         stabilization="projection",
-        settings=seed_settings(),
-        dt=SEED_DT,
-        tau=SEED_TAU,
+        settings=lesson_settings(),
+        dt=LESSON_DT,
+        tau=LESSON_TAU,
         backend=backend,
     )
 
 
 @pytest.mark.parametrize("guess_deg", [CROSSED_GUESS_DEG], ids=["crossed"])
-def test_seed_program_reproduced(fourbar, fourbar_closed_forms, guess_deg):
+def test_lesson_program_reproduced(fourbar, fourbar_closed_forms, guess_deg):
     """Crossed branch, 1000 steps: closedchain and the port agree to round-off throughout."""
     q0 = _assemble_fourbar(fourbar, guess_deg)
-    traj = _seed_run(fourbar, q0)
-    ref = _seed_port(fourbar, fourbar_closed_forms, q0)
+    traj = _lesson_run(fourbar, q0)
+    ref = _lesson_port(fourbar, fourbar_closed_forms, q0)
     assert traj.q.shape == ref["q"].shape
-    assert traj.info.steps == SEED_STEPS
-    assert np.max(np.linalg.norm(traj.q - ref["q"], axis=1)) <= SEED_Q_TOL
-    assert np.max(np.linalg.norm(traj.v - ref["v"], axis=1)) <= SEED_V_TOL
-    # The seed's lambda of step k is computed at the state before it: traj.lam[k].
-    assert np.max(np.linalg.norm(traj.lam[:-1] - ref["lam"], axis=1)) <= SEED_LAM_TOL
+    assert traj.info.steps == LESSON_STEPS
+    assert np.max(np.linalg.norm(traj.q - ref["q"], axis=1)) <= LESSON_Q_TOL
+    assert np.max(np.linalg.norm(traj.v - ref["v"], axis=1)) <= LESSON_V_TOL
+    # The lesson's lambda of step k is computed at the state before it: traj.lam[k].
+    assert np.max(np.linalg.norm(traj.lam[:-1] - ref["lam"], axis=1)) <= LESSON_LAM_TOL
 
 
-def test_seed_program_from_seed_guess(fourbar, fourbar_closed_forms):
-    """The seed's own start (open branch), all 1000 steps: closedchain is the port to
+def test_lesson_program_from_lesson_guess(fourbar, fourbar_closed_forms):
+    """The lesson's own start (open branch), all 1000 steps: closedchain is the port to
     round-off, where round-off is what the algorithm itself makes of one ulp.
 
     Driven by the crank torque the linkage reaches its change point (theta2 near
     -180 deg; a + d = b + c, so every link lines up there) after step 500
-    (seed_settings() has no singularity guard, as the seed's loop). With velocities
-    never projected, the seed's explicit step there turns the crank back at 25 rad/s
+    (lesson_settings() has no singularity guard, as the lesson's loop). With velocities
+    never projected, the lesson's explicit step there turns the crank back at 25 rad/s
     within 40 steps, and the crank then spins up to 300 rad/s by step 1000 (far more
     than the 1 N m torque's work allows: numerical energy). Along that motion the
     step amplifies round-off by ~1e11: the port started one ulp away in a single
     coordinate ends 1.5e-4 rad from itself. Agreement to round-off until the change
     point here, and after it within that envelope at every step in the slow test below.
     """
-    q0 = _assemble_fourbar(fourbar, SEED_GUESS_DEG)
-    traj = _seed_run(fourbar, q0)
-    ref = _seed_port(fourbar, fourbar_closed_forms, q0)
+    q0 = _assemble_fourbar(fourbar, LESSON_GUESS_DEG)
+    traj = _lesson_run(fourbar, q0)
+    ref = _lesson_port(fourbar, fourbar_closed_forms, q0)
     err = np.linalg.norm(traj.q - ref["q"], axis=1)
     first = int(np.argmax(ref["q"][:, 0] <= -0.95 * math.pi))  # first step at the change point
-    assert first > SEED_STEPS // 2
-    assert np.max(err[:first]) <= SEED_Q_TOL
+    assert first > LESSON_STEPS // 2
+    assert np.max(err[:first]) <= LESSON_Q_TOL
     lam_err = np.linalg.norm(traj.lam[:-1] - ref["lam"], axis=1)
-    assert np.max(lam_err[: first - 1]) <= SEED_LAM_TOL
+    assert np.max(lam_err[: first - 1]) <= LESSON_LAM_TOL
 
 
 @pytest.mark.slow
-def test_seed_program_from_seed_guess_all_steps(fourbar, fourbar_closed_forms):
+def test_lesson_program_from_lesson_guess_all_steps(fourbar, fourbar_closed_forms):
     """The same run over all 1000 steps, through the change point: within the envelope
-    of the port's own starts moved by one ulp up to SEED_Q_TOL (see the test above and
-    SEED_ULP_ENVELOPE_FACTOR) at every step.
+    of the port's own starts moved by one ulp up to LESSON_Q_TOL (see the test above and
+    LESSON_ULP_ENVELOPE_FACTOR) at every step.
 
     On the numpy backend, whose KKT solve is LAPACK's as the port's (before the change
     point the backends agree to round-off: the test above runs the compiled one)."""
-    q0 = _assemble_fourbar(fourbar, SEED_GUESS_DEG)
-    traj = _seed_run(fourbar, q0, backend="numpy")
-    ref = _seed_port(fourbar, fourbar_closed_forms, q0)
+    q0 = _assemble_fourbar(fourbar, LESSON_GUESS_DEG)
+    traj = _lesson_run(fourbar, q0, backend="numpy")
+    ref = _lesson_port(fourbar, fourbar_closed_forms, q0)
     err = np.linalg.norm(traj.q - ref["q"], axis=1)
-    envelope = np.zeros(SEED_STEPS + 1)
+    envelope = np.zeros(LESSON_STEPS + 1)
     for i in range(3):
         for direction in (-1.0, 1.0):
             starts = [np.nextafter(q0[i], direction * math.inf)]
-            starts += [q0[i] + direction * offset for offset in SEED_START_OFFSETS]
+            starts += [q0[i] + direction * offset for offset in LESSON_START_OFFSETS]
             for start in starts:
                 q_other = q0.copy()
                 q_other[i] = start
-                other = _seed_port(fourbar, fourbar_closed_forms, q_other)
+                other = _lesson_port(fourbar, fourbar_closed_forms, q_other)
                 envelope = np.maximum(envelope, np.linalg.norm(other["q"] - ref["q"], axis=1))
     envelope = np.maximum.accumulate(envelope)
-    assert envelope[-1] > 1e3 * SEED_Q_TOL  # the amplification is real, not a round-off floor
-    assert np.all(err <= SEED_ULP_ENVELOPE_FACTOR * envelope + SEED_Q_TOL)
+    assert envelope[-1] > 1e3 * LESSON_Q_TOL  # the amplification is real, not a round-off floor
+    assert np.all(err <= LESSON_ULP_ENVELOPE_FACTOR * envelope + LESSON_Q_TOL)
 
 
-def test_seed_step_is_first_order_against_an_accurate_solution(fourbar):
-    """The seed's step (explicit velocity update, two Gauss-Newton projections) against
-    DOP853 at rtol 1e-12 from the seed's start, before the change point: the error at
-    t = 0.5 s halves with the step (first order), so the seed's dt = 1 ms carries the
+def test_lesson_step_is_first_order_against_an_accurate_solution(fourbar):
+    """The lesson's step (explicit velocity update, two Gauss-Newton projections) against
+    DOP853 at rtol 1e-12 from the lesson's start, before the change point: the error at
+    t = 0.5 s halves with the step (first order), so the lesson's dt = 1 ms carries the
     error its step implies, 6.8e-3 rad, equal to the Richardson estimate
     |q_dt - q_dt/2| / (1 - 2^-1) to within the order's tolerance."""
-    q0 = _assemble_fourbar(fourbar, SEED_GUESS_DEG)
-    T = SEED_ACCURACY_T
+    q0 = _assemble_fourbar(fourbar, LESSON_GUESS_DEG)
+    T = LESSON_ACCURACY_T
     exact = simulate(
-        fourbar, q0, np.zeros(3), T, tau=SEED_TAU, integrator="DOP853", rtol=1e-12, atol=1e-12
+        fourbar, q0, np.zeros(3), T, tau=LESSON_TAU, integrator="DOP853", rtol=1e-12, atol=1e-12
     ).q[-1]
     finals = []
-    for dt in SEED_ACCURACY_DTS:
+    for dt in LESSON_ACCURACY_DTS:
         traj = simulate(
             fourbar,
             q0,
@@ -544,17 +544,17 @@ def test_seed_step_is_first_order_against_an_accurate_solution(fourbar):
             method="kkt",
             integrator="semi-implicit",
             stabilization="projection",
-            settings=seed_settings(),
+            settings=lesson_settings(),
             dt=dt,
-            tau=SEED_TAU,
+            tau=LESSON_TAU,
         )
         assert traj.t[-1] == pytest.approx(T, abs=TIME_TOL)
         finals.append(traj.q[-1])
     errors = [float(np.linalg.norm(q - exact)) for q in finals]
     order = math.log2(errors[0] / errors[1])
-    assert abs(order - 1.0) <= SEED_ORDER_TOL
+    assert abs(order - 1.0) <= LESSON_ORDER_TOL
     richardson = float(np.linalg.norm(finals[0] - finals[1])) * 2.0
-    assert abs(errors[0] - richardson) <= SEED_ORDER_TOL * errors[0]
+    assert abs(errors[0] - richardson) <= LESSON_ORDER_TOL * errors[0]
 
 
 # -- 4. torques -------------------------------------------------------------------------

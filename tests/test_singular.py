@@ -571,7 +571,7 @@ def test_branch_series_says_which_branch_the_change_point_leaves_on(
 ):
     """The open-branch 4-bar passes its change point at t = 0.393 s: the branch series
     (sign of det(J_D), J_D = coupler and rocker columns) starts +1 (open) and the
-    trajectory reports each change, independently checked with the seed's closed form
+    trajectory reports each change, independently checked with the lesson's closed form
     det(J_D) = b c sin(theta3 - theta4) (theta3 = q0 + q1, theta4 = q2)."""
     mech = load_mechanism("fourbar")
     traj = simulate(mech, q_open, np.zeros(mech.nv), 0.6, t_eval=np.linspace(0, 0.6, 61))

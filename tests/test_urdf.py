@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lxml import etree
 
 import closedchain as cc
 from closedchain.urdf import LOOP_TYPES, parse_urdf
@@ -404,14 +403,17 @@ def test_loop_whose_frames_cannot_be_brought_together(fourbar_text, write):
     assert best >= 1.0 / np.sqrt(2) - 1e-3
 
 
-def test_tree_that_pinocchio_cannot_build(fourbar_text, write):
+def test_links_that_make_no_tree(fourbar_text, write):
     path = write(
         replaced(
             fourbar_text, '<link name="crank">', '<link name="orphan"/>\n  <link name="crank">'
         )
     )
     with pytest.raises(
-        cc.URDFError, match=re.escape(str(path)) + ": Pinocchio cannot build the tree"
+        cc.URDFError,
+        match=re.escape(
+            f"{path}: the links and joints make no tree: 2 root links (ground, orphan)"
+        ),
     ):
         cc.load(path)
 
@@ -683,9 +685,8 @@ def test_joint_axis_is_normalized_without_overflow(fourbar, fourbar_text, write,
     crank = mech.model.joints[mech.model.getJointId("crank_joint")]
     assert np.array_equal(crank.extract().axis, [0.0, -1.0, 0.0])
     assert mech.mobility == 1
-    # The axis Pinocchio read is the one written back into the XML.
-    axis = etree.fromstring(mech.urdf.xml.encode()).find("joint[@name='crank_joint']/axis")
-    assert axis.get("xyz") == "0.0 -1.0 0.0"
+    (crank,) = (j for j in mech.urdf.description.joints() if j.name == "crank_joint")
+    assert np.array_equal(crank.axis, [0.0, -1.0, 0.0])
     assert mech.digest() == fourbar.digest()
 
 

@@ -1,5 +1,5 @@
 """Tests of closedchain.workspace: the 4-bar's link lengths and Grashof class measured on
-the model against the seed's lengths (conftest closed forms), the crank-range sweep against
+the model against the lesson's lengths (conftest closed forms), the crank-range sweep against
 the closed form, the Agile Eye's platform outputs and singularity map, error paths, CLI."""
 
 from __future__ import annotations

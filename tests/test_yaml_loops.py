@@ -30,8 +30,6 @@ from lxml import etree
 import closedchain as cc
 from closedchain.cli import main
 from closedchain.closure import layer_phi, max_declared_residual
-from closedchain.urdf import read_xml
-from closedchain.yaml_loops import apply_loops_yaml, read_loops_yaml
 
 #: Assembled configurations close every declared row to this [m or -].
 TOL_PHI = 1e-12
@@ -45,6 +43,8 @@ TOL_ROWS = 1e-9
 MIN_TURN = 1e-3
 #: Motor displacement [rad] from q_ref to the second assembled configuration.
 MOTOR_STEP = 0.1
+#: Mass matrices of the same tree built two ways agree to this [kg m^2] (round-off).
+TOL_MASS = 1e-15
 #: Validation states per mechanism.
 N_STATES = 10
 #: Simulated time [s].
@@ -292,12 +292,21 @@ def test_a_frame_of_the_world_holds_a_free_base(mechs, tmp_path):
             "base, dist1, dist2, free1, free2, mot1, mot2, pin, pin_link, prox1, prox2, tip1, "
             "tip1_link, tip2, tip2_link, universe$",
         ),
-        (  # YAML, a tree of more than 30 frames: the list is cut
+        (  # YAML: every frame listed
             "yaml_delta.urdf",
             "delta.yaml",
             (DATA_DIR / "yaml_delta.yaml").read_text().replace("'rod_tip1'", "'rod_tipl'"),
             "<loop name='rod_tipl--platform_att1'>: <predecessor frame='rod_tipl'>",
-            r"arm0, arm1, arm2, base, .*, \.\.\. and \d+ more$",
+            "arm0, arm1, arm2, base, elbow0, elbow1, elbow2, mot0, mot1, mot2, platform, "
+            "platform_att1, platform_att1_link, platform_att2, platform_att2_link, rod0, rod1, "
+            "rod2, rod_tip1, rod_tip1_link, rod_tip2, rod_tip2_link, universe, wrist0$",
+        ),
+        (  # YAML, a tree of more than 30 frames: the list is cut
+            str(ROOT / "models" / "nfourbar_40.urdf"),
+            "nfourbar.yaml",
+            "closed_loop: [['crank_00_tip', 'crank_0l']]\ntype: ['3d']\n",
+            "<loop name='crank_00_tip--crank_0l'>: <successor frame='crank_0l'>",
+            r"coupler_01, coupler_01_joint, .*, coupler_15_joint, \.\.\. and 216 more$",
         ),
     ],
 )
@@ -442,38 +451,90 @@ def test_unknown_motor_lists_the_movable_joints(tmp_path):
 def test_conversion_names_must_be_free(tmp_path):
     urdf = tmp_path / "fivebar.urdf"
     text = (DATA_DIR / "yaml_fivebar.urdf").read_text()
-    urdf.write_text(text.replace("</robot>", '<link name="pin_Y_link"/></robot>'))
+    urdf.write_text(
+        text.replace(
+            "</robot>",
+            '<link name="pin_X_link"/><joint name="tag" type="fixed"><parent link="base"/>'
+            '<child link="pin_X_link"/></joint></robot>',
+        )
+    )
     loops = tmp_path / "robot.yaml"
-    loops.write_text(FIVEBAR_YAML + "joint_name: [pin]\njoint_type: [SPHERICAL]\n")
+    loops.write_text(FIVEBAR_YAML + "joint_name: [pin]\njoint_type: [UJOINT_XY]\n")
     with pytest.raises(
         cc.URDFError,
         match=re.escape(f"{loops}: joint_name[0] = 'pin': converting it needs the name ")
-        + "'pin_Y_link', which the tree already uses",
+        + "'pin_X_link', which the tree already uses",
     ):
         cc.load(urdf, loops=loops)
 
 
+def ball_chains(text: str, joints: tuple[str, ...]) -> str:
+    """Return a URDF text with each named joint written as the corpus writes a ball joint:
+    revolute joints ``<joint>_X, _Y, _Z`` in a row at its origin, through massless links."""
+    root = etree.fromstring(text.encode())
+    for name in joints:
+        joint = root.find(f"joint[@name='{name}']")
+        parent, child = joint.find("parent").get("link"), joint.find("child").get("link")
+        links = [f"{name}_X_link", f"{name}_Y_link"]
+        position = list(root).index(joint)
+        root.remove(joint)
+        new = [etree.Element("link", name=link) for link in links]
+        for k, axis in enumerate("XYZ"):
+            element = etree.Element("joint", name=f"{name}_{axis}", type="revolute")
+            if k == 0 and joint.find("origin") is not None:
+                element.append(joint.find("origin"))
+            etree.SubElement(element, "parent", link=[parent, *links][k])
+            etree.SubElement(element, "child", link=[*links, child][k])
+            etree.SubElement(
+                element, "axis", xyz=" ".join("1" if a == axis else "0" for a in "XYZ")
+            )
+            etree.SubElement(
+                element, "limit", lower="-3.14", upper="3.14", effort="0", velocity="0"
+            )
+            new.append(element)
+        for offset, element in enumerate(new):
+            root.insert(position + offset, element)
+    return etree.tostring(root, encoding="unicode")
+
+
+#: The joints the delta's YAML converts to SPHERICAL.
+DELTA_BALLS = ("elbow0", "elbow1", "elbow2", "wrist0")
+
+
 def test_ball_chains_of_the_corpus_are_fused(mechs, tmp_path):
     """Three revolute joints through massless links at one point (how the corpus writes a
-    ball joint; here the XML the SPHERICAL conversion writes) become one spherical joint
-    named after the last, under a loops YAML; plain URDF keeps the three."""
-    root = read_xml(DATA_DIR / "yaml_delta.urdf")
-    apply_loops_yaml(root, read_loops_yaml(DATA_DIR / "yaml_delta.yaml"), base=DATA_DIR)
-    urdf = tmp_path / "delta_chains.urdf"  # the loops and motors are in it now
-    urdf.write_bytes(etree.tostring(root))
+    ball joint) become one spherical joint named after the last, under a loops YAML;
+    plain URDF keeps the three. The fused tree is the SPHERICAL conversion's."""
+    urdf = tmp_path / "delta_chains.urdf"
+    urdf.write_text(ball_chains((DATA_DIR / "yaml_delta.urdf").read_text(), DELTA_BALLS))
     loops = tmp_path / "robot.yaml"
-    loops.write_text("name_mot: []\n")
+    # The same loops and motors, no conversion.
+    loops.write_text((DATA_DIR / "yaml_delta.yaml").read_text().split("joint_name")[0])
     fused, plain, ref = cc.load(urdf, loops=loops), cc.load(urdf), mechs("delta")
-    assert [fused.model.joints[j].shortname() for j in range(1, fused.model.njoints)] == [
-        ref.model.joints[j].shortname() for j in range(1, ref.model.njoints)
-    ]
     assert fused.model.existJointName("elbow1_Z") and not fused.model.existJointName("elbow1_X")
+    assert fused.model.existFrame("elbow1_X", pin.FrameType.FIXED_JOINT)
     assert (fused.nq, fused.nv, fused.mobility) == (ref.nq, ref.nv, ref.mobility)
     assert (plain.nq, plain.nv) == (ref.nv, ref.nv)
     masses = [sum(i.mass for i in m.model.inertias) for m in (fused, plain, ref)]
     assert masses[0] == pytest.approx(masses[1], rel=1e-15) == pytest.approx(masses[2], rel=1e-15)
-    M = pin.crba(fused.model, fused.model.createData(), ref.q_ref)
-    assert np.max(np.abs(M - pin.crba(ref.model, ref.model.createData(), ref.q_ref))) <= 1e-15
+    # Joint by joint, the fused model is the reference's: same kind, placement and
+    # inertia, and the same mass matrix at the reference's configuration.
+    joints = {
+        name: ref.model.getJointId(name.removesuffix("_Z") if name[:-2] in DELTA_BALLS else name)
+        for name in list(fused.model.names)[1:]
+    }
+    q, v_index = np.zeros(fused.nq), []
+    for name, k in joints.items():
+        ours, theirs = fused.model.joints[fused.model.getJointId(name)], ref.model.joints[k]
+        assert ours.shortname() == theirs.shortname()
+        j = fused.model.getJointId(name)
+        assert fused.model.jointPlacements[j].isApprox(ref.model.jointPlacements[k], 1e-15)
+        assert fused.model.inertias[j].isApprox(ref.model.inertias[k], 1e-15)
+        q[ours.idx_q : ours.idx_q + ours.nq] = ref.q_ref[theirs.idx_q : theirs.idx_q + theirs.nq]
+        v_index.extend(range(theirs.idx_v, theirs.idx_v + theirs.nv))
+    M = pin.crba(fused.model, fused.model.createData(), q)
+    M_ref = pin.crba(ref.model, ref.model.createData(), ref.q_ref)
+    assert np.max(np.abs(M - M_ref[np.ix_(v_index, v_index)])) <= TOL_MASS
 
 
 def test_limits_without_a_range_are_no_limits(tmp_path):

@@ -26,6 +26,7 @@ from .control import (
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
     AssemblyError,
+    BatchError,
     ClosedChainError,
     InvalidArgumentError,
     LoopClosureError,
@@ -66,10 +67,13 @@ from .plotting import coordinate_series, plot_trajectory
 from .simulate import (
     INTEGRATORS,
     STABILIZATIONS,
+    BatchResult,
+    Rollout,
     SimulationError,
     SimulationSettings,
-    seed_settings,
+    lesson_settings,
     simulate,
+    simulate_batch,
 )
 from .trajectory import SimulationInfo, StopInfo, Trajectory
 from .validation import ValidationReport, validate
@@ -82,12 +86,16 @@ __all__ = [
     "STABILIZATIONS",
     "SimulationError",
     "SimulationSettings",
-    "seed_settings",
+    "lesson_settings",
     "simulate",
+    "simulate_batch",
+    "BatchResult",
+    "Rollout",
     "METHODS",
     "ActuationSingularities",
     "AssemblyError",
     "AssemblySettings",
+    "BatchError",
     "ClosedChainError",
     "ForwardDynamicsResult",
     "ForwardKinematicsResult",

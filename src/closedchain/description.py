@@ -22,15 +22,62 @@ import pinocchio as pin
 __all__ = [
     "BodyDescription",
     "JOINT_KINDS",
+    "JOINT_NV",
     "JointDescription",
+    "LIMITED_KINDS",
     "MechanismDescription",
+    "NEUTRAL_Q0",
     "SiteDescription",
+    "UNIVERSAL_SECOND_SUFFIX",
     "VISUAL_KINDS",
     "Visual",
 ]
 
-#: Joint kinds and their number of configuration entries.
-JOINT_KINDS = {"revolute": 1, "prismatic": 1, "spherical": 4, "free": 7}
+#: Joint kinds and their number of configuration entries: MJCF's hinge, slide, ball and
+#: free joints; URDF's continuous (an angle as cos, sin: Pinocchio's RevoluteUnbounded),
+#: planar (x, y, cos, sin about the frame's z) and floating joints; SDF's universal
+#: joint (two angles about its two axes: Pinocchio's JointModelUniversal).
+JOINT_KINDS = {
+    "revolute": 1,
+    "prismatic": 1,
+    "spherical": 4,
+    "free": 7,
+    "continuous": 2,
+    "planar": 4,
+    "floating": 7,
+    "universal": 2,
+}
+
+#: Each joint kind's neutral configuration (its ``q0`` when the file gives none).
+NEUTRAL_Q0 = {
+    "revolute": (0.0,),
+    "prismatic": (0.0,),
+    "spherical": (0.0, 0.0, 0.0, 1.0),
+    "free": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+    "continuous": (1.0, 0.0),
+    "planar": (0.0, 0.0, 1.0, 0.0),
+    "floating": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+    "universal": (0.0, 0.0),
+}
+
+#: Each joint kind's number of velocity entries.
+JOINT_NV = {
+    "revolute": 1,
+    "prismatic": 1,
+    "spherical": 3,
+    "free": 6,
+    "continuous": 1,
+    "planar": 3,
+    "floating": 6,
+    "universal": 2,
+}
+
+#: Suffix of the name of a universal joint's second axis where it is a joint of its own
+#: (a reversed SDF universal joint; a universal joint exported to MJCF as two hinges).
+UNIVERSAL_SECOND_SUFFIX = "::axis2"
+
+#: Joint kinds whose position limits are ``lower`` and ``upper`` (one coordinate each).
+LIMITED_KINDS = ("revolute", "prismatic")
 
 #: The kinds of drawn shapes (see :class:`Visual`).
 VISUAL_KINDS = ("sphere", "box", "cylinder", "mesh")
@@ -43,18 +90,29 @@ class JointDescription:
     The body moves about its joint's anchor: at configuration ``q0`` it sits at
     its :attr:`BodyDescription.placement`, and at q its frame is
     ``placement * T(position) * S(q) S(q0)^-1 * T(-position)`` (``S``: the
-    joint's motion). A free joint (the only joint of a top-level body) places
-    the body in the world: its q is the body's pose.
+    joint's motion). A free joint (MJCF's: the only joint of a top-level body)
+    places the body in the world: its q is the body's pose. A floating joint
+    (URDF's) follows the rule above, anywhere in the tree.
 
     Attributes:
         name: the joint's name.
         kind: one of :data:`JOINT_KINDS`.
-        axis: unit axis in the body frame, shape (3,) (revolute and prismatic).
+        axis: unit axis in the body frame, shape (3,) (revolute and prismatic); a
+            universal joint's two axes, shape (2, 3): the body turns by
+            Rot(axis[0], q[0]) Rot(axis[1], q[1]) (Pinocchio's ``JointModelUniversal``).
         position: the anchor in the body frame [m], shape (3,).
         q0: the configuration at which the body is at its placement, shape
             (nq,) [rad, m, or a unit quaternion x, y, z, w].
         lower: lower position limit [rad or m] (revolute and prismatic).
         upper: upper position limit [rad or m].
+        effort: largest |force or torque| [N or N m] (1-dof kinds; Pinocchio's
+            ``effortLimit``).
+        velocity: largest |velocity| [rad/s or m/s] (1-dof kinds; ``velocityLimit``).
+        friction: dry friction [N or N m] (1-dof kinds; Pinocchio's ``friction``,
+            not modelled by closedchain).
+        damping: viscous damping [N m s/rad or N s/m] (1-dof kinds; Pinocchio's
+            ``damping``; the dynamics take theirs from
+            :class:`closedchain.urdf.JointDamping`).
     """
 
     name: str
@@ -64,6 +122,10 @@ class JointDescription:
     q0: tuple[float, ...] = (0.0,)
     lower: float = -np.inf
     upper: float = np.inf
+    effort: float = np.inf
+    velocity: float = np.inf
+    friction: float = 0.0
+    damping: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -75,15 +137,18 @@ class Visual:
         dims: sphere (radius,), box (x, y, z full lengths), cylinder (radius,
             length along its z axis) [m]; mesh: its scale (3 factors).
         placement: the shape's frame in the body frame.
-        rgba: colour (r, g, b, a) in [0, 1].
-        mesh_file: the mesh file (mesh only), drawn in ``placement`` after scaling.
+        rgba: colour (r, g, b, a) in [0, 1], or None (none given: the drawing's default).
+        mesh_file: the mesh file (mesh only), drawn in ``placement`` after scaling:
+            a path (MJCF: as MuJoCo found it), or a URDF's filename as written
+            (``package://``, ``file://`` or relative), looked up beside the file
+            that names the link.
     """
 
     kind: str
     dims: tuple[float, ...]
     placement: pin.SE3
-    rgba: tuple[float, float, float, float]
-    mesh_file: Path | None = None
+    rgba: tuple[float, float, float, float] | None
+    mesh_file: Path | str | None = None
 
 
 @dataclass(frozen=True)
@@ -92,19 +157,26 @@ class BodyDescription:
 
     Attributes:
         name: the body's name (its BODY frame in the built model).
-        parent: the parent body's name (:data:`closedchain.urdf.WORLD_LINK` for the world).
+        parent: the parent body's name (:data:`closedchain.urdf.WORLD_LINK` for
+            the world of a description with :attr:`MechanismDescription.world_frame`),
+            or None: the body hangs from Pinocchio's universe (a URDF's root link,
+            on the root joint if the model has one).
         placement: the body frame in the parent's body frame at the joints' ``q0``.
         joints: its joints to the parent, applied in order (none: welded).
         inertia: mass, centre of mass and rotational inertia in the body frame.
         visuals: its drawn shapes.
+        fixed_joint: the name of the fixed joint that welds it (URDF; "": none),
+            a FIXED_JOINT frame between the parent's frame and the body's, as
+            Pinocchio's URDF reader makes it.
     """
 
     name: str
-    parent: str
+    parent: str | None
     placement: pin.SE3
     joints: tuple[JointDescription, ...] = ()
     inertia: pin.Inertia = field(default_factory=pin.Inertia.Zero)
     visuals: tuple[Visual, ...] = ()
+    fixed_joint: str = ""
 
 
 @dataclass(frozen=True)
@@ -137,6 +209,9 @@ class MechanismDescription:
             Pinocchio's convention, in the file's order.
         inactive: equalities the file declares inactive (kind and name): kept
             out of the loops, listed in the mechanism's summary.
+        world_frame: whether the built model has a BODY frame
+            :data:`closedchain.urdf.WORLD_LINK` for the universe (MJCF's world
+            body); a URDF's tree has none (its root link is a body).
     """
 
     name: str
@@ -146,10 +221,15 @@ class MechanismDescription:
     sites: tuple[SiteDescription, ...] = ()
     keyframes: dict[str, dict[str, tuple[float, ...]]] = field(default_factory=dict)
     inactive: tuple[str, ...] = ()
+    world_frame: bool = True
 
     def joints(self) -> tuple[JointDescription, ...]:
         """Return every joint, in tree order."""
         return tuple(j for b in self.bodies for j in b.joints)
+
+    def nv(self) -> int:
+        """Return the number of velocity entries of the tree (without a root joint)."""
+        return sum(JOINT_NV.get(j.kind, 0) for j in self.joints())
 
     def reference_values(self) -> dict[str, tuple[float, ...]]:
         """Return each joint's ``q0`` (the configuration the file draws the model in)."""

@@ -158,6 +158,18 @@ class SimulationError(ClosedChainError):
         self.trajectory = None
 
 
+class BatchError(ClosedChainError):
+    """Members of a :func:`closedchain.simulate_batch` failed (``BatchResult.check``).
+
+    Attributes:
+        failed: member index -> the exception that stopped it.
+    """
+
+    def __init__(self, message: str, *, failed: dict[int, Exception]) -> None:
+        super().__init__(message)
+        self.failed = failed
+
+
 class RowCheckRequired(ClosedChainError):
     """Raised by a compiled loop when the kept rows stop describing the loops at ``t``.
 

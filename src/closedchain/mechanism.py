@@ -23,9 +23,8 @@ import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
 from ._invariants import prove_unclosable
-from ._io import captured_stderr
 from ._locking import exclusive
-from .build import build_model, configuration
+from .build import build_model, check_size, configuration
 from .closure import (
     AssemblySettings,
     LoopClosure,
@@ -54,7 +53,6 @@ from .mjcf import MJCF_ROOT, read_mjcf
 from .passive import PassiveTerms, passive_terms
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
 from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf, read_xml
-from .yaml_loops import edit_model
 
 __all__ = [
     "DEFAULT_GRAVITY",
@@ -530,8 +528,10 @@ class Mechanism:
             jm = self.model.joints[j]
             sl = slice(jm.idx_q, jm.idx_q + jm.nq)
             # Every revolute joint model (RX/RY/RZ, RevoluteUnaligned, RUB*, ...)
-            # and only those start with "JointModelR".
-            bound = np.pi if jm.shortname().startswith("JointModelR") else prismatic_range
+            # and only those start with "JointModelR"; a universal joint has two angles.
+            name = jm.shortname()
+            angles = name.startswith("JointModelR") or name == "JointModelUniversal"
+            bound = np.pi if angles else prismatic_range
             if jm.nq != jm.nv:  # continuous, spherical, free flyer: normalize below
                 bound = max(bound, 1.0)
             lo[sl] = np.maximum(np.nan_to_num(lo[sl], neginf=-bound), -bound)
@@ -775,32 +775,6 @@ def _finite(name: str, value, what: str, *, shape: tuple[int, ...] | None = None
     return arr
 
 
-def _urdfdom_errors(text: str) -> list[str]:
-    """Return the reasons of urdfdom's ``Error:`` lines in ``text``, the root cause first."""
-    lines = (line.strip() for line in text.splitlines())
-    return [line.removeprefix("Error:").strip() for line in lines if line.startswith("Error:")]
-
-
-def _build_from_xml(urdf: URDFPlus, root) -> pin.Model:
-    """Build the tree of a URDF+ text with Pinocchio's URDF reader (urdfdom)."""
-    try:
-        # urdfdom prints its reasons on fd 2: fold them into the one-line message.
-        with captured_stderr() as urdfdom:
-            model = (
-                pin.buildModelFromXML(urdf.xml)
-                if root is None
-                else pin.buildModelFromXML(urdf.xml, root())
-            )
-    except (RuntimeError, ValueError) as exc:
-        errors = _urdfdom_errors(urdfdom.text)
-        reason = f"urdfdom: {errors[0]}" if errors else str(exc)
-        raise URDFError(f"{urdf.path}: Pinocchio cannot build the tree: {reason}") from exc
-    if urdfdom.text.strip():
-        reasons = _urdfdom_errors(urdfdom.text) or [" ".join(urdfdom.text.split())]
-        logger.warning("%s: urdfdom: %s", urdf.path, "; ".join(reasons))
-    return model
-
-
 def load(
     path: str | Path,
     *,
@@ -864,8 +838,8 @@ def load(
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
     base, entry = resolve_model(path)
     cut = tuple(cut_joints) or (entry.cut_joints if entry is not None else ())
-    # URDF and MJCF are read here once (MJCF through MuJoCo, with its gravity); SDF and
-    # cuts by merge_overlay's read_base.
+    # URDF and MJCF are read here once (MJCF through MuJoCo, with its gravity); SDF (into
+    # a description: closedchain.sdf) and cuts by merge_overlay.
     robot = None if cut or is_sdf(base) else read_xml(base)
     mjcf, file_gravity = None, None
     if robot is not None and robot.tag == MJCF_ROOT:
@@ -882,14 +856,7 @@ def load(
     try:
         if mjcf is not None:
             urdf = mjcf
-            nv = sum({"spherical": 3, "free": 6}.get(j.kind, 1) for j in mjcf.description.joints())
-            if nv > max_nv(settings):
-                raise ModelTooLargeError(
-                    f"{base}: {len(mjcf.description.joints())} joints with nv = {nv} degrees "
-                    f"of freedom are beyond the supported size; valid: nv <= {max_nv(settings)}",
-                    nv=nv,
-                    max_nv=max_nv(settings),
-                )
+            check_size(mjcf.description, max_nv(settings))
         elif loops is None and entry is None and robot is not None:
             urdf = parse_urdf(base, element=robot, max_nv=max_nv(settings))
         else:
@@ -926,12 +893,7 @@ def load(
             f"{MAX_GRAVITY_NORM:g} m/s^2 (MAX_GRAVITY_NORM)"
         )
     root = ROOT_JOINTS[root_joint]
-    if urdf.description is not None:
-        model = build_model(urdf.description, None if root is None else root())
-    else:
-        model = _build_from_xml(urdf, root)
-    if urdf.spherical or urdf.unlimited or urdf.fuse_ball_chains:
-        model = edit_model(model, urdf)
+    model = build_model(urdf.description, None if root is None else root())
     if model.nv == 0:
         raise URDFError(
             f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "
@@ -993,7 +955,7 @@ def load(
             scene_q[model.joints[model.getJointId(name)].idx_q] = value
         starts.append(scene_q)
     q_guess = reference_configuration(model, entry)
-    if urdf.description is not None:
+    if q_guess is None and (mjcf is not None or is_sdf(base)):  # keyframes, else drawn pose
         q_guess = configuration(model, _start_values(urdf, keyframe))
     _select_rows_and_coordinates(mech, settings, q_guess=q_guess, extra_starts=starts)
     _refuse_massless_subtrees(mech)

@@ -35,9 +35,12 @@ sites                              OP_FRAMEs named after them
                                    pose at qpos0 unless given)
 ``weld`` ``torquescale="0"``       spherical loop (MuJoCo's rotation rows are
                                    then zero: a point constraint)
-``weld``, other ``torquescale``    fixed loop: it only weights MuJoCo's soft
-                                   rotation rows, a rigid weld is the same
-                                   constraint (logged)
+``weld``, other ``torquescale``    fixed loop: MuJoCo scales the rotation rows
+                                   (Jacobian and residual) by it, which only
+                                   weights them in its soft solve; held
+                                   rigidly, scaled rows are the same
+                                   constraint (logged; MuJoCo's rigid limit
+                                   agrees: ``closedchain.mjcf_reference``)
 ``joint`` (``polycoef``, padded    coupling loop q1 = c1 q2 + c0 + r1 - c1 r2
 with zeros by MuJoCo)              (r: the joints' ``ref``, MuJoCo's
                                    polynomial is in q - ref); nonzero c2..c4
@@ -640,7 +643,6 @@ def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray
     }
     urdf = URDFPlus(
         path=path,
-        xml=None,
         robot_name=description.name,
         links=(WORLD_LINK, *(b.name for b in description.bodies)),
         joints=joints,

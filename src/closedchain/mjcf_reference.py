@@ -17,11 +17,27 @@ in MuJoCo and in the body frame in Pinocchio: with R the body's rotation,
 
 Two accelerations of MuJoCo at a closed state (q, v) with joint forces tau:
 
-- ``soft``: ``mj_forward`` with every active equality made stiff
-  (:data:`STIFF_SOLREF`, :data:`STIFF_SOLIMP`; ``refsafe`` off so that the
-  time constant is not raised to twice the model's time step), contacts,
-  limits, friction loss and actuation disabled: MuJoCo's own answer, within
-  its softness (``solimp`` cannot exceed 0.9999).
+- ``soft``: ``mj_forward`` with every active equality as stiff as MuJoCo allows,
+  contacts, limits, friction loss and actuation disabled: MuJoCo's own answer,
+  within its softness. MuJoCo's constraint force is
+  :math:`f = (A + R)^{-1} (a_{ref} - a_u)` with the regulariser
+  :math:`R_{ii} = (1 - d)/d \, \hat A_{ii}`, where the impedance d cannot exceed
+  ``mjMAXIMP`` = 0.9999 and :math:`\hat A` is an approximate diagonal of
+  :math:`A = J M^{-1} J^T` built from the inverse weights MuJoCo's compiler
+  computes at qpos0 (``body_invweight0``, ``dof_invweight0``). ``solimp`` at that
+  cap therefore leaves :math:`R \geq 10^{-4} \hat A`, and more where
+  :math:`\hat A` overestimates A (it is frozen at qpos0 and treats bodies as
+  independent; a weld's rotation rows are scaled by its ``torquescale``, which
+  the approximation does not see). By default (``rigid_limit``) the inverse weights
+  are scaled by :data:`RIGID_LIMIT_SCALE` as well, which takes R towards 0: the
+  equality rows then follow MuJoCo's reference acceleration
+  :math:`a_{ref} = -b J v - k r`, near 0 at a closed state with MuJoCo's default
+  ``solref`` (:data:`STIFF_SOLREF`; a short time constant would turn the
+  residuals of order 1e-12 of a closed state into accelerations), and the solver
+  runs to convergence (tolerance 0). Without ``rigid_limit``:
+  :data:`CAP_SOLREF`, :data:`STIFF_SOLIMP` and MuJoCo's own diagonal, what
+  MuJoCo's stiffest equality gives in a simulation (``refsafe`` off so that
+  the time constant is not raised to twice the model's time step).
 - ``rigid``: the KKT system built from MuJoCo's own M (``mj_fullM``), bias
   forces ``qfrc_bias`` and equality rows of ``efc_J``, with
   :math:`\dot J v` by fourth-order central differences of ``efc_J`` along v
@@ -49,7 +65,9 @@ import pinocchio as pin
 from .mjcf import _mujoco, _pin_values, compile_mjcf
 
 __all__ = [
+    "CAP_SOLREF",
     "JDOT_STEP",
+    "RIGID_LIMIT_SCALE",
     "STIFF_SOLIMP",
     "STIFF_SOLREF",
     "MujocoModel",
@@ -61,11 +79,26 @@ __all__ = [
     "to_mujoco",
 ]
 
-#: MuJoCo ``solref`` (time constant [s], damping ratio) that makes an equality stiff.
-STIFF_SOLREF = (2e-4, 1.0)
+#: MuJoCo ``solref`` (time constant [s], damping ratio) of the compared equalities in the
+#: rigid limit: MuJoCo's default (the reference acceleration's spring-damper; R sets the
+#: stiffness).
+STIFF_SOLREF = (0.02, 1.0)
 
-#: MuJoCo ``solimp`` (dmin, dmax, width [m], midpoint, power) of a stiff equality.
+#: MuJoCo ``solref`` of the stiffest equality MuJoCo simulates (without ``rigid_limit``).
+CAP_SOLREF = (2e-4, 1.0)
+
+#: MuJoCo ``solimp`` (dmin, dmax, width [m], midpoint, power) of a stiff equality: the
+#: impedance at MuJoCo's cap ``mjMAXIMP``.
 STIFF_SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
+
+#: Factor on MuJoCo's inverse weights at qpos0 (``body_invweight0``, ``dof_invweight0``:
+#: its approximate diagonal of J M^-1 J^T) in the rigid limit: R = 1e-4 times it.
+#: Smaller factors leave MuJoCo's Newton step ill-conditioned (cond(M + J^T R^-1 J)).
+RIGID_LIMIT_SCALE = 1e-8
+
+#: Iterations of MuJoCo's solver in the rigid limit (tolerance 0: it stops when a step
+#: no longer improves; Newton takes 1 to 3).
+SOLVER_ITERATIONS = 1000
 
 #: Equality rows of MuJoCo's efc_J shorter than this times the longest are zero rows.
 ZERO_ROW_RTOL = 1e-9
@@ -91,7 +124,7 @@ class MujocoModel:
     """A compiled MJCF model and its map to the Pinocchio model of the same file.
 
     Attributes:
-        mj: the ``MjModel`` (equalities stiff, contacts, limits, friction loss and
+        mj: the ``MjModel`` (equalities stiff or rigid, contacts, limits, friction loss and
             actuation disabled).
         data: its ``MjData``.
         joints: per MuJoCo joint: (kind, Pinocchio idx_q, idx_v, MuJoCo qposadr, dofadr).
@@ -102,18 +135,30 @@ class MujocoModel:
     joints: list[tuple[str, int, int, int, int]]
 
 
-def mujoco_model(path: str | Path, model: pin.Model, *, rigid: bool = True) -> MujocoModel:
+def mujoco_model(
+    path: str | Path, model: pin.Model, *, rigid: bool = True, rigid_limit: bool = True
+) -> MujocoModel:
     """Compile ``path`` with MuJoCo and map its joints to ``model``'s (by name).
 
     Args:
         path: the MJCF file closedchain loaded ``model`` from.
         model: the Pinocchio model :func:`closedchain.load` built.
         rigid: zero the passive terms (:func:`rigid_spec`).
+        rigid_limit: take MuJoCo's equalities to its rigid limit (the module
+            docstring), else leave them at MuJoCo's stiffest simulated setting.
     """
     mujoco = _mujoco()
     _, mj, _ = compile_mjcf(Path(path), spec_edit=rigid_spec if rigid else None)
-    mj.eq_solref[:] = STIFF_SOLREF
+    mj.eq_solref[:] = STIFF_SOLREF if rigid_limit else CAP_SOLREF
     mj.eq_solimp[:] = STIFF_SOLIMP
+    if rigid_limit:
+        mj.body_invweight0[:] *= RIGID_LIMIT_SCALE
+        mj.dof_invweight0[:] *= RIGID_LIMIT_SCALE
+        # The exact diagonal (diagexact) would replace the scaled one.
+        mj.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_DIAGEXACT)
+        mj.opt.solver = int(mujoco.mjtSolver.mjSOL_NEWTON)
+        mj.opt.tolerance = 0.0
+        mj.opt.iterations = SOLVER_ITERATIONS
     D = mujoco.mjtDisableBit
     # REFSAFE would raise solref[0] to twice the model's time step (4e-3 s for 2e-3 s).
     off = (D.mjDSBL_CONTACT, D.mjDSBL_LIMIT, D.mjDSBL_FRICTIONLOSS, D.mjDSBL_ACTUATION)

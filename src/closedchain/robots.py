@@ -28,7 +28,6 @@ link is the tree's root and a root joint is added, it moves with the root.
 
 from __future__ import annotations
 
-import copy
 import logging
 from dataclasses import dataclass, replace
 from importlib import metadata
@@ -36,10 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .build import check_size
 from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
 from .mjcf import MJCF_ROOT
 from .sdf import is_sdf, read_sdf
-from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_xml
+from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_overlay, read_xml
 from .yaml_loops import apply_loops_yaml, is_loops_yaml, read_loops_yaml
 
 __all__ = [
@@ -190,22 +190,25 @@ def reference_configuration(model, entry: RobotEntry | None, *, robots_dir: Path
 
 
 def read_base(base: Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tuple[str, ...] = ()):
-    """Return the ``<robot>`` element of a base model: a URDF, or an SDF read as URDF+.
+    """Return the ``<robot>`` element of a base URDF.
 
     Args:
-        base: the model file (``.sdf``: :func:`closedchain.sdf.read_sdf`; an MJCF
-            file, root ``<mujoco>``, is refused: it is read whole by
-            :func:`closedchain.mjcf.read_mjcf`).
+        base: the model file (an SDF file, ``.sdf``, and an MJCF file, root
+            ``<mujoco>``, are refused: they are read into descriptions by
+            :func:`closedchain.sdf.read_sdf` and :func:`closedchain.mjcf.read_mjcf`).
         cut_joints: SDF only: joints to cut in preference.
         fixed_joints: SDF only (a registry entry's): joints read as ``fixed``
             (:func:`closedchain.sdf.read_sdf`).
 
     Raises:
         URDFError: see :func:`closedchain.urdf.read_xml` and :func:`closedchain.sdf.read_sdf`;
-            ``cut_joints`` given for a URDF.
+            ``cut_joints`` given for a URDF; an SDF or MJCF file.
     """
     if is_sdf(base):
-        return read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints)[0]
+        raise URDFError(
+            f"{base}: an SDF model is read into a description (closedchain.sdf.read_sdf), "
+            "not a <robot> element"
+        )
     if cut_joints:
         raise URDFError(
             f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
@@ -229,14 +232,24 @@ def merge_overlay(
     fixed_joints: tuple[str, ...] = (),
     root=None,
 ) -> URDFPlus:
-    """Merge an overlay's elements into a base URDF and parse the result.
+    """Read a base model and merge an overlay into it.
+
+    The base is read into a :class:`~closedchain.urdf.URDFPlus` with its
+    description (a URDF by :func:`~closedchain.urdf.parse_urdf`, once); the
+    overlay's links, joints, loops and transmissions are read against it and
+    merged into it (:func:`~closedchain.urdf.read_overlay`), a loops YAML's
+    conversions applied to it (:func:`~closedchain.yaml_loops.apply_loops_yaml`):
+    no text is merged or written, so any base with a description takes an overlay.
+
+    An SDF base is read into a description by :func:`closedchain.sdf.read_sdf`; a loops
+    YAML file, which converts a URDF's joints, is refused for it.
 
     Args:
-        base: the base URDF file.
+        base: the base file (URDF or SDF).
         overlay: the overlay file (URDF+ syntax, root ``<robot>``), a loops
             YAML file of example-parallel-robots (a ``.yaml`` or ``.yml``
             suffix; see :mod:`closedchain.yaml_loops`), or None (an SDF base
-            is still read as URDF+).
+            is still read).
         max_nv: largest supported tree size (see :func:`closedchain.urdf.parse_urdf`).
         cut_joints: SDF base only: joints to cut in preference (see :mod:`closedchain.sdf`).
         fixed_joints: SDF base only: joints read as ``fixed`` (see :mod:`closedchain.sdf`).
@@ -244,69 +257,79 @@ def merge_overlay(
             reads it.
 
     Returns:
-        The parsed, merged model. Its ``path`` is the overlay (messages about
-        overlay elements give the overlay's line numbers); its ``robot_name``
-        is the overlay's ``<robot name>`` (a YAML file keeps the base's).
+        The merged model. Its ``path`` is the overlay (messages about overlay
+        elements give the overlay's line numbers); its ``robot_name`` is the
+        overlay's ``<robot name>``, else the base's; its ``link_files`` send the
+        base's links to the base file (their meshes are beside it).
 
     Raises:
         URDFError: unsafe or malformed XML, an element an overlay cannot hold
-            (lists the valid ones), or a link or joint name the base already uses.
+            (lists the valid ones), a link, joint or loop name the base already uses,
+            or a tree larger than ``max_nv``.
     """
-    edits: dict[str, tuple] = {}
     if root is None and is_sdf(base):
-        root, tree = read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
-        edits["dampings"] = tree.dampings  # with the SDF's lines
-    elif root is None:
-        root = read_base(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
-    path = base
+        urdf, _ = read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints, max_nv=max_nv)
+        if overlay is not None and is_loops_yaml(overlay):
+            raise URDFError(
+                f"{overlay}: a loops YAML file converts a URDF's joints; an SDF model takes a "
+                "URDF+ overlay (root <robot>: links, joints, loops, transmissions)"
+            )
+    else:
+        if root is None:
+            root = read_base(base, cut_joints=cut_joints, fixed_joints=fixed_joints)
+        urdf = parse_urdf(base, element=root, max_nv=max_nv)
     # The base's links keep their meshes beside the base, whatever file is merged in.
-    base_links = {e.get("name"): Path(base) for e in root.findall("link")}
-    if overlay is not None and is_loops_yaml(overlay):
-        path = Path(overlay)
-        loops = read_loops_yaml(path)
-        # Checked first on its own, so that messages about its elements name the URDF.
-        parse_urdf(base, element=root, max_nv=max_nv)
-        edits.update(apply_loops_yaml(root, loops, base=base))
-    elif overlay is not None:
-        path = Path(overlay)
-        extra = read_xml(path, what="overlay file")
-        if extra.tag != "robot":
-            raise URDFError(f"{path}: root element is <{extra.tag}>, expected <robot>")
-        taken = {
-            tag: {e.get("name") for e in root.findall(tag)} for tag in ("link", "joint", "loop")
-        }
-        for element in extra:
-            if not isinstance(element.tag, str):  # comments, processing instructions
-                continue
-            if element.tag not in OVERLAY_ELEMENTS:
-                raise URDFError(
-                    f"{path}: line {element.sourceline}: <{element.tag}> cannot be merged; "
-                    f"valid overlay elements: {', '.join(OVERLAY_ELEMENTS)}"
-                )
-            name = element.get("name")
-            if name in taken.get(element.tag, ()):
-                raise URDFError(
-                    f"{path}: line {element.sourceline}: <{element.tag} name={name!r}> "
-                    f"already exists in {base}"
-                )
-            root.append(copy.deepcopy(element))
-        root.set("name", extra.get("name", root.get("name", path.stem)))
-        _check_world_joints(path, root)
-    # The SDF reader has warned about SDF inertias that violate the triangle inequality.
-    triangle = "pass" if is_sdf(base) else "refuse"
-    link_files = base_links if path != base else {}
-    merged = parse_urdf(path, element=root, max_nv=max_nv, triangle=triangle)
-    return replace(merged, **edits, link_files=link_files)
+    base_links = {name: Path(base) for name in urdf.links}
+    if overlay is None:
+        return urdf
+    if is_loops_yaml(overlay):
+        converted = apply_loops_yaml(urdf, read_loops_yaml(overlay), root, base=base)
+        check_size(converted.description, max_nv)
+        return replace(converted, link_files=base_links)
+    merged = read_overlay(urdf, Path(overlay), _overlay_element(urdf, Path(overlay), base))
+    check_size(merged.description, max_nv)
+    return replace(merged, link_files={**base_links, **urdf.link_files})
 
 
-def _check_world_joints(path: Path, root) -> None:
+def _overlay_element(urdf: URDFPlus, path: Path, base: Path):
+    """Return an overlay file's ``<robot>`` element, checked: only :data:`OVERLAY_ELEMENTS`,
+    no link, joint or loop name the base uses, no joint hanging from a missing world."""
+    extra = read_xml(path, what="overlay file")
+    if extra.tag != "robot":
+        raise URDFError(f"{path}: root element is <{extra.tag}>, expected <robot>")
+    taken = {
+        "link": set(urdf.links),
+        "joint": set(urdf.joints),
+        "loop": {spec.name for spec in urdf.loops},
+    }
+    for element in extra:
+        if not isinstance(element.tag, str):  # comments, processing instructions
+            continue
+        if element.tag not in OVERLAY_ELEMENTS:
+            raise URDFError(
+                f"{path}: line {element.sourceline}: <{element.tag}> cannot be merged; "
+                f"valid overlay elements: {', '.join(OVERLAY_ELEMENTS)}"
+            )
+        name = element.get("name")
+        if name in taken.get(element.tag, ()):
+            raise URDFError(
+                f"{path}: line {element.sourceline}: <{element.tag} name={name!r}> "
+                f"already exists in {base}"
+            )
+    links = set(urdf.links) | {e.get("name") for e in extra.findall("link")}
+    if urdf.description.world_frame:
+        links.add(WORLD_LINK)
+    _check_world_joints(path, extra, links)
+    return extra
+
+
+def _check_world_joints(path: Path, root, links: set[str]) -> None:
     """Refuse overlay joints whose parent is ``world`` when the tree has no such link.
 
     Pinocchio's URDF reader needs a single root link, so a part can hang from
     the world through a ``<joint>`` only when the tree has a ``world`` link
     (e.g. ur5_robot.urdf); otherwise a ``<loop>`` to ``world`` fixes it.
     """
-    links = {e.get("name") for e in root.findall("link")}
     if WORLD_LINK in links:
         return
     for joint in root.findall("joint"):

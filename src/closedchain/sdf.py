@@ -1,75 +1,89 @@
-r"""Read SDF models (SDFormat, 1.6 frame semantics) as URDF+ mechanisms.
+r"""Read SDF models (SDFormat, 1.6 frame semantics) into mechanism descriptions.
 
-An SDF ``<model>`` is a graph of links and joints that may hold cycles; URDF
-holds a tree. :func:`read_sdf` cuts the graph into a spanning tree plus loop
-joints and writes the URDF+ document closedchain loads (``<link>``,
-``<joint>`` and one ``<loop>`` per cut joint), so ``load("robot.sdf")`` works
-as ``load("robot.urdf")`` does.
+An SDF ``<model>`` is a graph of links and joints that may hold cycles; a
+Pinocchio model is a tree. :func:`read_sdf` cuts the graph into a spanning tree
+plus loop joints and fills a :class:`closedchain.description.MechanismDescription`
+(built by :func:`closedchain.build.build_model`, no URDF text in between) with
+one loop per cut joint beside it, so ``load("robot.sdf")`` works as
+``load("robot.urdf")`` does.
 
 Frames (SDFormat 1.6, with the 1.7 ``relative_to`` attribute where present):
 
 - a link's ``<pose>`` is in the model frame; a joint's ``<pose>`` is in its
-  child link's frame; the ``<pose>`` of an inertial, visual or collision is
-  in its link's frame; ``relative_to`` (or the 1.6 ``frame`` attribute, when
-  not empty) names another link or joint frame, ``__model__`` the model;
+  child link's frame; the ``<pose>`` of an inertial or visual is in its link's
+  frame; ``relative_to`` (or the 1.6 ``frame`` attribute, when not empty) names
+  another link or joint frame, ``__model__`` the model;
 - a joint axis ``<xyz>`` is in the joint frame, or in the model frame with
   ``<use_parent_model_frame>1`` (1.6) or ``expressed_in="__model__"`` (1.7).
 
-Every link's URDF frame is its SDF frame, whichever way the tree runs
-through it: inertials, visuals, joint origins and loop origins are expressed
-in it, and where the link's tree joint frame is not the link's frame (a
-joint ``<pose>``, or a reversed joint, whose frame sits on its SDF child),
-the joint moves a massless link ``J::frame`` at the joint frame and a fixed
-joint ``J::pose`` places the link in it (Pinocchio folds both into the
-joint's body). So the frame Pinocchio names after a link sits at the link's
-SDF pose when all joint coordinates are zero. The URDF root, which :func:`closedchain.load` fixes to
-Pinocchio's universe or moves with its root joint, is (as in Pinocchio's SDF
+Every body's frame is its link's SDF frame, whichever way the tree runs through
+its joint: the inertial and visuals are placed in it as the SDF places them, and
+the joint's anchor and axes are the SDF joint frame's expressed in it. So the
+BODY frame Pinocchio names after a link sits at the link's SDF pose when all
+joint coordinates are zero. The root body, which :func:`closedchain.load` fixes
+to Pinocchio's universe or moves with its root joint, is (as in Pinocchio's SDF
 reader) the model's first ``<link>``: its frame is the world frame, its own
 ``<pose>`` (and the model's) only place it. When joints have ``world`` as
-parent, the root is instead a massless link ``world`` (the model frame, as in
-URDFs that have one) from which those joints hang.
+parent, the world is the model frame instead, and those joints' links hang from it.
 
 Which joints are cut (a minimum spanning tree, Kruskal's algorithm): the joints
 are taken in the order below and each is kept in the tree unless it would
-close a cycle; the joints left out are cut and become ``<loop>`` elements.
+close a cycle; the joints left out are cut and become loops.
 
 1. joints named in ``cut_joints`` come last (the user's choice, as the
    ``parent_guidance`` of Pinocchio's SDF reader);
 2. by type, :data:`KEEP_ORDER`: ``universal``, ``fixed``, ``prismatic``,
    ``revolute``, ``continuous``, ``ball``: a ball joint is cut first (it
-   closes with 3 rows and a URDF tree cannot hold it), a prismatic joint after
-   the revolute ones (Pinocchio has no prismatic constraint to validate
-   against), a universal joint never while another joint of its cycle can be
-   (URDF+ has no universal loop); ``gearbox`` joints are not in the graph
-   (they couple two joints' angles and hold no link);
+   closes with 3 rows), a prismatic joint after the revolute ones (Pinocchio
+   has no prismatic constraint to validate against), a universal joint never
+   while another joint of its cycle can be (closedchain has no universal loop);
+   ``gearbox`` joints are not in the graph (they couple two joints' angles and
+   hold no link);
 3. joints whose child link has one parent joint before joints whose child has
    several (the link keeps its own joint: Pinocchio's SDF rule);
 4. file order.
 
-The tree is then oriented from the root: a kept joint met from its child
-side is *reversed* (the SDF child becomes the URDF parent; the axis is negated,
-so its coordinate keeps the SDF's sign, and its limits are kept).
+The tree is then oriented from the root: a kept joint met from its child side
+is *reversed* (its SDF parent is the body that moves, the SDF child holds it).
+A reversed joint moves its body by the inverse of the SDF motion: its anchor is
+the same point, each axis is negated, so each coordinate keeps the SDF's sign
+(and its limits, spring reference and damping).
 
-Joint types: ``revolute`` (URDF ``revolute``; without ``<limit>`` its range
-is :data:`SDF_UNLIMITED`, SDF's own default), ``continuous``, ``prismatic``,
-``fixed``, ``universal`` (in the tree: two revolute joints ``J``, about
-``<axis>``, and ``J::axis2``, about ``<axis2>``, through a massless link
-``J::cross``; reversed, ``J::axis2`` comes first and each keeps its axis's
-angle; cut: refused), ``ball`` (cut: a ``spherical`` loop; in the tree:
-refused), ``gearbox``. A gearbox couples a motor's rotor to its output; the
-SDFormat specification (``joint.sdf``) defines it as
-:math:`\theta_2 = -r\,\theta_1` with ``r`` its ``<gearbox_ratio>``,
-:math:`\theta_1` the angle from the ``<gearbox_reference_body>`` to the
-``<parent>`` link about ``<axis>`` and :math:`\theta_2` the angle from it to
-the ``<child>`` link about ``<axis2>`` (Gazebo's ODE gearbox constraint has
-the same sign: child angle + ratio x parent angle = 0). Each angle is read
-as the coordinate of the one revolute tree joint between the reference body
-and that link, whose axis must be the gearbox's (:data:`GEARBOX_AXIS_TOL`),
-signed by the axes' directions and which side is the joint's SDF parent; the
-gearbox becomes the coupling loop (:data:`closedchain.urdf.COUPLING`)
-``q_child_joint = -r s1 s2 q_parent_joint`` of the same name, so the rotor's
-inertia, reflected by 1/r^2, acts on the output. A gearbox whose link has no
-such joint is refused naming it, as is a link held by gearboxes only.
+=================  ==============================================================
+SDF joint          closedchain
+=================  ==============================================================
+``revolute``       revolute joint about ``<axis>``, ``<limit>`` lower and upper
+                   (without: :data:`SDF_UNLIMITED`, SDF's own default)
+``continuous``     revolute joint without limits (+-:data:`SDF_UNLIMITED`)
+``prismatic``      prismatic joint along ``<axis>``, its ``<limit>``
+``fixed``          the link welded to its tree parent (cut: a fixed loop)
+``universal``      Pinocchio's universal joint (``JointModelUniversal``): the
+                   child turns by Rot(``<axis>``, q[0]) Rot(``<axis2>``, q[1]) in
+                   the joint frame, q in SDF axis order; its ``<limit>``
+                   elements are not modelled (a logged warning). Reversed in the
+                   tree (the body turns about ``<axis2>`` first): two revolute
+                   joints at its anchor, ``<name>::axis2`` about ``<axis2>`` then
+                   ``<name>`` about ``<axis>``, each with its axis' limits and
+                   damping. Cut: refused
+``ball``           spherical joint (q: a unit quaternion x, y, z, w; identity at
+                   the SDF pose); cut: a spherical loop
+``gearbox``        a coupling loop (below)
+=================  ==============================================================
+
+A gearbox couples a motor's rotor to its output; the SDFormat specification
+(``joint.sdf``) defines it as :math:`\theta_2 = -r\,\theta_1` with ``r`` its
+``<gearbox_ratio>``, :math:`\theta_1` the angle from the
+``<gearbox_reference_body>`` to the ``<parent>`` link about ``<axis>`` and
+:math:`\theta_2` the angle from it to the ``<child>`` link about ``<axis2>``
+(Gazebo's ODE gearbox constraint has the same sign: child angle + ratio x parent
+angle = 0). Each angle is read as the coordinate of the one revolute tree joint
+between the reference body and that link, whose axis must be the gearbox's
+(:data:`GEARBOX_AXIS_TOL`), signed by the axes' directions and which side is the
+joint's SDF parent; the gearbox becomes the coupling loop
+(:data:`closedchain.urdf.COUPLING`) ``q_child_joint = -r s1 s2 q_parent_joint`` of
+the same name, so the rotor's inertia, reflected by 1/r^2, acts on the output. A
+gearbox whose link has no such joint is refused naming it, as is a link held by
+gearboxes only.
 
 Held joints: ``fixed_joints`` names joints read as ``fixed`` at their zero
 position (the pose the file draws), e.g. a spring joint held stiff, or a joint
@@ -78,52 +92,75 @@ a near-singular toggle (erd:cassie's knee springs; see
 :data:`closedchain.robots.ERD_MODELS`). A spring on a held joint is left out
 with the logged warning below.
 
-Joint springs: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has a
-``spring_stiffness`` > 0 gets ``<dynamics spring_stiffness spring_reference>`` in the
-URDF+ (:class:`closedchain.urdf.JointSpring`; the generalized force
-:func:`closedchain.spring_torque`); a spring on a cut joint, a gearbox or another
-joint type is left out with a logged warning. Viscous damping: a tree joint's
-``<axis><dynamics><damping>`` > 0 (``<axis2>``'s for a universal joint's
-``J::axis2``) is written as URDF ``<dynamics damping>`` and listed in
-:attr:`SDFTree.dampings` (:class:`closedchain.urdf.JointDamping`; ``load`` puts
-them in ``URDFPlus.dampings``); on a cut, gearbox or held joint it is left out
-with a logged warning. Friction is not read.
+Passive terms: a revolute or prismatic tree joint whose ``<axis><dynamics>`` has a
+``spring_stiffness`` > 0 gets a :class:`closedchain.urdf.JointSpring` (its
+``spring_reference``; the generalized force :func:`closedchain.spring_torque`); a
+tree joint's ``<axis><dynamics><damping>`` > 0 a
+:class:`closedchain.urdf.JointDamping` (a universal joint: when ``<axis2>``'s is the
+same; a reversed one, one on each of its two revolute joints). A spring or damping
+on a cut, gearbox or held joint, a spring on another joint type and a
+(not reversed) universal joint's two different dampings are left out with a logged
+warning. Friction is not read.
+
+Inertials: mass, centre of mass and inertia in the link frame (SDF's default
+without ``<inertial>``: 1 kg, the identity inertia at the link frame; inertias
+that violate the triangle inequality are warned about). Visuals:
+:data:`SDF_SHAPES` (a capsule as a cylinder and two spheres), coloured by
+``<material><diffuse>`` (else ``<ambient>``, else :data:`SDF_DEFAULT_RGBA`); mesh
+``model://name/sub`` URIs (and ``package://``) are looked up as ``sub`` in the
+SDF's directory and its parents. Collisions are not read.
 
 Parsing is as safe as for URDF (:func:`closedchain.urdf.read_xml`: no DTD, no
-network, bounded size). Mesh ``model://name/sub`` URIs become
-``package://name/sub`` and are then looked up as URDF meshes are.
+network, bounded size).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import urllib.parse
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-from lxml import etree
 
+from .description import (
+    UNIVERSAL_SECOND_SUFFIX,
+    BodyDescription,
+    JointDescription,
+    MechanismDescription,
+    Visual,
+)
 from .exceptions import MESSAGE_MAX, URDFError, quoted, shorten
 from .urdf import (
     COUPLING,
+    COUPLING_MULTIPLIER_MAX,
     ORIGIN_RPY_MAX,
     ORIGIN_XYZ_MAX,
-    SPRING_JOINT_TYPES,
+    WORLD_LINK,
     JointDamping,
+    JointSpring,
+    LoopSpec,
+    URDFPlus,
     _check_name,
+    _parse_coupling,
+    _parse_loop,
+    _parse_transmissions,
     _unique_names,
     _where,
     check_inertia,
+    check_tree_size,
     name_list,
     read_xml,
     unit_vector,
 )
 
+__all__ = ["SDFTree", "is_sdf", "read_sdf"]
+
 logger = logging.getLogger(__name__)
 
-#: The SDF name of the world, as a joint's parent (and the URDF root link then).
+#: The SDF name of the world, as a joint's parent.
 SDF_WORLD = "world"
 
 #: The SDF name of the model frame, in ``relative_to`` and ``expressed_in``.
@@ -142,7 +179,7 @@ TWO_AXIS_TYPES = ("universal", "gearbox")
 #: Joint types in the order they are kept in the spanning tree (see the module doc).
 KEEP_ORDER = ("universal", "fixed", "prismatic", "revolute", "continuous", "ball")
 
-#: URDF+ loop type of each cut joint type (``universal`` cannot be cut).
+#: Loop type of each cut joint type (``universal`` cannot be cut).
 LOOP_TYPE_OF = {
     "revolute": "revolute",
     "continuous": "revolute",
@@ -151,9 +188,23 @@ LOOP_TYPE_OF = {
     "ball": "spherical",
 }
 
-#: SDF's default joint limits (``lower``, ``upper`` [rad or m], ``effort`` [N m
-#: or N], ``velocity`` [rad/s or m/s]) when ``<limit>`` leaves them out or
-#: gives SDF's "unlimited" (-1 for effort and velocity).
+#: Joint kind (:data:`closedchain.description.JOINT_KINDS`) of each movable tree joint type.
+KIND_OF = {
+    "revolute": "revolute",
+    "continuous": "revolute",
+    "prismatic": "prismatic",
+    "universal": "universal",
+    "ball": "spherical",
+}
+
+#: Degrees of freedom of each joint kind (a fixed joint: none).
+KIND_NV = {"revolute": 1, "prismatic": 1, "universal": 2, "spherical": 3, None: 0}
+
+#: SDF joint types whose ``<dynamics>`` spring is read (one coordinate, no wrap).
+SPRING_TYPES = ("revolute", "prismatic")
+
+#: SDF's default joint limits (``lower``, ``upper`` [rad or m]) when ``<limit>``
+#: leaves them out.
 SDF_UNLIMITED = 1e16
 
 #: Joint types that ``fixed_joints`` may hold (read as ``fixed``).
@@ -166,8 +217,19 @@ SDF_REFUSED_ELEMENTS = ("model", "include", "frame")
 #: coordinate is its angle: the axes of erd:cassie are written alike, to the digit.
 GEARBOX_AXIS_TOL = 1e-9
 
+#: Smallest sine of the angle between a universal joint's two axes: nearer parallel,
+#: its two coordinates turn the child about one axis.
+UNIVERSAL_AXES_MIN_SINE = 1e-6
+
 #: Default ``<inertial>`` of SDF: mass 1 kg, inertia the identity [kg m^2].
 SDF_DEFAULT_MASS = 1.0
+
+#: SDF geometries drawn (others: a logged warning).
+SDF_SHAPES = ("box", "sphere", "cylinder", "capsule", "mesh")
+
+#: Colour (r, g, b, a) of a visual without ``<material>``: the drawing's grey
+#: (:attr:`closedchain.visualize.AnimationSettings.default_rgba`).
+SDF_DEFAULT_RGBA = (0.6, 0.6, 0.6, 1.0)
 
 
 @dataclass(frozen=True)
@@ -179,10 +241,10 @@ class SDFJoint:
         type: one of :data:`SDF_JOINT_TYPES`.
         parent: parent link name (``world`` for the SDF world).
         child: child link name.
-        oMj: joint frame in the world frame, all coordinates zero.
+        oMj: joint frame in the model frame, all coordinates zero.
         axis: unit axis in the joint frame, shape (3,) (``<axis>``).
-        axis2: unit second axis in the joint frame, shape (3,) (``<axis2>``, universal).
-        limits: ``(lower, upper, effort, velocity)`` of ``<axis><limit>`` (see
+        axis2: unit second axis in the joint frame, shape (3,) (``<axis2>``).
+        limits: ``(lower, upper)`` [rad or m] of ``<axis><limit>`` (see
             :data:`SDF_UNLIMITED`).
         limits2: the same of ``<axis2><limit>`` (universal joints).
         spring: ``(stiffness [N m/rad or N/m], reference [rad or m])`` of
@@ -203,16 +265,11 @@ class SDFJoint:
     oMj: pin.SE3
     axis: np.ndarray
     axis2: np.ndarray
-    limits: tuple[float, float, float, float]
+    limits: tuple[float, float]
     spring: tuple[float, float] | None
     index: int
     line: int
-    limits2: tuple[float, float, float, float] = (
-        -SDF_UNLIMITED,
-        SDF_UNLIMITED,
-        SDF_UNLIMITED,
-        SDF_UNLIMITED,
-    )
+    limits2: tuple[float, float] = (-SDF_UNLIMITED, SDF_UNLIMITED)
     damping: float = 0.0
     damping2: float = 0.0
     gearbox_ratio: float = 0.0
@@ -225,15 +282,13 @@ class SDFTree:
 
     Attributes:
         model_name: the ``<model name>``.
-        root: the URDF root link: the model's first link, or ``world`` when
-            joints hang from it.
-        tree_joints: joints kept in the spanning tree, in URDF order.
-        reversed_joints: tree joints whose SDF child is their URDF parent.
-        cut_joints: joints cut, each a ``<loop>`` of the same name.
+        root: the root body: the model's first link, or ``world`` when joints
+            hang from it.
+        tree_joints: joints kept in the spanning tree, depth first from the root.
+        reversed_joints: tree joints whose SDF parent is the body they move.
+        cut_joints: joints cut, each a loop of the same name.
         gearboxes: gearbox joints, each a coupling loop of the same name.
         held_joints: joints read as ``fixed`` (``fixed_joints`` of :func:`read_sdf`).
-        dampings: the viscous damping of the tree joints (``<dynamics><damping>`` > 0),
-            in tree order (filled by :meth:`_Reader.robot`).
     """
 
     model_name: str
@@ -243,13 +298,16 @@ class SDFTree:
     cut_joints: tuple[str, ...]
     gearboxes: tuple[str, ...]
     held_joints: tuple[str, ...] = ()
-    dampings: tuple[JointDamping, ...] = ()
 
 
 def read_sdf(
-    path: str | Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tuple[str, ...] = ()
-) -> tuple[object, SDFTree]:
-    """Read an SDF file and write its URDF+ ``<robot>`` element.
+    path: str | Path,
+    *,
+    cut_joints: tuple[str, ...] = (),
+    fixed_joints: tuple[str, ...] = (),
+    max_nv: int | None = None,
+) -> tuple[URDFPlus, SDFTree]:
+    """Read an SDF file into a mechanism description, its loops and passive terms.
 
     Args:
         path: the SDF file (one ``<model>``, under ``<sdf>`` or ``<sdf><world>``).
@@ -257,18 +315,22 @@ def read_sdf(
             module doc); each must be a joint of the model.
         fixed_joints: joints read as ``fixed`` at their zero position (see the
             module doc); each must be a revolute, continuous or prismatic joint.
+        max_nv: largest supported number of degrees of freedom of the tree (a
+            larger one is refused once the tree is cut, before it is described).
 
     Returns:
-        ``(robot, tree)``: the URDF+ ``<robot>`` element (lxml) and how the
-        graph was cut.
+        ``(model, tree)``: the model (its ``description`` set, ``xml`` None; the
+        cut joints and gearboxes as ``loops``, the springs and dampings) and how
+        the graph was cut.
 
     Raises:
         URDFError: unsafe or malformed XML, an unsupported version, element or
             joint type, a bad number, a link not connected to the root, a
             ``cut_joints`` name that is not a joint, a ``fixed_joints`` name that is
-            not a revolute, continuous or prismatic joint, a ball joint the tree
-            needs or a universal joint that has to be cut. The message names
-            the file, line and element and the valid choices.
+            not a revolute, continuous or prismatic joint, a universal joint that
+            has to be cut or whose axes are parallel. The message names the file,
+            line and element and the valid choices.
+        ModelTooLargeError: the tree has more than ``max_nv`` degrees of freedom.
     """
     path = Path(path)
     root = read_xml(path, what="SDF file")
@@ -283,7 +345,7 @@ def read_sdf(
     if len(models) != 1:
         raise URDFError(f"{path}: {len(models)} <model> elements; valid: exactly one")
     reader = _Reader(path, models[0], tuple(fixed_joints))
-    return reader.robot(tuple(cut_joints))
+    return reader.read(tuple(cut_joints), max_nv)
 
 
 def _numbers(path: Path, element, count: int) -> np.ndarray:
@@ -309,20 +371,8 @@ def _scalar(path: Path, parent, tag: str, default: float, *, minimum: float | No
     return value
 
 
-def _origin(element, M: pin.SE3, tag: str = "origin") -> None:
-    """Add ``<origin xyz rpy>`` (or another ``tag``) of placement ``M`` to a URDF element."""
-    origin = etree.SubElement(element, tag)
-    origin.set("xyz", _vector(M.translation))
-    origin.set("rpy", _vector(pin.rpy.matrixToRpy(M.rotation)))
-
-
-def _vector(values) -> str:
-    """Return numbers as URDF attribute text, all digits."""
-    return " ".join(repr(float(x)) for x in values)
-
-
 class _Reader:
-    """One SDF ``<model>``: its frames, joint graph, spanning tree and URDF+ text."""
+    """One SDF ``<model>``: its frames, joint graph, spanning tree and description."""
 
     def __init__(self, path: Path, model, fixed_joints: tuple[str, ...] = ()) -> None:
         self.path = path
@@ -352,6 +402,9 @@ class _Reader:
         self.fixed_joints = fixed_joints
         self._poses: dict[str, pin.SE3] = {}
         self.joints = [self._joint(i, e) for i, e in enumerate(joint_elements)]
+        #: link name (and ``world``) -> its frame in the model frame, all coordinates zero
+        #: (filled by :meth:`read`).
+        self.frames: dict[str, pin.SE3] = {}
 
     # -- frames ----------------------------------------------------------------
     def _pose_value(self, element) -> pin.SE3:
@@ -519,23 +572,16 @@ class _Reader:
             gearbox_reference=reference,
         )
 
-    def _limits(self, joint, tag: str) -> tuple[float, float, float, float]:
-        """Return ``(lower, upper, effort, velocity)`` of ``<tag><limit>`` (SDF's defaults)."""
+    def _limits(self, joint, tag: str) -> tuple[float, float]:
+        """Return ``(lower, upper)`` of ``<tag><limit>`` (SDF's defaults: unlimited)."""
         limit = joint.find(f"{tag}/limit")
         if limit is None:
-            return (-SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED, SDF_UNLIMITED)
+            return (-SDF_UNLIMITED, SDF_UNLIMITED)
         lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
         upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
         if lower > upper:
             raise URDFError(f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}")
-        effort = _scalar(self.path, limit, "effort", -1.0)
-        velocity = _scalar(self.path, limit, "velocity", -1.0)
-        return (
-            lower,
-            upper,
-            effort if effort >= 0 else SDF_UNLIMITED,
-            velocity if velocity >= 0 else SDF_UNLIMITED,
-        )
+        return lower, upper
 
     def _axis(self, joint, tag: str, oMj: pin.SE3, *, required: bool) -> np.ndarray:
         """Return the unit axis ``tag`` of a joint in the joint frame, shape (3,)."""
@@ -592,24 +638,24 @@ class _Reader:
             else:
                 group[a] = b
                 kept.append(j)
-        # Orient from the root, breadth first.
+        # Orient from the root, depth first (Pinocchio's algorithms need each subtree's
+        # joints in a row), children in file order.
         adjacent: dict[str, list[SDFJoint]] = {}
         for j in kept:
             adjacent.setdefault(j.parent, []).append(j)
             adjacent.setdefault(j.child, []).append(j)
-        order, reversed_, seen = [], [], {root}
-        queue = [root]
-        while queue:
-            link = queue.pop(0)
-            for j in sorted(adjacent.get(link, []), key=lambda j: j.index):
-                other = j.child if j.parent == link else j.parent
-                if other in seen:
-                    continue
-                seen.add(other)
-                order.append(j)
-                if other != j.child:
-                    reversed_.append(j.name)
-                queue.append(other)
+        order, reversed_, seen = [], [], set()
+        stack: list[tuple[str, SDFJoint | None]] = [(root, None)]
+        while stack:
+            link, through = stack.pop()
+            seen.add(link)
+            if through is not None:
+                order.append(through)
+                if link != through.child:
+                    reversed_.append(through.name)
+            below = sorted(adjacent.get(link, []), key=lambda j: j.index)
+            ends = [(j.child if j.parent == link else j.parent, j) for j in below]
+            stack.extend(reversed([(other, j) for other, j in ends if other not in seen]))
         missing = [name for name in self.links if name not in seen]
         if missing:
             through = [j.name for j in self.joints if j.type == "gearbox" and j.child in missing]
@@ -627,16 +673,9 @@ class _Reader:
             if j.type == "universal":
                 raise URDFError(
                     f"{_where(self.path, self.joint_elements[j.name])}: a universal joint "
-                    "cannot be cut (URDF+ loops are revolute, prismatic, spherical or "
-                    "fixed); keep it out of cut_joints, or give its cycle a joint of another "
+                    "cannot be cut (closedchain's loops are revolute, prismatic, spherical "
+                    "or fixed); keep it out of cut_joints, or give its cycle a joint of another "
                     "type"
-                )
-        for j in order:
-            if j.type == "ball":
-                raise URDFError(
-                    f"{_where(self.path, self.joint_elements[j.name])}: the spanning tree "
-                    "needs this ball joint (it closes no cycle) and a URDF tree cannot hold "
-                    "one; valid: ball joints that close a cycle"
                 )
         return SDFTree(
             model_name=self.name,
@@ -648,72 +687,286 @@ class _Reader:
             held_joints=self.fixed_joints,
         )
 
-    # -- the URDF+ document ----------------------------------------------------
-    def robot(self, cut_joints: tuple[str, ...]):
-        """Return the URDF+ ``<robot>`` element and the :class:`SDFTree`."""
+    # -- the description ---------------------------------------------------------
+    def read(self, cut_joints: tuple[str, ...], max_nv: int | None) -> tuple[URDFPlus, SDFTree]:
+        """Return the model (its ``description`` set, ``xml`` None) and the :class:`SDFTree`."""
         tree = self.spanning_tree(cut_joints)
         joints = {j.name: j for j in self.joints}
-        # Every link's URDF frame is its SDF frame (the world frame for the world).
-        frames = {SDF_WORLD: pin.SE3.Identity()}
+        nv = sum(KIND_NV[KIND_OF.get(joints[n].type)] for n in tree.tree_joints)
+        check_tree_size(str(self.path), len(tree.tree_joints), nv, max_nv)
+        # Every body's frame is its link's SDF frame (the world's: the model frame).
+        self.frames[SDF_WORLD] = pin.SE3.Identity()
         for element in self.link_elements:
-            frames[element.get("name")] = self.frame(element.get("name"), where=str(self.path))
-
-        robot = etree.Element("robot", name=self.name)
-        if tree.root == SDF_WORLD:
-            etree.SubElement(robot, "link", name=SDF_WORLD)
-        materials: list = []
-        for element in self.link_elements:
-            robot.append(self._link(element, frames[element.get("name")], materials))
-        for material in materials:
-            robot.insert(0, material)
-        dampings: list[JointDamping] = []
+            name = element.get("name")
+            self.frames[name] = self.frame(name, where=_where(self.path, element))
+        bodies = []
+        if tree.root != SDF_WORLD:
+            # The root link is the world frame: its own pose (and the model's) only place it.
+            bodies.append(self._body(tree.root, WORLD_LINK, pin.SE3.Identity(), ()))
+        #: tree joint -> the body that holds it (its SDF child, or its parent when reversed)
+        holder: dict[str, str] = {}
         for name in tree.tree_joints:
-            elements, damped = self._tree_joint(joints[name], name in tree.reversed_joints, frames)
-            robot.extend(elements)
-            dampings.extend(damped)
-        for name in tree.cut_joints:
-            robot.append(self._loop(joints[name], frames))
-        for name in tree.gearboxes:
-            robot.append(self._gearbox_loop(joints[name], tree))
-        for what, verb, left_out in (
-            (
-                "springs",
-                "are",
-                [
-                    j.name
-                    for j in self.joints
-                    if j.spring is not None
-                    and (j.name not in tree.tree_joints or j.type not in SPRING_JOINT_TYPES)
-                ],
-            ),
-            (
-                "damping",
-                "is",
-                [
-                    j.name
-                    for j in self.joints
-                    if (j.damping > 0.0 or j.damping2 > 0.0)
-                    and (j.name not in tree.tree_joints or j.type == "fixed")
-                ],
-            ),
-        ):
-            if left_out:
+            j = joints[name]
+            reverse = name in tree.reversed_joints
+            parent, child = (j.child, j.parent) if reverse else (j.parent, j.child)
+            holder[name] = child
+            placement = self.frames[parent].inverse() * self.frames[child]
+            described = () if j.type == "fixed" else self._joint_descriptions(j, child, reverse)
+            bodies.append(self._body(child, parent, placement, described))
+        loops = [self._loop(joints[name]) for name in tree.cut_joints]
+        loops += [self._gearbox_loop(joints[name], tree, holder) for name in tree.gearboxes]
+        springs, dampings = self._passive(tree)
+        description = MechanismDescription(name=self.name, path=self.path, bodies=tuple(bodies))
+        urdf = URDFPlus(
+            path=self.path,
+            robot_name=self.name,
+            links=(WORLD_LINK, *(b.name for b in bodies)),
+            joints={j.name: j.kind for j in description.joints()},
+            loops=tuple(loops),
+            springs=springs,
+            dampings=dampings,
+            description=description,
+        )
+        return urdf, tree
+
+    def _body(self, name: str, parent: str, placement: pin.SE3, joints) -> BodyDescription:
+        element = self.links[name]
+        return BodyDescription(
+            name=name,
+            parent=WORLD_LINK if parent == SDF_WORLD else parent,
+            placement=placement,
+            joints=joints,
+            inertia=self._inertia(element),
+            visuals=self._visuals(element),
+        )
+
+    def _joint_descriptions(
+        self, j: SDFJoint, body: str, reverse: bool
+    ) -> tuple[JointDescription, ...]:
+        """Return tree joint ``j`` as the joints of ``body`` (its SDF child, or parent if reversed).
+
+        Its anchor and axes are the SDF joint frame's, expressed in the body's frame.
+        Reversed, the body moves by the inverse motion: each axis is negated (so each
+        coordinate keeps the SDF's sign, and its limits). A universal joint is
+        Pinocchio's universal joint, turning by Rot(``<axis>``, q[0]) Rot(``<axis2>``,
+        q[1]); reversed, the body turns about ``<axis2>`` first, so it becomes two
+        revolute joints at the same anchor, ``<name>`` + :data:`UNIVERSAL_SECOND_SUFFIX`
+        about ``<axis2>`` then ``<name>`` about ``<axis>``: each coordinate keeps its
+        axis' name, limits and damping.
+        """
+        bMj = self.frames[body].inverse() * j.oMj
+        sign = -1.0 if reverse else 1.0
+        kind = KIND_OF[j.type]
+        where = _where(self.path, self.joint_elements[j.name])
+        lower, upper = j.limits if j.type != "continuous" else (-SDF_UNLIMITED, SDF_UNLIMITED)
+        axis = sign * bMj.rotation @ j.axis
+        q0: tuple[float, ...] = (0.0,)
+        if kind == "universal":
+            axis2 = sign * bMj.rotation @ j.axis2
+            if np.linalg.norm(np.cross(axis, axis2)) < UNIVERSAL_AXES_MIN_SINE:
+                raise URDFError(
+                    f"{where}: <axis> and <axis2> are parallel, which leaves one rotation "
+                    "for two coordinates; valid: two axes at an angle"
+                )
+            if reverse:
+                position = bMj.translation.copy()
+                return tuple(
+                    JointDescription(
+                        name=name, kind="revolute", axis=a, position=position, lower=lo, upper=up
+                    )
+                    for name, a, (lo, up) in (
+                        (j.name + UNIVERSAL_SECOND_SUFFIX, axis2, j.limits2),
+                        (j.name, axis, j.limits),
+                    )
+                )
+            axis, q0 = np.array([axis, axis2]), (0.0, 0.0)
+            if any(abs(x) < SDF_UNLIMITED for x in (*j.limits, *j.limits2)):
                 logger.warning(
-                    "%s: the %s of %s %s left out: a cut joint (a <loop>), a gearbox or a "
-                    "held (fixed_joints) joint has no coordinate of its own%s; valid: tree "
-                    "joints (cut_joints chooses which joint of a cycle is cut)",
+                    "%s: the <limit>s of universal joint %r are not modelled (Pinocchio's "
+                    "universal joint has no position limits); valid: revolute and "
+                    "prismatic limits",
+                    where,
+                    j.name,
+                )
+            lower, upper = -np.inf, np.inf
+        elif kind == "spherical":
+            q0, lower, upper = (0.0, 0.0, 0.0, 1.0), -np.inf, np.inf
+        return (
+            JointDescription(
+                name=j.name,
+                kind=kind,
+                axis=axis,
+                position=bMj.translation.copy(),
+                q0=q0,
+                lower=lower,
+                upper=upper,
+            ),
+        )
+
+    def _inertia(self, element) -> pin.Inertia:
+        """Return a link's ``<inertial>`` in its frame (SDF's default: 1 kg, identity inertia)."""
+        name = element.get("name")
+        inertial = element.find("inertial")
+        names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+        values = {n: 1.0 if n[1] == n[2] else 0.0 for n in names}
+        if inertial is None:
+            return pin.Inertia(SDF_DEFAULT_MASS, np.zeros(3), np.eye(3))
+        lMi = self.frames[name].inverse() * self.placed(inertial, name)
+        mass = _scalar(self.path, inertial, "mass", SDF_DEFAULT_MASS, minimum=0.0)
+        inertia = inertial.find("inertia")
+        if inertia is not None:
+            values = {n: _scalar(self.path, inertia, n, values[n]) for n in names}
+        where = f"{self.path}: line {inertial.sourceline}: <link name={name!r}> <inertial>"
+        check_inertia(where, values, triangle="warn")
+        ixx, ixy, ixz, iyy, iyz, izz = (values[n] for n in names)
+        inertia_i = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+        R = lMi.rotation
+        return pin.Inertia(mass, lMi.translation.copy(), R @ inertia_i @ R.T)
+
+    def _visuals(self, element) -> tuple[Visual, ...]:
+        """Return a link's ``<visual>`` shapes in its frame (:data:`SDF_SHAPES`; others logged)."""
+        name = element.get("name")
+        out = []
+        for visual in element.findall("visual"):
+            geometry = visual.find("geometry")
+            kinds = [g for g in ([] if geometry is None else geometry) if isinstance(g.tag, str)]
+            if not kinds:
+                continue
+            g = kinds[0]
+            if g.tag not in SDF_SHAPES:
+                logger.warning(
+                    "%s: <%s> geometry is not drawn; drawn: %s",
+                    _where(self.path, g),
+                    g.tag,
+                    ", ".join(SDF_SHAPES),
+                )
+                continue
+            placement = self.frames[name].inverse() * self.placed(visual, name)
+            colour = visual.find("material/diffuse")
+            if colour is None:
+                colour = visual.find("material/ambient")
+            rgba = SDF_DEFAULT_RGBA
+            if colour is not None:
+                rgba = tuple(float(c) for c in np.clip(_numbers(self.path, colour, 4), 0.0, 1.0))
+            out.extend(self._shape(g, placement, rgba))
+        return tuple(out)
+
+    def _shape(self, g, placement: pin.SE3, rgba) -> list[Visual]:
+        """Return the visuals of one SDF geometry (a capsule: a cylinder and two spheres)."""
+        if g.tag == "box":
+            return [Visual("box", tuple(_numbers(self.path, g.find("size"), 3)), placement, rgba)]
+        if g.tag == "sphere":
+            radius = _scalar(self.path, g, "radius", 1.0, minimum=0.0)
+            return [Visual("sphere", (radius,), placement, rgba)]
+        if g.tag in ("cylinder", "capsule"):
+            default = 1.0 if g.tag == "cylinder" else 0.5  # SDFormat's radii [m]
+            radius = _scalar(self.path, g, "radius", default, minimum=0.0)
+            length = _scalar(self.path, g, "length", 1.0, minimum=0.0)
+            out = [Visual("cylinder", (radius, length), placement, rgba)]
+            if g.tag == "capsule":
+                for end in (-length / 2.0, length / 2.0):
+                    cap = placement * pin.SE3(np.eye(3), np.array([0.0, 0.0, end]))
+                    out.append(Visual("sphere", (radius,), cap, rgba))
+            return out
+        uri = (g.findtext("uri") or "").strip()
+        file = self._mesh_file(uri)
+        if file is None:
+            logger.warning(
+                "%s: mesh <uri>%s</uri> is not a file, model:// or package:// path; not drawn",
+                _where(self.path, g),
+                uri,
+            )
+            return []
+        scale = (1.0, 1.0, 1.0)
+        if g.find("scale") is not None:
+            scale = tuple(float(x) for x in _numbers(self.path, g.find("scale"), 3))
+        return [Visual("mesh", scale, placement, rgba, file)]
+
+    def _mesh_file(self, uri: str) -> Path | None:
+        """Return the file a mesh ``<uri>`` names, or None (another scheme, no path).
+
+        ``model://name/sub`` (and ``package://name/sub``) is ``sub`` looked up in the
+        SDF's directory and then its parents (where a model's directory keeps its
+        meshes); ``file://`` and plain paths are relative to the SDF's directory.
+        """
+        folder = self.path.resolve().parent
+        scheme, sep, rest = uri.partition("://")
+        if not sep:
+            return folder / uri if uri else None
+        if scheme == "file":
+            return folder / urllib.parse.unquote(rest)
+        if scheme not in ("model", "package"):
+            return None
+        sub = rest.partition("/")[2]
+        if not sub:
+            return None
+        for root in (folder, *folder.parents):
+            if (root / sub).is_file():
+                return root / sub
+        return folder / sub  # missing: the drawing names it
+
+    def _loop(self, j: SDFJoint) -> LoopSpec:
+        """Return the loop of a cut joint: its frame seen from both links."""
+        return LoopSpec(
+            name=j.name,
+            type=LOOP_TYPE_OF[j.type],
+            predecessor=j.parent,
+            successor=j.child,
+            predecessor_origin=self.frames[j.parent].inverse() * j.oMj,
+            successor_origin=self.frames[j.child].inverse() * j.oMj,
+            axis=j.axis,
+            line=j.line,
+        )
+
+    def _passive(self, tree: SDFTree) -> tuple[tuple[JointSpring, ...], tuple[JointDamping, ...]]:
+        """Return the springs and dampings of the tree joints; log those left out."""
+        springs, dampings = [], []
+        left_out: dict[str, list[str]] = {"springs": [], "damping": []}
+        for j in self.joints:
+            in_tree = j.name in tree.tree_joints and j.type != "fixed"
+            if j.spring is not None:
+                if in_tree and j.type in SPRING_TYPES:
+                    springs.append(JointSpring(j.name, *j.spring, j.line))
+                else:
+                    left_out["springs"].append(j.name)
+            if j.damping > 0.0 or j.damping2 > 0.0:
+                if in_tree and j.name in tree.reversed_joints and j.type == "universal":
+                    # Two revolute joints (see _joint_descriptions): one damping each.
+                    for name, value in ((j.name + UNIVERSAL_SECOND_SUFFIX, j.damping2), (j.name, j.damping)):
+                        if value > 0.0:
+                            dampings.append(JointDamping(name, value, j.line))
+                elif in_tree and j.type == "universal" and j.damping != j.damping2:
+                    logger.warning(
+                        "%s: universal joint %r: its axes' dampings %g and %g are left out: "
+                        "closedchain's joint damping is one value on all its coordinates; "
+                        "valid: the same <damping> on <axis> and <axis2>",
+                        _where(self.path, self.joint_elements[j.name]),
+                        j.name,
+                        j.damping,
+                        j.damping2,
+                    )
+                elif in_tree:
+                    dampings.append(JointDamping(j.name, j.damping, j.line))
+                else:
+                    left_out["damping"].append(j.name)
+        for what, names in left_out.items():
+            if names:
+                logger.warning(
+                    "%s: the %s of %s %s left out: a cut joint (a loop), a gearbox or a held "
+                    "(fixed_joints) joint has no coordinate of its own%s; valid: tree joints "
+                    "(cut_joints chooses which joint of a cycle is cut)",
                     self.path,
                     what,
-                    ", ".join(left_out),
-                    verb,
-                    ", nor has a continuous or universal joint a spring"
+                    ", ".join(names),
+                    "are" if what == "springs" else "is",
+                    ", nor has a continuous, universal or ball joint a spring"
                     if what == "springs"
                     else "",
                 )
-        return robot, replace(tree, dampings=tuple(dampings))
+        return tuple(springs), tuple(dampings)
 
-    def _gearbox_loop(self, g: SDFJoint, tree: SDFTree):
-        r"""Return the coupling ``<loop>`` of gearbox joint ``g``.
+    def _gearbox_loop(self, g: SDFJoint, tree: SDFTree, holder: dict[str, str]) -> LoopSpec:
+        r"""Return the coupling loop of gearbox joint ``g``.
 
         SDFormat (``joint.sdf``, ``gearbox_ratio`` and ``gearbox_reference_body``):
         :math:`\theta_2 = -r\,\theta_1`, where :math:`\theta_1` is the angle from the
@@ -742,7 +995,7 @@ class _Reader:
                 )
             j = between[0]
             if j.type != "revolute" or j.name not in tree.tree_joints:
-                state = "cut (a <loop> has no coordinate)" if j.type != "fixed" else "fixed"
+                state = "cut (a loop has no coordinate)" if j.type != "fixed" else "fixed"
                 raise URDFError(
                     f"{where}: joint {j.name!r} between {link!r} and the "
                     f"gearbox_reference_body is "
@@ -758,175 +1011,26 @@ class _Reader:
                 )
             ends.append((j.name, math.copysign(1.0, dot) * (1.0 if j.parent != link else -1.0)))
         (mimics, s1), (driven, s2) = ends
-        loop = etree.Element("loop", name=g.name, type=COUPLING)
-        etree.SubElement(loop, "joint", name=driven)
-        etree.SubElement(
-            loop,
-            "mimics",
-            joint=mimics,
-            multiplier=repr(-g.gearbox_ratio * s1 * s2),
-            offset="0.0",
+        multiplier = -g.gearbox_ratio * s1 * s2
+        if not abs(multiplier) <= COUPLING_MULTIPLIER_MAX:
+            raise URDFError(
+                f"{where}: <gearbox_ratio> {g.gearbox_ratio:g} is beyond the bound; valid: "
+                f"|ratio| <= {COUPLING_MULTIPLIER_MAX:g} (COUPLING_MULTIPLIER_MAX)"
+            )
+        return LoopSpec(
+            name=g.name,
+            type=COUPLING,
+            predecessor=holder[mimics],
+            successor=holder[driven],
+            predecessor_origin=pin.SE3.Identity(),
+            successor_origin=pin.SE3.Identity(),
+            axis=np.array([0.0, 0.0, 1.0]),
+            line=g.line,
+            joint=driven,
+            mimics=mimics,
+            multiplier=multiplier,
+            offset=0.0,
         )
-        return loop
-
-    def _link(self, element, oMl_urdf: pin.SE3, materials: list):
-        """Return the URDF ``<link>`` of an SDF link whose URDF frame is ``oMl_urdf``."""
-        name = element.get("name")
-        link = etree.Element("link", name=name)
-        inverse = oMl_urdf.inverse()
-        inertial = element.find("inertial")
-        out = etree.SubElement(link, "inertial")
-        names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
-        # SDF's defaults: 1 kg, identity inertia [kg m^2], at the link frame.
-        values = {n: 1.0 if n[1] == n[2] else 0.0 for n in names}
-        if inertial is None:
-            M, mass = self.frame(name, where=_where(self.path, element)), SDF_DEFAULT_MASS
-        else:
-            M = self.placed(inertial, name)
-            mass = _scalar(self.path, inertial, "mass", SDF_DEFAULT_MASS, minimum=0.0)
-            inertia = inertial.find("inertia")
-            if inertia is not None:
-                values = {n: _scalar(self.path, inertia, n, values[n]) for n in names}
-            where = f"{self.path}: line {inertial.sourceline}: <link name={name!r}> <inertial>"
-            check_inertia(where, values, triangle="warn")
-        _origin(out, inverse * M)
-        etree.SubElement(out, "mass", value=repr(mass))
-        etree.SubElement(out, "inertia", **{n: repr(v) for n, v in values.items()})
-        for kind in ("visual", "collision"):
-            for i, shape in enumerate(element.findall(kind)):
-                urdf_shape = self._shape(shape, name, inverse, f"{name}_{kind}_{i}", materials)
-                if urdf_shape is not None:
-                    link.append(urdf_shape)
-        return link
-
-    def _shape(self, element, link: str, inverse: pin.SE3, label: str, materials: list):
-        """Return the URDF ``<visual>``/``<collision>`` of an SDF one (None: no URDF shape)."""
-        geometry = element.find("geometry")
-        kinds = [g for g in (geometry if geometry is not None else []) if isinstance(g.tag, str)]
-        if not kinds:
-            return None
-        g = kinds[0]
-        out = etree.Element(element.tag)
-        _origin(out, inverse * self.placed(element, link))
-        urdf_geometry = etree.SubElement(out, "geometry")
-        if g.tag == "box":
-            etree.SubElement(
-                urdf_geometry, "box", size=_vector(_numbers(self.path, g.find("size"), 3))
-            )
-        elif g.tag == "sphere":
-            etree.SubElement(
-                urdf_geometry,
-                "sphere",
-                radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)),
-            )
-        elif g.tag == "cylinder":
-            etree.SubElement(
-                urdf_geometry,
-                "cylinder",
-                radius=repr(_scalar(self.path, g, "radius", 1.0, minimum=0.0)),
-                length=repr(_scalar(self.path, g, "length", 1.0, minimum=0.0)),
-            )
-        elif g.tag == "mesh":
-            uri = (g.findtext("uri") or "").strip()
-            scheme, sep, rest = uri.partition("://")
-            if sep and scheme == "model":
-                uri = "package://" + rest
-            mesh = etree.SubElement(urdf_geometry, "mesh", filename=uri)
-            if g.find("scale") is not None:
-                mesh.set("scale", _vector(_numbers(self.path, g.find("scale"), 3)))
-        else:
-            logger.warning(
-                "%s: <%s> geometry has no URDF counterpart; not drawn", _where(self.path, g), g.tag
-            )
-            return None
-        colour = element.find("material/diffuse")
-        if colour is None:
-            colour = element.find("material/ambient")
-        if element.tag == "visual" and colour is not None:
-            rgba = _numbers(self.path, colour, 4)
-            material = etree.Element("material", name=label)
-            etree.SubElement(material, "color", rgba=_vector(np.clip(rgba, 0.0, 1.0)))
-            materials.append(material)
-            etree.SubElement(out, "material", name=label)
-        return out
-
-    def _tree_joint(
-        self, j: SDFJoint, reverse: bool, frames: dict[str, pin.SE3]
-    ) -> tuple[list, list[JointDamping]]:
-        """Return the URDF elements of a tree joint, and the damping of its URDF joints.
-
-        The elements: its ``<joint>`` elements (two for a universal joint, through a
-        massless ``J::cross`` link) and, where its URDF child's SDF frame is not the
-        joint frame, a massless ``J::frame`` link that the joint moves and a fixed
-        ``J::pose`` joint placing the link in it.
-        """
-        parent, child = j.parent, j.child
-        sign = 1.0
-        if reverse:  # the axes negated: each coordinate keeps the SDF's sign
-            parent, child, sign = child, parent, -1.0
-        origin = frames[parent].inverse() * j.oMj
-        # (name, type, axis, parent, child, origin, limits, damping)
-        steps = [(j.name, j.type, j.axis, parent, child, origin, j.limits, j.damping)]
-        if j.type == "universal":
-            # R = Rot(axis, q1) Rot(axis2, q2) from the SDF parent; from the SDF child,
-            # Rot(-axis2, q2) Rot(-axis, q1): J::axis2 comes first, each keeps its angle.
-            cross = f"{j.name}::cross"
-            first = (j.name, "revolute", j.axis, j.limits, j.damping)
-            second = (f"{j.name}::axis2", "revolute", j.axis2, j.limits2, j.damping2)
-            if reverse:
-                first, second = second, first
-            steps = [
-                (*first[:3], parent, cross, origin, *first[3:]),
-                (*second[:3], cross, child, pin.SE3.Identity(), *second[3:]),
-            ]
-        offset = j.oMj.inverse() * frames[child]
-        if not np.array_equal(offset.homogeneous, np.eye(4)):
-            held = f"{j.name}::frame"
-            steps[-1] = (*steps[-1][:4], held, *steps[-1][5:])
-            steps.append((f"{j.name}::pose", "fixed", j.axis, held, child, offset, j.limits, 0.0))
-        out, damped = [], []
-        for name, jtype, axis, p, c, M, limits, damping in steps:
-            if c.startswith(f"{j.name}::"):
-                out.append(etree.Element("link", name=c))
-            joint = etree.Element("joint", name=name, type=jtype)
-            etree.SubElement(joint, "parent", link=p)
-            etree.SubElement(joint, "child", link=c)
-            _origin(joint, M)
-            if jtype != "fixed":
-                etree.SubElement(joint, "axis", xyz=_vector(sign * axis))
-            if jtype in ("revolute", "prismatic"):
-                lower, upper, effort, velocity = limits
-                etree.SubElement(
-                    joint,
-                    "limit",
-                    lower=repr(lower),
-                    upper=repr(upper),
-                    effort=repr(effort),
-                    velocity=repr(velocity),
-                )
-            spring = j.spring if j.type in SPRING_JOINT_TYPES else None
-            if jtype != "fixed" and (damping > 0.0 or spring is not None):
-                # urdfdom wants damping or friction in <dynamics>; a reversed joint keeps
-                # the SDF's coordinate (its axis is negated), so its spring too.
-                dynamics = etree.SubElement(joint, "dynamics", damping=repr(damping))
-                if spring is not None:
-                    dynamics.set("spring_stiffness", repr(spring[0]))
-                    dynamics.set("spring_reference", repr(spring[1]))
-            if jtype != "fixed" and damping > 0.0:
-                damped.append(JointDamping(name, damping, j.line))
-            out.append(joint)
-        return out, damped
-
-    def _loop(self, j: SDFJoint, frames: dict[str, pin.SE3]):
-        """Return the URDF+ ``<loop>`` of a cut joint (its frame seen from both links)."""
-        loop = etree.Element("loop", name=j.name, type=LOOP_TYPE_OF[j.type])
-        etree.SubElement(loop, "predecessor", link=j.parent)
-        etree.SubElement(loop, "successor", link=j.child)
-        for tag, link in (("predecessor_origin", j.parent), ("successor_origin", j.child)):
-            _origin(loop, frames[link].inverse() * j.oMj, tag)
-        if j.type in ("revolute", "continuous", "prismatic"):
-            etree.SubElement(loop, "axis", xyz=_vector(j.axis))
-        return loop
 
 
 def is_sdf(path: str | Path) -> bool:

@@ -1,7 +1,10 @@
 """Read the URDF+ extension elements: ``<loop>``, ``<transmission>``, ``independent``.
 
-The open tree is read by Pinocchio; this module reads, with a hardened lxml
-parser, what Pinocchio ignores (URDF+, Chignoli et al. 2024):
+This module reads, with a hardened lxml parser, the URDF tree into a
+:class:`closedchain.description.MechanismDescription` (placements as SE3 from the
+origins, joints, limits, inertias and visuals, as Pinocchio's URDF reader takes
+them; :func:`closedchain.build.build_model` builds it) and what URDF readers
+ignore, URDF+ (Chignoli et al. 2024):
 
 .. code-block:: xml
 
@@ -52,15 +55,23 @@ import logging
 import math
 import re
 import unicodedata
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 from lxml import etree
 
 from ._io import MAX_XML_BYTES, read_input_bytes
+from .description import (
+    LIMITED_KINDS,
+    NEUTRAL_Q0,
+    BodyDescription,
+    JointDescription,
+    MechanismDescription,
+    Visual,
+)
 from .exceptions import ModelTooLargeError, URDFError, quoted, shorten
 
 __all__ = [
@@ -76,8 +87,6 @@ __all__ = [
     "parse_urdf",
     "read_xml",
 ]
-if TYPE_CHECKING:
-    from .description import MechanismDescription
 
 logger = logging.getLogger(__name__)
 
@@ -340,8 +349,6 @@ class URDFPlus:
 
     Attributes:
         path: the file read.
-        xml: the file's text, checked safe, to hand to Pinocchio's reader (None
-            when ``description`` stands in for it).
         robot_name: the ``<robot name>``.
         links: names of all ``<link>`` elements.
         joints: joint name -> joint type for all ``<joint>`` elements.
@@ -349,29 +356,19 @@ class URDFPlus:
         actuated: joints named by ``<transmission>`` elements, in file order.
         independent: joints marked ``independent="true"``, in file order.
         scene: the ``<scene>`` element (default scene), or None.
-        spherical: joints written in the XML as three revolute joints
-            ``<name>_X, _Y, _Z`` that :func:`closedchain.load` fuses into one
-            Pinocchio spherical joint (a loops YAML's ``SPHERICAL``, see
-            :mod:`closedchain.yaml_loops`).
-        unlimited: joints whose position limits :func:`closedchain.load`
-            removes (a loops YAML's tree: ``<limit>`` without lower and upper).
-        fuse_ball_chains: whether :func:`closedchain.load` fuses chains of three
-            revolute joints through massless links at one point into spherical
-            joints (a loops YAML's tree, as the convention's loader does).
         springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
         dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
         armatures: the joints' armature (:class:`JointArmature`), in file order.
         description: the tree as a :class:`closedchain.description.MechanismDescription`
-            (an MJCF model, read through MuJoCo's compiler), built by
-            :func:`closedchain.build.build_model` instead of Pinocchio's URDF reader;
-            None: ``xml`` is the tree.
+            (a URDF's read by :func:`parse_urdf`, an SDF model's by
+            :func:`closedchain.sdf.read_sdf`, an MJCF model's through MuJoCo's
+            compiler), which :func:`closedchain.build.build_model` builds.
         link_files: link name -> the file whose ``<link>`` element it is, for the
             links of another file than ``path`` (a base URDF under an overlay or a
             loops YAML file): their meshes are looked up beside that file.
     """
 
     path: Path
-    xml: str | None
     robot_name: str
     links: tuple[str, ...]
     joints: dict[str, str] = field(default_factory=dict)
@@ -379,9 +376,6 @@ class URDFPlus:
     actuated: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
     scene: SceneSpec | None = None
-    spherical: tuple[str, ...] = ()
-    unlimited: tuple[str, ...] = ()
-    fuse_ball_chains: bool = False
     springs: tuple[JointSpring, ...] = ()
     dampings: tuple[JointDamping, ...] = ()
     armatures: tuple[JointArmature, ...] = ()
@@ -659,7 +653,7 @@ def _number(
     return value
 
 
-def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
+def _check_inertial(path: Path, link) -> None:
     """Refuse an ``<inertial>`` whose mass or inertia is not a physical one.
 
     urdfdom only warns about these and Pinocchio then builds a massless or
@@ -679,13 +673,15 @@ def _check_inertial(path: Path, link, *, triangle: str = "refuse") -> None:
     inertia = inertial.find("inertia")
     if inertia is None:
         raise URDFError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
-    names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
-    values = {n: _number(where, inertia, n) or 0.0 for n in names}
-    check_inertia(where, values, triangle=triangle)
+    values = {n: _number(where, inertia, n) or 0.0 for n in INERTIA_ATTRIBUTES}
+    check_inertia(where, values)
 
+
+#: Attributes of an ``<inertia>`` [kg m^2] (a missing one is 0).
+INERTIA_ATTRIBUTES = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 
 #: What :func:`check_inertia` does with a violated triangle inequality.
-TRIANGLE_CHOICES = ("refuse", "warn", "pass")
+TRIANGLE_CHOICES = ("refuse", "warn")
 
 
 def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refuse") -> None:
@@ -694,10 +690,10 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refu
     Args:
         where: the start of every message (file, line, element).
         values: ``ixx, ixy, ixz, iyy, iyz, izz`` [kg m^2], finite.
-        triangle: a violated triangle inequality is refused, logged as a
-            warning, or passed (one of :data:`TRIANGLE_CHOICES`). The mass
-            matrix stays positive definite either way: the SDF reader warns
-            (Cassie ships such rotors) and its URDF+ is then passed.
+        triangle: a violated triangle inequality is refused or logged as a
+            warning (one of :data:`TRIANGLE_CHOICES`). The mass matrix stays
+            positive definite either way: the SDF reader warns (Cassie ships such
+            rotors).
 
     Raises:
         URDFError: not positive semi-definite, or principal moments that
@@ -726,8 +722,7 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refu
         )
         if triangle == "refuse":
             raise URDFError(message)
-        if triangle == "warn":
-            logger.warning("%s; kept", message)
+        logger.warning("%s; kept", message)
 
 
 #: Joint types whose motion is defined by ``<axis>`` (its length must not vanish).
@@ -737,8 +732,7 @@ AXIS_JOINT_TYPES = ("revolute", "continuous", "prismatic", "planar")
 def _check_joint(path: Path, joint) -> None:
     """Refuse a ``<joint>`` with a bad origin, a zero or non-finite axis or NaN limits.
 
-    The axis of a joint that has one is written back as its unit vector (all
-    digits): Pinocchio's reader then normalizes a unit vector, where its own
+    The axis is normalized by scaling first (:func:`unit_vector`), where a plain
     norm of e.g. ``0 -1e200 0`` overflows and leaves the axis zero.
     """
     where = _where(path, joint)
@@ -748,8 +742,7 @@ def _check_joint(path: Path, joint) -> None:
     axis = joint.find("axis")
     # URDF ignores the axis of fixed and floating joints (Talos writes 0 0 0 there).
     if axis is not None and joint.get("type") in AXIS_JOINT_TYPES:
-        unit = _unit_axis(path, axis, where)
-        axis.set("xyz", " ".join(repr(float(x)) for x in unit))
+        _unit_axis(path, axis, where)
     elif axis is not None:
         _floats(path, axis, "xyz", "1 0 0", where)
     limit = joint.find("limit")
@@ -808,9 +801,23 @@ def read_xml(path: Path, *, what: str = "URDF file"):
     return root
 
 
-def parse_urdf(
-    path: str | Path, *, element=None, max_nv: int | None = None, triangle: str = "refuse"
-) -> URDFPlus:
+def check_tree_size(where: str, joints: int, nv: int, max_nv: int | None) -> None:
+    """Refuse a tree of ``joints`` joints with ``nv`` degrees of freedom beyond ``max_nv``.
+
+    Raises:
+        ModelTooLargeError: ``nv > max_nv`` (None: no bound); the message starts with
+            ``where``.
+    """
+    if max_nv is not None and nv > max_nv:
+        raise ModelTooLargeError(
+            f"{where}: {joints} joints with nv = {nv} degrees of freedom are beyond "
+            f"the supported size; valid: nv <= {max_nv}",
+            nv=nv,
+            max_nv=max_nv,
+        )
+
+
+def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> URDFPlus:
     """Read a URDF file and its URDF+ extension elements.
 
     Args:
@@ -821,13 +828,10 @@ def parse_urdf(
         max_nv: largest supported number of degrees of freedom of the tree
             (sum over joints of :data:`URDF_JOINT_NV`); a larger tree is
             refused right after the XML is read, before any per-element work.
-        triangle: what to do with inertias that violate the triangle
-            inequality (see :func:`check_inertia`; ``"pass"`` for SDF models,
-            whose reader has warned).
 
     Returns:
-        The parsed extensions, with the checked XML text (joint axes written
-        as unit vectors, see below).
+        The model: its tree as a description (see :func:`tree_order` for the
+        order of its bodies) and the URDF+ extensions.
 
     Raises:
         URDFError: the file is missing, is not well-formed XML, declares a DTD,
@@ -873,10 +877,16 @@ def parse_urdf(
       no ``damping``/``friction`` beside them (urdfdom refuses that) is refused.
     - Numbers: origins finite and within :data:`ORIGIN_XYZ_MAX` [m] and
       :data:`ORIGIN_RPY_MAX` [rad]; axes finite and not zero, normalized by
-      scaling first (an axis of 1e308 is a direction). The axis of a
-      revolute, continuous, prismatic or planar ``<joint>`` is written back
-      into the XML as its unit vector, so Pinocchio and closedchain see the
-      same axis.
+      scaling first (an axis of 1e308 is a direction).
+    - The tree, as urdfdom (Pinocchio's URDF reader) refuses what is not one:
+      joint types :data:`URDF_JOINT_TYPES`; every joint's parent and child links
+      exist, every link but one (the root) is the child of exactly one joint, no
+      cycle; a revolute or prismatic joint has a ``<limit>``, and every ``<limit>``
+      an ``effort`` and a ``velocity``. A missing ``lower`` or ``upper`` is 0 (as
+      urdfdom reads it).
+    - ``<visual>``: box, cylinder, sphere and mesh geometries (others are not
+      drawn), their sizes finite and >= 0 (a mesh's scale may mirror), a
+      ``<material>``'s colour inline or by the name of a top-level one.
     """
     path = Path(path)
     root = read_xml(path) if element is None else element
@@ -887,21 +897,49 @@ def parse_urdf(
     if not link_elements:
         raise URDFError(f"{path}: <robot> has no <link> elements")
     nv = sum(URDF_JOINT_NV.get(e.get("type"), 0) for e in joint_elements)
-    if max_nv is not None and nv > max_nv:
-        raise ModelTooLargeError(
-            f"{path}: {len(joint_elements)} joints with nv = {nv} degrees of freedom are beyond "
-            f"the supported size; valid: nv <= {max_nv}",
-            nv=nv,
-            max_nv=max_nv,
-        )
+    check_tree_size(str(path), len(joint_elements), nv, max_nv)
+    return _read_robot(path, root)
+
+
+
+def read_overlay(base: URDFPlus, path: Path, root) -> URDFPlus:
+    """Return a base model with an overlay's links, joints, loops and transmissions merged.
+
+    The overlay's elements are checked as :func:`parse_urdf` checks a file's (messages
+    name the overlay and its lines), may name the base's links and joints, and add
+    bodies to its description; the base keeps its bodies, loops, transmissions,
+    scene and passive terms.
+
+    Args:
+        base: the base model, read (any reader's: its ``description`` is merged into).
+        path: the overlay file, for messages.
+        root: the overlay's ``<robot>`` element (checked by the caller: only overlay
+            elements, no name the base uses).
+    Returns:
+        The merged model, named after the overlay (``path``; ``robot_name``: the
+        overlay's ``<robot name>``, else the base's).
+
+    Raises:
+        URDFError: see :func:`parse_urdf`; an overlay joint whose child is a link the
+            base's tree already holds.
+    """
+    return _read_robot(path, root, base=base)
+
+
+def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
+    """Return what a ``<robot>`` element says, merged into ``base`` (None: a whole file)."""
     _check_layout(path, root)
     if root.get("name") is not None:  # optional: the file's stem stands in
         _check_name(path, root, "robot")
-    links = _unique_names(path, link_elements, "link")
+    link_elements, joint_elements = root.findall("link"), root.findall("joint")
+    links = (*(base.links if base else ()), *_unique_names(path, link_elements, "link"))
     _unique_names(path, joint_elements, "joint")
-    joints = {e.get("name"): e.get("type") for e in joint_elements}
+    joints = {
+        **(base.joints if base else {}),
+        **{e.get("name"): e.get("type") for e in joint_elements},
+    }
     for link in link_elements:
-        _check_inertial(path, link, triangle=triangle)
+        _check_inertial(path, link)
         for origin in (*link.findall("visual/origin"), *link.findall("collision/origin")):
             _origin_values(path, origin, f"{_where(path, link)} <{origin.getparent().tag}>")
     for joint in joint_elements:
@@ -909,12 +947,15 @@ def parse_urdf(
 
     # A loop may name the world (WORLD_LINK) even when no link has that name.
     loop_links = links if WORLD_LINK in links else (*links, WORLD_LINK)
-    children = {
-        e.get("name"): e.find("child").get("link")
-        for e in joint_elements
-        if e.find("child") is not None
-    }
-    loops = tuple(
+    children = {} if base is None else _children(base.description)
+    children.update(
+        {
+            e.get("name"): e.find("child").get("link")
+            for e in joint_elements
+            if e.find("child") is not None
+        }
+    )
+    loops = (base.loops if base else ()) + tuple(
         _parse_coupling(path, e, joints, children)
         if e.get("type") == COUPLING
         else _parse_loop(path, e, loop_links)
@@ -932,6 +973,384 @@ def parse_urdf(
         if names.count(name) > 1:
             raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
 
+    actuated = list(base.actuated if base else ())
+    actuated += [j for j in _parse_transmissions(path, root, joints) if j not in actuated]
+
+    independent: list[str] = list(base.independent if base else ())
+    for je in root.findall("joint"):
+        flag = je.get("independent")
+        if flag is None:
+            continue
+        if flag not in ("true", "false"):
+            raise URDFError(
+                f'{_where(path, je)}: independent={quoted(flag)} must be "true" or "false"'
+            )
+        if flag == "true":
+            if je.get("type") == "fixed":
+                raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
+            independent.append(je.get("name"))
+
+    scenes = root.findall("scene")
+    if len(scenes) > 1:
+        raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
+    scene = _parse_scene(path, scenes[0], joints) if scenes else (base.scene if base else None)
+    springs = tuple(
+        spring for je in joint_elements if (spring := _parse_spring(path, je, joints)) is not None
+    )
+    dynamics = [_parse_dynamics(path, je, joints) for je in joint_elements]
+    dampings = tuple(d for d, _ in dynamics if d is not None)
+    armatures = tuple(r for _, r in dynamics if r is not None)
+    name = root.get("name", base.robot_name if base else path.stem)
+    return URDFPlus(
+        path=path,
+        description=_describe(path, root, name, base.description if base else None),
+        robot_name=name,
+        links=links,
+        joints=joints,
+        loops=loops,
+        actuated=tuple(actuated),
+        independent=tuple(independent),
+        scene=scene,
+        springs=(base.springs if base else ()) + springs,
+        dampings=(base.dampings if base else ()) + dampings,
+        armatures=(base.armatures if base else ()) + armatures,
+        link_files=dict(base.link_files) if base else {},
+    )
+
+
+def _children(description: MechanismDescription) -> dict[str, str]:
+    """Return joint name -> the body it holds, for every joint of a description."""
+    out = {b.fixed_joint: b.name for b in description.bodies if b.fixed_joint}
+    out.update({j.name: b.name for b in description.bodies for j in b.joints})
+    return out
+
+
+#: Description joint kind of each movable URDF joint type.
+URDF_JOINT_KINDS = {
+    "revolute": "revolute",
+    "continuous": "continuous",
+    "prismatic": "prismatic",
+    "planar": "planar",
+    "floating": "floating",
+}
+
+#: Every URDF joint type (urdfdom refuses any other).
+URDF_JOINT_TYPES = (*URDF_JOINT_KINDS, "fixed")
+
+#: URDF joint types whose ``<limit>`` gives position limits, which they must have.
+LIMITED_JOINT_TYPES = ("revolute", "prismatic")
+
+#: URDF joint types whose ``<limit effort velocity>`` and ``<dynamics damping
+#: friction>`` Pinocchio's URDF reader keeps (one coordinate each).
+ONE_DOF_JOINT_TYPES = ("revolute", "continuous", "prismatic")
+
+
+def _inertia(path: Path, link) -> pin.Inertia:
+    """Return a checked ``<inertial>``'s inertia in the link frame (zero without one)."""
+    inertial = link.find("inertial")
+    if inertial is None:
+        return pin.Inertia.Zero()
+    origin = inertial.find("origin")
+    placement = pin.SE3.Identity() if origin is None else _origin(path, origin)
+    mass = float(inertial.find("mass").get("value"))
+    values = {n: float(inertial.find("inertia").get(n, "0")) for n in INERTIA_ATTRIBUTES}
+    rotational = np.array(
+        [
+            [values["ixx"], values["ixy"], values["ixz"]],
+            [values["ixy"], values["iyy"], values["iyz"]],
+            [values["ixz"], values["iyz"], values["izz"]],
+        ]
+    )
+    rotation = placement.rotation
+    # Set field by field: Pinocchio's Python constructor refuses a rotational inertia
+    # with an eigenvalue of -1e-20 (round-off of a file's numbers, which its URDF
+    # reader and check_inertia's tolerance accept).
+    inertia = pin.Inertia.Zero()
+    inertia.mass = mass
+    inertia.lever = placement.translation
+    inertia.inertia = rotation @ rotational @ rotation.T
+    return inertia
+
+
+def _joint_description(path: Path, joint) -> JointDescription:
+    """Return a checked movable ``<joint>``'s description (limits as urdfdom reads them)."""
+    kind = URDF_JOINT_KINDS[joint.get("type")]
+    where = _where(path, joint)
+    axis_element = joint.find("axis")
+    axis = (
+        np.array([1.0, 0.0, 0.0]) if axis_element is None else _unit_axis(path, axis_element, where)
+    )
+    bounds: dict[str, float] = {}
+    limit = joint.find("limit")
+    if limit is not None:
+        bounds = {a: _number(where, limit, a) for a in LIMIT_ATTRIBUTES}
+    friction = damping = 0.0
+    dynamics = joint.find("dynamics")
+    if dynamics is not None:
+        friction = _number(where, dynamics, "friction") or 0.0
+        damping = _number(where, dynamics, "damping") or 0.0
+    one_dof = joint.get("type") in ONE_DOF_JOINT_TYPES
+    return JointDescription(
+        name=joint.get("name"),
+        kind=kind,
+        axis=axis,
+        q0=NEUTRAL_Q0[kind],
+        # urdfdom reads a missing lower or upper as 0.
+        lower=(bounds.get("lower") or 0.0) if kind in LIMITED_KINDS else -np.inf,
+        upper=(bounds.get("upper") or 0.0) if kind in LIMITED_KINDS else np.inf,
+        effort=bounds["effort"] if one_dof and limit is not None else np.inf,
+        velocity=bounds["velocity"] if one_dof and limit is not None else np.inf,
+        friction=friction if one_dof else 0.0,
+        damping=damping if one_dof else 0.0,
+    )
+
+
+#: Entries of a colour (r, g, b, a).
+RGBA_SIZE = 4
+
+#: Geometries of a ``<visual>`` that are drawn (others, such as a capsule, are not).
+VISUAL_GEOMETRIES = ("box", "cylinder", "sphere", "mesh")
+
+
+def _numbers(
+    where: str, element, attribute: str, count: int, *, signed: bool = False
+) -> tuple[float, ...]:
+    """Return ``count`` finite numbers (>= 0 unless ``signed``) of an attribute, or raise
+    naming it."""
+    text = element.get(attribute)
+    try:
+        values = tuple(float(x) for x in (text or "").split())
+    except ValueError:
+        values = ()
+    if len(values) != count or not all(math.isfinite(v) and (signed or v >= 0.0) for v in values):
+        valid = "finite number(s)" if signed else "finite number(s) >= 0"
+        raise URDFError(
+            f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {count} {valid}"
+        )
+    return values
+
+
+def _material_rgba(path: Path, material, named: dict[str, tuple[float, ...]]):
+    """Return a ``<material>``'s colour (r, g, b, a) clipped to [0, 1], its named
+    top-level material's, or None (none given)."""
+    if material is None:
+        return None
+    color = material.find("color")
+    if color is None:
+        return named.get(material.get("name"))
+    text = color.get("rgba")
+    try:
+        numbers = [float(x) for x in (text or "").split()]
+    except ValueError:
+        numbers = []
+    if len(numbers) != RGBA_SIZE or not all(math.isfinite(x) for x in numbers):
+        raise URDFError(
+            f"{_where(path, material)} <color rgba={quoted(text)}>: must be "
+            f"{RGBA_SIZE} finite numbers"
+        )
+    return tuple(float(np.clip(x, 0.0, 1.0)) for x in numbers)
+
+
+def _materials(path: Path, root) -> dict[str, tuple[float, ...]]:
+    """Return the colours of the top-level ``<material name>`` elements."""
+    out = {}
+    for material in root.findall("material"):
+        rgba = _material_rgba(path, material, {})
+        if rgba is not None:
+            out[material.get("name")] = rgba
+    return out
+
+
+def _visuals(path: Path, link, named: dict[str, tuple[float, ...]]) -> tuple[Visual, ...]:
+    """Return a ``<link>``'s drawn ``<visual>`` shapes (see :class:`Visual`); a mesh keeps
+    its filename as written (``package://``, ``file://`` or relative), resolved when drawn
+    beside the file that names the link."""
+    out = []
+    for visual in link.findall("visual"):
+        where = _where(path, link) + " <visual>"
+        origin = visual.find("origin")
+        placement = pin.SE3.Identity() if origin is None else _origin(path, origin)
+        geometry = visual.find("geometry")
+        shape = None
+        if geometry is not None:
+            shape = next((g for g in geometry if g.tag in VISUAL_GEOMETRIES), None)
+        if shape is None:
+            continue
+        rgba = _material_rgba(path, visual.find("material"), named)
+        if shape.tag == "box":
+            out.append(Visual("box", _numbers(where, shape, "size", 3), placement, rgba))
+        elif shape.tag == "sphere":
+            radius = _numbers(where, shape, "radius", 1)
+            out.append(Visual("sphere", radius, placement, rgba))
+        elif shape.tag == "cylinder":
+            dims = (
+                _numbers(where, shape, "radius", 1)[0],
+                _numbers(where, shape, "length", 1)[0],
+            )
+            out.append(Visual("cylinder", dims, placement, rgba))
+        else:
+            filename = shape.get("filename")
+            if not filename:
+                raise URDFError(f"{where} <mesh>: missing filename=")
+            scale = (
+                (1.0, 1.0, 1.0)
+                if shape.get("scale") is None
+                else _numbers(where, shape, "scale", 3, signed=True)
+            )
+            out.append(Visual("mesh", scale, placement, rgba, filename))
+    return tuple(out)
+
+
+def _tree_edges(
+    path: Path, joint_elements, links: tuple[str, ...], held: dict[str, str]
+) -> dict[str, object]:
+    """Return child link -> its ``<joint>``, refusing what urdfdom refuses: a joint without
+    a known type, parent or child, a link it names that does not exist, a link with two
+    parent joints, a revolute or prismatic joint without ``<limit>``, a ``<limit>`` without
+    effort or velocity. ``held``: link -> the joint already holding it (a base's)."""
+    known = set(links)
+    held = dict(held)
+    parent_joint: dict[str, object] = {}
+    for joint in joint_elements:
+        where = _where(path, joint)
+        jtype = joint.get("type")
+        if jtype not in URDF_JOINT_TYPES:
+            raise URDFError(
+                f"{where}: unknown joint type {quoted(jtype)}; valid: {', '.join(URDF_JOINT_TYPES)}"
+            )
+        ends = {}
+        for tag in ("parent", "child"):
+            end = joint.find(tag)
+            name = None if end is None else end.get("link")
+            if name is None:
+                raise URDFError(f"{where}: missing <{tag} link=...>")
+            if name not in known:
+                raise URDFError(
+                    f"{where}: <{tag} link={quoted(name)}> names no <link> of this file; "
+                    f"links: {name_list(links)}"
+                )
+            ends[tag] = name
+        if ends["parent"] == ends["child"]:
+            raise URDFError(f"{where}: parent and child are the same link {quoted(ends['child'])}")
+        if ends["child"] in held:
+            raise URDFError(
+                f"{where}: link {quoted(ends['child'])} is already the child of joint "
+                f"{quoted(held[ends['child']])}; a link has one parent joint (close a loop "
+                "with a <loop> element)"
+            )
+        limit = joint.find("limit")
+        if limit is None and jtype in LIMITED_JOINT_TYPES:
+            raise URDFError(
+                f"{where}: a {jtype} joint needs a <limit lower upper effort velocity> "
+                "(URDF readers refuse it without)"
+            )
+        if limit is not None:
+            for attribute in ("effort", "velocity"):
+                if limit.get(attribute) is None:
+                    raise URDFError(
+                        f"{where} <limit>: missing {attribute}= (URDF readers refuse a "
+                        "<limit> without it)"
+                    )
+        parent_joint[ends["child"]] = joint
+        held[ends["child"]] = joint.get("name")
+    return parent_joint
+
+
+def _joint_key(body: BodyDescription) -> str:
+    """Return the name of the joint that holds a body to its parent (its own name: none)."""
+    return body.fixed_joint or (body.joints[0].name if body.joints else body.name)
+
+
+def tree_order(
+    bodies: Iterable[BodyDescription], *, tops: tuple[str | None, ...] = (None,)
+) -> tuple[BodyDescription, ...]:
+    """Return the bodies below the top (parent None, or another of ``tops``) depth first,
+    each body's children in the order of their joints' names: the order in which
+    Pinocchio's URDF reader numbers them (urdfdom keeps the joints in a map sorted by
+    name). Bodies that no path from the top reaches (a cycle) are left out."""
+    children: dict[str | None, list[BodyDescription]] = {}
+    for body in bodies:
+        children.setdefault(body.parent, []).append(body)
+    out = []
+    top = [b for t in tops for b in children.get(t, ())]
+    stack = sorted(top, key=_joint_key, reverse=True)
+    while stack:
+        body = stack.pop()
+        out.append(body)
+        stack.extend(sorted(children.get(body.name, ()), key=_joint_key, reverse=True))
+    return tuple(out)
+
+
+def _describe(
+    path: Path, root, name: str, base: MechanismDescription | None
+) -> MechanismDescription:
+    """Return the description of a checked ``<robot>``'s tree, as Pinocchio's URDF reader
+    builds it, merged into ``base`` (an overlay's) or whole (None).
+
+    A whole tree and a tree merged into a URDF's are in :func:`tree_order`; a base with
+    a world frame (another reader's) keeps its order, the overlay's bodies after it.
+    """
+    link_elements, joint_elements = root.findall("link"), root.findall("joint")
+    bodies = {} if base is None else {b.name: b for b in base.bodies}
+    held = {b.name: _joint_key(b) for b in bodies.values() if b.parent is not None}
+    world_frame = base is not None and base.world_frame
+    links = (*bodies, *(e.get("name") for e in link_elements))
+    if world_frame:  # the world is a body the overlay's joints may hang from
+        links = (*links, WORLD_LINK)
+    parent_joint = _tree_edges(path, joint_elements, links, held)
+    named = _materials(path, root)
+    own = {e.get("name"): e for e in link_elements}
+    for link, element in own.items():  # the overlay's links: on no joint yet
+        bodies[link] = BodyDescription(
+            link,
+            None,
+            pin.SE3.Identity(),
+            inertia=_inertia(path, element),
+            visuals=_visuals(path, element, named),
+        )
+    for child, joint in parent_joint.items():
+        origin = joint.find("origin")
+        fixed = joint.get("type") == "fixed"
+        bodies[child] = replace(
+            bodies[child],
+            parent=joint.find("parent").get("link"),
+            placement=pin.SE3.Identity() if origin is None else _origin(path, origin),
+            joints=() if fixed else (_joint_description(path, joint),),
+            fixed_joint=joint.get("name") if fixed else "",
+        )
+    roots = [b.name for b in bodies.values() if b.parent is None]
+    if len(roots) != (0 if world_frame else 1):
+        found = f"{len(roots)} root links ({name_list(roots)})" if roots else "no root link"
+        raise URDFError(
+            f"{path}: the links and joints make no tree: {found}; valid: one root link, "
+            "every other link the child of one joint (close loops with <loop> elements)"
+        )
+    ordered = tree_order(bodies.values(), tops=(None, WORLD_LINK) if world_frame else (None,))
+    if world_frame:  # the base's order, then the overlay's bodies
+        ordered = (*base.bodies, *(b for b in ordered if b.name in own))
+    if len(ordered) != len(bodies):
+        reached = {b.name for b in ordered}
+        raise URDFError(
+            f"{path}: the links and joints make no tree: links "
+            f"{name_list(n for n in bodies if n not in reached)} are on a cycle of joints, "
+            f"not below the root link {quoted(roots[0] if roots else WORLD_LINK)} (close "
+            "loops with <loop> elements)"
+        )
+    return MechanismDescription(
+        name=name,
+        path=path,
+        bodies=tuple(ordered),
+        world_visuals=base.world_visuals if base else (),
+        sites=base.sites if base else (),
+        keyframes=base.keyframes if base else {},
+        inactive=base.inactive if base else (),
+        world_frame=world_frame,
+    )
+
+
+def _parse_transmissions(path: Path, root, joints: dict[str, str]) -> tuple[str, ...]:
+    """Return the joints the ``<transmission>`` elements of ``root`` name, in file order
+    (joints: name -> type of the tree's joints; a fixed one cannot be actuated)."""
     actuated: list[str] = []
     for trans in root.findall("transmission"):
         _check_name(path, trans, "transmission")
@@ -952,47 +1371,7 @@ def parse_urdf(
                 )
             if jname not in actuated:
                 actuated.append(jname)
-
-    independent: list[str] = []
-    for je in root.findall("joint"):
-        flag = je.get("independent")
-        if flag is None:
-            continue
-        if flag not in ("true", "false"):
-            raise URDFError(
-                f'{_where(path, je)}: independent={quoted(flag)} must be "true" or "false"'
-            )
-        if flag == "true":
-            if je.get("type") == "fixed":
-                raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
-            independent.append(je.get("name"))
-
-    scenes = root.findall("scene")
-    if len(scenes) > 1:
-        raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
-    scene = _parse_scene(path, scenes[0], joints) if scenes else None
-    springs = tuple(
-        spring for je in joint_elements if (spring := _parse_spring(path, je, joints)) is not None
-    )
-    dynamics = [_parse_dynamics(path, je, joints) for je in joint_elements]
-    dampings = tuple(d for d, _ in dynamics if d is not None)
-    armatures = tuple(r for _, r in dynamics if r is not None)
-
-    xml = etree.tostring(root, encoding="unicode")
-    return URDFPlus(
-        path=path,
-        xml=xml,
-        robot_name=root.get("name", path.stem),
-        links=links,
-        joints=joints,
-        loops=loops,
-        actuated=tuple(actuated),
-        independent=tuple(independent),
-        scene=scene,
-        springs=springs,
-        dampings=dampings,
-        armatures=armatures,
-    )
+    return tuple(actuated)
 
 
 def _parse_dynamics(

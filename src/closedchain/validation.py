@@ -60,9 +60,9 @@ differ by 2e-11 of :math:`\|a\|_M` (docs/guide/validation.md).
 equalities, SDF gearboxes) have no Pinocchio constraint model, and
 ``constraintDynamics`` refuses Pinocchio's mimic joints. Their reference is the same
 tree with every coupled joint turned into a Pinocchio mimic joint
-(``pinocchio.transformJointIntoMimic``; the multipliers and offsets of URDF
-``<mimic>`` elements as Pinocchio's own reader reads them,
-``buildModelFromXML(..., mimic=True)``): its coordinates are those of the primary
+(``pinocchio.transformJointIntoMimic`` on the built model; the multipliers and
+offsets of URDF ``<mimic>`` elements read again from the file, apart from
+closedchain's reader): its coordinates are those of the primary
 joints, v = G v_r, and its ``crba`` and ``nonLinearEffects`` are the reduced M_r and
 h_r (:class:`MimicReference`; Pinocchio 4.1's ``aba`` and ``constraintDynamics``
 refuse mimic joints). Without frame loops a_r = M_r^-1 (G^T tau - h_r); with them,
@@ -80,6 +80,7 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -95,12 +96,13 @@ from .exceptions import (
     InvalidArgumentError,
     SingularConfigurationError,
     UnknownChoiceError,
+    URDFError,
     ValidationUnavailableError,
     check_settings,
 )
 from .kinematics import assemble, project_velocity, random_consistent_state, singularity_measures
 from .mechanism import Mechanism
-from .urdf import COUPLING
+from .urdf import COUPLING, URDFPlus, read_xml
 
 logger = logging.getLogger(__name__)
 
@@ -319,8 +321,12 @@ class MimicReference:
         """
         model, data = self.model, self.data
         q_r, v_r, tau_r = q[self.q_index], v[self.v_index], self.G.T @ tau
-        M = pin.crba(model, data, q_r)
-        M = np.triu(M) + np.triu(M, 1).T
+        # M column by column from rnea: Pinocchio 4.1's crba is wrong when a mimic joint
+        # hangs below another (erd:cassie's gearbox outputs: 3 % of M), its rnea is not.
+        zero = np.zeros(model.nv)
+        g = pin.rnea(model, data, q_r, zero, zero).copy()
+        M = np.column_stack([pin.rnea(model, data, q_r, zero, e) - g for e in np.eye(model.nv)])
+        M = 0.5 * (M + M.T)
         h = pin.nonLinearEffects(model, data, q_r, v_r).copy()
         if not self.points:
             return np.linalg.solve(M, tau_r - h), np.zeros(model.nv), M
@@ -372,10 +378,9 @@ def mimic_reference(mech: Mechanism) -> MimicReference:
 def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
     """Return joint j -> (i, m, c) of every coupling q_j = m q_i + c of ``mech``.
 
-    The couplings read from URDF ``<mimic>`` elements take Pinocchio's reading of the
-    mechanism's XML (``buildModelFromXML(..., mimic=True)``); the others, and every
-    coupling when there is no URDF text (an MJCF model) or Pinocchio cannot read it with
-    mimic joints, closedchain's.
+    The couplings a URDF file writes as ``<mimic>`` elements are read here again from
+    the file (:func:`_file_mimics`), independently of closedchain's reader; the
+    others, and those of a model without URDF files (MJCF, SDF), closedchain's.
     """
     model = mech.model
     relations = {
@@ -383,23 +388,40 @@ def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
         for spec in mech.declared.loops
         if spec.type == COUPLING
     }
-    if mech.urdf.xml is None:  # a model read into a description (MJCF): no URDF text
-        return relations
-    try:
-        pinocchio_mimic = pin.buildModelFromXML(mech.urdf.xml, mimic=True)
-    except (RuntimeError, ValueError) as exc:
-        logger.info("%s: Pinocchio reads no mimic joints from the model (%s)", mech.name, exc)
-        return relations
-    for j, i in zip(pinocchio_mimic.mimicking_joints, pinocchio_mimic.mimicked_joints, strict=True):
-        joint = pinocchio_mimic.joints[j].extract()
-        name, leader = pinocchio_mimic.names[j], pinocchio_mimic.names[i]
+    for name, (leader, multiplier, offset) in _file_mimics(mech.urdf).items():
         if model.existJointName(name) and model.existJointName(leader):
-            relations[model.getJointId(name)] = (
-                model.getJointId(leader),
-                float(joint.scaling),
-                float(joint.offset),
-            )
+            relations[model.getJointId(name)] = (model.getJointId(leader), multiplier, offset)
     return relations
+
+
+def _file_mimics(urdf: URDFPlus) -> dict[str, tuple[str, float, float]]:
+    """Return joint -> (mimicked joint, multiplier, offset) of the ``<mimic>`` elements of
+    the URDF files a model was read from (its file and its links' files; URDF's
+    defaults 1 and 0), read with a plain XML parse; files that are not URDF are passed."""
+    out: dict[str, tuple[str, float, float]] = {}
+    for path in dict.fromkeys((urdf.path, *urdf.link_files.values())):
+        if Path(path).suffix.lower() in (".yaml", ".yml", ".sdf"):
+            continue
+        try:
+            root = read_xml(Path(path))
+        except URDFError as exc:  # moved or changed since it was loaded
+            logger.info("%s: its <mimic> elements are not read again (%s)", path, exc)
+            continue
+        if root.tag != "robot":  # an MJCF model
+            continue
+        for joint in root.iter("joint"):
+            mimic = joint.find("mimic")
+            if mimic is None or joint.get("type") == "fixed":
+                continue
+            try:
+                values = (float(mimic.get("multiplier", 1.0)), float(mimic.get("offset", 0.0)))
+            except ValueError as exc:
+                logger.info(
+                    "%s: <mimic> of joint %r not read again (%s)", path, joint.get("name"), exc
+                )
+                continue
+            out[joint.get("name")] = (mimic.get("joint"), *values)
+    return out
 
 
 def _primaries(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
@@ -711,7 +733,8 @@ def validate(
             a_ours, a_pin_full = ours.a, a_pin
             M = mass_matrix(mech, q).M
         else:  # on the primary coordinates (module docstring)
-            a_pin, f_pin, M = mimic.dynamics(q, v, tau)
+            # Pinocchio has no joint springs or damping: their force goes into its tau.
+            a_pin, f_pin, M = mimic.dynamics(q, v, mech.passive.added_to(tau, q, v))
             a_raw, a_ours, a_pin_full = a_pin, ours.a[mimic.v_index], mimic.G @ a_pin
             f_ours = mimic.G.T @ f_ours
         if not (np.all(np.isfinite(a_pin)) and np.all(np.isfinite(f_pin))):

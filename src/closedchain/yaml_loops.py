@@ -9,41 +9,32 @@ file (``robot.yaml``) that says how to close it::
     joint_name: ["ankle", "foot"] # optional: joints to convert ...
     joint_type: ["SPHERICAL", "UJOINT_ZY"]  # ... into these
 
-:func:`apply_loops_yaml` turns it into URDF+ in the tree's XML, so that the
-rest of closedchain reads one format:
+:func:`apply_loops_yaml` applies it to the base URDF's description (the tree
+:func:`closedchain.urdf.parse_urdf` read once; no URDF text is written):
 
-- each pair of ``closed_loop`` becomes a ``<loop>`` between the two frames
-  (``<predecessor frame=...>``, any frame of the tree: links, joints, fixed
-  joints), named ``A--B``: ``6d`` a ``fixed`` loop, ``3d`` a ``spherical`` one
+- each pair of ``closed_loop`` becomes a loop between the two frames
+  (a ``frame=`` side: any frame of the tree, links, joints, fixed joints),
+  named ``A--B``: ``6d`` a ``fixed`` loop, ``3d`` a ``spherical`` one
   (:data:`LOOP_TYPE_OF`, case ignored);
-- each joint of ``name_mot`` gets a ``<transmission>``;
-- ``joint_type`` rewrites the joints of ``joint_name`` before Pinocchio reads
-  the tree (:data:`JOINT_CONVERSIONS`, case ignored; a name of no joint is
-  passed over with a logged warning, as the authors' loader passes over it
-  silently): ``FIXED`` makes the
-  joint fixed at its zero position (the URDF's origin); ``UJOINT_<A><B>``
-  replaces it by two revolute joints ``<joint>_<A>`` and ``<joint>_<B>`` about
-  the axes A then B of the joint's frame, at its origin, through a massless
-  link ``<joint>_<A>_link``; ``SPHERICAL`` by Pinocchio's spherical joint
-  ``<joint>`` (a unit quaternion in q, 3 entries of v), at the joint's origin;
+- each joint of ``name_mot`` is actuated (as a ``<transmission>`` would make it);
+- ``joint_type`` converts the joints of ``joint_name`` (:data:`JOINT_CONVERSIONS`,
+  case ignored; a name of no joint is passed over with a logged warning, as the
+  authors' loader passes over it silently): ``FIXED`` welds the joint's body at its
+  zero position (the URDF's origin); ``UJOINT_<A><B>`` replaces it by two revolute
+  joints ``<joint>_<A>`` and ``<joint>_<B>`` about the axes A then B of the joint's
+  frame, at its origin, through a massless body ``<joint>_<A>_link``; ``SPHERICAL``
+  by a spherical joint ``<joint>`` (Pinocchio's ``JointModelSpherical``: a unit
+  quaternion in q, 3 entries of v), at the joint's origin, as the authors' loader
+  builds it;
 - three revolute joints in a row through massless links at one point, the
   way the convention's URDFs write a ball joint, become one spherical joint
-  named after the last (:func:`find_ball_chains`), as the authors' loader
+  named after the last (:func:`fuse_ball_chains`), as the authors' loader
   fuses them: left as Euler angles, massless links between, the mass
   matrix is singular at the middle angle +-pi/2 and ill-conditioned near it;
 - a revolute or prismatic joint whose ``<limit>`` gives neither ``lower``
   nor ``upper`` gets no position limits. URDF reads such a limit as [0, 0],
   a locked joint; the convention's robots (exported by onshape-to-robot)
   write every joint so, and the authors' loader ignores limits.
-
-URDF has no spherical joint type, so a ``SPHERICAL`` joint is written into
-the XML as three revolute joints ``<joint>_X``, ``_Y``, ``_Z`` through massless
-links (what URDF readers such as the drawing see), and :func:`closedchain.load`
-fuses them into one ``JointModelSpherical`` (:func:`fuse_spherical_joints`),
-as the authors' loader builds it. Left as three revolutes, the joint would be
-Euler angles: singular where the middle angle reaches +-pi/2 (the X and Z axes
-align and, the links between being massless, the mass matrix loses rank), and
-random states near there made the validation against Pinocchio lose 7 digits.
 
 The YAML is read with PyYAML's safe loader (no Python objects, no code).
 """
@@ -54,18 +45,17 @@ import difflib
 import logging
 import math
 import re
-from collections.abc import Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
+import pinocchio as pin
 import yaml
-from lxml import etree
 
 from ._io import read_input_bytes
+from .description import NEUTRAL_Q0, BodyDescription, JointDescription, MechanismDescription
 from .exceptions import URDFError, quoted, shorten
-from .urdf import NEAR_MISS_CUTOFF, URDFPlus, name_list
+from .urdf import NEAR_MISS_CUTOFF, LoopSpec, URDFPlus, name_list, tree_order
 
 __all__ = [
     "LoopsYAML",
@@ -74,9 +64,6 @@ __all__ = [
     "is_loops_yaml",
     "read_loops_yaml",
 ]
-
-if TYPE_CHECKING:
-    import pinocchio as pin
 
 logger = logging.getLogger(__name__)
 
@@ -95,11 +82,12 @@ JOINT_CONVERSIONS = ("SPHERICAL", "FIXED", "UJOINT_<A><B> (A, B two different ax
 #: A U-joint conversion: first and second axis.
 _UJOINT = re.compile(r"UJOINT_([XYZ])([XYZ])")
 
-#: Axes of the joint frame, as URDF ``<axis xyz=...>``.
-AXIS_XYZ = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
-
-#: Axes of the three revolute joints of a ``SPHERICAL`` conversion, in order.
-SPHERICAL_AXES = "XYZ"
+#: Axes of the joint frame (unit vectors).
+AXES = {
+    "X": np.array([1.0, 0.0, 0.0]),
+    "Y": np.array([0.0, 1.0, 0.0]),
+    "Z": np.array([0.0, 0.0, 1.0]),
+}
 
 #: Position limits [rad] of the revolute joints of a converted joint: +-CONVERTED_JOINT_LIMIT
 #: (URDF's revolute joint needs limits; half a turn either way is every orientation).
@@ -110,9 +98,6 @@ UNLIMITED_JOINT_TYPES = ("revolute", "prismatic")
 
 #: Joint types a ``SPHERICAL`` or ``UJOINT`` conversion may replace (one degree of freedom).
 CONVERTIBLE_JOINT_TYPES = ("revolute", "continuous", "prismatic")
-
-#: Children of a ``<joint>`` that a conversion keeps (the others describe the old motion).
-KEPT_JOINT_CHILDREN = ("origin", "parent", "child")
 
 #: Separator of the two frame names in a loop's name.
 LOOP_NAME_SEPARATOR = "--"
@@ -343,54 +328,67 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     )
 
 
-def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]:
-    """Write a loops YAML file's conversions, loops and motors into a URDF tree, in place.
+def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> URDFPlus:
+    """Return a base URDF's tree with a loops YAML's conversions, loops and motors.
 
     Args:
-        root: the ``<robot>`` element of the base URDF (modified).
+        urdf: the base URDF, parsed (:func:`closedchain.urdf.parse_urdf`): its
+            description is edited, nothing is written as text.
         loops: the checked YAML content (:func:`read_loops_yaml`).
+        root: the base's ``<robot>`` element (read only: which ``<limit>`` elements
+            give no range, see the module docstring).
         base: the base URDF file, for messages.
 
     Returns:
-        What :func:`edit_model` does once Pinocchio has read the tree, as
-        fields of :class:`~closedchain.urdf.URDFPlus`: ``spherical``, the
-        joints converted to ``SPHERICAL`` (written as three revolute joints),
-        ``unlimited``, the joints whose limits give no range, and
-        ``fuse_ball_chains`` (True: the convention's ball joints, see
-        :func:`find_ball_chains`).
+        The converted tree, named after the YAML file (``path``), with the YAML's
+        loops (``frame=`` sides) and motors (``actuated``) after the base's.
 
     A ``joint_name`` entry that names no ``<joint>`` is passed over with a
     logged warning (suggesting the nearest name), as the authors' loader passes
     over it silently.
 
     Raises:
-        URDFError: ``joint_name`` names a joint that cannot be converted so, or
-            one whose conversion would reuse a name; ``name_mot`` names no
-            movable joint of the converted tree (lists them). Loop frames are
-            checked when the tree is built (:func:`closedchain.load`).
+        URDFError: ``joint_name`` names a joint that cannot be converted so, one
+            whose conversion would reuse a name, or one that the base's loops,
+            scene, transmissions, springs or ``independent`` flags name;
+            ``name_mot`` names no movable joint of the converted tree (lists
+            them). Loop frames are checked when the tree is built
+            (:func:`closedchain.load`).
     """
     path = loops.path
-    joints = {e.get("name"): e for e in root.findall("joint")}
-    taken = set(joints) | {e.get("name") for e in root.findall("link")}
-    converted = {}
+    bodies = list(urdf.description.bodies)
+    index = {j.name: k for k, b in enumerate(bodies) for j in b.joints}
+    joints, links = dict(urdf.joints), list(urdf.links)
+    taken = set(joints) | set(links)
+    converted: dict[str, str] = {}
     missing = []
     for i, (name, kind) in enumerate(loops.conversions):
         where = f"{path}: joint_name[{i}] = {quoted(name)}"
-        joint = joints.get(name)
-        if joint is None:
+        if name not in joints:
             missing.append(i)
             continue
+        _refuse_referenced(urdf, name, where, base)
+        jtype = joints[name]
         if kind == "FIXED":
-            _make_fixed(joint)
+            if jtype != "fixed":  # fixed at its zero position: the body where the file puts it
+                bodies[index[name]] = replace(bodies[index[name]], joints=(), fixed_joint=name)
+                joints[name] = "fixed"
+        elif jtype not in CONVERTIBLE_JOINT_TYPES:
+            raise URDFError(
+                f"{where} is a {jtype} joint, which {kind} cannot replace; valid: a "
+                f"{', '.join(CONVERTIBLE_JOINT_TYPES)} joint"
+            )
+        elif kind == "SPHERICAL":
+            body = bodies[index[name]]
+            ball = JointDescription(name, "spherical", q0=NEUTRAL_Q0["spherical"])
+            bodies[index[name]] = replace(body, joints=(ball,))
+            joints[name] = "spherical"
         else:
-            jtype = joint.get("type")
-            if jtype not in CONVERTIBLE_JOINT_TYPES:
-                raise URDFError(
-                    f"{where} is a {jtype} joint, which {kind} cannot replace; valid: a "
-                    f"{', '.join(CONVERTIBLE_JOINT_TYPES)} joint"
-                )
-            axes = SPHERICAL_AXES if kind == "SPHERICAL" else kind[-2:]
-            _replace_by_revolute_chain(root, joint, axes, taken, where)
+            added = _replace_by_revolute_pair(bodies, index[name], kind[-2:], taken, where)
+            bodies.append(added)
+            del joints[name]
+            joints.update(dict.fromkeys((f"{name}_{a}" for a in kind[-2:]), "revolute"))
+            links.append(added.name)
         converted[name] = kind
 
     if missing:
@@ -410,8 +408,9 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
             f"; so are {len(missing) - 1} more joint_name entries" if len(missing) > 1 else "",
         )
 
-    movable = [e.get("name") for e in root.findall("joint") if e.get("type") != "fixed"]
+    movable = [name for name, jtype in joints.items() if jtype != "fixed"]
     movable_set = set(movable)
+    actuated = list(urdf.actuated)
     for i, name in enumerate(loops.motors):
         if name in converted:
             raise URDFError(
@@ -423,74 +422,84 @@ def apply_loops_yaml(root, loops: LoopsYAML, *, base: Path) -> dict[str, object]
                 f"{path}: name_mot[{i}] = {quoted(name)} is not a movable <joint> of {base}"
                 f"{_did_you_mean(name, movable)}; movable joints: {name_list(movable)}"
             )
-        transmission = etree.SubElement(root, "transmission", name=f"{name}_transmission")
-        etree.SubElement(transmission, "type").text = "transmission_interface/SimpleTransmission"
-        etree.SubElement(transmission, "joint", name=name)
+        if name not in actuated:
+            actuated.append(name)
 
-    for a, b, loop_type in loops.loops:
-        loop = etree.SubElement(root, "loop", name=f"{a}{LOOP_NAME_SEPARATOR}{b}", type=loop_type)
-        etree.SubElement(loop, "predecessor", frame=a)
-        etree.SubElement(loop, "successor", frame=b)
-    unlimited = [
+    unlimited = {
         e.get("name")
         for e in root.findall("joint")
         if e.get("type") in UNLIMITED_JOINT_TYPES
         and (limit := e.find("limit")) is not None
         and limit.get("lower") is None
         and limit.get("upper") is None
-    ]
-    return {
-        "spherical": tuple(name for name, kind in converted.items() if kind == "SPHERICAL"),
-        "unlimited": tuple(unlimited),
-        "fuse_ball_chains": True,
     }
-
-
-def edit_model(model: pin.Model, urdf: URDFPlus) -> pin.Model:
-    """Return the Pinocchio model with a loops YAML's edits: ball joints fused, limits removed.
-
-    Args:
-        model: the model Pinocchio built from ``urdf.xml``.
-        urdf: the parsed tree: its ``spherical`` joints, whether to fuse other
-            ball chains (``fuse_ball_chains``, see :func:`find_ball_chains`), and
-            its ``unlimited`` joints.
-    """
-    chains = [_named_chain(model, name) for name in urdf.spherical]
-    if urdf.fuse_ball_chains:
-        chains += find_ball_chains(model, exclude={j for _, ids in chains for j in ids})
-    if chains:
-        model = fuse_spherical_joints(model, chains)
-    lower, upper = model.lowerPositionLimit.copy(), model.upperPositionLimit.copy()
-    for name in urdf.unlimited:
-        if not model.existJointName(name):  # fused into a spherical joint: no limits
-            continue
-        jm = model.joints[model.getJointId(name)]
-        lower[jm.idx_q : jm.idx_q + jm.nq] = -np.inf
-        upper[jm.idx_q : jm.idx_q + jm.nq] = np.inf
-    model.lowerPositionLimit, model.upperPositionLimit = lower, upper
-    return model
-
-
-def _named_chain(model: pin.Model, name: str) -> tuple[str, list[int]]:
-    """Return ``(name, ids)`` of the joints ``name_X, _Y, _Z`` a SPHERICAL conversion wrote.
-
-    Raises:
-        URDFError: they are not three revolute joints about X, Y, Z in a row at
-            one place (the XML was changed after the conversion).
-    """
-    parts = [f"{name}_{axis}" for axis in SPHERICAL_AXES]
-    ids = [model.getJointId(p) if model.existJointName(p) else 0 for p in parts]
-    if (
-        0 in ids
-        or [model.joints[j].shortname() for j in ids] != [f"JointModelR{a}" for a in SPHERICAL_AXES]
-        or any(model.parents[b] != a for a, b in zip(ids, ids[1:], strict=False))
-        or not all(model.jointPlacements[j].isIdentity() for j in ids[1:])
-    ):
-        raise URDFError(
-            f"joint {name!r}: expected revolute joints {', '.join(parts)} about X, Y, Z in a row "
-            "at one place, to fuse into a spherical joint"
+    bodies = [
+        replace(
+            b,
+            joints=tuple(
+                replace(j, lower=-np.inf, upper=np.inf) if j.name in unlimited else j
+                for j in b.joints
+            ),
         )
-    return name, ids
+        for b in bodies
+    ]
+    description = fuse_ball_chains(replace(urdf.description, bodies=tree_order(bodies)))
+    new_loops = tuple(
+        LoopSpec(
+            name=f"{a}{LOOP_NAME_SEPARATOR}{b}",
+            type=loop_type,
+            predecessor=a,
+            successor=b,
+            predecessor_origin=pin.SE3.Identity(),
+            successor_origin=pin.SE3.Identity(),
+            axis=np.array([1.0, 0.0, 0.0]),
+            predecessor_frame=a,
+            successor_frame=b,
+        )
+        for a, b, loop_type in loops.loops
+    )
+    names = [spec.name for spec in (*urdf.loops, *new_loops)]
+    for name in set(names):
+        if names.count(name) > 1:
+            raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
+    return replace(
+        urdf,
+        path=path,
+        description=description,
+        joints=joints,
+        links=tuple(links),
+        loops=urdf.loops + new_loops,
+        actuated=tuple(actuated),
+    )
+
+
+def _refuse_referenced(urdf: URDFPlus, name: str, where: str, base: Path) -> None:
+    """Refuse to convert a joint that the base's couplings, scene, transmissions, springs
+    or ``independent`` flags name (they would name a joint that is no longer there)."""
+    users = [
+        *(f"<loop name={quoted(s.name)}>" for s in urdf.loops if name in (s.joint, s.mimics)),
+        *(["its <scene>"] if urdf.scene is not None and _scene_names(urdf.scene, name) else []),
+        *(["a <transmission>"] if name in urdf.actuated else []),
+        *(["independent="] if name in urdf.independent else []),
+        *(
+            "its <dynamics>"
+            for terms in (urdf.springs, urdf.dampings, urdf.armatures)
+            for t in terms
+            if t.joint == name
+        ),
+    ]
+    if users:
+        raise URDFError(
+            f"{where}: {base} names the joint in {', '.join(dict.fromkeys(users))}, so it "
+            "cannot be converted"
+        )
+
+
+def _scene_names(scene, name: str) -> bool:
+    """Whether a scene sets, starts or tracks the joint ``name``."""
+    return (
+        name in scene.initial or name in scene.velocity or any(s.joint == name for s in scene.track)
+    )
 
 
 #: A chain of three revolute joints is a ball joint when the second and third sit
@@ -500,65 +509,120 @@ BALL_POINT_TOL = 1e-9
 #: ... and their unit axes are independent: |det(a1, a2, a3)| at least this.
 BALL_AXES_MIN_DET = 1e-6
 
-
-def _is_revolute(joint) -> bool:
-    """Whether a Pinocchio joint model is revolute (RX/RY/RZ, unaligned, unbounded)."""
-    return joint.shortname().startswith("JointModelR") and joint.nv == 1
+#: Joint kinds a ball chain is made of (one angle each).
+BALL_CHAIN_KINDS = ("revolute", "continuous")
 
 
-def find_ball_chains(
-    model: pin.Model, *, exclude: Collection[int] = ()
-) -> list[tuple[str, list[int]]]:
+def find_ball_chains(description: MechanismDescription) -> list[tuple[str, str, str]]:
     """Return the chains of three revolute joints that make a ball joint, as the corpus writes one.
 
     example-parallel-robots writes a ball joint as three revolute joints in a
     row through two massless links, and the authors' loader fuses them
-    (``simplifyModel``). A chain (j1, j2, j3) is fused when j2 is the only
-    joint child of j1 and j3 of j2, the bodies of j1 and j2 are massless
-    (mass and rotational inertia exactly 0: a link with mass is a real body),
-    j2 and j3 sit within :data:`BALL_POINT_TOL` of j1, and the three axes are
-    independent (:data:`BALL_AXES_MIN_DET`, at the neutral configuration).
+    (``simplifyModel``). A chain of bodies (b1, b2, b3), each on one revolute
+    joint (:data:`BALL_CHAIN_KINDS`, anchored at its origin), is fused when b2
+    is the only moving body on b1 (with the bodies welded to it) and b3 on b2,
+    b1 and b2 and their welded bodies are massless (inertia exactly 0: a link with
+    mass is a real body), the joints of b2 and b3 sit within
+    :data:`BALL_POINT_TOL` of b1's, and the three axes are independent
+    (:data:`BALL_AXES_MIN_DET`, with every joint at 0).
 
     Args:
-        model: the Pinocchio model.
-        exclude: joint ids already fused otherwise.
+        description: the tree (every joint at its ``q0`` = 0, as a URDF's).
 
     Returns:
-        ``[(name of j3, [j1, j2, j3]), ...]``: the spherical joint takes j3's name.
+        ``[(b1, b2, b3), ...]`` (body names), in tree order.
     """
-    import pinocchio as pin
+    bodies = description.bodies
+    #: each body's moving body (itself, or the one it is welded to), None: the universe
+    segment: dict[str, str | None] = {}
+    #: each body's frame in its moving body's frame, and in the world
+    in_segment: dict[str, pin.SE3] = {}
+    world: dict[str, pin.SE3] = {}
+    moving_children: dict[str | None, list[str]] = {}
+    massless: dict[str | None, bool] = {None: False}
+    for b in bodies:
+        up = pin.SE3.Identity() if b.parent is None else world[b.parent]
+        world[b.name] = up * b.placement
+        if b.joints:
+            segment[b.name], in_segment[b.name] = b.name, pin.SE3.Identity()
+            moving_children.setdefault(segment.get(b.parent), []).append(b.name)
+            massless[b.name] = True
+        else:
+            segment[b.name] = segment.get(b.parent)
+            in_segment[b.name] = in_segment.get(b.parent, pin.SE3.Identity()) * b.placement
+        zero = b.inertia.mass == 0.0 and not b.inertia.inertia.any()
+        massless[segment[b.name]] = massless.get(segment[b.name], True) and zero
+    by_name = {b.name: b for b in bodies}
 
-    children: dict[int, list[int]] = {}
-    for j in range(1, model.njoints):
-        children.setdefault(model.parents[j], []).append(j)
-    data = model.createData()
-    q0 = pin.neutral(model)
-    pin.forwardKinematics(model, data, q0)
-    used, chains = set(exclude), []
-    for first in range(1, model.njoints):
-        ids = [first]
-        while len(ids) < 3 and len(children.get(ids[-1], [])) == 1:
-            ids.append(children[ids[-1]][0])
-        if len(ids) < 3 or used.intersection(ids):
+    def ball_joint(name: str) -> bool:
+        joints = by_name[name].joints
+        return (
+            len(joints) == 1
+            and joints[0].kind in BALL_CHAIN_KINDS
+            and not np.any(joints[0].position)
+        )
+
+    used: set[str] = set()
+    chains = []
+    for b in bodies:
+        chain = [b.name]
+        while len(chain) < 3 and len(moving_children.get(chain[-1], [])) == 1:
+            chain.append(moving_children[chain[-1]][0])
+        if len(chain) < 3 or used.intersection(chain) or not all(map(ball_joint, chain)):
             continue
-        if not all(_is_revolute(model.joints[j]) for j in ids):
+        if not (massless[chain[0]] and massless[chain[1]]):
             continue
-        if any(model.inertias[j].mass != 0.0 or model.inertias[j].inertia.any() for j in ids[:2]):
+        offsets = [in_segment[by_name[n].parent] * by_name[n].placement for n in chain[1:]]
+        if any(np.linalg.norm(m.translation) > BALL_POINT_TOL for m in offsets):
             continue
-        if any(
-            np.linalg.norm(model.jointPlacements[j].translation) > BALL_POINT_TOL for j in ids[1:]
-        ):
-            continue
-        axes = []
-        for j in ids:
-            jdata = model.joints[j].createData()
-            model.joints[j].calc(jdata, q0)
-            axes.append(data.oMi[j].rotation @ np.asarray(jdata.S, dtype=float).ravel()[3:6])
+        axes = [world[n].rotation @ by_name[n].joints[0].axis for n in chain]
         if abs(np.linalg.det(np.array(axes))) < BALL_AXES_MIN_DET:
             continue
-        chains.append((model.names[ids[2]], ids))
-        used.update(ids)
+        chains.append(tuple(chain))
+        used.update(chain)
     return chains
+
+
+def fuse_ball_chains(description: MechanismDescription) -> MechanismDescription:
+    """Return the description with each ball chain (:func:`find_ball_chains`) one spherical joint.
+
+    The spherical joint takes the last joint's name and stands where its frame
+    is at q = 0 (``P1 P2 P3`` in the first's parent); the two massless bodies
+    before it are welded to it (FIXED_JOINT frames named after their joints, so
+    loops may still name them), with their welded bodies.
+    """
+    chains = find_ball_chains(description)
+    if not chains:
+        return description
+    bodies = {b.name: b for b in description.bodies}
+    for first, second, last in chains:
+        b1, b2, b3 = bodies[first], bodies[second], bodies[last]
+        # Where each joint's frame is in the previous one's (through welded bodies).
+        m12 = _in_moving_body(bodies, b2)
+        m23 = _in_moving_body(bodies, b3)
+        ball = JointDescription(b3.joints[0].name, "spherical", q0=NEUTRAL_Q0["spherical"])
+        bodies[last] = replace(
+            b3, parent=b1.parent, placement=b1.placement * m12 * m23, joints=(ball,)
+        )
+        for body, placement in ((b1, (m12 * m23).inverse()), (b2, m23.inverse())):
+            bodies[body.name] = replace(
+                body,
+                parent=last,
+                placement=placement,
+                joints=(),
+                fixed_joint=body.joints[0].name,
+            )
+    return replace(description, bodies=tree_order(bodies.values()))
+
+
+def _in_moving_body(bodies: dict, body) -> pin.SE3:
+    """Return a body's placement in the frame of the moving body its parent is welded to."""
+    placement = body.placement
+    parent = bodies[body.parent]
+    while not parent.joints:
+        placement = parent.placement * placement
+        parent = bodies[parent.parent]
+    return placement
 
 
 def _did_you_mean(name: str, names) -> str:
@@ -567,171 +631,45 @@ def _did_you_mean(name: str, names) -> str:
     return f" (did you mean {quoted(close[0])}?)" if close else ""
 
 
-def _make_fixed(joint) -> None:
-    """Turn ``joint`` into a fixed joint at its zero position (its origin)."""
-    joint.set("type", "fixed")
-    for child in list(joint):
-        if isinstance(child.tag, str) and child.tag not in KEPT_JOINT_CHILDREN:
-            joint.remove(child)
+def _replace_by_revolute_pair(bodies: list, k: int, axes: str, taken: set[str], where: str):
+    """Replace the joint of ``bodies[k]`` by revolute joints about ``axes`` of its frame.
 
-
-def _replace_by_revolute_chain(root, joint, axes: str, taken: set[str], where: str) -> None:
-    """Replace ``joint`` by revolute joints about ``axes`` of its frame, all at its origin.
-
-    Joint ``<name>_<axis>`` turns about ``axis``; massless links
-    ``<name>_<axis>_link`` join consecutive ones; the first has the old
-    joint's parent and origin, the last its child.
+    Joint ``<name>_<A>`` turns a new massless body ``<name>_<A>_link`` about axis
+    A, at the old joint's place (its parent and placement); joint ``<name>_<B>``
+    turns the old body about B, at the new body's origin. Both take the old
+    joint's effort and velocity and +-:data:`CONVERTED_JOINT_LIMIT`.
 
     Args:
-        root: the ``<robot>`` element (modified).
-        joint: the ``<joint>`` element to replace.
-        axes: the axes in order, letters of :data:`AXIS_XYZ`.
+        bodies: the bodies (``bodies[k]`` is replaced).
+        k: the index of the body whose joint is converted.
+        axes: the two axes in order, letters of :data:`AXES`.
         taken: names of every link and joint so far (updated).
         where: the YAML entry, for messages.
+
+    Returns:
+        The new massless body (for the caller to add).
     """
-    name = joint.get("name")
-    parent, child = joint.find("parent"), joint.find("child")
-    if parent is None or child is None:
-        raise URDFError(f"{where}: the <joint> has no <parent> or <child>")
-    limit = joint.find("limit")
-    rates = {
-        key: limit.get(key, "0") if limit is not None else "0" for key in ("effort", "velocity")
-    }
-    names = [f"{name}_{axis}" for axis in axes]
-    links = [f"{n}_link" for n in names[:-1]]
-    for new in names + links:
+    body = bodies[k]
+    old = body.joints[0]
+    names = [f"{old.name}_{axis}" for axis in axes]
+    link = f"{names[0]}_link"
+    for new in (*names, link):
         if new in taken:
             raise URDFError(
                 f"{where}: converting it needs the name {new!r}, which the tree already uses"
             )
         taken.add(new)
-    origin = joint.find("origin")
-    position = list(root).index(joint)
-    root.remove(joint)
-    elements = [etree.Element("link", name=link) for link in links]
-    parents = [parent.get("link"), *links]
-    children = [*links, child.get("link")]
-    for k, (jname, axis) in enumerate(zip(names, axes, strict=True)):
-        new = etree.Element("joint", name=jname, type="revolute")
-        if k == 0 and origin is not None:
-            new.append(origin)
-        etree.SubElement(new, "parent", link=parents[k])
-        etree.SubElement(new, "child", link=children[k])
-        etree.SubElement(new, "axis", xyz=AXIS_XYZ[axis])
-        etree.SubElement(
-            new,
-            "limit",
-            lower=repr(-CONVERTED_JOINT_LIMIT),
-            upper=repr(CONVERTED_JOINT_LIMIT),
-            **rates,
+    joints = [
+        JointDescription(
+            name,
+            "revolute",
+            axis=AXES[axis],
+            lower=-CONVERTED_JOINT_LIMIT,
+            upper=CONVERTED_JOINT_LIMIT,
+            effort=old.effort if math.isfinite(old.effort) else 0.0,
+            velocity=old.velocity if math.isfinite(old.velocity) else 0.0,
         )
-        elements.append(new)
-    for offset, element in enumerate(elements):
-        root.insert(position + offset, element)
-
-
-#: Model vectors with one entry per configuration entry, and per velocity entry,
-#: that :func:`fuse_spherical_joints` copies joint by joint.
-Q_VECTORS = ("lowerPositionLimit", "upperPositionLimit", "positionLimitMargin")
-V_VECTORS = (
-    "armature",
-    "damping",
-    "effortLimit",
-    "friction",
-    "lowerDryFrictionLimit",
-    "lowerEffortLimit",
-    "lowerVelocityLimit",
-    "rotorGearRatio",
-    "rotorInertia",
-    "upperDryFrictionLimit",
-    "upperEffortLimit",
-    "upperVelocityLimit",
-    "velocityLimit",
-)
-
-
-def fuse_spherical_joints(model: pin.Model, chains: list[tuple[str, list[int]]]) -> pin.Model:
-    """Return a copy of ``model`` with each chain of three revolute joints fused into a spherical.
-
-    The spherical joint stands where the chain's last joint's frame is at its
-    zero position (placement ``P1 P2 P3`` in the parent joint's frame) and
-    carries the bodies and frames of the three joints, moved into that frame
-    (the frames of j1 and j2 by ``(P2 P3)^-1`` and ``P3^-1``). The JOINT frames
-    of the chain become OP_FRAMEs, except one JOINT frame with the spherical
-    joint's name. Limits, friction, damping and armature of the other joints
-    are copied.
-
-    Args:
-        model: the Pinocchio model.
-        chains: ``[(name, [j1, j2, j3]), ...]`` (:func:`_named_chain`,
-            :func:`find_ball_chains`).
-    """
-    import pinocchio as pin
-
-    by_first = {ids[0]: (name, ids) for name, ids in chains}
-    # Placement of each fused joint's frame in its chain's last joint frame, at q = 0.
-    in_last: dict[int, pin.SE3] = {}
-    for _, (j1, j2, j3) in chains:
-        in_last[j3] = pin.SE3.Identity()
-        in_last[j2] = model.jointPlacements[j3].inverse()
-        in_last[j1] = (model.jointPlacements[j2] * model.jointPlacements[j3]).inverse()
-
-    new = pin.Model()
-    new.name = model.name
-    new.appendBodyToJoint(0, model.inertias[0], pin.SE3.Identity())  # links fixed to the world
-    joint_of = {0: 0}
-    copied: list[tuple[int, int]] = []  # (old joint, new joint) of unchanged joints
-    for j in range(1, model.njoints):
-        if j in joint_of:  # the second and third joints of a chain: fused already
-            continue
-        parent = joint_of[model.parents[j]]
-        if j in by_first:
-            name, ids = by_first[j]
-            placement = model.jointPlacements[ids[0]]
-            for k in ids[1:]:
-                placement = placement * model.jointPlacements[k]
-            jid = new.addJoint(parent, pin.JointModelSpherical(), placement, name)
-            inertia = pin.Inertia.Zero()
-            for k in ids:
-                inertia += in_last[k].act(model.inertias[k])
-            joint_of.update(dict.fromkeys(ids, jid))
-        else:
-            jid = new.addJoint(parent, model.joints[j], model.jointPlacements[j], model.names[j])
-            inertia = model.inertias[j]
-            joint_of[j] = jid
-            copied.append((j, jid))
-        new.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
-    for attribute in Q_VECTORS + V_VECTORS:
-        per_q = attribute in Q_VECTORS
-        old_values, values = getattr(model, attribute), getattr(new, attribute).copy()
-        for j, jid in copied:
-            a, b = model.joints[j], new.joints[jid]
-            if per_q:
-                values[b.idx_q : b.idx_q + b.nq] = old_values[a.idx_q : a.idx_q + a.nq]
-            else:
-                values[b.idx_v : b.idx_v + b.nv] = old_values[a.idx_v : a.idx_v + a.nv]
-        setattr(new, attribute, values)
-
-    names = {j: name for name, ids in chains for j in ids}
-    frame_of = {0: 0}
-    for i in range(1, len(model.frames)):
-        f = model.frames[i]
-        parent, parent_frame = joint_of[f.parentJoint], frame_of[f.parentFrame]
-        if f.parentJoint not in in_last:
-            frame = pin.Frame(f.name, parent, parent_frame, f.placement, f.type, f.inertia)
-            frame_of[i] = new.addFrame(frame, False)
-            continue
-        name = names[f.parentJoint]
-        if f.type == pin.FrameType.JOINT and not new.existFrame(name, pin.FrameType.JOINT):
-            frame = pin.Frame(name, parent, parent_frame, pin.SE3.Identity(), pin.FrameType.JOINT)
-            new.addFrame(frame, False)
-        kind = f.type
-        if kind == pin.FrameType.JOINT:
-            if f.name == name:
-                frame_of[i] = new.getFrameId(name, pin.FrameType.JOINT)
-                continue
-            kind = pin.FrameType.OP_FRAME
-        placement = in_last[f.parentJoint] * f.placement
-        frame = pin.Frame(f.name, parent, parent_frame, placement, kind, f.inertia)
-        frame_of[i] = new.addFrame(frame, False)
-    return new
+        for name, axis in zip(names, axes, strict=True)
+    ]
+    bodies[k] = replace(body, parent=link, placement=pin.SE3.Identity(), joints=(joints[1],))
+    return BodyDescription(link, body.parent, body.placement, joints=(joints[0],))

@@ -36,6 +36,7 @@
 #include "core_rows.hpp"
 #include "core_structure.hpp"
 #include "errors.hpp"
+#include "gil.hpp"
 #include "settings.hpp"
 
 namespace closedchain {
@@ -139,6 +140,7 @@ class Ali3pLoop {
                bp::object progress) {
     const int nq = model_.nq, nv = model_.nv, nc = model_.nc;
     Samples S;
+    GilRelease nogil;  // until the samples become Python objects (gil.hpp)
     Vec q = q0, v = v0, a(nv), qn(nq), vn(nv), an(nv), q1(nq), v1(nv), a1(nv);
     Vec lam_star(nc), lam(nc), lam1(nc), dq(nv);
     double t = 0.0;
@@ -204,6 +206,7 @@ class Ali3pLoop {
       }
       poll(k, t, progress);
     }
+    nogil.restore();
     bp::dict d = samples_dict(model_, data_, S, n_steps);
     d["singular_splits"] = splits;
     d["newton_iterations"] = newton_iterations_;

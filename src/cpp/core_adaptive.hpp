@@ -21,6 +21,7 @@
 #include "core_projection.hpp"
 #include "core_recording.hpp"
 #include "core_rows.hpp"
+#include "gil.hpp"
 #include "rk_coefficients.hpp"
 
 namespace closedchain {
@@ -532,6 +533,7 @@ inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integra
     throw BadArgument{"run_adaptive: unknown integrator"};
   data.n_evals = 0;
   AdaptiveRun run(model, integrator, rtol, atol, t_eval_obj);
+  GilRelease nogil;  // until the samples become Python objects (gil.hpp)
   adaptive_start(model, data, run, q0, v0);
   if (!run.dense || (run.ip < run.pending.size() && run.pending[run.ip] <= 0.0)) {
     adaptive_output(model, data, run, 0.0, run.y);
@@ -564,6 +566,7 @@ inline bp::dict run_adaptive(const CoreModel &model, CoreData &data, int integra
       step_start_from_last(data);
     }
   }
+  nogil.restore();
   return samples_dict(model, data, run.samples, steps);
 }
 
@@ -709,9 +712,11 @@ inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, 
   data.n_evals = 0;
   begin_partitioning(model, data, true);  // as run_fixed: the stage-projected loop's checks
   Rk43Run run(model, t_final, rtol, atol, h0, t_eval_obj, record_all);
+  GilRelease nogil;  // until the samples become Python objects (gil.hpp)
   rk43_start(model, data, run, q0, v0);
   for (const double t_stop : run.stops)
     while (run.t < t_stop) rk43_try_step(model, data, run, t_stop, progress);
+  nogil.restore();
   bp::dict d = samples_dict(model, data, run.samples, run.steps);
   d["singular_splits"] = run.splits;
   d["rejected_steps"] = run.rejected;

@@ -19,6 +19,7 @@
 #include "core_projection.hpp"
 #include "core_recording.hpp"
 #include "core_rows.hpp"
+#include "gil.hpp"
 
 namespace closedchain {
 
@@ -216,6 +217,7 @@ inline bp::dict run_rk4_stage_projected(const CoreModel &model, CoreData &data, 
   data.k3a.resize(model.nv);
   data.k4v.resize(model.nv);
   data.a2.resize(model.nv);
+  GilRelease nogil;  // until the samples become Python objects (gil.hpp)
   double t = 0.0;
   accel(model, data, t, q, v);
   a = data.a;
@@ -275,6 +277,7 @@ inline bp::dict run_rk4_stage_projected(const CoreModel &model, CoreData &data, 
     if (out[k]) record(model, data, S, t, q, v);
     poll(k, t, progress);
   }
+  nogil.restore();
   bp::dict d = samples_dict(model, data, S, n_steps);
   d["singular_splits"] = splits;
   return d;
@@ -346,6 +349,7 @@ inline bp::dict run_fixed(const CoreModel &model, CoreData &data, int integrator
     return run_rk4_stage_projected(model, data, q0, v0, dt, n_steps, out, progress);
   Vec q = q0, v = v0, qn(model.nq), vn(model.nv);
   Rk4Stages stages(model);
+  GilRelease nogil;  // until the samples become Python objects (gil.hpp)
   double t = 0.0;
   if (model.partitions) complete(model, data, q, v, t);
   accel(model, data, t, q, v);
@@ -365,6 +369,7 @@ inline bp::dict run_fixed(const CoreModel &model, CoreData &data, int integrator
     if (out[k]) record(model, data, S, t, q, v);
     poll(k, t, progress);
   }
+  nogil.restore();
   return samples_dict(model, data, S, n_steps);
 }
 

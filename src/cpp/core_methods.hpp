@@ -15,6 +15,7 @@
 #include "core_structure.hpp"
 #include "dense_lu.hpp"
 #include "errors.hpp"
+#include "gil.hpp"
 #include "small_llt.hpp"
 
 namespace closedchain {
@@ -565,6 +566,7 @@ inline const Vec &tau_at(const CoreModel &model, CoreData &data, double t, const
                          const RefV &v) {
   if (model.tau_mode == 0) return data.zero_v;
   if (model.tau_mode == 1) return model.tau_constant;
+  GilHeld gil;  // a Python tau(t, q, v), called from a loop that released the GIL
   bp::object r = model.np_asarray(model.tau_function(t, to_numpy(q), to_numpy(v)), "float64");
   bp::extract<Vec> ex(r);
   bool ok = bp::len(r.attr("shape")) == 1 && ex.check();
@@ -603,7 +605,7 @@ inline void factor_method_JD(const CoreModel &model, CoreData &data, const RefV 
   const double cond = rcond > 0.0 ? 1.0 / rcond : std::numeric_limits<double>::infinity();
   if (!(cond <= model.cond_max))
     singular(model, q, model.method_jd_label, cond,
-             "this partition cannot describe the motion here (seed Problem 4): "
+             "this partition cannot describe the motion here (its block J_D is singular): "
              "re-partition with choose_partition(mech, q), or the configuration is a "
              "singularity of the mechanism",
              t);

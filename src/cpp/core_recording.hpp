@@ -15,6 +15,7 @@
 #include "core_rows.hpp"
 #include "core_tree.hpp"
 #include "errors.hpp"
+#include "gil.hpp"
 
 namespace closedchain {
 
@@ -50,7 +51,8 @@ bp::object sample_matrix(const std::vector<double> &x, long rows, long cols);
 /// evaluations and re-partitions.
 bp::dict samples_dict(const CoreModel &model, const CoreData &data, const Samples &s, long steps);
 
-/// Call progress(t) (when given) and, every 64 steps, check for Ctrl-C.
+/// Call progress(t) (when given) and, every 64 steps, check for Ctrl-C, holding the GIL
+/// for them only (the loops release it: gil.hpp).
 void poll(long k, double t, const bp::object &progress);
 
 /// SimulationFailure when q or v is not finite at t.
@@ -166,8 +168,11 @@ inline bp::dict samples_dict(const CoreModel &model, const CoreData &data, const
 }
 
 inline void poll(long k, double t, const bp::object &progress) {
+  const bool signals = (k & 63) == 0;
+  if (progress.is_none() && !signals) return;  // no call into Python: the GIL stays free
+  GilHeld gil;
   if (!progress.is_none()) progress(t);
-  if ((k & 63) == 0 && PyErr_CheckSignals() != 0) bp::throw_error_already_set();
+  if (signals && PyErr_CheckSignals() != 0) bp::throw_error_already_set();
 }
 
 inline void check_finite(const CoreModel &model, const Vec &q, const Vec &v, double t) {

@@ -424,7 +424,7 @@ def off_centre_wrist() -> None:
 
 
 def fourbar_fixed_loop() -> None:
-    """The seed's 4-bar with its pin C as a tree joint and the loop closed by welding."""
+    """The lesson's 4-bar with its pin C as a tree joint and the loop closed by welding."""
     from lxml import etree
 
     source = HERE.parent.parent / "models" / "fourbar.urdf"
@@ -450,7 +450,7 @@ def fourbar_fixed_loop() -> None:
         robot.insert(index + k, el)
     for node in tree.xpath("/comment()"):
         node.text = (
-            "\n  The seed's 4-bar (models/fourbar.urdf) with the pin C written as a tree joint"
+            "\n  The lesson's 4-bar (models/fourbar.urdf) with the pin C written as a tree joint"
             "\n  (pin_joint, coupler -> massless link pin_c) and the loop closed by a fixed"
             "\n  <loop> welding pin_c to the rocker's end: 6 declared rows where 3 suffice"
             "\n  (planar), the same motion as the revolute loop (test mechanism, issue 8)."

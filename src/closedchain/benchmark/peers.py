@@ -15,9 +15,9 @@ the integration alone (``time.process_time``; loading and set-up excluded):
     the mechanism exported by :func:`closedchain.export.export_mjcf` (loops as
     equality constraints), ``mj_step`` with MuJoCo's default or stiff
     solref/solimp.
-``seed``
+``lesson``
     the algorithm of the lesson's program (Euler step, two Newton projections, exact M),
-    as reproduced by :func:`closedchain.seed_settings`.
+    as reproduced by :func:`closedchain.lesson_settings`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import pinocchio as pin
 
 from ..constraints import build_pinocchio_constraints
 from ..exceptions import ClosedChainError
-from ..simulate import SimulationSettings, seed_settings, simulate
+from ..simulate import SimulationSettings, lesson_settings, simulate
 
 
 @dataclass(frozen=True)
@@ -246,8 +246,8 @@ def pinocchio_configuration(mech, qpos: np.ndarray) -> np.ndarray:
 SWEEP_SETTINGS = SimulationSettings(energy_tol=None)
 
 
-def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float, backend: str = "numpy") -> RunOutput:
-    """The seed's program: Euler step and two Newton projections (closedchain.seed_settings),
+def run_lesson(mech, q0, v0, t_grid, tau_fn, *, dt: float, backend: str = "numpy") -> RunOutput:
+    """The lesson's program: Euler step and two Newton projections (closedchain.lesson_settings),
     on closedchain's ``backend`` (numpy or compiled)."""
     cpu0 = time.process_time()
     traj = simulate(
@@ -261,7 +261,7 @@ def run_seed(mech, q0, v0, t_grid, tau_fn, *, dt: float, backend: str = "numpy")
         dt=dt,
         tau=tau_fn,
         t_eval=t_grid,
-        settings=seed_settings(),
+        settings=lesson_settings(),
         backend=backend,
     )
     cpu = time.process_time() - cpu0
@@ -310,7 +310,7 @@ RUNNERS = {
     "scipy": run_scipy,
     "pinocchio-euler": run_pinocchio_euler,
     "mujoco": run_mujoco,
-    "seed": run_seed,
+    "lesson": run_lesson,
 }
 
 __all__ = ["DEFAULT_PEER_SETTINGS", "PeerSettings", "RUNNERS", "RunOutput"]

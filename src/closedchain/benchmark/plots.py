@@ -14,7 +14,7 @@ FAMILY_COLORS = {
     "scipy": "tab:orange",
     "pinocchio-euler": "tab:green",
     "mujoco": "tab:red",
-    "seed": "tab:purple",
+    "lesson": "tab:purple",
 }
 #: Error floor drawn for runs with zero error (log axes) [rad].
 ERROR_FLOOR = 1e-16

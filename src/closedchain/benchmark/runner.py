@@ -1,7 +1,8 @@
 """Work-precision runs: jobs, execution (local processes or Dask), tidy rows.
 
 A job is a plain dict (scenario, family, solver, backend, settings, repeat) so
-it can be pickled to a local process or a Dask worker; :func:`run_job` runs it
+it can be pickled to a local process or a Dask worker (there, one task per worker
+thread runs a share of the jobs: :func:`run_jobs`); :func:`run_job` runs it
 and returns the states on the comparison grid and the CPU seconds. The
 parent then measures each run against the scenario's reference and writes one
 tidy row per configuration (median CPU over repeats).
@@ -76,7 +77,7 @@ class BenchSettings:
         numpy_tolerances: rtol = atol of closedchain's numpy adaptive integrators (the
             reference implementation, placed on the chart at a few points: the compiled
             one takes the same steps).
-        steps: fixed steps [s] of closedchain's compiled fixed-step integrators and the seed;
+        steps: fixed steps [s] of closedchain's compiled fixed-step integrators and the lesson peer;
             on a scenario only the steps dividing its output spacing run (simulate would
             shorten any other step to one that does, a duplicate): the steps above 1e-2
             run where the comparison grid is coarser (the N-four-bar's 0.05 s), so that
@@ -228,22 +229,22 @@ def configurations(
                         kwargs=dict(dt=dt, stiff=stiff),
                     )
                 )
-    seed_spec = COMPILED_INTEGRATORS.get("semi-implicit")
-    seed_backend = (
+    lesson_spec = COMPILED_INTEGRATORS.get("semi-implicit")
+    lesson_backend = (
         "compiled"
-        if seed_spec is not None
-        and "projection" in seed_spec.stabilizations
+        if lesson_spec is not None
+        and "projection" in lesson_spec.stabilizations
         and METHOD_CAPABILITIES["kkt"].compiled
         else "numpy"
     )
     for dt in settings.steps:
         configs.append(
             dict(
-                family="seed",
+                family="lesson",
                 solver="euler/2 newton",
-                backend=seed_backend,
+                backend=lesson_backend,
                 settings=f"dt={_fmt(dt)}",
-                kwargs=dict(dt=dt, backend=seed_backend),
+                kwargs=dict(dt=dt, backend=lesson_backend),
             )
         )
     return configs
@@ -366,6 +367,25 @@ def _first_line(exc: BaseException) -> str:
     return (text.splitlines()[0] if text else type(exc).__name__)[:MESSAGE_CHARS]
 
 
+def worker_chunks(items: list, n_workers: int) -> list[list]:
+    """Deal ``items`` round-robin into at most ``n_workers`` non-empty chunks (jobs come in
+    an interleaved order: each chunk gets a share of every scenario and family, so the
+    chunks cost about the same)."""
+    n = max(1, min(n_workers, len(items)))
+    return [items[k::n] for k in range(n)]
+
+
+def run_jobs(jobs: list[dict], fn: Callable[[dict], dict] | None = None) -> list[dict]:
+    """Run a batch of jobs one after another in one task (a Dask worker's share).
+
+    Each job keeps its own clock (the CPU time is the measurement: the jobs never share
+    the process's cores with each other); the scenario's mechanism is loaded once per
+    process (:func:`.scenarios.load_scenario_mechanism`), not per job.
+    """
+    fn = fn or run_job
+    return [fn(job) for job in jobs]
+
+
 def execute(
     jobs: list[dict],
     *,
@@ -382,8 +402,10 @@ def execute(
             it pickles.
         workers: local worker processes (ignored with ``scheduler``).
         scheduler: address of a Dask distributed scheduler (``tcp://host:port``),
-            or a ``distributed.Client``.
-        progress: called with 1 after each finished job.
+            or a ``distributed.Client``: one task per worker thread, each running its
+            share of the jobs (:func:`run_jobs`).
+        progress: called with the number of jobs finished (1 after each job; on Dask,
+            a task's share when it ends).
 
     Returns:
         The results, in the order of ``jobs``.
@@ -398,13 +420,20 @@ def execute(
             ) from exc
         client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
         try:
-            futures = client.map(fn, jobs, pure=False)
-            index = {f.key: i for i, f in enumerate(futures)}
+            # One task per worker thread, each a batch of jobs (run_jobs): one round trip
+            # and one model load per scenario and worker, not per job.
+            chunks = worker_chunks(list(range(len(jobs))), sum(client.nthreads().values()))
+            futures = client.map(
+                run_jobs, [[jobs[i] for i in chunk] for chunk in chunks], fn=fn, pure=False
+            )
+            index = {f.key: chunk for f, chunk in zip(futures, chunks, strict=True)}
             results: list = [None] * len(jobs)
             for fut in as_completed(futures):
-                results[index[fut.key]] = fut.result()
+                chunk = index[fut.key]
+                for i, res in zip(chunk, fut.result(), strict=True):
+                    results[i] = res
                 if progress:
-                    progress(1)
+                    progress(len(chunk))
             return results
         finally:
             if client is not scheduler:

@@ -40,7 +40,7 @@ SCALING_COLUMNS = ("family", "n", "nv", "nc", "method", "backend", "us")
 PINOCCHIO_CALL = "pin.constraintDynamics"
 #: Label of MuJoCo's forward dynamics in the rows.
 MUJOCO_CALL = "mujoco.mj_forward"
-#: The methods of the study: the default and the seed's block system.
+#: The methods of the study: the default and the lesson's block system.
 SCALING_METHODS = (DEFAULT_METHOD, "kkt")
 #: CPU time each timing repeat aims at [s] (the number of calls is chosen from it).
 REPEAT_BUDGET = 0.05

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -88,7 +89,7 @@ class Scenario:
         return self.torque_amplitude == 0.0 and not self.scene and not self.track
 
 
-#: Crossed assembly branch of the seed's 4-bar at theta2 = 10 deg (tests/test_simulate.py).
+#: Crossed assembly branch of the lesson's 4-bar at theta2 = 10 deg (tests/test_simulate.py).
 _FOURBAR_CROSSED = tuple(math.radians(x) for x in (10.0, -65.0, -104.0))
 
 #: IFToMM A02 start (tests/nfourbar_reference.py): cranks vertical, couplers horizontal.
@@ -190,9 +191,15 @@ def _load(models_dir: str, urdf: str, loops: str | None, gravity: tuple[float, .
     return load(path, loops=None if loops is None else Path(models_dir) / loops, gravity=gravity)
 
 
+#: Held while a scenario's mechanism is looked up or loaded: the threads of a Dask worker
+#: that start together load it once (lru_cache alone lets both miss and load).
+_LOAD_LOCK = threading.Lock()
+
+
 def load_scenario_mechanism(models_dir: str, scenario: Scenario) -> Mechanism:
     """Load (once per process) the mechanism of a scenario."""
-    return _load(str(models_dir), scenario.urdf, scenario.loops, tuple(scenario.gravity))
+    with _LOAD_LOCK:
+        return _load(str(models_dir), scenario.urdf, scenario.loops, tuple(scenario.gravity))
 
 
 def fresh_compiled_core(mech: Mechanism) -> None:
@@ -209,8 +216,9 @@ def fresh_compiled_core(mech: Mechanism) -> None:
     from .. import compiled
 
     if compiled.available():
-        mech.__dict__.pop("_compiled_cores", None)  # make_core's cache (as tests/test_band.py)
-        compiled.make_core(mech)
+        with mech.lock:  # a worker's other thread may be running a job on mech
+            mech.__dict__.pop("_compiled_cores", None)  # make_core's cache (tests/test_band.py)
+            compiled.make_core(mech)
 
 
 def _track_controller(mech: Mechanism, scenario: Scenario):

@@ -1,4 +1,4 @@
-"""The seed's dense KKT (saddle-point) system, Section 3.
+"""The lesson's dense KKT (saddle-point) system, Section 3.
 
 .. math::
 
@@ -128,7 +128,7 @@ def solve_kkt(
     K: np.ndarray | None = None,
     rhs: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float, int]:
-    r"""Solve the KKT system of the seed's C++ ``solveKKT`` (Section 8).
+    r"""Solve the KKT system of the lesson's C++ ``solveKKT`` (Section 8).
 
     K is factorized and solved as it stands (one ``dgetrf``); its condition is judged on
     the equilibrated D K D (:func:`kkt_scaling`), independent of the units:

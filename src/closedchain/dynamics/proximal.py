@@ -1,6 +1,6 @@
 r"""Proximal (regularized KKT) forward dynamics, as pinocchio.constraintDynamics does it.
 
-The iterated proximal point method on the seed's KKT system (Section 3)
+The iterated proximal point method on the lesson's KKT system (Section 3)
 regularizes the multipliers towards their previous iterate:
 
 .. math::

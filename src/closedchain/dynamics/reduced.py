@@ -15,20 +15,20 @@ independent ones,
 with the rows of ``S`` and ``c`` laid out in the tree's coordinate order (the
 block rows above are the I and D rows). Premultiplying the equations of motion
 by :math:`S^\top` removes the multipliers (:math:`J S = 0`) and leaves the
-seed's reduced equations
+lesson's reduced equations
 
 .. math::
 
     M_r\, a_I = S^\top \tau - h_r, \qquad M_r = S^\top M S, \qquad
     h_r = S^\top (h + M c),
 
-which is the seed's :math:`h_r = S^\top (h - M \dot S \dot q_r)` with
+which is the lesson's :math:`h_r = S^\top (h - M \dot S \dot q_r)` with
 :math:`\dot S \dot q_r = -c`. The multipliers are recovered afterwards from the
 dependent rows of the equations of motion,
 :math:`J_D^\top \lambda = \tau_D - (M a + h)_D`.
 
 :math:`J_D` is LU-factored (``dgetrf``) with a 1-norm condition estimate
-(``dgecon``); :math:`J_D` singular is a singularity of the partition (seed
+(``dgecon``); :math:`J_D` singular is a singularity of the partition (the lesson's
 Problem 4), not necessarily of the mechanism: :func:`choose_partition` picks
 the best-conditioned dependent set at a configuration by pivoted QR.
 """

@@ -1,6 +1,6 @@
 r"""Range-space (Schur complement) method: multipliers first, then accelerations.
 
-Eliminating the accelerations from the seed's KKT system (Section 3) with the
+Eliminating the accelerations from the lesson's KKT system (Section 3) with the
 Cholesky factor of the mass matrix, :math:`M = R^\top R`, leaves the
 Delassus (operational-space inverse inertia) matrix of the loops:
 

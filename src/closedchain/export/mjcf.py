@@ -44,6 +44,7 @@ import pinocchio as pin
 
 from .._io import atomic_write
 from .._locking import exclusive
+from ..description import UNIVERSAL_SECOND_SUFFIX
 from ..exceptions import ClosedChainError, check_settings
 
 if TYPE_CHECKING:
@@ -108,8 +109,7 @@ _JOINT_KIND = {
     "JointModelSpherical": ("ball", None),
     "JointModelFreeFlyer": ("free", None),
 }
-_VALID_JOINTS = "revolute, continuous, prismatic (any axis), spherical, free flyer"
-
+_VALID_JOINTS = "revolute, continuous, prismatic (any axis), universal, spherical, free flyer"
 
 def _fmt(x) -> str:
     return " ".join(f"{float(v):.17g}" for v in np.ravel(x))
@@ -121,11 +121,12 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
     return np.array([q.w, q.x, q.y, q.z])
 
 
-def _passive_xml(mech: Mechanism, j: int) -> str:
-    """The attributes of joint j's passive terms: ``armature``, ``damping``,
-    ``stiffness`` and ``springref`` (MuJoCo's names and conventions), where nonzero."""
+def _passive_xml(mech: Mechanism, j: int, coordinate: int = 0) -> str:
+    """The attributes of joint j's passive terms on its ``coordinate``: ``armature``,
+    ``damping``, ``stiffness`` and ``springref`` (MuJoCo's names and conventions), where
+    nonzero."""
     p, jm = mech.passive, mech.model.joints[j]
-    k = jm.idx_v
+    k = jm.idx_v + coordinate
     out = ""
     if p.armature[k]:
         out += f' armature="{_fmt(p.armature[k])}"'
@@ -147,6 +148,19 @@ def _joint_xml(mech: Mechanism, j: int) -> str:
         kind, axis = "hinge", tuple(jm.extract().axis)
     elif short == "JointModelPrismaticUnaligned":
         kind, axis = "slide", tuple(jm.extract().axis)
+    elif short == "JointModelUniversal":
+        # Two hinges in one body: MuJoCo turns it by Rot(axis1, q1) Rot(axis2, q2), each
+        # axis in the body frame, as Pinocchio's universal joint does.
+        universal = jm.extract()
+        hinges = (
+            (model.names[j], universal.axis1, 0),
+            (model.names[j] + UNIVERSAL_SECOND_SUFFIX, universal.axis2, 1),
+        )
+        return "".join(
+            f'<joint name={quoteattr(n)} type="hinge" axis="{_fmt(a)}" limited="false"'
+            f"{_passive_xml(mech, j, k)}/>"
+            for n, a, k in hinges
+        )
     else:
         raise ClosedChainError(
             f"joint {model.names[j]!r} of type {short} has no MJCF export; valid joint types: "
@@ -433,8 +447,8 @@ def load_mujoco(mech: Mechanism, *, settings: MjcfSettings = DEFAULT_MJCF_SETTIN
 def mujoco_state(mech: Mechanism, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Map Pinocchio's (q, v) to MuJoCo's (qpos, qvel) for the exported model.
 
-    Revolute, prismatic and spherical joints keep their entries (Pinocchio's
-    quaternion is x, y, z, w, MuJoCo's w, x, y, z); a continuous joint's
+    Revolute, prismatic, universal (two hinges) and spherical joints keep their entries
+    (Pinocchio's quaternion is x, y, z, w, MuJoCo's w, x, y, z); a continuous joint's
     (cos, sin) becomes its angle. Velocities are in the same joint frames.
 
     Args:

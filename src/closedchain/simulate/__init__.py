@@ -28,7 +28,7 @@ is integrated as an ODE in (q, v) by one of :data:`INTEGRATORS`, with one of
 
 The lesson's own algorithm is ``integrator="semi-implicit", stabilization=
 "projection"`` with ``SimulationSettings(projection_iters=2,
-project_velocities=False)`` (see :func:`seed_settings`).
+project_velocities=False)`` (see :func:`lesson_settings`).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from ..dynamics import SolverSettings
 from ..dynamics.base import DEFAULT_METHOD
 from ..trajectory import Trajectory
 from . import builtin  # noqa: F401  (registers the built-in integrators and stabilizations)
+from .batch import BatchResult, Rollout, simulate_batch
 from .registry import (
     COMPILED_INTEGRATORS,
     INTEGRATORS,
@@ -74,7 +75,7 @@ from .settings import (
     SimulationError,
     SimulationSettings,
     TorqueInput,
-    seed_settings,
+    lesson_settings,
 )
 
 if TYPE_CHECKING:
@@ -83,6 +84,7 @@ if TYPE_CHECKING:
 __all__ = [
     "ADAPTIVE_TOLERANCES",
     "BACKENDS",
+    "BatchResult",
     "COMPILED_INTEGRATORS",
     "DEFAULT_ADAPTIVE_INTEGRATOR",
     "DEFAULT_ENERGY_TOL",
@@ -91,6 +93,7 @@ __all__ = [
     "INTEGRATORS",
     "MIN_ATOL",
     "MIN_RTOL",
+    "Rollout",
     "STABILIZATIONS",
     "IntegratorSpec",
     "SimulationError",
@@ -104,8 +107,9 @@ __all__ = [
     "get_stabilization",
     "register_integrator",
     "register_stabilization",
-    "seed_settings",
+    "lesson_settings",
     "simulate",
+    "simulate_batch",
 ]
 
 

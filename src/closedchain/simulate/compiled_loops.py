@@ -3,10 +3,11 @@
 The loops of :mod:`.fixed`, :mod:`.adaptive` and :mod:`.ali3p` (same output grid, projection,
 stage projection, coordinate partitioning with re-partitioning, regularity
 check, drift limit, error control of scipy's RK45/DOP853 with the same dense
-output) run in C++; the right-hand side never
-enters Python unless ``tau`` is a callable (then it is called from C++ under
-the GIL), and a progress callback is called after each step. Ctrl-C
-interrupts a run.
+output) run in C++ with the GIL released (other Python threads run
+meanwhile: :func:`~.batch.simulate_batch`); the right-hand side never enters
+Python unless ``tau`` is a callable (then it is called from C++, the GIL taken
+back for the call), and a progress callback is called after each step. Ctrl-C
+interrupts a run (in the main thread).
 
 Each step checks every declared row (the dropped ones too): beyond
 ``drift_limit`` the run stops with SimulationError naming the row and time;

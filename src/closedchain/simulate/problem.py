@@ -1,7 +1,7 @@
 """The evaluation shared by every integrator: accelerations, partition, projection, output.
 
 :class:`Problem` evaluates the right-hand side and tracks the coordinate
-partition; :func:`project` is the seed's position/velocity projection;
+partition; :func:`project` is the lesson's position/velocity projection;
 :class:`Recorder` collects output samples with their residuals and energy.
 """
 
@@ -590,7 +590,7 @@ def passing_hint() -> str:
 def project(
     problem: Problem, q: np.ndarray, v: np.ndarray, t: float, *, mass_orthogonal: bool = False
 ):
-    """Seed-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0.
+    """Lesson-style projection: Gauss-Newton on q (min-norm), then v onto J v = 0.
 
     The minimum-norm corrections are ``lstsq`` solves, or, when the rows couple in a
     narrow band (many loops in a chain: :class:`~closedchain.dynamics.augmented_lagrangian.
@@ -855,7 +855,10 @@ class Recorder:
         if len(t) < 3:
             return np.array([meter.feed(*x) for x in zip(t, q, v, a, strict=True)])
         w0 = meter.feed(t[0], q[0], v[0], a[0])
-        tau = np.array([meter.torque(*x) for x in zip(t, q, v, strict=True)])
+        if meter.constant:  # one call: a Python call per sample cost 36 % of a 2F-85 run
+            tau = np.broadcast_to(meter.torque(t[0], q[0], v[0]), v.shape)
+        else:
+            tau = np.array([meter.torque(*x) for x in zip(t, q, v, strict=True)])
         dv = meter.damping * v
         power = np.einsum("ij,ij->i", tau, v) - np.einsum("ij,ij->i", dv, v)
         rate = np.einsum("ij,ij->i", tau, a) - 2.0 * np.einsum("ij,ij->i", dv, a)

@@ -176,7 +176,7 @@ class SimulationSettings:
 DEFAULT_SIMULATION_SETTINGS = SimulationSettings()
 
 
-def seed_settings() -> SimulationSettings:
+def lesson_settings() -> SimulationSettings:
     """Settings reproducing the lesson's Python program (two Newton steps, no velocity
     projection; the lesson is in the references).
 

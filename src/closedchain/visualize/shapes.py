@@ -214,12 +214,12 @@ def model_stick_radius(children: dict[str, list[np.ndarray]]) -> float:
 
 
 def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS):
-    """Read the ``<visual>`` elements of the mechanism's URDF.
+    """Return the mechanism's visuals (its description's).
 
     See :func:`read_scene_visuals`, which also says what of the meshes is embedded.
 
     Returns:
-        tuple of :class:`VisualShape`, in URDF order.
+        tuple of :class:`VisualShape`, in the description's order.
     """
     return read_scene_visuals(mech, settings=settings)[0]
 
@@ -227,37 +227,40 @@ def read_visuals(mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTI
 def read_scene_visuals(
     mech: Mechanism, *, settings: AnimationSettings = DEFAULT_SETTINGS
 ) -> tuple[tuple[VisualShape, ...], MeshSummary]:
-    """Read the ``<visual>`` elements of the mechanism's URDF, with meshes within the budget.
+    """Return the mechanism's visuals (its description's), with meshes within the budget.
 
-    A link without any ``<visual>`` (a URDF with inertials only, common for generated
+    A link without any visual (a URDF with inertials only, common for generated
     and YAML-convention models) is drawn as a :func:`stick_figure` in
     ``settings.default_rgba``: a ball at its origin and a stick to each child joint and
     loop frame on it, of radius :func:`model_stick_radius` (sized from the model).
 
-    Materials are resolved by name against the robot's top-level
-    ``<material>`` elements. A model read into a description (MJCF) gives its
-    bodies' visuals instead (:class:`closedchain.description.Visual`: mesh files
-    as MuJoCo found them, in the geom's frame). Mesh files are looked up relative to the URDF
-    (``file://`` URLs as paths, ``package://pkg/sub`` as ``sub`` in the URDF's
-    directory and its parents, and in the share directory of the packages of
-    :data:`TRUSTED_PACKAGES`, i.e. example-robot-data's meshes for ``erd:``
-    models). Only files under the URDF's directory or a trusted package are
+    The visuals are the description's (:class:`closedchain.description.Visual`,
+    in the body's frame; a visual without a colour takes ``settings.default_rgba``):
+    a URDF's ``<visual>`` elements (materials resolved by name against the
+    robot's top-level ``<material>`` elements by the reader), an MJCF model's
+    geoms (mesh files as MuJoCo found them). A URDF's mesh files are looked up
+    beside the file that names the link (``URDFPlus.link_files``: a base URDF
+    under an overlay; ``file://`` URLs as paths, ``package://pkg/sub`` as ``sub``
+    in that directory and its parents, and in the share directory of the
+    packages of :data:`TRUSTED_PACKAGES`, i.e. example-robot-data's meshes for
+    ``erd:`` models). Only files under that directory or a trusted package are
     drawn (the page embeds them, so a URDF must not reach other local files).
 
-    In URDF order, the meshes of a link are embedded when all of them can be
-    read (:func:`read_mesh`) and together fit in what the links before left of
-    ``settings.mesh_budget_bytes``. Otherwise the link's mesh visuals are
-    replaced by its :func:`stick_figure` (its boxes, cylinders and spheres
-    stay): a mesh outside the allowed directories, not found, larger than
-    :data:`closedchain._io.MAX_MESH_BYTES` or unreadable is named in a warning
-    (file and link); links over the budget are listed in one warning.
+    In the description's order (the tree, depth first), the meshes of a link are
+    embedded when all of them can be read (:func:`read_mesh`) and together fit in
+    what the links before left of ``settings.mesh_budget_bytes``. Otherwise the
+    link's mesh visuals are replaced by its :func:`stick_figure` (its boxes,
+    cylinders and spheres stay): a mesh outside the allowed directories, not
+    found, larger than :data:`closedchain._io.MAX_MESH_BYTES` or unreadable is
+    named in a warning (file and link); links over the budget are listed in one
+    warning.
 
     Args:
         mech: the mechanism.
         settings: gives the colour of visuals without a material and the mesh budget.
 
     Returns:
-        (visuals in URDF order, what of the meshes is embedded).
+        (visuals in the description's order, what of the meshes is embedded).
 
     Raises:
         ClosedChainError: ``settings.mesh_budget_bytes`` is negative.
@@ -267,10 +270,7 @@ def read_scene_visuals(
         raise ClosedChainError(
             f"AnimationSettings.mesh_budget_bytes = {budget!r}; valid: a number of bytes >= 0"
         )
-    if mech.urdf.description is not None:
-        links, children = _description_links(mech.urdf.description)
-    else:
-        links, children = _urdf_links(mech, settings)
+    links, children = _description_links(mech.urdf.description, settings.default_rgba)
     # Each link's meshes beside the file that names it (a base URDF under an overlay).
     link_files = mech.urdf.link_files
     trusted = _trusted_roots()
@@ -331,78 +331,36 @@ def read_scene_visuals(
     return tuple(out), summary
 
 
-def _has_mass(link) -> bool:
-    """Whether a yourdfpy link has an inertial with a positive mass."""
-    inertial = link.inertial
-    return inertial is not None and inertial.mass is not None and float(inertial.mass) > 0
-
-
 @dataclass(frozen=True)
 class _MeshFile:
-    """A mesh visual's file and scale (what :func:`_link_meshes` reads of a yourdfpy Mesh)."""
+    """A mesh visual's file and scale (what :func:`_link_meshes` reads)."""
 
     filename: str
     scale: tuple[float, ...] | None
 
 
-def _urdf_links(mech: Mechanism, settings: AnimationSettings):
-    """Return the URDF's links as (name, [(kind, dims or mesh, origin (4, 4), rgba)],
-    has mass) and link name -> origins of its child joints [m] (yourdfpy reads the text)."""
-    import yourdfpy
-
-    robot = yourdfpy.URDF.load(
-        io.BytesIO(mech.urdf.xml.encode("utf-8")),
-        build_scene_graph=False,
-        load_meshes=False,
-        build_collision_scene_graph=False,
-        load_collision_meshes=False,
-    ).robot
-    named = {m.name: m for m in robot.materials if m.name}
-    children: dict[str, list[np.ndarray]] = {}
-    for joint in robot.joints:
-        xyz = np.zeros(3) if joint.origin is None else np.asarray(joint.origin, float)[:3, 3]
-        children.setdefault(joint.parent, []).append(xyz)
-    links = []
-    for link in robot.links:
-        items = []
-        for vis in link.visuals:
-            origin = np.eye(4) if vis.origin is None else np.array(vis.origin, dtype=float)
-            rgba = _rgba(vis.material, named, settings.default_rgba)
-            g = vis.geometry
-            if g is None:
-                continue
-            if g.box is not None:
-                items.append(("box", _floats(g.box.size), origin, rgba))
-            elif g.cylinder is not None:
-                dims = (float(g.cylinder.radius), float(g.cylinder.length))
-                items.append(("cylinder", dims, origin, rgba))
-            elif g.sphere is not None:
-                items.append(("sphere", (float(g.sphere.radius),), origin, rgba))
-            elif g.mesh is not None:
-                items.append(("mesh", _MeshFile(g.mesh.filename, g.mesh.scale), origin, rgba))
-        links.append((link.name, items, _has_mass(link)))
-    return links, children
-
-
-def _description_links(description: MechanismDescription):
-    """Return a description's bodies as :func:`_urdf_links` does (its visuals, no text)."""
-    children: dict[str, list[np.ndarray]] = {}
+def _description_links(description: MechanismDescription, default_rgba):
+    """Return the bodies as (name, [(kind, dims or mesh file, origin (4, 4), rgba)], has
+    mass), in the description's order (the world first when it has visuals of its own),
+    and body name -> origins of its child joints [m]."""
+    children: dict[str | None, list[np.ndarray]] = {}
     for body in description.bodies:
         anchor = body.joints[0].position if body.joints else np.zeros(3)
         origin = body.placement.act(np.asarray(anchor, dtype=float))
         children.setdefault(body.parent, []).append(origin)
-    links = [(WORLD_LINK, description.world_visuals, False)] + [
-        (b.name, b.visuals, b.inertia.mass > 0) for b in description.bodies
-    ]
+    links = [(b.name, b.visuals, b.inertia.mass > 0) for b in description.bodies]
+    if description.world_frame:
+        links.insert(0, (WORLD_LINK, description.world_visuals, False))
     out = []
     for name, visuals, massive in links:
         items = []
         for vis in visuals:
             origin = vis.placement.homogeneous
+            rgba = tuple(default_rgba) if vis.rgba is None else vis.rgba
             if vis.kind == "mesh":
-                items.append(("mesh", _MeshFile(str(vis.mesh_file), vis.dims), origin, vis.rgba))
+                items.append(("mesh", _MeshFile(str(vis.mesh_file), vis.dims), origin, rgba))
             else:
-                items.append((vis.kind, tuple(vis.dims), origin, vis.rgba))
+                items.append((vis.kind, tuple(vis.dims), origin, rgba))
         out.append((name, items, massive))
     return out, children
 
@@ -466,18 +424,6 @@ def _link_meshes(where, link, meshes, urdf_dir, trusted, left):
 
 def _floats(x) -> tuple[float, ...]:
     return tuple(float(v) for v in np.asarray(x, dtype=float).ravel())
-
-
-def _rgba(material, named: dict, default) -> tuple[float, float, float, float]:
-    if material is None:
-        return tuple(default)
-    color = material.color
-    if color is None and material.name in named:
-        color = named[material.name].color
-    if color is None or color.rgba is None:
-        return tuple(default)
-    rgba = np.clip(np.asarray(color.rgba, dtype=float), 0.0, 1.0)
-    return tuple(float(c) for c in rgba)
 
 
 def _frame_with_z(axis: np.ndarray, origin: np.ndarray) -> np.ndarray:

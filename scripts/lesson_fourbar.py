@@ -1,21 +1,21 @@
-"""Run the seed's Python program (Section 7) through closedchain and print its lines.
+"""Run the lesson's Python program (Section 7) through closedchain and print its lines.
 
-The seed is the course text the project grew from (Chapter 15, Lesson 3; cited in
+The lesson is the course text the project grew from (Chapter 15, Lesson 3; cited in
 docs/references.md, not distributed with closedchain).
 
-The seed integrates the 4-bar with an explicit-Euler-style step (v += dt a; q += dt v)
+The lesson integrates the 4-bar with an explicit-Euler-style step (v += dt a; q += dt v)
 followed by two Gauss-Newton projection steps, dt = 1 ms, 1000 steps, a 1 N m crank
 torque, from rest at theta2 = 10 deg. In closedchain that is one configuration::
 
     simulate(mech, q0, v0, 1.0, method="kkt", integrator="semi-implicit",
-             stabilization="projection", settings=seed_settings(), dt=1e-3, tau=[1, 0, 0])
+             stabilization="projection", settings=lesson_settings(), dt=1e-3, tau=[1, 0, 0])
 
-Differences from the seed's printout, by design: the mass matrix and bias forces are
-Pinocchio's exact ones for the URDF's rods (the seed uses a diagonal approximation);
-the seed's initial guess (10, 60, 30) deg is not on phi = 0 (|phi| = 0.36 m), so it is
-closed first holding theta2 (the open assembly, theta4 = 90.69 deg). The seed prints
+Differences from the lesson's printout, by design: the mass matrix and bias forces are
+Pinocchio's exact ones for the URDF's rods (the lesson uses a diagonal approximation);
+the lesson's initial guess (10, 60, 30) deg is not on phi = 0 (|phi| = 0.36 m), so it is
+closed first holding theta2 (the open assembly, theta4 = 90.69 deg). The lesson prints
 the multipliers of step k, computed at the state before the step, with the angle after
-it; so does this script. Run: python scripts/seed_fourbar.py
+it; so does this script. Run: python scripts/lesson_fourbar.py
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 import closedchain as cc
-from closedchain.simulate import seed_settings, simulate
+from closedchain.simulate import lesson_settings, simulate
 
 MODEL = Path(__file__).resolve().parent.parent / "models" / "fourbar.urdf"
-#: The seed's absolute angles [theta2, theta3, theta4] [deg] and run parameters.
-SEED_THETA_DEG = (10.0, 60.0, 30.0)
+#: The lesson's absolute angles [theta2, theta3, theta4] [deg] and run parameters.
+LESSON_THETA_DEG = (10.0, 60.0, 30.0)
 DT = 1e-3
 STEPS = 1000
 TAU = np.array([1.0, 0.0, 0.0])
@@ -38,7 +38,7 @@ PRINT_EVERY = 100
 
 def main() -> None:
     mech = cc.load(MODEL)
-    th2, th3, th4 = np.radians(SEED_THETA_DEG)
+    th2, th3, th4 = np.radians(LESSON_THETA_DEG)
     q_guess = np.array([th2, th3 - th2, th4])  # the URDF header's q = [th2, th3 - th2, th4]
     q0 = cc.assemble(mech, q_guess, fixed=["crank_joint"])
     traj = simulate(
@@ -49,7 +49,7 @@ def main() -> None:
         method="kkt",
         integrator="semi-implicit",
         stabilization="projection",
-        settings=seed_settings(),
+        settings=lesson_settings(),
         dt=DT,
         tau=TAU,
     )
