@@ -240,12 +240,12 @@ def prepare(path: Path, tmp: Path) -> tuple[dict[str, str], object, Path]:
     """Load one model (stubbing its missing meshes if it must) and fill the columns up to
     the start; return the row, the mechanism (None when refused) and the file read."""
     import closedchain as cc
-    from closedchain.exceptions import URDFError
+    from closedchain.exceptions import ModelFileError
 
     row = {"model": f"`{path.parent.name}/{path.name}`", "meshes": _meshes(path)}
     try:
         mech = cc.load(path)
-    except URDFError as exc:
+    except ModelFileError as exc:
         if "is missing, and MuJoCo infers" not in str(exc):
             row["start"] = f"refused: {_note(exc)}"
             return row, None, path
@@ -253,8 +253,8 @@ def prepare(path: Path, tmp: Path) -> tuple[dict[str, str], object, Path]:
         row["meshes"] = f"stubbed ({row['meshes']}: refused, {body}'s inertia from its mesh)"
         path = _stubbed_copy(path, tmp)
         mech = cc.load(path)
-    desc = mech.urdf.description
-    kinds = [s.type for s in mech.urdf.loops]
+    desc = mech.description.tree
+    kinds = [s.type for s in mech.description.loops]
     row["nv"] = str(mech.nv)
     row["loops"] = ", ".join(f"{kinds.count(k)} {k}" for k in sorted(set(kinds))) or "0"
     if desc.inactive:

@@ -50,7 +50,7 @@ def closure(mech, q, jacobian=False):
 @pytest.mark.parametrize("loop_type", list(LOOP_TYPES))
 def test_closure_jacobian_matches_finite_differences(load_mechanism, rng, loop_type):
     mech = load_mechanism(LOOP_TYPES[loop_type])
-    assert {spec.type for spec in mech.urdf.loops} == {loop_type}
+    assert {spec.type for spec in mech.description.loops} == {loop_type}
     for _ in range(5):
         q = mech.random_configuration(rng)
         _, E = closure(mech, q, jacobian=True)
@@ -69,7 +69,7 @@ def test_closure_residual_vanishes_at_q_ref(load_mechanism, name):
     mech = load_mechanism(name)
     pin.forwardKinematics(mech.model, mech.data, mech.q_ref)
     per_loop = mech.declared.loop_residuals(mech.model, mech.data)
-    assert set(per_loop) == {spec.name for spec in mech.urdf.loops}
+    assert set(per_loop) == {spec.name for spec in mech.description.loops}
     assert max(per_loop.values()) <= AssemblySettings().closure_tol
 
 

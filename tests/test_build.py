@@ -19,10 +19,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedchain import URDFError
+from closedchain import ModelFileError
+from closedchain import urdf as urdf_module
 from closedchain.build import build_model
 from closedchain.robots import erd_robots_dir
-from closedchain import urdf as urdf_module
 from closedchain.urdf import parse_urdf
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,7 +185,7 @@ def check_against_pinocchio(
     # given: here the builder is under test, so the reader builds them too.
     monkeypatch.setattr(urdf_module, "_check_inertial", lambda path, link: None)
     urdf = parse_urdf(path)
-    ours = build_model(urdf.description, None if joint is None else joint())
+    ours = build_model(urdf.tree, None if joint is None else joint())
     assert differences(ours, reference, rng) == []
 
 
@@ -245,7 +245,7 @@ def test_every_joint_kind_builds_as_pinocchio_reads_it(tmp_path, root, rng, monk
     path = tmp_path / "every_kind.urdf"
     path.write_text(EVERY_KIND)
     check_against_pinocchio(path, root, rng, monkeypatch)
-    model = build_model(parse_urdf(path).description)
+    model = build_model(parse_urdf(path).tree)
     kinds = {model.names[j]: model.joints[j].shortname() for j in range(1, model.njoints)}
     assert kinds == {
         "a_tilted": "JointModelRevoluteUnboundedUnaligned",
@@ -314,7 +314,7 @@ def test_what_is_not_a_tree_is_refused(tmp_path, old, new, message):
     assert old in TREE
     path = tmp_path / "t.urdf"
     path.write_text(TREE.replace(old, new))
-    with pytest.raises(URDFError, match=re.escape(str(path)) + ".*" + re.escape(message)):
+    with pytest.raises(ModelFileError, match=re.escape(str(path)) + ".*" + re.escape(message)):
         parse_urdf(path)
 
 
@@ -332,7 +332,7 @@ def test_a_cycle_of_joints_is_refused(tmp_path):
         f"{path}: the links and joints make no tree: links x, y are on a cycle of joints, "
         "not below the root link 'a'"
     )
-    with pytest.raises(URDFError, match=re.escape(message)):
+    with pytest.raises(ModelFileError, match=re.escape(message)):
         parse_urdf(path)
 
 
@@ -342,7 +342,7 @@ def test_bodies_in_breadth_first_order_build_the_same_model(rng):
     whose mass matrix is wrong without an error."""
     from dataclasses import replace
 
-    description = parse_urdf(ROOT / "models" / "agile_eye.urdf").description
+    description = parse_urdf(ROOT / "models" / "agile_eye.urdf").tree
     depth = {b.name: k for k, b in enumerate(description.bodies)}
     level: dict[str, int] = {}
     for body in description.bodies:

@@ -302,7 +302,7 @@ def test_cut_frames_coincide_after_assembly(load_mechanism, mechanism_files, rng
     mech = load_mechanism(name)
     model, data = mech.model, mech.data
     loops = read_loops(mechanism_files[name])
-    assert [lp["name"] for lp in loops] == [spec.name for spec in mech.urdf.loops]
+    assert [lp["name"] for lp in loops] == [spec.name for spec in mech.description.loops]
     for _ in range(5):
         q, _ = cc.random_consistent_state(mech, rng)
         assert np.max(np.abs(cc.compute_phi(mech, q))) <= AssemblySettings().tol

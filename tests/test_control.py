@@ -132,7 +132,7 @@ def test_agile_eye_default_scene_runs_10_s_tracking_its_path(agile_eye):
     assert scene.tau is not None and "platform_yaw" in scene.description
     t_eval = np.linspace(0.0, 10.0, 101)
     traj = simulate(agile_eye, scene.q0, scene.v0, 10.0, tau=scene.tau, t_eval=t_eval)
-    spec = agile_eye.urdf.scene
+    spec = agile_eye.description.scene
     ref = sinusoid_reference(spec.track)
     idx = [agile_eye.model.joints[agile_eye.model.getJointId(s.joint)].idx_q for s in spec.track]
     want = np.array([ref(t)[0] for t in traj.t])
@@ -144,7 +144,7 @@ def test_agile_eye_default_scene_runs_10_s_tracking_its_path(agile_eye):
 
 
 def test_agile_eye_scene_is_read_from_the_urdf(agile_eye):
-    spec = agile_eye.urdf.scene
+    spec = agile_eye.description.scene
     assert (spec.kp, spec.kd) == (100.0, 20.0)
     assert [(s.joint, s.amplitude, s.frequency) for s in spec.track] == [
         ("platform_yaw", 0.8, 0.1),
@@ -165,7 +165,7 @@ def test_fourbar_default_scene_is_the_crossed_branch_at_rest(fourbar, q_crossed)
 
 def test_no_scene_element_is_rest_at_q_ref(load_mechanism):
     mech = load_mechanism("slider_crank")
-    assert mech.urdf.scene is None
+    assert mech.description.scene is None
     scene = default_scene(mech)
     np.testing.assert_array_equal(scene.q0, mech.q_ref)
     assert scene.tau is None
@@ -192,7 +192,7 @@ def test_nfourbar_scene_is_the_benchmark_start(load_mechanism):
     from conftest import MODELS
 
     mech = cc.load(MODELS / "nfourbar_2.urdf")
-    assert mech.urdf.scene.velocity == {"crank_0_joint": ref.OMEGA0}
+    assert mech.description.scene.velocity == {"crank_0_joint": ref.OMEGA0}
     scene = default_scene(mech)
     q0, v0 = ref.initial_state(mech)
     assert scene.tau is None

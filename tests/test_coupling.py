@@ -40,7 +40,7 @@ from closedchain import compiled, validation
 from closedchain.benchmark.families import chain_urdf
 from closedchain.constraints import COUPLING_KIND
 from closedchain.dynamics.base import METHOD_CAPABILITIES, compute_terms
-from closedchain.exceptions import URDFError, ValidationUnavailableError
+from closedchain.exceptions import ModelFileError, ValidationUnavailableError
 
 GRIPPER = DATA_DIR / "mimic_gripper.urdf"
 
@@ -80,7 +80,7 @@ def _index(mech: cc.Mechanism, joint: str) -> int:
 def _coupling_rows(mech: cc.Mechanism, q: np.ndarray):
     """phi, shape (nc,), and J, shape (nc, nv), of the couplings written from their
     numbers (:data:`COUPLINGS`), in the order of the mechanism's rows."""
-    joint_of = {spec.name: spec.joint for spec in mech.urdf.loops}
+    joint_of = {spec.name: spec.joint for spec in mech.description.loops}
     phi, J = [], np.zeros((mech.nc, mech.nv))
     for r, row in enumerate(mech.rows):
         joint = joint_of[row.loop]
@@ -106,7 +106,7 @@ def _kkt_reference(path, mech: cc.Mechanism, q, v, tau) -> np.ndarray:
 
 
 def test_mimic_and_coupling_elements_become_loops(gripper):
-    loops = {spec.joint: spec for spec in gripper.urdf.loops}
+    loops = {spec.joint: spec for spec in gripper.description.loops}
     assert set(loops) == set(COUPLINGS)
     for joint, (leader, m, c) in COUPLINGS.items():
         spec = loops[joint]
@@ -230,7 +230,7 @@ def _variant(tmp_path, old: str, new: str):
     ],
 )
 def test_bad_couplings_are_refused(tmp_path, old, new, match):
-    with pytest.raises(URDFError, match=match):
+    with pytest.raises(ModelFileError, match=match):
         cc.load(_variant(tmp_path, old, new))
 
 
@@ -260,7 +260,7 @@ def test_huge_coupling_numbers_are_refused_at_load(tmp_path, capsys, old, new, m
     from closedchain import cli
 
     path = _variant(tmp_path, old, new)
-    with pytest.raises(URDFError, match=match):
+    with pytest.raises(ModelFileError, match=match):
         cc.load(path)
     assert cli.main(["simulate", str(path), "--t-final", "0.05"]) == 2
     err = capsys.readouterr().err
@@ -564,7 +564,7 @@ def test_validate_fails_on_a_wrong_multiplier(tmp_path):
     assert good in text
     changed = tmp_path / MIMIC_FOURBAR.name
     changed.write_text(text.replace(good, 'multiplier="0.6" offset="-0.1"'))
-    mech.urdf = dataclasses.replace(mech.urdf, path=changed)
+    mech.description = dataclasses.replace(mech.description, path=changed)
     rep = cc.validate(mech, n_samples=N_VALIDATION)
     assert not rep.passed
     assert rep.max_da_mass_norm > rep.tol_a

@@ -394,7 +394,7 @@ def test_joint_reactions_from_forward_result_and_array(mechs, states):
         np.testing.assert_array_equal(x.force, 0.0)
         # a revolute loop transmits no couple about its own axis (in c1)
         oMc1 = pin.updateFramePlacement(mech.model, mech.data, mech.model.getFrameId(x.frame))
-        axis = next(lp.axis for lp in mech.urdf.loops if lp.name == x.loop)
+        axis = next(lp.axis for lp in mech.description.loops if lp.name == x.loop)
         assert abs(x.torque @ axis) <= 1e-12 * max(1.0, np.linalg.norm(x.torque))
         np.testing.assert_allclose(oMc1.rotation @ x.torque, x.torque_world, atol=1e-14)
 

@@ -135,8 +135,10 @@ def test_save_figure_takes_the_format_from_the_suffix(tmp_path, suffix):
 def test_a_fifo_is_refused_without_opening_it(tmp_path):
     fifo = tmp_path / "pipe.urdf"
     os.mkfifo(fifo)
-    with pytest.raises(cc.URDFError, match=rf"^{re.escape(str(fifo))}: URDF file is a named pipe"):
-        read_input_bytes(fifo, limit=100, what="URDF file", error=cc.URDFError)
+    with pytest.raises(
+        cc.ModelFileError, match=rf"^{re.escape(str(fifo))}: URDF file is a named pipe"
+    ):
+        read_input_bytes(fifo, limit=100, what="URDF file", error=cc.ModelFileError)
 
 
 @pytest.mark.parametrize(

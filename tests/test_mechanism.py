@@ -157,7 +157,7 @@ def test_wrong_number_of_independent_joints_is_a_urdf_error(mechanism_files, tmp
     text = _mark_independent(mechanism_files["fourbar"].read_text(), "crank_joint", "rocker_joint")
     path.write_text(text)
     with pytest.raises(
-        cc.URDFError,
+        cc.ModelFileError,
         match=r"fourbar_two_independent\.urdf: 2 coordinates are marked "
         r'independent="true" \(crank_joint, rocker_joint\) but the mobility is 1',
     ):

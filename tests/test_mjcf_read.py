@@ -27,7 +27,7 @@ from conftest import DATA_DIR, MODELS
 from lxml import etree
 
 import closedchain as cc
-from closedchain.exceptions import URDFError
+from closedchain.exceptions import ModelFileError
 from closedchain.export.mjcf import export_mjcf
 
 FOURBAR_MJCF = DATA_DIR / "fourbar_mjcf.xml"
@@ -69,7 +69,7 @@ def test_export_round_trip_gives_the_same_dynamics(fourbar, rng, tmp_path):
     assert back.mobility == fourbar.mobility
     np.testing.assert_array_equal(back.gravity, fourbar.gravity)
     # The revolute loop comes back as two connects on its axis (6 rows of rank 2).
-    assert [s.type for s in back.urdf.loops] == ["spherical", "spherical"]
+    assert [s.type for s in back.description.loops] == ["spherical", "spherical"]
     _same_dynamics(fourbar, back, rng)
 
 
@@ -78,8 +78,10 @@ def test_export_round_trip_keeps_couplings(rng, tmp_path):
     path = tmp_path / "gripper.xml"
     export_mjcf(gripper, path)
     back = cc.load(path)
-    coupled = {(s.joint, s.mimics, s.multiplier, s.offset) for s in back.urdf.loops}
-    assert coupled == {(s.joint, s.mimics, s.multiplier, s.offset) for s in gripper.urdf.loops}
+    coupled = {(s.joint, s.mimics, s.multiplier, s.offset) for s in back.description.loops}
+    assert coupled == {
+        (s.joint, s.mimics, s.multiplier, s.offset) for s in gripper.description.loops
+    }
     _same_dynamics(gripper, back, rng)
 
 
@@ -87,7 +89,7 @@ def test_hand_written_fourbar_reads_as_the_urdf_one(fourbar_mjcf, fourbar, rng):
     assert (fourbar_mjcf.nq, fourbar_mjcf.nv, fourbar_mjcf.mobility) == (3, 3, 1)
     assert fourbar_mjcf.actuated_joints == ("crank_joint",)  # from <actuator><motor joint>
     np.testing.assert_array_equal(fourbar_mjcf.gravity, [0.0, 0.0, -9.81])
-    (loop,) = fourbar_mjcf.urdf.loops
+    (loop,) = fourbar_mjcf.description.loops
     assert (loop.type, loop.predecessor, loop.successor) == ("spherical", "coupler", "rocker")
     _same_dynamics(fourbar, fourbar_mjcf, rng, offset=FOURBAR_MJCF_OFFSET)
 
@@ -153,7 +155,7 @@ def test_weld_becomes_a_fixed_loop_closed_at_qpos0(tmp_path):
         etree.SubElement(eq, "weld", name="W", body1="coupler", body2="rocker")
 
     mech = cc.load(_edit(tmp_path, weld))
-    (loop,) = mech.urdf.loops
+    (loop,) = mech.description.loops
     assert loop.type == "fixed"
     assert mech.mobility == 0
     assert np.linalg.norm(cc.compute_phi(mech, np.zeros(3))) <= 1e-12
@@ -162,7 +164,7 @@ def test_weld_becomes_a_fixed_loop_closed_at_qpos0(tmp_path):
 def test_doctype_is_refused(tmp_path):
     path = tmp_path / "dtd.xml"
     path.write_text('<!DOCTYPE m [<!ENTITY e "x">]><mujoco><worldbody/></mujoco>')
-    with pytest.raises(URDFError, match="DOCTYPE"):
+    with pytest.raises(ModelFileError, match="DOCTYPE"):
         cc.load(path)
 
 
@@ -170,7 +172,7 @@ def test_unknown_models_stay_urdf(tmp_path):
     """A URDF file ending in .xml is still read as URDF (the root element decides)."""
     path = tmp_path / "fourbar.xml"
     path.write_bytes((MODELS / "fourbar.urdf").read_bytes())
-    assert cc.load(path).urdf.loops[0].type == "revolute"
+    assert cc.load(path).description.loops[0].type == "revolute"
 
 
 def test_free_joint_is_the_free_flyer_root(tmp_path, rng):
@@ -277,7 +279,7 @@ def test_bodies_and_sites_at_qpos0_match_mujoco(compared):
     m, d = ref.mj, ref.data
     d.qpos[:] = m.qpos0
     mujoco.mj_forward(m, d)
-    q0 = configuration(mech.model, mech.urdf.description.reference_values())
+    q0 = configuration(mech.model, mech.description.tree.reference_values())
     pin.framesForwardKinematics(mech.model, mech.data, q0)
     for b in range(1, m.nbody):
         name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b)
@@ -327,7 +329,7 @@ def test_tree_matches_pinocchio_mjcf_reader(rng):
 def test_equalities_become_loops_by_mujocos_rules(caplog):
     with caplog.at_level("INFO", logger="closedchain.mjcf"):
         mech = cc.load(LINKAGE)
-    loops = {s.name: s for s in mech.urdf.loops}
+    loops = {s.name: s for s in mech.description.loops}
     assert {n: s.type for n, s in loops.items()} == {
         "fourbar_loop": "spherical",  # connect of two sites
         "rod_end": "spherical",
@@ -375,7 +377,7 @@ def test_other_torquescale_is_a_rigid_weld_with_a_note(caplog, rng):
         ref = mujoco_model(path, mech.model)
     finally:
         path.unlink()
-    assert next(s for s in mech.urdf.loops if s.name == "tip_pin").type == "fixed"
+    assert next(s for s in mech.description.loops if s.name == "tip_pin").type == "fixed"
     assert f"torquescale={SCALED_WELD:g} weights MuJoCo's soft rotation rows" in caplog.text
     for _ in range(N_STATES):
         q, v = cc.random_consistent_state(mech, rng)
@@ -393,7 +395,7 @@ def test_passive_terms_are_read(caplog):
 
     with caplog.at_level("INFO", logger="closedchain.mjcf"):
         mech = cc.load(PASSIVE)
-    urdf = mech.urdf
+    urdf = mech.description
     motors = ["a_joint", "b_ball", "c_slide"]  # class "motor" and its child "spring"
     assert [(a.joint, a.armature) for a in urdf.armatures] == [(j, 0.01) for j in motors]
     assert [(d.joint, d.damping) for d in urdf.dampings] == [(j, 0.1) for j in motors]
@@ -448,10 +450,10 @@ def test_assembly_starts_from_a_keyframe(tmp_path):
         mech = cc.load(path, keyframe=keyframe)
         assert np.linalg.norm(mech.q_ref - q_key) <= KEYFRAME_TOL, keyframe
     with pytest.raises(
-        URDFError, match=r"unknown keyframe 'side'; keyframes: elbow_down, elbow_up"
+        ModelFileError, match=r"unknown keyframe 'side'; keyframes: elbow_down, elbow_up"
     ):
         cc.load(path, keyframe="side")
-    with pytest.raises(URDFError, match=r"keyframe='up' is for MJCF models"):
+    with pytest.raises(ModelFileError, match=r"keyframe='up' is for MJCF models"):
         cc.load(MODELS / "fourbar.urdf", keyframe="up")
 
 
@@ -482,7 +484,7 @@ def test_missing_meshes(tmp_path, caplog):
     assert "mesh files missing" in caplog.text and "gone.stl" in caplog.text
     assert mech.model.inertias[1].mass == 1.0
     path.write_text(body.format(""))
-    with pytest.raises(URDFError, match=r"mesh file 'gone.stl' is missing, and MuJoCo infers"):
+    with pytest.raises(ModelFileError, match=r"mesh file 'gone.stl' is missing, and MuJoCo infers"):
         cc.load(path)
 
 
@@ -511,7 +513,7 @@ def test_bad_equalities_are_refused(tmp_path, equality, match):
         eq.remove(eq.find("connect"))
         eq.append(etree.fromstring(equality))
 
-    with pytest.raises(URDFError, match=match):
+    with pytest.raises(ModelFileError, match=match):
         cc.load(_edit(tmp_path, replace))
 
 
@@ -520,7 +522,9 @@ def test_include_outside_the_models_folder_is_refused(tmp_path):
     (tmp_path / "outside.xml").write_text("<mujoco/>")
     path = tmp_path / "model" / "m.xml"
     path.write_text('<mujoco><include file="../outside.xml"/><worldbody/></mujoco>')
-    with pytest.raises(URDFError, match=r"<include file='../outside.xml'> is outside the model"):
+    with pytest.raises(
+        ModelFileError, match=r"<include file='../outside.xml'> is outside the model"
+    ):
         cc.load(path)
 
 
@@ -528,14 +532,14 @@ def test_without_mujoco_one_line_names_what_to_install(monkeypatch):
     import sys
 
     monkeypatch.setitem(sys.modules, "mujoco", None)
-    with pytest.raises(URDFError, match=r"needs MuJoCo's compiler: pip install mujoco"):
+    with pytest.raises(ModelFileError, match=r"needs MuJoCo's compiler: pip install mujoco"):
         cc.load(FOURBAR_MJCF)
 
 
 def test_overlays_are_refused_on_mjcf(tmp_path):
     overlay = tmp_path / "loops.urdf"
     overlay.write_text('<robot name="x"/>')
-    with pytest.raises(URDFError, match=r"an MJCF model takes its loops from its <equality>"):
+    with pytest.raises(ModelFileError, match=r"an MJCF model takes its loops from its <equality>"):
         cc.load(FOURBAR_MJCF, loops=overlay)
 
 

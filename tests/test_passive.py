@@ -27,7 +27,7 @@ import closedchain as cc
 from closedchain import compiled
 from closedchain.benchmark.families import chain_urdf
 from closedchain.dynamics.base import compute_terms, mass_matrix
-from closedchain.exceptions import URDFError
+from closedchain.exceptions import ModelFileError
 from closedchain.simulate import COMPILED_INTEGRATORS
 
 CHAIN = DATA_DIR / "passive_chain.urdf"
@@ -123,7 +123,7 @@ def _joint_v(mech, name) -> int:
 
 
 def test_urdf_dynamics_become_the_mechanisms_passive_terms(chain):
-    urdf = chain.urdf
+    urdf = chain.description
     assert {s.joint: (s.stiffness, s.reference) for s in urdf.springs} == {
         n: t[:2] for n, t in CHAIN_TERMS.items() if t[0]
     }
@@ -156,7 +156,7 @@ def test_bad_dynamics_are_refused(tmp_path, dynamics, match):
     )
     path = tmp_path / "bad.urdf"
     path.write_text(text)
-    with pytest.raises(URDFError, match=match):
+    with pytest.raises(ModelFileError, match=match):
         cc.load(path)
 
 
@@ -170,7 +170,7 @@ def test_friction_is_named_as_not_modelled(tmp_path, caplog):
     with caplog.at_level(logging.INFO, logger="closedchain.urdf"):
         mech = cc.load(path)
     assert "friction loss is not modelled" in caplog.text
-    assert {e.joint for e in mech.urdf.dampings} == {"j1", "j2", "j3"}
+    assert {e.joint for e in mech.description.dampings} == {"j1", "j2", "j3"}
 
 
 # -- Pinocchio with model.armature -------------------------------------------------------

@@ -40,7 +40,7 @@ def test_lean_data_equals_pinocchio_data_apart_from_the_tensors(
 ):
     model = load_mechanism(name).model
     if root == "free":
-        model = build_model(load_mechanism(name).urdf.description, pin.JointModelFreeFlyer())
+        model = build_model(load_mechanism(name).description.tree, pin.JointModelFreeFlyer())
     if not _pinocchio_equality_is_reflexive(model):
         pytest.skip("pinocchio.Data == is not reflexive for this model's joints")
     assert core_testing._lean_data_matches_full(model)

@@ -228,7 +228,7 @@ def test_overlay_weld_to_world_makes_the_free_fourbar_the_fixed_one(by_root, tmp
 def test_bad_overlay_is_refused_naming_file_and_element(tmp_path, text, match):
     overlay = tmp_path / "bad_overlay.urdf"
     overlay.write_text(text)
-    with pytest.raises(cc.URDFError, match=match) as info:
+    with pytest.raises(cc.ModelFileError, match=match) as info:
         cc.load(MODELS / "fourbar.urdf", loops=overlay)
     assert "bad_overlay.urdf" in str(info.value)
 
@@ -243,7 +243,7 @@ def test_overlay_on_a_robot_is_checked_before_its_stick_figure_is_drawn(tmp_path
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no overflow in the stick figure's lengths
         with pytest.raises(
-            cc.URDFError,
+            cc.ModelFileError,
             match=r"far.urdf: line 1: <joint name='j'> <origin>: attribute xyz='1e200 0 0' "
             r"is beyond ORIGIN_XYZ_MAX",
         ):
@@ -298,7 +298,7 @@ def test_robot_loads_with_every_row_independent(robot, key):
     assert mech.mobility == nv - rows
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) <= TOL_PHI
     # The package's mesh visuals are kept, and all of them fit the default page budget.
-    meshes = [v for b in mech.urdf.description.bodies for v in b.visuals if v.kind == "mesh"]
+    meshes = [v for b in mech.description.tree.bodies for v in b.visuals if v.kind == "mesh"]
     summary = read_scene_visuals(mech)[1]
     assert (summary.n_embedded, summary.primitive_links) == (len(meshes), ())
 
@@ -423,7 +423,7 @@ def test_solo12_feet_are_pinned_where_the_overlay_says(robot):
     mech = robot("solo12")
     data = mech.model.createData()
     pin.framesForwardKinematics(mech.model, data, mech.q_ref)
-    for spec in mech.urdf.loops:
+    for spec in mech.description.loops:
         foot = data.oMf[mech.model.getFrameId(spec.successor)].translation
         assert np.linalg.norm(foot - spec.predecessor_origin.translation) <= TOL_PHI
 
@@ -483,11 +483,11 @@ def test_an_overlay_merges_into_any_description(tmp_path):
         assert merged.robot_name == "weighted" and merged.path == path
         assert merged.actuated == (*base.actuated, "slide")
         assert merged.loops == base.loops
-        names = [b.name for b in merged.description.bodies]
-        if base.description.world_frame:  # another reader's order is kept, the overlay's after
-            assert names == [b.name for b in base.description.bodies] + ["weight", "slider"]
-        model = build_model(merged.description)
-        reference = build_model(base.description)
+        names = [b.name for b in merged.tree.bodies]
+        if base.tree.world_frame:  # another reader's order is kept, the overlay's after
+            assert names == [b.name for b in base.tree.bodies] + ["weight", "slider"]
+        model = build_model(merged.tree)
+        reference = build_model(base.tree)
         data, ref_data = model.createData(), reference.createData()
         pin.framesForwardKinematics(model, data, pin.neutral(model))
         pin.framesForwardKinematics(reference, ref_data, pin.neutral(reference))
@@ -509,7 +509,7 @@ def test_an_overlay_joint_may_not_take_a_held_link(tmp_path):
         '<parent link="extra"/><child link="rocker"/></joint></robot>'
     )
     with pytest.raises(
-        cc.URDFError,
+        cc.ModelFileError,
         match=f"{path}: line 1: <joint name='grab'>: link 'rocker' is already the child of "
         "joint 'rocker_joint'",
     ):

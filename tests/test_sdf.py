@@ -122,7 +122,7 @@ def _close(A: pin.SE3, B: pin.SE3) -> bool:
 
 def _frame_loops(mech):
     """The loops of a mechanism that close frames (not the gearboxes' couplings)."""
-    return [lp for lp in mech.urdf.loops if lp.type != "coupling"]
+    return [lp for lp in mech.description.loops if lp.type != "coupling"]
 
 
 #: fourbar.sdf's gearbox joint, which ties its motor rotor to the crank.
@@ -183,7 +183,7 @@ def test_fourbar_gearbox_ties_the_rotor_to_the_crank(fourbar):
     # SDFormat's theta_child = -gearbox_ratio theta_parent (both joints hang from the
     # reference body with the gearbox's axis: q_crank = -0.1 q_motor).
     assert (fourbar.nv, fourbar.nc, fourbar.mobility) == (4, 3, 1)
-    (gear,) = [lp for lp in fourbar.urdf.loops if lp.type == "coupling"]
+    (gear,) = [lp for lp in fourbar.description.loops if lp.type == "coupling"]
     assert (gear.name, gear.joint, gear.mimics, gear.multiplier, gear.offset) == (
         "crank_gear",
         "crank_joint",
@@ -208,24 +208,24 @@ def test_fourbar_validates_against_pinocchio(tmp_path):
 
 def test_cut_joints_chooses_the_cut(tmp_path):
     mech = cc.load(_fourbar_without_gearbox(tmp_path), cut_joints=["rocker_joint"])
-    (loop,) = mech.urdf.loops
+    (loop,) = mech.description.loops
     assert (loop.name, loop.predecessor, loop.successor) == ("rocker_joint", "ground", "rocker")
     # The rocker pivot D = (0.3, 0, 0) seen from the ground, with the rocker's turn.
     assert _close(loop.predecessor_origin, _se3([0.3, 0, 0], [0, 0, math.pi / 2]))
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
     assert cc.validate(mech, n_samples=10).passed
-    with pytest.raises(cc.URDFError, match=r"cut_joints names 'nope', which is not a joint"):
+    with pytest.raises(cc.ModelFileError, match=r"cut_joints names 'nope', which is not a joint"):
         cc.load(FOURBAR, cut_joints=["nope"])
 
 
 def test_cut_joints_is_refused_for_a_urdf():
-    with pytest.raises(cc.URDFError, match=r"cut_joints=\['crank_joint'\] is for SDF models"):
+    with pytest.raises(cc.ModelFileError, match=r"cut_joints=\['crank_joint'\] is for SDF models"):
         cc.load(MODELS / "fourbar.urdf", cut_joints=["crank_joint"])
 
 
 def _body(mech, name: str):
     """The body named ``name`` of a mechanism read into a description."""
-    (body,) = [b for b in mech.urdf.description.bodies if b.name == name]
+    (body,) = [b for b in mech.description.tree.bodies if b.name == name]
     return body
 
 
@@ -245,7 +245,7 @@ def test_visuals_keep_their_geometry_colour_pose_and_mesh_file(fourbar, tmp_path
     folder = tmp_path / "fourbar" / "robots"
     folder.mkdir(parents=True)
     urdf, _ = read_sdf(_write(folder, text))
-    (body,) = [b for b in urdf.description.bodies if b.name == "crank"]
+    (body,) = [b for b in urdf.tree.bodies if b.name == "crank"]
     (mesh,) = body.visuals
     assert (mesh.kind, mesh.dims, mesh.mesh_file) == (
         "mesh",
@@ -277,7 +277,7 @@ def test_unsafe_sdf_is_refused(tmp_path, prolog, match):
     text = FOURBAR.read_text().replace(
         '<?xml version="1.0"?>\n', '<?xml version="1.0"?>\n' + prolog
     )
-    with pytest.raises(cc.URDFError, match=match):
+    with pytest.raises(cc.ModelFileError, match=match):
         cc.load(_write(tmp_path, text))
 
 
@@ -328,7 +328,7 @@ def test_unsafe_sdf_is_refused(tmp_path, prolog, match):
     ],
 )
 def test_invalid_sdf_is_refused_naming_the_element(tmp_path, old, new, match):
-    with pytest.raises(cc.URDFError, match=match):
+    with pytest.raises(cc.ModelFileError, match=match):
         cc.load(_write(tmp_path, _edit(old, new)))
 
 
@@ -392,7 +392,7 @@ def test_a_universal_joint_is_one_pinocchio_universal_joint(tmp_path):
     model, data = mech.model, mech.data
     joint = model.joints[model.getJointId("coupler_joint")]
     assert (joint.shortname(), joint.nq, joint.nv) == ("JointModelUniversal", 2, 2)
-    assert [lp.name for lp in mech.urdf.loops] == ["coupler_rocker"]
+    assert [lp.name for lp in mech.description.loops] == ["coupler_rocker"]
     # At the reference both angles are 0 (the file's pose closes the loop): the first axis
     # is the model's z (use_parent_model_frame), the second the coupler's x: B -> C.
     assert np.max(np.abs(mech.q_ref[joint.idx_q : joint.idx_q + 2])) < TOL_CLOSED
@@ -404,7 +404,9 @@ def test_a_universal_joint_is_one_pinocchio_universal_joint(tmp_path):
     assert np.linalg.norm(axes[1] - np.array([3.0, 1.0, 0.0]) / math.sqrt(10.0)) < TOL_FRAME
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
     assert cc.validate(mech, n_samples=10).passed
-    with pytest.raises(cc.URDFError, match=r"'coupler_joint'>: a universal joint cannot be cut"):
+    with pytest.raises(
+        cc.ModelFileError, match=r"'coupler_joint'>: a universal joint cannot be cut"
+    ):
         cc.load(path, cut_joints=["coupler_joint"])
 
 
@@ -524,7 +526,7 @@ def test_cassie_srdf_standing_closes_our_loops_before_assembly():
     pin.loadReferenceConfigurations(probe, str(srdf), False)
     q = np.array(probe.referenceConfigurations["standing"])
     # The SRDF leaves the motor rotors at 0: turn each by its output's angle / ratio.
-    for gear in raw.urdf.loops:
+    for gear in raw.description.loops:
         if gear.type == "coupling":
             out = raw.model.joints[raw.model.getJointId(gear.joint)].idx_q
             rotor = raw.model.joints[raw.model.getJointId(gear.mimics)].idx_q
@@ -542,7 +544,7 @@ def _coupled_reference(mech, q, v, tau) -> np.ndarray:
     solved in the null space of J_c G (its redundant rows: a revolute loop is 6 point rows).
     """
     model = mech.model
-    couplings = [lp for lp in mech.urdf.loops if lp.type == "coupling"]
+    couplings = [lp for lp in mech.description.loops if lp.type == "coupling"]
     driven = [model.joints[model.getJointId(lp.joint)].idx_v for lp in couplings]
     G = np.eye(model.nv)
     for lp, j in zip(couplings, driven, strict=True):
@@ -631,7 +633,7 @@ def test_cassie_simulates_from_rest(cassie):
 @needs_erd
 def test_cassie_animates_with_its_meshes(cassie, tmp_path, capsys):
     """The SDF's model:// meshes are example-robot-data's, embedded within the budget."""
-    bodies = cassie.urdf.description.bodies
+    bodies = cassie.description.tree.bodies
     meshes = [v.mesh_file for b in bodies for v in b.visuals if v.kind == "mesh"]
     folder = robots.erd_robots_dir() / "cassie_description" / "meshes"
     assert meshes and all(m.is_file() and m.parent == folder for m in meshes)
@@ -692,7 +694,7 @@ def spring_legs_pinned():
 
 def test_sdf_springs_become_joint_springs():
     mech = cc.load(SPRING_LEGS)
-    springs = {s.joint: (s.stiffness, s.reference) for s in mech.urdf.springs}
+    springs = {s.joint: (s.stiffness, s.reference) for s in mech.description.springs}
     assert springs == SPRING_LEGS_SPRINGS
     # The achilles rods hang on reversed joints; the springs' joints are kept as written.
     _, tree = read_sdf(SPRING_LEGS)
@@ -740,7 +742,7 @@ def test_a_spring_on_a_cut_joint_is_left_out_with_a_warning(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="closedchain.sdf"):
         mech = cc.load(_write(tmp_path, text))
     assert "the springs of left-achilles-hip are left out" in caplog.text
-    assert {s.joint for s in mech.urdf.springs} == set(SPRING_LEGS_SPRINGS)
+    assert {s.joint for s in mech.description.springs} == set(SPRING_LEGS_SPRINGS)
 
 
 def _potential_energy(mech, q) -> float:
@@ -803,7 +805,7 @@ def test_spring_legs_stand_2_s_on_welded_feet_under_gravity_torque(tmp_path, mon
     mech, traj = namespace["legs"], namespace["traj"]
     # 16 coordinates, 13 rows (the welds' out-of-plane rows are redundant): the pelvis on
     # its legs, the motors (hips, knees) and the heel springs share 3 freedoms.
-    assert (mech.nv, mech.nc, mech.mobility, len(mech.urdf.springs)) == (16, 13, 3, 2)
+    assert (mech.nv, mech.nc, mech.mobility, len(mech.description.springs)) == (16, 13, 3, 2)
     assert traj.t[-1] == pytest.approx(2.0)
     assert np.max(np.abs(traj.q[:, :3] - mech.q_ref[:3])) < TOL_STAND_DRIFT
     assert traj.info.max_constraint_residual < TOL_STAND_DRIFT
@@ -901,7 +903,7 @@ def test_a_gearbox_ties_the_rotor_with_the_sdf_sign_and_reflects_its_inertia(tmp
     rotor_v = model.joints[model.getJointId("rotor_joint")].idx_v
     assert abs(turn * a[rotor_v] - (-expected / r)) < TOL_FRAME * max(1.0, abs(expected) / r)
     # The arm joint's <dynamics><damping> [N m s/rad].
-    assert [(d.joint, d.damping) for d in mech.urdf.dampings] == [("arm_joint", damping)]
+    assert [(d.joint, d.damping) for d in mech.description.dampings] == [("arm_joint", damping)]
 
 
 def test_a_damped_geared_arm_validates_against_pinocchio_mimic_joints(tmp_path):
@@ -909,7 +911,7 @@ def test_a_damped_geared_arm_validates_against_pinocchio_mimic_joints(tmp_path):
     the mimic reference as it gives it to pinocchio.constraintDynamics."""
     text = GEARBOX_SDF.format(rotor=ROTOR_JOINTS["from_ground"][0], **GEARED_ARM)
     mech = cc.load(_write(tmp_path, text), gravity=(0.0, -GRAVITY_Y, 0.0))
-    assert mech.urdf.dampings
+    assert mech.description.dampings
     report = cc.validate(mech, n_samples=10)
     assert report.reference == "pinocchio mimic joints"
     assert report.passed, report
@@ -920,7 +922,7 @@ def test_a_gearbox_without_a_joint_to_its_reference_body_is_refused(tmp_path):
         "<gearbox_reference_body>ground</gearbox_reference_body>",
         "<gearbox_reference_body>arm</gearbox_reference_body>",
     )
-    with pytest.raises(cc.URDFError, match=r"'gear'>: the gearbox angle of link 'rotor' is "):
+    with pytest.raises(cc.ModelFileError, match=r"'gear'>: the gearbox angle of link 'rotor' is "):
         cc.load(_write(tmp_path, text))
 
 
@@ -1079,7 +1081,7 @@ def test_cassie_reads_the_dampings_of_its_tree_joints(cassie):
         name = joint.get("name")
         if damping > 0 and name in tree.tree_joints and name not in tree.held_joints:
             expected[name] = damping
-    assert {d.joint: d.damping for d in cassie.urdf.dampings} == expected
+    assert {d.joint: d.damping for d in cassie.description.dampings} == expected
     assert len(expected) == 14
 
 
@@ -1154,7 +1156,9 @@ def test_a_relative_to_chain_of_thousands_of_frames_is_walked(tmp_path):
 def test_a_relative_to_cycle_of_thousands_of_frames_is_one_bounded_line(tmp_path):
     path = tmp_path / "cycle.sdf"
     path.write_text(_chain_sdf(CHAIN_LINKS, cycle=True))
-    with pytest.raises(cc.URDFError, match="poses are relative to each other in a cycle") as info:
+    with pytest.raises(
+        cc.ModelFileError, match="poses are relative to each other in a cycle"
+    ) as info:
         cc.load(path)
     message = str(info.value)
     assert "\n" not in message and len(message) < 3_000
@@ -1313,7 +1317,7 @@ def test_an_sdf_tree_has_the_mass_matrix_of_the_same_tree_read_by_pinocchio(tmp_
 def test_an_overlay_an_sdf_model_cannot_take_is_refused_naming_it(tmp_path, name, text, match):
     overlay = tmp_path / name
     overlay.write_text(text)
-    with pytest.raises(cc.URDFError, match=match):
+    with pytest.raises(cc.ModelFileError, match=match):
         cc.load(FOURBAR, loops=overlay)
 
 
@@ -1349,7 +1353,7 @@ def test_an_overlay_adds_loops_and_motors_to_an_sdf_model(tmp_path):
     )
     mech = cc.load(FOURBAR, loops=overlay)
     assert (mech.name, mech.actuated_joints) == ("pinned", ("motor_joint",))
-    assert [lp.name for lp in mech.urdf.loops][-1] == "pin_b"
+    assert [lp.name for lp in mech.description.loops][-1] == "pin_b"
     assert np.max(np.abs(cc.compute_phi(mech, mech.q_ref))) < TOL_CLOSED
 
 

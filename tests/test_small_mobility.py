@@ -295,7 +295,8 @@ def test_a_massless_moving_leaf_is_refused_at_load_by_name(tmp_path, capsys):
     path = tmp_path / "leaf.urdf"
     path.write_text(_robot(ROD.format(name="rod1", joint="j1", parent="base", x=0), leaf))
     with pytest.raises(
-        cc.URDFError, match=r"subtree of joint 'leaf_joint' \(links leaf, leaf_tip\) has no mass"
+        cc.ModelFileError,
+        match=r"subtree of joint 'leaf_joint' \(links leaf, leaf_tip\) has no mass",
     ):
         cc.load(path)
     assert cli.main(["simulate", str(path), "--t-final", "0.1"]) == 2

@@ -115,7 +115,9 @@ def test_markers_sit_on_the_joint_axes(request, name):
     mech = request.getfixturevalue(name)
     markers = vz.joint_markers(mech, vz.read_visuals(mech))
     assert {m.name for m in markers if m.kind == "actuated"} == set(mech.actuated_joints)
-    assert {m.name for m in markers if m.kind == "loop"} == {lp.name for lp in mech.urdf.loops}
+    assert {m.name for m in markers if m.kind == "loop"} == {
+        lp.name for lp in mech.description.loops
+    }
     model, data = mech.model, mech.model.createData()
     q = mech.q_ref
     pin.framesForwardKinematics(model, data, q)
@@ -123,7 +125,7 @@ def test_markers_sit_on_the_joint_axes(request, name):
         oMm = fk(mech, q, m.link).homogeneous @ m.origin
         if m.kind == "loop":
             oMc = data.oMf[model.getFrameId(f"{m.name}::predecessor")]
-            spec = next(lp for lp in mech.urdf.loops if lp.name == m.name)
+            spec = next(lp for lp in mech.description.loops if lp.name == m.name)
             axis, point = oMc.rotation @ spec.axis, oMc.translation
         else:
             jid = model.getJointId(m.name)
@@ -279,7 +281,7 @@ def test_every_test_mechanism_animates(load_mechanism, name, tmp_path):
     scene = vz.build_scene(mech, traj, fps=10.0)
     kinds = sorted(m.kind for m in scene.markers)
     assert kinds == sorted(
-        ["actuated"] * len(mech.actuated_joints) + ["loop"] * len(mech.urdf.loops)
+        ["actuated"] * len(mech.actuated_joints) + ["loop"] * len(mech.description.loops)
     )
     assert out.n_tracks == sum(b.moving for b in scene.bodies) > 0
     assert out.n_keyframes == 11 and out.size < SIZE_BUDGET
@@ -387,7 +389,7 @@ def test_urdf_names_cannot_inject_markup(fourbar, tmp_path):
     path = tmp_path / "evil.urdf"
     path.write_text(urdf)
     mech = cc.load(path)
-    assert EVIL_LINK in mech.urdf.links
+    assert EVIL_LINK in mech.description.links
     traj = fourbar_sweep(mech, np.linspace(0.0, 1.0, 31))
     text = cc.write_html(mech, traj, tmp_path / "evil.html").path.read_text()
     assert EVIL_LINK not in text and EVIL_ROBOT not in text
@@ -654,7 +656,7 @@ def test_meshes_within_the_budget_are_embedded_the_others_drawn_as_sticks(two_me
     assert [v.link for v in visuals if v.kind == "mesh"] == ["crank"]
     # The coupler's stick figure: a ball at its origin and a stick to its loop frame (it
     # has no child joint in the tree); its pin cylinder stays.
-    (loop,) = [lp for lp in mech.urdf.loops if "coupler" in (lp.predecessor, lp.successor)]
+    (loop,) = [lp for lp in mech.description.loops if "coupler" in (lp.predecessor, lp.successor)]
     side = loop.predecessor_origin if loop.predecessor == "coupler" else loop.successor_origin
     coupler = [(v.kind, v.dims) for v in visuals if v.link == "coupler"]
     assert coupler == [
@@ -790,7 +792,7 @@ def test_an_erd_robot_embeds_its_meshes_within_the_budget(ur5_crank):
 
     from closedchain.robots import erd_robots_dir
 
-    bodies = ur5_crank.urdf.description.bodies
+    bodies = ur5_crank.description.tree.bodies
     files = [v.mesh_file for b in bodies for v in b.visuals if v.kind == "mesh"]
     assert len(files) == 7 and all(f.startswith("package://example-robot-data/") for f in files)
     share = erd_robots_dir().parent

@@ -104,7 +104,7 @@ def test_sizes_mobility_and_motors(mechs, case):
     mech = mechs(case)
     assert (mech.nv, mech.mobility) == (nv, mobility)
     assert mech.actuated_joints == motors
-    assert len(mech.urdf.loops) == len(PAIRS[case])
+    assert len(mech.description.loops) == len(PAIRS[case])
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -246,8 +246,10 @@ def test_frame_sides_match_the_yaml_weld(mechs, tmp_path, rng, pred, origin):
     ref = mechs("fivebar_6d")
     assert mech.mobility == ref.mobility
     # Resolved to the link: the frame itself, else the first link on the frame's joint.
-    assert mech.urdf.loops[0].predecessor == ("tip1_link" if "tip1_link" in pred else "pin_link")
-    assert mech.urdf.loops[0].successor == "dist2"
+    assert mech.description.loops[0].predecessor == (
+        "tip1_link" if "tip1_link" in pred else "pin_link"
+    )
+    assert mech.description.loops[0].successor == "dist2"
     for _ in range(5):
         q = ref.random_configuration(rng)
         phi, phi_ref = _all_rows(mech, q), _all_rows(ref, q)
@@ -274,7 +276,7 @@ def test_a_frame_of_the_world_holds_a_free_base(mechs, tmp_path):
         )
     )
     mech = cc.load(DATA_DIR / "yaml_fivebar.urdf", root_joint="free", loops=overlay)
-    assert mech.urdf.loops[1].predecessor == "world"
+    assert mech.description.loops[1].predecessor == "world"
     assert mech.nv == mechs("fivebar_6d").nv + 6
     assert mech.mobility == mechs("fivebar_6d").mobility
     traj = cc.simulate(mech, mech.q_ref, np.zeros(mech.nv), T_RUN)
@@ -314,7 +316,7 @@ def test_unknown_frame_lists_the_frames(tmp_path, urdf, name, text, where, frame
     loops = tmp_path / name
     loops.write_text(text)
     with pytest.raises(
-        cc.URDFError,
+        cc.ModelFileError,
         match=re.escape(f"{loops}: {where} ") + "names no frame of the tree; frames: " + frames,
     ):
         cc.load(DATA_DIR / urdf, loops=loops)
@@ -330,7 +332,7 @@ def test_unknown_frame_lists_the_frames(tmp_path, urdf, name, text, where, frame
 def test_a_side_names_a_link_or_a_frame(tmp_path, side, message):
     overlay = tmp_path / "weld.urdf"
     overlay.write_text(FIVEBAR_LOOP.format(pred="x", origin="").replace("<predecessor x/>", side))
-    with pytest.raises(cc.URDFError, match=r"<loop name='weld'>: <predecessor> " + message):
+    with pytest.raises(cc.ModelFileError, match=r"<loop name='weld'>: <predecessor> " + message):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=overlay)
 
 
@@ -340,7 +342,7 @@ def test_frames_on_one_joint_close_nothing(tmp_path):
         FIVEBAR_LOOP.format(pred='frame="pin"', origin="").replace('"tip2"', '"tip1"')
     )
     with pytest.raises(
-        cc.URDFError, match="predecessor 'pin' and successor 'tip1' move with the same joint"
+        cc.ModelFileError, match="predecessor 'pin' and successor 'tip1' move with the same joint"
     ):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=overlay)
 
@@ -395,7 +397,7 @@ name_mot: [mot1, mot2]
 def test_yaml_errors_name_the_file_and_the_key(tmp_path, text, message):
     loops = tmp_path / "robot.yaml"
     loops.write_text(text)
-    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: ") + message):
+    with pytest.raises(cc.ModelFileError, match=re.escape(f"{loops}: ") + message):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
 
@@ -416,7 +418,7 @@ def test_yaml_errors_name_the_file_and_the_key(tmp_path, text, message):
 def test_yaml_conversion_errors(tmp_path, extra, message):
     loops = tmp_path / "robot.yaml"
     loops.write_text(FIVEBAR_YAML + extra)
-    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: ") + message):
+    with pytest.raises(cc.ModelFileError, match=re.escape(f"{loops}: ") + message):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
 
@@ -441,7 +443,7 @@ def test_unknown_motor_lists_the_movable_joints(tmp_path):
     loops = tmp_path / "robot.yml"  # the other suffix
     loops.write_text(FIVEBAR_YAML.replace("mot2]", "mot3]"))
     with pytest.raises(
-        cc.URDFError,
+        cc.ModelFileError,
         match=re.escape(f"{loops}: name_mot[1] = 'mot3' is not a movable <joint> of ")
         + r".* \(did you mean 'mot2'\?\); movable joints: free1, free2, mot1, mot2, pin$",
     ):
@@ -461,7 +463,7 @@ def test_conversion_names_must_be_free(tmp_path):
     loops = tmp_path / "robot.yaml"
     loops.write_text(FIVEBAR_YAML + "joint_name: [pin]\njoint_type: [UJOINT_XY]\n")
     with pytest.raises(
-        cc.URDFError,
+        cc.ModelFileError,
         match=re.escape(f"{loops}: joint_name[0] = 'pin': converting it needs the name ")
         + "'pin_X_link', which the tree already uses",
     ):
@@ -756,7 +758,7 @@ def alias_bomb(levels: int) -> str:
 def test_hostile_yaml_is_refused_in_one_line(tmp_path, text, message):
     loops = tmp_path / "robot.yaml"
     loops.write_text(text)
-    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: ") + message) as info:
+    with pytest.raises(cc.ModelFileError, match=re.escape(f"{loops}: ") + message) as info:
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
     assert "\n" not in str(info.value) and len(str(info.value)) < MESSAGE_BOUND
 
@@ -773,7 +775,7 @@ def test_a_lone_surrogate_from_the_pure_python_reader_is_refused(tmp_path, monke
     monkeypatch.setattr(yaml_loops, "_SAFE_LOADER", yaml_loops.yaml.SafeLoader)
     loops = tmp_path / "robot.yaml"
     loops.write_text(FIVEBAR_YAML.replace("tip1", '"tip1\\ud800"'))
-    with pytest.raises(cc.URDFError, match=r"closed_loop\[0\]\[0\] = 'tip1\\ud800' holds"):
+    with pytest.raises(cc.ModelFileError, match=r"closed_loop\[0\]\[0\] = 'tip1\\ud800' holds"):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
 
@@ -792,7 +794,7 @@ def test_a_yaml_file_goes_through_the_input_file_checks(tmp_path, kind):
     else:
         loops.write_text(FIVEBAR_YAML + "#" + "x" * MAX_YAML_BYTES + "\n")
         message = "loops file of 1.049e+06 bytes is larger than the limit of 1.049e+06 bytes"
-    with pytest.raises(cc.URDFError, match=re.escape(f"{loops}: {message}")):
+    with pytest.raises(cc.ModelFileError, match=re.escape(f"{loops}: {message}")):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
 
@@ -814,7 +816,9 @@ def test_long_name_lists_are_checked_in_linear_time_with_one_warning(tmp_path, c
     assert mech.nv == 5
     motors = ", ".join(f"m{i}" for i in range(LONG_LIST))
     loops.write_text(FIVEBAR_YAML.replace("[mot1, mot2]", f"[mot1, mot2, {motors}, m0]"))
-    with pytest.raises(cc.URDFError, match=rf"name_mot\[{LONG_LIST + 2}\] repeats name_mot\[2\]"):
+    with pytest.raises(
+        cc.ModelFileError, match=rf"name_mot\[{LONG_LIST + 2}\] repeats name_mot\[2\]"
+    ):
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
 
 
@@ -822,7 +826,7 @@ def test_yaml_messages_have_a_real_line_number_or_none(tmp_path):
     """Elements written from a YAML file have no source line: "line None" before."""
     loops = tmp_path / "robot.yaml"
     loops.write_text(FIVEBAR_YAML.replace("tip2", "x" * 5000))
-    with pytest.raises(cc.URDFError) as info:
+    with pytest.raises(cc.ModelFileError) as info:
         cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
     message = str(info.value)
     assert "line None" not in message and "xxx...xxx" in message

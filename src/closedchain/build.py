@@ -1,4 +1,4 @@
-"""Build the Pinocchio model of a :class:`~closedchain.description.MechanismDescription`.
+"""Build the Pinocchio model of a :class:`~closedchain.description.TreeDescription`.
 
 One depth-first pass over the bodies (every parent before its children, as
 Pinocchio's algorithms need joints numbered): each joint with
@@ -32,8 +32,8 @@ import functools
 import numpy as np
 import pinocchio as pin
 
-from .description import JOINT_KINDS, LIMITED_KINDS, JointDescription, MechanismDescription
-from .exceptions import URDFError
+from .description import JOINT_KINDS, LIMITED_KINDS, JointDescription, TreeDescription
+from .exceptions import ModelFileError
 from .urdf import WORLD_LINK, check_tree_size
 
 __all__ = [
@@ -158,7 +158,8 @@ def _limits(joint: JointDescription, jmodel) -> tuple[np.ndarray, ...] | None:
 def _shift(p) -> pin.SE3:
     return pin.SE3(np.eye(3), np.asarray(p, dtype=float))
 
-def _depth_first(description: MechanismDescription) -> list:
+
+def _depth_first(description: TreeDescription) -> list:
     """Return the bodies in depth-first order, children in the description's order.
 
     Pinocchio numbers a subtree's joints in a row (its algorithms take a subtree's
@@ -166,7 +167,7 @@ def _depth_first(description: MechanismDescription) -> list:
     matrix is wrong without an error.
 
     Raises:
-        URDFError: bodies no top-level body reaches (their parents form a cycle).
+        ModelFileError: bodies no top-level body reaches (their parents form a cycle).
     """
     names = {b.name for b in description.bodies}
     children: dict[str | None, list] = {}
@@ -181,15 +182,14 @@ def _depth_first(description: MechanismDescription) -> list:
     if len(order) < len(description.bodies):
         reached = {id(b) for b in order}
         cycle = [b.name for b in description.bodies if id(b) not in reached]
-        raise URDFError(
+        raise ModelFileError(
             f"{description.path}: bodies {', '.join(map(repr, cycle[:5]))} hang from each "
             "other in a cycle: no top-level body reaches them; valid: a tree"
         )
     return order
 
 
-
-def build_model(description: MechanismDescription, root_joint=None) -> pin.Model:
+def build_model(description: TreeDescription, root_joint=None) -> pin.Model:
     """Return the Pinocchio model of a mechanism description (see the module docstring).
 
     Args:
@@ -198,7 +198,7 @@ def build_model(description: MechanismDescription, root_joint=None) -> pin.Model
             bodies (named ``root_joint``), or None (fixed).
 
     Raises:
-        URDFError: a free joint below the top level or beside other joints, a
+        ModelFileError: a free joint below the top level or beside other joints, a
             body whose parent is not described before it, or a duplicate name.
     """
     where = description.path
@@ -222,30 +222,30 @@ def build_model(description: MechanismDescription, root_joint=None) -> pin.Model
     joint_names: set[str] = set()
     for body in _depth_first(description):
         if body.name in bodies:
-            raise URDFError(f"{where}: body name {body.name!r} is used more than once")
+            raise ModelFileError(f"{where}: body name {body.name!r} is used more than once")
         if body.parent is None or body.parent == WORLD_LINK and description.world_frame:
             parent, pX, parent_frame = top, pin.SE3.Identity(), top_frame
         elif body.parent in bodies:
             parent, pX, parent_frame = bodies[body.parent]
         else:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: body {body.name!r}: parent {body.parent!r} is not described before it"
             )
         X = pX * body.placement
         for joint in body.joints:
             if joint.kind not in JOINT_KINDS:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: joint {joint.name!r}: kind {joint.kind!r}; valid: "
                     f"{', '.join(JOINT_KINDS)}"
                 )
             if joint.name in joint_names or joint.name == "root_joint" and root_joint is not None:
-                raise URDFError(f"{where}: joint name {joint.name!r} is used more than once")
+                raise ModelFileError(f"{where}: joint name {joint.name!r} is used more than once")
             joint_names.add(joint.name)
             jmodel = joint_model(joint)
             if joint.kind == "free":
                 top_level = body.parent is None or body.parent == WORLD_LINK
                 if not top_level or len(body.joints) != 1 or root_joint is not None:
-                    raise URDFError(
+                    raise ModelFileError(
                         f"{where}: joint {joint.name!r}: a free joint must be the only joint of "
                         "a top-level body (and the model has no root joint)"
                     )
@@ -291,7 +291,9 @@ def build_model(description: MechanismDescription, root_joint=None) -> pin.Model
         bodies[body.name] = (parent, X, frame)
     for site in description.sites:
         if site.body not in bodies:
-            raise URDFError(f"{where}: site {site.name!r}: body {site.body!r} is not described")
+            raise ModelFileError(
+                f"{where}: site {site.name!r}: body {site.body!r} is not described"
+            )
         joint, X, frame = bodies[site.body]
         model.addFrame(
             pin.Frame(site.name, joint, frame, X * site.placement, pin.FrameType.OP_FRAME), False
@@ -299,7 +301,7 @@ def build_model(description: MechanismDescription, root_joint=None) -> pin.Model
     return model
 
 
-def check_size(description: MechanismDescription, max_nv: int | None) -> None:
+def check_size(description: TreeDescription, max_nv: int | None) -> None:
     """Refuse a tree of more than ``max_nv`` velocity entries (None: any size).
 
     Raises:
@@ -316,15 +318,15 @@ def configuration(model: pin.Model, values: dict[str, tuple[float, ...]]) -> np.
         values: joint name -> its configuration entries (Pinocchio's convention).
 
     Raises:
-        URDFError: a joint the model lacks, or values of the wrong length.
+        ModelFileError: a joint the model lacks, or values of the wrong length.
     """
     q = pin.neutral(model)
     for name, vals in values.items():
         if not model.existJointName(name):
-            raise URDFError(f"joint {name!r} is not a joint of the model {model.name!r}")
+            raise ModelFileError(f"joint {name!r} is not a joint of the model {model.name!r}")
         joint = model.joints[model.getJointId(name)]
         if len(vals) != joint.nq:
-            raise URDFError(
+            raise ModelFileError(
                 f"joint {name!r}: {len(vals)} values for its {joint.nq} configuration entries"
             )
         q[joint.idx_q : joint.idx_q + joint.nq] = vals

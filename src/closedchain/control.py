@@ -206,7 +206,7 @@ def default_scene(mech: Mechanism) -> Scene:
     """
     from .kinematics import assemble, project_velocity
 
-    spec = mech.urdf.scene
+    spec = mech.description.scene
     if spec is None:
         return Scene(mech.q_ref.copy(), np.zeros(mech.nv), None, "released from rest at q_ref")
     q = mech.q_ref.copy()

@@ -1,10 +1,11 @@
-"""A plain description of a mechanism's tree: bodies, joints, sites, visuals.
+"""A plain description of a mechanism: its tree (bodies, joints, sites, visuals), loops and motors.
 
-A reader that has its format's own compiler (MJCF through MuJoCo, see
-:mod:`closedchain.mjcf`) fills these frozen dataclasses, and
-:func:`closedchain.build.build_model` turns them into the Pinocchio model:
-no URDF text in between. Loops, actuated joints and passive terms keep
-travelling in :class:`closedchain.urdf.URDFPlus` beside the description.
+Every reader ("file -> description": URDF, SDF, MJCF through MuJoCo's own
+compiler, a loops YAML file) fills these frozen dataclasses: a
+:class:`MechanismDescription` holding its :class:`TreeDescription`, and
+:func:`closedchain.build.build_model` turns the tree into the Pinocchio model:
+no URDF text in between. The loops (:class:`closedchain.urdf.LoopSpec`), actuated
+joints and passive terms travel in the :class:`MechanismDescription` beside the tree.
 
 Conventions: every placement is an SE3 in the frame of what holds it (a body
 in its parent body's frame, a joint's anchor, a site and a visual in their
@@ -15,9 +16,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
+
+if TYPE_CHECKING:
+    from .urdf import JointArmature, JointDamping, JointSpring, LoopSpec, SceneSpec
 
 __all__ = [
     "BodyDescription",
@@ -28,6 +33,7 @@ __all__ = [
     "MechanismDescription",
     "NEUTRAL_Q0",
     "SiteDescription",
+    "TreeDescription",
     "UNIVERSAL_SECOND_SUFFIX",
     "VISUAL_KINDS",
     "Visual",
@@ -158,7 +164,7 @@ class BodyDescription:
     Attributes:
         name: the body's name (its BODY frame in the built model).
         parent: the parent body's name (:data:`closedchain.urdf.WORLD_LINK` for
-            the world of a description with :attr:`MechanismDescription.world_frame`),
+            the world of a description with :attr:`TreeDescription.world_frame`),
             or None: the body hangs from Pinocchio's universe (a URDF's root link,
             on the root joint if the model has one).
         placement: the body frame in the parent's body frame at the joints' ``q0``.
@@ -195,7 +201,7 @@ class SiteDescription:
 
 
 @dataclass(frozen=True)
-class MechanismDescription:
+class TreeDescription:
     """A mechanism's tree as its reader found it.
 
     Attributes:
@@ -234,3 +240,50 @@ class MechanismDescription:
     def reference_values(self) -> dict[str, tuple[float, ...]]:
         """Return each joint's ``q0`` (the configuration the file draws the model in)."""
         return {j.name: j.q0 for j in self.joints()}
+
+
+@dataclass(frozen=True)
+class MechanismDescription:
+    """A mechanism as read from its files: the tree, its loops, motors and passive terms.
+
+    Every reader fills one (:func:`closedchain.urdf.parse_urdf`,
+    :func:`closedchain.sdf.read_sdf`, :func:`closedchain.mjcf.read_mjcf`, a loops
+    YAML file and overlays on top), and :func:`closedchain.load` builds the
+    mechanism from it (:attr:`closedchain.Mechanism.description`). The element
+    names below are URDF+'s; the other formats' equivalents fill the same fields.
+
+    Attributes:
+        path: the file read.
+        robot_name: the ``<robot name>`` (an SDF ``<model>``'s, an MJCF ``model``'s).
+        links: names of all ``<link>`` elements (bodies).
+        joints: joint name -> joint kind of every tree joint.
+        loops: the ``<loop>`` elements (and couplings: mimic joints, gearboxes,
+            MJCF joint equalities).
+        actuated: joints named by ``<transmission>`` elements, in file order.
+        independent: joints marked ``independent="true"``, in file order.
+        scene: the ``<scene>`` element (default scene), or None.
+        springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
+        dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
+        armatures: the joints' armature (:class:`JointArmature`), in file order.
+        tree: the tree as a :class:`TreeDescription`
+            (a URDF's read by :func:`parse_urdf`, an SDF model's by
+            :func:`closedchain.sdf.read_sdf`, an MJCF model's through MuJoCo's
+            compiler), which :func:`closedchain.build.build_model` builds.
+        link_files: link name -> the file whose ``<link>`` element it is, for the
+            links of another file than ``path`` (a base URDF under an overlay or a
+            loops YAML file): their meshes are looked up beside that file.
+    """
+
+    path: Path
+    robot_name: str
+    links: tuple[str, ...]
+    joints: dict[str, str] = field(default_factory=dict)
+    loops: tuple[LoopSpec, ...] = ()
+    actuated: tuple[str, ...] = ()
+    independent: tuple[str, ...] = ()
+    scene: SceneSpec | None = None
+    springs: tuple[JointSpring, ...] = ()
+    dampings: tuple[JointDamping, ...] = ()
+    armatures: tuple[JointArmature, ...] = ()
+    tree: TreeDescription | None = None
+    link_files: dict[str, Path] = field(default_factory=dict)

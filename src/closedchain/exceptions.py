@@ -22,11 +22,18 @@ class ClosedChainError(Exception):
     """Base class of every error raised by closedchain."""
 
 
-class URDFError(ClosedChainError):
-    """A URDF file, or one of its URDF+ extension elements, is invalid."""
+class ModelFileError(ClosedChainError):
+    """A model file is invalid: a URDF (or its URDF+ elements), SDF, MJCF or loops YAML file.
+
+    The message names the file, the line or element, and the valid choices.
+    """
 
 
-class ModelTooLargeError(URDFError):
+#: Former name of :class:`ModelFileError` (the same class), kept for existing code.
+URDFError = ModelFileError
+
+
+class ModelTooLargeError(ModelFileError):
     """A tree has more degrees of freedom than closedchain supports (refused before any work).
 
     Attributes:

@@ -14,6 +14,7 @@ import json
 import logging
 import math
 import threading
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -41,9 +42,9 @@ from .exceptions import (
     ClosedChainError,
     InvalidArgumentError,
     LoopClosureError,
+    ModelFileError,
     ModelTooLargeError,
     UnknownChoiceError,
-    URDFError,
     ValidationUnavailableError,
     check_settings,
     quoted,
@@ -52,7 +53,7 @@ from .exceptions import (
 from .mjcf import MJCF_ROOT, read_mjcf
 from .passive import PassiveTerms, passive_terms
 from .pindata import data_bytes, data_cost_formula, max_nv_for, new_data
-from .urdf import WORLD_LINK, URDFPlus, name_list, parse_urdf, read_xml
+from .urdf import WORLD_LINK, MechanismDescription, name_list, parse_urdf, read_xml
 
 __all__ = [
     "DEFAULT_GRAVITY",
@@ -168,15 +169,18 @@ class Mechanism:
     Do not build it directly: use :func:`load`.
 
     Attributes:
-        name: robot name from the URDF.
-        path: the URDF file.
+        name: robot name from the model file.
+        path: the model file.
         model: Pinocchio model (with one frame per loop side added).
         data: Pinocchio data of closedchain's own computations (use it under
             ``lock``; closedchain's public functions do).
         lock: re-entrant lock that serializes the public functions on this
             mechanism: one Mechanism may be shared between threads, whose calls
             on it then take turns (:mod:`closedchain._locking`).
-        urdf: the parsed URDF+ extensions.
+        description: what the files said: the tree, loops, motors, passive terms
+            and scene (:class:`~closedchain.description.MechanismDescription`, whichever
+            format was read; formerly ``urdf``, still readable with a deprecation
+            warning).
         passive: the joint springs, damping and armature, terms of the dynamics
             (:class:`~closedchain.passive.PassiveTerms`; the armature is also the
             model's ``armature``).
@@ -208,16 +212,16 @@ class Mechanism:
 
     def __init__(
         self,
-        urdf: URDFPlus,
+        description: MechanismDescription,
         model: pin.Model,
         closure: LoopClosure,
         gravity: np.ndarray,
         passive: PassiveTerms,
     ) -> None:
-        self.urdf = urdf
+        self.description = description
         self.passive = passive
-        self.name = urdf.robot_name
-        self.path = urdf.path
+        self.name = description.robot_name
+        self.path = description.path
         self.model = model
         #: Re-entrant lock held by every public function working on this mechanism
         #: (:mod:`closedchain._locking`): calls from several threads take turns.
@@ -239,11 +243,11 @@ class Mechanism:
             qnames += [jn] if nqj == 1 else [f"{jn}[{k}]" for k in range(nqj)]
         #: One name per configuration entry (differs from coordinate_names when nq != nv).
         self.configuration_names: tuple[str, ...] = tuple(qnames)
-        self.actuated_joints = urdf.actuated
+        self.actuated_joints = description.actuated
         # In actuated_joints' order (not coordinate_indices' sorted one): motor vectors
         # index tau and a by it.
         self.actuated_idx_v = np.array(
-            [i for name in urdf.actuated for i in self.joint_indices_v(name)], dtype=int
+            [i for name in description.actuated for i in self.joint_indices_v(name)], dtype=int
         )
         self.q_ref = pin.neutral(model)
         self.root_joint: str | None = None
@@ -251,7 +255,9 @@ class Mechanism:
         self._workspace = None  # dynamics.base.Workspace, made on first use
         # A coupling q_j = m q_i + c ties its joints' coordinates, not their angles modulo
         # a turn: wrap_angles leaves them as they are.
-        coupled = {name for spec in urdf.loops if spec.joint for name in (spec.joint, spec.mimics)}
+        coupled = {
+            name for spec in description.loops if spec.joint for name in (spec.joint, spec.mimics)
+        }
         self._revolute_idx_q = np.array(
             [
                 model.joints[j].idx_q
@@ -626,7 +632,7 @@ class Mechanism:
                 if spec.joint
                 else []
             )
-            for spec in self.urdf.loops
+            for spec in self.description.loops
         ]
         text = json.dumps({"joints": joints, "loops": loops}, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -635,7 +641,7 @@ class Mechanism:
     def summary(self) -> dict:
         """Return a JSON-serialisable description (what ``closedchain info`` shows)."""
         loops = []
-        for spec in self.urdf.loops:
+        for spec in self.description.loops:
             declared = [r.kind for r in self.declared.declared_rows if r.loop == spec.name]
             kept = [r.kind for r in self.rows if r.loop == spec.name]
             loops.append(
@@ -697,13 +703,22 @@ class Mechanism:
             "q_ref": self.q_ref.tolist(),
             "pinocchio_reference": pin_ok,
             "inactive_equalities": list(
-                () if self.urdf.description is None else self.urdf.description.inactive
+                () if self.description.tree is None else self.description.tree.inactive
             ),
         }
 
+    @property
+    def urdf(self) -> MechanismDescription:
+        """Former name of :attr:`description` (deprecated: it holds SDF and MJCF models too)."""
+        warnings.warn(
+            "Mechanism.urdf is deprecated; use Mechanism.description", DeprecationWarning, 2
+        )
+        return self.description
+
     def __repr__(self) -> str:
         return (
-            f"Mechanism({self.name!r}, nq={self.nq}, nv={self.nv}, loops={len(self.urdf.loops)}, "
+            f"Mechanism({self.name!r}, nq={self.nq}, nv={self.nv}, "
+            f"loops={len(self.description.loops)}, "
             f"nc={self.nc}/{self.declared.nc}, mobility={self.mobility})"
         )
 
@@ -822,7 +837,7 @@ def load(
         disagree by less than ``settings.mismatch_tol`` loads with a logged warning.
 
     Raises:
-        URDFError: invalid file or extension element, or a tree beyond
+        ModelFileError: invalid file or extension element, or a tree beyond
             ``settings.max_data_bytes`` (refused before any work).
         ClosedChainError: gravity is not 3 finite numbers of norm at most
             :data:`MAX_GRAVITY_NORM`.
@@ -845,22 +860,22 @@ def load(
     if robot is not None and robot.tag == MJCF_ROOT:
         mjcf, file_gravity = read_mjcf(base)
         if loops is not None:
-            raise URDFError(
+            raise ModelFileError(
                 f"{base}: an MJCF model takes its loops from its <equality> elements; "
                 "overlays (loops=, --loops) apply to URDF and SDF models"
             )
     elif keyframe is not None:
-        raise URDFError(f"{base}: keyframe={keyframe!r} is for MJCF models (their <key>s)")
+        raise ModelFileError(f"{base}: keyframe={keyframe!r} is for MJCF models (their <key>s)")
     if gravity is None:
         gravity = DEFAULT_GRAVITY if file_gravity is None else file_gravity
     try:
         if mjcf is not None:
-            urdf = mjcf
-            check_size(mjcf.description, max_nv(settings))
+            described = mjcf
+            check_size(mjcf.tree, max_nv(settings))
         elif loops is None and entry is None and robot is not None:
-            urdf = parse_urdf(base, element=robot, max_nv=max_nv(settings))
+            described = parse_urdf(base, element=robot, max_nv=max_nv(settings))
         else:
-            urdf = merge_overlay(
+            described = merge_overlay(
                 base,
                 loops,
                 max_nv=max_nv(settings),
@@ -876,13 +891,13 @@ def load(
             nv=exc.nv,
             max_nv=exc.max_nv,
         ) from None
-    if entry is not None and not entry.springs and urdf.springs:
+    if entry is not None and not entry.springs and described.springs:
         logger.info(
             "%s: its joint springs (%s) are left out, as its registry entry says",
             path,
-            ", ".join(s.joint for s in urdf.springs),
+            ", ".join(s.joint for s in described.springs),
         )
-        urdf = replace(urdf, springs=())
+        described = replace(described, springs=())
     gravity = np.asarray(gravity, dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise ClosedChainError(f"gravity must be 3 finite numbers [m/s^2], got {gravity}")
@@ -893,19 +908,19 @@ def load(
             f"{MAX_GRAVITY_NORM:g} m/s^2 (MAX_GRAVITY_NORM)"
         )
     root = ROOT_JOINTS[root_joint]
-    model = build_model(urdf.description, None if root is None else root())
+    model = build_model(described.tree, None if root is None else root())
     if model.nv == 0:
-        raise URDFError(
-            f"{urdf.path}: the tree has no movable joint (nv = 0), so there is nothing to "
+        raise ModelFileError(
+            f"{described.path}: the tree has no movable joint (nv = 0), so there is nothing to "
             "simulate or validate; valid: at least one revolute, continuous, prismatic, "
             "planar or floating <joint>, or root_joint 'free' / 'planar' (--root)"
         )
     model.gravity.linear = gravity
-    passive = passive_terms(model, urdf)  # sets model.armature
+    passive = passive_terms(model, described)  # sets model.armature
 
-    urdf = _resolve_frame_sides(model, urdf)
+    described = _resolve_frame_sides(model, described)
     frame_ids = []
-    for spec in urdf.loops:
+    for spec in described.loops:
         pair = []
         for side, link, origin in (
             ("predecessor", spec.predecessor, spec.predecessor_origin),
@@ -914,8 +929,8 @@ def load(
             if link == WORLD_LINK and not model.existFrame(link, pin.FrameType.BODY):
                 parent = 0  # Pinocchio's universe frame: fixed whatever the root joint
             elif not model.existFrame(link, pin.FrameType.BODY):
-                raise URDFError(
-                    f"{spec.where(urdf.path)}: link {quoted(link)} is not part of the "
+                raise ModelFileError(
+                    f"{spec.where(described.path)}: link {quoted(link)} is not part of the "
                     "kinematic tree"
                 )
             else:
@@ -934,47 +949,49 @@ def load(
                 spec.predecessor_frame or spec.predecessor,
                 spec.successor_frame or spec.successor,
             )
-            raise URDFError(
-                f"{spec.where(urdf.path)}: predecessor {quoted(ends[0])} and successor "
+            raise ModelFileError(
+                f"{spec.where(described.path)}: predecessor {quoted(ends[0])} and successor "
                 f"{quoted(ends[1])} move with the same joint, so the loop closes nothing"
             )
         frame_ids.append(tuple(pair))
 
-    declared = ConstraintLayer(urdf.loops, tuple(frame_ids))
-    closure = LoopClosure(declared, model.nv, name=urdf.robot_name)
-    mech = Mechanism(urdf, model, closure, gravity, passive)
+    declared = ConstraintLayer(described.loops, tuple(frame_ids))
+    closure = LoopClosure(declared, model.nv, name=described.robot_name)
+    mech = Mechanism(described, model, closure, gravity, passive)
     mech.root_joint = root_joint
     starts = []
-    if urdf.scene is not None and urdf.scene.initial:
+    if described.scene is not None and described.scene.initial:
         # The default scene's start is a configuration along the motion: sampling from
         # it too finds the generic rank where random starts land near singular ones
         # (the N-four-bar's random assemblies fall onto its flat positions, where every
         # loop loses a row: without it 77 of 80 rows were kept for N = 40).
         scene_q = pin.neutral(model)
-        for name, value in urdf.scene.initial.items():
+        for name, value in described.scene.initial.items():
             scene_q[model.joints[model.getJointId(name)].idx_q] = value
         starts.append(scene_q)
     q_guess = reference_configuration(model, entry)
     if q_guess is None and (mjcf is not None or is_sdf(base)):  # keyframes, else drawn pose
-        q_guess = configuration(model, _start_values(urdf, keyframe))
+        q_guess = configuration(model, _start_values(described, keyframe))
     _select_rows_and_coordinates(mech, settings, q_guess=q_guess, extra_starts=starts)
     _refuse_massless_subtrees(mech)
     logger.info("loaded %r", mech)
     return mech
 
 
-def _start_values(urdf: URDFPlus, keyframe: str | None) -> dict[str, tuple[float, ...]]:
+def _start_values(
+    described: MechanismDescription, keyframe: str | None
+) -> dict[str, tuple[float, ...]]:
     """Return the joint values an MJCF model's assembly starts from: the named keyframe,
     else the first, else the model's pose at qpos0."""
-    keyframes = urdf.description.keyframes
+    keyframes = described.tree.keyframes
     if keyframe is not None and keyframe not in keyframes:
         known = ", ".join(keyframes) if keyframes else "none (the model has no <key>)"
-        raise URDFError(f"{urdf.path}: unknown keyframe {keyframe!r}; keyframes: {known}")
+        raise ModelFileError(f"{described.path}: unknown keyframe {keyframe!r}; keyframes: {known}")
     if keyframe is None:
         keyframe = next(iter(keyframes), None)
     if keyframe is None:
-        return urdf.description.reference_values()
-    logger.info("%s: the assembly starts from keyframe %r", urdf.path, keyframe)
+        return described.tree.reference_values()
+    logger.info("%s: the assembly starts from keyframe %r", described.path, keyframe)
     return keyframes[keyframe]
 
 
@@ -987,7 +1004,7 @@ def _refuse_massless_subtrees(mech: Mechanism) -> None:
     of a loop). Only the outermost such subtree is named.
 
     Raises:
-        URDFError: names the subtree's first joint and its links.
+        ModelFileError: names the subtree's first joint and its links.
     """
     model = mech.model
     J = layer_jacobian(model, mech.data, mech.declared, mech.q_ref)
@@ -1008,7 +1025,7 @@ def _refuse_massless_subtrees(mech: Mechanism) -> None:
             for f in model.frames
             if f.type == pin.FrameType.BODY and f.parentJoint in subtree
         ]
-        raise URDFError(
+        raise ModelFileError(
             f"{mech.path}: the subtree of joint {quoted(model.names[j])} "
             f"(links {shorten(', '.join(links))}) has no mass and no inertia and no loop "
             "holds it: its motion has no dynamics (the mass matrix is singular); give one "
@@ -1016,8 +1033,8 @@ def _refuse_massless_subtrees(mech: Mechanism) -> None:
         )
 
 
-def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
-    """Return ``urdf`` with every ``<loop>`` side written ``frame=`` turned into a link and origin.
+def _resolve_frame_sides(model: pin.Model, described: MechanismDescription) -> MechanismDescription:
+    """Return ``described`` with every ``<loop>`` side written ``frame=`` made a link and origin.
 
     A frame f on joint j (any Pinocchio frame of the tree: a link's BODY frame,
     a joint's JOINT or FIXED_JOINT frame, an OP_FRAME) moves with the links on
@@ -1026,23 +1043,23 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
     downstream (loop frames, drawing, digest) then sees links only.
 
     Raises:
-        URDFError: the name is no frame of the tree (lists the frames), names
+        ModelFileError: the name is no frame of the tree (lists the frames), names
             several frames at different places, or a frame of the world when the
             tree's own link ``world`` moves with a root joint.
     """
-    if not any(spec.predecessor_frame or spec.successor_frame for spec in urdf.loops):
-        return urdf
+    if not any(spec.predecessor_frame or spec.successor_frame for spec in described.loops):
+        return described
     tree_frames = [f.name for f in model.frames]
     loops = []
-    for spec in urdf.loops:
+    for spec in described.loops:
         sides = {}
         for side in ("predecessor", "successor"):
             name = getattr(spec, f"{side}_frame")
             if name is None:
                 continue
-            where = f"{spec.where(urdf.path)}: <{side} frame={quoted(name)}>"
+            where = f"{spec.where(described.path)}: <{side} frame={quoted(name)}>"
             if not model.existFrame(name):
-                raise URDFError(
+                raise ModelFileError(
                     f"{where} names no frame of the tree; frames: {name_list(tree_frames)}"
                 )
             found = [f for f in model.frames if f.name == name]
@@ -1052,7 +1069,7 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
                 for f in found[1:]
             ):
                 kinds = ", ".join(str(f.type) for f in found)
-                raise URDFError(
+                raise ModelFileError(
                     f"{where} names {len(found)} frames ({kinds}) at different places; "
                     "valid: link= for the link, or rename the joint"
                 )
@@ -1068,7 +1085,7 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
             elif not model.existFrame(WORLD_LINK, pin.FrameType.BODY):
                 link = None  # on the universe: the reserved WORLD_LINK stands for it
             else:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where} is fixed to the world, and no link is: the tree's link "
                     f"{WORLD_LINK!r} moves with the root joint; valid: a frame of a link"
                 )
@@ -1077,7 +1094,7 @@ def _resolve_frame_sides(model: pin.Model, urdf: URDFPlus) -> URDFPlus:
             sides[side] = WORLD_LINK if link is None else link.name
             sides[f"{side}_origin"] = lMf * origin
         loops.append(replace(spec, **sides))
-    return replace(urdf, loops=tuple(loops))
+    return replace(described, loops=tuple(loops))
 
 
 def _select_rows_and_coordinates(
@@ -1140,14 +1157,18 @@ def _select_rows_and_coordinates_serial(mech, settings, q_guess, extra_starts) -
     pin.computeJointJacobians(model, data, mech.q_ref)
     J_ref = np.zeros((mech.nc, mech.nv))
     mech.constraints.evaluate(model, data, J=J_ref)
-    marked = mech.coordinate_indices(mech.urdf.independent) if mech.urdf.independent else None
+    marked = (
+        mech.coordinate_indices(mech.description.independent)
+        if mech.description.independent
+        else None
+    )
     closure.choose_partition(
         independent=marked,
         actuated=np.sort(mech.actuated_idx_v),
         J_ref=J_ref,
         cond_max=settings.cond_JD_max,
         where=str(mech.path),
-        marked_names=mech.urdf.independent,
+        marked_names=mech.description.independent,
     )
 
 

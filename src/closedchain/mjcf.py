@@ -7,9 +7,9 @@ extra), and the tree, loops and passive terms are read from the compiled
 classes and ``childclass``, ``<include>`` (confined to the model's folder),
 ``<frame>``, ``<replicate>``, euler sequences and angle units, inertias
 inferred from geoms and meshes, ``autolimits``, joint ``ref``. The result is a
-:class:`closedchain.description.MechanismDescription` (built into the
+:class:`closedchain.description.TreeDescription` (built into the
 Pinocchio model by :func:`closedchain.build.build_model`) inside a
-:class:`closedchain.urdf.URDFPlus` carrying the loops, actuated joints and
+:class:`closedchain.description.MechanismDescription` carrying the loops, actuated joints and
 passive terms.
 
 =================================  =============================================
@@ -83,11 +83,11 @@ import pinocchio as pin
 from .description import (
     BodyDescription,
     JointDescription,
-    MechanismDescription,
     SiteDescription,
+    TreeDescription,
     Visual,
 )
-from .exceptions import URDFError
+from .exceptions import ModelFileError
 from .urdf import (
     COUPLING_MULTIPLIER_MAX,
     COUPLING_OFFSET_MAX,
@@ -96,7 +96,7 @@ from .urdf import (
     JointDamping,
     JointSpring,
     LoopSpec,
-    URDFPlus,
+    MechanismDescription,
     read_xml,
 )
 
@@ -122,7 +122,7 @@ EQUALITY_KINDS = {0: "connect", 1: "weld", 2: "joint"}
 #: MuJoCo's joint types (``mjtJoint`` values) and closedchain's kinds.
 JOINT_KINDS = {0: "free", 1: "spherical", 2: "prismatic", 3: "revolute"}
 
-#: Joint types of loops and couplings as written in :attr:`URDFPlus.joints`.
+#: Joint types of loops and couplings as written in :attr:`MechanismDescription.joints`.
 URDF_JOINT_TYPES = {"free": "floating", "spherical": "spherical"}
 
 _OBJ_SITE = 6
@@ -134,7 +134,7 @@ def _mujoco():
     try:
         import mujoco
     except ImportError:
-        raise URDFError(f"reading MJCF needs MuJoCo's compiler: {INSTALL_HINT}") from None
+        raise ModelFileError(f"reading MJCF needs MuJoCo's compiler: {INSTALL_HINT}") from None
     return mujoco
 
 
@@ -150,7 +150,7 @@ def _check_includes(path: Path, folder: Path, seen: set[Path]) -> None:
         name = include.get("file")
         target = (path.parent / (name or "")).resolve()
         if not name or not target.is_relative_to(folder):
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: line {include.sourceline}: <include file={name!r}> is outside the "
                 f"model's folder {folder}; valid: a file under it"
             )
@@ -191,7 +191,7 @@ def compile_mjcf(path: Path, *, spec_edit=None):
             and the acceptance script zero passive terms this way), or None.
 
     Raises:
-        URDFError: MuJoCo is missing (names what to install), unsafe XML, an
+        ModelFileError: MuJoCo is missing (names what to install), unsafe XML, an
             include outside the folder, or MuJoCo's compiler refuses the model.
     """
     mujoco = _mujoco()
@@ -201,7 +201,9 @@ def compile_mjcf(path: Path, *, spec_edit=None):
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as exc:  # MuJoCo's parser: ValueError and its own errors
-        raise URDFError(f"{path}: MuJoCo cannot read it: {' '.join(str(exc).split())}") from None
+        raise ModelFileError(
+            f"{path}: MuJoCo cannot read it: {' '.join(str(exc).split())}"
+        ) from None
     _drop_missing_textures(path, spec)
     missing = _drop_missing_meshes(path, spec)
     if spec_edit is not None:
@@ -209,7 +211,9 @@ def compile_mjcf(path: Path, *, spec_edit=None):
     try:
         model = spec.compile()
     except Exception as exc:
-        raise URDFError(f"{path}: MuJoCo cannot compile it: {' '.join(str(exc).split())}") from None
+        raise ModelFileError(
+            f"{path}: MuJoCo cannot compile it: {' '.join(str(exc).split())}"
+        ) from None
     return spec, model, missing
 
 
@@ -238,7 +242,7 @@ def _drop_missing_meshes(path: Path, spec) -> dict[str, list[Visual]]:
             continue
         body = geom.parent
         if _moves(spec, body) and (from_geoms or not body.explicitinertial):
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: mesh file {missing[geom.meshname].name!r} is missing, and MuJoCo "
                 f"infers body {body.name!r}'s inertia from it; valid: the file present, or an "
                 "<inertial>"
@@ -397,7 +401,7 @@ class _Reader:
             )
         return tuple(out)
 
-    def description(self) -> MechanismDescription:
+    def description(self) -> TreeDescription:
         m = self.m
         bodies = []
         for b in range(1, m.nbody):
@@ -434,7 +438,7 @@ class _Reader:
             }
         loops, inactive = self.equalities()
         self.loops = loops
-        return MechanismDescription(
+        return TreeDescription(
             name=self.spec.modelname or self.path.stem,
             path=self.path,
             bodies=tuple(bodies),
@@ -465,7 +469,7 @@ class _Reader:
                 name += "_"
             where = f"{self.path}: <equality> <{label} name={name!r}>"
             if kind is None:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: {label} equalities are not read; valid: "
                     f"{', '.join(EQUALITY_KINDS.values())}"
                 )
@@ -519,25 +523,25 @@ class _Reader:
         m = self.m
         j1, j2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
         if j2 < 0:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: a joint equality without joint2 locks joint "
                 f"{self.joint_names[j1]!r} at a value, which closedchain does not read; "
                 "valid: joint1 and joint2"
             )
         if np.any(data[2:5] != 0.0):
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: polycoef {' '.join(f'{c:g}' for c in data[:5])}: only a linear "
                 "coupling q1 = c0 + c1 q2 is read; valid: c2 = c3 = c4 = 0"
             )
         for j in (j1, j2):
             if self.kinds[j] not in ("revolute", "prismatic"):
                 name, kind = self.joint_names[j], self.kinds[j]
-                raise URDFError(f"{where}: joint {name!r} is {kind}; valid: hinge, slide")
+                raise ModelFileError(f"{where}: joint {name!r} is {kind}; valid: hinge, slide")
         r1, r2 = float(m.qpos0[m.jnt_qposadr[j1]]), float(m.qpos0[m.jnt_qposadr[j2]])
         c0, c1 = float(data[0]), float(data[1])
         offset = c0 + r1 - c1 * r2
         if not abs(c1) <= COUPLING_MULTIPLIER_MAX or not abs(offset) <= COUPLING_OFFSET_MAX:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: polycoef c1 = {c1:.6g}, offset {offset:.6g}: beyond the bounds; "
                 f"valid: |c1| <= {COUPLING_MULTIPLIER_MAX:g} (COUPLING_MULTIPLIER_MAX) and "
                 f"|c0 + ref1 - c1 ref2| <= {COUPLING_OFFSET_MAX:g} (COUPLING_OFFSET_MAX)"
@@ -620,7 +624,7 @@ def _nq(kind: str) -> int:
     return {"free": 7, "spherical": 4}.get(kind, 1)
 
 
-def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray]:
+def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[MechanismDescription, np.ndarray]:
     """Read an MJCF file through MuJoCo's compiler (rule: the module docstring).
 
     Args:
@@ -631,7 +635,7 @@ def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray
         The model (its ``description`` set, ``xml`` None) and its gravity [m/s^2], shape (3,).
 
     Raises:
-        URDFError: see :func:`compile_mjcf`, and the refusals of the module docstring.
+        ModelFileError: see :func:`compile_mjcf`, and the refusals of the module docstring.
     """
     path = Path(path)
     spec, model, missing = compile_mjcf(path, spec_edit=spec_edit)
@@ -641,7 +645,7 @@ def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray
     joints = {
         j.name: URDF_JOINT_TYPES.get(j.kind, j.kind) for b in description.bodies for j in b.joints
     }
-    urdf = URDFPlus(
+    urdf = MechanismDescription(
         path=path,
         robot_name=description.name,
         links=(WORLD_LINK, *(b.name for b in description.bodies)),
@@ -651,6 +655,6 @@ def read_mjcf(path: str | Path, *, spec_edit=None) -> tuple[URDFPlus, np.ndarray
         springs=springs,
         dampings=dampings,
         armatures=armatures,
-        description=description,
+        tree=description,
     )
     return urdf, reader.gravity()

@@ -2,7 +2,7 @@ r"""Passive joint terms: springs, viscous damping and armature, as terms of the 
 
 Every reader fills :class:`~closedchain.urdf.JointSpring`,
 :class:`~closedchain.urdf.JointDamping` and :class:`~closedchain.urdf.JointArmature`
-(``URDFPlus.springs``, ``dampings``, ``armatures``); :func:`closedchain.load` turns
+(``MechanismDescription.springs``, ``dampings``, ``armatures``); :func:`closedchain.load` turns
 them into the mechanism's :class:`PassiveTerms` and the model's armature. The
 equations of motion every method, integrator and the inverse dynamics solve are then
 
@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from .exceptions import URDFError
-from .urdf import URDFPlus, name_list
+from .exceptions import ModelFileError
+from .urdf import MechanismDescription, name_list
 
 __all__ = ["PassiveTerms", "passive_terms"]
 
@@ -129,29 +129,29 @@ class PassiveTerms:
         return 0.5 * (dq * dq) @ self.stiffness
 
 
-def _joint(model: pin.Model, urdf: URDFPlus, name: str, what: str, line: int):
-    """The model's joint ``name``, or URDFError naming the element and the valid joints."""
+def _joint(model: pin.Model, urdf: MechanismDescription, name: str, what: str, line: int):
+    """The model's joint ``name``, or ModelFileError naming the element and the valid joints."""
     if not model.existJointName(name):
         at = f"line {line}: " if line else ""
-        raise URDFError(
+        raise ModelFileError(
             f"{urdf.path}: {at}{what} names joint {name!r}, which is not a joint of the tree; "
             f"joints: {name_list(tuple(model.names[1:]))}"
         )
     return model.joints[model.getJointId(name)]
 
 
-def _per_coordinate(model: pin.Model, urdf: URDFPlus, entries, attr: str) -> np.ndarray:
+def _per_coordinate(model: pin.Model, urdf: MechanismDescription, entries, attr: str) -> np.ndarray:
     """One value per velocity coordinate from ``entries`` (JointDamping or JointArmature):
     each joint's value on all its coordinates, 0 elsewhere; a joint named twice is refused."""
     out = np.zeros(model.nv)
     seen: set[str] = set()
     for e in entries:
         if e.joint in seen:
-            raise URDFError(f"{urdf.path}: joint {e.joint!r} has more than one {attr}")
+            raise ModelFileError(f"{urdf.path}: joint {e.joint!r} has more than one {attr}")
         seen.add(e.joint)
         value = float(getattr(e, attr))
         if not (np.isfinite(value) and value >= 0.0):
-            raise URDFError(
+            raise ModelFileError(
                 f"{urdf.path}: {attr} of joint {e.joint!r} is {value!r}; valid: a finite "
                 "number >= 0"
             )
@@ -160,7 +160,7 @@ def _per_coordinate(model: pin.Model, urdf: URDFPlus, entries, attr: str) -> np.
     return out
 
 
-def passive_terms(model: pin.Model, urdf: URDFPlus) -> PassiveTerms:
+def passive_terms(model: pin.Model, urdf: MechanismDescription) -> PassiveTerms:
     """Return the mechanism's passive terms, and set ``model.armature`` and ``model.damping``.
 
     Args:
@@ -170,7 +170,7 @@ def passive_terms(model: pin.Model, urdf: URDFPlus) -> PassiveTerms:
         urdf: the reader's description (``springs``, ``dampings``, ``armatures``).
 
     Raises:
-        URDFError: a term names no joint of the tree, a spring's joint is not a
+        ModelFileError: a term names no joint of the tree, a spring's joint is not a
             1-dof joint, a joint has two values of one term, or a value is negative
             or not finite (the message names the joint and the valid joints).
     """
@@ -178,16 +178,16 @@ def passive_terms(model: pin.Model, urdf: URDFPlus) -> PassiveTerms:
     seen: set[str] = set()
     for s in urdf.springs:
         if s.joint in seen:
-            raise URDFError(f"{urdf.path}: joint {s.joint!r} has more than one spring")
+            raise ModelFileError(f"{urdf.path}: joint {s.joint!r} has more than one spring")
         seen.add(s.joint)
         jm = _joint(model, urdf, s.joint, "a spring", s.line)
         if not (jm.nq == jm.nv == 1):
-            raise URDFError(
+            raise ModelFileError(
                 f"{urdf.path}: the spring of joint {s.joint!r} needs one coordinate without "
                 f"wrap-around; this joint is {jm.shortname()} (nq = {jm.nq}, nv = {jm.nv})"
             )
         if not (np.isfinite(s.stiffness) and s.stiffness >= 0.0 and np.isfinite(s.reference)):
-            raise URDFError(
+            raise ModelFileError(
                 f"{urdf.path}: the spring of joint {s.joint!r} has stiffness {s.stiffness!r} "
                 f"and reference {s.reference!r}; valid: finite, stiffness >= 0"
             )

@@ -36,10 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from .build import check_size
-from .exceptions import ClosedChainError, UnknownChoiceError, URDFError
+from .exceptions import ClosedChainError, ModelFileError, UnknownChoiceError
 from .mjcf import MJCF_ROOT
 from .sdf import is_sdf, read_sdf
-from .urdf import WORLD_LINK, URDFPlus, parse_urdf, read_overlay, read_xml
+from .urdf import WORLD_LINK, MechanismDescription, parse_urdf, read_overlay, read_xml
 from .yaml_loops import apply_loops_yaml, is_loops_yaml, read_loops_yaml
 
 __all__ = [
@@ -201,22 +201,22 @@ def read_base(base: Path, *, cut_joints: tuple[str, ...] = (), fixed_joints: tup
             (:func:`closedchain.sdf.read_sdf`).
 
     Raises:
-        URDFError: see :func:`closedchain.urdf.read_xml` and :func:`closedchain.sdf.read_sdf`;
+        ModelFileError: see :func:`closedchain.urdf.read_xml` and :func:`closedchain.sdf.read_sdf`;
             ``cut_joints`` given for a URDF; an SDF or MJCF file.
     """
     if is_sdf(base):
-        raise URDFError(
+        raise ModelFileError(
             f"{base}: an SDF model is read into a description (closedchain.sdf.read_sdf), "
             "not a <robot> element"
         )
     if cut_joints:
-        raise URDFError(
+        raise ModelFileError(
             f"{base}: cut_joints={list(cut_joints)} is for SDF models; a URDF names its "
             "loops with <loop> elements"
         )
     root = read_xml(base)
     if root.tag == MJCF_ROOT:
-        raise URDFError(
+        raise ModelFileError(
             f"{base}: an MJCF model takes its loops from its <equality> elements; overlays "
             "(loops=, --loops) apply to URDF and SDF models"
         )
@@ -231,10 +231,10 @@ def merge_overlay(
     cut_joints: tuple[str, ...] = (),
     fixed_joints: tuple[str, ...] = (),
     root=None,
-) -> URDFPlus:
+) -> MechanismDescription:
     """Read a base model and merge an overlay into it.
 
-    The base is read into a :class:`~closedchain.urdf.URDFPlus` with its
+    The base is read into a :class:`~closedchain.description.MechanismDescription` with its
     description (a URDF by :func:`~closedchain.urdf.parse_urdf`, once); the
     overlay's links, joints, loops and transmissions are read against it and
     merged into it (:func:`~closedchain.urdf.read_overlay`), a loops YAML's
@@ -263,14 +263,14 @@ def merge_overlay(
         base's links to the base file (their meshes are beside it).
 
     Raises:
-        URDFError: unsafe or malformed XML, an element an overlay cannot hold
+        ModelFileError: unsafe or malformed XML, an element an overlay cannot hold
             (lists the valid ones), a link, joint or loop name the base already uses,
             or a tree larger than ``max_nv``.
     """
     if root is None and is_sdf(base):
         urdf, _ = read_sdf(base, cut_joints=cut_joints, fixed_joints=fixed_joints, max_nv=max_nv)
         if overlay is not None and is_loops_yaml(overlay):
-            raise URDFError(
+            raise ModelFileError(
                 f"{overlay}: a loops YAML file converts a URDF's joints; an SDF model takes a "
                 "URDF+ overlay (root <robot>: links, joints, loops, transmissions)"
             )
@@ -284,19 +284,19 @@ def merge_overlay(
         return urdf
     if is_loops_yaml(overlay):
         converted = apply_loops_yaml(urdf, read_loops_yaml(overlay), root, base=base)
-        check_size(converted.description, max_nv)
+        check_size(converted.tree, max_nv)
         return replace(converted, link_files=base_links)
     merged = read_overlay(urdf, Path(overlay), _overlay_element(urdf, Path(overlay), base))
-    check_size(merged.description, max_nv)
+    check_size(merged.tree, max_nv)
     return replace(merged, link_files={**base_links, **urdf.link_files})
 
 
-def _overlay_element(urdf: URDFPlus, path: Path, base: Path):
+def _overlay_element(urdf: MechanismDescription, path: Path, base: Path):
     """Return an overlay file's ``<robot>`` element, checked: only :data:`OVERLAY_ELEMENTS`,
     no link, joint or loop name the base uses, no joint hanging from a missing world."""
     extra = read_xml(path, what="overlay file")
     if extra.tag != "robot":
-        raise URDFError(f"{path}: root element is <{extra.tag}>, expected <robot>")
+        raise ModelFileError(f"{path}: root element is <{extra.tag}>, expected <robot>")
     taken = {
         "link": set(urdf.links),
         "joint": set(urdf.joints),
@@ -306,18 +306,18 @@ def _overlay_element(urdf: URDFPlus, path: Path, base: Path):
         if not isinstance(element.tag, str):  # comments, processing instructions
             continue
         if element.tag not in OVERLAY_ELEMENTS:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: line {element.sourceline}: <{element.tag}> cannot be merged; "
                 f"valid overlay elements: {', '.join(OVERLAY_ELEMENTS)}"
             )
         name = element.get("name")
         if name in taken.get(element.tag, ()):
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: line {element.sourceline}: <{element.tag} name={name!r}> "
                 f"already exists in {base}"
             )
     links = set(urdf.links) | {e.get("name") for e in extra.findall("link")}
-    if urdf.description.world_frame:
+    if urdf.tree.world_frame:
         links.add(WORLD_LINK)
     _check_world_joints(path, extra, links)
     return extra
@@ -335,7 +335,7 @@ def _check_world_joints(path: Path, root, links: set[str]) -> None:
     for joint in root.findall("joint"):
         parent = joint.find("parent")
         if parent is not None and parent.get("link") == WORLD_LINK:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: line {joint.sourceline}: <joint name={joint.get('name')!r}> has "
                 f"parent {WORLD_LINK!r}, but the tree has no {WORLD_LINK!r} link: attach the "
                 f"part to the robot, or fix it to the world with a <loop> whose predecessor "

@@ -2,7 +2,7 @@ r"""Read SDF models (SDFormat, 1.6 frame semantics) into mechanism descriptions.
 
 An SDF ``<model>`` is a graph of links and joints that may hold cycles; a
 Pinocchio model is a tree. :func:`read_sdf` cuts the graph into a spanning tree
-plus loop joints and fills a :class:`closedchain.description.MechanismDescription`
+plus loop joints and fills a :class:`closedchain.description.TreeDescription`
 (built by :func:`closedchain.build.build_model`, no URDF text in between) with
 one loop per cut joint beside it, so ``load("robot.sdf")`` works as
 ``load("robot.urdf")`` does.
@@ -119,7 +119,7 @@ from __future__ import annotations
 import logging
 import math
 import urllib.parse
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -129,10 +129,10 @@ from .description import (
     UNIVERSAL_SECOND_SUFFIX,
     BodyDescription,
     JointDescription,
-    MechanismDescription,
+    TreeDescription,
     Visual,
 )
-from .exceptions import MESSAGE_MAX, URDFError, quoted, shorten
+from .exceptions import MESSAGE_MAX, ModelFileError, quoted, shorten
 from .urdf import (
     COUPLING,
     COUPLING_MULTIPLIER_MAX,
@@ -142,11 +142,8 @@ from .urdf import (
     JointDamping,
     JointSpring,
     LoopSpec,
-    URDFPlus,
+    MechanismDescription,
     _check_name,
-    _parse_coupling,
-    _parse_loop,
-    _parse_transmissions,
     _unique_names,
     _where,
     check_inertia,
@@ -306,7 +303,7 @@ def read_sdf(
     cut_joints: tuple[str, ...] = (),
     fixed_joints: tuple[str, ...] = (),
     max_nv: int | None = None,
-) -> tuple[URDFPlus, SDFTree]:
+) -> tuple[MechanismDescription, SDFTree]:
     """Read an SDF file into a mechanism description, its loops and passive terms.
 
     Args:
@@ -324,7 +321,7 @@ def read_sdf(
         the graph was cut.
 
     Raises:
-        URDFError: unsafe or malformed XML, an unsupported version, element or
+        ModelFileError: unsafe or malformed XML, an unsupported version, element or
             joint type, a bad number, a link not connected to the root, a
             ``cut_joints`` name that is not a joint, a ``fixed_joints`` name that is
             not a revolute, continuous or prismatic joint, a universal joint that
@@ -335,15 +332,15 @@ def read_sdf(
     path = Path(path)
     root = read_xml(path, what="SDF file")
     if root.tag != "sdf":
-        raise URDFError(f"{path}: root element is <{root.tag}>, expected <sdf>")
+        raise ModelFileError(f"{path}: root element is <{root.tag}>, expected <sdf>")
     version = root.get("version")
     if version not in SDF_VERSIONS:
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: <sdf version={version!r}> is not read; valid: {', '.join(SDF_VERSIONS)}"
         )
     models = root.findall("model") + root.findall("world/model")
     if len(models) != 1:
-        raise URDFError(f"{path}: {len(models)} <model> elements; valid: exactly one")
+        raise ModelFileError(f"{path}: {len(models)} <model> elements; valid: exactly one")
     reader = _Reader(path, models[0], tuple(fixed_joints))
     return reader.read(tuple(cut_joints), max_nv)
 
@@ -356,7 +353,9 @@ def _numbers(path: Path, element, count: int) -> np.ndarray:
     except ValueError:
         values = np.array([])
     if values.shape != (count,) or not np.all(np.isfinite(values)):
-        raise URDFError(f"{_where(path, element)}: {text.strip()!r} must be {count} finite numbers")
+        raise ModelFileError(
+            f"{_where(path, element)}: {text.strip()!r} must be {count} finite numbers"
+        )
     return values
 
 
@@ -367,7 +366,7 @@ def _scalar(path: Path, parent, tag: str, default: float, *, minimum: float | No
         return default
     value = float(_numbers(path, element, 1)[0])
     if minimum is not None and value < minimum:
-        raise URDFError(f"{_where(path, element)}: {value:g} must be >= {minimum:g}")
+        raise ModelFileError(f"{_where(path, element)}: {value:g} must be >= {minimum:g}")
     return value
 
 
@@ -380,13 +379,13 @@ class _Reader:
         self.name = _check_name(path, model, "model")
         for child in model:
             if isinstance(child.tag, str) and child.tag in SDF_REFUSED_ELEMENTS:
-                raise URDFError(
+                raise ModelFileError(
                     f"{_where(path, child)}: <{child.tag}> inside <model> is not supported; "
                     "valid: <link> and <joint> (write the model out flat)"
                 )
         self.link_elements = model.findall("link")
         if not self.link_elements:
-            raise URDFError(f"{_where(path, model)}: has no <link> elements")
+            raise ModelFileError(f"{_where(path, model)}: has no <link> elements")
         self.links = {e.get("name"): e for e in self.link_elements}
         _unique_names(path, self.link_elements, "link")
         joint_elements = model.findall("joint")
@@ -395,7 +394,7 @@ class _Reader:
         holdable = [n for n, e in self.joint_elements.items() if e.get("type") in HOLDABLE_TYPES]
         for name in fixed_joints:
             if name not in holdable:
-                raise URDFError(
+                raise ModelFileError(
                     f"{path}: fixed_joints names {name!r}, which is not a "
                     f"{', '.join(HOLDABLE_TYPES)} joint; valid: {', '.join(holdable)}"
                 )
@@ -410,7 +409,7 @@ class _Reader:
     def _pose_value(self, element) -> pin.SE3:
         """Return the placement written in a ``<pose>`` element (x y z roll pitch yaw)."""
         if element.get("rotation_format", "euler_rpy") != "euler_rpy":
-            raise URDFError(
+            raise ModelFileError(
                 f"{_where(self.path, element)}: rotation_format="
                 f"{element.get('rotation_format')!r} is not read; valid: euler_rpy"
             )
@@ -422,7 +421,7 @@ class _Reader:
             (values[3:], ORIGIN_RPY_MAX, "rad"),
         ):
             if float(np.max(np.abs(part))) > bound:
-                raise URDFError(
+                raise ModelFileError(
                     f"{_where(self.path, element)}: {element.text.strip()!r} is beyond "
                     f"{bound:g} {unit}; valid: |components| <= {bound:g} {unit}"
                 )
@@ -461,7 +460,7 @@ class _Reader:
         a chain of thousands of frames is as good as a short one.
 
         Raises:
-            URDFError: unknown frame name (lists the valid ones), or poses
+            ModelFileError: unknown frame name (lists the valid ones), or poses
                 relative to each other in a cycle.
         """
         chain: list[tuple[str, object]] = []  # (frame, its element), from ``name`` down
@@ -470,7 +469,7 @@ class _Reader:
         while current not in self._poses and current not in ("", SDF_MODEL_FRAME):
             if current in on_chain:
                 cycle = " -> ".join([*(n for n, _ in chain), current])
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: poses are relative to each other in a cycle: "
                     f"{shorten(cycle, MESSAGE_MAX)}"
                 )
@@ -481,7 +480,7 @@ class _Reader:
                 default = element.findtext("child", "").strip()
             else:
                 valid = [SDF_MODEL_FRAME, *self.links, *self.joint_elements]
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: unknown frame {quoted(current)}; "
                     f"valid: {name_list(valid, keep_order=True)}"
                 )
@@ -502,7 +501,7 @@ class _Reader:
         where = _where(self.path, element)
         jtype = "fixed" if element.get("name") in self.fixed_joints else element.get("type")
         if jtype not in SDF_JOINT_TYPES:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: joint type {jtype!r} is not read; valid: {', '.join(SDF_JOINT_TYPES)}"
             )
         ends = {}
@@ -510,12 +509,12 @@ class _Reader:
             link = (element.findtext(tag) or "").strip()
             valid = (*self.links, SDF_WORLD) if tag == "parent" else tuple(self.links)
             if link not in valid:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: <{tag}>{link}</{tag}> is not a link; valid: {', '.join(valid)}"
                 )
             ends[tag] = link
         if ends["parent"] == ends["child"]:
-            raise URDFError(f"{where}: parent and child are the same link {ends['child']!r}")
+            raise ModelFileError(f"{where}: parent and child are the same link {ends['child']!r}")
         oMj = self.frame(element.get("name"), where=where)
         axes = []
         for tag in ("axis", "axis2"):
@@ -529,7 +528,7 @@ class _Reader:
                 )
             )
         if jtype in TWO_AXIS_TYPES and element.find("axis2") is None:
-            raise URDFError(f"{where}: a {jtype} joint needs <axis2>")
+            raise ModelFileError(f"{where}: a {jtype} joint needs <axis2>")
         limits = tuple(self._limits(element, tag) for tag in ("axis", "axis2"))
         dampings = tuple(
             _scalar(self.path, dynamics, "damping", 0.0, minimum=0.0)
@@ -549,7 +548,7 @@ class _Reader:
             reference = (element.findtext("gearbox_reference_body") or "").strip()
             valid = (*self.links, SDF_WORLD)
             if reference not in valid:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: <gearbox_reference_body>{reference}</gearbox_reference_body> "
                     f"is not a link; valid: {', '.join(valid)}"
                 )
@@ -580,7 +579,9 @@ class _Reader:
         lower = _scalar(self.path, limit, "lower", -SDF_UNLIMITED)
         upper = _scalar(self.path, limit, "upper", SDF_UNLIMITED)
         if lower > upper:
-            raise URDFError(f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}")
+            raise ModelFileError(
+                f"{_where(self.path, limit)}: lower={lower:g} exceeds upper={upper:g}"
+            )
         return lower, upper
 
     def _axis(self, joint, tag: str, oMj: pin.SE3, *, required: bool) -> np.ndarray:
@@ -588,7 +589,7 @@ class _Reader:
         axis = joint.find(tag)
         if axis is None or axis.find("xyz") is None:
             if required:
-                raise URDFError(f"{_where(self.path, joint)}: missing <{tag}><xyz>")
+                raise ModelFileError(f"{_where(self.path, joint)}: missing <{tag}><xyz>")
             return np.array([0.0, 0.0, 1.0])
         xyz = axis.find("xyz")
         vec = unit_vector(xyz.text or "", f"{_where(self.path, xyz)} in <{tag}>")
@@ -607,7 +608,7 @@ class _Reader:
         """Cut the joint graph into a spanning tree (the rule of the module doc)."""
         for name in cut_joints:
             if name not in self.joint_elements:
-                raise URDFError(
+                raise ModelFileError(
                     f"{self.path}: cut_joints names {name!r}, which is not a joint; joints: "
                     + ", ".join(self.joint_elements)
                 )
@@ -666,12 +667,12 @@ class _Reader:
                 if through
                 else "; join it with a <joint> or remove it"
             )
-            raise URDFError(
+            raise ModelFileError(
                 f"{self.path}: link {missing[0]!r} is not connected to the root link {root!r}{hint}"
             )
         for j in cut:
             if j.type == "universal":
-                raise URDFError(
+                raise ModelFileError(
                     f"{_where(self.path, self.joint_elements[j.name])}: a universal joint "
                     "cannot be cut (closedchain's loops are revolute, prismatic, spherical "
                     "or fixed); keep it out of cut_joints, or give its cycle a joint of another "
@@ -688,7 +689,9 @@ class _Reader:
         )
 
     # -- the description ---------------------------------------------------------
-    def read(self, cut_joints: tuple[str, ...], max_nv: int | None) -> tuple[URDFPlus, SDFTree]:
+    def read(
+        self, cut_joints: tuple[str, ...], max_nv: int | None
+    ) -> tuple[MechanismDescription, SDFTree]:
         """Return the model (its ``description`` set, ``xml`` None) and the :class:`SDFTree`."""
         tree = self.spanning_tree(cut_joints)
         joints = {j.name: j for j in self.joints}
@@ -716,8 +719,8 @@ class _Reader:
         loops = [self._loop(joints[name]) for name in tree.cut_joints]
         loops += [self._gearbox_loop(joints[name], tree, holder) for name in tree.gearboxes]
         springs, dampings = self._passive(tree)
-        description = MechanismDescription(name=self.name, path=self.path, bodies=tuple(bodies))
-        urdf = URDFPlus(
+        description = TreeDescription(name=self.name, path=self.path, bodies=tuple(bodies))
+        urdf = MechanismDescription(
             path=self.path,
             robot_name=self.name,
             links=(WORLD_LINK, *(b.name for b in bodies)),
@@ -725,7 +728,7 @@ class _Reader:
             loops=tuple(loops),
             springs=springs,
             dampings=dampings,
-            description=description,
+            tree=description,
         )
         return urdf, tree
 
@@ -764,7 +767,7 @@ class _Reader:
         if kind == "universal":
             axis2 = sign * bMj.rotation @ j.axis2
             if np.linalg.norm(np.cross(axis, axis2)) < UNIVERSAL_AXES_MIN_SINE:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: <axis> and <axis2> are parallel, which leaves one rotation "
                     "for two coordinates; valid: two axes at an angle"
                 )
@@ -932,7 +935,10 @@ class _Reader:
             if j.damping > 0.0 or j.damping2 > 0.0:
                 if in_tree and j.name in tree.reversed_joints and j.type == "universal":
                     # Two revolute joints (see _joint_descriptions): one damping each.
-                    for name, value in ((j.name + UNIVERSAL_SECOND_SUFFIX, j.damping2), (j.name, j.damping)):
+                    for name, value in (
+                        (j.name + UNIVERSAL_SECOND_SUFFIX, j.damping2),
+                        (j.name, j.damping),
+                    ):
                         if value > 0.0:
                             dampings.append(JointDamping(name, value, j.line))
                 elif in_tree and j.type == "universal" and j.damping != j.damping2:
@@ -988,7 +994,7 @@ class _Reader:
                 if j.type != "gearbox" and {j.parent, j.child} == {g.gearbox_reference, link}
             ]
             if len(between) != 1:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: the gearbox angle of link {link!r} is the coordinate of the joint "
                     f"between it and the gearbox_reference_body {g.gearbox_reference!r}, and "
                     f"{len(between)} joints join them; valid: exactly one revolute joint"
@@ -996,7 +1002,7 @@ class _Reader:
             j = between[0]
             if j.type != "revolute" or j.name not in tree.tree_joints:
                 state = "cut (a loop has no coordinate)" if j.type != "fixed" else "fixed"
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: joint {j.name!r} between {link!r} and the "
                     f"gearbox_reference_body is "
                     f"{state if j.type in ('revolute', 'fixed') else j.type}; valid: a revolute "
@@ -1005,7 +1011,7 @@ class _Reader:
                 )
             dot = float((j.oMj.rotation @ j.axis) @ direction)
             if abs(abs(dot) - 1.0) > GEARBOX_AXIS_TOL:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: joint {j.name!r} turns about another axis than the gearbox's "
                     f"<{tag}> (cosine {dot:.6g}); valid: parallel axes"
                 )
@@ -1013,7 +1019,7 @@ class _Reader:
         (mimics, s1), (driven, s2) = ends
         multiplier = -g.gearbox_ratio * s1 * s2
         if not abs(multiplier) <= COUPLING_MULTIPLIER_MAX:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: <gearbox_ratio> {g.gearbox_ratio:g} is beyond the bound; valid: "
                 f"|ratio| <= {COUPLING_MULTIPLIER_MAX:g} (COUPLING_MULTIPLIER_MAX)"
             )

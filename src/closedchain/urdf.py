@@ -1,7 +1,7 @@
 """Read the URDF+ extension elements: ``<loop>``, ``<transmission>``, ``independent``.
 
 This module reads, with a hardened lxml parser, the URDF tree into a
-:class:`closedchain.description.MechanismDescription` (placements as SE3 from the
+:class:`closedchain.description.TreeDescription` (placements as SE3 from the
 origins, joints, limits, inertias and visuals, as Pinocchio's URDF reader takes
 them; :func:`closedchain.build.build_model` builds it) and what URDF readers
 ignore, URDF+ (Chignoli et al. 2024):
@@ -70,9 +70,10 @@ from .description import (
     BodyDescription,
     JointDescription,
     MechanismDescription,
+    TreeDescription,
     Visual,
 )
-from .exceptions import ModelTooLargeError, URDFError, quoted, shorten
+from .exceptions import ModelFileError, ModelTooLargeError, quoted, shorten
 
 __all__ = [
     "COUPLING",
@@ -83,7 +84,6 @@ __all__ = [
     "LoopSpec",
     "SceneSpec",
     "SinusoidSpec",
-    "URDFPlus",
     "parse_urdf",
     "read_xml",
 ]
@@ -343,44 +343,9 @@ class JointArmature:
     line: int = 0
 
 
-@dataclass(frozen=True)
-class URDFPlus:
-    """What a URDF+ file adds to the tree.
-
-    Attributes:
-        path: the file read.
-        robot_name: the ``<robot name>``.
-        links: names of all ``<link>`` elements.
-        joints: joint name -> joint type for all ``<joint>`` elements.
-        loops: the ``<loop>`` elements.
-        actuated: joints named by ``<transmission>`` elements, in file order.
-        independent: joints marked ``independent="true"``, in file order.
-        scene: the ``<scene>`` element (default scene), or None.
-        springs: the joint springs (``<dynamics spring_stiffness>``), in file order.
-        dampings: the joints' viscous damping (:class:`JointDamping`), in file order.
-        armatures: the joints' armature (:class:`JointArmature`), in file order.
-        description: the tree as a :class:`closedchain.description.MechanismDescription`
-            (a URDF's read by :func:`parse_urdf`, an SDF model's by
-            :func:`closedchain.sdf.read_sdf`, an MJCF model's through MuJoCo's
-            compiler), which :func:`closedchain.build.build_model` builds.
-        link_files: link name -> the file whose ``<link>`` element it is, for the
-            links of another file than ``path`` (a base URDF under an overlay or a
-            loops YAML file): their meshes are looked up beside that file.
-    """
-
-    path: Path
-    robot_name: str
-    links: tuple[str, ...]
-    joints: dict[str, str] = field(default_factory=dict)
-    loops: tuple[LoopSpec, ...] = ()
-    actuated: tuple[str, ...] = ()
-    independent: tuple[str, ...] = ()
-    scene: SceneSpec | None = None
-    springs: tuple[JointSpring, ...] = ()
-    dampings: tuple[JointDamping, ...] = ()
-    armatures: tuple[JointArmature, ...] = ()
-    description: MechanismDescription | None = None
-    link_files: dict[str, Path] = field(default_factory=dict)
+#: Former name of :class:`closedchain.description.MechanismDescription` (the same
+#: class), kept for existing code.
+URDFPlus = MechanismDescription
 
 
 #: One item of an XML prolog before a DOCTYPE: the XML declaration, a
@@ -444,7 +409,7 @@ def _floats(path: Path, element, attribute: str, default: str, where: str = "") 
     values = _three(text)
     if values is None or not np.all(np.isfinite(values)):
         prefix = f"{where} <{element.tag}>" if where else _where(path, element)
-        raise URDFError(
+        raise ModelFileError(
             f"{prefix}: attribute {attribute}={quoted(text)} must be three finite numbers"
         )
     return values
@@ -454,7 +419,7 @@ def _origin_values(path: Path, origin, where: str = "") -> tuple[np.ndarray, np.
     """Return (xyz [m], rpy [rad]) of an origin element, each finite and within its bound.
 
     Raises:
-        URDFError: an attribute is not three finite numbers, or is beyond
+        ModelFileError: an attribute is not three finite numbers, or is beyond
             :data:`ORIGIN_XYZ_MAX` or :data:`ORIGIN_RPY_MAX` (the message names
             the attribute and the bound).
     """
@@ -466,7 +431,7 @@ def _origin_values(path: Path, origin, where: str = "") -> tuple[np.ndarray, np.
     ):
         values = _floats(path, origin, attribute, "0 0 0", where)
         if float(np.max(np.abs(values))) > bound:
-            raise URDFError(
+            raise ModelFileError(
                 f"{prefix}: attribute {attribute}={origin.get(attribute)!r} is beyond "
                 f"{name} = {bound:g} {unit}; valid: |components| <= {bound:g} {unit}"
             )
@@ -483,7 +448,7 @@ def _unit_axis(path: Path, axis, where: str) -> np.ndarray:
     becomes zero.
 
     Raises:
-        URDFError: the attribute is not three numbers, is not finite or is zero.
+        ModelFileError: the attribute is not three numbers, is not finite or is zero.
     """
     text = axis.get("xyz", "1 0 0")
     return unit_vector(text, f"{where}: <axis xyz={quoted(text)}>")
@@ -499,16 +464,16 @@ def unit_vector(text: str, what: str) -> np.ndarray:
         what: where the text is, the start of every message (file, line, element).
 
     Raises:
-        URDFError: the text is not three numbers, is not finite or is zero.
+        ModelFileError: the text is not three numbers, is not finite or is zero.
     """
     xyz = _three(text)
     if xyz is None:
-        raise URDFError(f"{what} must be three numbers")
+        raise ModelFileError(f"{what} must be three numbers")
     if not np.all(np.isfinite(xyz)):
-        raise URDFError(f"{what} is not finite; valid: three finite numbers")
+        raise ModelFileError(f"{what} is not finite; valid: three finite numbers")
     scale = float(np.max(np.abs(xyz)))
     if scale == 0.0:
-        raise URDFError(f"{what} is zero; valid: a direction with a non-zero component")
+        raise ModelFileError(f"{what} is zero; valid: a direction with a non-zero component")
     unit = xyz / scale  # largest |component| is 1: the norm below is in [1, sqrt(3)]
     return unit / math.sqrt(float(unit @ unit))
 
@@ -539,15 +504,15 @@ def _check_name(path: Path, element, kind: str) -> str:
         kind: what it is (``"joint"``), for messages.
 
     Raises:
-        URDFError: no name, or a name holding a character of
+        ModelFileError: no name, or a name holding a character of
             :data:`NAME_REFUSED_CATEGORIES` (shown with ``repr``, on one line).
     """
     name = element.get("name")
     if not name:
-        raise URDFError(f"{_where(path, element)}: <{element.tag}> needs a name attribute")
+        raise ModelFileError(f"{_where(path, element)}: <{element.tag}> needs a name attribute")
     bad = [c for c in name if unicodedata.category(c) in NAME_REFUSED_CATEGORIES]
     if bad:
-        raise URDFError(
+        raise ModelFileError(
             f"{_where(path, element)}: the {kind} name contains the control character "
             f"{bad[0]!r} (U+{ord(bad[0]):04X}); valid: names of printable characters"
         )
@@ -560,7 +525,7 @@ def _unique_names(path: Path, elements, kind: str) -> tuple[str, ...]:
     for e in elements:
         name = _check_name(path, e, kind)
         if name in first:
-            raise URDFError(
+            raise ModelFileError(
                 f"{_where(path, e)}: duplicate {kind} name"
                 + (f", first used at line {first[name]}" if first[name] else "")
                 + f"; every {kind} needs its own name"
@@ -593,11 +558,11 @@ def _check_children(path: Path, element, known: tuple[str, ...], *, strict: bool
         inside = "" if element.tag == "robot" else f" in <{element.tag}>"
         close = _near_miss(child.tag, known) if "}" not in child.tag else None
         if close is not None:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: unknown element{inside} (it would be ignored); did you mean <{close}>?"
             )
         if strict:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: unknown element{inside}; valid: {', '.join(f'<{k}>' for k in known)}"
             )
         logger.warning("%s: not a URDF or URDF+ element%s; ignored", where, inside)
@@ -613,7 +578,7 @@ def _check_layout(path: Path, root) -> None:
         parent = e.getparent()
         if parent is root or any(a.tag in FOREIGN_ELEMENTS for a in e.iterancestors()):
             continue
-        raise URDFError(
+        raise ModelFileError(
             f"{_where(path, e)}: inside {_tag(parent)}: a <{e.tag}> "
             "is read only as a child of <robot> (here it would be ignored)"
         )
@@ -645,9 +610,9 @@ def _number(
         value = math.nan
     if not math.isfinite(value) or (minimum is not None and value < minimum):
         valid = "a finite number" if minimum is None else f"a finite number >= {minimum:g}"
-        raise URDFError(f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {valid}")
+        raise ModelFileError(f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {valid}")
     if bound is not None and abs(value) > bound:
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <{element.tag} {attribute}={quoted(text)}>: must be within +-{bound:g}"
         )
     return value
@@ -668,11 +633,11 @@ def _check_inertial(path: Path, link) -> None:
         _origin_values(path, origin, where)
     mass = inertial.find("mass")
     if mass is None or mass.get("value") is None:
-        raise URDFError(f"{where}: missing <mass value=...>")
+        raise ModelFileError(f"{where}: missing <mass value=...>")
     _number(where, mass, "value", minimum=0.0)
     inertia = inertial.find("inertia")
     if inertia is None:
-        raise URDFError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
+        raise ModelFileError(f"{where}: missing <inertia ixx=... iyy=... izz=...>")
     values = {n: _number(where, inertia, n) or 0.0 for n in INERTIA_ATTRIBUTES}
     check_inertia(where, values)
 
@@ -696,7 +661,7 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refu
             rotors).
 
     Raises:
-        URDFError: not positive semi-definite, or principal moments that
+        ModelFileError: not positive semi-definite, or principal moments that
             violate the triangle inequality (both within :data:`INERTIA_REL_TOL`).
     """
     inertia_matrix = np.array(
@@ -708,7 +673,7 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refu
     )
     eig = np.linalg.eigvalsh(inertia_matrix)
     if eig[0] < -INERTIA_REL_TOL * max(1.0, float(np.max(np.abs(eig)))):
-        raise URDFError(
+        raise ModelFileError(
             f"{where}: <inertia> is not positive semi-definite (eigenvalues "
             f"{np.array2string(eig, precision=6)} kg m^2); a rigid body's rotational "
             "inertia has non-negative eigenvalues"
@@ -721,7 +686,7 @@ def check_inertia(where: str, values: dict[str, float], *, triangle: str = "refu
             "violate the triangle inequality I1 + I2 >= I3 (no mass distribution has them)"
         )
         if triangle == "refuse":
-            raise URDFError(message)
+            raise ModelFileError(message)
         logger.warning("%s; kept", message)
 
 
@@ -753,7 +718,7 @@ def _check_joint(path: Path, joint) -> None:
         }
         lower, upper = bounds["lower"], bounds["upper"]
         if lower is not None and upper is not None and lower > upper:
-            raise URDFError(f"{where} <limit>: lower={lower:g} exceeds upper={upper:g}")
+            raise ModelFileError(f"{where} <limit>: lower={lower:g} exceeds upper={upper:g}")
 
 
 def _origin(path: Path, element) -> pin.SE3:
@@ -780,22 +745,22 @@ def read_xml(path: Path, *, what: str = "URDF file"):
         what: what the file is, for messages ("URDF file", "overlay file").
 
     Raises:
-        URDFError: the file is missing, is not a regular file, is larger than
+        ModelFileError: the file is missing, is not a regular file, is larger than
             :data:`closedchain._io.MAX_XML_BYTES`, is not well-formed XML or
             declares a DTD.
     """
-    raw = read_input_bytes(path, limit=MAX_XML_BYTES, what=what, error=URDFError)
+    raw = read_input_bytes(path, limit=MAX_XML_BYTES, what=what, error=ModelFileError)
     if _declares_doctype(raw):
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: a DOCTYPE/DTD is not allowed in the {what} (entity expansion is refused)"
         )
     try:
         root = etree.fromstring(raw, _safe_parser(), base_url=str(path))
     except etree.XMLSyntaxError as exc:
-        raise URDFError(f"{path}: malformed XML: {exc}") from exc
+        raise ModelFileError(f"{path}: malformed XML: {exc}") from exc
     docinfo = root.getroottree().docinfo
     if docinfo.internalDTD is not None or docinfo.doctype:
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: a DOCTYPE/DTD is not allowed in the {what} (entity expansion is refused)"
         )
     return root
@@ -817,7 +782,9 @@ def check_tree_size(where: str, joints: int, nv: int, max_nv: int | None) -> Non
         )
 
 
-def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> URDFPlus:
+def parse_urdf(
+    path: str | Path, *, element=None, max_nv: int | None = None
+) -> MechanismDescription:
     """Read a URDF file and its URDF+ extension elements.
 
     Args:
@@ -834,7 +801,7 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
         order of its bodies) and the URDF+ extensions.
 
     Raises:
-        URDFError: the file is missing, is not well-formed XML, declares a DTD,
+        ModelFileError: the file is missing, is not well-formed XML, declares a DTD,
             or an element is invalid (unknown loop type, unknown link, zero
             axis, transmission naming a missing joint, ...). The message names
             the file, line and element and the valid choices.
@@ -891,18 +858,17 @@ def parse_urdf(path: str | Path, *, element=None, max_nv: int | None = None) -> 
     path = Path(path)
     root = read_xml(path) if element is None else element
     if root.tag != "robot":
-        raise URDFError(f"{path}: root element is <{root.tag}>, expected <robot>")
+        raise ModelFileError(f"{path}: root element is <{root.tag}>, expected <robot>")
 
     link_elements, joint_elements = root.findall("link"), root.findall("joint")
     if not link_elements:
-        raise URDFError(f"{path}: <robot> has no <link> elements")
+        raise ModelFileError(f"{path}: <robot> has no <link> elements")
     nv = sum(URDF_JOINT_NV.get(e.get("type"), 0) for e in joint_elements)
     check_tree_size(str(path), len(joint_elements), nv, max_nv)
     return _read_robot(path, root)
 
 
-
-def read_overlay(base: URDFPlus, path: Path, root) -> URDFPlus:
+def read_overlay(base: MechanismDescription, path: Path, root) -> MechanismDescription:
     """Return a base model with an overlay's links, joints, loops and transmissions merged.
 
     The overlay's elements are checked as :func:`parse_urdf` checks a file's (messages
@@ -920,13 +886,15 @@ def read_overlay(base: URDFPlus, path: Path, root) -> URDFPlus:
         overlay's ``<robot name>``, else the base's).
 
     Raises:
-        URDFError: see :func:`parse_urdf`; an overlay joint whose child is a link the
+        ModelFileError: see :func:`parse_urdf`; an overlay joint whose child is a link the
             base's tree already holds.
     """
     return _read_robot(path, root, base=base)
 
 
-def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
+def _read_robot(
+    path: Path, root, *, base: MechanismDescription | None = None
+) -> MechanismDescription:
     """Return what a ``<robot>`` element says, merged into ``base`` (None: a whole file)."""
     _check_layout(path, root)
     if root.get("name") is not None:  # optional: the file's stem stands in
@@ -947,7 +915,7 @@ def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
 
     # A loop may name the world (WORLD_LINK) even when no link has that name.
     loop_links = links if WORLD_LINK in links else (*links, WORLD_LINK)
-    children = {} if base is None else _children(base.description)
+    children = {} if base is None else _children(base.tree)
     children.update(
         {
             e.get("name"): e.find("child").get("link")
@@ -971,7 +939,7 @@ def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
     names = [lp.name for lp in loops]
     for name in set(names):
         if names.count(name) > 1:
-            raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
+            raise ModelFileError(f"{path}: loop name {quoted(name)} is used more than once")
 
     actuated = list(base.actuated if base else ())
     actuated += [j for j in _parse_transmissions(path, root, joints) if j not in actuated]
@@ -982,17 +950,17 @@ def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
         if flag is None:
             continue
         if flag not in ("true", "false"):
-            raise URDFError(
+            raise ModelFileError(
                 f'{_where(path, je)}: independent={quoted(flag)} must be "true" or "false"'
             )
         if flag == "true":
             if je.get("type") == "fixed":
-                raise URDFError(f"{_where(path, je)}: a fixed joint cannot be independent")
+                raise ModelFileError(f"{_where(path, je)}: a fixed joint cannot be independent")
             independent.append(je.get("name"))
 
     scenes = root.findall("scene")
     if len(scenes) > 1:
-        raise URDFError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
+        raise ModelFileError(f"{_where(path, scenes[1])}: more than one <scene> (at most one)")
     scene = _parse_scene(path, scenes[0], joints) if scenes else (base.scene if base else None)
     springs = tuple(
         spring for je in joint_elements if (spring := _parse_spring(path, je, joints)) is not None
@@ -1001,9 +969,9 @@ def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
     dampings = tuple(d for d, _ in dynamics if d is not None)
     armatures = tuple(r for _, r in dynamics if r is not None)
     name = root.get("name", base.robot_name if base else path.stem)
-    return URDFPlus(
+    return MechanismDescription(
         path=path,
-        description=_describe(path, root, name, base.description if base else None),
+        tree=_describe(path, root, name, base.tree if base else None),
         robot_name=name,
         links=links,
         joints=joints,
@@ -1018,7 +986,7 @@ def _read_robot(path: Path, root, *, base: URDFPlus | None = None) -> URDFPlus:
     )
 
 
-def _children(description: MechanismDescription) -> dict[str, str]:
+def _children(description: TreeDescription) -> dict[str, str]:
     """Return joint name -> the body it holds, for every joint of a description."""
     out = {b.fixed_joint: b.name for b in description.bodies if b.fixed_joint}
     out.update({j.name: b.name for b in description.bodies for j in b.joints})
@@ -1124,7 +1092,7 @@ def _numbers(
         values = ()
     if len(values) != count or not all(math.isfinite(v) and (signed or v >= 0.0) for v in values):
         valid = "finite number(s)" if signed else "finite number(s) >= 0"
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <{element.tag} {attribute}={quoted(text)}>: must be {count} {valid}"
         )
     return values
@@ -1144,7 +1112,7 @@ def _material_rgba(path: Path, material, named: dict[str, tuple[float, ...]]):
     except ValueError:
         numbers = []
     if len(numbers) != RGBA_SIZE or not all(math.isfinite(x) for x in numbers):
-        raise URDFError(
+        raise ModelFileError(
             f"{_where(path, material)} <color rgba={quoted(text)}>: must be "
             f"{RGBA_SIZE} finite numbers"
         )
@@ -1191,7 +1159,7 @@ def _visuals(path: Path, link, named: dict[str, tuple[float, ...]]) -> tuple[Vis
         else:
             filename = shape.get("filename")
             if not filename:
-                raise URDFError(f"{where} <mesh>: missing filename=")
+                raise ModelFileError(f"{where} <mesh>: missing filename=")
             scale = (
                 (1.0, 1.0, 1.0)
                 if shape.get("scale") is None
@@ -1215,7 +1183,7 @@ def _tree_edges(
         where = _where(path, joint)
         jtype = joint.get("type")
         if jtype not in URDF_JOINT_TYPES:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: unknown joint type {quoted(jtype)}; valid: {', '.join(URDF_JOINT_TYPES)}"
             )
         ends = {}
@@ -1223,31 +1191,33 @@ def _tree_edges(
             end = joint.find(tag)
             name = None if end is None else end.get("link")
             if name is None:
-                raise URDFError(f"{where}: missing <{tag} link=...>")
+                raise ModelFileError(f"{where}: missing <{tag} link=...>")
             if name not in known:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: <{tag} link={quoted(name)}> names no <link> of this file; "
                     f"links: {name_list(links)}"
                 )
             ends[tag] = name
         if ends["parent"] == ends["child"]:
-            raise URDFError(f"{where}: parent and child are the same link {quoted(ends['child'])}")
+            raise ModelFileError(
+                f"{where}: parent and child are the same link {quoted(ends['child'])}"
+            )
         if ends["child"] in held:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: link {quoted(ends['child'])} is already the child of joint "
                 f"{quoted(held[ends['child']])}; a link has one parent joint (close a loop "
                 "with a <loop> element)"
             )
         limit = joint.find("limit")
         if limit is None and jtype in LIMITED_JOINT_TYPES:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: a {jtype} joint needs a <limit lower upper effort velocity> "
                 "(URDF readers refuse it without)"
             )
         if limit is not None:
             for attribute in ("effort", "velocity"):
                 if limit.get(attribute) is None:
-                    raise URDFError(
+                    raise ModelFileError(
                         f"{where} <limit>: missing {attribute}= (URDF readers refuse a "
                         "<limit> without it)"
                     )
@@ -1281,9 +1251,7 @@ def tree_order(
     return tuple(out)
 
 
-def _describe(
-    path: Path, root, name: str, base: MechanismDescription | None
-) -> MechanismDescription:
+def _describe(path: Path, root, name: str, base: TreeDescription | None) -> TreeDescription:
     """Return the description of a checked ``<robot>``'s tree, as Pinocchio's URDF reader
     builds it, merged into ``base`` (an overlay's) or whole (None).
 
@@ -1321,7 +1289,7 @@ def _describe(
     roots = [b.name for b in bodies.values() if b.parent is None]
     if len(roots) != (0 if world_frame else 1):
         found = f"{len(roots)} root links ({name_list(roots)})" if roots else "no root link"
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: the links and joints make no tree: {found}; valid: one root link, "
             "every other link the child of one joint (close loops with <loop> elements)"
         )
@@ -1330,13 +1298,13 @@ def _describe(
         ordered = (*base.bodies, *(b for b in ordered if b.name in own))
     if len(ordered) != len(bodies):
         reached = {b.name for b in ordered}
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: the links and joints make no tree: links "
             f"{name_list(n for n in bodies if n not in reached)} are on a cycle of joints, "
             f"not below the root link {quoted(roots[0] if roots else WORLD_LINK)} (close "
             "loops with <loop> elements)"
         )
-    return MechanismDescription(
+    return TreeDescription(
         name=name,
         path=path,
         bodies=tuple(ordered),
@@ -1357,16 +1325,16 @@ def _parse_transmissions(path: Path, root, joints: dict[str, str]) -> tuple[str,
         _check_children(path, trans, TRANSMISSION_CHILDREN, strict=False)
         trans_joints = trans.findall("joint")
         if not trans_joints:
-            raise URDFError(f"{_where(path, trans)}: has no <joint> child")
+            raise ModelFileError(f"{_where(path, trans)}: has no <joint> child")
         for je in trans_joints:
             jname = je.get("name")
             if jname not in joints:
-                raise URDFError(
+                raise ModelFileError(
                     f"{_where(path, trans)}: names joint {quoted(jname)}, which is not a <joint> "
                     f"of this file; joints: {', '.join(sorted(joints))}"
                 )
             if joints[jname] == "fixed":
-                raise URDFError(
+                raise ModelFileError(
                     f"{_where(path, trans)}: joint {quoted(jname)} is fixed and cannot be actuated"
                 )
             if jname not in actuated:
@@ -1389,7 +1357,7 @@ def _parse_dynamics(
     armature = _number(where, dynamics, "armature", minimum=0.0)
     friction = _number(where, dynamics, "friction", minimum=0.0)
     if armature is not None and damping is None and friction is None:
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <dynamics>: URDF readers (urdfdom) refuse a <dynamics> without damping "
             'or friction; add damping="0"'
         )
@@ -1415,17 +1383,17 @@ def _parse_spring(path: Path, joint, joints: dict[str, str]) -> JointSpring | No
     where = _where(path, joint)
     name = joint.get("name")
     if joints[name] not in SPRING_JOINT_TYPES:
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <dynamics>: a spring acts on one coordinate without wrap-around, and "
             f"this joint is {joints[name]}; valid joint types: {', '.join(SPRING_JOINT_TYPES)}"
         )
     stiffness = _number(where, dynamics, "spring_stiffness", minimum=0.0)
     if stiffness is None:
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <dynamics>: spring_reference without spring_stiffness [N m/rad or N/m]"
         )
     if dynamics.get("damping") is None and dynamics.get("friction") is None:
-        raise URDFError(
+        raise ModelFileError(
             f"{where} <dynamics>: URDF readers (urdfdom) refuse a <dynamics> without damping "
             'or friction; add damping="0"'
         )
@@ -1441,16 +1409,16 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
     _check_children(path, element, LOOP_CHILDREN, strict=True)
     ltype = element.get("type")
     if ltype not in LOOP_TYPES:
-        raise URDFError(
+        raise ModelFileError(
             f"{where}: unknown loop type {quoted(ltype)}; valid choices: {', '.join(LOOP_TYPES)}"
         )
 
     def child(tag: str, required: bool = True):
         found = element.findall(tag)
         if len(found) > 1:
-            raise URDFError(f"{where}: more than one <{tag}>")
+            raise ModelFileError(f"{where}: more than one <{tag}>")
         if not found and required:
-            raise URDFError(f"{where}: missing <{tag}>")
+            raise ModelFileError(f"{where}: missing <{tag}>")
         return found[0] if found else None
 
     ends, frames = {}, {}
@@ -1458,7 +1426,7 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
         end = child(tag)
         link, frame = end.get("link"), end.get("frame")
         if (link is None) == (frame is None):
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: <{tag}> needs exactly one of link= (a link) or frame= (any frame "
                 "of the tree: a link or a joint)"
             )
@@ -1466,13 +1434,13 @@ def _parse_loop(path: Path, element, links: tuple[str, ...]) -> LoopSpec:
             ends[tag] = frames[tag] = frame
             continue
         if link not in links:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: <{tag} link={quoted(link)}> names an unknown link; links: "
                 f"{name_list(links)} (or frame= for a joint's frame)"
             )
         ends[tag] = link
     if not frames and ends["predecessor"] == ends["successor"]:
-        raise URDFError(f"{where}: predecessor and successor are the same link")
+        raise ModelFileError(f"{where}: predecessor and successor are the same link")
 
     origins = {}
     for tag in ("predecessor_origin", "successor_origin"):
@@ -1507,13 +1475,13 @@ def _coupling_spec(
         if joints.get(jname) not in COUPLING_JOINT_TYPES:
             valid = sorted(j for j, t in joints.items() if t in COUPLING_JOINT_TYPES)
             found = "no joint of this file" if jname not in joints else f"a {joints[jname]} joint"
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: a coupling ties 1-dof joints without wrap-around, and "
                 f"{quoted(jname)} is {found}; valid: revolute or prismatic joints "
                 f"({name_list(valid)})"
             )
     if joint == mimics:
-        raise URDFError(f"{where}: joint {quoted(joint)} cannot mimic itself")
+        raise ModelFileError(f"{where}: joint {quoted(joint)} cannot mimic itself")
     multiplier = _number(where, element, "multiplier", bound=COUPLING_MULTIPLIER_MAX)
     offset = _number(where, element, "offset", bound=COUPLING_OFFSET_MAX)
     return LoopSpec(
@@ -1540,7 +1508,7 @@ def _parse_coupling(path: Path, element, joints: dict[str, str], children) -> Lo
     found = {tag: element.findall(tag) for tag in COUPLING_CHILDREN}
     for tag, items in found.items():
         if len(items) != 1:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: a coupling loop needs exactly one <{tag}>, found {len(items)}"
             )
     return _coupling_spec(
@@ -1560,7 +1528,7 @@ def _parse_mimic(path: Path, joint, joints: dict[str, str], children) -> LoopSpe
     mimics = joint.findall("mimic")
     where = _where(path, joint)
     if len(mimics) > 1:
-        raise URDFError(f"{where}: more than one <mimic>")
+        raise ModelFileError(f"{where}: more than one <mimic>")
     return _coupling_spec(
         where,
         joint.get("name") + MIMIC_SUFFIX,
@@ -1581,7 +1549,7 @@ def _scene_joint(path: Path, element, joints: dict[str, str]) -> str:
     name = element.get("joint")
     if joints.get(name) not in SCENE_JOINT_TYPES:
         valid = sorted(j for j, t in joints.items() if t in SCENE_JOINT_TYPES)
-        raise URDFError(
+        raise ModelFileError(
             f"{_where(path, element)}: joint={quoted(name)} is not a revolute or prismatic joint "
             f"of this file; valid: {', '.join(valid)}"
         )
@@ -1598,18 +1566,18 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
         name = _scene_joint(path, e, joints)
         value = _number(_where(path, e), e, "value")
         if value is None:
-            raise URDFError(f"{_where(path, e)}: missing value=")
+            raise ModelFileError(f"{_where(path, e)}: missing value=")
         initial[name] = value
         rate = _number(_where(path, e), e, "velocity", bound=SCENE_RATE_BOUND)
         if rate is not None:
             velocity[name] = rate
     tracks = element.findall("track")
     if len(tracks) > 1:
-        raise URDFError(f"{where}: more than one <track>")
+        raise ModelFileError(f"{where}: more than one <track>")
     if not tracks:
         return SceneSpec(initial=initial, velocity=velocity, line=element.sourceline or 0)
     if velocity:
-        raise URDFError(
+        raise ModelFileError(
             f"{where}: <initial velocity=...> is for passive scenes; a <track> starts "
             "from its references' velocity (leave out velocity= or the <track>)"
         )
@@ -1619,7 +1587,7 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
     for gain in ("kp", "kd"):
         value = _number(_where(path, track), track, gain, minimum=0.0)
         if value is None:
-            raise URDFError(f"{_where(path, track)}: missing {gain}= (a gain >= 0)")
+            raise ModelFileError(f"{_where(path, track)}: missing {gain}= (a gain >= 0)")
         gains[gain] = value
     refs = []
     for e in track.findall("sinusoid"):
@@ -1633,5 +1601,5 @@ def _parse_scene(path: Path, element, joints: dict[str, str]) -> SceneSpec:
             )
         )
     if not refs:
-        raise URDFError(f"{_where(path, track)}: has no <sinusoid joint=...> child")
+        raise ModelFileError(f"{_where(path, track)}: has no <sinusoid joint=...> child")
     return SceneSpec(initial=initial, track=tuple(refs), line=element.sourceline or 0, **gains)

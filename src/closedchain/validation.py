@@ -94,15 +94,15 @@ from .dynamics.pinocchio_method import pinocchio_constrained_dynamics
 from .exceptions import (
     AssemblyError,
     InvalidArgumentError,
+    ModelFileError,
     SingularConfigurationError,
     UnknownChoiceError,
-    URDFError,
     ValidationUnavailableError,
     check_settings,
 )
 from .kinematics import assemble, project_velocity, random_consistent_state, singularity_measures
 from .mechanism import Mechanism
-from .urdf import COUPLING, URDFPlus, read_xml
+from .urdf import COUPLING, MechanismDescription, read_xml
 
 logger = logging.getLogger(__name__)
 
@@ -388,13 +388,13 @@ def _coupling_relations(mech: Mechanism) -> dict[int, tuple[int, float, float]]:
         for spec in mech.declared.loops
         if spec.type == COUPLING
     }
-    for name, (leader, multiplier, offset) in _file_mimics(mech.urdf).items():
+    for name, (leader, multiplier, offset) in _file_mimics(mech.description).items():
         if model.existJointName(name) and model.existJointName(leader):
             relations[model.getJointId(name)] = (model.getJointId(leader), multiplier, offset)
     return relations
 
 
-def _file_mimics(urdf: URDFPlus) -> dict[str, tuple[str, float, float]]:
+def _file_mimics(urdf: MechanismDescription) -> dict[str, tuple[str, float, float]]:
     """Return joint -> (mimicked joint, multiplier, offset) of the ``<mimic>`` elements of
     the URDF files a model was read from (its file and its links' files; URDF's
     defaults 1 and 0), read with a plain XML parse; files that are not URDF are passed."""
@@ -404,7 +404,7 @@ def _file_mimics(urdf: URDFPlus) -> dict[str, tuple[str, float, float]]:
             continue
         try:
             root = read_xml(Path(path))
-        except URDFError as exc:  # moved or changed since it was loaded
+        except ModelFileError as exc:  # moved or changed since it was loaded
             logger.info("%s: its <mimic> elements are not read again (%s)", path, exc)
             continue
         if root.tag != "robot":  # an MJCF model

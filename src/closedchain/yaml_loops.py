@@ -53,9 +53,9 @@ import pinocchio as pin
 import yaml
 
 from ._io import read_input_bytes
-from .description import NEUTRAL_Q0, BodyDescription, JointDescription, MechanismDescription
-from .exceptions import URDFError, quoted, shorten
-from .urdf import NEAR_MISS_CUTOFF, LoopSpec, URDFPlus, name_list, tree_order
+from .description import NEUTRAL_Q0, BodyDescription, JointDescription, TreeDescription
+from .exceptions import ModelFileError, quoted, shorten
+from .urdf import NEAR_MISS_CUTOFF, LoopSpec, MechanismDescription, name_list, tree_order
 
 __all__ = [
     "LoopsYAML",
@@ -187,7 +187,7 @@ def _check_name(path: Path, where: str, name: str) -> None:
     """Refuse a name with a control character or a lone surrogate (no XML can hold it)."""
     bad = _BAD_NAME_CHARACTER.search(name)
     if bad is not None:
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: {where} = {quoted(name)} holds the character {bad[0]!r}; valid: names "
             "without control characters or lone surrogates"
         )
@@ -199,7 +199,7 @@ def _names(path: Path, data: dict, key: str) -> list[str]:
     if value is None:
         return []
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
-        raise URDFError(f"{path}: {key} must be a list of names, got {shorten(value)}")
+        raise ModelFileError(f"{path}: {key} must be a list of names, got {shorten(value)}")
     for i, name in enumerate(value):
         _check_name(path, f"{key}[{i}]", name)
     return value
@@ -217,23 +217,25 @@ def _first_repeat(names: list) -> tuple[int, int] | None:
 
 def _load_yaml(path: Path):
     """Return the YAML content of a loops file, read within the bounds of this module."""
-    raw = read_input_bytes(path, limit=MAX_YAML_BYTES, what="loops file", error=URDFError)
+    raw = read_input_bytes(path, limit=MAX_YAML_BYTES, what="loops file", error=ModelFileError)
     try:
         text = raw.decode("utf-8")
         _check_events(text)
         return yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader)
     except _LimitError as exc:
-        raise URDFError(f"{path}: line {exc.line}: {exc}; valid: a loops file") from None
+        raise ModelFileError(f"{path}: line {exc.line}: {exc}; valid: a loops file") from None
     except UnicodeDecodeError as exc:
-        raise URDFError(f"{path}: not a YAML file: not UTF-8 at byte {exc.start}") from None
+        raise ModelFileError(f"{path}: not a YAML file: not UTF-8 at byte {exc.start}") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = f"line {mark.line + 1}: " if mark is not None else ""
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: not a YAML file: {line}{shorten(str(exc.problem), YAML_PROBLEM_MAX)}"
         ) from None
     except (yaml.YAMLError, ValueError) as exc:  # ValueError: an int beyond 4300 digits
-        raise URDFError(f"{path}: not a YAML file: {shorten(str(exc), YAML_PROBLEM_MAX)}") from None
+        raise ModelFileError(
+            f"{path}: not a YAML file: {shorten(str(exc), YAML_PROBLEM_MAX)}"
+        ) from None
 
 
 def read_loops_yaml(path: str | Path) -> LoopsYAML:
@@ -246,7 +248,7 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
         Its loops, motors and joint conversions.
 
     Raises:
-        URDFError: the file cannot be read, is not a regular file, is larger than
+        ModelFileError: the file cannot be read, is not a regular file, is larger than
             :data:`MAX_YAML_BYTES`, is not UTF-8 YAML, uses more than
             :data:`MAX_YAML_ALIASES` aliases or nests deeper than
             :data:`MAX_YAML_DEPTH`; an unknown key (lists the valid ones); a value
@@ -258,10 +260,10 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     path = Path(path)
     data = _load_yaml(path)
     if not isinstance(data, dict):
-        raise URDFError(f"{path}: expected a mapping of keys {', '.join(YAML_KEYS)}")
+        raise ModelFileError(f"{path}: expected a mapping of keys {', '.join(YAML_KEYS)}")
     for key in data:
         if key not in YAML_KEYS:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: unknown key {quoted(key) if isinstance(key, str) else shorten(key)}; "
                 f"valid keys: {', '.join(YAML_KEYS)}"
             )
@@ -270,7 +272,7 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     if not isinstance(pairs, list) or not all(
         isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p) for p in pairs
     ):
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: closed_loop must be a list of pairs of frame names, got {shorten(pairs)}"
         )
     for i, pair in enumerate(pairs):
@@ -278,24 +280,24 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
             _check_name(path, f"closed_loop[{i}][{k}]", name)
     types = _names(path, data, "type")
     if len(types) != len(pairs):
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: closed_loop has {len(pairs)} pairs but type has {len(types)} entries; "
             "valid: one type per pair"
         )
     loops = []
     for i, ((a, b), kind) in enumerate(zip(pairs, types, strict=True)):
         if kind.casefold() not in LOOP_TYPE_OF:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: type[{i}] = {quoted(kind)} is not a constraint type; valid: 6d, 3d"
             )
         if a == b:
-            raise URDFError(f"{path}: closed_loop[{i}] pairs frame {quoted(a)} with itself")
+            raise ModelFileError(f"{path}: closed_loop[{i}] pairs frame {quoted(a)} with itself")
         loops.append((a, b, LOOP_TYPE_OF[kind.casefold()]))
     seen: dict[tuple[str, str], int] = {}
     for i, (a, b, _) in enumerate(loops):
         if (a, b) in seen or (b, a) in seen:
             j = seen.get((a, b), seen.get((b, a)))
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: closed_loop[{i}] repeats closed_loop[{j}] ({quoted(a)}, {quoted(b)})"
             )
         seen[a, b] = i
@@ -304,7 +306,7 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     joints = _names(path, data, "joint_name")
     kinds = _names(path, data, "joint_type")
     if len(joints) != len(kinds):
-        raise URDFError(
+        raise ModelFileError(
             f"{path}: joint_name has {len(joints)} entries but joint_type has {len(kinds)}; "
             "valid: one type per joint"
         )
@@ -312,13 +314,13 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
         repeat = _first_repeat(names)
         if repeat is not None:
             j, i = repeat
-            raise URDFError(f"{path}: {key}[{i}] repeats {key}[{j}] ({quoted(names[i])})")
+            raise ModelFileError(f"{path}: {key}[{i}] repeats {key}[{j}] ({quoted(names[i])})")
     conversions = []
     for i, (joint, kind) in enumerate(zip(joints, kinds, strict=True)):
         upper = kind.upper()
         m = _UJOINT.fullmatch(upper)
         if upper not in ("SPHERICAL", "FIXED") and (m is None or m[1] == m[2]):
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: joint_type[{i}] = {quoted(kind)} (joint {quoted(joint)}) is not a "
                 f"conversion; valid: {', '.join(JOINT_CONVERSIONS)}"
             )
@@ -328,7 +330,9 @@ def read_loops_yaml(path: str | Path) -> LoopsYAML:
     )
 
 
-def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> URDFPlus:
+def apply_loops_yaml(
+    urdf: MechanismDescription, loops: LoopsYAML, root, *, base: Path
+) -> MechanismDescription:
     """Return a base URDF's tree with a loops YAML's conversions, loops and motors.
 
     Args:
@@ -348,7 +352,7 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
     over it silently.
 
     Raises:
-        URDFError: ``joint_name`` names a joint that cannot be converted so, one
+        ModelFileError: ``joint_name`` names a joint that cannot be converted so, one
             whose conversion would reuse a name, or one that the base's loops,
             scene, transmissions, springs or ``independent`` flags name;
             ``name_mot`` names no movable joint of the converted tree (lists
@@ -356,7 +360,7 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
             (:func:`closedchain.load`).
     """
     path = loops.path
-    bodies = list(urdf.description.bodies)
+    bodies = list(urdf.tree.bodies)
     index = {j.name: k for k, b in enumerate(bodies) for j in b.joints}
     joints, links = dict(urdf.joints), list(urdf.links)
     taken = set(joints) | set(links)
@@ -374,7 +378,7 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
                 bodies[index[name]] = replace(bodies[index[name]], joints=(), fixed_joint=name)
                 joints[name] = "fixed"
         elif jtype not in CONVERTIBLE_JOINT_TYPES:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where} is a {jtype} joint, which {kind} cannot replace; valid: a "
                 f"{', '.join(CONVERTIBLE_JOINT_TYPES)} joint"
             )
@@ -413,12 +417,12 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
     actuated = list(urdf.actuated)
     for i, name in enumerate(loops.motors):
         if name in converted:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: name_mot[{i}] = {quoted(name)} is converted to {converted[name]} by "
                 "joint_type, so it cannot be a motor"
             )
         if name not in movable_set:
-            raise URDFError(
+            raise ModelFileError(
                 f"{path}: name_mot[{i}] = {quoted(name)} is not a movable <joint> of {base}"
                 f"{_did_you_mean(name, movable)}; movable joints: {name_list(movable)}"
             )
@@ -443,7 +447,7 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
         )
         for b in bodies
     ]
-    description = fuse_ball_chains(replace(urdf.description, bodies=tree_order(bodies)))
+    description = fuse_ball_chains(replace(urdf.tree, bodies=tree_order(bodies)))
     new_loops = tuple(
         LoopSpec(
             name=f"{a}{LOOP_NAME_SEPARATOR}{b}",
@@ -461,11 +465,11 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
     names = [spec.name for spec in (*urdf.loops, *new_loops)]
     for name in set(names):
         if names.count(name) > 1:
-            raise URDFError(f"{path}: loop name {quoted(name)} is used more than once")
+            raise ModelFileError(f"{path}: loop name {quoted(name)} is used more than once")
     return replace(
         urdf,
         path=path,
-        description=description,
+        tree=description,
         joints=joints,
         links=tuple(links),
         loops=urdf.loops + new_loops,
@@ -473,7 +477,7 @@ def apply_loops_yaml(urdf: URDFPlus, loops: LoopsYAML, root, *, base: Path) -> U
     )
 
 
-def _refuse_referenced(urdf: URDFPlus, name: str, where: str, base: Path) -> None:
+def _refuse_referenced(urdf: MechanismDescription, name: str, where: str, base: Path) -> None:
     """Refuse to convert a joint that the base's couplings, scene, transmissions, springs
     or ``independent`` flags name (they would name a joint that is no longer there)."""
     users = [
@@ -489,7 +493,7 @@ def _refuse_referenced(urdf: URDFPlus, name: str, where: str, base: Path) -> Non
         ),
     ]
     if users:
-        raise URDFError(
+        raise ModelFileError(
             f"{where}: {base} names the joint in {', '.join(dict.fromkeys(users))}, so it "
             "cannot be converted"
         )
@@ -513,7 +517,7 @@ BALL_AXES_MIN_DET = 1e-6
 BALL_CHAIN_KINDS = ("revolute", "continuous")
 
 
-def find_ball_chains(description: MechanismDescription) -> list[tuple[str, str, str]]:
+def find_ball_chains(description: TreeDescription) -> list[tuple[str, str, str]]:
     """Return the chains of three revolute joints that make a ball joint, as the corpus writes one.
 
     example-parallel-robots writes a ball joint as three revolute joints in a
@@ -583,7 +587,7 @@ def find_ball_chains(description: MechanismDescription) -> list[tuple[str, str, 
     return chains
 
 
-def fuse_ball_chains(description: MechanismDescription) -> MechanismDescription:
+def fuse_ball_chains(description: TreeDescription) -> TreeDescription:
     """Return the description with each ball chain (:func:`find_ball_chains`) one spherical joint.
 
     The spherical joint takes the last joint's name and stands where its frame
@@ -655,7 +659,7 @@ def _replace_by_revolute_pair(bodies: list, k: int, axes: str, taken: set[str], 
     link = f"{names[0]}_link"
     for new in (*names, link):
         if new in taken:
-            raise URDFError(
+            raise ModelFileError(
                 f"{where}: converting it needs the name {new!r}, which the tree already uses"
             )
         taken.add(new)

@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..constraints import ConstraintLayer, RowInfo
-from ..exceptions import LoopClosureError, SingularConfigurationError, URDFError
+from ..exceptions import LoopClosureError, ModelFileError, SingularConfigurationError
 from .assembly import SelectionSettings, layer_jacobian, layer_phi
 from .partition import PIVOT_TIE_RTOL, partition_coordinates
 from .secular import _sigma_min, _sigma_min_with_each_row
@@ -383,7 +383,7 @@ class LoopClosure:
             marked_names: the joints marked independent, for error messages.
 
         Raises:
-            URDFError: the marked coordinates do not match the mobility or
+            ModelFileError: the marked coordinates do not match the mobility or
                 leave a singular J_D.
         """
         all_idx = np.arange(self.nv)
@@ -399,12 +399,12 @@ class LoopClosure:
         if independent is not None:
             dep = np.setdiff1d(all_idx, independent)
             if len(independent) != mobility:
-                raise URDFError(
+                raise ModelFileError(
                     f"{where}: {len(independent)} coordinates are marked independent="
                     f'"true" ({", ".join(marked_names)}) but the mobility is {mobility}'
                 )
             if not cond_ok(dep):
-                raise URDFError(
+                raise ModelFileError(
                     f'{where}: the joints marked independent="true" '
                     f"({', '.join(marked_names)}) leave a singular J_D "
                     f"(condition number >= {cond_max:.0e} at a sampled configuration)"

@@ -111,6 +111,7 @@ _JOINT_KIND = {
 }
 _VALID_JOINTS = "revolute, continuous, prismatic (any axis), universal, spherical, free flyer"
 
+
 def _fmt(x) -> str:
     return " ".join(f"{float(v):.17g}" for v in np.ravel(x))
 

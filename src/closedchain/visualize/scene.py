@@ -171,7 +171,7 @@ def build_scene(
         )
     drawn = {v.link for v in visuals} | {m.link for m in markers}
     root = mech.name
-    bodies = _bodies(mech, [ln for ln in mech.urdf.links if ln in drawn], root)
+    bodies = _bodies(mech, [ln for ln in mech.description.links if ln in drawn], root)
     placements = body_placements(mech, bodies, qs)
 
     # Markers are sized from their pin, at least a fraction of the swept volume.

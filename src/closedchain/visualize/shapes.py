@@ -18,7 +18,7 @@ from ..exceptions import ClosedChainError, quoted
 from ..urdf import COUPLING, WORLD_LINK, _declares_doctype
 
 if TYPE_CHECKING:
-    from ..description import MechanismDescription
+    from ..description import TreeDescription
     from ..mechanism import Mechanism
 
 from .settings import (
@@ -239,7 +239,7 @@ def read_scene_visuals(
     a URDF's ``<visual>`` elements (materials resolved by name against the
     robot's top-level ``<material>`` elements by the reader), an MJCF model's
     geoms (mesh files as MuJoCo found them). A URDF's mesh files are looked up
-    beside the file that names the link (``URDFPlus.link_files``: a base URDF
+    beside the file that names the link (``MechanismDescription.link_files``: a base URDF
     under an overlay; ``file://`` URLs as paths, ``package://pkg/sub`` as ``sub``
     in that directory and its parents, and in the share directory of the
     packages of :data:`TRUSTED_PACKAGES`, i.e. example-robot-data's meshes for
@@ -270,11 +270,11 @@ def read_scene_visuals(
         raise ClosedChainError(
             f"AnimationSettings.mesh_budget_bytes = {budget!r}; valid: a number of bytes >= 0"
         )
-    links, children = _description_links(mech.urdf.description, settings.default_rgba)
+    links, children = _description_links(mech.description.tree, settings.default_rgba)
     # Each link's meshes beside the file that names it (a base URDF under an overlay).
-    link_files = mech.urdf.link_files
+    link_files = mech.description.link_files
     trusted = _trusted_roots()
-    for loop in mech.urdf.loops:  # the cut joints' frames: where the loops close
+    for loop in mech.description.loops:  # the cut joints' frames: where the loops close
         children.setdefault(loop.predecessor, []).append(loop.predecessor_origin.translation)
         children.setdefault(loop.successor, []).append(loop.successor_origin.translation)
     bare_radius = model_stick_radius(children)
@@ -339,7 +339,7 @@ class _MeshFile:
     scale: tuple[float, ...] | None
 
 
-def _description_links(description: MechanismDescription, default_rgba):
+def _description_links(description: TreeDescription, default_rgba):
     """Return the bodies as (name, [(kind, dims or mesh file, origin (4, 4), rgba)], has
     mass), in the description's order (the world first when it has visuals of its own),
     and body name -> origins of its child joints [m]."""
@@ -506,7 +506,7 @@ def joint_markers(
         cMj = np.linalg.inv(jMc)
         origin = cMj @ _frame_with_z(axis, offset * axis)
         out.append(JointMarker("actuated", name, child.name, origin, shape, pin_radius))
-    for spec in mech.urdf.loops:
+    for spec in mech.description.loops:
         if spec.type == COUPLING:  # it joins two coordinates, no two frames: no marker
             continue
         shape = "ring" if spec.type in ("revolute", "prismatic") else "ball"
