@@ -637,3 +637,18 @@ def test_q_from_places_a_planar_root_at_x_y_angle():
     expected = pin.SE3(pin.exp3(np.array([0.0, 0.0, angle])), np.array([x, y, 0.0]))
     placement = data.oMi[mech.model.getJointId("root_joint")]
     assert np.linalg.norm(pin.log6(placement.inverse() * expected).vector) < Q_FROM_TOL
+
+
+def test_the_former_names_still_reach_the_description(fourbar):
+    # Formerly Mechanism.urdf, URDFPlus and URDFError: the same objects, the first
+    # with a DeprecationWarning naming its successor.
+    from closedchain.description import MechanismDescription
+    from closedchain.urdf import URDFPlus
+
+    with pytest.warns(DeprecationWarning, match=r"use Mechanism\.description"):
+        old = fourbar.urdf
+    assert old is fourbar.description
+    assert isinstance(fourbar.description, MechanismDescription)
+    assert URDFPlus is MechanismDescription
+    assert cc.URDFError is cc.ModelFileError
+    assert [spec.name for spec in fourbar.description.loops] == ["C"]
