@@ -554,7 +554,8 @@ def main() -> None:
             EvaluationSettings(number=args.number, repeats=5),
         )
         write_rows(rows, out / "evaluation.csv", EVALUATION_COLUMNS)
-        (out / "evaluation.md").write_text(evaluation_markdown(rows))
+        with atomic_write(out / "evaluation.md", "w") as f:
+            f.write(evaluation_markdown(rows))
     if "stability" in args.parts:
         from tqdm import tqdm
 
@@ -565,7 +566,8 @@ def main() -> None:
             rows = execute(jobs, fn=run_stability_job, workers=args.workers, progress=bar.update)
         write_rows(rows, out / "stability.csv", STABILITY_COLUMNS)
         plot_stability_map(rows, out / "stability.png")
-        (out / "stability.md").write_text(stability_summary(rows))
+        with atomic_write(out / "stability.md", "w") as f:
+            f.write(stability_summary(rows))
     if "scaling" in args.parts:
         write_scaling_page(out, args.no_progress)
     if "percall" in args.parts:
