@@ -325,3 +325,184 @@ def test_corpus_robots_match_pinocchio(rng, robot):
         (dq, dv, dtau), _ = _pinocchio_derivatives(mech, q, v, tau)
         for ours, ref in ((d.da_dq, dq), (d.da_dv, dv), (d.da_dtau, dtau)):
             assert _rel(ours, ref) <= TOL_PINOCCHIO, robot
+
+
+# -- the 4-bar at 40 digits ---------------------------------------------------------------
+
+
+class _FourBarMP:
+    """The lesson's 4-bar (models/fourbar.urdf: rods of 1 kg, lengths in
+    FourBarClosedForms) in closed form at mpmath precision: M and h from the rods'
+    Lagrangian, the closure in the coupler's cut frame (conftest's phi_cut,
+    jacobian_cut, gamma_cut) and the KKT solve, all in the joint coordinates q."""
+
+    G = mpmath.mpf("9.81")  # gravity along -z [m/s^2], the lesson's -y
+
+    def __init__(self, cf) -> None:
+        self.a, self.b, self.c, self.d = (mpmath.mpf(str(x)) for x in (cf.a, cf.b, cf.c, cf.d))
+        self.T = mpmath.matrix([[1, 0, 0], [1, 1, 0], [0, 0, 1]])
+
+    @staticmethod
+    def _e(t):
+        return mpmath.matrix([mpmath.cos(t), mpmath.sin(t)])
+
+    @staticmethod
+    def _eperp(t):
+        return mpmath.matrix([-mpmath.sin(t), mpmath.cos(t)])
+
+    def _rods(self, th, thd):
+        """Per rod: (mass, inertia about the centre, J_theta (2 x 3) of the centre,
+        its bias acceleration (2,), angular-velocity row (1 x 3) in theta)."""
+        a, b, c = self.a, self.b, self.c
+        z = mpmath.matrix(2, 1)
+        ep = [self._eperp(t) for t in th]
+        e = [self._e(t) for t in th]
+        cols = [
+            [a / 2 * ep[0], z, z],
+            [a * ep[0], b / 2 * ep[1], z],
+            [z, z, c / 2 * ep[2]],
+        ]
+        bias = [
+            -a / 2 * thd[0] ** 2 * e[0],
+            -a * thd[0] ** 2 * e[0] - b / 2 * thd[1] ** 2 * e[1],
+            -c / 2 * thd[2] ** 2 * e[2],
+        ]
+        out = []
+        for k, length in enumerate((a, b, c)):
+            Jc = mpmath.matrix(2, 3)
+            for j in range(3):
+                Jc[0, j], Jc[1, j] = cols[k][j][0], cols[k][j][1]
+            w = mpmath.matrix(1, 3)
+            w[0, k] = 1
+            out.append((1, length**2 / 12, Jc, bias[k], w))
+        return out
+
+    def solve(self, q, v, tau):
+        """(a, lam) of the KKT system at (q, v, tau), mpmath vectors."""
+        q, v, tau = (mpmath.matrix(list(x)) for x in (q, v, tau))
+        th, thd = self.T * q, self.T * v
+        M, h = mpmath.matrix(3, 3), mpmath.matrix(3, 1)
+        for m, inertia, Jc, bias, w in self._rods(th, thd):
+            Jq, wq = Jc * self.T, w * self.T
+            M += m * Jq.T * Jq + inertia * wq.T * wq
+            h += m * Jq.T * bias
+            h += m * self.G * Jq[1, :].T
+        J, gamma = self._rows(th, thd)
+        K = mpmath.matrix(5, 5)
+        rhs = mpmath.matrix(5, 1)
+        for i in range(3):
+            rhs[i] = tau[i] - h[i]
+            for j in range(3):
+                K[i, j] = M[i, j]
+        for r in range(2):
+            rhs[3 + r] = -gamma[r]
+            for j in range(3):
+                K[3 + r, j] = K[j, 3 + r] = J[r, j]
+        x = mpmath.lu_solve(K, rhs)
+        return x
+
+    def _rows(self, th, thd):
+        """J (2 x 3, in q) and gamma (2,) of phi_cut = Q(theta3)^T phi (conftest)."""
+        a, b, c, d = self.a, self.b, self.c, self.d
+        c3, s3 = mpmath.cos(th[1]), mpmath.sin(th[1])
+        Q = mpmath.matrix([[-s3, -c3], [c3, -s3]])
+        dQ = mpmath.matrix([[-c3, s3], [-s3, -c3]])
+        phi = a * self._e(th[0]) + b * self._e(th[1]) - c * self._e(th[2])
+        phi[0] -= d
+        Jc = mpmath.matrix(2, 3)
+        for j, (length, sign) in enumerate(((a, 1), (b, 1), (c, -1))):
+            col = sign * length * self._eperp(th[j])
+            Jc[0, j], Jc[1, j] = col[0], col[1]
+        Jcut = Q.T * Jc
+        col = dQ.T * phi
+        Jcut[0, 1] += col[0]
+        Jcut[1, 1] += col[1]
+        Jdot_thd = -(
+            a * thd[0] ** 2 * self._e(th[0])
+            + b * thd[1] ** 2 * self._e(th[1])
+            - c * thd[2] ** 2 * self._e(th[2])
+        )
+        w3 = thd[1]
+        gamma = -Q.T * phi * w3**2 + 2 * w3 * dQ.T * (Jc * thd) + Q.T * Jdot_thd
+        return Jcut * self.T, gamma
+
+
+def test_fourbar_derivatives_agree_with_a_40_digit_reference(fourbar, fourbar_closed_forms, rng):
+    """(a, lam) and their derivatives in q, v and tau against the closed-form 4-bar solved
+    and differenced with mpmath at MP_DPS digits (central differences of step MP_STEP)."""
+    ref = _FourBarMP(fourbar_closed_forms)
+    with mpmath.workdps(MP_DPS):
+        for q, v, tau in _states(fourbar, rng, 3):
+            d = cc.forward_dynamics_derivatives(fourbar, q, v, tau, method="kkt")
+            x0 = ref.solve(q, v, tau)
+            np.testing.assert_allclose(
+                np.array(x0.tolist(), dtype=float).ravel(),
+                np.concatenate([d.a, d.lam]),
+                rtol=TOL_HIGH_PRECISION,
+                atol=TOL_HIGH_PRECISION,
+            )
+            args = [mpmath.matrix(list(x)) for x in (q, v, tau)]
+            for i, (da, dlam) in enumerate(
+                ((d.da_dq, d.dlam_dq), (d.da_dv, d.dlam_dv), (d.da_dtau, d.dlam_dtau))
+            ):
+                cols = []
+                for k in range(3):
+                    plus, minus = list(args), list(args)
+                    plus[i], minus[i] = args[i].copy(), args[i].copy()
+                    plus[i][k] += MP_STEP
+                    minus[i][k] -= MP_STEP
+                    cols.append((ref.solve(*plus) - ref.solve(*minus)) / (2 * MP_STEP))
+                exact = np.array([[float(c[r]) for c in cols] for r in range(5)])
+                assert _rel(np.vstack([da, dlam]), exact) <= TOL_HIGH_PRECISION, i
+
+
+# -- where the derivative is not defined, and bad input ------------------------------------
+
+#: The 4-bar's change point (a + d = b + c): theta2 = 180 deg with every link on the
+#: ground line, q = [theta2, theta3 - theta2, theta4]; J has rank 1 there.
+FOURBAR_CHANGE_POINT = np.array([np.pi, -np.pi, np.pi])
+
+
+#: Crank angles short of the change point [rad] of the growth test.
+NEAR_SINGULAR_OFFSETS = (1e-2, 1e-3)
+#: Fraction of the 1 / sigma^2 growth of max |dlam/dq| the test asks for (measured: 1.0).
+NEAR_SINGULAR_GROWTH = 0.5
+
+
+@pytest.mark.parametrize("method", ["kkt", "augmented-lagrangian"])
+def test_singular_position_is_refused(fourbar, method):
+    q = FOURBAR_CHANGE_POINT
+    assert np.max(np.abs(cc.compute_phi(fourbar, q))) < 1e-15
+    zero = np.zeros(fourbar.nv)
+    with pytest.raises(cc.SingularConfigurationError, match=r"KKT matrix.*(not defined|rank)"):
+        cc.forward_dynamics_derivatives(fourbar, q, zero, zero, method=method)
+
+
+def test_derivatives_grow_near_a_singular_position_and_stay_exact(fourbar, rng):
+    """Approaching the change point (sigma_min(J) ~ 0.2 times the crank's distance to it)
+    the multipliers' derivatives grow like 1 / sigma_min^2 and the derivatives still
+    match central differences (tau: a and lam are linear in it)."""
+    peaks = []
+    for offset in NEAR_SINGULAR_OFFSETS:
+        guess = FOURBAR_CHANGE_POINT - np.array([offset, 0.0, 0.0])
+        q = cc.assemble(fourbar, guess, fixed=["crank_joint"])
+        v = cc.project_velocity(fourbar, q, rng.standard_normal(fourbar.nv))
+        tau = rng.standard_normal(fourbar.nv)
+        d = cc.forward_dynamics_derivatives(fourbar, q, v, tau, method="kkt")
+        fd = _solution_differences(fourbar, q, v, tau)["tau"]
+        assert _rel(np.vstack([d.da_dtau, d.dlam_dtau]), fd) <= TOL_FD
+        peaks.append(np.max(np.abs(d.dlam_dq)))
+    ratio = NEAR_SINGULAR_OFFSETS[0] / NEAR_SINGULAR_OFFSETS[1]
+    assert peaks[1] >= NEAR_SINGULAR_GROWTH * ratio**2 * peaks[0]
+
+
+def test_bad_input_is_refused_in_one_line(fourbar):
+    zero = np.zeros(fourbar.nv)
+    with pytest.raises(cc.ClosedChainError, match=r"^q has shape \(2,\), expected \(3,\)$"):
+        cc.forward_dynamics_derivatives(fourbar, np.zeros(2), zero)
+    with pytest.raises(cc.ClosedChainError, match=r"^v contains non-finite values"):
+        cc.constraint_derivatives(fourbar, fourbar.q_ref, np.full(fourbar.nv, np.nan))
+    with pytest.raises(cc.ClosedChainError, match="settings"):
+        cc.forward_dynamics_derivatives(fourbar, fourbar.q_ref, zero, settings={"cond_max": 1})
+    with pytest.raises(cc.UnknownChoiceError, match="kkt"):
+        cc.forward_dynamics_derivatives(fourbar, fourbar.q_ref, zero, method="newton")
