@@ -27,17 +27,19 @@ the partial derivatives taken at fixed a and lam:
 * the constraint acceleration :math:`c(q, v, a) = J(q) a + \gamma(q, v)` is the second
   time derivative of the rows phi; :func:`constraint_derivatives` differentiates it
   (below), and :math:`\partial_v c = \partial \gamma / \partial v`;
-* :math:`\partial_q (J^\top \lambda)`, at fixed lam, is read from the same function:
-  c is linear in a, so :math:`\partial_q c(q, 0, e_j) = \partial_q (J e_j)` and
-
-  .. math::
-
-      \frac{\partial (J^\top \lambda)_j}{\partial q_k}
-      = \sum_i \lambda_i \frac{\partial J_{ij}}{\partial q_k}
-      = \Bigl[\lambda^\top \frac{\partial c}{\partial q}(q, 0, e_j)\Bigr]_k,
-
-  one evaluation per column j (nv in all: the readable reference, not the fast path);
+* :math:`\partial_q (J^\top \lambda)`, at fixed lam, is read from the same function
+  (below);
 * :math:`\partial (\cdot) / \partial \tau = -[I; 0]`.
+
+c is linear in a, so :math:`\partial_q c(q, 0, e_j) = \partial_q (J e_j)` and
+
+.. math::
+
+    \frac{\partial (J^\top \lambda)_j}{\partial q_k}
+    = \sum_i \lambda_i \frac{\partial J_{ij}}{\partial q_k}
+    = \left[\lambda^\top \frac{\partial c}{\partial q}(q, 0, e_j)\right]_k,
+
+one evaluation per column j (nv in all: the readable reference, not the fast path).
 
 Derivatives with respect to q are in the tangent space, as Pinocchio's: column k is
 the derivative along :math:`q \oplus \epsilon e_k` (``pin.integrate(model, q, eps *
