@@ -55,9 +55,9 @@ N_STATES = 2
 #: a gripper's lam beside its da/dv, keeps 1e-9 of the function's scale).
 FD_STEP = np.finfo(float).eps ** (1.0 / 5.0)
 #: Analytical against central differences: max |D - D_fd| / max |D_fd| (measured: up to
-#: 2e-9 on these mechanisms).
+#: 1.5e-8, the gripper's da/dv, small beside its lam; 6e-10 elsewhere).
 TOL_FD = 1e-6
-#: Against pinocchio.computeConstraintDynamicsDerivatives, same norm (measured: 1e-11).
+#: Against pinocchio.computeConstraintDynamicsDerivatives, same norm (measured: up to 7e-13).
 TOL_PINOCCHIO = 1e-8
 #: Pinocchio's proximal settings: accuracy, iterations and mu for rows of full rank, so
 #: that its answer is the exact solution.
@@ -71,8 +71,8 @@ PHI_TOL = 1e-14
 MP_DPS = 60
 MP_STEP = mpmath.mpf("1e-20")
 #: closedchain (double precision) against the 40-digit derivatives, same norm as TOL_FD
-#: (measured: 3e-14).
-TOL_HIGH_PRECISION = 1e-11
+#: (measured: 1.1e-15; the KKT matrix's condition number is about 10).
+TOL_HIGH_PRECISION = 1e-12
 #: The default method's derivatives (at a, lam converged to al_tol) against kkt's.
 TOL_METHODS = 1e-9
 
