@@ -845,6 +845,28 @@ def test_links_without_visuals_are_drawn_as_sticks_sized_from_the_model():
     assert not [v for v in visuals if v.link == "ground"]  # no mass, nothing to join
 
 
+def test_stick_figures_are_drawn_from_the_shared_stick_segments():
+    """The animation's sticks and the workspace pictures' are one list
+    (shapes.stick_segments): each cylinder of tests/data/slider_crank_driven.urdf's
+    stick figures runs along one segment of at least STICK_MIN_LENGTH, in order, and
+    the segments end at the URDF's joint origins (crank -> rod joint at 0.1 m along x)
+    and loop frames (rod -> loop Q at 0.35 m)."""
+    mech = cc.load(Path(__file__).parent / "data" / "slider_crank_driven.urdf")
+    sticks = [s for s in vz.stick_segments(mech) if s.length >= vz.settings.STICK_MIN_LENGTH]
+    ends = {(s.link, s.to, s.loop): (s.start, s.end) for s in sticks}
+    assert ends.keys() == {("crank", "rod_joint", False), ("rod", "Q", True)}
+    for key, end in ((("crank", "rod_joint", False), 0.1), (("rod", "Q", True), 0.35)):
+        start, stop = ends[key]
+        assert np.linalg.norm(start) <= EXACT_TOL
+        assert np.linalg.norm(stop - [end, 0.0, 0.0]) <= EXACT_TOL
+    cylinders = [v for v in vz.read_visuals(mech) if v.kind == "cylinder"]
+    assert [v.link for v in cylinders] == [s.link for s in sticks]
+    for v, s in zip(cylinders, sticks, strict=True):
+        half = v.origin[:3, 2] * v.dims[1] / 2.0  # a cylinder runs along its z axis
+        assert np.linalg.norm(v.origin[:3, 3] - half - s.start) <= EXACT_TOL
+        assert np.linalg.norm(v.origin[:3, 3] + half - s.end) <= EXACT_TOL
+
+
 def test_meshes_resolve_against_the_file_that_names_them(tmp_path, caplog):
     """Under --loops (an overlay or a loops YAML file elsewhere) the base's meshes were
     looked up beside the overlay: reported missing, or a file of the same name there

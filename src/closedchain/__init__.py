@@ -23,6 +23,12 @@ from .control import (
     gravity_torque,
     spring_torque,
 )
+from .derivatives import (
+    ConstraintDerivatives,
+    ForwardDynamicsDerivatives,
+    constraint_derivatives,
+    forward_dynamics_derivatives,
+)
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
     AssemblyError,
@@ -98,6 +104,8 @@ __all__ = [
     "AssemblySettings",
     "BatchError",
     "ClosedChainError",
+    "ConstraintDerivatives",
+    "ForwardDynamicsDerivatives",
     "ForwardDynamicsResult",
     "ForwardKinematicsResult",
     "InvalidArgumentError",
@@ -123,11 +131,13 @@ __all__ = [
     "actuation_singularities",
     "assemble",
     "compute_gamma",
+    "constraint_derivatives",
     "computed_torque_controller",
     "gravity_torque",
     "compute_jacobian",
     "compute_phi",
     "forward_dynamics",
+    "forward_dynamics_derivatives",
     "forward_kinematics",
     "inverse_dynamics",
     "inverse_kinematics",

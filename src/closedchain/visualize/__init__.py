@@ -26,9 +26,9 @@ meshcat (which imports zmq and IPython) is imported lazily, on first use.
 
 The package is split by concern: :mod:`.settings` (constants, settings and the
 records a scene is made of), :mod:`.shapes` (URDF visuals, meshes, joint
-markers), :mod:`.framing` (resampling, placements, swept volume, camera),
-:mod:`.scene` (recorded meshcat commands and tracks), :mod:`.page` (the HTML
-page and :func:`write_html`).
+markers, the stick figures' segments), :mod:`.framing` (resampling, placements,
+swept volume, camera), :mod:`.scene` (recorded meshcat commands and tracks),
+:mod:`.page` (the HTML page and :func:`write_html`).
 """
 
 from __future__ import annotations
@@ -58,13 +58,16 @@ from .settings import (
     MeshcatScene,
     MeshData,
     MeshSummary,
+    StickSegment,
     VisualShape,
 )
 from .shapes import (
     joint_markers,
+    posed_sticks,
     read_mesh,
     read_scene_visuals,
     read_visuals,
+    stick_segments,
 )
 
 __all__ = [
@@ -80,15 +83,18 @@ __all__ = [
     "MeshSummary",
     "MeshcatScene",
     "NATIVE_MESH_FORMATS",
+    "StickSegment",
     "VISUAL_KINDS",
     "VisualShape",
     "body_placements",
     "build_scene",
     "frame_camera",
     "joint_markers",
+    "posed_sticks",
     "read_mesh",
     "read_scene_visuals",
     "read_visuals",
     "scene_html",
+    "stick_segments",
     "write_html",
 ]

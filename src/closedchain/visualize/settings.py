@@ -42,6 +42,10 @@ STICK_BALL_RATIO = 1.5
 #: Stick segments shorter than this [m] get no cylinder.
 STICK_MIN_LENGTH = 1e-3
 
+#: Length [m] of the stick figure's axis points when the model gives no length to scale
+#: them by (see :func:`closedchain.visualize.shapes.stick_segments`).
+STICK_AXIS_LENGTH = 0.1
+
 #: Radius of the sticks of a link without any visual (a URDF with inertials only), as a
 #: fraction of the model's typical link length (the median length of its sticks) [-]:
 #: the figure is sized from the model, a 10 cm linkage as a 2 m robot.
@@ -235,6 +239,32 @@ class VisualShape:
     rgba: tuple[float, float, float, float]
     mesh: Path | None = None
     mesh_data: MeshData | None = None
+
+
+@dataclass(frozen=True)
+class StickSegment:
+    """One stick of a link's stick figure.
+
+    The sticks of a mechanism are :func:`closedchain.visualize.shapes.stick_segments`.
+
+    Attributes:
+        link: name of its link (its BODY frame).
+        start: the link's own joint point in the link frame, shape (3,) [m].
+        end: the point of the child joint or loop frame in the link frame, shape (3,) [m].
+        to: the child joint's name, or the loop's.
+        loop: whether ``end`` is a loop frame (a cut joint's side).
+    """
+
+    link: str
+    start: np.ndarray
+    end: np.ndarray
+    to: str
+    loop: bool = False
+
+    @property
+    def length(self) -> float:
+        """Return the stick's length [m]."""
+        return float(np.linalg.norm(self.end - self.start))
 
 
 @dataclass(frozen=True)

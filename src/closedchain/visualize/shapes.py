@@ -26,6 +26,7 @@ from .settings import (
     MEGABYTE,
     NATIVE_MESH_FORMATS,
     SCENE_ROOT,
+    STICK_AXIS_LENGTH,
     STICK_BALL_RATIO,
     STICK_MIN_LENGTH,
     STICK_RADIUS,
@@ -35,6 +36,7 @@ from .settings import (
     JointMarker,
     MeshData,
     MeshSummary,
+    StickSegment,
     VisualShape,
 )
 
@@ -174,42 +176,187 @@ def read_mesh(path: str | Path) -> MeshData:
     return MeshData(fmt, raw, vertices.min(axis=0), vertices.max(axis=0))
 
 
+#: Joint kinds whose axis is fixed in both links (the axis points of :func:`stick_segments`).
+_AXIS_KINDS = ("revolute", "continuous")
+
+
+def stick_segments(mech: Mechanism) -> tuple[StickSegment, ...]:
+    """Return the sticks of every link's stick figure, link by link in the description's order.
+
+    The one link graph of the stick figures: the animation draws it for links without
+    visuals or whose meshes are not drawn (:func:`stick_figure`), the workspace pictures
+    for every link (:func:`closedchain.workspace.plot_workspace`). A link's sticks run
+    from its joint point to the point of each child joint (in tree order), then to each
+    loop frame on it (the two sides of a cut joint, in the loops' order; a coupling has
+    no frames), all in the link's frame:
+
+    * a joint's point is its anchor (a URDF joint's origin); a link without a joint (the
+      root) starts at its origin;
+    * a stick whose two ends coincide (in a spherical mechanism every joint axis passes
+      through one centre) joins instead the points at distance R along the two revolute
+      axes (a revolute loop's axis at a loop frame), which move with both links: each
+      link becomes a chord of the sphere of radius R about the centre, the usual drawing
+      of a spherical linkage. R is the median length of the other sticks, else the
+      median distance of the bodies' centres of mass from their joint points, else
+      :data:`~closedchain.visualize.settings.STICK_AXIS_LENGTH`. A massless link
+      without visuals (a virtual link, e.g. of an Euler-angle chain) keeps its
+      coinciding ends.
+
+    Every stick is returned, however short; drawings skip those shorter than
+    :data:`~closedchain.visualize.settings.STICK_MIN_LENGTH`.
+
+    Args:
+        mech: the mechanism (its description's tree and loops).
+
+    Returns:
+        tuple of :class:`~closedchain.visualize.settings.StickSegment`.
+    """
+    tree = mech.description.tree
+    zero = np.zeros(3)
+    # link -> (its joint's anchor, its revolute axis or None), in the link frame
+    own: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    # link -> [(to, loop, end, end's axis direction or None, the axis's point)]
+    ends: dict[str, list[tuple[str, bool, np.ndarray, np.ndarray | None]]] = {}
+    physical: dict[str, bool] = {}
+    order: list[str] = []
+    if tree.world_frame:
+        order.append(WORLD_LINK)
+        own[WORLD_LINK] = (zero, None)
+        physical[WORLD_LINK] = bool(tree.world_visuals)
+    for body in tree.bodies:
+        order.append(body.name)
+        anchor, axis = zero, None
+        if body.joints:
+            joint = body.joints[0]
+            anchor = np.asarray(joint.position, dtype=float)
+            if len(body.joints) == 1 and joint.kind in _AXIS_KINDS:
+                axis = np.asarray(joint.axis, dtype=float)
+        own[body.name] = (anchor, axis)
+        physical[body.name] = body.inertia.mass > 0 or bool(body.visuals)
+        if body.parent is None:  # hangs from Pinocchio's universe, which has no body frame
+            continue
+        R = body.placement.rotation
+        ends.setdefault(body.parent, []).append(
+            (
+                body.joints[0].name if body.joints else body.fixed_joint or body.name,
+                False,
+                body.placement.act(anchor),
+                None if axis is None else R @ axis,
+            )
+        )
+    for spec in mech.description.loops:
+        if spec.type == COUPLING:  # it joins two coordinates, no two frames
+            continue
+        for link, M in (
+            (spec.predecessor, spec.predecessor_origin),
+            (spec.successor, spec.successor_origin),
+        ):
+            axis = M.rotation @ np.asarray(spec.axis, dtype=float)
+            ends.setdefault(link, []).append(
+                (spec.name, True, M.translation, axis if spec.type == "revolute" else None)
+            )
+    lengths = [
+        float(np.linalg.norm(end - own[link][0]))
+        for link, items in ends.items()
+        if link in own
+        for _, _, end, _ in items
+    ]
+    lengths = [x for x in lengths if x >= STICK_MIN_LENGTH]
+    if not lengths:
+        lengths = [
+            float(np.linalg.norm(b.inertia.lever - own[b.name][0]))
+            for b in tree.bodies
+            if b.inertia.mass > 0
+        ]
+        lengths = [x for x in lengths if x >= STICK_MIN_LENGTH]
+    radius = float(np.median(lengths)) if lengths else STICK_AXIS_LENGTH
+    out: list[StickSegment] = []
+    for link in order:
+        start, start_axis = own[link]
+        for to, loop, end, end_axis in ends.get(link, []):
+            a, b = start, end
+            if (
+                np.linalg.norm(end - start) < STICK_MIN_LENGTH
+                and physical[link]
+                and start_axis is not None
+                and end_axis is not None
+            ):
+                a = start + radius * start_axis / np.linalg.norm(start_axis)
+                b = end + radius * end_axis / np.linalg.norm(end_axis)
+            out.append(
+                StickSegment(link, np.array(a, dtype=float), np.array(b, dtype=float), to, loop)
+            )
+    return tuple(out)
+
+
+def posed_sticks(
+    mech: Mechanism, q: np.ndarray, sticks: tuple[StickSegment, ...] | None = None
+) -> np.ndarray:
+    """Return the sticks in the world frame at a configuration.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,) [rad, m].
+        sticks: the sticks to place (default: :func:`stick_segments`).
+
+    Returns:
+        (start, end) of each stick in the world frame, shape (n, 2, 3) [m].
+    """
+    from ..pindata import new_data
+
+    model = mech.model
+    if sticks is None:
+        sticks = stick_segments(mech)
+    data = new_data(model)
+    pin.framesForwardKinematics(model, data, np.asarray(q, dtype=float))
+    out = np.empty((len(sticks), 2, 3))
+    fids: dict[str, int] = {}
+    for i, stick in enumerate(sticks):
+        if stick.link not in fids:
+            fids[stick.link] = model.getFrameId(stick.link, pin.FrameType.BODY)
+        oMf = data.oMf[fids[stick.link]]
+        out[i, 0], out[i, 1] = oMf.act(stick.start), oMf.act(stick.end)
+    return out
+
+
 def stick_figure(
     link: str,
-    child_origins: list[np.ndarray],
+    sticks: list[StickSegment],
     rgba: tuple[float, float, float, float],
     *,
     radius: float = STICK_RADIUS,
 ) -> list[VisualShape]:
     """Return the primitives that stand for a link whose meshes are not drawn.
 
-    A ball at the link origin and a cylinder from it to the origin of each
-    child joint: the robot's exact kinematics, without reading any mesh.
+    A ball at the link's joint point (its origin when it has no stick) and a cylinder
+    along each of its sticks (:func:`stick_segments`) of at least
+    ``STICK_MIN_LENGTH``: the robot's exact kinematics, without reading any mesh.
 
     Args:
         link: the link's name.
-        child_origins: origins of its child joints (and loop frames) in the link
-            frame, shape (3,) each [m].
+        sticks: its sticks, in the link frame.
         rgba: colour, (r, g, b, a) in [0, 1] (the colour of its first mesh).
         radius: the cylinders' radius [m] (the ball's is ``STICK_BALL_RATIO`` times it).
     """
     ball = (STICK_BALL_RATIO * radius,)
-    out = [VisualShape(link, "sphere", ball, np.eye(4), rgba)]
-    for xyz in child_origins:
-        length = float(np.linalg.norm(xyz))
+    centre = np.eye(4)
+    if sticks:
+        centre[:3, 3] = sticks[0].start
+    out = [VisualShape(link, "sphere", ball, centre, rgba)]
+    for stick in sticks:
+        length = stick.length
         if length < STICK_MIN_LENGTH:
             continue
         # A URDF cylinder runs along its z axis, centred on its origin.
-        origin = _frame_with_z(xyz / length, xyz / 2.0)
+        origin = _frame_with_z((stick.end - stick.start) / length, (stick.start + stick.end) / 2.0)
         out.append(VisualShape(link, "cylinder", (radius, length), origin, rgba))
     return out
 
 
-def model_stick_radius(children: dict[str, list[np.ndarray]]) -> float:
+def model_stick_radius(sticks: tuple[StickSegment, ...]) -> float:
     """Return the stick radius [m] of links without visuals: ``STICK_RADIUS_RATIO`` times
     the median length of the model's sticks (``STICK_RADIUS`` for a model without any)."""
-    lengths = [float(np.linalg.norm(xyz)) for origins in children.values() for xyz in origins]
-    lengths = [x for x in lengths if x >= STICK_MIN_LENGTH]
+    lengths = [x for x in (s.length for s in sticks) if x >= STICK_MIN_LENGTH]
     return STICK_RADIUS_RATIO * float(np.median(lengths)) if lengths else STICK_RADIUS
 
 
@@ -270,14 +417,15 @@ def read_scene_visuals(
         raise ClosedChainError(
             f"AnimationSettings.mesh_budget_bytes = {budget!r}; valid: a number of bytes >= 0"
         )
-    links, children = _description_links(mech.description.tree, settings.default_rgba)
+    links = _description_links(mech.description.tree, settings.default_rgba)
     # Each link's meshes beside the file that names it (a base URDF under an overlay).
     link_files = mech.description.link_files
     trusted = _trusted_roots()
-    for loop in mech.description.loops:  # the cut joints' frames: where the loops close
-        children.setdefault(loop.predecessor, []).append(loop.predecessor_origin.translation)
-        children.setdefault(loop.successor, []).append(loop.successor_origin.translation)
-    bare_radius = model_stick_radius(children)
+    all_sticks = stick_segments(mech)
+    children: dict[str, list[StickSegment]] = {}
+    for stick in all_sticks:
+        children.setdefault(stick.link, []).append(stick)
+    bare_radius = model_stick_radius(all_sticks)
     out: list[VisualShape] = []
     left, n_embedded = budget, 0
     primitive_links: list[str] = []
@@ -309,7 +457,7 @@ def read_scene_visuals(
                 drawn = stick_figure(link_name, children.get(link_name, []), meshes[0][3])
         for v in shapes:
             out.extend(drawn if v is None else [v])
-        sticks = [x for x in children.get(link_name, []) if np.linalg.norm(x) >= STICK_MIN_LENGTH]
+        sticks = [x for x in children.get(link_name, []) if x.length >= STICK_MIN_LENGTH]
         if not items and (sticks or massive):
             out.extend(
                 stick_figure(
@@ -341,13 +489,7 @@ class _MeshFile:
 
 def _description_links(description: TreeDescription, default_rgba):
     """Return the bodies as (name, [(kind, dims or mesh file, origin (4, 4), rgba)], has
-    mass), in the description's order (the world first when it has visuals of its own),
-    and body name -> origins of its child joints [m]."""
-    children: dict[str | None, list[np.ndarray]] = {}
-    for body in description.bodies:
-        anchor = body.joints[0].position if body.joints else np.zeros(3)
-        origin = body.placement.act(np.asarray(anchor, dtype=float))
-        children.setdefault(body.parent, []).append(origin)
+    mass), in the description's order (the world first when it has visuals of its own)."""
     links = [(b.name, b.visuals, b.inertia.mass > 0) for b in description.bodies]
     if description.world_frame:
         links.insert(0, (WORLD_LINK, description.world_visuals, False))
@@ -362,7 +504,7 @@ def _description_links(description: TreeDescription, default_rgba):
             else:
                 items.append((vis.kind, tuple(vis.dims), origin, rgba))
         out.append((name, items, massive))
-    return out, children
+    return out
 
 
 def _link_meshes(where, link, meshes, urdf_dir, trusted, left):
