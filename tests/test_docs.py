@@ -40,6 +40,7 @@ GENERATED_PAGES = (
     DOCS / "bench" / "scaling.md",  # scripts/bench_extras.py --parts scaling
     DOCS / "bench" / "couplings.md",  # scripts/bench_extras.py --parts couplings
     DOCS / "bench" / "batch.md",  # scripts/bench_batch.py --page
+    DOCS / "bench" / "front.md",  # scripts/bench_front.py --page
 )
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300
@@ -396,6 +397,7 @@ STAMPED_PAGES = (
     DOCS / "bench" / "scaling.md",
     DOCS / "bench" / "corpus.md",
     DOCS / "bench" / "batch.md",
+    DOCS / "bench" / "front.md",
 )
 
 
