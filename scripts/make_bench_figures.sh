@@ -6,7 +6,8 @@
 # Steps: one `closedchain bench` run over all work-precision scenarios (references from
 # the on-disk cache when the code that computes them is unchanged), then the
 # per-evaluation table, the stability map, the scaling and per-call pages
-# (scripts/bench_extras.py), the N-four-bar page (scripts/nfourbar_cost.py), then the
+# (scripts/bench_extras.py), the N-four-bar page (scripts/nfourbar_cost.py), the
+# default on the accuracy-speed front (scripts/bench_front.py), then the
 # report. Every page's header carries the version and the default configuration it
 # measured (scripts/bench_page.py). The corpus page needs a checkout of
 # example-parallel-robots: scripts/check_corpus.py says how. The couplings page adds the
@@ -28,6 +29,7 @@ $PY -m closedchain.cli bench --out "$OUT/wp" --workers "$WORKERS"
 # shellcheck disable=SC2086  # COUPLED is a list of paths
 $PY scripts/bench_extras.py --out "$OUT" --workers "$WORKERS" ${COUPLED:+--coupled $COUPLED}
 $PY scripts/nfourbar_cost.py --n 1 2 5 10 20 40 --t 0.01 --page "$OUT/nfourbar.md"
+$PY scripts/bench_front.py --repeat 3 --page "$OUT/front.md"
 $PY -m closedchain.cli workspace models/fourbar.urdf -o "$OUT/workspace_fourbar.png"
 $PY -m closedchain.cli workspace models/agile_eye.urdf -o "$OUT/workspace_agile_eye.png"
 LOAD_AFTER=$(cut -d' ' -f1-3 /proc/loadavg)

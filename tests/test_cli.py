@@ -637,7 +637,7 @@ def test_rtol_without_integrator_runs_the_adaptive_default(capsys, mechanism_fil
     status, out, err = run(capsys, *argv, "--json")
     assert status == 0, err
     summary = json.loads(out)
-    assert summary["integrator"] == "rk43"
+    assert summary["integrator"] == "dop853-rk43"
     assert summary["rejected_steps"] >= 0 and 0.0 < summary["error_estimate_max"] <= 1.0
     assert summary["error_estimate_sum"] > 0.0
 
@@ -648,7 +648,7 @@ def test_summary_prints_the_error_control_beside_max_phi(capsys, mechanism_files
     argv = ["simulate", mechanism_files["fourbar"], "--t-final", "0.05"]
     status, out, err = run(capsys, *argv)
     assert status == 0, err
-    assert "'rk43'" in out
+    assert "'dop853-rk43'" in out
     for row in ("rejected steps", "largest local error estimate", "max constraint residual"):
         assert row in out, row
     status, out, err = run(capsys, *argv, "--dt", "1e-3")

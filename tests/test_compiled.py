@@ -89,6 +89,7 @@ def test_core_is_built():
         "semi-implicit",
         "rk4",
         "rk43",
+        "dop853-rk43",
         "RK45",
         "DOP853",
         "ali3p",

@@ -41,6 +41,7 @@ GENERATED_PAGES = (
     DOCS / "bench" / "couplings.md",  # scripts/bench_extras.py --parts couplings
     DOCS / "bench" / "batch.md",  # scripts/bench_batch.py --page
     DOCS / "bench" / "mjcf_models.md",  # scripts/check_mjcf_models.py (local copies)
+    DOCS / "bench" / "front.md",  # scripts/bench_front.py --page
 )
 #: The issue's bound on the README (a front door, not a manual).
 README_MAX_LINES = 300

@@ -1234,11 +1234,11 @@ def test_energy_tol_checks_the_energy_balance_of_a_driven_run(fourbar):
 
 
 def test_step_controls_without_an_integrator_choose_its_kind(fourbar):
-    """Tolerances go to the default, adaptive rk43; a step to the fixed-step rk4."""
+    """Tolerances go to the default, adaptive dop853-rk43; a step to the fixed-step rk4."""
     from closedchain.simulate import DEFAULT_FIXED_INTEGRATOR, DEFAULT_INTEGRATOR
 
     traj = cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05, rtol=1e-9, atol=1e-11)
-    assert traj.info.integrator == DEFAULT_INTEGRATOR == "rk43"
+    assert traj.info.integrator == DEFAULT_INTEGRATOR == "dop853-rk43"
     assert traj.info.rtol == 1e-9 and traj.info.dt is None
     traj = cc.simulate(fourbar, fourbar.q_ref, np.zeros(3), 0.05, dt=1e-3)
     assert traj.info.integrator == DEFAULT_FIXED_INTEGRATOR == "rk4"

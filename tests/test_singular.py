@@ -223,7 +223,7 @@ def _check_benchmark(mech, traj, n):
 @pytest.mark.parametrize("n", _nfourbar_params(NFOURBAR_IN_CI, DEFAULT_MISSES))
 def test_nfourbar_default_configuration(nfourbar, n):
     """20 s of the benchmark with simulate's default method, integrator, tolerances and
-    stabilization (augmented-lagrangian, rk43, rtol 1e-9, stage-projection): see
+    stabilization (augmented-lagrangian, dop853-rk43, rtol 1e-11, stage-projection): see
     :func:`_check_benchmark`."""
     mech = nfourbar(n)
     q0, v0 = ref.initial_state(mech)
@@ -231,11 +231,11 @@ def test_nfourbar_default_configuration(nfourbar, n):
     info = traj.info
     assert (info["method"], info["integrator"], info["stabilization"], info["dt"]) == (
         "augmented-lagrangian",
-        "rk43",
+        "dop853-rk43",
         "stage-projection",
         None,
     )
-    assert (info.rtol, info.atol) == cc.INTEGRATORS["rk43"].tolerances
+    assert (info.rtol, info.atol) == cc.INTEGRATORS["dop853-rk43"].tolerances
     _check_benchmark(mech, traj, n)
 
 

@@ -233,7 +233,7 @@ IK_ANGLE_TOL = 1e-8
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_small_mechanisms_on_the_command_line(small, name, tmp_path, capsys):
-    """simulate (the default integrator, rk43 on the compiled core), animate and plot."""
+    """simulate (the default integrator, dop853-rk43 on the compiled core), animate and plot."""
     path, mech = small[name]
     q0, v0 = start(mech)
     npz = tmp_path / "run.npz"
@@ -241,7 +241,7 @@ def test_small_mechanisms_on_the_command_line(small, name, tmp_path, capsys):
     args += ["--q0", *map(str, q0)]
     assert cli.main(args) == 0, capsys.readouterr().err
     traj = cc.Trajectory.load(npz)
-    assert traj.info.integrator == "rk43"
+    assert traj.info.integrator == "dop853-rk43"
     if mech.mobility:  # unforced: the reference with tau = 0
         model, data, nq = mech.model, mech.model.createData(), mech.nq
         sol = solve_ivp(

@@ -134,6 +134,69 @@ constexpr double RK43_MAX_FACTOR = 5.0;
 /// (closedchain.simulate.rk43.ERROR_EXPONENT)
 constexpr double RK43_ERROR_EXPONENT = -0.25;
 
+/// Step-size control of the DOP853 steps (scipy's): safety factor, bounds of the change
+/// per step, error exponent (the estimate is of order 7 and its position weight grows
+/// with the step's displacement: err ~ h^7).
+/// (closedchain.simulate.dop853_rk43.SAFETY)
+constexpr double FAR_SAFETY = 0.9;
+
+/// Step-size control of the DOP853 steps (scipy's): safety factor, bounds of the change
+/// per step, error exponent (the estimate is of order 7 and its position weight grows
+/// with the step's displacement: err ~ h^7).
+/// (closedchain.simulate.dop853_rk43.MIN_FACTOR)
+constexpr double FAR_MIN_FACTOR = 0.2;
+
+/// Step-size control of the DOP853 steps (scipy's): safety factor, bounds of the change
+/// per step, error exponent (the estimate is of order 7 and its position weight grows
+/// with the step's displacement: err ~ h^7).
+/// (closedchain.simulate.dop853_rk43.MAX_FACTOR)
+constexpr double FAR_MAX_FACTOR = 10.0;
+
+/// Step-size control of the DOP853 steps (scipy's): safety factor, bounds of the change
+/// per step, error exponent (the estimate is of order 7 and its position weight grows
+/// with the step's displacement: err ~ h^7).
+/// (closedchain.simulate.dop853_rk43.ERROR_EXPONENT)
+constexpr double FAR_ERROR_EXPONENT = -0.14285714285714285;
+
+/// The stages [index] at which a DOP853 trial samples the rank indicator, besides its
+/// start and end: c = 1/3 and c = 0.65.
+/// (closedchain.simulate.dop853_rk43.INDICATOR_STAGE_A)
+constexpr int FAR_INDICATOR_STAGE_A = 5;
+
+/// The stages [index] at which a DOP853 trial samples the rank indicator, besides its
+/// start and end: c = 1/3 and c = 0.65.
+/// (closedchain.simulate.dop853_rk43.INDICATOR_STAGE_B)
+constexpr int FAR_INDICATOR_STAGE_B = 8;
+
+/// A DOP853 step is at most this fraction of the time the rank indicator would take to
+/// fall to 0 at its steepest rate over the last trial: approaching a singular position
+/// the steps shrink (the indicator at most halves per step) until a sample falls below
+/// its cap, and none steps over one between its samples.
+/// (closedchain.simulate.dop853_rk43.FAR_RHO_FRACTION)
+constexpr double FAR_RHO_FRACTION = 0.5;
+
+/// An rk43 step (near a singular position) is at most this fraction of the time the
+/// indicator takes to cross its cap at the steepest rate the last DOP853 trial saw:
+/// rk43's crossing estimate then has samples within the cap before a step reaches the
+/// crossing (rk43 alone takes such steps for its own error; a step sized for DOP853's
+/// error may not).
+/// (closedchain.simulate.dop853_rk43.NEAR_ENTRY_FRACTION)
+constexpr double NEAR_ENTRY_FRACTION = 0.25;
+
+/// The tolerances of the rk43 steps are at least these (rtol, atol), rk43's own default:
+/// tighter, its steps about a crossing are more and the passages less accurate (the
+/// N-four-bar, N = 1, 20 s at rtol 1e-12: B0 off by 8.7e-9 m without the floor, 9e-10 m
+/// with it; rk43 alone leaves the branch at rtol 1e-12).
+/// (closedchain.simulate.dop853_rk43.NEAR_RTOL)
+constexpr double NEAR_RTOL = 1e-09;
+
+/// The tolerances of the rk43 steps are at least these (rtol, atol), rk43's own default:
+/// tighter, its steps about a crossing are more and the passages less accurate (the
+/// N-four-bar, N = 1, 20 s at rtol 1e-12: B0 off by 8.7e-9 m without the floor, 9e-10 m
+/// with it; rk43 alone leaves the branch at rtol 1e-12).
+/// (closedchain.simulate.dop853_rk43.NEAR_ATOL)
+constexpr double NEAR_ATOL = 1e-10;
+
 /// The compiled core's tree path (src/cpp/core_tree.hpp: M^-1 x by the articulated-body
 /// recursion in O(nv), M never formed, a dense solve of the loop rows only) serves every
 /// method but schur on a mechanism of more than TREE_SOLVE_MIN_NV velocities and at

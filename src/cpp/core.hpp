@@ -14,7 +14,7 @@
 //   core_recording.hpp              the samples of a run
 //   core_chart.hpp                  the chart of q when nq != nv
 //   core_fixed.hpp                  euler, semi-implicit, rk4 (with stage projection)
-//   core_adaptive.hpp               RK45, DOP853 (scipy's error control, dense output), rk43
+//   core_adaptive.hpp               RK45, DOP853 (scipy's error control, dense output), rk43, dop853-rk43
 //   ali3p.hpp                       ALI3-P
 //   core_interface.hpp              settings and the one-evaluation entry points
 
@@ -145,6 +145,14 @@ class Core {
                     double h0, bp::object t_eval_obj, bool record_all, bp::object progress) {
     return closedchain::run_rk43(model_, data_, q0, v0, t_final, rtol, atol, h0, t_eval_obj,
                                  record_all, progress);
+  }
+
+  /// dop853-rk43: DOP853 far from singular positions, rk43 near them, to t_final
+  /// (run_dop853_rk43).
+  bp::dict run_dop853_rk43(const Vec &q0, const Vec &v0, double t_final, double rtol,
+                           double atol, double h0, bp::object t_eval, bp::object progress) {
+    return closedchain::run_dop853_rk43(model_, data_, q0, v0, t_final, rtol, atol, h0, t_eval,
+                                        progress);
   }
 
   /// The reduced method's partition and the coordinates' names (set_partition).

@@ -139,8 +139,12 @@ struct Rk43Run {
   /// starts at 0); every step end is recorded (t_eval None or record_all).
   std::vector<double> stops;
   bool record_start = true, every = true;
-  /// Time [s] of (q, v, a) and the next trial step [s].
-  double t = 0.0, h;
+  /// Time [s] of (q, v, a) and the next trial step [s]; the end [s] of an accepted
+  /// DOP853 trial (dop853-rk43).
+  double t = 0.0, h, t_far_end = 0.0;
+  /// rk43_accept records the step's end (dop853-rk43 records it after the outputs
+  /// within the step).
+  bool record_steps = true;
   /// The state at t: q (nq,), v and a (nv,).
   Vec q, v, a;
   /// The state at the end of the step being taken.
@@ -154,8 +158,9 @@ struct Rk43Run {
   double rho_start = 0.0;
   /// Largest accepted error norm; sum of the accepted steps' largest position errors.
   double err_max = 0.0, err_sum = 0.0;
-  /// Accepted steps, rejected trials, steps retaken around a singular position.
-  long steps = 0, rejected = 0, splits = 0;
+  /// Accepted steps, rejected trials, steps retaken around a singular position; with
+  /// dop853-rk43, its DOP853 steps and the rk43 steps kept within the indicator's cap.
+  long steps = 0, rejected = 0, splits = 0, far_steps = 0, zone_steps = 0;
   /// The samples recorded.
   Samples samples;
 };
@@ -197,15 +202,82 @@ bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, double t_
                  Rk43Trial &trial);
 
 /// Accept the trial: check the substep's and the step's ends (check_regular), move the
-/// state to the end, record it, and the next step size.
+/// state to the end, record it, and the next step size (kept for a step within the
+/// indicator's cap, in_zone).
 void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run, const Rk43Trial &trial,
-                 double t_stop, bool clipped, double proposed, const bp::object &progress);
+                 double t_stop, bool clipped, double proposed, bool in_zone,
+                 const bp::object &progress);
+
+struct Dop853Far;
 
 /// One trial step toward t_stop (clipped to land on it); true when accepted, false when
 /// rejected (run.h reduced) or re-planned. SimulationFailure when the step falls below the
-/// spacing of the times.
+/// spacing of the times. far: dop853-rk43's DOP853 state (its steps near a singular
+/// position: the step bounded by Dop853Far::near_step, kept whatever its estimate within
+/// the indicator's cap), or nullptr (rk43).
 bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
-                   const bp::object &progress);
+                   const bp::object &progress, const Dop853Far *far = nullptr);
+
+/// The DOP853 trials of dop853-rk43 (simulate/dop853_rk43.py, Dop853Far): the tolerances,
+/// the next trial step, the rank indicator's steepest rate over the last trial and its
+/// uncapped value at the last accepted DOP853 end, the stages' rates.
+struct Dop853Far {
+  /// The tolerances and the first trial step h0 [s].
+  Dop853Far(const CoreModel &model, double rtol, double atol, double h0);
+  /// Relative and absolute tolerances.
+  double rtol, atol;
+  /// The next trial step [s]; the step being taken was rejected before.
+  double h;
+  bool rejected = false;
+  /// The indicator's steepest rate over the last trial [1/s].
+  double rate = 0.0;
+  /// Time [s] and uncapped indicator of the last accepted DOP853 end.
+  double start_t = std::numeric_limits<double>::quiet_NaN(), start_rho = 0.0;
+  /// The stages' position rates (chart about the step's start) and accelerations, shape
+  /// (nv, 16): the 12 stages, the step's end, the dense output's three extra stages.
+  Mat kx, ka;
+  /// A stage's chart coordinates and velocity; its configuration; error estimate work;
+  /// the step's end in the chart about its start.
+  Vec x, vs, qs, ex, ev, xn;
+  /// The dense output's coefficients of x and v, shape (nv, 7), and an output's state.
+  Mat fx, fv;
+  Vec xo, vo, qo;
+  /// The indicator's samples of the trial: times [s] and values, and their number.
+  double sample_t[4] = {0, 0, 0, 0}, sample_r[4] = {0, 0, 0, 0};
+  int n_samples = 0;
+  /// An rk43 step [s]: h at most NEAR_ENTRY_FRACTION cap / rate.
+  double near_step(double h_near) const;
+  /// Add a sample and return the steepest rate between consecutive samples [1/s].
+  double add_sample(double t, double r);
+};
+
+/// Outcomes of a DOP853 trial: the indicator fell below its cap (take an rk43 step),
+/// rejected, accepted.
+enum FarOutcome { FAR_NEAR = 0, FAR_REJECTED = 1, FAR_ACCEPTED = 2 };
+
+/// One DOP853 trial from run's state toward t_land [s] (Dop853Far.trial): the end in run.qn,
+/// vn, an and the estimate in trial when accepted.
+FarOutcome dop853_far_trial(const CoreModel &model, CoreData &data, Rk43Run &run,
+                            Dop853Far &far, double t_land, Rk43Trial &trial);
+
+/// The dense output of the DOP853 step of length h just accepted from (q, v) at t (its
+/// three extra stages; far.xn the end's chart coordinates, far.vo the velocity's change).
+void dop853_far_dense(const CoreModel &model, CoreData &data, const Vec &q, const Vec &v,
+                      double t, double h, Dop853Far &far);
+
+/// Record the dense output at the fraction theta of the step from (q, v): q and v
+/// projected as at a step's end, its accelerations.
+void dop853_far_output(const CoreModel &model, CoreData &data, Rk43Run &run, Dop853Far &far,
+                       const Vec &q, const Vec &v, double t_out, double theta);
+
+/// dop853-rk43 (simulate/dop853_rk43.py, step for step): DOP853 steps where the rank
+/// indicator is at its cap, rk43 steps near singular positions at tolerances at least
+/// (NEAR_RTOL, NEAR_ATOL); every step end recorded, and the times t_eval (None: none)
+/// within the steps (DOP853's dense output, rk43's cubic Hermite), their samples listed
+/// in "outputs".
+bp::dict run_dop853_rk43(const CoreModel &model, CoreData &data, const Vec &q0, const Vec &v0,
+                         double t_final, double rtol, double atol, double h0,
+                         bp::object t_eval_obj, bp::object progress);
 
 /// rk43 (simulate/rk43.py, step for step): rk4 with stage projection and the retakes near
 /// singular positions, its step chosen by the embedded third-order estimate
@@ -656,7 +728,7 @@ inline bool rk43_retake(const CoreModel &model, CoreData &data, Rk43Run &run, do
 
 inline void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run,
                         const Rk43Trial &trial, double t_stop, bool clipped, double proposed,
-                        const bp::object &progress) {
+                        bool in_zone, const bp::object &progress) {
   const double h = run.h, span = trial.span;
   if (trial.plan) ++run.splits;
   if (trial.sub) check_regular(model, data, run.q1, run.t + trial.f * h);
@@ -667,17 +739,22 @@ inline void rk43_accept(const CoreModel &model, CoreData &data, Rk43Run &run,
   run.a = run.an;
   run.rho_start = trial.rho_new;
   ++run.steps;
-  run.err_max = std::max(run.err_max, trial.err);
-  run.err_sum += trial.exm;
+  run.zone_steps += in_zone;
+  if (!in_zone) {
+    run.err_max = std::max(run.err_max, trial.err);
+    run.err_sum += trial.exm;
+  }
   // data.a, data.lam: the last evaluation's, at q
-  if (run.every || run.t == t_stop) record(model, data, run.samples, run.t, run.q, run.v);
+  if (run.record_steps && (run.every || run.t == t_stop))
+    record(model, data, run.samples, run.t, run.q, run.v);
   poll(run.steps, run.t, progress);
-  run.h *= rk43_factor(trial.err);
+  if (!in_zone) run.h *= rk43_factor(trial.err);
   if (clipped) run.h = std::max(run.h, proposed);
 }
 
 inline bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, double t_stop,
-                          const bp::object &progress) {
+                          const bp::object &progress, const Dop853Far *far) {
+  if (far) run.h = far->near_step(run.h);  // near a singular position: steps that see it
   const double proposed = run.h, t = run.t;
   const bool clipped = t + run.h >= t_stop * (1.0 - 1e-15);
   if (clipped) run.h = t_stop - t;
@@ -693,12 +770,15 @@ inline bool rk43_try_step(const CoreModel &model, CoreData &data, Rk43Run &run, 
     trial.plan = retake_plan(crossing_estimate(run.rho_start, rho_mid, trial.rho_new),
                              model.stage_zone, trial.twice, trial.f);
   if (trial.plan && !rk43_retake(model, data, run, t_stop, trial)) return false;
-  if (trial.err > 1.0) {
+  // dop853-rk43 within the indicator's cap: the step is kept, its size too (an estimate
+  // there measures what the crossing amplifies, not the step's error).
+  const bool in_zone = far && std::min(run.rho_start, trial.rho_new) < RANK_INDICATOR_CAP;
+  if (trial.err > 1.0 && !in_zone) {
     ++run.rejected;
     run.h *= rk43_factor(trial.err);
     return false;
   }
-  rk43_accept(model, data, run, trial, t_stop, clipped, proposed, progress);
+  rk43_accept(model, data, run, trial, t_stop, clipped, proposed, in_zone, progress);
   return true;
 }
 
@@ -715,13 +795,333 @@ inline bp::dict run_rk43(const CoreModel &model, CoreData &data, const Vec &q0, 
   GilRelease nogil;  // until the samples become Python objects (gil.hpp)
   rk43_start(model, data, run, q0, v0);
   for (const double t_stop : run.stops)
-    while (run.t < t_stop) rk43_try_step(model, data, run, t_stop, progress);
+    while (run.t < t_stop) rk43_try_step(model, data, run, t_stop, progress, nullptr);
   nogil.restore();
   bp::dict d = samples_dict(model, data, run.samples, run.steps);
   d["singular_splits"] = run.splits;
   d["rejected_steps"] = run.rejected;
   d["error_estimate_max"] = run.err_max;
   d["error_estimate_sum"] = run.err_sum;
+  return d;
+}
+
+inline Dop853Far::Dop853Far(const CoreModel &model, double relative_tol, double absolute_tol,
+                            double h0)
+    : rtol(relative_tol), atol(absolute_tol), h(h0) {
+  kx.resize(model.nv, dop853::N_STAGES_EXTENDED);
+  ka.resize(model.nv, dop853::N_STAGES_EXTENDED);
+  fx.resize(model.nv, dop853::INTERPOLATOR_POWER);
+  fv.resize(model.nv, dop853::INTERPOLATOR_POWER);
+  for (Vec *b : {&x, &vs, &ex, &ev, &xn, &xo, &vo}) b->resize(model.nv);
+  qs.resize(model.nq);
+  qo.resize(model.nq);
+}
+
+inline double Dop853Far::near_step(double h_near) const {
+  return rate > 0.0 ? std::min(h_near, NEAR_ENTRY_FRACTION * RANK_INDICATOR_CAP / rate) : h_near;
+}
+
+inline double Dop853Far::add_sample(double t, double r) {
+  sample_t[n_samples] = t;
+  sample_r[n_samples] = r;
+  ++n_samples;
+  double steepest = 0.0;
+  for (int i = 0; i + 1 < n_samples; ++i)
+    if (sample_t[i + 1] > sample_t[i])
+      steepest = std::max(steepest,
+                          std::abs(sample_r[i + 1] - sample_r[i]) / (sample_t[i + 1] - sample_t[i]));
+  return steepest;
+}
+
+/// Sets data.method_override for a scope (kkt in dop853-rk43's DOP853 trials).
+struct MethodOverride {
+  MethodOverride(CoreData &d, int method) : data(d) { data.method_override = method; }
+  ~MethodOverride() { data.method_override = -1; }
+  MethodOverride(const MethodOverride &) = delete;
+  MethodOverride &operator=(const MethodOverride &) = delete;
+  CoreData &data;
+};
+
+inline FarOutcome dop853_far_trial(const CoreModel &model, CoreData &data, Rk43Run &run,
+                                   Dop853Far &far, double t_land, Rk43Trial &trial) {
+  constexpr double UNCAPPED = std::numeric_limits<double>::infinity();
+  // Far from singular positions the augmented Lagrangian converges to kkt's solution:
+  // kkt's solve, at about half the cost (dop853_rk43.py).
+  MethodOverride solve_by(data, model.method == AUGMENTED_LAGRANGIAN ? KKT : -1);
+  const double t = run.t;
+  const bool loops = model.nc > 0;
+  if (loops && far.start_t != t) {  // the start was an rk43 step's end
+    far.start_t = t;
+    far.start_rho = rank_indicator(model, data, run.q, UNCAPPED);
+  }
+  far.n_samples = 0;
+  far.add_sample(far.start_t, far.start_rho);
+  if (loops && far.rate > 0.0) far.h = std::min(far.h, FAR_RHO_FRACTION * far.start_rho / far.rate);
+  double h = far.h;
+  const bool clipped = t + h >= t_land * (1.0 - 1e-15);
+  if (clipped) h = t_land - t;
+  if (!(h > 10 * std::abs(std::nextafter(t, t_land) - t)))
+    throw SimulationFailure{model.name + ": integrator dop853-rk43 failed at t = " +
+                                fmt("%.9g", t) + " s: the step fell below the spacing of the times",
+                            t};
+  far.kx.col(0) = run.v;
+  far.ka.col(0) = run.a;
+  for (int s = 1; s < dop853::N_STAGES; ++s) {
+    far.x.setZero();
+    far.vs = run.v;
+    for (int j = 0; j < s; ++j) {
+      const double c = h * dop853::A[s][j];
+      if (c == 0.0) continue;
+      far.x += c * far.kx.col(j);
+      far.vs += c * far.ka.col(j);
+    }
+    pinocchio::integrate(model.tree, run.q, far.x, far.qs);
+    accel(model, data, t + dop853::C[s] * h, far.qs, far.vs);
+    far.ka.col(s) = data.a;
+    chart_rate(model, data, run.q, far.x, far.vs, far.kx.col(s));
+    if (loops && (s == FAR_INDICATOR_STAGE_A || s == FAR_INDICATOR_STAGE_B)) {
+      const double r = rank_indicator(model, data, far.qs, UNCAPPED);
+      const double rate = far.add_sample(t + dop853::C[s] * h, r);
+      if (r < RANK_INDICATOR_CAP) {
+        far.rate = rate;
+        return FAR_NEAR;
+      }
+    }
+  }
+  far.x.setZero();
+  run.vn = run.v;
+  for (int j = 0; j < dop853::N_STAGES; ++j) {
+    const double c = h * dop853::B[j];
+    if (c == 0.0) continue;
+    far.x += c * far.kx.col(j);
+    run.vn += c * far.ka.col(j);
+  }
+  pinocchio::integrate(model.tree, run.q, far.x, run.qn);
+  const double t_new = clipped ? t_land : t + h;
+  check_finite(model, run.qn, run.vn, t_new);
+  project(model, data, run.qn, run.vn, false);  // J regular: the minimum-norm correction
+  double r_new = RANK_INDICATOR_CAP;
+  if (loops) {
+    r_new = rank_indicator(model, data, run.qn, UNCAPPED);
+    far.rate = far.add_sample(t_new, r_new);
+    if (r_new < RANK_INDICATOR_CAP) return FAR_NEAR;
+  }
+  accel(model, data, t_new, run.qn, run.vn);
+  run.an = data.a;
+  pinocchio::difference(model.tree, run.q, run.qn, far.xn);  // the chart about q
+  chart_rate(model, data, run.q, far.xn, run.vn, far.kx.col(dop853::N_STAGES));
+  far.ka.col(dop853::N_STAGES) = run.an;
+  // One weight for the positions, scipy's per velocity (dop853_rk43.py).
+  const double sx = far.atol + far.rtol * (model.nv ? far.xn.cwiseAbs().maxCoeff() : 0.0);
+  far.vs = far.atol + far.rtol * run.v.cwiseAbs().cwiseMax(run.vn.cwiseAbs()).array();
+  double n5 = 0.0, n3 = 0.0;
+  for (const double *E : {dop853::E5, dop853::E3}) {
+    far.ex.setZero();
+    far.ev.setZero();
+    for (int j = 0; j <= dop853::N_STAGES; ++j) {
+      if (E[j] == 0.0) continue;
+      far.ex += E[j] * far.kx.col(j);
+      far.ev += E[j] * far.ka.col(j);
+    }
+    const double n =
+        far.ex.squaredNorm() / (sx * sx) + far.ev.cwiseQuotient(far.vs).squaredNorm();
+    if (E == dop853::E5) {
+      n5 = n;
+      trial.exm = model.nv ? h * far.ex.cwiseAbs().maxCoeff() : 0.0;
+    } else {
+      n3 = n;
+    }
+  }
+  const double err = (n5 == 0.0 && n3 == 0.0)
+                         ? 0.0
+                         : h * n5 / std::sqrt((n5 + 0.01 * n3) * (2.0 * model.nv));
+  if (err > 1.0) {
+    far.h = h * std::max(FAR_MIN_FACTOR, FAR_SAFETY * std::pow(err, FAR_ERROR_EXPONENT));
+    far.rejected = true;
+    return FAR_REJECTED;
+  }
+  const double proposed = far.h;
+  double factor =
+      err == 0.0 ? FAR_MAX_FACTOR
+                 : std::min(FAR_MAX_FACTOR, FAR_SAFETY * std::pow(err, FAR_ERROR_EXPONENT));
+  if (far.rejected) factor = std::min(1.0, factor);
+  far.h = h * factor;
+  if (clipped) far.h = std::max(far.h, proposed);
+  far.rejected = false;
+  if (loops) {
+    far.start_t = t_new;
+    far.start_rho = r_new;
+  }
+  trial.err = err;
+  trial.rho_new = std::min(r_new, RANK_INDICATOR_CAP);
+  trial.span = 1.0;
+  run.t_far_end = t_new;
+  return FAR_ACCEPTED;
+}
+
+inline void dop853_far_dense(const CoreModel &model, CoreData &data, const Vec &q,
+                             const Vec &v, double t, double h, Dop853Far &far) {
+  MethodOverride solve_by(data, model.method == AUGMENTED_LAGRANGIAN ? KKT : -1);
+  for (int e = 0, s = dop853::N_STAGES + 1; e < 3; ++e, ++s) {
+    far.x.setZero();
+    far.vs = v;
+    for (int j = 0; j < s; ++j) {
+      const double c = h * dop853::A_EXTRA[e][j];
+      if (c == 0.0) continue;
+      far.x += c * far.kx.col(j);
+      far.vs += c * far.ka.col(j);
+    }
+    pinocchio::integrate(model.tree, q, far.x, far.qs);
+    accel(model, data, t + dop853::C_EXTRA[e] * h, far.qs, far.vs);
+    far.ka.col(s) = data.a;
+    chart_rate(model, data, q, far.x, far.vs, far.kx.col(s));
+  }
+  // y = (x, v), y_old = (0, v), y_new = (xn, vn) (scipy's Dop853DenseOutput)
+  const int end = dop853::N_STAGES;
+  far.fx.col(0) = far.xn;
+  far.fv.col(0) = far.vo;  // vn - v: set by the caller in far.vo
+  far.fx.col(1) = h * far.kx.col(0) - far.fx.col(0);
+  far.fv.col(1) = h * far.ka.col(0) - far.fv.col(0);
+  far.fx.col(2) = 2 * far.fx.col(0) - h * (far.kx.col(end) + far.kx.col(0));
+  far.fv.col(2) = 2 * far.fv.col(0) - h * (far.ka.col(end) + far.ka.col(0));
+  for (int i = 0; i < 4; ++i) {
+    far.fx.col(3 + i).setZero();
+    far.fv.col(3 + i).setZero();
+    for (int j = 0; j < dop853::N_STAGES_EXTENDED; ++j) {
+      const double c = h * dop853::D[i][j];
+      if (c == 0.0) continue;
+      far.fx.col(3 + i) += c * far.kx.col(j);
+      far.fv.col(3 + i) += c * far.ka.col(j);
+    }
+  }
+}
+
+inline void dop853_far_output(const CoreModel &model, CoreData &data, Rk43Run &run,
+                              Dop853Far &far, const Vec &q, const Vec &v, double t_out,
+                              double theta) {
+  far.xo.setZero();
+  far.vo.setZero();
+  for (int i = dop853::INTERPOLATOR_POWER - 1, r = 0; i >= 0; --i, ++r) {
+    far.xo += far.fx.col(i);
+    far.vo += far.fv.col(i);
+    const double w = (r % 2 == 0) ? theta : 1.0 - theta;
+    far.xo *= w;
+    far.vo *= w;
+  }
+  far.vo += v;
+  pinocchio::integrate(model.tree, q, far.xo, far.qo);
+  project(model, data, far.qo, far.vo, false);
+  check_regular(model, data, far.qo, t_out);
+  MethodOverride solve_by(data, model.method == AUGMENTED_LAGRANGIAN ? KKT : -1);
+  accel(model, data, t_out, far.qo, far.vo);
+  record(model, data, run.samples, t_out, far.qo, far.vo);
+}
+
+inline bp::dict run_dop853_rk43(const CoreModel &model, CoreData &data, const Vec &q0,
+                                const Vec &v0, double t_final, double rtol, double atol,
+                                double h0, bp::object t_eval_obj, bp::object progress) {
+  check_sizes(model, q0, v0);
+  invalidate_kinematics(data);  // nothing kept from before the run (M, the factor of P)
+  if (!(h0 > 0.0) || !(t_final > 0.0) || !(rtol > 0.0) || !(atol > 0.0))
+    throw BadArgument{"run_dop853_rk43: t_final, rtol, atol and h0 must be > 0"};
+  data.n_evals = 0;
+  data.method_override = -1;
+  begin_partitioning(model, data, true);  // as run_rk43
+  std::vector<double> outs;  // the output times (none: every step end is one)
+  if (!t_eval_obj.is_none()) {
+    Vec te = bp::extract<Vec>(t_eval_obj);
+    outs.assign(te.data(), te.data() + te.size());
+  }
+  const bool dense = !t_eval_obj.is_none();
+  Rk43Run run(model, t_final, std::max(rtol, NEAR_RTOL), std::max(atol, NEAR_ATOL), h0,
+              bp::object(), true);
+  run.record_steps = false;
+  Dop853Far far(model, rtol, atol, h0);
+  std::vector<long> out_index;  // the samples at output times
+  Vec q_old(model.nq), v_old(model.nv), a_old(model.nv);
+  GilRelease nogil;  // until the samples become Python objects (gil.hpp)
+  rk43_start(model, data, run, q0, v0);  // records t = 0
+  std::size_t io = 0;
+  if (dense && io < outs.size() && outs[io] <= 0.0) {
+    out_index.push_back(0);
+    ++io;
+  }
+  while (run.t < t_final) {
+    const double t_old = run.t;
+    q_old = run.q;
+    v_old = run.v;
+    a_old = run.a;
+    bool far_step = false, accepted = false;
+    double h_step = 0.0;
+    if (run.rho_start >= RANK_INDICATOR_CAP) {
+      Rk43Trial trial;
+      const FarOutcome out = dop853_far_trial(model, data, run, far, t_final, trial);
+      if (out == FAR_REJECTED) {
+        ++run.rejected;
+        continue;
+      }
+      if (out == FAR_ACCEPTED) {
+        run.t = run.t_far_end;
+        h_step = run.t - t_old;
+        check_regular(model, data, run.qn, run.t);
+        run.q = run.qn;
+        run.v = run.vn;
+        run.a = run.an;
+        run.rho_start = trial.rho_new;
+        ++run.steps;
+        ++run.far_steps;
+        run.err_max = std::max(run.err_max, trial.err);
+        run.err_sum += trial.exm;
+        far_step = accepted = true;
+      }
+    }
+    if (!far_step) accepted = rk43_try_step(model, data, run, t_final, progress, &far);
+    if (!accepted) continue;
+    // The outputs within (t_old, run.t), then the step's end (data.a, data.lam at it
+    // unless an output was evaluated since).
+    bool evaluated = false;
+    bool prepared = false;
+    while (dense && io < outs.size() && outs[io] < run.t) {
+      if (outs[io] > t_old) {
+        if (far_step) {
+          if (!prepared) {
+            far.vo = run.v - v_old;
+            dop853_far_dense(model, data, q_old, v_old, t_old, h_step, far);
+            prepared = true;
+          }
+          dop853_far_output(model, data, run, far, q_old, v_old, outs[io],
+                            (outs[io] - t_old) / h_step);
+        } else {
+          record_interpolated(model, data, run.samples, outs[io], (outs[io] - t_old) / (run.t - t_old),
+                              run.t - t_old, q_old, v_old, a_old, run.q, run.v, run.a);
+        }
+        out_index.push_back(static_cast<long>(run.samples.t.size()) - 1);
+        evaluated = true;
+      }
+      ++io;
+    }
+    if (evaluated) {
+      MethodOverride solve_by(data, far_step && model.method == AUGMENTED_LAGRANGIAN ? KKT : -1);
+      accel(model, data, run.t, run.q, run.v);
+    }
+    record(model, data, run.samples, run.t, run.q, run.v);
+    if (dense && io < outs.size() && outs[io] == run.t) {
+      out_index.push_back(static_cast<long>(run.samples.t.size()) - 1);
+      ++io;
+    }
+    if (far_step) poll(run.steps, run.t, progress);
+  }
+  nogil.restore();
+  bp::dict d = samples_dict(model, data, run.samples, run.steps);
+  d["singular_splits"] = run.splits;
+  d["rejected_steps"] = run.rejected;
+  d["error_estimate_max"] = run.err_max;
+  d["error_estimate_sum"] = run.err_sum;
+  d["far_steps"] = run.far_steps;
+  d["zone_steps"] = run.zone_steps;
+  bp::list outputs;
+  for (const long k : out_index) outputs.append(k);
+  d["outputs"] = outputs;
   return d;
 }
 

@@ -177,6 +177,9 @@ struct CoreData {
   Vec a2;
   /// rk4_projected: the rank indicator at the projected midpoint.
   double midpoint_indicator = 0.0;
+  /// The method the solves use instead of model.method while set (dop853-rk43's kkt far
+  /// from singular positions); -1: model.method.
+  int method_override = -1;
   /// The chart of the adaptive loops (nq != nv) is in use; its centre q_c and the q of the
   /// last x, shape (nq,); dIntegrate/dx, shape (nv, nv).
   bool chart = false;

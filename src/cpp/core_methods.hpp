@@ -222,10 +222,15 @@ inline void solve(const CoreModel &model, CoreData &data, const RefV &q, const R
   dispatch(model, data, q, tau, t);
 }
 
+/// The method of the solves: data.method_override when set, else model.method.
+inline Method active_method(const CoreModel &model, const CoreData &data) {
+  return data.method_override >= 0 ? static_cast<Method>(data.method_override) : model.method;
+}
+
 inline void dispatch(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                      double t) {
   if (model.tree_solves()) return solve_tree(model, data, q, tau, t);
-  switch (model.method) {
+  switch (active_method(model, data)) {
     case KKT:
       solve_kkt(model, data, q, tau, t);
       break;

@@ -86,7 +86,8 @@ void project(const CoreModel &model, CoreData &data, Vec &q, Vec &v, bool mass_o
 /// With a narrow row band (set_band's banded_n) J J^T is factorized as a band and
 /// x^T J J^T x = |J^T x|^2: O(nc) instead of the dense product and Cholesky, O(nc^3)
 /// (the same quantity to round-off; also the ALI3-P loop's indicator).
-double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q);
+double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q,
+                      double cap = RANK_INDICATOR_CAP);
 
 // -- definitions -------------------------------------------------------------
 
@@ -269,8 +270,8 @@ inline void project(const CoreModel &model, CoreData &data, Vec &q, Vec &v, bool
   }
 }
 
-inline double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q) {
-  if (model.nc == 0) return RANK_INDICATOR_CAP;
+inline double rank_indicator(const CoreModel &model, CoreData &data, const Vec &q, double cap) {
+  if (model.nc == 0) return cap;
   eval_phi_J(model, data, q);
   if (model.banded_normal) {
     assemble_normal_band(model, data, 0.0);
@@ -284,7 +285,7 @@ inline double rank_indicator(const CoreModel &model, CoreData &data, const Vec &
     }
     jt_mul(model, data, data.al_wc, data.al_wv);
     const double mu = data.al_wv.squaredNorm();
-    return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+    return std::min(std::sqrt(std::max(mu, 0.0) / ref), cap);
   }
   data.JJt.noalias() =
       data.J.lazyProduct(data.J.transpose());  // small (no row band): coefficient-based
@@ -299,7 +300,7 @@ inline double rank_indicator(const CoreModel &model, CoreData &data, const Vec &
   }
   data.vel_c.noalias() = data.JJt * data.tmp_c;
   const double mu = data.tmp_c.dot(data.vel_c);
-  return std::min(std::sqrt(std::max(mu, 0.0) / ref), RANK_INDICATOR_CAP);
+  return std::min(std::sqrt(std::max(mu, 0.0) / ref), cap);
 }
 
 }  // namespace closedchain

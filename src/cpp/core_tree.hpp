@@ -152,16 +152,17 @@ inline void tree_factor_range(const CoreModel &model, CoreData &data, const RefV
 
 inline void solve_tree(const CoreModel &model, CoreData &data, const RefV &q, const Vec &tau,
                        double t) {
-  const bool range = model.method == NULLSPACE || model.method == REDUCED;
+  const Method method = active_method(model, data);
+  const bool range = method == NULLSPACE || method == REDUCED;
   if (!range) {
     tree_factor_at_J(model, data, q, t);
-    if (model.method == AUGMENTED_LAGRANGIAN)
+    if (method == AUGMENTED_LAGRANGIAN)
       tree_penalize(model, data, q, t);
     else
       tree_factor_kkt(model, data, q, t);
   } else if (model.nc) {  // the checks in the dense path's order: J_D or J, then M, then G
-    if (model.method == REDUCED) factor_method_JD(model, data, q, t);
-    tree_factor_range(model, data, q, model.method == NULLSPACE, t);
+    if (method == REDUCED) factor_method_JD(model, data, q, t);
+    tree_factor_range(model, data, q, method == NULLSPACE, t);
   } else {
     tree_factor_mass(model, data, q, t);
   }
@@ -169,7 +170,7 @@ inline void solve_tree(const CoreModel &model, CoreData &data, const RefV &q, co
   tree_free_motion(model.tree, data.tree, data.mass_factor, data.J, data.tree_rows, data.rhs_v,
                    data.gamma, data.a);
   if (!model.nc) return;  // a = a_f
-  switch (model.method) {
+  switch (method) {
     case NULLSPACE:
       return tree_nullspace(data);
     case REDUCED:

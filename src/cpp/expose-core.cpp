@@ -90,6 +90,10 @@ void expose_core() {
            bp::args("self", "q0", "v0", "t_final", "rtol", "atol", "h0", "t_eval", "record_all",
                     "progress"),
            "rk4 with stage projection and an embedded error estimate (simulate/rk43.py).")
+      .def("run_dop853_rk43", &Core::run_dop853_rk43,
+           bp::args("self", "q0", "v0", "t_final", "rtol", "atol", "h0", "t_eval", "progress"),
+           "DOP853 far from singular positions, rk43 near them (simulate/dop853_rk43.py); "
+           "every step end recorded and the times t_eval, their samples in 'outputs'.")
       .def("set_partition", &Core::set_partition, bp::args("self", "independent", "names"),
            "The reduced method's partition (independent velocity indices) and coordinate names.")
       .def("set_alignment", &Core::set_alignment,

@@ -8,7 +8,7 @@ under the same names when the core imports.
 from __future__ import annotations
 
 from .. import compiled
-from . import adaptive, ali3p, compiled_loops, fixed, rk43
+from . import adaptive, ali3p, compiled_loops, dop853_rk43, fixed, rk43
 from .registry import (
     INTEGRATORS,
     IntegratorSpec,
@@ -107,6 +107,24 @@ register_integrator(
     )
 )
 
+#: dop853-rk43's default (rtol, atol): see tests/test_dop853_rk43.py for what they meet.
+DOP853_RK43_TOLERANCES = (1e-11, 1e-12)
+
+register_integrator(
+    IntegratorSpec(
+        "dop853-rk43",
+        "adaptive",
+        dop853_rk43.run_dop853_rk43,
+        8,
+        stabilizations=("stage-projection",),
+        default_stabilization="stage-projection",
+        tolerances=DOP853_RK43_TOLERANCES,
+        description="Dormand-Prince 8(5,3) far from singular positions (its step's end "
+        "projected), rk43 near them (every stage projected), adaptive, on the manifold "
+        "through pin.integrate",
+    )
+)
+
 register_integrator(
     IntegratorSpec(
         "ali3p",
@@ -130,6 +148,7 @@ if compiled.available():
         ("semi-implicit", "fixed", 1, compiled_loops.run_fixed_compiled, "run_fixed"),
         ("rk4", "fixed", 4, compiled_loops.run_fixed_compiled, "run_fixed"),
         ("rk43", "adaptive", 4, compiled_loops.run_rk43_compiled, "run_rk43"),
+        ("dop853-rk43", "adaptive", 8, compiled_loops.run_dop853_rk43_compiled, "run_dop853_rk43"),
         ("RK45", "adaptive", 5, compiled_loops.run_adaptive_compiled, "run_adaptive"),
         ("DOP853", "adaptive", 8, compiled_loops.run_adaptive_compiled, "run_adaptive"),
     ):

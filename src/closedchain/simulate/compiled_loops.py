@@ -247,6 +247,37 @@ def run_rk43_compiled(
     return steps
 
 
+def run_dop853_rk43_compiled(
+    problem: Problem, recorder, q0, v0, t_final, control, spec, stab, t_eval, progress, info
+) -> int:
+    """dop853-rk43 in C++ (:mod:`.dop853_rk43`, step for step); return the accepted steps.
+
+    The core records every step end and the outputs within the steps (their indices in
+    ``out["outputs"]``): the work of tau is integrated over all of them, the outputs
+    kept (:func:`_keep`).
+    """
+    _start_work(problem, q0, v0)
+    core = _prepare(problem, info, stab)
+    try:
+        out = core.run_dop853_rk43(
+            np.asarray(q0, dtype=float),
+            np.asarray(v0, dtype=float),
+            float(t_final if t_eval is None else t_eval[-1]),
+            float(control.rtol),
+            float(control.atol),
+            float(problem.settings.dt),
+            None if t_eval is None else np.asarray(t_eval, dtype=float),
+            progress,
+        )
+    except RowCheckRequired as exc:
+        args = (q0, v0, t_final, control, stab, t_eval, progress)
+        return _numpy_fallback(exc, problem, recorder, args, spec, info)
+    info["far_steps"] = int(out["far_steps"])
+    info["zone_steps"] = int(out["zone_steps"])
+    keep = None if t_eval is None else np.asarray(out["outputs"], dtype=np.intp)
+    return _finish(problem, core, recorder, _keep(recorder, out, keep), info)
+
+
 def run_ali3p_compiled(
     problem: Problem, recorder, q, v, t_final, control, spec, stab, t_eval, progress, info
 ) -> int:

@@ -93,8 +93,8 @@ CROSSING_FIT_RTOL = 0.5
 PLAIN_POINTS = (0.5, 1.0)
 
 
-def rank_indicator(J: np.ndarray, normal=None) -> float:
-    """Return sqrt(mu / mean eigenvalue of J J^T), capped at RANK_INDICATOR_CAP.
+def rank_indicator(J: np.ndarray, normal=None, cap: float = RANK_INDICATOR_CAP) -> float:
+    """Return sqrt(mu / mean eigenvalue of J J^T), capped at ``cap``.
 
     mu is the Rayleigh quotient of J J^T after RANK_INDICATOR_ITERS inverse iterations
     from the vector of ones: about the smallest eigenvalue, so the result is about
@@ -108,10 +108,11 @@ def rank_indicator(J: np.ndarray, normal=None) -> float:
             (LAPACK ``dpbtrf``) and takes x^T J J^T x = |J^T x|^2: O(nc) instead of the
             dense product and Cholesky, the same quantity to round-off (as the compiled
             core).
+        cap: the largest value returned (math.inf: none; dop853-rk43 follows its trend).
     """
     nc = J.shape[0]
     if nc == 0:
-        return RANK_INDICATOR_CAP
+        return cap
     banded = normal is not None and normal.banded
     if banded:
         A = normal.band(J)  # upper band storage, diagonal last
@@ -134,7 +135,7 @@ def rank_indicator(J: np.ndarray, normal=None) -> float:
         mu = float(y @ y)
     else:
         mu = float(x @ A @ x)
-    return min(math.sqrt(max(mu, 0.0) / ref), RANK_INDICATOR_CAP)
+    return min(math.sqrt(max(mu, 0.0) / ref), cap)
 
 
 def crossing_estimate(rho_start: float, rho_mid: float, rho_end: float) -> float:

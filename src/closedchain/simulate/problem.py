@@ -298,11 +298,19 @@ class Problem:
             self.meter.feed(*point)
 
     def accel(
-        self, t: float, q: np.ndarray, v: np.ndarray, *, multipliers: bool = True
+        self,
+        t: float,
+        q: np.ndarray,
+        v: np.ndarray,
+        *,
+        multipliers: bool = True,
+        method: str | None = None,
     ) -> np.ndarray:
         """Return the accelerations at (t, q, v), shape (nv,); :attr:`lam` holds the
         multipliers, polished only with ``multipliers`` (``SolverSettings.al_polish``:
-        off for evaluations whose multipliers nobody reads, such as rk4's inner stages)."""
+        off for evaluations whose multipliers nobody reads, such as rk4's inner stages).
+        ``method``: another method's solve than the run's (dop853-rk43's kkt far from
+        singular positions), None: the run's."""
         settings = self.solver_settings
         if not multipliers and settings.al_polish:
             settings = self._unpolished
@@ -311,7 +319,8 @@ class Problem:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             tau = self.torque(t, q, v)
             try:
-                a, lam = self.func(self.mech, q, v, tau, settings)
+                func = self.func if method is None else get_method(method)
+                a, lam = func(self.mech, q, v, tau, settings)
             except SingularConfigurationError as exc:
                 raise exc.at_time(t, hint=passing_hint()) from None
         self.n_evals += 1

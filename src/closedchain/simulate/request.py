@@ -41,9 +41,10 @@ from .settings import (
 if TYPE_CHECKING:
     from ..mechanism import Mechanism
 
-#: The integrator of ``simulate(integrator=None)``: rk4 with stage projection and an
-#: adaptive step under rtol/atol (:mod:`closedchain.simulate.rk43`).
-DEFAULT_INTEGRATOR = "rk43"
+#: The integrator of ``simulate(integrator=None)``: DOP853 far from singular positions,
+#: rk43 (rk4 with stage projection) near them, an adaptive step under rtol/atol
+#: (:mod:`closedchain.simulate.dop853_rk43`; the measurements: docs/bench/front.md).
+DEFAULT_INTEGRATOR = "dop853-rk43"
 #: The integrator of ``simulate(integrator=None, dt=...)``, and of a stabilization that
 #: the default does not support: fixed-step rk4.
 DEFAULT_FIXED_INTEGRATOR = "rk4"
@@ -377,7 +378,7 @@ def check_t_eval(
 
 def describe_default() -> str:
     """The default configuration of :func:`~closedchain.simulate` in a few words, from the
-    constants that make it (``"augmented-lagrangian, rk43 at rtol 1e-9,
+    constants that make it (``"augmented-lagrangian, dop853-rk43 at rtol 1e-11,
     stage-projection"``): the documentation and the generated benchmark pages state it
     with this, so they cannot name another default than the one that runs."""
     spec = get_integrator(DEFAULT_INTEGRATOR)

@@ -40,6 +40,7 @@ import pinocchio as pin
 
 from .chart import tangent_rate
 from .fixed import (
+    RANK_INDICATOR_CAP,
     _record_interpolated,
     crossing_estimate,
     rank_indicator,
@@ -128,8 +129,24 @@ def run_rk43(
     Args:
         control: ``control.rtol``, ``control.atol``: the tolerances, with scipy's meaning.
     """
+    return run_projected(problem, recorder, q, v, t_final, control, t_eval, progress, info)
+
+
+def run_projected(
+    problem: Problem, recorder, q, v, t_final, control, t_eval, progress, info, far=None
+) -> int:
+    """The loop of rk43, and of :mod:`.dop853_rk43` with ``far``; return the accepted steps.
+
+    Args:
+        far: None (rk43), or a stepper taken wherever the rank indicator at the step's
+            start is at its cap (far from singular positions): ``far.trial(t, q, v, a,
+            t_land)`` returns None (the rk43 step is taken instead), "rejected", or the
+            accepted step's end (t, q, v, a, err, position error estimate [rad or m]);
+            ``t_land`` is the time it must not step past (the next output time). Its
+            trials are counted with the rk43 ones in ``info``.
+    """
     settings = problem.settings
-    est = _Estimator(problem, control.rtol, control.atol)
+    est = _Estimator(problem, control.rtol, control.atol) if far is None else far.near_estimator()
     zone = settings.stage_singular_zone
     t = 0.0
     a = problem.accel(t, q, v)
@@ -151,9 +168,32 @@ def run_rk43(
 
     rho_start = rho(q)
     h = settings.dt  # the first trial step
-    steps = rejected = splits = 0
+    steps = rejected = splits = far_steps = zone_steps = 0
     err_max = err_sum = 0.0
     while t < t_stop:
+        if far is not None and rho_start >= RANK_INDICATOR_CAP:
+            out = far.trial(t, q, v, a, t_stop)
+            if out == "rejected":
+                rejected += 1
+                continue
+            if out is not None:
+                t_new, q_new, v_new, a_new, err, ex, rho_new = out
+                lam_new = problem.lam
+                check(t_new, q_new)
+                problem.step_end(t_new, q_new, v_new, a_new)
+                t, q, v, a, rho_start = t_new, q_new, v_new, a_new, rho_new
+                steps += 1
+                far_steps += 1
+                err_max, err_sum = max(err_max, err), err_sum + ex
+                if pending is None:
+                    recorder.add(t, q, v, a, lam_new)
+                else:
+                    far.record_outputs(recorder, pending, (t, q, v, a, lam_new))
+                if progress is not None:
+                    progress(t)
+                continue
+        if far is not None:  # near a singular position: steps that see it coming
+            h = far.near_step(h)
         proposed = h
         clipped = t + h >= t_stop * (1.0 - 1e-15)
         if clipped:
@@ -186,11 +226,15 @@ def run_rk43(
             else:  # one substep of two steps
                 q_new, v_new, a_new, _, err, ex = est.step(t, q, v, a, span * h)
             rho_new = rho(q_new)
-        if err > 1.0:
+        # dop853-rk43 within the indicator's cap: the step is kept, its size too (an
+        # estimate there measures what the crossing amplifies, not the step's error).
+        in_zone = far is not None and min(rho_start, rho_new) < RANK_INDICATOR_CAP
+        if err > 1.0 and not in_zone:
             rejected += 1
             h *= step_factor(err)
             continue
         splits += plan is not None
+        zone_steps += in_zone
         if substep is not None:
             check(*substep)
         t_new = t_stop if clipped or t + span * h >= t_stop else t + span * h
@@ -199,18 +243,23 @@ def run_rk43(
         start = (t, q, v, a)
         t, q, v, a, rho_start = t_new, q_new, v_new, a_new, rho_new
         steps += 1
-        err_max, err_sum = max(err_max, err), err_sum + ex
+        if not in_zone:
+            err_max, err_sum = max(err_max, err), err_sum + ex
         if pending is None:
             recorder.add(t, q, v, a, problem.lam)
         else:
             record_outputs(problem, recorder, pending, start, (t, q, v, a))
         if progress is not None:
             progress(t)
-        h *= step_factor(err)
+        if not in_zone:
+            h *= step_factor(err)
         if clipped:
             h = max(h, proposed)
     info["rejected_steps"] = rejected
     info["error_estimate_max"] = err_max
     info["error_estimate_sum"] = err_sum
     info["singular_splits"] = splits
+    if far is not None:
+        info["far_steps"] = far_steps
+        info["zone_steps"] = zone_steps
     return steps
