@@ -54,7 +54,7 @@ from closedchain.benchmark.evaluation import (
 )
 from closedchain.benchmark.plots import plot_stability_map
 from closedchain.benchmark.runner import execute
-from closedchain.benchmark.scaling import SIMULATE_DT, run_scaling
+from closedchain.benchmark.scaling import DEFAULT_CALL, SIMULATE_DT, run_scaling
 from closedchain.benchmark.stability import (
     CASES,
     STABILITY_COLUMNS,
@@ -116,7 +116,10 @@ def write_scaling_page(out: Path, quiet: bool = False) -> None:
             "log(us) against log(nv). *compiled* is the compiled core called from Python "
             "(one call), *compiled, in simulate* its cost per evaluation inside "
             f"`simulate` (rk4 at {SIMULATE_DT * 1e3:g} ms, the difference of a short and a "
-            "long run), *refused* a method that raised at that size.",
+            f"long run); *{DEFAULT_CALL}* is `simulate` under its default settings (the "
+            "same difference, its own steps, error estimates and projections counted in "
+            "the cost of its evaluations), the marginal cost of an evaluation a user "
+            "gets without tuning; *refused* a method that raised at that size.",
             "",
             tables,
             "![scaling](scaling.png)",

@@ -486,8 +486,9 @@ def add_simulation_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         type=_choice(INTEGRATORS),
         choices=sorted(INTEGRATORS),
-        help="time integrator, any case (default rk43: rk4 with stage projection and error "
-        "control under --rtol/--atol; rk4 when --dt is given)",
+        help="time integrator, any case (default dop853-rk43: DOP853 where J is regular, "
+        "rk43 near singular positions, error control under --rtol/--atol; rk4 when --dt "
+        "is given)",
     )
     step = p.add_mutually_exclusive_group()
     step.add_argument("--dt", type=float, help="fixed step [s] (fixed-step integrators)")

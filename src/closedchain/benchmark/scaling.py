@@ -26,6 +26,7 @@ from threadpoolctl import threadpool_limits
 
 from .._io import atomic_write
 from ..dynamics.base import DEFAULT_METHOD, DEFAULT_SETTINGS, get_method
+from ..simulate.request import DEFAULT_INTEGRATOR
 from ..exceptions import SingularConfigurationError
 from ..kinematics import assemble, project_velocity
 from ..mechanism import Mechanism, load
@@ -53,6 +54,11 @@ REPEAT_BUDGET = 0.05
 SIMULATE_STEPS = 2
 EXTRA_STEPS = (20, 200)
 SIMULATE_DT = 1e-4  # [s]
+#: Motion per "step" of the default run [s]: the default integrator chooses its own
+#: steps; the two runs last SIMULATE_STEPS and SIMULATE_STEPS + extra times this.
+DEFAULT_RUN_DT = SIMULATE_DT  # [s]
+#: Label of ``simulate``'s default settings (method and integrator) in the rows.
+DEFAULT_CALL = f"default, {DEFAULT_INTEGRATOR}"
 #: Backend label of the compiled core timed inside ``simulate``.
 IN_SIMULATE = "compiled, in simulate"
 #: Sum of the independent coordinates' rates at the timed state [rad/s]: each moves at
@@ -87,24 +93,30 @@ def _start(mech: Mechanism, guess: Callable[[Mechanism], np.ndarray] | None):
     return q, project_velocity(mech, q, v, fixed="independent")
 
 
-def _in_simulate(mech: Mechanism, method: str, q, v) -> Callable[[], float]:
-    """A call returning the CPU per evaluation [us] of the compiled loop (rk4, fixed
-    step): the difference of two runs of :data:`SIMULATE_STEPS` steps, so that the
-    setup of a run (checks, the core's configuration) is not counted."""
+def _in_simulate(mech: Mechanism, method: str | None, q, v) -> Callable[[], float]:
+    """A call returning the CPU per evaluation [us] of the compiled loop: the
+    difference of two runs, so that the setup of a run (checks, the core's
+    configuration) is not counted. ``method`` runs under rk4 at :data:`SIMULATE_DT`
+    (a run of ``steps`` steps); None runs ``simulate``'s default settings over
+    ``steps`` x :data:`DEFAULT_RUN_DT` of motion (its own steps, error estimates and
+    projections counted in the cost of its evaluations)."""
     from ..simulate import simulate
 
     def run(steps: int) -> tuple[float, int]:
         t0 = time.process_time()
-        traj = simulate(
-            mech,
-            q,
-            v,
-            steps * SIMULATE_DT,
-            method=method,
-            integrator="rk4",
-            dt=SIMULATE_DT,
-            backend="compiled",
-        )
+        if method is None:
+            traj = simulate(mech, q, v, steps * DEFAULT_RUN_DT, backend="compiled")
+        else:
+            traj = simulate(
+                mech,
+                q,
+                v,
+                steps * SIMULATE_DT,
+                method=method,
+                integrator="rk4",
+                dt=SIMULATE_DT,
+                backend="compiled",
+            )
         return time.process_time() - t0, traj.info.evaluations
 
     longer = []
@@ -137,6 +149,8 @@ def scaling_calls(mech: Mechanism, q, v, methods=SCALING_METHODS) -> list[tuple]
             fd = compiled[name]
             calls.append((name, "compiled", lambda fd=fd: fd.forward(q, v, tau), False))
             calls.append((name, IN_SIMULATE, _in_simulate(mech, name, q, v), True))
+    if compiled:
+        calls.append((DEFAULT_CALL, IN_SIMULATE, _in_simulate(mech, None, q, v), True))
     cms, cds, _, data = mech.pinocchio_constraints()
     prox = None
     try:  # the reference of the cheapest exact settings: the default method
