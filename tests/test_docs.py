@@ -303,21 +303,65 @@ EXECUTED_PAGES = (DOCS / "guide" / "tutorial.md",)
 FENCE = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```", re.S | re.M)
 
 
+#: Sections of other pages whose code blocks run as the tutorial's: (page, heading line).
+EXECUTED_SECTIONS = (
+    (DOCS / "guide" / "robots-and-moving-bases.md", "### A planar five-bar from nothing"),
+)
+
+
+def run_blocks(text: str, page: Path, directory: Path) -> list[tuple[str, str, str]]:
+    """Run the fenced blocks of ``text`` in order in ``directory`` (the current one): a
+    block of another language with ``title="file"`` is written there, a Python block
+    runs; return the blocks."""
+    namespace: dict = {"__name__": page.stem}
+    blocks = FENCE.findall(text)
+    for lang, info, body in blocks:
+        title = re.search(r'title="([^"]+)"', info)
+        if lang != "python" and title:
+            (directory / title[1]).write_text(body)
+        elif lang == "python":
+            exec(compile(body, str(page), "exec"), namespace)  # noqa: S102 (our own page)
+    return blocks
+
+
+def section(text: str, heading: str) -> str:
+    """Return a page's section: from ``heading`` to the next heading of its level or above
+    (a ``#`` line inside a fenced block is code, not a heading)."""
+    lines = text.splitlines(keepends=True)
+    start = lines.index(f"{heading}\n")
+    level = len(heading.split(" ", 1)[0])
+    fenced = False
+    for end in range(start + 1, len(lines)):
+        if lines[end].startswith("```"):
+            fenced = not fenced
+        elif not fenced and re.match(rf"#{{1,{level}}} ", lines[end]):
+            return "".join(lines[start:end])
+    return "".join(lines[start:])
+
+
 @pytest.mark.parametrize("page", EXECUTED_PAGES, ids=lambda p: p.stem)
 def test_tutorial_code_runs(page, tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "tutorial"}
-    blocks = FENCE.findall(page.read_text())
+    blocks = run_blocks(page.read_text(), page, tmp_path)
     assert sum(lang == "python" for lang, _, _ in blocks) >= 5, f"{page.name}: too few blocks"
-    for lang, info, body in blocks:
-        title = re.search(r'title="([^"]+)"', info)
-        if lang != "python" and title:
-            (tmp_path / title[1]).write_text(body)
-        elif lang == "python":
-            exec(compile(body, str(page), "exec"), namespace)  # noqa: S102 (our own page)
     for name in ("slider_crank.html", "slider_crank.png"):
         assert (tmp_path / name).stat().st_size > 0, name
+
+
+@pytest.mark.parametrize(
+    ("page", "heading"), EXECUTED_SECTIONS, ids=[page.stem for page, _ in EXECUTED_SECTIONS]
+)
+def test_section_code_runs(page, heading, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    blocks = run_blocks(section(page.read_text(), heading), page, tmp_path)
+    assert any(lang == "python" for lang, _, _ in blocks), f"{page.name}: no Python block"
+
+
+def test_section_ends_at_the_next_heading_of_its_level():
+    text = "# A\n## B\nb\n```python\n# code\n```\n### C\nc\n## D\nd\n"
+    assert section(text, "## B") == "## B\nb\n```python\n# code\n```\n### C\nc\n"
+    assert section(text, "## D") == "## D\nd\n"
 
 
 def test_every_page_is_in_the_nav():

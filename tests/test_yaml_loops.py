@@ -439,6 +439,25 @@ def test_a_conversion_of_no_joint_is_passed_over_with_a_warning(mechs, tmp_path,
     assert mech.model.existJointName("pin")
 
 
+def test_more_motors_than_the_mobility_is_a_warning(mechs, tmp_path, caplog):
+    """A 6d pair where the tree has no pin joint welds the tips of the planar five-bar:
+    mobility 1 under 2 motors loads, with a one-line warning naming the file."""
+    loops = tmp_path / "welded.yaml"
+    loops.write_text(FIVEBAR_YAML + "joint_name: [pin]\njoint_type: [FIXED]\n")
+    with caplog.at_level(logging.WARNING, logger="closedchain.mechanism"):
+        mech = cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=loops)
+    assert mech.mobility == 1
+    (record,) = [r for r in caplog.records if r.name == "closedchain.mechanism"]
+    assert record.getMessage().startswith(
+        f"{loops}: mobility 1 is less than the 2 motors (mot1, mot2): a loop over-constrains"
+    )
+    assert "3d" in record.getMessage() and "\n" not in record.getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="closedchain.mechanism"):
+        cc.load(DATA_DIR / "yaml_fivebar.urdf", loops=DATA_DIR / "yaml_fivebar_3d.yaml")
+    assert not caplog.records  # mobility 2, two motors: nothing to say
+
+
 def test_unknown_motor_lists_the_movable_joints(tmp_path):
     loops = tmp_path / "robot.yml"  # the other suffix
     loops.write_text(FIVEBAR_YAML.replace("mot2]", "mot3]"))

@@ -834,7 +834,8 @@ def load(
         The mechanism, with independent rows selected and a closed ``q_ref``, within
         the joint limits where a closed configuration within them is found (else a
         logged warning names the joints outside); a model whose redundant rows
-        disagree by less than ``settings.mismatch_tol`` loads with a logged warning.
+        disagree by less than ``settings.mismatch_tol`` loads with a logged warning, and
+        so does one whose loops YAML file names more motors than the mobility.
 
     Raises:
         ModelFileError: invalid file or extension element, or a tree beyond
@@ -848,6 +849,7 @@ def load(
     check_settings("settings", settings, LoadSettings)
     from .robots import merge_overlay, reference_configuration, resolve_model
     from .sdf import is_sdf
+    from .yaml_loops import is_loops_yaml
 
     if root_joint not in ROOT_JOINTS:
         raise UnknownChoiceError("root_joint", root_joint, [str(k) for k in ROOT_JOINTS])
@@ -974,8 +976,32 @@ def load(
         q_guess = configuration(model, _start_values(described, keyframe))
     _select_rows_and_coordinates(mech, settings, q_guess=q_guess, extra_starts=starts)
     _refuse_massless_subtrees(mech)
+    if loops is not None and is_loops_yaml(loops):
+        _warn_motors_beyond_mobility(mech, Path(loops))
     logger.info("loaded %r", mech)
     return mech
+
+
+def _warn_motors_beyond_mobility(mech: Mechanism, loops: Path) -> None:
+    """Log a warning where a loops YAML file leaves fewer degrees of freedom than motors.
+
+    The convention's robots have at least as many degrees of freedom as motors
+    (``name_mot``); fewer means a loop constrains more than the mechanism does,
+    typically a ``6d`` pair (the two frames welded) where a pin between two links
+    of a planar loop needs ``3d`` (the points joined): the mechanism loads, with
+    motors that fight each other.
+    """
+    motors = mech.actuated_joints
+    if mech.mobility < len(motors):
+        logger.warning(
+            "%s: mobility %d is less than the %d motors (%s): a loop over-constrains the "
+            "mechanism (a 6d pair welds its frames; a pin joint between two links of a "
+            "planar loop is 3d)",
+            loops,
+            mech.mobility,
+            len(motors),
+            ", ".join(motors),
+        )
 
 
 def _start_values(
