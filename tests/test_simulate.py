@@ -1476,3 +1476,43 @@ def test_callable_tau_under_every_integrator_stabilization_and_backend(
     err = np.linalg.norm(traj.q - driven_fourbar_reference, np.inf)
     assert err < DRIVEN_TOL[kind]
     assert traj.info.backend == backend
+
+
+#: Samples of the quadrature test: a step of this length [s] and outputs at this spacing
+#: [s] within it, one of them this far [s] before a step end (a round-off apart).
+QUADRATURE_STEP, QUADRATURE_OUTPUT, QUADRATURE_ROUNDOFF = 0.01, 1e-4, 1.7e-18
+#: The rules against the exact integral of a smooth power, relative (measured 1.3e-8 on
+#: the step ends alone, 7e-16 with the outputs; sample_work_increments gave 1.7e17 J
+#: for 0.048 J with them).
+QUADRATURE_RTOL = 1e-7
+#: sample_rate against the exact rate of tau, relative norm (measured 9e-7 and 3e-13).
+RATE_RTOL = 1e-5
+
+
+@pytest.mark.parametrize("outputs", [False, True])
+def test_work_rule_on_samples_a_round_off_apart(outputs):
+    """work_polynomials and sample_rate on step ends with (or without) dense outputs
+    within the steps, one a round-off from a step end: the integral of a smooth power
+    P(t) = tau(t) . v(t) within QUADRATURE_RTOL of the exact one (the rule's linear
+    systems gave 1e19 there), and the rate of tau too."""
+    from closedchain.simulate.problem import sample_rate, work_polynomials
+
+    steps = np.arange(0.0, 1.0 + QUADRATURE_STEP / 2, QUADRATURE_STEP)
+    t = steps
+    if outputs:
+        grid = np.arange(0.0, 1.0, QUADRATURE_OUTPUT)
+        near = steps[1:-1] - QUADRATURE_ROUNDOFF  # an output just before each step end
+        t = np.unique(np.concatenate([steps, grid, near]))
+    assert np.min(np.diff(t)) < QUADRATURE_OUTPUT * 1e-6 or not outputs
+    omega = 7.0
+    tau = np.cos(omega * t)[:, None]
+    tau_rate = -omega * np.sin(omega * t)[:, None]
+    v, a = np.exp(-t), -np.exp(-t)
+    power = tau[:, 0] * v
+    rate = tau[:, 0] * a + sample_rate(t, tau)[:, 0] * v
+    h, coeffs = work_polynomials(t, power, rate)
+    work = np.sum(h * (coeffs @ (1.0 / np.arange(1.0, 7.0))))
+    exact, _ = scipy.integrate.quad(lambda s: math.cos(omega * s) * math.exp(-s), 0.0, 1.0)
+    assert abs(work - exact) <= QUADRATURE_RTOL * abs(exact)
+    rate_error = np.linalg.norm(sample_rate(t, tau) - tau_rate) / np.linalg.norm(tau_rate)
+    assert rate_error <= RATE_RTOL

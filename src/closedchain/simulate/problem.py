@@ -79,7 +79,7 @@ class WorkMeter:
       Gauss-Legendre rule (:func:`gauss_work`: exact for P of degree 5, error
       O(h^7) per step), up to each output within the step too;
     * compiled loops, which return samples only: W by the sixth-order rule of
-      :func:`sample_work_increments` on samples at every step end
+      :func:`work_polynomials` on samples at every step end
       (:meth:`Recorder.sample_work`). With tau and sparse outputs the fixed-step and
       ALI3-P loops record every step and keep the outputs after; the adaptive loops
       run twice, the first run giving the step ends (``compiled_loops``). The
@@ -848,8 +848,9 @@ class Recorder:
         shape (n,) [J]; NaN without tau.
 
         From the meter's last point (t = 0) to the first sample: :meth:`WorkMeter.feed`;
-        between samples: :func:`sample_work_increments` (sixth order in their spacing).
-        The meter is left at the last sample.
+        between samples: :func:`work_polynomials` (sixth order in their spacing, any
+        spacing: outputs a round-off from a step end included). The meter is left at
+        the last sample.
 
         Args:
             samples: arrays ``t`` (n,) [s], ``q`` (n, nq), ``v``, ``a`` (n, nv).
@@ -873,7 +874,9 @@ class Recorder:
         rate = np.einsum("ij,ij->i", tau, a) - 2.0 * np.einsum("ij,ij->i", dv, a)
         if not meter.constant:  # d tau / dt from the samples
             rate += np.einsum("ij,ij->i", sample_rate(t, tau), v)
-        w = w0 + np.concatenate([[0.0], np.cumsum(sample_work_increments(t, power, rate))])
+        h, coeffs = work_polynomials(t, power, rate)
+        increments = h * (coeffs @ (1.0 / (np.arange(coeffs.shape[1]) + 1.0)))
+        w = w0 + np.concatenate([[0.0], np.cumsum(increments)])
         meter.feed(t[-1], q[-1], v[-1], a[-1], integral=lambda s: w[-1] - w0)
         return w
 
@@ -931,6 +934,9 @@ class Recorder:
 
 #: Samples per window of :func:`sample_rate` (a quartic: fourth-order derivatives).
 RATE_WINDOW = 5
+#: :func:`sample_rate` merges a sample this close to the one before, relative to the
+#: median spacing, into it.
+RATE_MERGE_FRACTION = 1e-6
 
 
 def sample_rate(t: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -942,6 +948,12 @@ def sample_rate(t: np.ndarray, x: np.ndarray) -> np.ndarray:
         t: sample times [s], shape (n,), increasing.
         x: values at the samples, shape (n, m).
     """
+    # A sample a round-off after the one before (an output beside a step end) would make
+    # the windows' Vandermonde systems singular: it takes that sample's derivative.
+    spacing = np.diff(t)
+    distinct = np.concatenate([[True], spacing > RATE_MERGE_FRACTION * np.median(spacing)])
+    if not np.all(distinct):
+        return sample_rate(t[distinct], x[distinct])[np.cumsum(distinct) - 1]
     n = len(t)
     if n < RATE_WINDOW:
         return np.gradient(x, t, axis=0)
@@ -954,24 +966,46 @@ def sample_rate(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return coeffs[:, 1, :] / scale[:, None]
 
 
-def sample_work_increments(t: np.ndarray, power: np.ndarray, rate: np.ndarray) -> np.ndarray:
-    """Return the integrals of the power P between consecutive samples, shape (n - 1,) [J].
+#: The sixth-order rule of :func:`work_polynomials` takes a neighbouring interval at most
+#: this many times longer or shorter than the interval (beyond, the linear system of the
+#: quintic is ill-conditioned: an interval a round-off long beside a step).
+WORK_STENCIL_RATIO = 16.0
 
-    On each interval [t_k, t_k+1] the quintic through P and dP/dt at three consecutive
-    samples (k - 1, k, k + 1; at the first interval k, k + 1, k + 2) is integrated:
-    exact for P of degree 5, error O(h^7) per interval (sixth order in the sample
-    spacing h), for any spacing.
+
+def work_polynomials(
+    t: np.ndarray, power: np.ndarray, rate: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    r"""Return the polynomials of the power P on the intervals between samples: their
+    lengths h, shape (n - 1,) [s], and coefficients c, shape (n - 1, 6) [W], with
+    :math:`P(t_k + z h_k) = \sum_p c_{k,p} z^p` on :math:`z \in [0, 1]`.
+
+    On each interval [t_k, t_k+1] the quintic through P and dP/dt at its two ends and at
+    a third sample: the nearest one at least h_k / WORK_STENCIL_RATIO before t_k (t_k-1
+    on evenly spaced samples), else after t_k+1, at most WORK_STENCIL_RATIO h_k from
+    the interval: exact for P of degree 5, error O(h^7) per interval (sixth order in the
+    sample spacing h), the linear system well-conditioned for any spacing. Without such
+    a sample (an interval much shorter than those beside it) the cubic Hermite of its
+    two ends (c_4 = c_5 = 0; error h^5 / 720 max |d^4 P / dt^4|, small where h is).
 
     Args:
-        t: sample times [s], shape (n,), increasing, n >= 3.
+        t: sample times [s], shape (n,), increasing, n >= 2.
         power: P = tau . v at the samples [W], shape (n,).
         rate: dP/dt at the samples [W/s], shape (n,).
     """
     n = len(t)
     k = np.arange(n - 1)
-    first = np.clip(k - 1, 0, n - 3)
-    idx = np.stack([first, first + 1, first + 2], axis=1)  # three samples per interval
     h = t[k + 1] - t[k]
+    ratio = WORK_STENCIL_RATIO
+    # The nearest sample at least h / ratio before the interval, else after it; usable
+    # within ratio x h of it (a sample a round-off beside the interval is skipped).
+    before = np.minimum(np.searchsorted(t, t[k] - h / ratio, side="right") - 1, k - 1)
+    after = np.maximum(np.searchsorted(t, t[k + 1] + h / ratio, side="left"), k + 2)
+    gap_before = t[k] - t[np.maximum(before, 0)]
+    gap_after = t[np.minimum(after, n - 1)] - t[k + 1]
+    use_left = (before >= 0) & (gap_before >= h / ratio) & (gap_before <= ratio * h)
+    use_right = ~use_left & (after < n) & (gap_after >= h / ratio) & (gap_after <= ratio * h)
+    third = np.where(use_left, before, np.where(use_right, after, k))
+    idx = np.stack([k, k + 1, third], axis=1)  # (n - 1, 3); the third unused without one
     z = (t[idx] - t[k][:, None]) / h[:, None]  # local coordinate, interval = [0, 1]
     powers = np.arange(6)
     A = np.concatenate(
@@ -980,10 +1014,14 @@ def sample_work_increments(t: np.ndarray, power: np.ndarray, rate: np.ndarray) -
             powers * np.where(powers > 0, z[:, :, None], 1.0) ** np.maximum(powers - 1, 0),
         ],
         axis=1,
-    )  # (n - 1, 6, 6); dP/dz = h dP/dt
+    )  # (n - 1, 6, 6), rows P(z0), P(z1), P(z2), P'(z0), P'(z1), P'(z2); dP/dz = h dP/dt
     b = np.concatenate([power[idx], h[:, None] * rate[idx]], axis=1)
+    alone = ~(use_left | use_right)  # the cubic Hermite: rows of z2 become c4 = c5 = 0
+    A[alone, 2, :] = np.eye(6)[4]
+    A[alone, 5, :] = np.eye(6)[5]
+    b[alone, 2] = b[alone, 5] = 0.0
     coeffs = np.linalg.solve(A, b[:, :, None])[:, :, 0]
-    return h * (coeffs @ (1.0 / (powers + 1.0)))
+    return h, coeffs
 
 
 def limit_violations(
