@@ -8,6 +8,7 @@ named tolerance.
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,8 +35,12 @@ EFFORT_REFERENCE = 0.0223541859432265  # [N^2 m^2 s]
 def example():
     spec = importlib.util.spec_from_file_location("agile_eye_min_torque", SCRIPT)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    sys.modules[spec.name] = module  # its dataclass looks the module up
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
 
 
 def test_minimum_torque_reorientation_converges(example):
