@@ -75,6 +75,24 @@ MP_STEP = mpmath.mpf("1e-20")
 TOL_HIGH_PRECISION = 1e-12
 #: The default method's derivatives (at a, lam converged to al_tol) against kkt's.
 TOL_METHODS = 1e-9
+#: Central-difference step of the inverse dynamics [rad, m, rad/s, m/s, rad/s^2 or m/s^2]:
+#: smaller than FD_STEP, since its fifth derivatives are large where J_F is far from
+#: orthogonal (the Agile Eye: truncation 3e-3 of 743 at 1e-3, 3e-7 at 1e-4).
+INVERSE_FD_STEP = 1e-4
+#: One integration step [s] of the step-derivative checks.
+STEP_H = 1e-2
+#: Step derivatives against central differences of the library's own step, same norm as
+#: TOL_FD (measured: at most 2e-8, the fixed branches' dq/dq of the DOP853 step, where
+#: the projection's iteration count differs between the differenced points).
+TOL_STEP = 1e-6
+#: The step's end state against the library's own step [rad, m, rad/s or m/s] (measured:
+#: 3e-14, the slider-crank's v after the DOP853 step).
+TOL_STEP_VALUE = 1e-12
+#: The step [s] and the central-difference step in q [rad] of the step checks 1e-2 rad
+#: short of the 4-bar's change point (FD_STEP, 7e-4, is not small beside that distance:
+#: relative error 3e-3; at 1e-5, 2e-9).
+NEAR_SINGULAR_STEP_H = 1e-3
+NEAR_SINGULAR_FD_STEP = 1e-5
 
 
 def _rel(D: np.ndarray, ref: np.ndarray) -> float:
@@ -82,12 +100,12 @@ def _rel(D: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(D - ref), initial=0.0) / max(np.max(np.abs(ref)), 1e-300))
 
 
-def _fd(f, n: int, shift, scale: np.ndarray) -> np.ndarray:
+def _fd(f, n: int, shift, scale: np.ndarray, step: float = FD_STEP) -> np.ndarray:
     """Central differences of f(shift(dx)) at dx = 0 along each unit vector e_k, step
-    FD_STEP max(1, |scale_k|), fourth order (the five-point stencil); shape (len(f(0)), n)."""
+    ``step`` max(1, |scale_k|), fourth order (the five-point stencil); shape (len(f(0)), n)."""
     cols = []
     for k in range(n):
-        h = FD_STEP * max(1.0, abs(scale[k]))
+        h = step * max(1.0, abs(scale[k]))
         e = np.zeros(n)
         e[k] = h
         f1, f2 = f(shift(e)) - f(shift(-e)), f(shift(2.0 * e)) - f(shift(-2.0 * e))
@@ -506,3 +524,177 @@ def test_bad_input_is_refused_in_one_line(fourbar):
         cc.forward_dynamics_derivatives(fourbar, fourbar.q_ref, zero, settings={"cond_max": 1})
     with pytest.raises(cc.UnknownChoiceError, match="kkt"):
         cc.forward_dynamics_derivatives(fourbar, fourbar.q_ref, zero, method="newton")
+
+
+# -- inverse dynamics ---------------------------------------------------------------------
+
+
+def _inverse_differences(mech, q, v, a_P, **kwargs) -> dict[str, np.ndarray]:
+    """Central differences of (tau, a, lam) of inverse_dynamics (numpy) in q (tangent), v
+    and a_P."""
+
+    def solve(q, v, a_P):
+        r = cc.inverse_dynamics(mech, q, v, a_P, backend="numpy", **kwargs)
+        return np.concatenate([r.tau, r.a, r.lam])
+
+    nv, mob, model = mech.nv, mech.mobility, mech.model
+    step = INVERSE_FD_STEP
+    return {
+        "q": _fd(lambda x: solve(x, v, a_P), nv, lambda e: pin.integrate(model, q, e), q * 0, step),
+        "v": _fd(lambda x: solve(q, x, a_P), nv, lambda e: v + e, v, step),
+        "a": _fd(lambda x: solve(q, v, x), mob, lambda e: a_P + e, a_P, step),
+    }
+
+
+@pytest.mark.parametrize("name", list(FD_MECHANISMS))
+def test_inverse_dynamics_derivatives_match_finite_differences(mechs, rng, name):
+    mech = mechs(name)
+    for q, v, _ in _states(mech, rng):
+        a_P = rng.standard_normal(mech.mobility)
+        d = cc.inverse_dynamics_derivatives(mech, q, v, a_P)
+        res = cc.inverse_dynamics(mech, q, v, a_P)
+        np.testing.assert_allclose(d.tau, res.tau, rtol=0, atol=0)
+        np.testing.assert_array_equal(d.prescribed_idx_v, mech.independent_idx_v)
+        fd = _inverse_differences(mech, q, v, a_P)
+        for x, ref in fd.items():
+            ours = np.vstack(
+                [getattr(d, f"dtau_d{x}"), getattr(d, f"da_d{x}"), getattr(d, f"dlam_d{x}")]
+            )
+            assert _rel(ours, ref) <= TOL_FD, (name, x, _rel(ours, ref))
+
+
+def test_over_actuated_inverse_derivatives_are_the_minimum_norm_torques(mechs, rng):
+    """The 4-bar driven at its crank and its rocker (two actuators, one degree of
+    freedom): the minimum-norm torques' derivatives."""
+    mech = mechs("fourbar")
+    q, v, _ = next(_states(mech, rng, 1))
+    a_P = rng.standard_normal(mech.mobility)
+    actuated = [0, 2]
+    d = cc.inverse_dynamics_derivatives(mech, q, v, a_P, actuated=actuated)
+    assert np.all(d.tau[actuated] != 0.0)
+    fd = _inverse_differences(mech, q, v, a_P, actuated=actuated)
+    for x, ref in fd.items():
+        ours = np.vstack(
+            [getattr(d, f"dtau_d{x}"), getattr(d, f"da_d{x}"), getattr(d, f"dlam_d{x}")]
+        )
+        assert _rel(ours, ref) <= TOL_FD, x
+
+
+# -- one integration step -----------------------------------------------------------------
+
+
+def _library_step(mech, q, v, tau, h, integrator: str, method: str = "augmented-lagrangian"):
+    """(q+, v+) of the library's own step: ``rk4_projected``, or one trial of
+    ``Dop853Far`` (tolerances so loose that it is accepted) for ``"dop853"``, with the
+    Problem that ``simulate`` builds for the default method and stage projection."""
+    from closedchain.dynamics.base import METHOD_CAPABILITIES
+    from closedchain.simulate.dop853_rk43 import Dop853Far
+    from closedchain.simulate.fixed import rk4_projected
+    from closedchain.simulate.problem import Problem
+
+    problem = Problem(mech, method, tau, SolverSettings(), cc.SimulationSettings())
+    problem.singular_robust = METHOD_CAPABILITIES[method].singular_robust
+    if integrator == "rk4-projected":
+        a = problem.accel(0.0, q, v)
+        return rk4_projected(problem, 0.0, q, v, a, h)[:2]
+    far = Dop853Far(problem, 1.0, 1.0, method)
+    far.h = h
+    out = far.trial(0.0, q, v, problem.accel(0.0, q, v, method=far.method), h)
+    assert isinstance(out, tuple), out  # None: handed over to rk43
+    return out[1], out[2]
+
+
+def _step_differences(mech, q, v, tau, h, scheme, method) -> dict[str, np.ndarray]:
+    """Central differences of the library's step in q (tangent), v and tau; the end
+    configuration as pin.difference from the undisturbed one."""
+    model, nv = mech.model, mech.nv
+    q1, _ = _library_step(mech, q, v, tau, h, scheme, method)
+
+    def end(q, v, tau):
+        qe, ve = _library_step(mech, q, v, tau, h, scheme, method)
+        return np.concatenate([pin.difference(model, q1, qe), ve])
+
+    return {
+        "q": _fd(lambda x: end(x, v, tau), nv, lambda e: pin.integrate(model, q, e), q * 0),
+        "v": _fd(lambda x: end(q, x, tau), nv, lambda e: v + e, v),
+        "tau": _fd(lambda x: end(q, v, x), nv, lambda e: tau + e, tau),
+    }
+
+
+@pytest.mark.parametrize(
+    ("integrator", "scheme", "method"),
+    [
+        ("rk4", "rk4-projected", "augmented-lagrangian"),  # mass-orthogonal projections
+        ("rk4", "rk4-projected", "kkt"),  # minimum-norm projections
+        ("default", "dop853", "augmented-lagrangian"),
+    ],
+)
+@pytest.mark.parametrize("name", list(FD_MECHANISMS))
+def test_step_derivatives_match_finite_differences(mechs, rng, name, integrator, scheme, method):
+    mech = mechs(name)
+    q, v, tau = next(_states(mech, rng, 1))
+    d = cc.step_derivatives(mech, q, v, tau, STEP_H, integrator=integrator, method=method)
+    assert d.scheme == scheme
+    q1, v1 = _library_step(mech, q, v, tau, STEP_H, scheme, method)
+    assert np.max(np.abs(pin.difference(mech.model, q1, d.q))) <= TOL_STEP_VALUE
+    assert np.max(np.abs(v1 - d.v)) <= TOL_STEP_VALUE
+    fd = _step_differences(mech, q, v, tau, STEP_H, scheme, method)
+    for x, ref in fd.items():
+        ours = np.vstack([getattr(d, f"dq_d{x}"), getattr(d, f"dv_d{x}")])
+        assert _rel(ours, ref) <= TOL_STEP, (x, _rel(ours, ref))
+
+
+def test_default_step_is_rk4_near_a_singular_position(fourbar, rng):
+    """Within the rank indicator's cap (the 4-bar 1e-2 rad short of its change point) the
+    default integrator's step is rk43's: rk4 with stage projection. The differences in q
+    take a step far below the distance to the change point (NEAR_SINGULAR_FD_STEP)."""
+    guess = FOURBAR_CHANGE_POINT - np.array([NEAR_SINGULAR_OFFSETS[0], 0.0, 0.0])
+    q = cc.assemble(fourbar, guess, fixed=["crank_joint"])
+    v = cc.project_velocity(fourbar, q, rng.standard_normal(fourbar.nv))
+    tau = rng.standard_normal(fourbar.nv)
+    h, model = NEAR_SINGULAR_STEP_H, fourbar.model
+    d = cc.step_derivatives(fourbar, q, v, tau, h)
+    assert d.scheme == "rk4-projected"
+    ref = cc.step_derivatives(fourbar, q, v, tau, h, integrator="rk4")
+    np.testing.assert_array_equal(d.dv_dq, ref.dv_dq)
+    q1, _ = _library_step(fourbar, q, v, tau, h, "rk4-projected")
+
+    def end(q, tau):
+        qe, ve = _library_step(fourbar, q, v, tau, h, "rk4-projected")
+        return np.concatenate([pin.difference(model, q1, qe), ve])
+
+    fd_q = _fd(
+        lambda x: end(x, tau),
+        fourbar.nv,
+        lambda e: pin.integrate(model, q, e),
+        q * 0,
+        NEAR_SINGULAR_FD_STEP,
+    )
+    fd_tau = _fd(lambda x: end(q, x), fourbar.nv, lambda e: tau + e, tau)
+    assert _rel(np.vstack([d.dq_dq, d.dv_dq]), fd_q) <= TOL_STEP
+    assert _rel(np.vstack([d.dq_dtau, d.dv_dtau]), fd_tau) <= TOL_STEP
+
+
+@pytest.mark.parametrize("offset", NEAR_SINGULAR_OFFSETS)
+def test_default_method_derivatives_near_a_singular_position(fourbar, rng, offset):
+    """Short of the change point the augmented Lagrangian still converges to the KKT
+    solution (its penalty does not move the fixed point): its derivatives are kkt's."""
+    guess = FOURBAR_CHANGE_POINT - np.array([offset, 0.0, 0.0])
+    q = cc.assemble(fourbar, guess, fixed=["crank_joint"])
+    v = cc.project_velocity(fourbar, q, rng.standard_normal(fourbar.nv))
+    tau = rng.standard_normal(fourbar.nv)
+    ref = cc.forward_dynamics_derivatives(fourbar, q, v, tau, method="kkt")
+    d = cc.forward_dynamics_derivatives(fourbar, q, v, tau)
+    for f in ("da_dq", "da_dv", "da_dtau", "dlam_dq", "dlam_dv", "dlam_dtau"):
+        assert _rel(getattr(d, f), getattr(ref, f)) <= TOL_METHODS, f
+
+
+def test_step_derivatives_refuse_bad_input(fourbar):
+    q, zero = fourbar.q_ref, np.zeros(fourbar.nv)
+    with pytest.raises(cc.UnknownChoiceError, match="rk4"):
+        cc.step_derivatives(fourbar, q, zero, zero, 1e-2, integrator="euler")
+    with pytest.raises(cc.ClosedChainError, match="positive"):
+        cc.step_derivatives(fourbar, q, zero, zero, 0.0)
+    free = cc.load(MECHANISM_FILES["fourbar"], root_joint="free")
+    with pytest.raises(cc.ClosedChainError, match="free-flyer"):
+        cc.step_derivatives(free, free.q_ref, np.zeros(free.nv), None, 1e-2)

@@ -26,8 +26,12 @@ from .control import (
 from .derivatives import (
     ConstraintDerivatives,
     ForwardDynamicsDerivatives,
+    InverseDynamicsDerivatives,
+    StepDerivatives,
     constraint_derivatives,
     forward_dynamics_derivatives,
+    inverse_dynamics_derivatives,
+    step_derivatives,
 )
 from .dynamics import METHODS, ForwardDynamicsResult, SolverSettings, forward_dynamics
 from .exceptions import (
@@ -106,6 +110,8 @@ __all__ = [
     "ClosedChainError",
     "ConstraintDerivatives",
     "ForwardDynamicsDerivatives",
+    "InverseDynamicsDerivatives",
+    "StepDerivatives",
     "ForwardDynamicsResult",
     "ForwardKinematicsResult",
     "InvalidArgumentError",
@@ -138,8 +144,10 @@ __all__ = [
     "compute_phi",
     "forward_dynamics",
     "forward_dynamics_derivatives",
+    "step_derivatives",
     "forward_kinematics",
     "inverse_dynamics",
+    "inverse_dynamics_derivatives",
     "inverse_kinematics",
     "joint_reactions",
     "load",

@@ -97,30 +97,77 @@ unique, and the regularized methods' answers depend on their penalty), and
 :func:`forward_dynamics_derivatives` raises :class:`SingularConfigurationError` rather
 than return the derivative of a regularized solution. The result carries the condition
 number (``kkt_cond``) so that a caller sees how near a singular position it is.
+
+**The default method near a singular position.** The augmented Lagrangian (the default,
+:mod:`closedchain.dynamics.augmented_lagrangian`) regularizes with its penalty
+:math:`\alpha = \rho\, \mathrm{tr}(M) / \mathrm{tr}(J^\top J)` (:math:`\rho` =
+``SolverSettings.al_penalty``): each iteration solves :math:`(M + \alpha J^\top J)\, a =
+\tau - h - J^\top \lambda_k - \alpha J^\top \gamma`, whose fixed point is the KKT
+solution whatever :math:`\alpha`. Where J has full rank the iteration converges to it
+(to ``al_tol``; short of the 4-bar's change point at sigma_min 2e-3 and 2e-4, in the
+tests, its derivatives agree with kkt's to 1e-9), so the derivative returned for the
+default method is the KKT one, and it does not depend on the penalty. At the singular
+position itself the augmented Lagrangian still returns accelerations (Gauss's
+principle's minimizer) and multipliers (those its ``al_max_iter`` iterations from
+:math:`\lambda_0 = 0` reach, which depend on :math:`\alpha`); the derivative of that
+regularized answer would be the derivative of :math:`[M, J^\top; J, -\alpha^{-1} I]`'s
+solution, whose multipliers' derivative along the lost row grows with :math:`\alpha`
+(as :math:`1/\sigma^2` grows as sigma_min falls to 0): a property of the penalty, not of
+the mechanism: :func:`forward_dynamics_derivatives` refuses it (above). The same
+holds for :func:`step_derivatives`, whose stages' accelerations are differentiated so.
+
+**Inverse dynamics.** :func:`inverse_dynamics_derivatives` differentiates the optimality
+system of :func:`closedchain.inverse_dynamics`' minimum-norm torques (its docstring),
+with the same partial derivatives and :math:`\partial_q (J \mu)` at fixed mu.
+
+**One integration step.** :func:`step_derivatives` differentiates one step of rk4 with
+stage projection and of the default integrator (dop853-rk43) in forward mode, stage by
+stage, the projections included (its docstring); every tangent is carried as the
+(nv, 3 nv) matrix of its derivatives in (q, v, tau) at the step's start.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from scipy.integrate._ivp import dop853_coefficients as dop
 from scipy.linalg import lapack
 
 from ._locking import exclusive
 from .constraints import ConstraintLayer
 from .dynamics import DEFAULT_METHOD, forward_dynamics
-from .dynamics.base import DEFAULT_SETTINGS, KKT_HINT, SolverSettings, singular_error
+from .dynamics.base import (
+    DEFAULT_SETTINGS,
+    KKT_HINT,
+    METHOD_CAPABILITIES,
+    SolverSettings,
+    get_method,
+    mass_matrix,
+    singular_error,
+)
 from .dynamics.kkt import estimate_scaled_inverse_norm, kkt_scaling
-from .exceptions import check_settings
+from .exceptions import ClosedChainError, UnknownChoiceError, check_settings
+from .inverse import _svd, inverse_dynamics
+from .kinematics import compute_jacobian, compute_phi
 from .mechanism import Mechanism
 from .pindata import frame_jacobian
+from .simulate.chart import curved_blocks
+from .simulate.dop853_rk43 import FAR_METHODS, INDICATOR_STAGE_A, INDICATOR_STAGE_B
+from .simulate.fixed import RANK_INDICATOR_CAP, rank_indicator
+from .simulate.settings import DEFAULT_SIMULATION_SETTINGS, SimulationSettings
 
 __all__ = [
     "ConstraintDerivatives",
     "ForwardDynamicsDerivatives",
+    "InverseDynamicsDerivatives",
+    "StepDerivatives",
     "constraint_derivatives",
     "forward_dynamics_derivatives",
+    "inverse_dynamics_derivatives",
+    "step_derivatives",
 ]
 
 _LOCAL = pin.ReferenceFrame.LOCAL
@@ -186,7 +233,8 @@ class ForwardDynamicsDerivatives:
 
 def _cross(x, y):
     """(x0 x y0, d(x x y)) of two (value (3,), tangent (3, m)) pairs."""
-    return np.cross(x[0], y[0]), pin.skew(x[0]) @ y[1] - pin.skew(y[0]) @ x[1]
+    sx = pin.skew(x[0])  # np.cross costs 20 times more on 3-vectors
+    return sx @ y[0], sx @ y[1] - pin.skew(y[0]) @ x[1]
 
 
 def _dot(x, y):
@@ -463,3 +511,511 @@ def _kkt_condition(K, lu, piv, info, M, J) -> float:
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         est = estimate_scaled_inverse_norm(lu, piv, 1.0 / d)
     return est * scaled_norm if est < float("inf") else float("inf")
+
+
+# -- inverse dynamics ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class InverseDynamicsDerivatives:
+    """Actuator torques of :func:`closedchain.inverse_dynamics` and their derivatives.
+
+    The inputs are (q, v, a_P): the configuration (derivatives in the tangent space, along
+    ``pin.integrate``), the velocity and the accelerations of the prescribed coordinates
+    P (``coordinates``, the independent ones by default); ``tau_passive`` is held fixed.
+
+    Attributes:
+        tau: generalized forces, shape (nv,) [N m or N], zero off the actuated coordinates.
+        a: accelerations of every coordinate, shape (nv,) [rad/s^2 or m/s^2].
+        lam: multipliers of the independent rows, shape (nc,), in the convention
+            ``M a + h + J^T lam = tau``.
+        actuated_idx_v: velocity indices where tau acts, shape (na,).
+        prescribed_idx_v: velocity indices of a_P, shape (mobility,).
+        dtau_dq: d tau / dq (tangent), shape (nv, nv) [N m or N per rad or m]; zero rows
+            off the actuated coordinates.
+        dtau_dv: d tau / dv, shape (nv, nv) [N m s or N s per rad or m].
+        dtau_da: d tau / d a_P, shape (nv, mobility) [kg m^2 or kg].
+        da_dq: d a / dq (tangent), shape (nv, nv) [1/s^2].
+        da_dv: d a / dv, shape (nv, nv) [1/s].
+        da_da: d a / d a_P, shape (nv, mobility) [-]: the identity on the rows P.
+        dlam_dq: d lam / dq (tangent), shape (nc, nv).
+        dlam_dv: d lam / dv, shape (nc, nv).
+        dlam_da: d lam / d a_P, shape (nc, mobility).
+    """
+
+    tau: np.ndarray
+    a: np.ndarray
+    lam: np.ndarray
+    actuated_idx_v: np.ndarray
+    prescribed_idx_v: np.ndarray
+    dtau_dq: np.ndarray
+    dtau_dv: np.ndarray
+    dtau_da: np.ndarray
+    da_dq: np.ndarray
+    da_dv: np.ndarray
+    da_da: np.ndarray
+    dlam_dq: np.ndarray
+    dlam_dv: np.ndarray
+    dlam_da: np.ndarray
+
+
+def _dJw_dq(mech: Mechanism, data, q, w) -> np.ndarray:
+    """d (J(q) w) / dq at fixed w, shape (nc, nv) (tangent): c(q, 0, w) = J w."""
+    _, dc = _constraint_acceleration(mech, data, q, np.zeros(mech.nv), w)
+    return dc[:, : mech.nv]
+
+
+def _dMu_dq(model: pin.Model, data, q, u) -> np.ndarray:
+    """d (M(q) u) / dq at fixed u, shape (nv, nv) (tangent): rnea(q, 0, u) - rnea(q, 0, 0)."""
+    zero = np.zeros(model.nv)
+    d_u = np.array(pin.computeRNEADerivatives(model, data, q, zero, u)[0])
+    d_0 = np.array(pin.computeRNEADerivatives(model, data, q, zero, zero)[0])
+    return d_u - d_0
+
+
+@exclusive
+def inverse_dynamics_derivatives(
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    a_independent: np.ndarray,
+    *,
+    actuated="actuated",
+    coordinates="independent",
+    tau_passive: np.ndarray | None = None,
+    settings: SolverSettings = DEFAULT_SETTINGS,
+) -> InverseDynamicsDerivatives:
+    r"""Compute the actuator torques of prescribed accelerations and their derivatives.
+
+    tau, a and lam are :func:`closedchain.inverse_dynamics`'s (same arguments). Its
+    torques are the minimum-norm solution of the equations of motion (the unique one
+    with as many actuators as degrees of freedom), so with a multiplier :math:`\mu` of
+    that minimization the unknowns :math:`z = (a_F, \tau_A, \lambda, \mu)` solve the
+    square system
+
+    .. math::
+
+        J_F a_F + J_P a_P + \gamma = 0, \quad
+        M a + h - \tau_p - \tau_{passive} - B \tau_A + J^\top \lambda = 0, \quad
+        \tau_A + B^\top \mu = 0, \quad J \mu = 0,
+
+    regular where :func:`closedchain.inverse_dynamics` is defined (J_F and J of full
+    rank, N^T B of full row rank). Differentiated at the solution in (q, v, a_P) with
+    the same partial derivatives as :func:`forward_dynamics_derivatives` (RNEA, the
+    constraint acceleration, :math:`\partial_q (J^\top \lambda)`, :math:`\partial_q (J
+    \mu)`) it gives one linear solve for dz.
+
+    Args:
+        mech: the mechanism.
+        q: configuration, shape (nq,), on the constraint manifold.
+        v: velocity, shape (nv,), with J v = 0 [rad/s or m/s].
+        a_independent: accelerations of ``coordinates``, shape (mobility,)
+            [rad/s^2 or m/s^2].
+        actuated: as :func:`closedchain.inverse_dynamics`.
+        coordinates: as :func:`closedchain.inverse_dynamics`.
+        tau_passive: generalized forces besides the actuators, shape (nv,) [N m or N],
+            held fixed (no derivative), or None.
+        settings: as :func:`closedchain.inverse_dynamics` (``cond_max``).
+
+    Returns:
+        tau, a, lam and their derivatives (:class:`InverseDynamicsDerivatives`).
+
+    Raises:
+        ClosedChainError: what :func:`closedchain.inverse_dynamics` raises; and, with
+            more actuators than degrees of freedom, where its torques balance J's
+            near-null directions (``weak_rcond``) instead of being the minimum-norm
+            ones: their derivative is not implemented.
+        SingularConfigurationError: as :func:`closedchain.inverse_dynamics`.
+    """
+    res = inverse_dynamics(
+        mech,
+        q,
+        v,
+        a_independent,
+        actuated=actuated,
+        coordinates=coordinates,
+        tau_passive=tau_passive,
+        settings=settings,
+    )
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    model, nv, nc = mech.model, mech.nv, mech.nc
+    P, A = np.asarray(res.prescribed_idx_v), np.asarray(res.actuated_idx_v)
+    F = np.setdiff1d(np.arange(nv), P)
+    nP, nF, nA = len(P), len(F), len(A)
+    a, lam, tau = np.array(res.a), np.array(res.lam), np.array(res.tau)
+    J = np.array(res.J)
+    if nc and nA > nP:
+        s = _svd(J)[1]
+        if np.any(s < settings.weak_rcond * s[0]):
+            raise ClosedChainError(
+                f"{mech.name}: over-actuated inverse dynamics balances J's near-null "
+                f"directions here (sigma_min / sigma_max = {s[-1] / s[0]:.3g} < weak_rcond "
+                f"= {settings.weak_rcond:g}): the derivatives of those torques are not "
+                "implemented, only of the minimum-norm ones"
+            )
+    B = np.zeros((nv, nA))
+    B[A, np.arange(nA)] = 1.0
+    # mu from tau_A + B^T mu = 0, J mu = 0 (consistent for the minimum-norm torques).
+    mu = np.linalg.lstsq(np.vstack([B.T, J]), np.concatenate([-tau[A], np.zeros(nc)]), rcond=None)[
+        0
+    ]
+    data = model.createData()
+    drnea_dq, drnea_dv, M = (np.array(x) for x in pin.computeRNEADerivatives(model, data, q, v, a))
+    M = np.triu(M) + np.triu(M, 1).T
+    dtp_dq, dtp_dv = _passive_derivatives(mech)
+    _, dc = _constraint_acceleration(mech, data, q, v, a)
+    # Unknowns z = (a_F, tau_A, lam, mu); rows R1 (nc), R2 (nv), R3 (nA), R4 (nc).
+    n = nF + nA + nc + nv
+    r2, r3, r4 = nc, nc + nv, nc + nv + nA
+    cA, cL, cM = nF, nF + nA, nF + nA + nc
+    K = np.zeros((n, n))
+    K[:nc, :nF] = J[:, F]
+    K[r2:r3, :nF] = M[:, F]
+    K[r2:r3, cA:cL] = -B
+    K[r2:r3, cL:cM] = J.T
+    K[r3:r4, cA:cL] = np.eye(nA)
+    K[r3:r4, cM:] = B.T
+    K[r4:, cM:] = J
+    # The rows' partial derivatives in (q, v, a_P), at fixed z.
+    R = np.zeros((n, 2 * nv + nP))
+    R[:nc, :nv], R[:nc, nv : 2 * nv], R[:nc, 2 * nv :] = dc[:, :nv], dc[:, nv : 2 * nv], J[:, P]
+    R[r2:r3, :nv] = drnea_dq - dtp_dq
+    R[r2:r3, nv : 2 * nv] = drnea_dv - dtp_dv
+    R[r2:r3, 2 * nv :] = M[:, P]
+    if nc:
+        R[r2:r3, :nv] += _dJTlam_dq(mech, data, q, lam)
+        R[r4:, :nv] = _dJw_dq(mech, data, q, mu)
+    lu, piv, info = lapack.dgetrf(K)
+    if info != 0:  # pragma: no cover - inverse_dynamics refuses these configurations
+        raise singular_error(mech, q, "the inverse dynamics' linearization", np.inf, 0.0, "")
+    X = -lapack.dgetrs(lu, piv, R)[0]
+    da = np.zeros((nv, 2 * nv + nP))
+    da[F] = X[:nF]
+    da[P, 2 * nv + np.arange(nP)] = 1.0
+    dtau = np.zeros((nv, 2 * nv + nP))
+    dtau[A] = X[cA:cL]
+    dlam = X[cL:cM]
+    return InverseDynamicsDerivatives(
+        tau=tau,
+        a=a,
+        lam=lam,
+        actuated_idx_v=A,
+        prescribed_idx_v=P,
+        dtau_dq=dtau[:, :nv].copy(),
+        dtau_dv=dtau[:, nv : 2 * nv].copy(),
+        dtau_da=dtau[:, 2 * nv :].copy(),
+        da_dq=da[:, :nv].copy(),
+        da_dv=da[:, nv : 2 * nv].copy(),
+        da_da=da[:, 2 * nv :].copy(),
+        dlam_dq=dlam[:, :nv].copy(),
+        dlam_dv=dlam[:, nv : 2 * nv].copy(),
+        dlam_da=dlam[:, 2 * nv :].copy(),
+    )
+
+
+# -- one integration step --------------------------------------------------------------------
+
+#: The integrators whose one step :func:`step_derivatives` differentiates ("default" is
+#: :data:`closedchain.simulate.DEFAULT_INTEGRATOR`).
+STEP_INTEGRATORS = ("rk4", "dop853-rk43", "default")
+
+
+@dataclass(frozen=True)
+class StepDerivatives:
+    """The state after one integration step and its derivatives in the start state and tau.
+
+    Tangent spaces as :func:`forward_dynamics_derivatives`: column k of a ``d*_dq`` is
+    along ``pin.integrate(model, q, eps e_k)``, and a ``dq_d*`` is the displacement of the
+    end configuration q+ in its tangent space (``pin.difference(model, q+, q+(eps))``).
+
+    Attributes:
+        q: configuration after the step, shape (nq,).
+        v: velocity after the step, shape (nv,) [rad/s or m/s].
+        scheme: the step taken: ``"rk4-projected"`` (rk4, every stage and the end
+            projected) or ``"dop853"`` (DOP853, its end projected).
+        h: the step [s].
+        dq_dq: d q+ / dq, shape (nv, nv) [-].
+        dq_dv: d q+ / dv, shape (nv, nv) [s].
+        dq_dtau: d q+ / d tau, shape (nv, nv) [rad or m per N m or N].
+        dv_dq: d v+ / dq, shape (nv, nv) [1/s].
+        dv_dv: d v+ / dv, shape (nv, nv) [-].
+        dv_dtau: d v+ / d tau, shape (nv, nv) [rad/s or m/s per N m or N].
+    """
+
+    q: np.ndarray
+    v: np.ndarray
+    scheme: str
+    h: float
+    dq_dq: np.ndarray
+    dq_dv: np.ndarray
+    dq_dtau: np.ndarray
+    dv_dq: np.ndarray
+    dv_dv: np.ndarray
+    dv_dtau: np.ndarray
+
+
+class _FarFromJ(Exception):
+    """A DOP853 sample of the rank indicator fell below its cap: the step is rk43's."""
+
+
+class _Stepper:
+    """Forward-mode arithmetic of one step: every quantity is a pair (value, tangent) with
+    tangent columns [dq | dv | dtau] of the start state, shape (nv, 3 nv). On joints whose
+    ``integrate`` is x + v (revolute, prismatic, continuous) the tangent of
+    ``integrate(q, x)`` is the tangent of q plus that of x."""
+
+    def __init__(self, mech, tau, method, settings, sim_settings, mass_orthogonal) -> None:
+        self.mech, self.tau = mech, tau
+        self.method, self.settings, self.sim = method, settings, sim_settings
+        self.mass_orthogonal = mass_orthogonal and mech.nc > 0
+        self.data = mech.model.createData()
+        nv = mech.nv
+        self.dtau = np.hstack([np.zeros((nv, 2 * nv)), np.eye(nv)])
+
+    def accel(self, q, dq, v, dv, method: str):
+        """a(q, v, tau) of ``method`` and its tangent (:func:`forward_dynamics_derivatives`)."""
+        d = forward_dynamics_derivatives(
+            self.mech, q, v, self.tau, method=method, settings=self.settings
+        )
+        return d.a, d.da_dq @ dq + d.da_dv @ dv + d.da_dtau @ self.dtau
+
+    def min_norm(self, q, J, r, dr, dq):
+        """w = J^+ r (minimum norm) and its tangent: with y = (J J^T)^-1 r, w = J^T y,
+        dw = d(J^T y)|_y + J^T (J J^T)^-1 (dr - d(J w)|_w - J d(J^T y)|_y)."""
+        mech, data = self.mech, self.data
+        w = np.linalg.lstsq(J, r, rcond=None)[0]  # as simulate.problem.project
+        G = J @ J.T
+        y = np.linalg.solve(G, r)
+        D2 = _dJTlam_dq(mech, data, q, y) @ dq
+        rhs = dr - _dJw_dq(mech, data, q, w) @ dq - J @ D2
+        return w, D2 + J.T @ np.linalg.solve(G, rhs)
+
+    def project(self, q, dq, v, dv):
+        """:func:`closedchain.simulate.problem.project` and its tangent: Gauss-Newton on q
+        (minimum-norm corrections) to ``projection_tol``, then v onto J v = 0 (minimum
+        norm, or mass-orthogonal: the KKT solution that the augmented-Lagrangian
+        iteration of the stage projection converges to)."""
+        mech, sim = self.mech, self.sim
+        model = mech.model
+        J = None
+        for _ in range(sim.projection_iters):
+            phi = compute_phi(mech, q, backend="numpy")
+            J = compute_jacobian(mech, q, backend="numpy")
+            if np.max(np.abs(phi), initial=0.0) <= sim.projection_tol:
+                break
+            w, dw = self.min_norm(q, J, -phi, -J @ dq, dq)
+            q, dq = pin.integrate(model, q, w), dq + dw
+            J = None
+        if J is None:
+            J = compute_jacobian(mech, q, backend="numpy")
+        if mech.nc:
+            # The derivative of the iteration's limit: one more iteration at phi = 0 maps
+            # dq to (I - J^+ J) dq. Without it a start already within projection_tol
+            # (where the iteration stops at once) would not be projected at all.
+            dq = dq - np.linalg.lstsq(J, J @ dq, rcond=None)[0]
+        if not sim.project_velocities:
+            return q, dq, v, dv
+        data = self.data
+        if self.mass_orthogonal:
+            # M (v+ - v) + J^T mu = 0, J v+ = 0, differentiated at the solution.
+            M = mass_matrix(mech, q).M.copy()
+            nv, nc = mech.nv, mech.nc
+            K = np.zeros((nv + nc, nv + nc))
+            K[:nv, :nv], K[:nv, nv:], K[nv:, :nv] = M, J.T, J
+            sol = np.linalg.solve(K, np.concatenate([M @ v, np.zeros(nc)]))
+            v_new, mu = sol[:nv], sol[nv:]
+            rhs = np.vstack(
+                [
+                    M @ dv
+                    - _dMu_dq(model, data, q, v_new - v) @ dq
+                    - _dJTlam_dq(mech, data, q, mu) @ dq,
+                    -_dJw_dq(mech, data, q, v_new) @ dq,
+                ]
+            )
+            return q, dq, v_new, np.linalg.solve(K, rhs)[:nv]
+        dr = J @ dv + _dJw_dq(mech, data, q, v) @ dq
+        w, dw = self.min_norm(q, J, J @ v, dr, dq)
+        return q, dq, v - w, dv - dw
+
+    def rk4_projected(self, q, v, h):
+        """:func:`closedchain.simulate.fixed.rk4_projected` (stages and end projected)."""
+        model, nv = self.mech.model, self.mech.nv
+        dq0 = np.hstack([np.eye(nv), np.zeros((nv, 2 * nv))])
+        dv0 = np.hstack([np.zeros((nv, nv)), np.eye(nv), np.zeros((nv, nv))])
+        a, da = self.accel(q, dq0, v, dv0, self.method)
+        kx, dkx, ka, dka = [v], [dv0], [a], [da]
+        for c in (0.5, 0.5, 1.0):  # stage i from stage i - 1: x = c h k_x, v + c h k_a
+            qs = pin.integrate(model, q, c * h * kx[-1])
+            dqs = dq0 + c * h * dkx[-1]
+            vs, dvs = v + c * h * ka[-1], dv0 + c * h * dka[-1]
+            qs, dqs, vs, dvs = self.project(qs, dqs, vs, dvs)
+            a, da = self.accel(qs, dqs, vs, dvs, self.method)
+            kx.append(vs)  # chart.tangent_rate: the identity on these joints
+            dkx.append(dvs)
+            ka.append(a)
+            dka.append(da)
+        w = np.array([1.0, 2.0, 2.0, 1.0]) * h / 6.0
+        q_new = pin.integrate(model, q, sum(wi * k for wi, k in zip(w, kx, strict=True)))
+        dq_new = dq0 + sum(wi * k for wi, k in zip(w, dkx, strict=True))
+        v_new = v + sum(wi * k for wi, k in zip(w, ka, strict=True))
+        dv_new = dv0 + sum(wi * k for wi, k in zip(w, dka, strict=True))
+        return self.project(q_new, dq_new, v_new, dv_new)
+
+    def dop853(self, q, v, h, far_method: str):
+        """The DOP853 step of :class:`closedchain.simulate.dop853_rk43.Dop853Far`
+        (stages unprojected, the end projected with the minimum-norm correction); raises
+        _FarFromJ where a trial would hand over to rk43."""
+        mech = self.mech
+        model, nv = mech.model, mech.nv
+
+        def near(qs) -> bool:
+            J = compute_jacobian(mech, qs, backend="numpy")
+            return mech.nc > 0 and rank_indicator(J, cap=math.inf) < RANK_INDICATOR_CAP
+
+        if near(q):
+            raise _FarFromJ
+        dq0 = np.hstack([np.eye(nv), np.zeros((nv, 2 * nv))])
+        dv0 = np.hstack([np.zeros((nv, nv)), np.eye(nv), np.zeros((nv, nv))])
+        n_st = dop.N_STAGES
+        kx, ka = np.empty((n_st, nv)), np.empty((n_st, nv))
+        dkx, dka = np.empty((n_st, nv, 3 * nv)), np.empty((n_st, nv, 3 * nv))
+        kx[0], dkx[0] = v, dv0
+        ka[0], dka[0] = self.accel(q, dq0, v, dv0, far_method)
+        for s in range(1, n_st):
+            A = h * dop.A[s, :s]
+            x, dx = A @ kx[:s], np.tensordot(A, dkx[:s], axes=1)
+            vs, dvs = v + A @ ka[:s], dv0 + np.tensordot(A, dka[:s], axes=1)
+            qs = pin.integrate(model, q, x)
+            ka[s], dka[s] = self.accel(qs, dq0 + dx, vs, dvs, far_method)
+            kx[s], dkx[s] = vs, dvs
+            if s in (INDICATOR_STAGE_A, INDICATOR_STAGE_B) and near(qs):
+                raise _FarFromJ
+        B = h * dop.B
+        q_new = pin.integrate(model, q, B @ kx)
+        dq_new = dq0 + np.tensordot(B, dkx, axes=1)
+        v_new, dv_new = v + B @ ka, dv0 + np.tensordot(B, dka, axes=1)
+        saved, self.mass_orthogonal = self.mass_orthogonal, False
+        try:
+            out = self.project(q_new, dq_new, v_new, dv_new)
+        finally:
+            self.mass_orthogonal = saved
+        if near(out[0]):
+            raise _FarFromJ
+        return out
+
+
+@exclusive
+def step_derivatives(
+    mech: Mechanism,
+    q: np.ndarray,
+    v: np.ndarray,
+    tau: np.ndarray | None,
+    h: float,
+    *,
+    integrator: str = "default",
+    method: str = DEFAULT_METHOD,
+    settings: SolverSettings = DEFAULT_SETTINGS,
+    simulation_settings: SimulationSettings = DEFAULT_SIMULATION_SETTINGS,
+) -> StepDerivatives:
+    r"""Take one integration step of length h and return its derivatives in (q, v, tau).
+
+    The step follows the library's arithmetic (:mod:`closedchain.simulate`), with a
+    constant tau over the step:
+
+    * ``"rk4"`` (with its default stabilization, ``stage-projection``): one
+      :func:`~closedchain.simulate.fixed.rk4_projected` step: rk4 in the chart about q,
+      each of stages 2 to 4 and the end projected onto phi = 0, J v = 0, the velocity
+      mass-orthogonally where the method is singular-robust (the default), else with the
+      minimum-norm correction; the accelerations by ``method``;
+    * ``"default"`` (``"dop853-rk43"``): where the rank indicator of J is at its cap at
+      the start, at DOP853's stages 5 and 8 and at the end, the DOP853 step of
+      :class:`~closedchain.simulate.dop853_rk43.Dop853Far` (stages unprojected, kkt's
+      accelerations for the augmented Lagrangian, the end projected with the minimum-norm
+      correction); elsewhere the rk4 step above, as rk43 takes it (a run's rk43 may
+      retake it as substeps near a crossing: not here). The step-size control and the
+      error estimate are not part of the step.
+
+    Each stage is differentiated in forward mode: the accelerations with
+    :func:`forward_dynamics_derivatives` (the exact KKT derivative, at the stage's
+    solution), the position projection through each of its Gauss-Newton iterations
+    :math:`q \leftarrow q \oplus (-J^+ \phi)` with
+
+    .. math::
+
+        d(J^+ r) = d(J^\top)\, y + J^\top (J J^\top)^{-1}
+        \bigl(dr - d(J)\, J^+ r - J\, d(J^\top)\, y\bigr), \qquad y = (J J^\top)^{-1} r,
+
+    (d(J) w and d(J^T) y at fixed w, y from :func:`constraint_derivatives`' rows), the
+    minimum-norm velocity projection likewise, and the mass-orthogonal one as the KKT
+    system :math:`M (v^+ - v) + J^\top \mu = 0`, :math:`J v^+ = 0` (the limit of the
+    augmented-Lagrangian iteration that computes it).
+
+    Args:
+        mech: the mechanism; its tree joints must be revolute, prismatic or continuous
+            (a free-flyer, spherical or planar joint's chart rate D(x)^-1 v is not
+            differentiated).
+        q: configuration at the step's start, shape (nq,).
+        v: velocity at the step's start, shape (nv,) [rad/s or m/s].
+        tau: generalized forces over the step, shape (nv,) [N m or N]; zeros when None.
+        h: the step [s], > 0.
+        integrator: ``"rk4"``, ``"dop853-rk43"`` or ``"default"`` (the same).
+        method: the forward-dynamics method of the run (:data:`closedchain.METHODS`).
+        settings: its settings (``SolverSettings``).
+        simulation_settings: ``projection_tol``, ``projection_iters``,
+            ``project_velocities`` (:class:`closedchain.SimulationSettings`).
+
+    Returns:
+        q+, v+ and their derivatives (:class:`StepDerivatives`).
+
+    Raises:
+        UnknownChoiceError: an integrator other than :data:`STEP_INTEGRATORS`.
+        ClosedChainError: h not a positive number; a joint with a curved configuration
+            space.
+        SingularConfigurationError: a stage's KKT matrix is singular
+            (:func:`forward_dynamics_derivatives`).
+    """
+    if integrator not in STEP_INTEGRATORS:
+        raise UnknownChoiceError("integrator", integrator, STEP_INTEGRATORS)
+    check_settings("settings", settings, SolverSettings)
+    check_settings("simulation_settings", simulation_settings, SimulationSettings)
+    if not (isinstance(h, (int, float)) and math.isfinite(h) and h > 0.0):
+        raise ClosedChainError(f"h must be a positive number of seconds, got {h!r}")
+    curved = curved_blocks(mech.model)
+    if curved:
+        names = [mech.coordinate_names[b.start] for b in curved]
+        raise ClosedChainError(
+            f"{mech.name}: step_derivatives differentiates steps on revolute, prismatic and "
+            f"continuous joints only; {', '.join(names)} belong to free-flyer, spherical or "
+            "planar joints"
+        )
+    q = mech.check_q(q, "q")
+    v = mech.check_v(v, "v")
+    tau = np.zeros(mech.nv) if tau is None else mech.check_v(tau, "tau")
+    get_method(method)  # an unknown method is refused before any work
+    mass_orthogonal = METHOD_CAPABILITIES[method].singular_robust
+    stepper = _Stepper(mech, tau, method, settings, simulation_settings, mass_orthogonal)
+    scheme = "rk4-projected"
+    out = None
+    if integrator != "rk4":
+        try:
+            out = stepper.dop853(q, v, float(h), FAR_METHODS.get(method, method))
+            scheme = "dop853"
+        except _FarFromJ:
+            out = None
+    if out is None:
+        out = stepper.rk4_projected(q, v, float(h))
+    q_new, dq, v_new, dv = out
+    nv = mech.nv
+    return StepDerivatives(
+        q=q_new,
+        v=v_new,
+        scheme=scheme,
+        h=float(h),
+        dq_dq=dq[:, :nv].copy(),
+        dq_dv=dq[:, nv : 2 * nv].copy(),
+        dq_dtau=dq[:, 2 * nv :].copy(),
+        dv_dq=dv[:, :nv].copy(),
+        dv_dv=dv[:, nv : 2 * nv].copy(),
+        dv_dtau=dv[:, 2 * nv :].copy(),
+    )
